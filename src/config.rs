@@ -1,0 +1,16 @@
+//! Reading JSON configuration files with errors that name the file.
+
+use crate::{Error, Result};
+use serde::de::DeserializeOwned;
+use std::path::Path;
+
+/// Read and parse a JSON file; errors name the file and what was wrong.
+pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| Error::Json { path: path.to_path_buf(), source: e })
+}
+
+/// Parse a JSON value into a typed config; `file` names the source in errors.
+pub fn from_value<T: DeserializeOwned>(v: &serde_json::Value, file: &str) -> Result<T> {
+    serde_json::from_value(v.clone()).map_err(|e| Error::config(file, "args", e.to_string()))
+}
