@@ -1,0 +1,318 @@
+//! Building blocks shared by the transformer models (TRELLIS `modules/`):
+//! norms, timestep and position embeddings, attention, MLP, and the
+//! adaLN-modulated cross-attention block. Everything is plain candle ops, so
+//! it stays differentiable for training.
+
+use candle_core::{DType, Module, Result, Tensor, D};
+use candle_nn::{Linear, VarBuilder};
+
+/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`, `{prefix}.bias`).
+pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
+    candle_nn::linear(in_dim, out_dim, vb)
+}
+
+/// LayerNorm over the last dim without affine parameters (computed in f32).
+pub fn layer_norm_plain(x: &Tensor, eps: f64) -> Result<Tensor> {
+    let dtype = x.dtype();
+    let x = x.to_dtype(DType::F32)?;
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let xc = x.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+    xc.broadcast_div(&(var + eps)?.sqrt()?)?.to_dtype(dtype)
+}
+
+/// Affine LayerNorm over the last dim (`{prefix}.weight`, `{prefix}.bias`).
+#[derive(Debug, Clone)]
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+}
+
+impl LayerNorm {
+    pub fn new(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
+        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps })
+    }
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        layer_norm_plain(x, self.eps)?.broadcast_mul(&self.weight)?.broadcast_add(&self.bias)
+    }
+}
+
+/// Sinusoidal timestep embedding followed by an MLP (`t_embedder.mlp.{0,2}`).
+/// `t` is on the model scale (the sampler passes 1000·t). Embedding is [cos, sin].
+#[derive(Debug, Clone)]
+pub struct TimestepEmbedder {
+    mlp0: Linear,
+    mlp2: Linear,
+    freq_size: usize,
+}
+
+impl TimestepEmbedder {
+    pub fn new(hidden: usize, vb: VarBuilder) -> Result<Self> {
+        let freq_size = 256;
+        Ok(Self { mlp0: linear(freq_size, hidden, vb.pp("mlp.0"))?, mlp2: linear(hidden, hidden, vb.pp("mlp.2"))?, freq_size })
+    }
+
+    pub fn sinusoidal(t: &Tensor, dim: usize) -> Result<Tensor> {
+        let half = dim / 2;
+        let freqs: Vec<f32> =
+            (0..half).map(|k| (-(10000f64.ln()) * k as f64 / half as f64).exp() as f32).collect();
+        let freqs = Tensor::from_vec(freqs, (1, half), t.device())?;
+        let args = t.to_dtype(DType::F32)?.unsqueeze(1)?.broadcast_mul(&freqs)?;
+        Tensor::cat(&[args.cos()?, args.sin()?], 1)
+    }
+
+    pub fn forward(&self, t: &Tensor) -> Result<Tensor> {
+        let e = Self::sinusoidal(t, self.freq_size)?;
+        self.mlp2.forward(&self.mlp0.forward(&e)?.silu()?)
+    }
+}
+
+/// Absolute sin/cos position embedding of integer coordinates (TRELLIS
+/// `AbsolutePositionEmbedder`): per axis [sin(x·f), cos(x·f)] with
+/// `freq_dim = C/3/2` frequencies, axes concatenated, zero-padded to C.
+/// `coords` is `[N, 3]` (any numeric dtype); returns `[N, C]` f32.
+pub fn abs_position_embedding(coords: &Tensor, channels: usize) -> Result<Tensor> {
+    let n = coords.dim(0)?;
+    let ndim = coords.dim(1)?;
+    let freq_dim = channels / ndim / 2;
+    let freqs: Vec<f32> = (0..freq_dim).map(|k| (1.0 / 10000f64.powf(k as f64 / freq_dim as f64)) as f32).collect();
+    let freqs = Tensor::from_vec(freqs, (1, 1, freq_dim), coords.device())?;
+    let x = coords.to_dtype(DType::F32)?.unsqueeze(2)?.broadcast_mul(&freqs)?; // [N, 3, F]
+    let emb = Tensor::cat(&[x.sin()?, x.cos()?], 2)?.reshape((n, ndim * 2 * freq_dim))?;
+    let used = ndim * 2 * freq_dim;
+    if used < channels {
+        let pad = Tensor::zeros((n, channels - used), DType::F32, coords.device())?;
+        Tensor::cat(&[emb, pad], 1)
+    } else {
+        Ok(emb)
+    }
+}
+
+/// `MultiHeadRMSNorm`: L2-normalise each head vector, times gamma[h, :]·√d.
+#[derive(Debug, Clone)]
+pub struct MultiHeadRmsNorm {
+    gamma: Tensor, // [H, D]
+    scale: f64,
+}
+
+impl MultiHeadRmsNorm {
+    pub fn new(heads: usize, head_dim: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self { gamma: vb.get((heads, head_dim), "gamma")?, scale: (head_dim as f64).sqrt() })
+    }
+    /// `x`: `[B, L, H, D]`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dtype = x.dtype();
+        let x = x.to_dtype(DType::F32)?;
+        // F.normalize uses max(norm, 1e-12).
+        let norm = x.sqr()?.sum_keepdim(D::Minus1)?.sqrt()?.clamp(1e-12, f64::INFINITY)?;
+        (x.broadcast_div(&norm)?.broadcast_mul(&self.gamma)? * self.scale)?.to_dtype(dtype)
+    }
+}
+
+/// Softmax attention. `q`: `[B, H, Lq, D]`, `k`/`v`: `[B, H, Lk, D]` → `[B, H, Lq, D]`.
+/// Query rows are processed in chunks so the score matrix never exceeds
+/// about 32 M elements, whatever the sequence length.
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let (b, h, lq, d) = q.dims4()?;
+    let lk = k.dim(2)?;
+    let scale = 1.0 / (d as f64).sqrt();
+    let kt = k.transpose(2, 3)?.contiguous()?;
+    let v = v.contiguous()?;
+    let budget = 32usize << 20;
+    let chunk = (budget / (b * h * lk).max(1)).clamp(1, lq.max(1));
+    let mut outs = Vec::with_capacity(lq.div_ceil(chunk));
+    let mut start = 0;
+    while start < lq {
+        let len = chunk.min(lq - start);
+        let qc = (q.narrow(2, start, len)? * scale)?.contiguous()?;
+        let s = qc.matmul(&kt)?;
+        let p = candle_nn::ops::softmax_last_dim(&s)?;
+        outs.push(p.matmul(&v)?);
+        start += len;
+    }
+    if outs.len() == 1 {
+        Ok(outs.pop().unwrap())
+    } else {
+        Tensor::cat(&outs, 2)
+    }
+}
+
+/// TRELLIS `FeedForwardNet`: Linear → GELU(tanh) → Linear (`mlp.0`, `mlp.2`).
+#[derive(Debug, Clone)]
+pub struct FeedForward {
+    fc1: Linear,
+    fc2: Linear,
+}
+
+impl FeedForward {
+    pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder) -> Result<Self> {
+        let hidden = (channels as f64 * mlp_ratio) as usize;
+        Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"))?, fc2: linear(hidden, channels, vb.pp("mlp.2"))? })
+    }
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.fc2.forward(&self.fc1.forward(x)?.gelu()?)
+    }
+}
+
+/// TRELLIS `MultiHeadAttention` (self: `to_qkv`; cross: `to_q` + `to_kv`; `to_out`),
+/// with optional QK RMS-norm.
+#[derive(Debug, Clone)]
+pub struct MultiHeadAttention {
+    pub heads: usize,
+    pub head_dim: usize,
+    to_qkv: Option<Linear>,
+    to_q: Option<Linear>,
+    to_kv: Option<Linear>,
+    q_norm: Option<MultiHeadRmsNorm>,
+    k_norm: Option<MultiHeadRmsNorm>,
+    to_out: Linear,
+}
+
+impl MultiHeadAttention {
+    /// `ctx_channels = None` builds self-attention.
+    pub fn new(channels: usize, heads: usize, ctx_channels: Option<usize>, qk_rms_norm: bool, vb: VarBuilder) -> Result<Self> {
+        let head_dim = channels / heads;
+        let (to_qkv, to_q, to_kv) = match ctx_channels {
+            None => (Some(linear(channels, 3 * channels, vb.pp("to_qkv"))?), None, None),
+            Some(c) => (None, Some(linear(channels, channels, vb.pp("to_q"))?), Some(linear(c, 2 * channels, vb.pp("to_kv"))?)),
+        };
+        let (q_norm, k_norm) = if qk_rms_norm {
+            (
+                Some(MultiHeadRmsNorm::new(heads, head_dim, vb.pp("q_rms_norm"))?),
+                Some(MultiHeadRmsNorm::new(heads, head_dim, vb.pp("k_rms_norm"))?),
+            )
+        } else {
+            (None, None)
+        };
+        Ok(Self { heads, head_dim, to_qkv, to_q, to_kv, q_norm, k_norm, to_out: linear(channels, channels, vb.pp("to_out"))? })
+    }
+
+    /// Project to per-head q, k, v, each `[B, L, H, D]` (qk-norm applied).
+    /// For cross-attention `ctx` supplies k and v.
+    pub fn qkv(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<(Tensor, Tensor, Tensor)> {
+        let (b, l, _) = x.dims3()?;
+        let (h, d) = (self.heads, self.head_dim);
+        let (q, k, v) = match (&self.to_qkv, ctx) {
+            (Some(to_qkv), None) => {
+                let qkv = to_qkv.forward(x)?.reshape((b, l, 3, h, d))?;
+                (qkv.narrow(2, 0, 1)?.squeeze(2)?, qkv.narrow(2, 1, 1)?.squeeze(2)?, qkv.narrow(2, 2, 1)?.squeeze(2)?)
+            }
+            (None, Some(ctx)) => {
+                let lc = ctx.dim(1)?;
+                let q = self.to_q.as_ref().unwrap().forward(x)?.reshape((b, l, h, d))?;
+                let kv = self.to_kv.as_ref().unwrap().forward(ctx)?.reshape((b, lc, 2, h, d))?;
+                (q, kv.narrow(2, 0, 1)?.squeeze(2)?, kv.narrow(2, 1, 1)?.squeeze(2)?)
+            }
+            _ => candle_core::bail!("attention: context given to self-attention or missing for cross-attention"),
+        };
+        let q = match &self.q_norm { Some(n) => n.forward(&q)?, None => q };
+        let k = match &self.k_norm { Some(n) => n.forward(&k)?, None => k };
+        Ok((q, k, v))
+    }
+
+    /// Output projection of `[B, L, H, D]` attention results.
+    pub fn out(&self, o: &Tensor) -> Result<Tensor> {
+        let (b, l, h, d) = o.dims4()?;
+        self.to_out.forward(&o.reshape((b, l, h * d))?)
+    }
+
+    /// Full attention: `x` `[B, L, C]`, optional context `[B, Lc, Cc]`.
+    pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        let (q, k, v) = self.qkv(x, ctx)?;
+        let o = attention(&q.transpose(1, 2)?, &k.transpose(1, 2)?, &v.transpose(1, 2)?)?;
+        self.out(&o.transpose(1, 2)?)
+    }
+}
+
+/// TRELLIS `ModulatedTransformerCrossBlock`: adaLN-modulated self-attention,
+/// un-modulated cross-attention (affine norm2), modulated MLP.
+#[derive(Debug, Clone)]
+pub struct ModulatedTransformerCrossBlock {
+    pub self_attn: MultiHeadAttention,
+    pub cross_attn: MultiHeadAttention,
+    norm2: LayerNorm,
+    mlp: FeedForward,
+    ada_ln: Option<Linear>,
+}
+
+/// Hyper-parameters of a modulated cross block.
+#[derive(Debug, Clone, Copy)]
+pub struct CrossBlockConfig {
+    pub channels: usize,
+    pub ctx_channels: usize,
+    pub heads: usize,
+    pub mlp_ratio: f64,
+    pub share_mod: bool,
+    pub qk_rms_norm: bool,
+    pub qk_rms_norm_cross: bool,
+}
+
+impl ModulatedTransformerCrossBlock {
+    pub fn new(cfg: &CrossBlockConfig, vb: VarBuilder) -> Result<Self> {
+        let c = cfg.channels;
+        Ok(Self {
+            self_attn: MultiHeadAttention::new(c, cfg.heads, None, cfg.qk_rms_norm, vb.pp("self_attn"))?,
+            cross_attn: MultiHeadAttention::new(c, cfg.heads, Some(cfg.ctx_channels), cfg.qk_rms_norm_cross, vb.pp("cross_attn"))?,
+            norm2: LayerNorm::new(c, 1e-6, vb.pp("norm2"))?,
+            mlp: FeedForward::new(c, cfg.mlp_ratio, vb.pp("mlp"))?,
+            ada_ln: if cfg.share_mod { None } else { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) },
+        })
+    }
+
+    /// `x` `[B, L, C]`; `emb` is the timestep embedding `[B, C]` or, with
+    /// `share_mod`, the shared modulation `[B, 6C]`; `cond` `[B, Lc, Cc]`.
+    pub fn forward(&self, x: &Tensor, emb: &Tensor, cond: &Tensor) -> Result<Tensor> {
+        let m = match &self.ada_ln {
+            Some(l) => l.forward(&emb.silu()?)?,
+            None => emb.clone(),
+        };
+        let ch = m.chunk(6, 1)?;
+        let (shift_msa, scale_msa, gate_msa) = (ch[0].unsqueeze(1)?, ch[1].unsqueeze(1)?, ch[2].unsqueeze(1)?);
+        let (shift_mlp, scale_mlp, gate_mlp) = (ch[3].unsqueeze(1)?, ch[4].unsqueeze(1)?, ch[5].unsqueeze(1)?);
+
+        let h = layer_norm_plain(x, 1e-6)?.broadcast_mul(&(scale_msa + 1.0)?)?.broadcast_add(&shift_msa)?;
+        let h = self.self_attn.forward(&h, None)?.broadcast_mul(&gate_msa)?;
+        let x = (x + h)?;
+
+        let h = self.cross_attn.forward(&self.norm2.forward(&x)?, Some(cond))?;
+        let x = (x + h)?;
+
+        let h = layer_norm_plain(&x, 1e-6)?.broadcast_mul(&(scale_mlp + 1.0)?)?.broadcast_add(&shift_mlp)?;
+        let h = self.mlp.forward(&h)?.broadcast_mul(&gate_mlp)?;
+        x + h
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn chunked_attention_matches_unchunked() -> Result<()> {
+        let dev = Device::Cpu;
+        let q = Tensor::randn(0f32, 1.0, (1, 2, 37, 8), &dev)?;
+        let k = Tensor::randn(0f32, 1.0, (1, 2, 53, 8), &dev)?;
+        let v = Tensor::randn(0f32, 1.0, (1, 2, 53, 8), &dev)?;
+        let got = attention(&q, &k, &v)?;
+        let s = (q.matmul(&k.t()?)? / (8f64).sqrt())?;
+        let want = candle_nn::ops::softmax_last_dim(&s)?.matmul(&v)?;
+        let d = (got - want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-5, "diff {d}");
+        Ok(())
+    }
+
+    #[test]
+    fn position_embedding_pads_to_channels() -> Result<()> {
+        let c = Tensor::new(&[[0u32, 1, 2], [3, 4, 5]], &Device::Cpu)?;
+        let e = abs_position_embedding(&c, 64)?;
+        assert_eq!(e.dims(), &[2, 64]);
+        // freq_dim 10: channel 0 is sin(x·1), channel 10 is cos(x·1).
+        let v = e.to_vec2::<f32>()?;
+        assert!((v[1][0] - 3f32.sin()).abs() < 1e-6);
+        assert!((v[1][10] - 3f32.cos()).abs() < 1e-6);
+        assert_eq!(&v[1][60..], &[0.0; 4]);
+        Ok(())
+    }
+}
