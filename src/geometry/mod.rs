@@ -1,1 +1,3 @@
-//! geometry
+//! Geometry: object poses (rotation encodings, normalisation).
+
+pub mod pose;

@@ -3,3 +3,7 @@
 //! Stage 2: structured-latent flow.
 
 pub mod common;
+pub mod config;
+pub mod embedders;
+pub mod sampler;
+pub mod ss_flow;

@@ -1,0 +1,175 @@
+//! The architecture file (`models/recgen-*.json`): one section per module with
+//! its upstream class `name` and constructor `args` (kept as JSON so each
+//! module's own config deserialiser reads it), the samplers, the SLat latent
+//! normalisation and the pose settings.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::sampler::SamplerSettings;
+use super::ss_flow::SsFlowConfig;
+use crate::geometry::pose::{NineDLayout, PoseStats};
+use crate::{Error, Result};
+
+/// One module: upstream class name plus constructor args.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ModuleSpec {
+    pub name: String,
+    pub args: serde_json::Value,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SamplerSpecs {
+    pub sparse_structure: SamplerSettings,
+    pub slat: SamplerSettings,
+}
+
+/// Per-channel mean/std of the SLat latent (`slat = x·std + mean` after sampling).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SlatNormalization {
+    pub mean: Vec<f32>,
+    pub std: Vec<f32>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PoseSpec {
+    pub ss_representation: String,
+    pub slat_representation: String,
+    /// Stage-1 z-score stats file, relative to the config file's folder.
+    pub ss_stats: String,
+    /// Stage-2 z-score stats file, relative to the config file's folder.
+    pub slat_stats: String,
+    /// `pipeline_columns` (released pipeline) or `row_major` (training data).
+    pub nine_d_layout: String,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RecGenConfig {
+    pub name: String,
+    pub image_cond_model: ModuleSpec,
+    pub ss_flow: ModuleSpec,
+    pub ss_decoder: ModuleSpec,
+    pub slat_flow: ModuleSpec,
+    pub slat_dec_mesh: ModuleSpec,
+    pub slat_dec_gs: ModuleSpec,
+    pub samplers: SamplerSpecs,
+    pub slat_normalization: SlatNormalization,
+    pub pose: PoseSpec,
+    /// Folder of the file, for resolving relative paths (not serialised).
+    #[serde(skip)]
+    pub base_dir: PathBuf,
+}
+
+impl RecGenConfig {
+    /// Read and validate a config file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let mut cfg: Self = crate::config::read_json(path)?;
+        cfg.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        cfg.validate(&path.display().to_string())?;
+        Ok(cfg)
+    }
+
+    /// The stage-1 flow model config.
+    pub fn ss_flow_config(&self) -> Result<SsFlowConfig> {
+        SsFlowConfig::from_value(&self.ss_flow.args, "ss_flow.args")
+    }
+
+    pub fn nine_d_layout(&self) -> Result<NineDLayout> {
+        match self.pose.nine_d_layout.as_str() {
+            "pipeline_columns" => Ok(NineDLayout::PipelineColumns),
+            "row_major" => Ok(NineDLayout::RowMajor),
+            other => Err(Error::config("model config", "pose.nine_d_layout", format!("`{other}`: expected pipeline_columns or row_major"))),
+        }
+    }
+
+    pub fn ss_pose_stats(&self) -> Result<PoseStats> {
+        PoseStats::from_json_file(&self.base_dir.join(&self.pose.ss_stats))
+    }
+
+    pub fn slat_pose_stats(&self) -> Result<PoseStats> {
+        PoseStats::from_json_file(&self.base_dir.join(&self.pose.slat_stats))
+    }
+
+    fn validate(&self, file: &str) -> Result<()> {
+        let ss = SsFlowConfig::from_value(&self.ss_flow.args, file)?;
+        if ss.pose_representation.as_deref() != Some(self.pose.ss_representation.as_str()) {
+            return Err(Error::config(file, "pose.ss_representation", "must match ss_flow.args.pose_representation"));
+        }
+        let slat_repr = self.slat_flow.args.get("pose_representation").and_then(|v| v.as_str());
+        if slat_repr != Some(self.pose.slat_representation.as_str()) {
+            return Err(Error::config(file, "pose.slat_representation", "must match slat_flow.args.pose_representation"));
+        }
+        self.samplers.sparse_structure.validate(file)?;
+        self.samplers.slat.validate(file)?;
+        let n = &self.slat_normalization;
+        if n.mean.len() != n.std.len() || n.std.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(Error::config(file, "slat_normalization", "mean and std need equal lengths and positive std"));
+        }
+        for (key, spec) in [
+            ("image_cond_model", &self.image_cond_model),
+            ("ss_decoder", &self.ss_decoder),
+            ("slat_flow", &self.slat_flow),
+            ("slat_dec_mesh", &self.slat_dec_mesh),
+            ("slat_dec_gs", &self.slat_dec_gs),
+        ] {
+            if !spec.args.is_object() {
+                return Err(Error::config(file, format!("{key}.args"), "must be an object"));
+            }
+        }
+        let lat = self.ss_decoder.args.get("latent_channels").and_then(|v| v.as_u64());
+        if lat != Some(ss.out_channels as u64) {
+            return Err(Error::config(file, "ss_decoder.args.latent_channels", "must equal ss_flow out_channels"));
+        }
+        let dino = self.image_cond_model.args.get("hidden_size").and_then(|v| v.as_u64());
+        if dino != Some(ss.cond_channels as u64) {
+            return Err(Error::config(file, "image_cond_model.args.hidden_size", "must equal ss_flow cond_channels"));
+        }
+        self.nine_d_layout()?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn models_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("models")
+    }
+
+    #[test]
+    fn shipped_configs_parse() -> Result<()> {
+        for (file, c, blocks) in [("recgen-large.json", 1024, 24), ("recgen-tiny.json", 64, 2)] {
+            let cfg = RecGenConfig::load(&models_dir().join(file))?;
+            let ss = cfg.ss_flow_config()?;
+            assert_eq!((ss.model_channels, ss.num_blocks), (c, blocks), "{file}");
+            assert_eq!(ss.num_pose_tokens, 2);
+            assert_eq!(ss.pose_channels(), Some(10));
+            assert!(ss.use_point_embedder && ss.use_mask_embedder && ss.use_frame_token_embedder);
+            assert_eq!(cfg.slat_normalization.mean.len(), 8);
+            assert_eq!(cfg.nine_d_layout()?, NineDLayout::PipelineColumns);
+            cfg.ss_pose_stats()?;
+            cfg.slat_pose_stats()?;
+            // Module sections keep the upstream arg names.
+            assert!(cfg.slat_flow.args.get("io_block_channels").is_some());
+            assert!(cfg.slat_dec_mesh.args.get("representation_config").is_some());
+        }
+        let large = RecGenConfig::load(&models_dir().join("recgen-large.json"))?;
+        assert_eq!(large.samplers.sparse_structure.steps, 25);
+        assert_eq!(large.ss_flow_config()?.heads(), 16);
+        Ok(())
+    }
+
+    #[test]
+    fn inconsistent_config_is_rejected() {
+        let mut v: serde_json::Value = crate::config::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
+        v["pose"]["ss_representation"] = "9d_translation_scale".into();
+        let dir = std::env::temp_dir().join(format!("recon-cfg-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("bad.json");
+        std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
+        assert!(RecGenConfig::load(&p).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
