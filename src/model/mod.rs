@@ -3,3 +3,5 @@
 //! Stage 2: structured-latent flow.
 
 pub mod common;
+pub mod dense3d;
+pub mod ss_decoder;
