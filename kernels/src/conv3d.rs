@@ -87,10 +87,27 @@ impl SendPtr {
     }
 }
 
+/// Channel counts from which the 3×3×3 / pad-1 convolution switches to
+/// Winograd F(2³, 3³): it needs 3.4× fewer multiplies, but its per-tap GEMMs
+/// are `Cout × Cin`, too small to run well for narrow layers.
+const WINOGRAD_MIN_CHANNELS: usize = 64;
+
 /// `out = conv3d(x, weight) + bias`, or `out += conv3d(x, weight) + bias` when
 /// `accumulate` (used to fuse a residual add). Returns an error, without
 /// touching `out`, when the slice lengths do not match `s`.
+///
+/// Wide 3×3×3 pad-1 layers run [`conv3d_winograd`], everything else
+/// [`conv3d_im2col`].
 pub fn conv3d(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+    if s.k == 3 && s.pad == 1 && s.cin >= WINOGRAD_MIN_CHANNELS && s.cout >= WINOGRAD_MIN_CHANNELS {
+        conv3d_winograd(x, s, weight, bias, out, accumulate)
+    } else {
+        conv3d_im2col(x, s, weight, bias, out, accumulate)
+    }
+}
+
+/// im2col + GEMM over bounded chunks of output rows; any `k`/`pad`. Same contract as [`conv3d`].
+pub fn conv3d_im2col(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
     let (od, oh, ow) = s.out_dims().expect("checked");
     let kk = s.cin * s.k * s.k * s.k;
@@ -199,6 +216,201 @@ fn im2col_rows(xb: &[f32], s: &Conv3dShape, (oh, ow): (usize, usize), r0: usize,
             }
         }
     }
+}
+
+/// Winograd F(2,3) transforms (Lavin & Gray 2015), applied along each axis.
+#[inline(always)]
+fn wino_bt(d: [f32; 4]) -> [f32; 4] {
+    [d[0] - d[2], d[1] + d[2], d[2] - d[1], d[1] - d[3]]
+}
+#[inline(always)]
+fn wino_g(g: [f32; 3]) -> [f32; 4] {
+    [g[0], 0.5 * (g[0] + g[1] + g[2]), 0.5 * (g[0] - g[1] + g[2]), g[2]]
+}
+#[inline(always)]
+fn wino_at(m: [f32; 4]) -> [f32; 2] {
+    [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
+}
+
+/// Tiles (2×2×2 outputs each) per Winograd chunk: bounds the transformed
+/// input/output buffers to `64 · (Cin + Cout) · TILE_CHUNK` floats.
+const TILE_CHUNK: usize = 128;
+
+/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³): each 2×2×2 output tile is
+/// `Aᵀ [ (G g Gᵀ) ⊙ (Bᵀ d B) ] A` per axis, and the elementwise product summed
+/// over input channels becomes 64 independent `[Cout, Cin] × [Cin, tiles]`
+/// GEMMs. Weights are transformed once per call (a transient `64·Cout·Cin`
+/// buffer); tiles are processed in chunks of [`TILE_CHUNK`]. Same contract as
+/// [`conv3d`], restricted to `k = 3, pad = 1`.
+pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+    s.check(x, weight, bias, out)?;
+    if s.k != 3 || s.pad != 1 {
+        return Err(format!("conv3d_winograd: only k=3, pad=1 (got k={}, pad={})", s.k, s.pad));
+    }
+    let (cin, cout, d, h, w) = (s.cin, s.cout, s.d, s.h, s.w);
+    let plane = d * h * w;
+    let (td, th, tw) = (d.div_ceil(2), h.div_ceil(2), w.div_ceil(2));
+    let ntiles = td * th * tw;
+
+    // U[e][co][ci] = (G g Gᵀ) of weight (co, ci), e = (z·4 + y)·4 + x.
+    let mut u = vec![0f32; 64 * cout * cin];
+    let u_ptr = SendPtr(u.as_mut_ptr());
+    (0..cout).into_par_iter().for_each(|co| {
+        for ci in 0..cin {
+            let g = &weight[(co * cin + ci) * 27..][..27];
+            let mut t1 = [0f32; 36]; // [3 z][3 y][4 x]
+            for zy in 0..9 {
+                let r = wino_g([g[zy * 3], g[zy * 3 + 1], g[zy * 3 + 2]]);
+                t1[zy * 4..zy * 4 + 4].copy_from_slice(&r);
+            }
+            let mut t2 = [0f32; 48]; // [3 z][4 y][4 x]
+            for z in 0..3 {
+                for xx in 0..4 {
+                    let r = wino_g([t1[(z * 3) * 4 + xx], t1[(z * 3 + 1) * 4 + xx], t1[(z * 3 + 2) * 4 + xx]]);
+                    for (y, v) in r.iter().enumerate() {
+                        t2[(z * 4 + y) * 4 + xx] = *v;
+                    }
+                }
+            }
+            for yx in 0..16 {
+                let r = wino_g([t2[yx], t2[16 + yx], t2[32 + yx]]);
+                for (z, v) in r.iter().enumerate() {
+                    // SAFETY: (co, ci) is written by this job only.
+                    unsafe { *u_ptr.get().add(((z * 16 + yx) * cout + co) * cin + ci) = *v };
+                }
+            }
+        }
+    });
+
+    let tc_max = TILE_CHUNK.min(ntiles);
+    let mut v = vec![0f32; 64 * cin * tc_max];
+    let mut m = vec![0f32; 64 * cout * tc_max];
+    for b in 0..s.batch {
+        let xb = &x[b * cin * plane..][..cin * plane];
+        let ob = &mut out[b * cout * plane..][..cout * plane];
+        for t0 in (0..ntiles).step_by(tc_max) {
+            let tc = tc_max.min(ntiles - t0);
+            // V[e][ci][t] = Bᵀ d B of the 4×4×4 input patch of tile t.
+            let v_ptr = SendPtr(v.as_mut_ptr());
+            (0..cin).into_par_iter().for_each(|ci| {
+                let xc = &xb[ci * plane..][..plane];
+                for tl in 0..tc {
+                    let t = t0 + tl;
+                    let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
+                    let mut p = [0f32; 64];
+                    for a in 0..4 {
+                        let zi = (2 * tz + a) as isize - 1;
+                        if zi < 0 || zi >= d as isize {
+                            continue;
+                        }
+                        for bb in 0..4 {
+                            let yi = (2 * ty + bb) as isize - 1;
+                            if yi < 0 || yi >= h as isize {
+                                continue;
+                            }
+                            let row = &xc[(zi as usize * h + yi as usize) * w..][..w];
+                            for c in 0..4 {
+                                let xi = (2 * tx + c) as isize - 1;
+                                if xi >= 0 && xi < w as isize {
+                                    p[(a * 4 + bb) * 4 + c] = row[xi as usize];
+                                }
+                            }
+                        }
+                    }
+                    for zy in 0..16 {
+                        let r = wino_bt([p[zy * 4], p[zy * 4 + 1], p[zy * 4 + 2], p[zy * 4 + 3]]);
+                        p[zy * 4..zy * 4 + 4].copy_from_slice(&r);
+                    }
+                    for z in 0..4 {
+                        for xx in 0..4 {
+                            let i = |y: usize| (z * 4 + y) * 4 + xx;
+                            let r = wino_bt([p[i(0)], p[i(1)], p[i(2)], p[i(3)]]);
+                            for (y, val) in r.iter().enumerate() {
+                                p[i(y)] = *val;
+                            }
+                        }
+                    }
+                    for yx in 0..16 {
+                        let r = wino_bt([p[yx], p[16 + yx], p[32 + yx], p[48 + yx]]);
+                        for (z, val) in r.iter().enumerate() {
+                            // SAFETY: row ci of every V[e] belongs to this job.
+                            unsafe { *v_ptr.get().add(((z * 16 + yx) * cin + ci) * tc + tl) = *val };
+                        }
+                    }
+                }
+            });
+            // M[e] = U[e] · V[e]: 64 independent GEMMs.
+            let m_ptr = SendPtr(m.as_mut_ptr());
+            let (u, v) = (&u, &v);
+            (0..64).into_par_iter().for_each(|e| unsafe {
+                // SAFETY: M[e] is written by job e only.
+                gemm::gemm(
+                    cout,
+                    tc,
+                    cin,
+                    m_ptr.get().add(e * cout * tc),
+                    1,
+                    tc as isize,
+                    false,
+                    u.as_ptr().add(e * cout * cin),
+                    1,
+                    cin as isize,
+                    v.as_ptr().add(e * cin * tc),
+                    1,
+                    tc as isize,
+                    0.0,
+                    1.0,
+                    false,
+                    false,
+                    false,
+                    gemm::Parallelism::None,
+                );
+            });
+            // Output tiles: Aᵀ m A, cropped at the far edges, plus bias.
+            let m = &m;
+            ob.par_chunks_mut(plane).enumerate().for_each(|(co, oc)| {
+                let bc = bias.map_or(0.0, |bv| bv[co]);
+                for tl in 0..tc {
+                    let t = t0 + tl;
+                    let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
+                    let mut q = [0f32; 64];
+                    for (e, qe) in q.iter_mut().enumerate() {
+                        *qe = m[(e * cout + co) * tc + tl];
+                    }
+                    let mut r1 = [0f32; 32]; // [4 z][4 y][2 x]
+                    for zy in 0..16 {
+                        let r = wino_at([q[zy * 4], q[zy * 4 + 1], q[zy * 4 + 2], q[zy * 4 + 3]]);
+                        r1[zy * 2..zy * 2 + 2].copy_from_slice(&r);
+                    }
+                    let mut r2 = [0f32; 16]; // [4 z][2 y][2 x]
+                    for z in 0..4 {
+                        for xx in 0..2 {
+                            let i = |y: usize| (z * 4 + y) * 2 + xx;
+                            let r = wino_at([r1[i(0)], r1[i(1)], r1[i(2)], r1[i(3)]]);
+                            r2[(z * 2) * 2 + xx] = r[0];
+                            r2[(z * 2 + 1) * 2 + xx] = r[1];
+                        }
+                    }
+                    for yx in 0..4 {
+                        let r = wino_at([r2[yx], r2[4 + yx], r2[8 + yx], r2[12 + yx]]);
+                        let (y, xx) = (yx / 2, yx % 2);
+                        let (oy, ox) = (2 * ty + y, 2 * tx + xx);
+                        if oy >= h || ox >= w {
+                            continue;
+                        }
+                        for (z, val) in r.iter().enumerate() {
+                            let oz = 2 * tz + z;
+                            if oz < d {
+                                let o = &mut oc[(oz * h + oy) * w + ox];
+                                *o = if accumulate { *o + val + bc } else { val + bc };
+                            }
+                        }
+                    }
+                }
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Straightforward direct convolution, the reference the fast path is tested
@@ -381,6 +593,31 @@ mod tests {
             let s = Conv3dShape { batch, cin, cout, d, h, w, k, pad };
             check_shape(s, i % 3 != 2, 100 + i as u64);
         }
+    }
+
+    #[test]
+    fn winograd_matches_reference() {
+        // (batch, cin, cout, d, h, w): odd sizes exercise the cropped edge tiles.
+        for (i, &(batch, cin, cout, d, h, w)) in [(1, 3, 2, 4, 4, 4), (2, 5, 7, 3, 5, 6), (1, 70, 66, 5, 3, 7), (1, 4, 3, 1, 2, 1)].iter().enumerate() {
+            let s = Conv3dShape { batch, cin, cout, d, h, w, k: 3, pad: 1 };
+            let x = rand_vec(s.input_len(), 300 + i as u64);
+            let wt = rand_vec(s.weight_len(), 400 + i as u64);
+            let bias = rand_vec(cout, 500 + i as u64);
+            let mut want = vec![0.0; s.output_len()];
+            conv3d_reference(&x, &s, &wt, Some(&bias), &mut want).unwrap();
+            let mut got = vec![f32::NAN; s.output_len()];
+            conv3d_winograd(&x, &s, &wt, Some(&bias), &mut got, false).unwrap();
+            let diff = max_diff(&got, &want);
+            assert!(diff < 1e-5 * (cin as f32 * 27.0).sqrt() * 4.0, "case {i}: {diff}");
+            let base = rand_vec(s.output_len(), 600);
+            let mut acc = base.clone();
+            conv3d_winograd(&x, &s, &wt, Some(&bias), &mut acc, true).unwrap();
+            let want_acc: Vec<f32> = base.iter().zip(&want).map(|(a, b)| a + b).collect();
+            assert!(max_diff(&acc, &want_acc) < 1e-3, "case {i} accumulate");
+        }
+        // More tiles than one chunk, through the dispatcher.
+        let s = Conv3dShape { batch: 1, cin: 64, cout: 64, d: 6, h: 14, w: 13, k: 3, pad: 1 };
+        check_shape(s, true, 77);
     }
 
     #[test]
