@@ -7,3 +7,5 @@ pub mod config;
 pub mod embedders;
 pub mod sampler;
 pub mod ss_flow;
+pub mod dense3d;
+pub mod ss_decoder;
