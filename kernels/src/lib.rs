@@ -4,3 +4,4 @@
 //! straightforward reference loops; the candle wrappers live in the main crate.
 
 pub mod conv3d;
+pub mod sparse;

@@ -9,3 +9,4 @@ pub mod sampler;
 pub mod ss_flow;
 pub mod dense3d;
 pub mod ss_decoder;
+pub mod slat_flow;
