@@ -600,4 +600,59 @@ mod tests {
         row[SDF].fill(2.0);
         assert!(m.extract(&[[3, 3, 3]], &row).unwrap().faces.is_empty());
     }
+
+    /// Timing at the decoder's resolution: `cargo test --release --lib
+    /// flexicubes_r256 -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn flexicubes_r256_timing() {
+        let res = 256usize;
+        let r = res as f32;
+        let mut coords = Vec::new();
+        let mut feats = Vec::new();
+        let mut seed = 1u32;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            seed as f32 / u32::MAX as f32 - 0.5
+        };
+        for x in 0..res as i32 {
+            for y in 0..res as i32 {
+                for z in 0..res as i32 {
+                    let c = [x, y, z].map(|v| (v as f32 + 0.5) / r - 0.5);
+                    let d = ((c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt() - 0.4) * r;
+                    if d.abs() > 4.0 {
+                        continue;
+                    }
+                    let s = CUBE_CORNERS.map(|o| {
+                        let p = [x + o[0] as i32, y + o[1] as i32, z + o[2] as i32].map(|v| v as f32 / r - 0.5);
+                        ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.4) * r
+                    });
+                    coords.push([x, y, z]);
+                    let mut row = vec![0f32; COLOR.end];
+                    row[SDF].copy_from_slice(&s);
+                    for v in &mut row[DEFORM.start..] {
+                        *v = rnd();
+                    }
+                    feats.extend(row);
+                }
+            }
+        }
+        let m = SparseFeatures2Mesh::new(res, true);
+        let t0 = std::time::Instant::now();
+        let grid = m.prepare(&coords, &feats).unwrap();
+        let t1 = std::time::Instant::now();
+        let mesh = flexicubes(&grid);
+        let t2 = std::time::Instant::now();
+        println!(
+            "R={res}: {} active cubes -> {} vertices, {} faces; scatter {:.0} ms, flexicubes {:.0} ms",
+            coords.len(),
+            mesh.vertices.len(),
+            mesh.faces.len(),
+            (t1 - t0).as_secs_f64() * 1e3,
+            (t2 - t1).as_secs_f64() * 1e3
+        );
+        assert!(!mesh.faces.is_empty());
+    }
 }
