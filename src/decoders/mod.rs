@@ -1,1 +1,6 @@
 //! decoders
+pub mod flexicubes;
+pub mod mesh;
+pub mod mesh_post;
+
+pub use mesh::Mesh;
