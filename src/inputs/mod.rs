@@ -1,1 +1,3 @@
-//! inputs
+//! Reading user inputs: images, masks, point maps.
+
+pub mod image;

@@ -10,3 +10,4 @@ pub mod ss_flow;
 pub mod dense3d;
 pub mod ss_decoder;
 pub mod slat_flow;
+pub mod dinov2;

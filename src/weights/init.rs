@@ -1,0 +1,86 @@
+//! `recon weights init`: random-initialised weights for a module config,
+//! written as safetensors with metadata `recon.random_init = "true"` so they
+//! can never be mistaken for trained weights.
+
+use super::registry::{random_weights, ModuleConfig};
+use crate::{Error, Result};
+use candle_core::{DType, Tensor};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+pub const RANDOM_INIT_KEY: &str = "recon.random_init";
+
+/// Write `<out>/<config stem>.safetensors` and a copy of the config as
+/// `<out>/<config stem>.json`. Returns the weights path.
+pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
+    let cfg = ModuleConfig::read(config)?;
+    let file = config.display().to_string();
+    let tensors = random_weights(&cfg, seed, &file)?;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let stem = config.file_stem().and_then(|s| s.to_str()).unwrap_or("model");
+    let path = out.join(format!("{stem}.safetensors"));
+    let meta: BTreeMap<String, String> = [
+        (RANDOM_INIT_KEY.to_string(), "true".to_string()),
+        ("recon.seed".to_string(), seed.to_string()),
+        ("recon.module".to_string(), cfg.name.clone()),
+        ("recon.note".to_string(), "random weights for tests and plumbing; NOT a trained model".to_string()),
+    ]
+    .into_iter()
+    .collect();
+    write_safetensors(&tensors, &meta, &path)?;
+    let cfg_out = out.join(format!("{stem}.json"));
+    let text = serde_json::to_string_pretty(&cfg).map_err(|e| Error::msg(e.to_string()))?;
+    std::fs::write(&cfg_out, text).map_err(|e| Error::io(&cfg_out, e))?;
+    Ok(path)
+}
+
+/// True when a safetensors file carries the random-init label.
+pub fn is_random_init(path: &Path) -> Result<bool> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
+        .map_err(|e| Error::input(path.display().to_string(), format!("bad safetensors header: {e}")))?;
+    Ok(meta.metadata().as_ref().and_then(|m| m.get(RANDOM_INIT_KEY)).map(|v| v == "true").unwrap_or(false))
+}
+
+fn dtype_name(d: DType) -> Result<&'static str> {
+    Ok(match d {
+        DType::F32 => "F32",
+        DType::F16 => "F16",
+        DType::BF16 => "BF16",
+        DType::F64 => "F64",
+        other => return Err(Error::msg(format!("cannot write dtype {other:?}"))),
+    })
+}
+
+/// Write a safetensors file with sorted tensors and sorted metadata, so the
+/// same inputs always give the same bytes (the `safetensors` crate takes the
+/// metadata as a `HashMap`, whose order varies from run to run).
+pub fn write_safetensors(tensors: &BTreeMap<String, Tensor>, meta: &BTreeMap<String, String>, path: &Path) -> Result<()> {
+    let mut header = serde_json::Map::new();
+    header.insert("__metadata__".into(), serde_json::to_value(meta).map_err(|e| Error::msg(e.to_string()))?);
+    let mut data: Vec<u8> = Vec::new();
+    for (name, t) in tensors {
+        let t = t.contiguous()?;
+        let start = data.len();
+        match t.dtype() {
+            DType::F32 => t.flatten_all()?.to_vec1::<f32>()?.iter().for_each(|v| data.extend_from_slice(&v.to_le_bytes())),
+            DType::F16 => t.flatten_all()?.to_vec1::<half::f16>()?.iter().for_each(|v| data.extend_from_slice(&v.to_le_bytes())),
+            DType::BF16 => t.flatten_all()?.to_vec1::<half::bf16>()?.iter().for_each(|v| data.extend_from_slice(&v.to_le_bytes())),
+            DType::F64 => t.flatten_all()?.to_vec1::<f64>()?.iter().for_each(|v| data.extend_from_slice(&v.to_le_bytes())),
+            _ => {}
+        }
+        header.insert(
+            name.clone(),
+            serde_json::json!({"dtype": dtype_name(t.dtype())?, "shape": t.dims(), "data_offsets": [start, data.len()]}),
+        );
+    }
+    let mut h = serde_json::to_vec(&serde_json::Value::Object(header)).map_err(|e| Error::msg(e.to_string()))?;
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + h.len() + data.len());
+    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    out.extend_from_slice(&h);
+    out.extend_from_slice(&data);
+    std::fs::write(path, out).map_err(|e| Error::io(path, e))
+}

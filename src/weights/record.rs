@@ -1,0 +1,195 @@
+//! Discovering a module's parameter list without a checkpoint: build the
+//! module on a VarBuilder whose backend records every requested name and
+//! shape. Two backends: [`Recorder`] hands out zero-cost broadcast zeros (so
+//! even the full-size models cost no memory), [`RandomInit`] hands out
+//! deterministic random tensors (for `recon weights init`).
+
+use candle_core::{DType, Device, Shape, Tensor};
+use candle_nn::var_builder::SimpleBackend;
+use candle_nn::VarBuilder;
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+/// Expected name and shape of one parameter.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct TensorSpec {
+    pub name: String,
+    pub shape: Vec<usize>,
+}
+
+type Log = Arc<Mutex<BTreeMap<String, Vec<usize>>>>;
+
+fn record(log: &Log, name: &str, s: &Shape) -> candle_core::Result<()> {
+    let mut m = log.lock().map_err(|_| candle_core::Error::Msg("recorder poisoned".into()))?;
+    if let Some(prev) = m.get(name) {
+        if prev.as_slice() != s.dims() {
+            candle_core::bail!("parameter `{name}` requested with shapes {prev:?} and {:?}", s.dims());
+        }
+    }
+    m.insert(name.to_string(), s.dims().to_vec());
+    Ok(())
+}
+
+/// Records every `get`; returns zeros that are a broadcast of one scalar.
+#[derive(Clone, Default)]
+pub struct Recorder {
+    log: Log,
+}
+
+impl Recorder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    pub fn var_builder(&self, dtype: DType, dev: &Device) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), dtype, dev.clone())
+    }
+    /// Recorded parameters, sorted by name.
+    pub fn specs(&self) -> Vec<TensorSpec> {
+        let m = self.log.lock().map(|m| m.clone()).unwrap_or_default();
+        m.into_iter().map(|(name, shape)| TensorSpec { name, shape }).collect()
+    }
+}
+
+impl SimpleBackend for Recorder {
+    fn get(&self, s: Shape, name: &str, _h: candle_nn::Init, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        record(&self.log, name, &s)?;
+        Tensor::zeros((), dtype, dev)?.broadcast_as(s)
+    }
+    fn get_unchecked(&self, name: &str, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("recorder: `{name}` requested without a shape; cannot infer it")
+    }
+    fn contains_tensor(&self, _name: &str) -> bool {
+        true
+    }
+}
+
+/// splitmix64: a tiny, well-mixed PRNG so values depend only on (seed, name).
+fn splitmix(state: &mut u64) -> u64 {
+    *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *state;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
+}
+
+/// How a parameter is initialised, decided from its name (upstream init
+/// schemes are not reproduced: these weights are for plumbing tests only).
+pub fn init_rule(name: &str) -> InitRule {
+    let last = name.rsplit('.').next().unwrap_or(name);
+    let parent = name.rsplit('.').nth(1).unwrap_or("");
+    if last == "bias" {
+        InitRule::Const(0.0)
+    } else if last == "gamma" || last == "lambda1" || (last == "weight" && parent.contains("norm")) {
+        InitRule::Const(1.0)
+    } else {
+        InitRule::Normal(0.02)
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum InitRule {
+    Const(f32),
+    Normal(f32),
+}
+
+/// Deterministic random values for `name` (Box–Muller over splitmix64).
+pub fn random_values(seed: u64, name: &str, n: usize) -> Vec<f32> {
+    match init_rule(name) {
+        InitRule::Const(c) => vec![c; n],
+        InitRule::Normal(std) => {
+            let mut st = seed ^ fnv1a(name);
+            let mut out = Vec::with_capacity(n);
+            while out.len() < n {
+                let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+                let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
+                let r = (-2.0 * u1.ln()).sqrt();
+                let a = 2.0 * std::f64::consts::PI * u2;
+                out.push((r * a.cos()) as f32 * std);
+                if out.len() < n {
+                    out.push((r * a.sin()) as f32 * std);
+                }
+            }
+            out
+        }
+    }
+}
+
+/// Records every `get` and returns (and keeps) deterministic random tensors.
+#[derive(Clone)]
+pub struct RandomInit {
+    seed: u64,
+    log: Log,
+    tensors: Arc<Mutex<BTreeMap<String, Tensor>>>,
+}
+
+impl RandomInit {
+    pub fn new(seed: u64) -> Self {
+        Self { seed, log: Log::default(), tensors: Default::default() }
+    }
+    pub fn var_builder(&self, dev: &Device) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), DType::F32, dev.clone())
+    }
+    /// Every tensor handed out, by name.
+    pub fn tensors(&self) -> BTreeMap<String, Tensor> {
+        self.tensors.lock().map(|m| m.clone()).unwrap_or_default()
+    }
+}
+
+impl SimpleBackend for RandomInit {
+    fn get(&self, s: Shape, name: &str, _h: candle_nn::Init, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        record(&self.log, name, &s)?;
+        let mut m = self.tensors.lock().map_err(|_| candle_core::Error::Msg("init poisoned".into()))?;
+        if let Some(t) = m.get(name) {
+            return t.to_dtype(dtype);
+        }
+        let t = Tensor::from_vec(random_values(self.seed, name, s.elem_count()), s, dev)?;
+        m.insert(name.to_string(), t.clone());
+        t.to_dtype(dtype)
+    }
+    fn get_unchecked(&self, name: &str, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("random init: `{name}` requested without a shape; cannot infer it")
+    }
+    fn contains_tensor(&self, _name: &str) -> bool {
+        true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn records_names_and_shapes() {
+        let r = Recorder::new();
+        let vb = r.var_builder(DType::F32, &Device::Cpu);
+        let _ = candle_nn::linear(3, 4, vb.pp("a.fc")).unwrap();
+        let _ = vb.get((2, 5), "b").unwrap();
+        let specs = r.specs();
+        assert_eq!(
+            specs,
+            vec![
+                TensorSpec { name: "a.fc.bias".into(), shape: vec![4] },
+                TensorSpec { name: "a.fc.weight".into(), shape: vec![4, 3] },
+                TensorSpec { name: "b".into(), shape: vec![2, 5] },
+            ]
+        );
+        // Same name, other shape: an error, not a silent overwrite.
+        assert!(vb.get((3, 5), "b").is_err());
+    }
+
+    #[test]
+    fn random_init_is_deterministic_and_name_keyed() {
+        let a = random_values(7, "x.weight", 1000);
+        assert_eq!(a, random_values(7, "x.weight", 1000));
+        assert_ne!(a, random_values(8, "x.weight", 1000));
+        assert_ne!(a, random_values(7, "y.weight", 1000));
+        let std = (a.iter().map(|v| v * v).sum::<f32>() / 1000.0).sqrt();
+        assert!((std - 0.02).abs() < 0.003, "std {std}");
+        assert_eq!(random_values(7, "blocks.0.norm1.weight", 3), vec![1.0; 3]);
+        assert_eq!(random_values(7, "blocks.0.mlp.fc1.bias", 2), vec![0.0; 2]);
+    }
+}

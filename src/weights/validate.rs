@@ -1,0 +1,64 @@
+//! Checking a checkpoint against the tensor list a config implies, before
+//! any model is built, so a wrong file fails with the tensor's name and both
+//! shapes instead of deep inside a forward pass.
+
+use super::load::Checkpoint;
+use super::record::TensorSpec;
+use crate::{Error, Result};
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Everything that differs between a checkpoint and the expected list.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ValidationReport {
+    pub missing: Vec<TensorSpec>,
+    /// (name, found, expected)
+    pub mismatched: Vec<(String, Vec<usize>, Vec<usize>)>,
+    pub unexpected: Vec<String>,
+    pub matched: usize,
+}
+
+impl ValidationReport {
+    pub fn is_ok(&self) -> bool {
+        self.missing.is_empty() && self.mismatched.is_empty() && self.unexpected.is_empty()
+    }
+
+    /// The first problem as a typed error (missing, then shape, then unexpected).
+    pub fn into_result(self, file: &str) -> Result<()> {
+        if let Some(m) = self.missing.into_iter().next() {
+            return Err(Error::MissingTensor { file: file.into(), name: m.name, expected: m.shape });
+        }
+        if let Some((name, found, expected)) = self.mismatched.into_iter().next() {
+            return Err(Error::ShapeMismatch { file: file.into(), name, found, expected });
+        }
+        if !self.unexpected.is_empty() {
+            return Err(Error::UnexpectedTensors { file: file.into(), names: self.unexpected });
+        }
+        Ok(())
+    }
+}
+
+/// Compare found shapes with the expected list. `ignore_unexpected` mirrors
+/// torch's `strict=False` for extra tensors only (missing ones still fail).
+pub fn compare(expected: &[TensorSpec], found: &BTreeMap<String, Vec<usize>>, ignore_unexpected: bool) -> ValidationReport {
+    let mut r = ValidationReport::default();
+    let want: BTreeSet<&str> = expected.iter().map(|s| s.name.as_str()).collect();
+    for spec in expected {
+        match found.get(&spec.name) {
+            None => r.missing.push(spec.clone()),
+            Some(shape) if shape != &spec.shape => r.mismatched.push((spec.name.clone(), shape.clone(), spec.shape.clone())),
+            Some(_) => r.matched += 1,
+        }
+    }
+    if !ignore_unexpected {
+        r.unexpected = found.keys().filter(|k| !want.contains(k.as_str())).cloned().collect();
+    }
+    r
+}
+
+/// Validate an opened checkpoint; `Ok(report)` only when it matches.
+pub fn validate_checkpoint(ckpt: &Checkpoint, expected: &[TensorSpec], ignore_unexpected: bool) -> Result<ValidationReport> {
+    let found: BTreeMap<String, Vec<usize>> = ckpt.tensors().into_iter().map(|(k, v)| (k, v.shape)).collect();
+    let r = compare(expected, &found, ignore_unexpected);
+    r.clone().into_result(&ckpt.path.display().to_string())?;
+    Ok(r)
+}
