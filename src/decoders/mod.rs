@@ -1,1 +1,3 @@
 //! decoders
+pub mod gaussian;
+pub mod trunk;

@@ -72,3 +72,4 @@ impl SparseTensor {
         ranges
     }
 }
+pub mod windowed;
