@@ -95,6 +95,21 @@ impl SubdivGrid {
 /// `src` holds parent rows when `src_is_parent` (each child reads its
 /// parent's features), else child rows. `w_t` is `[27·C_in, C_out]`.
 fn subdiv_conv(grid: &SubdivGrid, src: &Tensor, src_is_parent: bool, w_t: &Tensor, bias: &Tensor) -> Result<Tensor> {
+    subdiv_conv_then(grid, src, src_is_parent, w_t, bias, w_t.dim(1)?, &|_, t| Ok(t))
+}
+
+/// [`subdiv_conv`] with an epilogue applied to each output chunk (given its
+/// child-row offset) before concatenation, so that per-row follow-up ops never
+/// need a second full-size tensor. `c_final` is the epilogue's width.
+fn subdiv_conv_then(
+    grid: &SubdivGrid,
+    src: &Tensor,
+    src_is_parent: bool,
+    w_t: &Tensor,
+    bias: &Tensor,
+    c_final: usize,
+    epilogue: &dyn Fn(usize, Tensor) -> Result<Tensor>,
+) -> Result<Tensor> {
     let c_in = src.dim(1)?;
     let n = grid.num_children();
     let rows = ((CONV_CHUNK_ELEMS / (27 * c_in)).max(64) / 8) * 8;
@@ -121,10 +136,10 @@ fn subdiv_conv(grid: &SubdivGrid, src: &Tensor, src_is_parent: bool, w_t: &Tenso
         let idx = Tensor::from_vec(idx, len * 27, src.device())?;
         let mask = Tensor::from_vec(mask, (len * 27, 1), src.device())?.to_dtype(src.dtype())?;
         let cols = src.index_select(&idx, 0)?.broadcast_mul(&mask)?.reshape((len, 27 * c_in))?;
-        outs.push(cols.matmul(w_t)?.broadcast_add(bias)?);
+        outs.push(epilogue(r0, cols.matmul(w_t)?.broadcast_add(bias)?)?);
         r0 += len;
     }
-    cat_rows(outs, w_t.dim(1)?, src)
+    cat_rows(outs, c_final, src)
 }
 
 fn cat_rows(mut outs: Vec<Tensor>, c: usize, like: &Tensor) -> Result<Tensor> {
@@ -264,6 +279,13 @@ impl SparseSubdivideBlock3d {
     /// `x` is the parent tensor; returns the subdivided output (children of
     /// parent `p` at rows `8p..8p+8`, coords from [`subdivide_coords`]).
     pub fn forward(&self, x: &SparseTensor) -> Result<SparseTensor> {
+        self.forward_then(x, self.out_channels, &|t| Ok(t))
+    }
+
+    /// [`Self::forward`] followed by a row-wise map `post` (output width
+    /// `c_post`), applied chunk by chunk so the block output at
+    /// `out_channels` is never held in full.
+    pub fn forward_then(&self, x: &SparseTensor, c_post: usize, post: &dyn Fn(Tensor) -> Result<Tensor>) -> Result<SparseTensor> {
         let grid = SubdivGrid::new(&x.coords);
         let parent_ranges = x.batch_ranges();
         let child_ranges: Vec<Range<usize>> = parent_ranges.iter().map(|r| r.start * 8..r.end * 8).collect();
@@ -272,15 +294,17 @@ impl SparseSubdivideBlock3d {
         let h = self.act_norm.forward(&x.feats, &parent_ranges, true)?;
         let h = subdiv_conv(&grid, &h, true, &self.conv0.w_t, &self.conv0.bias)?;
         let h = self.out_norm.forward(&h, &child_ranges, true)?;
-        let h = subdiv_conv(&grid, &h, false, &self.conv3.w_t, &self.conv3.bias)?;
-        // Skip at parent level (1×1 conv commutes with subdivision), broadcast to children.
+        // Skip at parent level (a 1×1 conv commutes with subdivision), added
+        // to each output chunk by broadcasting over the 8 children.
         let skip = match &self.skip {
             Some(p) => map_rows(&x.feats, c, |t| Ok(t.matmul(&p.w_t)?.broadcast_add(&p.bias)?))?,
             None => x.feats.clone(),
         };
-        let np = x.len();
-        let skip = skip.unsqueeze(1)?.broadcast_as((np, 8, c))?.reshape((np * 8, c))?;
-        let out = (h + skip)?;
+        let out = subdiv_conv_then(&grid, &h, false, &self.conv3.w_t, &self.conv3.bias, c_post, &|r0, t| {
+            let len = t.dim(0)?; // chunks are multiples of 8 rows, aligned to parents
+            let s = skip.narrow(0, r0 / 8, len / 8)?.unsqueeze(1)?.broadcast_as((len / 8, 8, c))?.reshape((len, c))?;
+            post((t + s)?)
+        })?;
         SparseTensor::new(subdivide_coords(&x.coords), out, x.batch_size)
     }
 }
@@ -336,17 +360,80 @@ impl SLatMeshDecoder {
         Ok(out)
     }
 
+    /// Same result as [`Self::forward_feats`] without taps, with the output
+    /// layer fused into the last block's chunks (lower peak memory).
+    pub fn forward_feats_fused(&self, x: &SparseTensor) -> Result<SparseTensor> {
+        let mut h = x.with_feats(self.trunk.forward(x)?)?;
+        let last = self.upsample.len() - 1;
+        for blk in &self.upsample[..last] {
+            h = blk.forward(&h)?;
+        }
+        self.upsample[last].forward_then(&h, self.extractor.channels(), &|t| Ok(self.out_layer.forward(&t)?))
+    }
+
     /// One mesh per batch item.
     pub fn forward(&self, x: &SparseTensor) -> Result<Vec<Mesh>> {
-        let feats = self.forward_feats(x, &mut |_, _| {})?;
+        let feats = self.forward_feats_fused(x)?;
         self.extractor.extract_sparse(&feats)
     }
+}
+
+/// Random-weight VarBuilder for a model built by `build` (every parameter
+/// ~ N(0, std²), norm weights 1 + N(0, std²)); for tests and benchmarks.
+pub fn random_var_builder<T>(
+    seed: u64,
+    std: f64,
+    build: impl Fn(VarBuilder<'static>) -> Result<T>,
+) -> Result<VarBuilder<'static>> {
+    let vm = candle_nn::VarMap::new();
+    let dev = candle_core::Device::Cpu;
+    build(VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
+    let mut rng = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+    let mut next = move || {
+        // xorshift64* → uniform in (0, 1)
+        rng ^= rng >> 12;
+        rng ^= rng << 25;
+        rng ^= rng >> 27;
+        ((rng.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    let mut names: Vec<(String, candle_core::Var)> = vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+    names.sort_by(|a, b| a.0.cmp(&b.0)); // fixed order: deterministic draws
+    for (name, var) in names {
+        // Box–Muller normals from the seeded generator (candle's CPU RNG cannot be seeded).
+        let v: Vec<f32> = (0..var.elem_count())
+            .map(|_| ((-2.0 * next().ln()).sqrt() * (std::f64::consts::TAU * next()).cos() * std) as f32)
+            .collect();
+        let t = Tensor::from_vec(v, var.shape(), &dev)?;
+        let is_norm_weight = name.ends_with(".weight") && var.rank() == 1;
+        var.set(&if is_norm_weight { (t + 1.0)? } else { t })?;
+    }
+    Ok(VarBuilder::from_varmap(&vm, DType::F32, &dev))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::Device;
+
+    #[test]
+    fn fused_output_layer_matches_unfused() -> Result<()> {
+        let args = serde_json::json!({
+            "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
+            "num_heads": 2, "mlp_ratio": 1, "window_size": 4, "representation_config": {"use_color": true}
+        });
+        let vb = random_var_builder(7, 0.05, |vb| SLatMeshDecoder::new(&args, vb))?;
+        let dec = SLatMeshDecoder::new(&args, vb)?;
+        let coords: Vec<[i32; 4]> = (0..20).map(|i| [0, 2 + i % 4, 3 + (i / 4) % 3, 1 + i / 12]).collect();
+        let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
+        let x = SparseTensor::new(coords, feats, 1)?;
+        let a = dec.forward_feats(&x, &mut |_, _| {})?;
+        let b = dec.forward_feats_fused(&x)?;
+        assert_eq!(a.coords, b.coords);
+        assert_eq!(a.feats.dims(), &[20 * 64, 101]);
+        let d = (a.feats - b.feats)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-5, "fused vs unfused {d}");
+        Ok(())
+    }
 
     /// Reference submanifold conv over explicit child coordinates (hash lookup per offset).
     fn naive_conv(coords: &[[i32; 4]], x: &[Vec<f32>], w: &[f32], c_in: usize, c_out: usize) -> Vec<Vec<f32>> {
