@@ -95,3 +95,4 @@ impl SparseTensor {
         Ok(t.contiguous()?.index_select(&self.batch_index()?, 0)?)
     }
 }
+pub mod windowed;
