@@ -20,6 +20,13 @@ pub fn run_model(fx: &Fixture) -> Result<Vec<Check>> {
     let (x, t, cond) = (fx.tensor("input.x")?, fx.tensor("input.t")?, fx.tensor("input.cond")?);
 
     let mut checks = Vec::new();
+    // The model loads the `pos_emb` buffer; checkpoints without it use the
+    // computed table, which must equal the buffer.
+    if fx.tensors.contains_key("pos_emb") {
+        let g = cfg.resolution / cfg.patch_size;
+        let computed = SparseStructureFlowModel::grid_position_embedding(g, cfg.model_channels, &candle_core::Device::Cpu)?;
+        checks.push(fx.check("pos_emb", &computed, tol)?.with_note("computed APE vs checkpoint buffer"));
+    }
     let t_emb = model.timestep_embedding(t)?;
     if fx.tensors.contains_key("intermediate.t_emb") {
         checks.push(fx.check("intermediate.t_emb", &t_emb, tol)?);
