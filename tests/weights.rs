@@ -71,6 +71,12 @@ fn random_init_is_labelled_deterministic_and_valid() {
     assert!(!init::is_random_init(&plain).unwrap());
     // The config copy next to the weights builds the same module.
     assert!(d.join("dinov2_tiny.json").exists());
+    // One-call validated load.
+    let vb = recon::weights::load_validated(&p, &specs, false, DType::F32, &Device::Cpu).unwrap();
+    let a = forward(vb);
+    assert!(recon::weights::load_validated(&p, &specs[1..], false, DType::F32, &Device::Cpu).is_err());
+    let b = forward(Checkpoint::open(&p2, None).unwrap().into_var_builder(DType::F32, &Device::Cpu));
+    assert_eq!(recon::conformance::max_abs_diff(&a, &b).unwrap(), 0.0);
 }
 
 #[test]

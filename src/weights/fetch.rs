@@ -44,7 +44,9 @@ pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<
                 let url = f.url.as_ref().ok_or_else(|| Error::config(&m.name, "url", format!("file `{}` has no url", f.path)))?;
                 let dest = base.join(&f.path);
                 if !dest.exists() {
-                    download_url(url, &dest)?;
+                    download_url(url, &dest).map_err(|e| {
+                        Error::msg(format!("manifest `{}`: cannot download `{}`: {e}. Check network access, or place the file at {}", m.name, f.path, dest.display()))
+                    })?;
                 }
                 out.push(dest);
             }
@@ -65,7 +67,7 @@ pub fn default_hf_cache() -> PathBuf {
 
 fn download_url(url: &str, dest: &Path) -> Result<()> {
     let tmp = dest.with_extension("part");
-    let resp = ureq::get(url).call().map_err(|e| Error::msg(format!("cannot download {url}: {e}")))?;
+    let resp = ureq::get(url).call().map_err(|e| Error::msg(format!("request to {url} failed: {e}")))?;
     let mut reader = resp.into_reader();
     let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
     std::io::copy(&mut reader, &mut f).map_err(|e| Error::msg(format!("download of {url} interrupted: {e}")))?;

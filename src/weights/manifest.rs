@@ -88,8 +88,13 @@ impl Manifest {
     }
 
     /// Where the files live under `dir`: `dir` itself, or, when `dir` is a
-    /// Hugging Face cache (`…/hub`), the snapshot of this repo/revision.
+    /// Hugging Face cache (`…/hub`), the snapshot of this repo/revision (or
+    /// `recon-url/<name>` for URL-sourced files, where `fetch` puts them).
     pub fn resolve_dir(&self, dir: &Path) -> PathBuf {
+        let url_dir = dir.join("recon-url").join(&self.name);
+        if self.source == "url" && url_dir.is_dir() {
+            return url_dir;
+        }
         if let (Some(repo), Some(rev)) = (&self.repo, &self.revision) {
             let snap = dir.join(format!("models--{}", repo.replace('/', "--"))).join("snapshots").join(rev);
             if snap.is_dir() {

@@ -12,5 +12,5 @@ pub mod validate;
 pub mod verify;
 
 pub use load::Checkpoint;
-pub use record::TensorSpec;
-pub use validate::{compare, validate_checkpoint, ValidationReport};
+pub use record::{record_with, TensorSpec};
+pub use validate::{compare, load_validated, validate_checkpoint, ValidationReport};

@@ -63,6 +63,18 @@ impl SimpleBackend for Recorder {
     }
 }
 
+/// The (name, shape) list any module builder requests: run `build` on a
+/// recording VarBuilder. Works for modules not in the registry, e.g.
+/// `record_with(|vb| SparseStructureDecoder::new(&cfg, vb).map(|_| ()))`.
+pub fn record_with<F>(build: F) -> crate::Result<Vec<TensorSpec>>
+where
+    F: FnOnce(VarBuilder<'static>) -> crate::Result<()>,
+{
+    let r = Recorder::new();
+    build(r.var_builder(DType::F32, &Device::Cpu))?;
+    Ok(r.specs())
+}
+
 /// splitmix64: a tiny, well-mixed PRNG so values depend only on (seed, name).
 fn splitmix(state: &mut u64) -> u64 {
     *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
@@ -179,6 +191,12 @@ mod tests {
         );
         // Same name, other shape: an error, not a silent overwrite.
         assert!(vb.get((3, 5), "b").is_err());
+        let specs = record_with(|vb| {
+            candle_nn::layer_norm(8, 1e-5, vb.pp("ln"))?;
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(specs.iter().map(|s| s.name.as_str()).collect::<Vec<_>>(), vec!["ln.bias", "ln.weight"]);
     }
 
     #[test]

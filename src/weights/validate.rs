@@ -62,3 +62,17 @@ pub fn validate_checkpoint(ckpt: &Checkpoint, expected: &[TensorSpec], ignore_un
     r.clone().into_result(&ckpt.path.display().to_string())?;
     Ok(r)
 }
+
+/// Open `path`, validate it against `expected`, and return a VarBuilder
+/// producing `dtype` tensors: the one-call path for loading real weights.
+pub fn load_validated(
+    path: &std::path::Path,
+    expected: &[TensorSpec],
+    ignore_unexpected: bool,
+    dtype: candle_core::DType,
+    dev: &candle_core::Device,
+) -> Result<candle_nn::VarBuilder<'static>> {
+    let ck = Checkpoint::open(path, None)?;
+    validate_checkpoint(&ck, expected, ignore_unexpected)?;
+    Ok(ck.into_var_builder(dtype, dev))
+}
