@@ -14,6 +14,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use recon::model::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use recon::sparse::SparseTensor;
+use std::collections::HashMap;
 use std::time::Instant;
 
 fn config(blocks: usize) -> SLatFlowConfig {
@@ -26,20 +27,22 @@ fn config(blocks: usize) -> SLatFlowConfig {
 }
 
 /// Model with small random weights (norm scales ≈ 1, other weights ~N(0, 0.02²)).
+/// The weights are handed over as plain tensors: VarMap variables would make
+/// candle keep every intermediate alive for backprop, which is not inference.
 fn random_model(cfg: &SLatFlowConfig) -> candle_core::Result<SLatFlowModel> {
     let vm = VarMap::new();
-    let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-    SLatFlowModel::new(cfg, vb.clone()).map_err(candle_core::Error::wrap)?;
+    SLatFlowModel::new(cfg, VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu)).map_err(candle_core::Error::wrap)?;
+    let mut weights = HashMap::new();
     {
         let data = vm.data().lock().expect("varmap lock");
         for (name, var) in data.iter() {
             let r = Tensor::randn(0f32, 0.02, var.shape(), &Device::Cpu)?;
             let is_scale = name.ends_with("norm1.weight") || name.ends_with("norm2.weight") || name.ends_with("gamma");
-            var.set(&if is_scale { (r + 1.0)? } else { r })?;
+            weights.insert(name.clone(), if is_scale { (r + 1.0)? } else { r });
         }
     }
-    // Rebuild so the sparse-conv host copies see the random values.
-    SLatFlowModel::new(cfg, vb).map_err(candle_core::Error::wrap)
+    drop(vm);
+    SLatFlowModel::new(cfg, VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu)).map_err(candle_core::Error::wrap)
 }
 
 /// A solid ball at the grid centre with about `target` voxels.
