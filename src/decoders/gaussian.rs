@@ -220,6 +220,11 @@ impl SLatGaussianDecoder {
         Ok(h)
     }
 
+    /// The output linear alone (after the trunk and its final LayerNorm).
+    pub fn out_layer_forward(&self, h: &Tensor) -> Result<Tensor> {
+        Ok(self.out_layer.forward(h)?)
+    }
+
     /// Split network output into one Gaussian model per batch item.
     pub fn to_representation(&self, x: &SparseTensor, feats: &Tensor) -> Result<Vec<GaussianModel>> {
         let c = &self.cfg;

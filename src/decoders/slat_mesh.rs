@@ -312,7 +312,7 @@ impl SparseSubdivideBlock3d {
 pub struct SLatMeshDecoder {
     pub trunk: SparseTransformerBase,
     pub upsample: Vec<SparseSubdivideBlock3d>,
-    out_layer: Linear,
+    pub out_layer: Linear,
     pub extractor: SparseFeatures2Mesh,
     pub resolution: usize,
 }
@@ -396,6 +396,7 @@ pub fn random_var_builder<T>(
         rng ^= rng >> 27;
         ((rng.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
+    let mut weights = std::collections::HashMap::new();
     let mut names: Vec<(String, candle_core::Var)> = vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
     names.sort_by(|a, b| a.0.cmp(&b.0)); // fixed order: deterministic draws
     for (name, var) in names {
@@ -405,9 +406,11 @@ pub fn random_var_builder<T>(
             .collect();
         let t = Tensor::from_vec(v, var.shape(), &dev)?;
         let is_norm_weight = name.ends_with(".weight") && var.rank() == 1;
-        var.set(&if is_norm_weight { (t + 1.0)? } else { t })?;
+        weights.insert(name, if is_norm_weight { (t + 1.0)? } else { t });
     }
-    Ok(VarBuilder::from_varmap(&vm, DType::F32, &dev))
+    // Plain tensors, not `Var`s: ops on `Var`s record the autograd graph,
+    // which would keep every intermediate alive.
+    Ok(VarBuilder::from_tensors(weights, DType::F32, &dev))
 }
 
 #[cfg(test)]
