@@ -419,6 +419,36 @@ mod tests {
     use candle_core::Device;
 
     #[test]
+    fn subdivided_conv_matches_sparse_conv_kernel() -> Result<()> {
+        use recon_kernels::sparse::{submanifold_conv3d, NeighbourMap};
+        let parents: Vec<[i32; 4]> = (0..40).map(|i| [i / 30, (i * 7) % 5, (i * 3) % 4, i % 3]).collect();
+        let mut parents = parents;
+        parents.sort();
+        parents.dedup();
+        let (c_in, c_out) = (8, 5);
+        let dev = Device::Cpu;
+        let children = subdivide_coords(&parents);
+        let xc = Tensor::randn(0f32, 1.0, (children.len(), c_in), &dev)?;
+        let w = Tensor::randn(0f32, 1.0, (c_out, 3, 3, 3, c_in), &dev)?;
+        let b = Tensor::randn(0f32, 1.0, c_out, &dev)?;
+        let map = NeighbourMap::submanifold(&children, 3).map_err(Error::msg)?;
+        let want = submanifold_conv3d(
+            &xc.flatten_all()?.to_vec1::<f32>()?,
+            c_in,
+            &map,
+            &w.flatten_all()?.to_vec1::<f32>()?,
+            Some(&b.to_vec1::<f32>()?),
+            c_out,
+        )
+        .map_err(Error::msg)?;
+        let w_t = w.reshape((c_out, 27 * c_in))?.t()?.contiguous()?;
+        let got = subdiv_conv(&SubdivGrid::new(&parents), &xc, false, &w_t, &b)?.flatten_all()?.to_vec1::<f32>()?;
+        let d = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(d < 1e-4, "subdivide conv vs kernel: {d}");
+        Ok(())
+    }
+
+    #[test]
     fn fused_output_layer_matches_unfused() -> Result<()> {
         let args = serde_json::json!({
             "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
