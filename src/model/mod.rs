@@ -3,3 +3,4 @@
 //! Stage 2: structured-latent flow.
 
 pub mod common;
+pub mod slat_flow;

@@ -1,6 +1,14 @@
 //! Sparse voxel tensors (TRELLIS `SparseTensor`): integer coordinates
 //! `(batch, x, y, z)` with each batch item's rows contiguous, plus features.
 
+pub mod attention;
+pub mod conv;
+pub mod spatial;
+
+pub use attention::varlen_attention;
+pub use conv::{neighbour_map, SparseConv3d};
+pub use spatial::{sparse_downsample, sparse_upsample, DownsampleCache};
+
 use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use std::ops::Range;
@@ -70,6 +78,21 @@ impl SparseTensor {
             ranges[b] = start..i;
         }
         ranges
+    }
+
+    /// Batch index of every row as a u32 tensor `[N]`.
+    pub fn batch_index(&self) -> Result<Tensor> {
+        let idx: Vec<u32> = self.coords.iter().map(|c| c[0] as u32).collect();
+        Ok(Tensor::from_vec(idx, self.coords.len(), self.feats.device())?)
+    }
+
+    /// Broadcast a dense per-item tensor `[B, C]` to rows `[N, C]`
+    /// (TRELLIS `sparse_batch_broadcast`).
+    pub fn batch_broadcast(&self, t: &Tensor) -> Result<Tensor> {
+        if t.dim(0)? != self.batch_size {
+            return Err(Error::msg(format!("batch broadcast: {} rows for batch size {}", t.dim(0)?, self.batch_size)));
+        }
+        Ok(t.contiguous()?.index_select(&self.batch_index()?, 0)?)
     }
 }
 pub mod windowed;
