@@ -94,3 +94,110 @@ pub(crate) fn face_area(v: &[[f32; 3]], f: &[u32; 3]) -> f64 {
     let n = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]];
     0.5 * (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt()
 }
+
+/// Edge/orientation statistics of a triangle mesh (over referenced vertices).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Topology {
+    pub vertices: usize,
+    pub edges: usize,
+    pub faces: usize,
+    /// Edges used by one face.
+    pub boundary_edges: usize,
+    /// Edges used by more than two faces.
+    pub nonmanifold_edges: usize,
+    /// Manifold edges whose two faces traverse it in the same direction.
+    pub misoriented_edges: usize,
+    /// Faces with a repeated vertex index.
+    pub degenerate_faces: usize,
+    /// Connected components (by shared vertices).
+    pub components: usize,
+}
+
+impl Topology {
+    /// V − E + F.
+    pub fn euler(&self) -> i64 {
+        self.vertices as i64 - self.edges as i64 + self.faces as i64
+    }
+
+    /// Every edge shared by exactly two consistently oriented faces.
+    pub fn is_closed_oriented_manifold(&self) -> bool {
+        self.boundary_edges == 0 && self.nonmanifold_edges == 0 && self.misoriented_edges == 0 && self.degenerate_faces == 0
+    }
+}
+
+impl Mesh {
+    pub fn topology(&self) -> Topology {
+        use std::collections::HashMap;
+        // Directed edge counts per undirected edge: (a→b uses, b→a uses) with a < b.
+        let mut edges: HashMap<(u32, u32), (u32, u32)> = HashMap::new();
+        let mut degenerate = 0;
+        let mut used = vec![false; self.vertices.len()];
+        let mut uf = UnionFind::new(self.vertices.len());
+        for f in &self.faces {
+            if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
+                degenerate += 1;
+            }
+            for k in 0..3 {
+                let (a, b) = (f[k], f[(k + 1) % 3]);
+                used[a as usize] = true;
+                uf.union(a as usize, b as usize);
+                let e = edges.entry((a.min(b), a.max(b))).or_insert((0, 0));
+                if a < b {
+                    e.0 += 1
+                } else {
+                    e.1 += 1
+                }
+            }
+        }
+        let mut t = Topology {
+            vertices: used.iter().filter(|&&u| u).count(),
+            edges: edges.len(),
+            faces: self.faces.len(),
+            boundary_edges: 0,
+            nonmanifold_edges: 0,
+            misoriented_edges: 0,
+            degenerate_faces: degenerate,
+            components: 0,
+        };
+        for &(f, b) in edges.values() {
+            match f + b {
+                1 => t.boundary_edges += 1,
+                2 if f != 1 => t.misoriented_edges += 1,
+                2 => {}
+                _ => t.nonmanifold_edges += 1,
+            }
+        }
+        let mut roots = std::collections::HashSet::new();
+        for (v, &u) in used.iter().enumerate() {
+            if u {
+                roots.insert(uf.find(v));
+            }
+        }
+        t.components = roots.len();
+        t
+    }
+}
+
+/// Disjoint sets with path halving.
+pub(crate) struct UnionFind {
+    parent: Vec<usize>,
+}
+
+impl UnionFind {
+    pub(crate) fn new(n: usize) -> Self {
+        UnionFind { parent: (0..n).collect() }
+    }
+    pub(crate) fn find(&mut self, mut x: usize) -> usize {
+        while self.parent[x] != x {
+            self.parent[x] = self.parent[self.parent[x]];
+            x = self.parent[x];
+        }
+        x
+    }
+    pub(crate) fn union(&mut self, a: usize, b: usize) {
+        let (ra, rb) = (self.find(a), self.find(b));
+        if ra != rb {
+            self.parent[ra.max(rb)] = ra.min(rb);
+        }
+    }
+}

@@ -487,3 +487,172 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
     }
     Mesh { vertices, faces, vertex_attrs: g.use_color.then_some(colors) }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Sphere SDF (voxel units) at the corners of every cube; `solid` keeps
+    /// the interior cubes active, otherwise only a narrow band around the surface.
+    fn sphere(res: usize, radius: f32, solid: bool) -> (Vec<[i32; 3]>, Vec<f32>) {
+        let mut coords = Vec::new();
+        let mut feats = Vec::new();
+        let r = res as f32;
+        for x in 0..res as i32 {
+            for y in 0..res as i32 {
+                for z in 0..res as i32 {
+                    let s = CUBE_CORNERS.map(|o| {
+                        let p = [x + o[0] as i32, y + o[1] as i32, z + o[2] as i32].map(|v| v as f32 / r - 0.5);
+                        ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - radius) * r
+                    });
+                    let keep = if solid {
+                        s.iter().cloned().fold(f32::INFINITY, f32::min) < 1.5
+                    } else {
+                        s.iter().map(|v| v.abs()).fold(f32::INFINITY, f32::min) < 1.5
+                    };
+                    if keep {
+                        coords.push([x, y, z]);
+                        let mut row = vec![0f32; WEIGHTS.end];
+                        row[SDF].copy_from_slice(&s);
+                        feats.extend(row);
+                    }
+                }
+            }
+        }
+        (coords, feats)
+    }
+
+    #[test]
+    fn solid_sphere_is_a_closed_outward_manifold() {
+        let res = 32;
+        let (coords, feats) = sphere(res, 0.3, true);
+        let mesh = SparseFeatures2Mesh::new(res, false).extract(&coords, &feats).unwrap();
+        mesh.validate().unwrap();
+        let t = mesh.topology();
+        assert!(t.faces > 1000, "{t:?}");
+        assert!(t.is_closed_oriented_manifold(), "{t:?}");
+        assert_eq!(t.components, 1, "{t:?}");
+        assert_eq!(t.euler(), 2, "{t:?}");
+        for v in &mesh.vertices {
+            let rad = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            assert!((rad - 0.3).abs() < 1.0 / res as f32, "vertex radius {rad}");
+        }
+        for (f, n) in mesh.faces.iter().zip(mesh.face_normals()) {
+            let c = [0, 1, 2].map(|k| f.iter().map(|&i| mesh.vertices[i as usize][k]).sum::<f32>() / 3.0);
+            let dot = n[0] * c[0] + n[1] * c[1] + n[2] * c[2];
+            assert!(dot > 0.0, "inward face {f:?}");
+        }
+    }
+
+    #[test]
+    fn narrow_band_gives_an_inner_shell_too() {
+        // Untouched interior vertices default to sdf = +1 (outside), so a
+        // surface-only active set yields a second, inward-facing shell.
+        let res = 32;
+        let (coords, feats) = sphere(res, 0.3, false);
+        let mesh = SparseFeatures2Mesh::new(res, false).extract(&coords, &feats).unwrap();
+        let t = mesh.topology();
+        assert!(t.is_closed_oriented_manifold(), "{t:?}");
+        assert_eq!(t.components, 2, "{t:?}");
+        assert_eq!(t.euler(), 4, "{t:?}");
+    }
+
+    #[test]
+    fn colours_and_batches() {
+        let res = 16;
+        let (coords, feats53) = sphere(res, 0.3, true);
+        // Colour channels: constant raw 0 → sigmoid 0.5 everywhere.
+        let mut feats = Vec::new();
+        for row in feats53.chunks(WEIGHTS.end) {
+            feats.extend_from_slice(row);
+            feats.extend(std::iter::repeat(0.0).take(COLOR.len()));
+        }
+        let m = SparseFeatures2Mesh::new(res, true);
+        let mesh = m.extract(&coords, &feats).unwrap();
+        let attrs = mesh.vertex_attrs.as_ref().unwrap();
+        assert_eq!(attrs.len(), mesh.vertices.len());
+        assert!(attrs.iter().flatten().all(|&c| (c - 0.5).abs() < 1e-6));
+
+        // Two identical batch items give two identical meshes.
+        let n = coords.len();
+        let mut c4: Vec<[i32; 4]> = coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect();
+        c4.extend(coords.iter().map(|c| [1, c[0], c[1], c[2]]));
+        let mut both = feats.clone();
+        both.extend_from_slice(&feats);
+        let t = candle_core::Tensor::from_vec(both, (2 * n, COLOR.end), &candle_core::Device::Cpu).unwrap();
+        let st = SparseTensor::new(c4, t, 2).unwrap();
+        let meshes = m.extract_sparse(&st).unwrap();
+        assert_eq!(meshes.len(), 2);
+        assert_eq!(meshes[0], mesh);
+        assert_eq!(meshes[1], mesh);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors_and_empty_is_empty() {
+        let m = SparseFeatures2Mesh::new(8, false);
+        assert!(m.extract(&[[8, 0, 0]], &[0.0; 53]).is_err());
+        assert!(m.extract(&[[-1, 0, 0]], &[0.0; 53]).is_err());
+        assert!(m.extract(&[[0, 0, 0]], &[0.0; 52]).is_err());
+        let empty = m.extract(&[], &[]).unwrap();
+        assert!(empty.vertices.is_empty() && empty.faces.is_empty());
+        // All corners outside: nothing to extract.
+        let mut row = [0.0f32; 53];
+        row[SDF].fill(2.0);
+        assert!(m.extract(&[[3, 3, 3]], &row).unwrap().faces.is_empty());
+    }
+
+    /// Timing at the decoder's resolution: `cargo test --release --lib
+    /// flexicubes_r256 -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn flexicubes_r256_timing() {
+        let res = 256usize;
+        let r = res as f32;
+        let mut coords = Vec::new();
+        let mut feats = Vec::new();
+        let mut seed = 1u32;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            seed as f32 / u32::MAX as f32 - 0.5
+        };
+        for x in 0..res as i32 {
+            for y in 0..res as i32 {
+                for z in 0..res as i32 {
+                    let c = [x, y, z].map(|v| (v as f32 + 0.5) / r - 0.5);
+                    let d = ((c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt() - 0.4) * r;
+                    if d.abs() > 4.0 {
+                        continue;
+                    }
+                    let s = CUBE_CORNERS.map(|o| {
+                        let p = [x + o[0] as i32, y + o[1] as i32, z + o[2] as i32].map(|v| v as f32 / r - 0.5);
+                        ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.4) * r
+                    });
+                    coords.push([x, y, z]);
+                    let mut row = vec![0f32; COLOR.end];
+                    row[SDF].copy_from_slice(&s);
+                    for v in &mut row[DEFORM.start..] {
+                        *v = rnd();
+                    }
+                    feats.extend(row);
+                }
+            }
+        }
+        let m = SparseFeatures2Mesh::new(res, true);
+        let t0 = std::time::Instant::now();
+        let grid = m.prepare(&coords, &feats).unwrap();
+        let t1 = std::time::Instant::now();
+        let mesh = flexicubes(&grid);
+        let t2 = std::time::Instant::now();
+        println!(
+            "R={res}: {} active cubes -> {} vertices, {} faces; scatter {:.0} ms, flexicubes {:.0} ms",
+            coords.len(),
+            mesh.vertices.len(),
+            mesh.faces.len(),
+            (t1 - t0).as_secs_f64() * 1e3,
+            (t2 - t1).as_secs_f64() * 1e3
+        );
+        assert!(!mesh.faces.is_empty());
+    }
+}
