@@ -159,33 +159,13 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
     Ok((x.relu()? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?)
 }
 
-/// Activated 3D Gaussians of one object.
-#[derive(Debug, Clone, Default)]
-pub struct Gaussians {
-    /// World positions (z-up frame, in [-0.5, 0.5]³ up to the offsets).
-    pub positions: Vec<[f32; 3]>,
-    /// Per-axis standard deviations.
-    pub scales: Vec<[f32; 3]>,
-    /// Unit quaternions, (w, x, y, z).
-    pub rotations: Vec<[f32; 4]>,
-    /// Opacities in (0, 1).
-    pub opacities: Vec<f32>,
-    /// SH degree-0 coefficients per colour channel.
-    pub dc: Vec<[f32; 3]>,
-}
+/// Activated splats: the export module's struct (same fields as upstream's `get_*`).
+pub use crate::export::Gaussians;
 
-impl Gaussians {
-    pub fn len(&self) -> usize {
-        self.positions.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
-    }
-    /// Base colour of splat `i`: `C0·dc + 0.5`, clamped at 0 like the rasteriser.
-    pub fn rgb(&self, i: usize) -> [f32; 3] {
-        let d = self.dc[i];
-        [0, 1, 2].map(|c| (SH_C0 * d[c] + 0.5).max(0.0))
-    }
+/// Base colour of an SH degree-0 coefficient: `C0·dc + 0.5`, clamped at 0
+/// like the rasteriser.
+pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
+    dc.map(|d| (SH_C0 * d + 0.5).max(0.0))
 }
 
 pub struct SLatGaussianDecoder {

@@ -291,9 +291,14 @@ impl SparseSubdivideBlock3d {
         let child_ranges: Vec<Range<usize>> = parent_ranges.iter().map(|r| r.start * 8..r.end * 8).collect();
         let c = self.out_channels;
 
-        let h = self.act_norm.forward(&x.feats, &parent_ranges, true)?;
-        let h = subdiv_conv(&grid, &h, true, &self.conv0.w_t, &self.conv0.bias)?;
-        let h = self.out_norm.forward(&h, &child_ranges, true)?;
+        // Nested scopes free each full-size intermediate as soon as it is consumed
+        // (shadowed bindings would live to the end of the function).
+        let h = {
+            let conv_in = self.act_norm.forward(&x.feats, &parent_ranges, true)?;
+            let conv_out = subdiv_conv(&grid, &conv_in, true, &self.conv0.w_t, &self.conv0.bias)?;
+            drop(conv_in);
+            self.out_norm.forward(&conv_out, &child_ranges, true)?
+        };
         // Skip at parent level (a 1×1 conv commutes with subdivision), added
         // to each output chunk by broadcasting over the 8 children.
         let skip = match &self.skip {
