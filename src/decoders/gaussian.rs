@@ -159,33 +159,13 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
     Ok((x.relu()? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?)
 }
 
-/// Activated 3D Gaussians of one object.
-#[derive(Debug, Clone, Default)]
-pub struct Gaussians {
-    /// World positions (z-up frame, in [-0.5, 0.5]³ up to the offsets).
-    pub positions: Vec<[f32; 3]>,
-    /// Per-axis standard deviations.
-    pub scales: Vec<[f32; 3]>,
-    /// Unit quaternions, (w, x, y, z).
-    pub rotations: Vec<[f32; 4]>,
-    /// Opacities in (0, 1).
-    pub opacities: Vec<f32>,
-    /// SH degree-0 coefficients per colour channel.
-    pub dc: Vec<[f32; 3]>,
-}
+/// Activated splats: the export module's struct (same fields as upstream's `get_*`).
+pub use crate::export::Gaussians;
 
-impl Gaussians {
-    pub fn len(&self) -> usize {
-        self.positions.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
-    }
-    /// Base colour of splat `i`: `C0·dc + 0.5`, clamped at 0 like the rasteriser.
-    pub fn rgb(&self, i: usize) -> [f32; 3] {
-        let d = self.dc[i];
-        [0, 1, 2].map(|c| (SH_C0 * d[c] + 0.5).max(0.0))
-    }
+/// Base colour of an SH degree-0 coefficient: `C0·dc + 0.5`, clamped at 0
+/// like the rasteriser.
+pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
+    dc.map(|d| (SH_C0 * d + 0.5).max(0.0))
 }
 
 pub struct SLatGaussianDecoder {
@@ -218,6 +198,11 @@ impl SLatGaussianDecoder {
         let h = self.out_layer.forward(&h)?;
         tap("out_layer", &h);
         Ok(h)
+    }
+
+    /// The output linear alone (after the trunk and its final LayerNorm).
+    pub fn out_layer_forward(&self, h: &Tensor) -> Result<Tensor> {
+        Ok(self.out_layer.forward(h)?)
     }
 
     /// Split network output into one Gaussian model per batch item.
@@ -264,6 +249,39 @@ impl SLatGaussianDecoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn decoded_splats_are_well_formed() -> Result<()> {
+        let args = serde_json::json!({
+            "resolution": 16, "model_channels": 32, "latent_channels": 8, "num_blocks": 2, "num_heads": 2,
+            "window_size": 4, "representation_config": {
+                "num_gaussians": 4, "perturb_offset": true, "voxel_size": 1.5, "lr": {"_rotation": 0.1},
+                "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
+            }
+        });
+        let vb = crate::decoders::slat_mesh::random_var_builder(3, 0.1, |vb| SLatGaussianDecoder::new(&args, vb))?;
+        let dec = SLatGaussianDecoder::new(&args, vb)?;
+        let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
+        let x = SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
+        let reps = dec.forward(&x)?;
+        assert_eq!(reps.len(), 2);
+        let g = reps[0].to_gaussians()?;
+        g.validate()?;
+        assert_eq!(g.len(), 6 * 4);
+        for (i, p) in g.positions.iter().enumerate() {
+            // Within 0.75 voxel of its voxel centre (tanh bound · voxel_size / 2).
+            let c = coords[i / 4];
+            for a in 0..3 {
+                let centre = (c[a + 1] as f32 + 0.5) / 16.0 - 0.5;
+                assert!((p[a] - centre).abs() <= 0.75 / 16.0 + 1e-6);
+            }
+        }
+        assert!(g.rotations.iter().all(|q| (q.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5));
+        assert!(g.scales.iter().flatten().all(|&s| s >= 9e-4));
+        assert!(g.opacities.iter().all(|&o| o > 0.0 && o < 1.0));
+        assert_eq!(sh0_to_rgb([0.0, -10.0, 1.0]), [0.5, 0.0, SH_C0 + 0.5]);
+        Ok(())
+    }
 
     #[test]
     fn radical_inverse_values() {

@@ -621,3 +621,43 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod timing {
+    use super::*;
+
+    /// `cargo test --release --lib decimate_timing -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn decimate_timing() {
+        // UV sphere with ~500k faces.
+        let (nu, nv) = (500usize, 500usize);
+        let mut mesh = Mesh::default();
+        mesh.vertices.push([0.0, 0.0, 0.3]);
+        for i in 1..nv {
+            let th = std::f32::consts::PI * i as f32 / nv as f32;
+            for j in 0..nu {
+                let ph = 2.0 * std::f32::consts::PI * j as f32 / nu as f32;
+                mesh.vertices.push([0.3 * th.sin() * ph.cos(), 0.3 * th.sin() * ph.sin(), 0.3 * th.cos()]);
+            }
+        }
+        mesh.vertices.push([0.0, 0.0, -0.3]);
+        let ring = |i: usize, j: usize| (1 + (i - 1) * nu + j % nu) as u32;
+        let south = mesh.vertices.len() as u32 - 1;
+        for j in 0..nu {
+            mesh.faces.push([0, ring(1, j), ring(1, j + 1)]);
+            mesh.faces.push([south, ring(nv - 1, j + 1), ring(nv - 1, j)]);
+        }
+        for i in 1..nv - 1 {
+            for j in 0..nu {
+                mesh.faces.push([ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)]);
+                mesh.faces.push([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)]);
+            }
+        }
+        assert!(mesh.topology().is_closed_oriented_manifold());
+        let t0 = std::time::Instant::now();
+        let dec = decimate(&mesh, mesh.faces.len() / 20);
+        println!("decimate {} -> {} faces in {:.2} s", mesh.faces.len(), dec.faces.len(), t0.elapsed().as_secs_f64());
+        assert!(dec.topology().is_closed_oriented_manifold());
+    }
+}

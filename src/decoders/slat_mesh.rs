@@ -291,9 +291,14 @@ impl SparseSubdivideBlock3d {
         let child_ranges: Vec<Range<usize>> = parent_ranges.iter().map(|r| r.start * 8..r.end * 8).collect();
         let c = self.out_channels;
 
-        let h = self.act_norm.forward(&x.feats, &parent_ranges, true)?;
-        let h = subdiv_conv(&grid, &h, true, &self.conv0.w_t, &self.conv0.bias)?;
-        let h = self.out_norm.forward(&h, &child_ranges, true)?;
+        // Nested scopes free each full-size intermediate as soon as it is consumed
+        // (shadowed bindings would live to the end of the function).
+        let h = {
+            let conv_in = self.act_norm.forward(&x.feats, &parent_ranges, true)?;
+            let conv_out = subdiv_conv(&grid, &conv_in, true, &self.conv0.w_t, &self.conv0.bias)?;
+            drop(conv_in);
+            self.out_norm.forward(&conv_out, &child_ranges, true)?
+        };
         // Skip at parent level (a 1×1 conv commutes with subdivision), added
         // to each output chunk by broadcasting over the 8 children.
         let skip = match &self.skip {
@@ -312,7 +317,7 @@ impl SparseSubdivideBlock3d {
 pub struct SLatMeshDecoder {
     pub trunk: SparseTransformerBase,
     pub upsample: Vec<SparseSubdivideBlock3d>,
-    out_layer: Linear,
+    pub out_layer: Linear,
     pub extractor: SparseFeatures2Mesh,
     pub resolution: usize,
 }
@@ -396,6 +401,7 @@ pub fn random_var_builder<T>(
         rng ^= rng >> 27;
         ((rng.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
+    let mut weights = std::collections::HashMap::new();
     let mut names: Vec<(String, candle_core::Var)> = vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
     names.sort_by(|a, b| a.0.cmp(&b.0)); // fixed order: deterministic draws
     for (name, var) in names {
@@ -405,15 +411,47 @@ pub fn random_var_builder<T>(
             .collect();
         let t = Tensor::from_vec(v, var.shape(), &dev)?;
         let is_norm_weight = name.ends_with(".weight") && var.rank() == 1;
-        var.set(&if is_norm_weight { (t + 1.0)? } else { t })?;
+        weights.insert(name, if is_norm_weight { (t + 1.0)? } else { t });
     }
-    Ok(VarBuilder::from_varmap(&vm, DType::F32, &dev))
+    // Plain tensors, not `Var`s: ops on `Var`s record the autograd graph,
+    // which would keep every intermediate alive.
+    Ok(VarBuilder::from_tensors(weights, DType::F32, &dev))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::Device;
+
+    #[test]
+    fn subdivided_conv_matches_sparse_conv_kernel() -> Result<()> {
+        use recon_kernels::sparse::{submanifold_conv3d, NeighbourMap};
+        let parents: Vec<[i32; 4]> = (0..40).map(|i| [i / 30, (i * 7) % 5, (i * 3) % 4, i % 3]).collect();
+        let mut parents = parents;
+        parents.sort();
+        parents.dedup();
+        let (c_in, c_out) = (8, 5);
+        let dev = Device::Cpu;
+        let children = subdivide_coords(&parents);
+        let xc = Tensor::randn(0f32, 1.0, (children.len(), c_in), &dev)?;
+        let w = Tensor::randn(0f32, 1.0, (c_out, 3, 3, 3, c_in), &dev)?;
+        let b = Tensor::randn(0f32, 1.0, c_out, &dev)?;
+        let map = NeighbourMap::submanifold(&children, 3).map_err(Error::msg)?;
+        let want = submanifold_conv3d(
+            &xc.flatten_all()?.to_vec1::<f32>()?,
+            c_in,
+            &map,
+            &w.flatten_all()?.to_vec1::<f32>()?,
+            Some(&b.to_vec1::<f32>()?),
+            c_out,
+        )
+        .map_err(Error::msg)?;
+        let w_t = w.reshape((c_out, 27 * c_in))?.t()?.contiguous()?;
+        let got = subdiv_conv(&SubdivGrid::new(&parents), &xc, false, &w_t, &b)?.flatten_all()?.to_vec1::<f32>()?;
+        let d = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(d < 1e-4, "subdivide conv vs kernel: {d}");
+        Ok(())
+    }
 
     #[test]
     fn fused_output_layer_matches_unfused() -> Result<()> {
