@@ -200,7 +200,8 @@ impl Quadric {
         let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
             + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
         let scale = (q[0] + q[4] + q[7]).powi(3);
-        if !(det.abs() > 1e-9 * scale) || scale == 0.0 {
+        let well_conditioned = det.abs() > 1e-9 * scale && scale > 0.0; // false on NaN
+        if !well_conditioned {
             return None;
         }
         let solve = |col: usize| {

@@ -51,7 +51,7 @@ pub fn glb_bytes(mesh: &Mesh, opts: &GlbOptions) -> Result<Vec<u8>> {
     let mut accessors = Vec::new();
     let mut push_view = |bin: &mut Vec<u8>, bytes: &[u8], target: u32| -> usize {
         // Every view starts 4-byte aligned (all components are 4 bytes).
-        while bin.len() % 4 != 0 {
+        while !bin.len().is_multiple_of(4) {
             bin.push(0);
         }
         views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len(), "target": target}));
@@ -81,7 +81,7 @@ pub fn glb_bytes(mesh: &Mesh, opts: &GlbOptions) -> Result<Vec<u8>> {
     let v = push_view(&mut bin, &idx, ELEMENT_ARRAY_BUFFER);
     accessors.push(json!({"bufferView": v, "componentType": UNSIGNED_INT, "count": mesh.faces.len() * 3, "type": "SCALAR"}));
     let indices = accessors.len() - 1;
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
 
@@ -97,7 +97,7 @@ pub fn glb_bytes(mesh: &Mesh, opts: &GlbOptions) -> Result<Vec<u8>> {
         "buffers": [{"byteLength": bin.len()}],
     });
     let mut json_bytes = serde_json::to_vec(&doc).map_err(|e| Error::msg(format!("glb: {e}")))?;
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
     let total = 12 + 8 + json_bytes.len() + 8 + bin.len();

@@ -34,7 +34,8 @@ impl Similarity {
             for j in 0..3 {
                 let d: f32 = (0..3).map(|k| rotation[k][i] * rotation[k][j]).sum();
                 let want = if i == j { 1.0 } else { 0.0 };
-                if !((d - want).abs() < 1e-3) {
+                let orthonormal = (d - want).abs() < 1e-3; // false on NaN
+                if !orthonormal {
                     return Err(Error::msg(format!("similarity: rotation is not orthonormal: {rotation:?}")));
                 }
             }

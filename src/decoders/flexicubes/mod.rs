@@ -334,10 +334,10 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
     let mut edges: Vec<(u64, u64)> = surf
         .par_iter()
         .flat_map_iter(|sc| {
-            CUBE_EDGES.iter().filter_map(move |&[a, b]| {
-                ((sc.s[a] < 0.0) != (sc.s[b] < 0.0))
-                    .then(|| (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b]))))
-            })
+            CUBE_EDGES
+                .iter()
+                .filter(move |&&[a, b]| (sc.s[a] < 0.0) != (sc.s[b] < 0.0))
+                .map(move |&[a, b]| (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b]))))
         })
         .collect();
     edges.par_sort_unstable();
@@ -565,7 +565,7 @@ mod tests {
         let mut feats = Vec::new();
         for row in feats53.chunks(WEIGHTS.end) {
             feats.extend_from_slice(row);
-            feats.extend(std::iter::repeat(0.0).take(COLOR.len()));
+            feats.extend(std::iter::repeat_n(0.0, COLOR.len()));
         }
         let m = SparseFeatures2Mesh::new(res, true);
         let mesh = m.extract(&coords, &feats).unwrap();
