@@ -232,15 +232,15 @@ fn wino_at(m: [f32; 4]) -> [f32; 2] {
     [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
 }
 
-/// Tiles (2×2×2 outputs each) per Winograd chunk: bounds the transformed
-/// input/output buffers to `64 · (Cin + Cout) · TILE_CHUNK` floats.
-const TILE_CHUNK: usize = 128;
+/// Floats of the transformed input + output buffers of one Winograd tile
+/// chunk (32 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
+const WINO_BUDGET: usize = 8 << 20;
 
 /// 3×3×3, pad-1 convolution by Winograd F(2³, 3³): each 2×2×2 output tile is
 /// `Aᵀ [ (G g Gᵀ) ⊙ (Bᵀ d B) ] A` per axis, and the elementwise product summed
 /// over input channels becomes 64 independent `[Cout, Cin] × [Cin, tiles]`
 /// GEMMs. Weights are transformed once per call (a transient `64·Cout·Cin`
-/// buffer); tiles are processed in chunks of [`TILE_CHUNK`]. Same contract as
+/// buffer); tiles are processed in chunks bounded by `WINO_BUDGET`. Same contract as
 /// [`conv3d`], restricted to `k = 3, pad = 1`.
 pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
@@ -282,7 +282,7 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
         }
     });
 
-    let tc_max = TILE_CHUNK.min(ntiles);
+    let tc_max = (WINO_BUDGET / (64 * (cin + cout))).clamp(32, 1024).min(ntiles);
     let mut v = vec![0f32; 64 * cin * tc_max];
     let mut m = vec![0f32; 64 * cout * tc_max];
     for b in 0..s.batch {
