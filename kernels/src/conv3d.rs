@@ -243,6 +243,19 @@ const WINO_BUDGET: usize = 8 << 20;
 /// buffer); tiles are processed in chunks bounded by `WINO_BUDGET`. Same contract as
 /// [`conv3d`], restricted to `k = 3, pad = 1`.
 pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 1024);
+    winograd_chunked(x, s, weight, bias, out, accumulate, tiles_per_chunk)
+}
+
+fn winograd_chunked(
+    x: &[f32],
+    s: &Conv3dShape,
+    weight: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    accumulate: bool,
+    tiles_per_chunk: usize,
+) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
     if s.k != 3 || s.pad != 1 {
         return Err(format!("conv3d_winograd: only k=3, pad=1 (got k={}, pad={})", s.k, s.pad));
@@ -282,7 +295,7 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
         }
     });
 
-    let tc_max = (WINO_BUDGET / (64 * (cin + cout))).clamp(32, 1024).min(ntiles);
+    let tc_max = tiles_per_chunk.clamp(1, ntiles);
     let mut v = vec![0f32; 64 * cin * tc_max];
     let mut m = vec![0f32; 64 * cout * tc_max];
     for b in 0..s.batch {
@@ -615,7 +628,16 @@ mod tests {
             let want_acc: Vec<f32> = base.iter().zip(&want).map(|(a, b)| a + b).collect();
             assert!(max_diff(&acc, &want_acc) < 1e-3, "case {i} accumulate");
         }
-        // More tiles than one chunk, through the dispatcher.
+        // Several tile chunks (the last one partial), batch 2.
+        let s = Conv3dShape { batch: 2, cin: 6, cout: 5, d: 5, h: 6, w: 7, k: 3, pad: 1 };
+        let x = rand_vec(s.input_len(), 700);
+        let wt = rand_vec(s.weight_len(), 701);
+        let mut want = vec![0.0; s.output_len()];
+        conv3d_reference(&x, &s, &wt, None, &mut want).unwrap();
+        let mut got = vec![f32::NAN; s.output_len()];
+        winograd_chunked(&x, &s, &wt, None, &mut got, false, 7).unwrap();
+        assert!(max_diff(&got, &want) < 1e-4);
+        // Through the dispatcher at a width that selects Winograd.
         let s = Conv3dShape { batch: 1, cin: 64, cout: 64, d: 6, h: 14, w: 13, k: 3, pad: 1 };
         check_shape(s, true, 77);
     }
