@@ -268,7 +268,9 @@ fn winograd_chunked(
     // U[e][co][ci] = (G g Gᵀ) of weight (co, ci), e = (z·4 + y)·4 + x.
     let mut u = vec![0f32; 64 * cout * cin];
     let u_ptr = SendPtr(u.as_mut_ptr());
-    (0..cout).into_par_iter().for_each(|co| {
+    // Per-job staging rows keep the writes to U/V and reads of M contiguous.
+    (0..cout).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, co| {
+        stage.resize(64 * cin, 0.0);
         for ci in 0..cin {
             let g = &weight[(co * cin + ci) * 27..][..27];
             let mut t1 = [0f32; 36]; // [3 z][3 y][4 x]
@@ -288,10 +290,14 @@ fn winograd_chunked(
             for yx in 0..16 {
                 let r = wino_g([t2[yx], t2[16 + yx], t2[32 + yx]]);
                 for (z, v) in r.iter().enumerate() {
-                    // SAFETY: (co, ci) is written by this job only.
-                    unsafe { *u_ptr.get().add(((z * 16 + yx) * cout + co) * cin + ci) = *v };
+                    stage[(z * 16 + yx) * cin + ci] = *v;
                 }
             }
+        }
+        for e in 0..64 {
+            // SAFETY: row co of every U[e] is written by this job only.
+            let dst = unsafe { std::slice::from_raw_parts_mut(u_ptr.get().add((e * cout + co) * cin), cin) };
+            dst.copy_from_slice(&stage[e * cin..][..cin]);
         }
     });
 
@@ -305,7 +311,8 @@ fn winograd_chunked(
             let tc = tc_max.min(ntiles - t0);
             // V[e][ci][t] = Bᵀ d B of the 4×4×4 input patch of tile t.
             let v_ptr = SendPtr(v.as_mut_ptr());
-            (0..cin).into_par_iter().for_each(|ci| {
+            (0..cin).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, ci| {
+                stage.resize(64 * tc, 0.0);
                 let xc = &xb[ci * plane..][..plane];
                 for tl in 0..tc {
                     let t = t0 + tl;
@@ -346,10 +353,14 @@ fn winograd_chunked(
                     for yx in 0..16 {
                         let r = wino_bt([p[yx], p[16 + yx], p[32 + yx], p[48 + yx]]);
                         for (z, val) in r.iter().enumerate() {
-                            // SAFETY: row ci of every V[e] belongs to this job.
-                            unsafe { *v_ptr.get().add(((z * 16 + yx) * cin + ci) * tc + tl) = *val };
+                            stage[(z * 16 + yx) * tc + tl] = *val;
                         }
                     }
+                }
+                for e in 0..64 {
+                    // SAFETY: row ci of every V[e] belongs to this job.
+                    let dst = unsafe { std::slice::from_raw_parts_mut(v_ptr.get().add((e * cin + ci) * tc), tc) };
+                    dst.copy_from_slice(&stage[e * tc..][..tc]);
                 }
             });
             // M[e] = U[e] · V[e]: 64 independent GEMMs.
@@ -381,14 +392,18 @@ fn winograd_chunked(
             });
             // Output tiles: Aᵀ m A, cropped at the far edges, plus bias.
             let m = &m;
-            ob.par_chunks_mut(plane).enumerate().for_each(|(co, oc)| {
+            ob.par_chunks_mut(plane).enumerate().for_each_init(Vec::new, |stage: &mut Vec<f32>, (co, oc)| {
+                stage.resize(64 * tc, 0.0);
+                for e in 0..64 {
+                    stage[e * tc..][..tc].copy_from_slice(&m[(e * cout + co) * tc..][..tc]);
+                }
                 let bc = bias.map_or(0.0, |bv| bv[co]);
                 for tl in 0..tc {
                     let t = t0 + tl;
                     let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
                     let mut q = [0f32; 64];
                     for (e, qe) in q.iter_mut().enumerate() {
-                        *qe = m[(e * cout + co) * tc + tl];
+                        *qe = stage[e * tc + tl];
                     }
                     let mut r1 = [0f32; 32]; // [4 z][4 y][2 x]
                     for zy in 0..16 {
