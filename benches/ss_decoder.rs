@@ -63,21 +63,36 @@ fn main() -> recon::Result<()> {
     println!("ss_decoder bench: channels {:?}, {} rayon threads; weights built in {:.2} s", cfg.channels, rayon::current_num_threads(), t0.elapsed().as_secs_f64());
     let x = Tensor::from_vec(xorshift_fill(8 * 16 * 16 * 16, 42, 1.0, 0.0), (1, 8, 16, 16, 16), &Device::Cpu)?;
     let mut times = Vec::new();
+    let mut cpus = Vec::new();
     let mut occupied = 0;
     for i in 0..iters.max(1) {
-        let t = Instant::now();
+        let (t, c0) = (Instant::now(), cpu_seconds());
         let logits = dec.forward(&x)?;
         let dt = t.elapsed().as_secs_f64();
+        let cpu = cpu_seconds() - c0;
         occupied = occupied_coords(&logits)?.len();
-        println!("forward {i}: {dt:.3} s  logits {:?}", logits.dims());
+        println!("forward {i}: {dt:.3} s wall, {cpu:.2} CPU-s  logits {:?}", logits.dims());
         times.push(dt);
+        cpus.push(cpu);
     }
     let best = times.iter().cloned().fold(f64::INFINITY, f64::min);
     let mean = times.iter().sum::<f64>() / times.len() as f64;
-    println!("seconds per forward: best {best:.3}  mean {mean:.3}  ({} runs); occupied voxels {occupied}", times.len());
+    let cpu_mean = cpus.iter().sum::<f64>() / cpus.len() as f64;
+    println!("seconds per forward: best {best:.3}  mean {mean:.3}  ({} runs); CPU-seconds per forward {cpu_mean:.2}; occupied voxels {occupied}", times.len());
+    // On a shared machine wall time overstates the cost; CPU-s / threads is the
+    // wall time this would take with the cores to itself.
     match vm_hwm_mib() {
         Some(m) => println!("peak RSS (VmHWM): {m:.0} MiB"),
         None => println!("peak RSS: unavailable (/proc/self/status not readable)"),
     }
     Ok(())
+}
+
+/// User + system CPU seconds of this process (from /proc/self/stat, 100 Hz ticks).
+fn cpu_seconds() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = s.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (tick(11) + tick(12)) / 100.0
 }

@@ -232,17 +232,30 @@ fn wino_at(m: [f32; 4]) -> [f32; 2] {
     [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
 }
 
-/// Tiles (2×2×2 outputs each) per Winograd chunk: bounds the transformed
-/// input/output buffers to `64 · (Cin + Cout) · TILE_CHUNK` floats.
-const TILE_CHUNK: usize = 128;
+/// Floats of the transformed input + output buffers of one Winograd tile
+/// chunk (32 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
+const WINO_BUDGET: usize = 8 << 20;
 
 /// 3×3×3, pad-1 convolution by Winograd F(2³, 3³): each 2×2×2 output tile is
 /// `Aᵀ [ (G g Gᵀ) ⊙ (Bᵀ d B) ] A` per axis, and the elementwise product summed
 /// over input channels becomes 64 independent `[Cout, Cin] × [Cin, tiles]`
 /// GEMMs. Weights are transformed once per call (a transient `64·Cout·Cin`
-/// buffer); tiles are processed in chunks of [`TILE_CHUNK`]. Same contract as
+/// buffer); tiles are processed in chunks bounded by `WINO_BUDGET`. Same contract as
 /// [`conv3d`], restricted to `k = 3, pad = 1`.
 pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 1024);
+    winograd_chunked(x, s, weight, bias, out, accumulate, tiles_per_chunk)
+}
+
+fn winograd_chunked(
+    x: &[f32],
+    s: &Conv3dShape,
+    weight: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    accumulate: bool,
+    tiles_per_chunk: usize,
+) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
     if s.k != 3 || s.pad != 1 {
         return Err(format!("conv3d_winograd: only k=3, pad=1 (got k={}, pad={})", s.k, s.pad));
@@ -255,7 +268,9 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
     // U[e][co][ci] = (G g Gᵀ) of weight (co, ci), e = (z·4 + y)·4 + x.
     let mut u = vec![0f32; 64 * cout * cin];
     let u_ptr = SendPtr(u.as_mut_ptr());
-    (0..cout).into_par_iter().for_each(|co| {
+    // Per-job staging rows keep the writes to U/V and reads of M contiguous.
+    (0..cout).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, co| {
+        stage.resize(64 * cin, 0.0);
         for ci in 0..cin {
             let g = &weight[(co * cin + ci) * 27..][..27];
             let mut t1 = [0f32; 36]; // [3 z][3 y][4 x]
@@ -275,14 +290,18 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
             for yx in 0..16 {
                 let r = wino_g([t2[yx], t2[16 + yx], t2[32 + yx]]);
                 for (z, v) in r.iter().enumerate() {
-                    // SAFETY: (co, ci) is written by this job only.
-                    unsafe { *u_ptr.get().add(((z * 16 + yx) * cout + co) * cin + ci) = *v };
+                    stage[(z * 16 + yx) * cin + ci] = *v;
                 }
             }
         }
+        for e in 0..64 {
+            // SAFETY: row co of every U[e] is written by this job only.
+            let dst = unsafe { std::slice::from_raw_parts_mut(u_ptr.get().add((e * cout + co) * cin), cin) };
+            dst.copy_from_slice(&stage[e * cin..][..cin]);
+        }
     });
 
-    let tc_max = TILE_CHUNK.min(ntiles);
+    let tc_max = tiles_per_chunk.clamp(1, ntiles);
     let mut v = vec![0f32; 64 * cin * tc_max];
     let mut m = vec![0f32; 64 * cout * tc_max];
     for b in 0..s.batch {
@@ -292,7 +311,8 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
             let tc = tc_max.min(ntiles - t0);
             // V[e][ci][t] = Bᵀ d B of the 4×4×4 input patch of tile t.
             let v_ptr = SendPtr(v.as_mut_ptr());
-            (0..cin).into_par_iter().for_each(|ci| {
+            (0..cin).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, ci| {
+                stage.resize(64 * tc, 0.0);
                 let xc = &xb[ci * plane..][..plane];
                 for tl in 0..tc {
                     let t = t0 + tl;
@@ -333,10 +353,14 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
                     for yx in 0..16 {
                         let r = wino_bt([p[yx], p[16 + yx], p[32 + yx], p[48 + yx]]);
                         for (z, val) in r.iter().enumerate() {
-                            // SAFETY: row ci of every V[e] belongs to this job.
-                            unsafe { *v_ptr.get().add(((z * 16 + yx) * cin + ci) * tc + tl) = *val };
+                            stage[(z * 16 + yx) * tc + tl] = *val;
                         }
                     }
+                }
+                for e in 0..64 {
+                    // SAFETY: row ci of every V[e] belongs to this job.
+                    let dst = unsafe { std::slice::from_raw_parts_mut(v_ptr.get().add((e * cin + ci) * tc), tc) };
+                    dst.copy_from_slice(&stage[e * tc..][..tc]);
                 }
             });
             // M[e] = U[e] · V[e]: 64 independent GEMMs.
@@ -368,14 +392,18 @@ pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<
             });
             // Output tiles: Aᵀ m A, cropped at the far edges, plus bias.
             let m = &m;
-            ob.par_chunks_mut(plane).enumerate().for_each(|(co, oc)| {
+            ob.par_chunks_mut(plane).enumerate().for_each_init(Vec::new, |stage: &mut Vec<f32>, (co, oc)| {
+                stage.resize(64 * tc, 0.0);
+                for e in 0..64 {
+                    stage[e * tc..][..tc].copy_from_slice(&m[(e * cout + co) * tc..][..tc]);
+                }
                 let bc = bias.map_or(0.0, |bv| bv[co]);
                 for tl in 0..tc {
                     let t = t0 + tl;
                     let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
                     let mut q = [0f32; 64];
                     for (e, qe) in q.iter_mut().enumerate() {
-                        *qe = m[(e * cout + co) * tc + tl];
+                        *qe = stage[e * tc + tl];
                     }
                     let mut r1 = [0f32; 32]; // [4 z][4 y][2 x]
                     for zy in 0..16 {
@@ -615,7 +643,16 @@ mod tests {
             let want_acc: Vec<f32> = base.iter().zip(&want).map(|(a, b)| a + b).collect();
             assert!(max_diff(&acc, &want_acc) < 1e-3, "case {i} accumulate");
         }
-        // More tiles than one chunk, through the dispatcher.
+        // Several tile chunks (the last one partial), batch 2.
+        let s = Conv3dShape { batch: 2, cin: 6, cout: 5, d: 5, h: 6, w: 7, k: 3, pad: 1 };
+        let x = rand_vec(s.input_len(), 700);
+        let wt = rand_vec(s.weight_len(), 701);
+        let mut want = vec![0.0; s.output_len()];
+        conv3d_reference(&x, &s, &wt, None, &mut want).unwrap();
+        let mut got = vec![f32::NAN; s.output_len()];
+        winograd_chunked(&x, &s, &wt, None, &mut got, false, 7).unwrap();
+        assert!(max_diff(&got, &want) < 1e-4);
+        // Through the dispatcher at a width that selects Winograd.
         let s = Conv3dShape { batch: 1, cin: 64, cout: 64, d: 6, h: 14, w: 13, k: 3, pad: 1 };
         check_shape(s, true, 77);
     }

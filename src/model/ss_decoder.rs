@@ -276,10 +276,10 @@ mod tests {
         let vb = VarBuilder::from_varmap(&probe, DType::F32, &Device::Cpu);
         SparseStructureDecoder::new(cfg, vb).unwrap();
         let mut ws = HashMap::new();
-        for (i, (name, var)) in probe.data().lock().unwrap().iter().enumerate() {
+        for (name, var) in probe.data().lock().unwrap().iter() {
             let t = var.as_tensor();
-            let r = (Tensor::randn(0f32, 0.3, t.shape(), &Device::Cpu).unwrap() + if name.contains("norm") || name.contains("out_layer.0") { 1.0 } else { 0.0 }).unwrap();
-            let _ = i;
+            let offset = if name.contains("norm") || name.contains("out_layer.0") { 1.0 } else { 0.0 };
+            let r = (Tensor::randn(0f32, 0.3, t.shape(), &Device::Cpu).unwrap() + offset).unwrap();
             ws.insert(name.clone(), r);
         }
         VarBuilder::from_tensors(ws, DType::F32, &Device::Cpu)
@@ -294,6 +294,16 @@ mod tests {
         assert_eq!(fast.dims(), &[2, 2, 6, 8, 4]);
         let slow = dec.forward_differentiable(&x).unwrap();
         let d = max_abs_diff(&fast, &slow).unwrap();
+        assert!(d < 1e-4, "max diff {d}");
+    }
+
+    #[test]
+    fn fast_path_agrees_at_winograd_widths() {
+        // 64 channels and a 64→8·8 upsample conv select the Winograd kernel.
+        let cfg = SparseStructureDecoderConfig { channels: vec![64, 8], ..small_cfg() };
+        let dec = SparseStructureDecoder::new(&cfg, random_vb(&cfg)).unwrap();
+        let x = Tensor::randn(0f32, 1.0, (1, 3, 3, 2, 3), &Device::Cpu).unwrap();
+        let d = max_abs_diff(&dec.forward(&x).unwrap(), &dec.forward_differentiable(&x).unwrap()).unwrap();
         assert!(d < 1e-4, "max diff {d}");
     }
 
