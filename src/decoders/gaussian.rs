@@ -13,8 +13,7 @@ use crate::{Error, Result};
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
-/// Zeroth-order SH basis constant: RGB = C0·dc + 0.5.
-pub const SH_C0: f32 = 0.282_094_79;
+pub use crate::export::splat::SH_C0;
 
 #[derive(Debug, Clone)]
 pub struct GaussianConfig {
@@ -137,7 +136,8 @@ impl GaussianModel {
         Ok(r.broadcast_div(&n)?)
     }
 
-    /// Plain activated splats for export and rendering.
+    /// Plain activated splats (positions in the decoder's object frame,
+    /// [-0.5, 0.5]³ z-up) for export and rendering.
     pub fn to_gaussians(&self) -> Result<Gaussians> {
         let rows3 = |t: Tensor| -> Result<Vec<[f32; 3]>> {
             Ok(t.to_dtype(DType::F32)?.to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2]]).collect())
@@ -159,34 +159,9 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
     Ok((x.relu()? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?)
 }
 
-/// Activated 3D Gaussians of one object.
-#[derive(Debug, Clone, Default)]
-pub struct Gaussians {
-    /// World positions (z-up frame, in [-0.5, 0.5]³ up to the offsets).
-    pub positions: Vec<[f32; 3]>,
-    /// Per-axis standard deviations.
-    pub scales: Vec<[f32; 3]>,
-    /// Unit quaternions, (w, x, y, z).
-    pub rotations: Vec<[f32; 4]>,
-    /// Opacities in (0, 1).
-    pub opacities: Vec<f32>,
-    /// SH degree-0 coefficients per colour channel.
-    pub dc: Vec<[f32; 3]>,
-}
-
-impl Gaussians {
-    pub fn len(&self) -> usize {
-        self.positions.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
-    }
-    /// Base colour of splat `i`: `C0·dc + 0.5`, clamped at 0 like the rasteriser.
-    pub fn rgb(&self, i: usize) -> [f32; 3] {
-        let d = self.dc[i];
-        [0, 1, 2].map(|c| (SH_C0 * d[c] + 0.5).max(0.0))
-    }
-}
+/// The activated Gaussians are the export type (one struct for decoder
+/// output, transforms and the splat PLY writer).
+pub use crate::export::splat::Gaussians;
 
 pub struct SLatGaussianDecoder {
     pub trunk: SparseTransformerBase,
