@@ -9,7 +9,9 @@
 //! let p = Pipeline::load("models/recgen-large.json".as_ref(), "weights/".as_ref())?;
 //! // Or in-memory random weights (labelled as such in the output metadata):
 //! let p = Pipeline::random("models/recgen-tiny.json".as_ref(), 0)?;
-//! # let (pixels, pointmap, mask): (candle_core::Tensor, candle_core::Tensor, candle_core::Tensor) = todo!();
+//! let s = p.image_size(); // DINO input side
+//! let zeros = |c: usize| candle_core::Tensor::zeros((1, c, s, s), candle_core::DType::F32, &candle_core::Device::Cpu);
+//! let (pixels, pointmap, mask) = (zeros(3)?, zeros(3)?, zeros(1)?); // real inputs come from preprocessing
 //! let inputs = ObjectInputs { views: vec![ViewInput { pixels, pointmap, mask }] };
 //! let out = p.run(&inputs, &RunOptions { seed: 42, ..Default::default() })?;
 //! println!("{} voxels, {:?} faces, {:?}", out.coords.len(), out.mesh.map(|m| m.faces.len()), out.timings);

@@ -192,8 +192,11 @@ fn tiny_pipeline_end_to_end() {
 #[test]
 fn load_from_initialised_files() {
     let dir = tmp("load");
-    let files = recon::weights::init::write_random_architecture(&tiny(), &dir, 5).unwrap();
-    assert_eq!(files.len(), 6);
+    // `recon weights init --config <architecture>` goes through write_random_init.
+    assert_eq!(recon::weights::init::write_random_init(&tiny(), &dir, 5).unwrap(), dir);
+    let files: Vec<PathBuf> =
+        ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"].iter().map(|k| dir.join(format!("{k}.safetensors"))).collect();
+    assert!(dir.join("stereo_pose_stats.example.json").exists() && dir.join("slat_pose_stats.example.json").exists());
     for f in &files {
         assert!(recon::weights::init::is_random_init(f).unwrap());
     }
