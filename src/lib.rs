@@ -13,6 +13,7 @@ pub mod model;
 pub mod sparse;
 pub mod decoders;
 pub mod export;
+pub mod pipeline;
 pub mod conformance;
 
 pub use error::{Error, Result};

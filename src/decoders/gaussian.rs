@@ -13,8 +13,7 @@ use crate::{Error, Result};
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 
-/// Zeroth-order SH basis constant: RGB = C0·dc + 0.5.
-pub const SH_C0: f32 = 0.282_094_79;
+pub use crate::export::splat::SH_C0;
 
 #[derive(Debug, Clone)]
 pub struct GaussianConfig {
@@ -137,7 +136,8 @@ impl GaussianModel {
         Ok(r.broadcast_div(&n)?)
     }
 
-    /// Plain activated splats for export and rendering.
+    /// Plain activated splats (positions in the decoder's object frame,
+    /// [-0.5, 0.5]³ z-up) for export and rendering.
     pub fn to_gaussians(&self) -> Result<Gaussians> {
         let rows3 = |t: Tensor| -> Result<Vec<[f32; 3]>> {
             Ok(t.to_dtype(DType::F32)?.to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2]]).collect())
@@ -167,6 +167,9 @@ pub use crate::export::Gaussians;
 pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
     dc.map(|d| (SH_C0 * d + 0.5).max(0.0))
 }
+/// The activated Gaussians are the export type (one struct for decoder
+/// output, transforms and the splat PLY writer).
+pub use crate::export::splat::Gaussians;
 
 pub struct SLatGaussianDecoder {
     pub trunk: SparseTransformerBase,

@@ -7,7 +7,11 @@ use super::{write_file, Axes};
 use crate::{Error, Result};
 use std::path::Path;
 
-/// Activated Gaussians in one frame.
+/// Zeroth-order SH basis constant: RGB = C0·dc + 0.5.
+pub const SH_C0: f32 = 0.282_094_79;
+
+/// Activated Gaussians in one frame. The SLat Gaussian decoder returns this
+/// type directly (`decoders::gaussian::GaussianModel::to_gaussians`).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Gaussians {
     pub positions: Vec<[f32; 3]>,
@@ -42,6 +46,12 @@ impl Gaussians {
             return Err(Error::msg("gaussians: field lengths differ"));
         }
         Ok(())
+    }
+
+    /// Base colour of splat `i`: `C0·dc + 0.5`, clamped at 0 like the rasteriser.
+    pub fn rgb(&self, i: usize) -> [f32; 3] {
+        let d = self.dc[i];
+        [0, 1, 2].map(|c| (SH_C0 * d[c] + 0.5).max(0.0))
     }
 
     /// Concatenate (e.g. several objects placed in one scene).

@@ -70,6 +70,19 @@ impl RecGenConfig {
         Ok(cfg)
     }
 
+    /// Every module section as `(key, spec)`, in pipeline order. The keys
+    /// name the per-module weight files (`<key>.safetensors`).
+    pub fn modules(&self) -> Vec<(&'static str, &ModuleSpec)> {
+        vec![
+            ("image_cond_model", &self.image_cond_model),
+            ("ss_flow", &self.ss_flow),
+            ("ss_decoder", &self.ss_decoder),
+            ("slat_flow", &self.slat_flow),
+            ("slat_dec_mesh", &self.slat_dec_mesh),
+            ("slat_dec_gs", &self.slat_dec_gs),
+        ]
+    }
+
     /// The stage-1 flow model config.
     pub fn ss_flow_config(&self) -> Result<SsFlowConfig> {
         SsFlowConfig::from_value(&self.ss_flow.args, "ss_flow.args")

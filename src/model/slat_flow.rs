@@ -20,7 +20,8 @@ use crate::sparse::spatial::xyz_tensor;
 use crate::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
-use candle_nn::{Conv2d, Conv2dConfig, Linear, VarBuilder};
+use crate::model::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use candle_nn::{Linear, VarBuilder};
 use serde::Deserialize;
 
 fn default_head_channels() -> usize {
@@ -232,8 +233,9 @@ pub struct SLatFlowModel {
     blocks: Vec<ModulatedTransformerCrossBlock>,
     out_blocks: Vec<SparseResBlock3d>,
     out_layer: Linear,
-    point_embedder: Option<Conv2d>,
-    mask_embedder: Option<Conv2d>,
+    /// Shared Conv2d(k14, s14) patch embedders (`point_embedder.*`, `mask_embedder.*`).
+    pub point_embedder: Option<PointmapEmbedder>,
+    pub mask_embedder: Option<MaskEmbedder>,
     pose_embedder: Option<Linear>,
     conv_path: ConvPath,
 }
@@ -283,7 +285,6 @@ impl SLatFlowModel {
             }
         }
 
-        let patch_conv = Conv2dConfig { stride: 14, ..Default::default() };
         Ok(Self {
             t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"))?,
             ada_ln: if cfg.share_mod { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) } else { None },
@@ -293,12 +294,12 @@ impl SLatFlowModel {
             out_blocks,
             out_layer: linear(first, cfg.out_channels, vb.pp("out_layer"))?,
             point_embedder: if cfg.use_point_embedder {
-                Some(candle_nn::conv2d(3, cfg.point_embedder_out_channels, 14, patch_conv, vb.pp("point_embedder"))?)
+                Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
             } else {
                 None
             },
             mask_embedder: if cfg.use_mask_embedder {
-                Some(candle_nn::conv2d(1, cfg.mask_embedder_out_channels, 14, patch_conv, vb.pp("mask_embedder"))?)
+                Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?)
             } else {
                 None
             },
@@ -405,10 +406,14 @@ impl SLatFlowModel {
     pub fn build_cond(&self, image_tokens: &Tensor, pointmap: Option<&Tensor>, mask: Option<&Tensor>, pose: Option<&Tensor>) -> Result<Tensor> {
         let (_, l, _) = image_tokens.dims3()?;
         let mut cond = image_tokens.clone();
-        for (name, input, emb) in [("pointmap", pointmap, &self.point_embedder), ("mask", mask, &self.mask_embedder)] {
+        let embedded: [(&str, Option<&Tensor>, Option<&crate::model::embedders::PatchEmbedder>); 2] = [
+            ("pointmap", pointmap, self.point_embedder.as_ref().map(|e| &e.0)),
+            ("mask", mask, self.mask_embedder.as_ref().map(|e| &e.0)),
+        ];
+        for (name, input, emb) in embedded {
             let Some(input) = input else { continue };
-            let emb = emb.as_ref().ok_or_else(|| Error::msg(format!("SLat flow: {name} given but its embedder is disabled")))?;
-            let f = emb.forward(input)?.flatten_from(2)?.transpose(1, 2)?; // [B, P, C]
+            let emb = emb.ok_or_else(|| Error::msg(format!("SLat flow: {name} given but its embedder is disabled")))?;
+            let f = emb.forward(input)?; // [B, P, C]
             let p = f.dim(1)?;
             if p > l {
                 return Err(Error::msg(format!("SLat flow: {name} gives {p} tokens but the image has only {l}")));
@@ -417,12 +422,37 @@ impl SLatFlowModel {
             cond = if p == l { tail } else { Tensor::cat(&[&cond.narrow(1, 0, l - p)?, &tail], 1)? };
         }
         if let Some(pose) = pose {
-            let pe = self.pose_embedder.as_ref().ok_or_else(|| Error::msg("SLat flow: pose given but pose_embedder is disabled"))?;
-            let p = pe.forward(pose)?;
-            let p = if p.rank() == 2 { p.unsqueeze(1)? } else { p };
-            cond = Tensor::cat(&[&cond, &p], 1)?;
+            cond = Tensor::cat(&[&cond, &self.pose_tokens(pose)?], 1)?;
         }
         Ok(cond)
+    }
+
+    /// `pose_embedder(pose)` as context tokens: `[B, D]` → `[B, 1, C]`, `[B, K, D]` → `[B, K, C]`.
+    pub fn pose_tokens(&self, pose: &Tensor) -> Result<Tensor> {
+        let pe = self.pose_embedder.as_ref().ok_or_else(|| Error::msg("SLat flow: pose given but pose_embedder is disabled"))?;
+        let d = self.cfg.pose_dim()?;
+        if pose.dims().last() != Some(&d) || !(pose.rank() == 2 || pose.rank() == 3) {
+            return Err(Error::msg(format!("SLat flow: pose has shape {:?}, expected [B, {d}] or [B, K, {d}]", pose.dims())));
+        }
+        let p = pe.forward(pose)?;
+        Ok(if p.rank() == 2 { p.unsqueeze(1)? } else { p })
+    }
+
+    /// `(cond, neg_cond)` for one or more views, as RecGen's `get_cond` /
+    /// `get_cond_multiview` + `_add_pose_cond_to_slat` with this model's
+    /// embedders: views' patch tokens concatenated (no frame-token embedding
+    /// in stage 2), `neg_cond` = zeros taken before the pointmap / mask
+    /// features are added, then the pose tokens appended to `cond` and zeros
+    /// of the same shape appended to `neg_cond`.
+    pub fn condition(&self, views: &[ViewInputs], pose: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
+        let emb = CondEmbedders { point: self.point_embedder.as_ref(), mask: self.mask_embedder.as_ref(), frame: None };
+        let (mut cond, mut neg) = build_condition(views, emb)?;
+        if let Some(pose) = pose {
+            let p = self.pose_tokens(pose)?;
+            neg = Tensor::cat(&[&neg, &p.zeros_like()?], 1)?;
+            cond = Tensor::cat(&[&cond, &p], 1)?;
+        }
+        Ok((cond, neg))
     }
 }
 

@@ -1,6 +1,12 @@
 //! `recon weights init`: random-initialised weights for a module config,
 //! written as safetensors with metadata `recon.random_init = "true"` so they
 //! can never be mistaken for trained weights.
+//!
+//! Given an architecture file (`models/recgen-*.json`, recognised by its
+//! `ss_flow` section) instead of a module config, every module is written as
+//! `<out>/<key>.safetensors` (keys: [`crate::model::config::RecGenConfig::modules`]),
+//! with a copy of the architecture file and its pose-stat files, so that
+//! `Pipeline::load(<out>/<arch file>, <out>)` runs it.
 
 use super::registry::{random_weights, ModuleConfig};
 use crate::{Error, Result};
@@ -11,8 +17,14 @@ use std::path::{Path, PathBuf};
 pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 
 /// Write `<out>/<config stem>.safetensors` and a copy of the config as
-/// `<out>/<config stem>.json`. Returns the weights path.
+/// `<out>/<config stem>.json`. Returns the weights path. For an architecture
+/// file see [`write_random_architecture`] (returns `out`).
 pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
+    let v: serde_json::Value = crate::config::read_json(config)?;
+    if v.get("ss_flow").is_some() && v.get("args").is_none() {
+        write_random_architecture(config, out, seed)?;
+        return Ok(out.to_path_buf());
+    }
     let cfg = ModuleConfig::read(config)?;
     let file = config.display().to_string();
     let tensors = random_weights(&cfg, seed, &file)?;
@@ -48,6 +60,68 @@ pub fn is_random_init(path: &Path) -> Result<bool> {
     let mut h = vec![0u8; n as usize];
     f.read_exact(&mut h).map_err(|e| bad(format!("truncated safetensors header: {e}")))?;
     let v: serde_json::Value = serde_json::from_slice(&h).map_err(|e| bad(format!("bad safetensors header: {e}")))?;
+/// Random weights for every module of an architecture file: one labelled
+/// `<out>/<key>.safetensors` per module (seed per module:
+/// [`module_seed`](super::registry::module_seed)`(seed, key)`), the
+/// architecture file copied under its own name, and its pose-stat files at
+/// the same relative paths. Returns the written weight files.
+pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result<Vec<PathBuf>> {
+    use crate::model::config::RecGenConfig;
+    let arch = RecGenConfig::load(config)?;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let mut written = Vec::new();
+    for (key, spec) in arch.modules() {
+        let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
+        let mseed = super::registry::module_seed(seed, key);
+        let tensors = random_weights(&cfg, mseed, &format!("{}: {key}", config.display()))?;
+        let meta: BTreeMap<String, String> = [
+            (RANDOM_INIT_KEY, "true".to_string()),
+            ("recon.seed", seed.to_string()),
+            ("recon.module_seed", mseed.to_string()),
+            ("recon.module", cfg.name.clone()),
+            ("recon.key", key.to_string()),
+            ("recon.architecture", arch.name.clone()),
+            ("recon.note", "random weights for tests and plumbing; NOT a trained model".to_string()),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        let path = out.join(format!("{key}.safetensors"));
+        write_safetensors(&tensors, &meta, &path)?;
+        written.push(path);
+    }
+    let name = config.file_name().ok_or_else(|| Error::input(config.display().to_string(), "not a file"))?;
+    let dest = out.join(name);
+    if dest != config {
+        std::fs::copy(config, &dest).map_err(|e| Error::io(&dest, e))?;
+    }
+    for rel in [&arch.pose.ss_stats, &arch.pose.slat_stats] {
+        let (src, dst) = (arch.base_dir.join(rel), out.join(rel));
+        if src != dst {
+            if let Some(parent) = dst.parent() {
+                std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+            }
+            std::fs::copy(&src, &dst).map_err(|e| Error::io(&src, e))?;
+        }
+    }
+    Ok(written)
+}
+
+/// True when a safetensors file carries the random-init label.
+/// Reads only the header, so multi-GB checkpoints cost nothing.
+pub fn is_random_init(path: &Path) -> Result<bool> {
+    use std::io::Read;
+    let bad = |m: String| Error::input(path.display().to_string(), format!("bad safetensors header: {m}"));
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len).map_err(|e| bad(e.to_string()))?;
+    let n = u64::from_le_bytes(len);
+    if n > 100 << 20 {
+        return Err(bad(format!("header length {n} is implausible")));
+    }
+    let mut h = vec![0u8; n as usize];
+    f.read_exact(&mut h).map_err(|e| bad(e.to_string()))?;
+    let v: serde_json::Value = serde_json::from_slice(&h).map_err(|e| bad(e.to_string()))?;
     Ok(v.get("__metadata__").and_then(|m| m.get(RANDOM_INIT_KEY)).and_then(|x| x.as_str()) == Some("true"))
 }
 

@@ -158,7 +158,15 @@ impl SimpleBackend for RandomInit {
         if let Some(t) = m.get(name) {
             return t.to_dtype(dtype);
         }
-        let t = Tensor::from_vec(random_values(self.seed, name, s.elem_count()), s, dev)?;
+        // A rank-1 `weight` is a norm scale whatever its module is called
+        // (`out_layer.0`, `act_layers.0` are LayerNorm / GroupNorm): 1, so
+        // random-weight activations keep their scale.
+        let vals = if s.rank() == 1 && name.ends_with("weight") {
+            vec![1.0; s.elem_count()]
+        } else {
+            random_values(self.seed, name, s.elem_count())
+        };
+        let t = Tensor::from_vec(vals, s, dev)?;
         m.insert(name.to_string(), t.clone());
         t.to_dtype(dtype)
     }

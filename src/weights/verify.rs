@@ -3,6 +3,7 @@
 
 use super::load::Checkpoint;
 use super::manifest::Manifest;
+use super::registry::{expected_tensors, ModuleConfig, ModuleKind};
 use super::validate::compare;
 use crate::Result;
 use std::collections::BTreeMap;
@@ -34,7 +35,13 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
             rows.push(row);
             continue;
         }
-        match &f.tensors {
+        // Without a stored list, derive one from the module's config file
+        // when the registry knows the module.
+        let derived = match (&f.tensors, &f.module, &f.config) {
+            (None, Some(module), Some(cfg)) => derive_expected(module, &root.join(cfg)),
+            _ => None,
+        };
+        match f.tensors.as_ref().or(derived.as_ref()) {
             None => {
                 row.ok = true;
                 row.detail = match f.kind.as_str() {
@@ -79,11 +86,61 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
     Ok(rows)
 }
 
+/// Expected tensors of `module` from its config file: a module config
+/// (`{"name", "args"}`) or a training config whose `models` map holds an
+/// entry for a known class. `None` when the file is absent or not usable.
+fn derive_expected(module: &str, config: &Path) -> Option<Vec<super::record::TensorSpec>> {
+    ModuleKind::of(module)?;
+    let v: serde_json::Value = crate::config::read_json(config).ok()?;
+    let spec = if v.get("args").is_some() {
+        v
+    } else {
+        v.get("models")?.as_object()?.values().find(|m| m.get("name").and_then(|n| n.as_str()).and_then(ModuleKind::of).is_some())?.clone()
+    };
+    let cfg: ModuleConfig = serde_json::from_value(spec).ok()?;
+    expected_tensors(&cfg, &config.display().to_string()).ok()
+}
+
 pub fn print_table(m: &Manifest, dir: &Path, rows: &[VerifyRow], out: &mut dyn Write) {
     let _ = writeln!(out, "manifest {} ({}) in {}", m.name, m.repo.as_deref().unwrap_or(&m.source), m.resolve_dir(dir).display());
     let _ = writeln!(out, "{:<70} {:>14} {:>13}  {:<4}  detail", "file", "bytes", "tensors", "ok");
     for r in rows {
         let t = r.tensors.map(|(a, b)| format!("{a}/{b}")).unwrap_or_else(|| "-".into());
         let _ = writeln!(out, "{:<70} {:>14} {:>13}  {:<4}  {}", r.file, r.bytes, t, if r.ok { "OK" } else { "FAIL" }, r.detail);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A manifest entry without a stored tensor list is checked against the
+    /// list its module config implies.
+    #[test]
+    fn tensor_list_derived_from_module_config() -> Result<()> {
+        let dir = std::env::temp_dir().join(format!("recon-verify-derive-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).map_err(|e| crate::Error::io(&dir, e))?;
+        let cfg = serde_json::json!({"name": "SparseStructureDecoder", "args": {
+            "out_channels": 1, "latent_channels": 4, "num_res_blocks": 1, "num_res_blocks_middle": 1, "channels": [16, 8]}});
+        let cfg_path = dir.join("ss_dec.json");
+        std::fs::write(&cfg_path, cfg.to_string()).map_err(|e| crate::Error::io(&cfg_path, e))?;
+        super::super::init::write_random_init(&cfg_path, &dir, 1)?;
+        let m = Manifest::parse(
+            r#"{"name": "t", "source": "url", "files": [{"path": "ss_dec.safetensors", "kind": "safetensors",
+                "url": "x", "module": "SparseStructureDecoder", "config": "ss_dec.json", "tensors_note": "derived"}]}"#,
+            "t",
+        )?;
+        let rows = verify_dir(&m, &dir)?;
+        let (matched, want) = rows[0].tensors.expect("derived tensor list");
+        assert!(rows[0].ok && matched == want && want > 10, "{:?}", rows[0]);
+        // A checkpoint of another shape fails.
+        let other = serde_json::json!({"name": "SparseStructureDecoder", "args": {
+            "out_channels": 1, "latent_channels": 4, "num_res_blocks": 1, "num_res_blocks_middle": 1, "channels": [8, 8]}});
+        std::fs::write(&cfg_path, other.to_string()).map_err(|e| crate::Error::io(&cfg_path, e))?;
+        let rows = verify_dir(&m, &dir)?;
+        assert!(!rows[0].ok && rows[0].detail.contains("wrong shape"), "{:?}", rows[0]);
+        let _ = std::fs::remove_dir_all(&dir);
+        Ok(())
     }
 }

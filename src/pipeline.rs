@@ -1,0 +1,563 @@
+//! The whole two-stage RecGen model as one library call.
+//!
+//! # API
+//!
+//! ```no_run
+//! use recon::pipeline::{ObjectInputs, Pipeline, RunOptions, ViewInput};
+//! # fn main() -> recon::Result<()> {
+//! // Trained (or `recon weights init`) weights: `<dir>/<key>.safetensors` per module.
+//! let p = Pipeline::load("models/recgen-large.json".as_ref(), "weights/".as_ref())?;
+//! // Or in-memory random weights (labelled as such in the output metadata):
+//! let p = Pipeline::random("models/recgen-tiny.json".as_ref(), 0)?;
+//! let s = p.image_size(); // DINO input side
+//! let zeros = |c: usize| candle_core::Tensor::zeros((1, c, s, s), candle_core::DType::F32, &candle_core::Device::Cpu);
+//! let (pixels, pointmap, mask) = (zeros(3)?, zeros(3)?, zeros(1)?); // real inputs come from preprocessing
+//! let inputs = ObjectInputs { views: vec![ViewInput { pixels, pointmap, mask }] };
+//! let out = p.run(&inputs, &RunOptions { seed: 42, ..Default::default() })?;
+//! println!("{} voxels, {:?} faces, {:?}", out.coords.len(), out.mesh.map(|m| m.faces.len()), out.timings);
+//! # Ok(()) }
+//! ```
+//!
+//! **Inputs** ([`ObjectInputs`]): one or two views (at most the stage-1
+//! model's `num_pose_tokens`), view 0 being the anchor. Each view holds, at
+//! the DINO input size `S` (`image_cond_model.args.image_size`: 518 for
+//! recgen-large, 56 for recgen-tiny), f32 tensors
+//! - `pixels` `[1, 3, S, S]`: RGB in [0, 1] already normalised with the
+//!   ImageNet mean/std (what DINOv2 receives),
+//! - `pointmap` `[1, 3, S, S]`: the normalised pointmap (finite values),
+//! - `mask` `[1, 1, S, S]`: object mask in {0, 1}.
+//!
+//! Producing them from RGB-D frames is the job of the preprocessing code.
+//!
+//! **Weights** ([`Pipeline::load`]): the architecture file names six modules;
+//! module `<key>` is read from `<weights_dir>/<key>.safetensors` (or `.pt`/
+//! `.pth`), keys `image_cond_model`, `ss_flow`, `ss_decoder`, `slat_flow`,
+//! `slat_dec_mesh`, `slat_dec_gs` ([`RecGenConfig::modules`]). Each file is
+//! checked against the tensor list its config implies before anything is
+//! built (missing tensor or wrong shape → an error naming file, tensor and
+//! both shapes; extra tensors are tolerated as upstream's `strict=False`).
+//! `recon weights init --config <arch>.json --out DIR` writes exactly this
+//! layout. Pose statistics are read from the files the architecture names.
+//!
+//! **Steps** of [`Pipeline::run`] (spec §8, §9; RecGen `run_pointmap` /
+//! `run_pointmap_multiview`):
+//! 1. DINOv2 per view → RecGen condition (LayerNorm'd patch tokens).
+//! 2. Stage-1 condition `ss_flow.condition` (frame-token embedding for two
+//!    views, + pointmap and mask embeddings; `neg_cond` = zeros).
+//! 3. Stage-1 Euler/CFG sampling of the `[1, 8, R, R, R]` latent together
+//!    with the `[1, K, 10]` pose tokens.
+//! 4. SS decoder → occupied voxels (`logits > 0`); none → an error.
+//! 5. Pose: tokens denormalised with the stage-1 stats and Gram–Schmidt
+//!    ([`PoseStats::decode_10d`]); the stage-2 13-D tokens via
+//!    [`ss_pose_to_slat_pose`].
+//! 6. Stage-2 condition `slat_flow.condition` (views concatenated, +
+//!    pointmap/mask embeddings, + pose tokens; `neg_cond` = zeros).
+//! 7. Stage-2 sampling on the sparse voxels, then `slat·std + mean`.
+//! 8. Mesh decoder (FlexiCubes; vertex colours in `Mesh::vertex_attrs`) and
+//!    Gaussian decoder (activated [`Gaussians`]).
+//!
+//! **Noise order** (determinism): one [`SeededRng`] seeded with
+//! `RunOptions::seed` draws, in order, the stage-1 latent `[1, Cin, R, R, R]`,
+//! the stage-1 pose tokens `[1, K, P]` (`[1, P]` when K = 1), then the
+//! stage-2 features `[N, Cin]` (rows in occupied-voxel order). The same seed
+//! and inputs give bit-identical outputs. (torch's RNG is not reproduced, so
+//! results match upstream in distribution, not sample by sample.)
+//!
+//! **Frames**: the mesh and Gaussians are in the decoders' object frame
+//! ([-0.5, 0.5]³, z up); [`PredictedPose::pose`] maps that frame into the
+//! normalised pointmap frame as RecGen predicts it (`x = s·R·x_obj + t`).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use serde::Serialize;
+
+use crate::decoders::gaussian::SLatGaussianDecoder;
+use crate::decoders::slat_mesh::SLatMeshDecoder;
+use crate::decoders::Mesh;
+use crate::export::splat::Gaussians;
+use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
+use crate::model::config::{ModuleSpec, RecGenConfig};
+use crate::model::dinov2::Dinov2;
+use crate::model::embedders::ViewInputs;
+use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, SeededRng, VelocityModel};
+use crate::model::slat_flow::{SLatFlowModel, SLatNormalization};
+use crate::model::ss_decoder::{occupied_coords, SparseStructureDecoder};
+use crate::model::ss_flow::SparseStructureFlowModel;
+use crate::sparse::SparseTensor;
+use crate::weights::load::Checkpoint;
+use crate::weights::registry::{self, ModuleConfig};
+use crate::{Error, Result};
+
+/// One view of the object (see the module docs for shapes and ranges).
+#[derive(Debug, Clone)]
+pub struct ViewInput {
+    /// ImageNet-normalised RGB `[1, 3, S, S]`.
+    pub pixels: Tensor,
+    /// Normalised pointmap `[1, 3, S, S]`.
+    pub pointmap: Tensor,
+    /// Mask `[1, 1, S, S]` in {0, 1}.
+    pub mask: Tensor,
+}
+
+/// All views of one object; view 0 is the anchor whose pose is reported.
+#[derive(Debug, Clone)]
+pub struct ObjectInputs {
+    pub views: Vec<ViewInput>,
+}
+
+/// Per-run settings. Sampler values not overridden come from the
+/// architecture file's `samplers` section.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunOptions {
+    pub seed: u64,
+    pub ss_steps: Option<usize>,
+    pub ss_cfg_strength: Option<f64>,
+    pub slat_steps: Option<usize>,
+    pub slat_cfg_strength: Option<f64>,
+    /// Stop after stage 1 (occupancy + pose): no stage-2 sampling, no decoding.
+    pub stage1_only: bool,
+    pub decode_mesh: bool,
+    pub decode_gaussians: bool,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        Self {
+            seed: 42,
+            ss_steps: None,
+            ss_cfg_strength: None,
+            slat_steps: None,
+            slat_cfg_strength: None,
+            stage1_only: false,
+            decode_mesh: true,
+            decode_gaussians: true,
+        }
+    }
+}
+
+/// Wall-clock seconds per stage (0 for stages that did not run).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct StageTimings {
+    pub image_encoder: f64,
+    pub ss_condition: f64,
+    pub ss_sampling: f64,
+    pub ss_decoder: f64,
+    pub pose: f64,
+    pub slat_condition: f64,
+    pub slat_sampling: f64,
+    pub mesh_decoder: f64,
+    pub gaussian_decoder: f64,
+    pub total: f64,
+}
+
+/// The stage-1 pose prediction.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PredictedPose {
+    /// Token 0 (anchor view) decoded: denormalised with the stage-1 stats,
+    /// rotation by Gram–Schmidt. Object frame → normalised pointmap frame.
+    pub pose: Pose,
+    /// Every pose token decoded; token k belongs to view k (the model always
+    /// samples `num_pose_tokens` tokens, also for a single view).
+    pub per_token: Vec<Pose>,
+    /// The sampled tokens as they leave the sampler (normalised 10-D).
+    pub tokens_10d: Vec<[f32; 10]>,
+    /// The stage-2 pose tokens (13-D, normalised with the stage-2 stats).
+    pub slat_tokens_13d: Vec<[f32; 13]>,
+}
+
+/// Where the weights came from.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum WeightsSource {
+    /// In-memory random weights (`Pipeline::random`): NOT a trained model.
+    Random { seed: u64 },
+    /// Files per module; `random_init` when any carries `recon.random_init`.
+    Files { dir: PathBuf, files: Vec<PathBuf>, random_init: bool },
+}
+
+impl WeightsSource {
+    /// True for random weights, in memory or from labelled files.
+    pub fn is_random(&self) -> bool {
+        match self {
+            WeightsSource::Random { .. } => true,
+            WeightsSource::Files { random_init, .. } => *random_init,
+        }
+    }
+}
+
+/// What produced a result.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunMetadata {
+    pub architecture: String,
+    pub weights: WeightsSource,
+    /// Same as `weights.is_random()`, spelled out for readers of the JSON.
+    pub random_weights: bool,
+    pub seed: u64,
+    pub num_views: usize,
+    pub ss_sampler: SamplerSettings,
+    pub slat_sampler: Option<SamplerSettings>,
+    pub noise_order: &'static str,
+}
+
+/// Everything one run produces.
+#[derive(Debug, Clone)]
+pub struct ObjectReconstruction {
+    pub pose: PredictedPose,
+    /// Occupied voxels `(x, y, z)` of the SS decoder grid (resolution
+    /// `ss_resolution`), in argwhere order.
+    pub coords: Vec<[i32; 3]>,
+    pub ss_resolution: usize,
+    /// Mesh in the object frame with vertex colours (`vertex_attrs`).
+    pub mesh: Option<Mesh>,
+    /// Activated Gaussians in the object frame.
+    pub gaussians: Option<Gaussians>,
+    pub timings: StageTimings,
+    pub metadata: RunMetadata,
+}
+
+/// Which modules to build.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stages {
+    All,
+    /// Image encoder, stage-1 flow and SS decoder only (occupancy + pose).
+    SparseStructure,
+}
+
+struct Stage2 {
+    slat_flow: SLatFlowModel,
+    mesh_decoder: SLatMeshDecoder,
+    gs_decoder: SLatGaussianDecoder,
+}
+
+/// All modules of one architecture file with their weights.
+pub struct Pipeline {
+    pub config: RecGenConfig,
+    dino: Dinov2,
+    ss_flow: SparseStructureFlowModel,
+    ss_decoder: SparseStructureDecoder,
+    stage2: Option<Stage2>,
+    ss_stats: PoseStats,
+    slat_stats: PoseStats,
+    layout: NineDLayout,
+    slat_norm: SLatNormalization,
+    weights: WeightsSource,
+}
+
+const NOISE_ORDER: &str = "SeededRng(seed): ss latent [1,Cin,R,R,R], ss pose tokens [1,K,P], slat feats [N,Cin]";
+
+fn module_cfg(spec: &ModuleSpec) -> ModuleConfig {
+    ModuleConfig { name: spec.name.clone(), args: spec.args.clone() }
+}
+
+fn is_stage1(key: &str) -> bool {
+    matches!(key, "image_cond_model" | "ss_flow" | "ss_decoder")
+}
+
+fn secs(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64()
+}
+
+impl Pipeline {
+    /// Build every module from `<weights_dir>/<key>.safetensors` (see module docs).
+    pub fn load(config_path: &Path, weights_dir: &Path) -> Result<Self> {
+        Self::load_stages(config_path, weights_dir, Stages::All)
+    }
+
+    /// In-memory random weights, identical to what
+    /// `recon weights init --config <config> --seed <seed>` writes.
+    pub fn random(config_path: &Path, seed: u64) -> Result<Self> {
+        Self::random_stages(config_path, seed, Stages::All)
+    }
+
+    pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
+        let config = RecGenConfig::load(config_path)?;
+        let mut vbs = HashMap::new();
+        let mut files = Vec::new();
+        let mut random_init = false;
+        for (key, spec) in config.modules() {
+            if stages == Stages::SparseStructure && !is_stage1(key) {
+                continue;
+            }
+            let path = ["safetensors", "pt", "pth"]
+                .iter()
+                .map(|ext| weights_dir.join(format!("{key}.{ext}")))
+                .find(|p| p.exists())
+                .ok_or_else(|| {
+                    Error::input(
+                        weights_dir.display().to_string(),
+                        format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
+                    )
+                })?;
+            let label = format!("{}: {key}", config_path.display());
+            let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
+            let ck = Checkpoint::open(&path, None)?;
+            crate::weights::validate_checkpoint(&ck, &expected, true)?;
+            if path.extension().is_some_and(|e| e == "safetensors") {
+                random_init |= crate::weights::init::is_random_init(&path)?;
+            }
+            vbs.insert(key, ck.into_var_builder(DType::F32, &Device::Cpu));
+            files.push(path);
+        }
+        let weights = WeightsSource::Files { dir: weights_dir.to_path_buf(), files, random_init };
+        Self::build(config, vbs, weights, stages)
+    }
+
+    pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
+        let config = RecGenConfig::load(config_path)?;
+        let mut vbs = HashMap::new();
+        for (key, spec) in config.modules() {
+            if stages == Stages::SparseStructure && !is_stage1(key) {
+                continue;
+            }
+            let label = format!("{}: {key}", config_path.display());
+            let t = registry::random_weights(&module_cfg(spec), registry::module_seed(seed, key), &label)?;
+            let t: HashMap<String, Tensor> = t.into_iter().collect();
+            vbs.insert(key, VarBuilder::from_tensors(t, DType::F32, &Device::Cpu));
+        }
+        Self::build(config, vbs, WeightsSource::Random { seed }, stages)
+    }
+
+    fn build(config: RecGenConfig, mut vbs: HashMap<&'static str, VarBuilder<'static>>, weights: WeightsSource, stages: Stages) -> Result<Self> {
+        let mut take = |key: &str| vbs.remove(key).ok_or_else(|| Error::msg(format!("pipeline: no weights for `{key}`")));
+        let label = |key: &str| format!("{}: {key}", config.name);
+        let dino = registry::build_dinov2(&module_cfg(&config.image_cond_model), take("image_cond_model")?, &label("image_cond_model"))?;
+        let ss_flow = registry::build_ss_flow(&module_cfg(&config.ss_flow), take("ss_flow")?, &label("ss_flow"))?;
+        let ss_decoder = registry::build_ss_decoder(&module_cfg(&config.ss_decoder), take("ss_decoder")?, &label("ss_decoder"))?;
+        let stage2 = match stages {
+            Stages::SparseStructure => None,
+            Stages::All => Some(Stage2 {
+                slat_flow: registry::build_slat_flow(&module_cfg(&config.slat_flow), take("slat_flow")?, &label("slat_flow"))?,
+                mesh_decoder: registry::build_mesh_decoder(&module_cfg(&config.slat_dec_mesh), take("slat_dec_mesh")?, &label("slat_dec_mesh"))?,
+                gs_decoder: registry::build_gaussian_decoder(&module_cfg(&config.slat_dec_gs), take("slat_dec_gs")?, &label("slat_dec_gs"))?,
+            }),
+        };
+        if ss_flow.cfg.pose_channels() != Some(10) {
+            return Err(Error::config(&config.name, "ss_flow.args.pose_representation", "the pipeline needs RecGen pose tokens (6d_translation_scale)"));
+        }
+        if let Some(s2) = &stage2 {
+            let c = &s2.slat_flow.cfg;
+            if c.cond_channels != ss_flow.cfg.cond_channels || !c.use_pose_embedder || c.pose_dim()? != 13 {
+                return Err(Error::config(&config.name, "slat_flow.args", "needs cond_channels equal to the SS flow's and a 9d_translation_scale pose embedder"));
+            }
+            if config.slat_normalization.mean.len() != c.out_channels {
+                return Err(Error::config(&config.name, "slat_normalization", "length must equal slat_flow out_channels"));
+            }
+        }
+        let slat_norm = SLatNormalization { mean: config.slat_normalization.mean.clone(), std: config.slat_normalization.std.clone() };
+        Ok(Self {
+            ss_stats: config.ss_pose_stats()?,
+            slat_stats: config.slat_pose_stats()?,
+            layout: config.nine_d_layout()?,
+            slat_norm,
+            dino,
+            ss_flow,
+            ss_decoder,
+            stage2,
+            weights,
+            config,
+        })
+    }
+
+    /// Where the weights came from (random weights are labelled).
+    pub fn weights(&self) -> &WeightsSource {
+        &self.weights
+    }
+
+    /// DINO input side `S`.
+    pub fn image_size(&self) -> usize {
+        self.dino.cfg.img_size
+    }
+
+    /// Most views a run accepts (the stage-1 model's pose-token count).
+    pub fn max_views(&self) -> usize {
+        self.ss_flow.cfg.num_pose_tokens.max(1)
+    }
+
+    fn sampler_settings(base: &SamplerSettings, steps: Option<usize>, cfg: Option<f64>) -> Result<SamplerSettings> {
+        let mut s = base.clone();
+        if let Some(n) = steps {
+            s.steps = n;
+        }
+        if let Some(w) = cfg {
+            s.cfg_strength = w;
+        }
+        s.validate("run options")?;
+        Ok(s)
+    }
+
+    fn check_inputs(&self, inputs: &ObjectInputs) -> Result<()> {
+        let n = inputs.views.len();
+        if n == 0 || n > self.max_views() {
+            return Err(Error::input("pipeline inputs", format!("{n} views given; this model takes 1 to {}", self.max_views())));
+        }
+        let s = self.image_size();
+        for (i, v) in inputs.views.iter().enumerate() {
+            for (name, t, c) in [("pixels", &v.pixels, 3), ("pointmap", &v.pointmap, 3), ("mask", &v.mask, 1)] {
+                if t.dims() != [1, c, s, s] {
+                    return Err(Error::input("pipeline inputs", format!("view {i}: {name} has shape {:?}, expected [1, {c}, {s}, {s}]", t.dims())));
+                }
+                if t.dtype() != DType::F32 {
+                    return Err(Error::input("pipeline inputs", format!("view {i}: {name} must be f32, got {:?}", t.dtype())));
+                }
+                let finite = t.flatten_all()?.to_vec1::<f32>()?.iter().all(|x| x.is_finite());
+                if !finite {
+                    return Err(Error::input("pipeline inputs", format!("view {i}: {name} has non-finite values (preprocessing must fill invalid points)")));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Run both stages (or stage 1 only) on one object.
+    pub fn run(&self, inputs: &ObjectInputs, opts: &RunOptions) -> Result<ObjectReconstruction> {
+        let t_all = Instant::now();
+        self.check_inputs(inputs)?;
+        let dev = Device::Cpu;
+        let stage1_only = opts.stage1_only || (!opts.decode_mesh && !opts.decode_gaussians && self.stage2.is_none());
+        if !stage1_only && self.stage2.is_none() {
+            return Err(Error::msg("pipeline: built for stage 1 only; set RunOptions::stage1_only"));
+        }
+        let ss_settings = Self::sampler_settings(&self.config.samplers.sparse_structure, opts.ss_steps, opts.ss_cfg_strength)?;
+        let slat_settings = Self::sampler_settings(&self.config.samplers.slat, opts.slat_steps, opts.slat_cfg_strength)?;
+        let mut tm = StageTimings::default();
+
+        // 1. Image encoder.
+        let t = Instant::now();
+        let tokens: Vec<Tensor> =
+            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
+        tm.image_encoder = secs(t);
+        let views: Vec<ViewInputs> = inputs
+            .views
+            .iter()
+            .zip(&tokens)
+            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
+            .collect();
+
+        // 2–3. Stage 1: condition, then latent + pose sampling.
+        let t = Instant::now();
+        let (cond, neg) = self.ss_flow.condition(&views)?;
+        tm.ss_condition = secs(t);
+        let t = Instant::now();
+        let mut rng = SeededRng::new(opts.seed);
+        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?;
+        let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&self.ss_flow, noise, &cond, Some(&neg))?;
+        let (z, pose_tok) = match out.as_slice() {
+            [z, p] => (z.clone(), p.clone()),
+            _ => return Err(Error::msg("pipeline: stage-1 sampler returned no pose tokens")),
+        };
+        tm.ss_sampling = secs(t);
+
+        // 4. Occupancy.
+        let t = Instant::now();
+        let logits = self.ss_decoder.forward(&z)?;
+        let ss_resolution = logits.dim(2)?;
+        let coords4 = occupied_coords(&logits)?;
+        tm.ss_decoder = secs(t);
+        if coords4.is_empty() {
+            let max = logits.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            return Err(Error::msg(format!(
+                "stage 1 produced an empty occupancy: no SS decoder logit > 0 (max {max:.4}) with seed {}; \
+                 try another seed or more sampling steps",
+                opts.seed
+            )));
+        }
+
+        // 5. Pose.
+        let t = Instant::now();
+        let k = self.ss_flow.cfg.num_pose_tokens.max(1);
+        let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
+        let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
+        let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
+        let slat_pose = ss_pose_to_slat_pose(&pose_tok, &self.ss_stats, &self.slat_stats, self.layout)?;
+        let slat_tokens_13d: Vec<[f32; 13]> =
+            slat_pose.reshape((k, 13))?.to_vec2::<f32>()?.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
+        let pose = PredictedPose { pose: per_token[0], per_token, tokens_10d, slat_tokens_13d };
+        tm.pose = secs(t);
+
+        let coords: Vec<[i32; 3]> = coords4.iter().map(|c| [c[1], c[2], c[3]]).collect();
+        let mut metadata = RunMetadata {
+            architecture: self.config.name.clone(),
+            weights: self.weights.clone(),
+            random_weights: self.weights.is_random(),
+            seed: opts.seed,
+            num_views: inputs.views.len(),
+            ss_sampler: ss_settings,
+            slat_sampler: None,
+            noise_order: NOISE_ORDER,
+        };
+        let (mut mesh, mut gaussians) = (None, None);
+
+        if !stage1_only {
+            let s2 = self.stage2.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
+            let res = s2.slat_flow.cfg.resolution;
+            if ss_resolution != res {
+                return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
+            }
+            // 6. Stage-2 condition.
+            let t = Instant::now();
+            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose))?;
+            tm.slat_condition = secs(t);
+
+            // 7. Stage-2 sampling on the occupied voxels, then denormalise.
+            let t = Instant::now();
+            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?;
+            let model = SlatVelocity { model: &s2.slat_flow, coords: &coords4 };
+            let out = FlowEulerGuidanceIntervalSampler::new(slat_settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
+            let feats = self.slat_norm.denormalize(&out[0])?;
+            let slat = SparseTensor::new(coords4.clone(), feats, 1)?;
+            tm.slat_sampling = secs(t);
+            metadata.slat_sampler = Some(slat_settings);
+
+            // 8. Decoders.
+            if opts.decode_mesh {
+                let t = Instant::now();
+                mesh = Some(s2.mesh_decoder.forward(&slat)?.into_iter().next().unwrap_or_default());
+                tm.mesh_decoder = secs(t);
+            }
+            if opts.decode_gaussians {
+                let t = Instant::now();
+                let g = s2.gs_decoder.forward(&slat)?;
+                let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
+                gaussians = Some(g.to_gaussians()?);
+                tm.gaussian_decoder = secs(t);
+            }
+        }
+        tm.total = secs(t_all);
+        Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, metadata })
+    }
+}
+
+/// The stage-2 flow as a sampler model: the state is the `[N, C]` feature
+/// tensor of a batch-1 sparse tensor on fixed coordinates.
+struct SlatVelocity<'a> {
+    model: &'a SLatFlowModel,
+    coords: &'a [[i32; 4]],
+}
+
+impl VelocityModel for SlatVelocity<'_> {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
+        let x = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
+        let t = Tensor::full(t_model, 1, x.feats.device())?;
+        Ok(vec![self.model.forward(&x, &t, cond)?.feats])
+    }
+
+    /// Conditional and unconditional passes as one batch of two items on
+    /// the same coordinates.
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
+        if cond.dims() != neg.dims() {
+            return Err(Error::msg(format!("SLat sampler: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
+        }
+        let n = self.coords.len();
+        let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+        let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
+        let t = Tensor::full(t_model, 2, x.device())?;
+        let v = self.model.forward(&xs, &t, &Tensor::cat(&[cond, neg], 0)?)?.feats;
+        Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
+    }
+}
