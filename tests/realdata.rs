@@ -306,3 +306,58 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
     zs.sort_by(|a, b| a.total_cmp(b));
     assert!(zs[zs.len() / 2] < 2.0, "median |z| {}", zs[zs.len() / 2]);
 }
+
+/// Invariants of the prepared tensors on the frame shipped in the repository
+/// (always runs): the normalised object points have their per-axis median at
+/// 0.5 and a 5–95 % spread of their norms of exactly 0.5 (the diameter is
+/// twice that spread), the tensors have the pipeline's shapes, and every
+/// object of the label map is prepared.
+#[test]
+fn sample_frame_objects_prepare_with_recgen_invariants() {
+    use recon::geometry::pointmap::{prepare_frame_objects, PrepareOptions};
+    let dir = repo().join("data/sample");
+    let frame = RgbdFrame::open(&dir.join("000001-color.png"), &FrameOptions::default()).unwrap();
+    let (objs, skips) = InstanceMap::open(&dir.join("000001-label.png")).unwrap().objects(None);
+    assert!(skips.is_empty());
+    assert_eq!(objs.iter().map(|o| o.id.unwrap()).collect::<Vec<_>>(), vec![8, 14, 21]);
+    let s = 112; // small S keeps the test fast; the geometry does not depend on S
+    let (prepared, skips) = prepare_frame_objects(&frame, objs, s, 100, &PrepareOptions::default(), &candle_core::Device::Cpu);
+    assert!(skips.is_empty(), "{skips:?}");
+    assert_eq!(prepared.len(), 3);
+    for p in &prepared {
+        let v = &p.view;
+        assert_eq!(v.pixel_values.dims(), &[1, 3, s, s]);
+        assert_eq!(v.pointmap.dims(), &[1, 3, s, s]);
+        assert_eq!(v.mask.dims(), &[1, 1, s, s]);
+        let (pts, _) = object_points(&frame, &p.object.mask, Some(Default::default())).unwrap();
+        let q: Vec<[f64; 3]> = pts.iter().map(|&x| v.normaliser.to_normalised(x)).collect();
+        let mut norms: Vec<f64> = q
+            .iter()
+            .map(|x| ((x[0] - 0.5).powi(2) + (x[1] - 0.5).powi(2) + (x[2] - 0.5).powi(2)).sqrt())
+            .collect();
+        norms.sort_by(|a, b| a.total_cmp(b));
+        let qt = |f: f64| {
+            let pos = f * (norms.len() - 1) as f64;
+            let lo = pos.floor() as usize;
+            norms[lo] + (norms[(lo + 1).min(norms.len() - 1)] - norms[lo]) * (pos - lo as f64)
+        };
+        assert!((qt(0.95) - qt(0.05) - 0.5).abs() < 1e-9, "spread {}", qt(0.95) - qt(0.05));
+        for a in 0..3 {
+            let mut c: Vec<f64> = q.iter().map(|x| x[a]).collect();
+            c.sort_by(|x, y| x.total_cmp(y));
+            let n = c.len();
+            let med = if n % 2 == 1 { c[n / 2] } else { 0.5 * (c[n / 2 - 1] + c[n / 2]) };
+            assert!((med - 0.5).abs() < 1e-9);
+        }
+        let pm = v.pointmap.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(pm.iter().all(|x| x.is_finite() && (-2.0..=3.0).contains(x)));
+        let mk = v.mask.sum_all().unwrap().to_scalar::<f32>().unwrap();
+        assert!(mk > 100.0, "{mk}");
+        let px = v.pixel_values.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(px.iter().all(|x| x.is_finite() && x.abs() < 3.0));
+        println!(
+            "{}: {} points, centre {:?} m, diameter {:.4} m, crop {:?}",
+            p.object.label, v.num_points, v.normaliser.centre.map(|c| (c * 1e4).round() / 1e4), v.normaliser.diameter, v.crop
+        );
+    }
+}

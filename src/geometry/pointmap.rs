@@ -257,6 +257,14 @@ pub struct PreparedView {
 
 /// Prepare one object of a frame with RecGen's default settings on the CPU.
 /// `mask` is the object's full-resolution mask (row-major, `true` = object).
+///
+/// This is the single entry point between inputs and the pipeline: its
+/// `pixel_values`, `pointmap` and `mask` are the pipeline's per-view
+/// tensors, and its `normaliser` maps the predicted pose back to metres
+/// ([`super::camera_pose::canonical_to_camera`]). With several views, each
+/// view is prepared on its own (its own normaliser), exactly as RecGen's
+/// `generate_multiview` does, and results are expressed in the **anchor**
+/// (first) view's camera frame through the anchor's normaliser.
 pub fn prepare_object(frame: &RgbdFrame, mask: &[bool], size: usize) -> Result<PreparedView> {
     prepare_object_with(frame, mask, size, &PrepareOptions::default(), &Device::Cpu)
 }
@@ -345,6 +353,37 @@ pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: 
         rgb_crop,
         size,
     })
+}
+
+/// One object ready for the pipeline.
+#[derive(Debug, Clone)]
+pub struct PreparedObject {
+    pub object: crate::inputs::masks::ObjectMask,
+    pub view: PreparedView,
+}
+
+/// Validate every object of a frame ([`crate::inputs::masks::validate_objects`],
+/// with the erosion of `opts`) and prepare the ones that pass. Objects that
+/// fail either step are returned as skips; the others are unaffected.
+pub fn prepare_frame_objects(
+    frame: &RgbdFrame,
+    objects: Vec<crate::inputs::masks::ObjectMask>,
+    size: usize,
+    min_valid_depth_pixels: usize,
+    opts: &PrepareOptions,
+    dev: &Device,
+) -> (Vec<PreparedObject>, Vec<crate::inputs::masks::MaskSkip>) {
+    use crate::inputs::masks::{validate_objects, MaskOptions, MaskSkip, SkipReason};
+    let mopts = MaskOptions { erosion: opts.erosion, min_valid_depth_pixels };
+    let (valid, mut skips) = validate_objects(frame, objects, &mopts);
+    let mut out = Vec::new();
+    for v in valid {
+        match prepare_object_with(frame, &v.mask.mask, size, opts, dev) {
+            Ok(view) => out.push(PreparedObject { object: v.mask, view }),
+            Err(e) => skips.push(MaskSkip { label: v.mask.label.clone(), reason: SkipReason::Preprocessing(e.to_string()) }),
+        }
+    }
+    (out, skips)
 }
 
 #[cfg(test)]

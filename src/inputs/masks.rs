@@ -201,6 +201,8 @@ pub enum SkipReason {
     EmptyAfterErosion { before: usize },
     /// Too few pixels under the eroded mask have a valid depth reading.
     TooFewValidDepth { valid: usize, min: usize },
+    /// Point-map preprocessing failed (message).
+    Preprocessing(String),
 }
 
 impl std::fmt::Display for SkipReason {
@@ -216,6 +218,7 @@ impl std::fmt::Display for SkipReason {
             SkipReason::TooFewValidDepth { valid, min } => {
                 write!(f, "only {valid} mask pixels have valid depth (minimum {min})")
             }
+            SkipReason::Preprocessing(m) => write!(f, "preprocessing failed: {m}"),
         }
     }
 }
