@@ -186,6 +186,20 @@ pub fn load_binary_mask(path: &Path) -> Result<ObjectMask> {
     Ok(ObjectMask { id: None, label, width: w, height: h, mask })
 }
 
+/// Read several binary mask files, one object each; a file that cannot be
+/// read becomes a skip for that object only.
+pub fn load_binary_masks(paths: &[PathBuf]) -> (Vec<ObjectMask>, Vec<MaskSkip>) {
+    let mut ok = Vec::new();
+    let mut skips = Vec::new();
+    for p in paths {
+        match load_binary_mask(p) {
+            Ok(m) => ok.push(m),
+            Err(e) => skips.push(MaskSkip { label: p.display().to_string(), reason: SkipReason::Unreadable(e.to_string()) }),
+        }
+    }
+    (ok, skips)
+}
+
 /// Why an object is left out.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SkipReason {
@@ -203,6 +217,8 @@ pub enum SkipReason {
     TooFewValidDepth { valid: usize, min: usize },
     /// Point-map preprocessing failed (message).
     Preprocessing(String),
+    /// The mask file could not be read (message).
+    Unreadable(String),
 }
 
 impl std::fmt::Display for SkipReason {
@@ -219,6 +235,7 @@ impl std::fmt::Display for SkipReason {
                 write!(f, "only {valid} mask pixels have valid depth (minimum {min})")
             }
             SkipReason::Preprocessing(m) => write!(f, "preprocessing failed: {m}"),
+            SkipReason::Unreadable(m) => write!(f, "cannot read the mask: {m}"),
         }
     }
 }
@@ -419,6 +436,10 @@ mod tests {
         let rgba = image::RgbaImage::from_fn(40, 30, |x, _| image::Rgba([9, 9, 9, if x < 5 { 255 } else { 0 }]));
         rgba.save(dir.join("cut.png")).unwrap();
         assert_eq!(load_binary_mask(&dir.join("cut.png")).unwrap().pixel_count(), 5 * 30);
+        // Several files: an unreadable one is skipped, the others load.
+        let (ms, sk) = load_binary_masks(&[dir.join("obj.png"), dir.join("missing.png"), dir.join("cut.png")]);
+        assert_eq!(ms.len(), 2);
+        assert!(matches!(&sk[0].reason, SkipReason::Unreadable(_)) && sk[0].label.contains("missing.png"));
         // Empty mask is a skip, not an error.
         let empty = ObjectMask { id: None, label: "e".into(), width: 40, height: 30, mask: vec![false; 1200] };
         let (_, skips) = validate_objects(&f, vec![empty], &MaskOptions::default());
