@@ -1,3 +1,5 @@
 //! Geometry: object poses (rotation encodings, normalisation).
 
 pub mod pose;
+pub mod pointmap;
+pub mod camera_pose;
