@@ -159,14 +159,12 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
     Ok((x.relu()? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?)
 }
 
-/// Activated splats: the export module's struct (same fields as upstream's `get_*`).
-pub use crate::export::Gaussians;
-
 /// Base colour of an SH degree-0 coefficient: `C0·dc + 0.5`, clamped at 0
 /// like the rasteriser.
 pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
     dc.map(|d| (SH_C0 * d + 0.5).max(0.0))
 }
+
 /// The activated Gaussians are the export type (one struct for decoder
 /// output, transforms and the splat PLY writer).
 pub use crate::export::splat::Gaussians;
