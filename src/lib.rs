@@ -14,6 +14,7 @@ pub mod sparse;
 pub mod decoders;
 pub mod export;
 pub mod pipeline;
+pub mod infer;
 pub mod conformance;
 
 pub use error::{Error, Result};
