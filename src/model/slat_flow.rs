@@ -577,6 +577,33 @@ mod tests {
     }
 
     #[test]
+    fn two_view_condition_with_pose_tokens() -> Result<()> {
+        let m = random_model(&tiny_cfg());
+        let dev = Device::Cpu;
+        let view = |seed: f64| -> Result<ViewInputs> {
+            Ok(ViewInputs {
+                patch_tokens: Tensor::randn(seed as f32, 1.0, (1, 4, 16), &dev)?,
+                pointmap: Some(Tensor::randn(0f32, 1.0, (1, 3, 28, 28), &dev)?),
+                mask: Some(Tensor::ones((1, 1, 28, 28), DType::F32, &dev)?),
+            })
+        };
+        let views = vec![view(0.0)?, view(1.0)?];
+        let pose = Tensor::randn(0f32, 1.0, (1, 2, 13), &dev)?;
+        let (cond, neg) = m.condition(&views, Some(&pose))?;
+        assert_eq!(cond.dims(), &[1, 10, 16]);
+        assert_eq!(neg.dims(), &[1, 10, 16]);
+        assert_eq!(neg.abs()?.sum_all()?.to_scalar::<f32>()?, 0.0);
+        // Each view's tokens are what the single-view builder gives; pose tokens last.
+        for (i, v) in views.iter().enumerate() {
+            let one = m.build_cond(&v.patch_tokens, v.pointmap.as_ref(), v.mask.as_ref(), None)?;
+            assert!(crate::conformance::max_abs_diff(&cond.narrow(1, 4 * i, 4)?, &one)? < 1e-6);
+        }
+        assert!(crate::conformance::max_abs_diff(&cond.narrow(1, 8, 2)?, &m.pose_tokens(&pose)?)? < 1e-6);
+        assert!(m.pose_tokens(&Tensor::zeros((1, 10), DType::F32, &dev)?).is_err());
+        Ok(())
+    }
+
+    #[test]
     fn rejects_bad_inputs() -> Result<()> {
         let cfg = tiny_cfg();
         let m = random_model(&cfg);

@@ -82,7 +82,12 @@ impl ModuleKind {
 
 fn kind(cfg: &ModuleConfig, file: &str) -> Result<ModuleKind> {
     ModuleKind::of(&cfg.name).ok_or_else(|| {
-        Error::config(file, "name", format!("module `{}` is not available in this build (known: {KNOWN_MODULES:?})", cfg.name))
+        let hint = if cfg.args.is_null() {
+            "; an architecture file (models/recgen-*.json) holds several modules: its sections are module configs"
+        } else {
+            ""
+        };
+        Error::config(file, "name", format!("module `{}` is not available in this build (known: {KNOWN_MODULES:?}){hint}", cfg.name))
     })
 }
 
