@@ -14,5 +14,6 @@ pub mod sparse;
 pub mod decoders;
 pub mod export;
 pub mod conformance;
+pub mod eval;
 
 pub use error::{Error, Result};
