@@ -97,7 +97,7 @@ pub fn icp(source: &[P3], target: &[P3], opts: &IcpOptions) -> IcpResult {
         iters = it + 1;
         let nn = tree.nearest_all(&cur);
         let mean = nn.iter().map(|x| x.1).sum::<f64>() / nn.len() as f64;
-        if mean <= 1e-15 || (prev - mean).abs() <= opts.rel_tol * prev.max(1e-300) {
+        if mean <= 1e-15 || (prev.is_finite() && (prev - mean).abs() <= opts.rel_tol * prev) {
             converged = true;
             break;
         }

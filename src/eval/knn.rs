@@ -140,4 +140,19 @@ mod tests {
         }
         assert!(KdTree::new(&[]).nearest(&[0.0; 3]).is_none());
     }
+
+    #[test]
+    fn handles_100k_points() {
+        let mut rng = SeededRng::new(8);
+        let pts: Vec<P3> = (0..100_000).map(|_| [rng.normal(), rng.normal(), rng.normal() * 0.1]).collect();
+        let qs: Vec<P3> = (0..100_000).map(|_| [rng.normal(), rng.normal(), rng.normal() * 0.1]).collect();
+        let t0 = std::time::Instant::now();
+        let tree = KdTree::new(&pts);
+        let d = tree.nearest_dists(&qs);
+        eprintln!("k-d tree: 100k build + 100k queries in {:?}", t0.elapsed());
+        for k in (0..qs.len()).step_by(5000) {
+            let bf = pts.iter().map(|p| dist2(p, &qs[k])).fold(f64::INFINITY, f64::min).sqrt();
+            assert_eq!(d[k], bf);
+        }
+    }
 }

@@ -94,7 +94,8 @@ impl<'a> Cur<'a> {
     }
     /// Next data element: (type, payload). Handles the small (packed 4-byte) format.
     fn element(&mut self) -> Option<std::result::Result<(u32, &'a [u8]), String>> {
-        if self.pos + 8 > self.b.len() {
+        let b: &'a [u8] = self.b;
+        if self.pos + 8 > b.len() {
             return None;
         }
         let w0 = self.u32(self.pos)?;
@@ -104,14 +105,14 @@ impl<'a> Cur<'a> {
             if n > 4 {
                 return Some(Err(format!("small data element claims {n} bytes")));
             }
-            let d = &self.b[self.pos + 4..self.pos + 4 + n];
+            let d = &b[self.pos + 4..self.pos + 4 + n];
             self.pos += 8;
             return Some(Ok((ty, d)));
         }
         let n = self.u32(self.pos + 4)? as usize;
         let start = self.pos + 8;
-        let Some(d) = self.b.get(start..start.checked_add(n)?) else {
-            return Some(Err(format!("element of type {w0} claims {n} bytes but only {} remain", self.b.len() - start)));
+        let Some(d) = b.get(start..start.checked_add(n)?) else {
+            return Some(Err(format!("element of type {w0} claims {n} bytes but only {} remain", b.len() - start)));
         };
         // Compressed elements are not padded; everything else pads to 8 bytes.
         self.pos = if w0 == MI_COMPRESSED { start + n } else { start + n.div_ceil(8) * 8 };

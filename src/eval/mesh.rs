@@ -205,7 +205,7 @@ pub fn diameter(points: &[P3]) -> (f64, DiameterMethod) {
     let rc: Vec<f64> = points.iter().map(|p| dist2(p, &c).sqrt()).collect();
     let rho = rc.iter().cloned().fold(0.0, f64::max);
     // Small slack so rounding can never drop a true endpoint.
-    let cand: Vec<P3> = points.iter().zip(&rc).filter(|(_, &r)| r + rho >= lb * (1.0 - 1e-12)).map(|(p, _)| *p).collect();
+    let cand: Vec<P3> = points.iter().zip(&rc).filter(|(_, r)| **r + rho >= lb * (1.0 - 1e-12)).map(|(p, _)| *p).collect();
     let all_pairs = |set: &[P3]| -> f64 {
         set.par_iter()
             .enumerate()

@@ -2,7 +2,6 @@
 //! reads vertex `x y z` (any numeric type) and face `vertex_indices`/`vertex_index` lists
 //! (polygons fan-triangulated); every other property and element is skipped.
 
-use super::knn::P3;
 use super::mesh::TriMesh;
 use crate::{Error, Result};
 use std::path::Path;
@@ -139,10 +138,11 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
     let format = format.ok_or_else(|| err("PLY header has no `format` line".into()))?;
     let data = &bytes[body.min(bytes.len())..];
     let mut mesh = TriMesh::default();
-    let mut reader: Box<dyn ValueReader> = match format {
+    let mut reader: Box<dyn ValueReader + '_> = match format {
         Format::Ascii => Box::new(AsciiReader { toks: std::str::from_utf8(data).map_err(|_| err("ASCII PLY body is not UTF-8".into()))?.split_ascii_whitespace() }),
         Format::Binary { le } => Box::new(BinReader { data, pos: 0, le }),
     };
+    let n_vertices = elems.iter().find(|e| e.name == "vertex").map_or(0, |e| e.count);
     for e in &elems {
         let is_vertex = e.name == "vertex";
         let is_face = e.name == "face";
@@ -179,7 +179,7 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
                                 let tri = [idx[0], idx[k], idx[k + 1]];
                                 let mut f = [0u32; 3];
                                 for (j, &i) in tri.iter().enumerate() {
-                                    if i < 0.0 || i.fract() != 0.0 || i as usize >= elems.iter().find(|e| e.name == "vertex").map_or(0, |e| e.count) {
+                                    if i < 0.0 || i.fract() != 0.0 || i as usize >= n_vertices {
                                         return Err(err(format!("{}: vertex index {i} out of range", ctx())));
                                     }
                                     f[j] = i as u32;
@@ -191,7 +191,7 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
                 }
             }
             if is_vertex {
-                mesh.vertices.push(v as P3);
+                mesh.vertices.push(v);
             }
         }
     }
