@@ -282,6 +282,24 @@ mod tests {
     }
 
     #[test]
+    fn diameter_approximate_path_on_dense_sphere() {
+        // 30k points on the unit sphere: all survive pruning → approximate path, true value 2⁻.
+        let mut rng = SeededRng::new(4);
+        let pts: Vec<P3> = (0..30_000)
+            .map(|_| {
+                let v = [rng.normal(), rng.normal(), rng.normal()];
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                [v[0] / n, v[1] / n, v[2] / n]
+            })
+            .collect();
+        let (d, m) = diameter(&pts);
+        assert_eq!(m, DiameterMethod::Approximate);
+        // Never above the true diameter (≤ 2), and the best pair of 30k random points is
+        // within ~1e-4 of antipodal, so the documented 1e-3 bound holds with margin.
+        assert!(d <= 2.0 + 1e-12 && d > 2.0 * (1.0 - 1e-3), "{d}");
+    }
+
+    #[test]
     fn sampling_is_area_weighted_and_seeded() {
         // Two unit-height rectangles in the z=0 plane, one 3x larger: 3/4 of samples on it.
         let m = TriMesh {
