@@ -16,5 +16,6 @@ pub mod export;
 pub mod pipeline;
 pub mod infer;
 pub mod conformance;
+pub mod eval;
 
 pub use error::{Error, Result};

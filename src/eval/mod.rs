@@ -1,0 +1,19 @@
+//! Evaluation of reconstructions against ground truth (RecGen metrics + BOP ADD/ADD-S).
+//!
+//! - [`metrics`]: the metric definitions (pure functions).
+//! - [`mesh`], [`knn`], [`icp`]: surface sampling, nearest neighbours, ICP alignment.
+//! - [`ply`], [`mat`], [`bop`]: reading BOP-format and YCB-Video datasets.
+//! - [`report`]: prediction files, [`report::evaluate`] and the report (JSON, text, SVG).
+//!
+//! Entry point for the CLI: [`run_eval`].
+
+pub mod knn;
+pub mod mesh;
+pub mod icp;
+pub mod metrics;
+pub mod ply;
+pub mod mat;
+pub mod bop;
+pub mod report;
+
+pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};
