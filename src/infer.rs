@@ -174,6 +174,10 @@ pub struct WrittenObject {
     pub gaussians_ply: Option<PathBuf>,
 }
 
+/// Index file written last into every output folder; its presence marks a
+/// complete recon output.
+pub const MARKER: &str = "recon-output.json";
+
 fn safe_name(label: &str) -> String {
     label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
@@ -182,7 +186,19 @@ fn safe_name(label: &str) -> String {
 /// and the observed points into `out`. Files are written to a staging
 /// folder first and moved into place at the end, so an interrupted run never
 /// leaves a complete-looking output.
+///
+/// An existing `out` is replaced only when it is an earlier recon output
+/// (it holds [`MARKER`]); any other existing non-empty folder is an error.
 pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObject>> {
+    if out.exists() {
+        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
+        if !empty && !out.join(MARKER).exists() {
+            return Err(Error::input(
+                out.display().to_string(),
+                format!("output folder exists and is not a recon output (no {MARKER}); remove it or choose another --out"),
+            ));
+        }
+    }
     let staging = out.with_extension("partial");
     if staging.exists() {
         std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
@@ -239,6 +255,10 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
         let pts = PlyOptions { axes: Axes::ZUp, normals: false, vertex_colors: false };
         save_mesh_ply(&observed, &staging.join("observed_points.ply"), &pts)?;
     }
+    let index = serde_json::json!({ "objects": written, "skipped": result.skipped.iter().map(|s| s.to_string()).collect::<Vec<_>>() });
+    let marker = staging.join(MARKER);
+    std::fs::write(&marker, serde_json::to_string_pretty(&index).map_err(|e| Error::msg(e.to_string()))?)
+        .map_err(|e| Error::io(&marker, e))?;
     if out.exists() {
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
     }

@@ -4,7 +4,7 @@
 //! camera: `X_cam = R · X_model + t`.
 
 use super::knn::P3;
-use super::mat::read_mat;
+use crate::inputs::matv5::MatFile;
 use super::mesh::{diameter, DiameterMethod, TriMesh};
 use super::ply::read_ply;
 use crate::{Error, Result};
@@ -249,7 +249,7 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     let mut ds = Dataset { root: root.to_path_buf(), ..Default::default() };
     let mut used = BTreeSet::new();
     for (scene, id, path) in metas {
-        let m = read_mat(&path)?;
+        let m = MatFile::open(&path)?.vars;
         let file = path.display().to_string();
         let get = |k: &str| m.get(k).ok_or_else(|| Error::config(file.clone(), k, "missing variable"));
         let km = get("intrinsic_matrix")?;

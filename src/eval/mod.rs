@@ -12,7 +12,7 @@ pub mod mesh;
 pub mod icp;
 pub mod metrics;
 pub mod ply;
-pub mod mat;
+
 pub mod bop;
 pub mod report;
 
