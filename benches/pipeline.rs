@@ -39,13 +39,7 @@ fn view(s: usize, shift: f32) -> ViewInput {
 }
 
 fn peak_rss_gb() -> f64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find(|l| l.starts_with("VmHWM"))
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|k| k.parse::<f64>().ok())
-        .map(|k| k / 1048576.0)
-        .unwrap_or(0.0)
+    recon::bench::peak_rss_mib().map(|m| m / 1024.0).unwrap_or(0.0)
 }
 
 fn main() -> recon::Result<()> {

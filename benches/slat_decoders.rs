@@ -51,17 +51,11 @@ fn shell_with(n: usize) -> Vec<[i32; 4]> {
 }
 
 fn reset_peak() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
+    recon::bench::reset_peak_rss();
 }
 
 fn peak_mib() -> f64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find(|l| l.starts_with("VmHWM:"))
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|v| v.parse::<f64>().ok())
-        .map(|kb| kb / 1024.0)
-        .unwrap_or(f64::NAN)
+    recon::bench::peak_rss_mib().unwrap_or(f64::NAN)
 }
 
 fn args(blocks: usize, mesh: bool) -> serde_json::Value {

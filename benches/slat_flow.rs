@@ -64,17 +64,11 @@ fn ball(target: usize) -> Vec<[i32; 4]> {
 }
 
 fn vm_hwm_mib() -> f64 {
-    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    s.lines()
-        .find(|l| l.starts_with("VmHWM:"))
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|v| v.parse::<f64>().ok())
-        .map(|kb| kb / 1024.0)
-        .unwrap_or(f64::NAN)
+    recon::bench::peak_rss_mib().unwrap_or(f64::NAN)
 }
 
 fn reset_hwm() {
-    let _ = std::fs::write("/proc/self/clear_refs", "5");
+    recon::bench::reset_peak_rss();
 }
 
 fn time_forward(model: &SLatFlowModel, coords: &[[i32; 4]], cond: &Tensor) -> candle_core::Result<(f64, usize, f64)> {

@@ -48,10 +48,7 @@ impl SimpleBackend for RandomWeights {
 }
 
 fn vm_hwm_mib() -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / 1024.0)
+    recon::bench::peak_rss_mib()
 }
 
 fn main() -> recon::Result<()> {

@@ -54,9 +54,7 @@ impl SimpleBackend for RandomWeights {
 }
 
 fn vm_hwm_kib() -> Option<u64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
-    line.split_whitespace().nth(1)?.parse().ok()
+    recon::bench::peak_rss_mib().map(|m| (m * 1024.0) as u64)
 }
 
 fn main() -> recon::Result<()> {

@@ -15,6 +15,7 @@ pub mod decoders;
 pub mod export;
 pub mod pipeline;
 pub mod infer;
+pub mod bench;
 pub mod conformance;
 pub mod eval;
 
