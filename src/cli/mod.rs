@@ -1,0 +1,3 @@
+//! Subcommands of the `recon` binary, one file each.
+pub mod infer;
+pub mod weights;
