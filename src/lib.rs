@@ -18,5 +18,6 @@ pub mod infer;
 pub mod bench;
 pub mod conformance;
 pub mod eval;
+pub mod sensor;
 
 pub use error::{Error, Result};
