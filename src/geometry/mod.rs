@@ -1,5 +1,6 @@
-//! Geometry: object poses (rotation encodings, normalisation).
+//! Geometry: object poses (rotation encodings, normalisation), point-map ↔ mesh alignment.
 
 pub mod pose;
 pub mod pointmap;
 pub mod camera_pose;
+pub mod alignment;
