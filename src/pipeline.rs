@@ -154,6 +154,45 @@ pub struct StageTimings {
     pub total: f64,
 }
 
+/// The stages of [`Pipeline::run`], reported to an observer as each starts
+/// ([`Pipeline::run_observed`]), e.g. to drive a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    ImageEncoder,
+    SsSampling,
+    SsDecoder,
+    SlatSampling,
+    MeshDecoder,
+    GaussianDecoder,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::ImageEncoder => "image encoder",
+            Stage::SsSampling => "ss sampling",
+            Stage::SsDecoder => "ss decoder",
+            Stage::SlatSampling => "slat sampling",
+            Stage::MeshDecoder => "mesh decoder",
+            Stage::GaussianDecoder => "gaussian decoder",
+        }
+    }
+}
+
+/// Where each module's checkpoint is, for layouts other than
+/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
+/// weights manifest).
+#[derive(Debug, Clone, Default)]
+pub struct WeightFiles {
+    /// Reported as the weights' origin.
+    pub dir: PathBuf,
+    /// Module key ([`RecGenConfig::modules`]) → checkpoint file.
+    pub modules: HashMap<String, PathBuf>,
+    /// Pose statistics to use instead of the files the architecture names.
+    pub ss_stats: Option<PathBuf>,
+    pub slat_stats: Option<PathBuf>,
+}
+
 /// The stage-1 pose prediction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PredictedPose {
@@ -245,6 +284,8 @@ pub struct Pipeline {
     layout: NineDLayout,
     slat_norm: SLatNormalization,
     weights: WeightsSource,
+    /// Parameter dtype; inputs and noise are cast to it.
+    dtype: DType,
 }
 
 const NOISE_ORDER: &str = "SeededRng(seed): ss latent [1,Cin,R,R,R], ss pose tokens [1,K,P], slat feats [N,Cin]";
@@ -274,10 +315,13 @@ impl Pipeline {
     }
 
     pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
+        Self::load_dtype(config_path, weights_dir, stages, DType::F32)
+    }
+
+    /// [`Self::load_stages`] with the parameters held in `dtype`.
+    pub fn load_dtype(config_path: &Path, weights_dir: &Path, stages: Stages, dtype: DType) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
-        let mut vbs = HashMap::new();
-        let mut files = Vec::new();
-        let mut random_init = false;
+        let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
             if stages == Stages::SparseStructure && !is_stage1(key) {
                 continue;
@@ -292,6 +336,24 @@ impl Pipeline {
                         format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
                     )
                 })?;
+            files.modules.insert(key.to_string(), path);
+        }
+        Self::load_files(config_path, &files, stages, dtype)
+    }
+
+    /// Build from explicit checkpoint files (one per module key).
+    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages, dtype: DType) -> Result<Self> {
+        let config = RecGenConfig::load(config_path)?;
+        let mut vbs = HashMap::new();
+        let mut files = Vec::new();
+        let mut random_init = false;
+        for (key, spec) in config.modules() {
+            if stages == Stages::SparseStructure && !is_stage1(key) {
+                continue;
+            }
+            let path = weight_files.modules.get(key).cloned().ok_or_else(|| {
+                Error::input(weight_files.dir.display().to_string(), format!("no checkpoint file for module `{key}` ({})", spec.name))
+            })?;
             let label = format!("{}: {key}", config_path.display());
             let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
             let ck = Checkpoint::open(&path, None)?;
@@ -299,14 +361,26 @@ impl Pipeline {
             if path.extension().is_some_and(|e| e == "safetensors") {
                 random_init |= crate::weights::init::is_random_init(&path)?;
             }
-            vbs.insert(key, ck.into_var_builder(DType::F32, &Device::Cpu));
+            vbs.insert(key, ck.into_var_builder(dtype, &Device::Cpu));
             files.push(path);
         }
-        let weights = WeightsSource::Files { dir: weights_dir.to_path_buf(), files, random_init };
-        Self::build(config, vbs, weights, stages)
+        let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
+        let mut p = Self::build(config, vbs, weights, stages, dtype)?;
+        if let Some(f) = &weight_files.ss_stats {
+            p.ss_stats = PoseStats::from_json_file(f)?;
+        }
+        if let Some(f) = &weight_files.slat_stats {
+            p.slat_stats = PoseStats::from_json_file(f)?;
+        }
+        Ok(p)
     }
 
     pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
+        Self::random_dtype(config_path, seed, stages, DType::F32)
+    }
+
+    /// [`Self::random_stages`] with the parameters held in `dtype`.
+    pub fn random_dtype(config_path: &Path, seed: u64, stages: Stages, dtype: DType) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut vbs = HashMap::new();
         for (key, spec) in config.modules() {
@@ -316,12 +390,18 @@ impl Pipeline {
             let label = format!("{}: {key}", config_path.display());
             let t = registry::random_weights(&module_cfg(spec), registry::module_seed(seed, key), &label)?;
             let t: HashMap<String, Tensor> = t.into_iter().collect();
-            vbs.insert(key, VarBuilder::from_tensors(t, DType::F32, &Device::Cpu));
+            vbs.insert(key, VarBuilder::from_tensors(t, dtype, &Device::Cpu));
         }
-        Self::build(config, vbs, WeightsSource::Random { seed }, stages)
+        Self::build(config, vbs, WeightsSource::Random { seed }, stages, dtype)
     }
 
-    fn build(config: RecGenConfig, mut vbs: HashMap<&'static str, VarBuilder<'static>>, weights: WeightsSource, stages: Stages) -> Result<Self> {
+    fn build(
+        config: RecGenConfig,
+        mut vbs: HashMap<&'static str, VarBuilder<'static>>,
+        weights: WeightsSource,
+        stages: Stages,
+        dtype: DType,
+    ) -> Result<Self> {
         let mut take = |key: &str| vbs.remove(key).ok_or_else(|| Error::msg(format!("pipeline: no weights for `{key}`")));
         let label = |key: &str| format!("{}: {key}", config.name);
         let dino = registry::build_dinov2(&module_cfg(&config.image_cond_model), take("image_cond_model")?, &label("image_cond_model"))?;
@@ -359,7 +439,13 @@ impl Pipeline {
             stage2,
             weights,
             config,
+            dtype,
         })
+    }
+
+    /// The parameter dtype.
+    pub fn dtype(&self) -> DType {
+        self.dtype
     }
 
     /// Where the weights came from (random weights are labelled).
@@ -414,6 +500,11 @@ impl Pipeline {
 
     /// Run both stages (or stage 1 only) on one object.
     pub fn run(&self, inputs: &ObjectInputs, opts: &RunOptions) -> Result<ObjectReconstruction> {
+        self.run_observed(inputs, opts, &|_| {})
+    }
+
+    /// [`Self::run`], calling `on_stage` as each stage starts.
+    pub fn run_observed(&self, inputs: &ObjectInputs, opts: &RunOptions, on_stage: &dyn Fn(Stage)) -> Result<ObjectReconstruction> {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
         let dev = Device::Cpu;
@@ -425,25 +516,30 @@ impl Pipeline {
         let slat_settings = Self::sampler_settings(&self.config.samplers.slat, opts.slat_steps, opts.slat_cfg_strength)?;
         let mut tm = StageTimings::default();
 
-        // 1. Image encoder.
+        // 1. Image encoder (inputs in the parameter dtype).
+        on_stage(Stage::ImageEncoder);
         let t = Instant::now();
+        let dt = self.dtype;
         let tokens: Vec<Tensor> =
-            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
+            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels.to_dtype(dt)?)).collect::<candle_core::Result<_>>()?;
         tm.image_encoder = secs(t);
         let views: Vec<ViewInputs> = inputs
             .views
             .iter()
             .zip(&tokens)
-            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
-            .collect();
+            .map(|(v, tok)| {
+                Ok(ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.to_dtype(dt)?), mask: Some(v.mask.to_dtype(dt)?) })
+            })
+            .collect::<candle_core::Result<_>>()?;
 
         // 2–3. Stage 1: condition, then latent + pose sampling.
+        on_stage(Stage::SsSampling);
         let t = Instant::now();
         let (cond, neg) = self.ss_flow.condition(&views)?;
         tm.ss_condition = secs(t);
         let t = Instant::now();
         let mut rng = SeededRng::new(opts.seed);
-        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?;
+        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?.into_iter().map(|n| n.to_dtype(dt)).collect::<candle_core::Result<_>>()?;
         let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&self.ss_flow, noise, &cond, Some(&neg))?;
         let (z, pose_tok) = match out.as_slice() {
             [z, p] => (z.clone(), p.clone()),
@@ -452,8 +548,9 @@ impl Pipeline {
         tm.ss_sampling = secs(t);
 
         // 4. Occupancy.
+        on_stage(Stage::SsDecoder);
         let t = Instant::now();
-        let logits = self.ss_decoder.forward(&z)?;
+        let logits = self.ss_decoder.forward(&z)?.to_dtype(DType::F32)?;
         let ss_resolution = logits.dim(2)?;
         let coords4 = occupied_coords(&logits)?;
         tm.ss_decoder = secs(t);
@@ -469,6 +566,7 @@ impl Pipeline {
         // 5. Pose.
         let t = Instant::now();
         let k = self.ss_flow.cfg.num_pose_tokens.max(1);
+        let pose_tok = pose_tok.to_dtype(DType::F32)?;
         let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
         let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
         let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
@@ -498,27 +596,30 @@ impl Pipeline {
                 return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
             }
             // 6. Stage-2 condition.
+            on_stage(Stage::SlatSampling);
             let t = Instant::now();
-            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose))?;
+            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose.to_dtype(dt)?))?;
             tm.slat_condition = secs(t);
 
             // 7. Stage-2 sampling on the occupied voxels, then denormalise.
             let t = Instant::now();
-            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?;
+            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?.to_dtype(dt)?;
             let model = SlatVelocity { model: &s2.slat_flow, coords: &coords4 };
             let out = FlowEulerGuidanceIntervalSampler::new(slat_settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
-            let feats = self.slat_norm.denormalize(&out[0])?;
+            let feats = self.slat_norm.denormalize(&out[0].to_dtype(DType::F32)?)?.to_dtype(dt)?;
             let slat = SparseTensor::new(coords4.clone(), feats, 1)?;
             tm.slat_sampling = secs(t);
             metadata.slat_sampler = Some(slat_settings);
 
             // 8. Decoders.
             if opts.decode_mesh {
+                on_stage(Stage::MeshDecoder);
                 let t = Instant::now();
                 mesh = Some(s2.mesh_decoder.forward(&slat)?.into_iter().next().unwrap_or_default());
                 tm.mesh_decoder = secs(t);
             }
             if opts.decode_gaussians {
+                on_stage(Stage::GaussianDecoder);
                 let t = Instant::now();
                 let g = s2.gs_decoder.forward(&slat)?;
                 let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
