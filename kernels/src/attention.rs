@@ -18,16 +18,15 @@
 //! available); softmax statistics stay in f32.
 
 use crate::buf::AlignedBuf;
-use crate::gemm::{self, a_format, a_tile_words, microkernel, pack_a_tile, SendPtr, WeightFormat, MR, NR};
+use crate::gemm::{self, a_format, a_tile_words, microkernel, pack_a_rows, pack_a_tile_cols, AFormat, SendPtr, WeightFormat, MR, NR};
 use crate::isa::Isa;
 use rayon::prelude::*;
 use std::ops::Range;
 
 /// Keys per block (a multiple of `MR` and even).
 const BC: usize = MR * 8;
-/// Queries per task (a multiple of `NR`): K/V are repacked per task, which
-/// costs `O(Lk·d)` against `O(QCHUNK·Lk·d)` of work.
-const QCHUNK: usize = NR * 8;
+/// Queries per task (a multiple of `NR`).
+const QCHUNK: usize = NR * 4;
 
 /// Arithmetic of the two products.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -123,7 +122,40 @@ pub fn flash_attention(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32
         return Err("attention: segments share query rows".into());
     }
 
-    // Tasks: (segment, head, query chunk).
+    // Phase 1: pack K (A tiles over d) and Vᵀ (A tiles over the keys of each
+    // block) once per (segment, head), shared by all query chunks.
+    let fmt = spec.precision.format();
+    let afmt = a_format(isa, fmt);
+    let kw = a_tile_words(afmt, d);
+    let etiles = d.div_ceil(MR);
+    let vw = a_tile_words(afmt, BC);
+    let pack_words = |lk: usize| lk.div_ceil(MR) * kw + lk.div_ceil(BC) * etiles * vw;
+    let mut offsets = Vec::with_capacity(segments.len() * h + 1);
+    let mut total = 0usize;
+    for s in segments {
+        for _ in 0..h {
+            offsets.push(total);
+            total += pack_words(s.kv.len());
+        }
+    }
+    let mut packs = AlignedBuf::<u32>::zeroed(total);
+    {
+        let mut parts: Vec<&mut [u32]> = Vec::with_capacity(offsets.len());
+        let mut rest: &mut [u32] = &mut packs;
+        for s in segments {
+            for _ in 0..h {
+                let (a, b) = rest.split_at_mut(pack_words(s.kv.len()));
+                parts.push(a);
+                rest = b;
+            }
+        }
+        parts.into_par_iter().enumerate().for_each(|(i, dst)| {
+            let (s, hh) = (&segments[i / h], i % h);
+            pack_kv(afmt, spec, k, v, s.kv.clone(), hh, dst);
+        });
+    }
+
+    // Phase 2: tasks (segment, head, query chunk).
     let mut tasks = Vec::new();
     for (si, s) in segments.iter().enumerate() {
         for c in 0..s.q.len().div_ceil(QCHUNK) {
@@ -137,17 +169,46 @@ pub fn flash_attention(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32
         let s = &segments[si];
         let q0 = s.q.start + c * QCHUNK;
         let q1 = (q0 + QCHUNK).min(s.q.end);
+        let off = offsets[si * h + hh];
+        let pack = &packs[off..off + pack_words(s.kv.len())];
         // SAFETY: this task is the only writer of rows q0..q1, head hh (segments
         // do not share query rows; heads are disjoint column ranges).
-        unsafe { attend(isa, spec, q, k, v, q0..q1, s.kv.clone(), hh, optr, scr) };
+        unsafe { attend(isa, spec, q, pack, q0..q1, s.kv.len(), hh, optr, scr) };
     });
     Ok(())
 }
 
+/// K tiles then Vᵀ tiles of one (segment, head) into `dst`.
+fn pack_kv(afmt: AFormat, spec: &AttnSpec, k: &[f32], v: &[f32], kr: Range<usize>, hh: usize, dst: &mut [u32]) {
+    let d = spec.head_dim;
+    let lk = kr.len();
+    let kw = a_tile_words(afmt, d);
+    let ktiles = lk.div_ceil(MR);
+    let (kdst, vdst) = dst.split_at_mut(ktiles * kw);
+    for t in 0..ktiles {
+        let rows = MR.min(lk - t * MR);
+        let first = spec.k.at(kr.start + t * MR, hh, d);
+        // Rows of K for these keys, stride spec.k.stride.
+        pack_a_rows(afmt, &mut kdst[t * kw..(t + 1) * kw], &k[first..], spec.k.stride, rows, d);
+    }
+    let etiles = d.div_ceil(MR);
+    let vw = a_tile_words(afmt, BC);
+    for bi in 0..lk.div_ceil(BC) {
+        let nk = BC.min(lk - bi * BC);
+        let kb = kr.start + bi * BC;
+        for et in 0..etiles {
+            let rows = MR.min(d - et * MR);
+            let at = (bi * etiles + et) * vw;
+            pack_a_tile_cols(afmt, &mut vdst[at..at + vw], rows, nk, |j| {
+                let o = spec.v.at(kb + j, hh, d) + et * MR;
+                &v[o..o + rows]
+            });
+        }
+    }
+}
+
 #[derive(Default)]
 struct Scratch {
-    kpack: Option<AlignedBuf<u32>>,
-    vpack: Option<AlignedBuf<u32>>,
     qpanel: Option<AlignedBuf<u32>>,
     s: Option<AlignedBuf<f32>>,
     p: Option<AlignedBuf<u32>>,
@@ -163,50 +224,27 @@ fn buf<T: Copy>(slot: &mut Option<AlignedBuf<T>>, len: usize) -> &mut AlignedBuf
 }
 
 /// # Safety
-/// `out` must be valid for the rows and head written, with no other writer.
+/// `out` must be valid for the rows and head written, with no other writer;
+/// `pack` is this (segment, head)'s output of [`pack_kv`].
 #[allow(clippy::too_many_arguments)]
-unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], qr: Range<usize>, kr: Range<usize>, hh: usize, out: SendPtr, scr: &mut Scratch) {
+unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], pack: &[u32], qr: Range<usize>, lk: usize, hh: usize, out: SendPtr, scr: &mut Scratch) {
     let d = spec.head_dim;
     let fmt = spec.precision.format();
     let afmt = a_format(isa, fmt);
-    let lk = kr.len();
-    let write_out = |row: usize, e: usize, val: f32| {
-        *out.get().add(spec.out.at(row, hh, d) + e) = val;
-    };
+    let out_row = |row: usize| -> &mut [f32] { std::slice::from_raw_parts_mut(out.get().add(spec.out.at(row, hh, d)), d) };
     if lk == 0 {
         for r in qr {
-            for e in 0..d {
-                write_out(r, e, 0.0);
-            }
+            out_row(r).fill(0.0);
         }
         return;
     }
     let dp = fmt.k_padded(d);
-    // K as A tiles over d: tile t = keys t·MR..
-    let ktiles = lk.div_ceil(MR);
     let kw = a_tile_words(afmt, d);
-    let kpack = buf(&mut scr.kpack, ktiles * kw);
-    for t in 0..ktiles {
-        let rows = MR.min(lk - t * MR);
-        let base = kr.start + t * MR;
-        pack_a_tile(afmt, &mut kpack[t * kw..(t + 1) * kw], rows, d, |i, e| k[spec.k.at(base + i, hh, d) + e]);
-    }
-    // Vᵀ as A tiles per key block: tile (block, et) = channels et·MR.., keys of the block.
+    let ktiles = lk.div_ceil(MR);
+    let (kpack, vpack) = pack.split_at(ktiles * kw);
     let blocks = lk.div_ceil(BC);
     let etiles = d.div_ceil(MR);
     let vw = a_tile_words(afmt, BC);
-    let vpack = buf(&mut scr.vpack, blocks * etiles * vw);
-    for bi in 0..blocks {
-        let nk = BC.min(lk - bi * BC);
-        let kb = kr.start + bi * BC;
-        for et in 0..etiles {
-            let rows = MR.min(d - et * MR);
-            let dst = &mut vpack[(bi * etiles + et) * vw..(bi * etiles + et + 1) * vw];
-            pack_a_tile(afmt, dst, rows, nk, |i, j| v[spec.v.at(kb + j, hh, d) + et * MR + i]);
-        }
-    }
-    let kpack: &AlignedBuf<u32> = scr.kpack.as_ref().unwrap();
-    let vpack: &AlignedBuf<u32> = scr.vpack.as_ref().unwrap();
     let qpanel = buf(&mut scr.qpanel, dp * NR);
     let sbuf = buf(&mut scr.s, BC * NR);
     let pbuf = buf(&mut scr.p, BC * NR);
@@ -219,7 +257,7 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], qr:
     while p0 < qr.end {
         let nq = NR.min(qr.end - p0);
         // Qᵀ panel (B operand over d), pre-scaled.
-        pack_q_panel(fmt, qpanel, d, nq, |j, e| q[spec.q.at(p0 + j, hh, d) + e] * spec.scale);
+        pack_q_panel(fmt, qpanel, d, nq, |j| &q[spec.q.at(p0 + j, hh, d)..][..d], spec.scale);
         obuf.fill(0.0);
         m.fill(-1e30);
         l.fill(0.0);
@@ -233,9 +271,10 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], qr:
             }
             softmax_block(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha);
             // Rescale the running output by exp(m_old − m_new) per query.
-            for e in 0..etiles * MR {
-                let row = &mut obuf[e * NR..(e + 1) * NR];
-                row.iter_mut().zip(&alpha).for_each(|(o, &a)| *o *= a);
+            for row in obuf.chunks_exact_mut(NR) {
+                for (o, &a) in row.iter_mut().zip(&alpha) {
+                    *o *= a;
+                }
             }
             // Oᵀ += Vᵀ·P, P (= Sᵀ after exp) as the B operand [key][query].
             let nkp = fmt.k_padded(nk);
@@ -254,26 +293,27 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], qr:
         }
         for j in 0..nq {
             let inv = 1.0 / l[j];
-            for e in 0..d {
-                write_out(p0 + j, e, obuf[e * NR + j] * inv);
+            for (e, o) in out_row(p0 + j).iter_mut().enumerate() {
+                *o = obuf[e * NR + j] * inv;
             }
         }
         p0 += nq;
     }
 }
 
-/// Pack `nq ≤ NR` query rows (pre-scaled) as a B panel over `d`: f32 `[e][j]`
-/// or bf16 pairs `[e/2][j][2]`; missing queries and the odd-d pad are zero.
-fn pack_q_panel(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, get: impl Fn(usize, usize) -> f32) {
+/// Pack `nq ≤ NR` query rows times `scale` as a B panel over `d`: f32
+/// `[e][j]` or bf16 pairs `[e/2][j][2]`; missing queries and the odd-d pad are zero.
+fn pack_q_panel<'a>(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, row: impl Fn(usize) -> &'a [f32], scale: f32) {
     match fmt {
         WeightFormat::Bf16 => {
             // As u32 words: word (e/2, j) = bf16(q[j][e]) | bf16(q[j][e+1]) << 16.
             let words = d.div_ceil(2) * NR;
             dst[..words].fill(0);
             for j in 0..nq {
+                let r = row(j);
                 for e2 in 0..d.div_ceil(2) {
-                    let lo = gemm::f32_to_bf16(get(j, 2 * e2)) as u32;
-                    let hi = if 2 * e2 + 1 < d { gemm::f32_to_bf16(get(j, 2 * e2 + 1)) as u32 } else { 0 };
+                    let lo = gemm::f32_to_bf16(r[2 * e2] * scale) as u32;
+                    let hi = if 2 * e2 + 1 < d { gemm::f32_to_bf16(r[2 * e2 + 1] * scale) as u32 } else { 0 };
                     dst[e2 * NR + j] = lo | (hi << 16);
                 }
             }
@@ -283,8 +323,8 @@ fn pack_q_panel(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, get: im
                 dst[..d * NR].fill(0);
             }
             for j in 0..nq {
-                for e in 0..d {
-                    dst[e * NR + j] = get(j, e).to_bits();
+                for (e, &x) in row(j).iter().enumerate() {
+                    dst[e * NR + j] = (x * scale).to_bits();
                 }
             }
         }

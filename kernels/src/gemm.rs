@@ -73,7 +73,13 @@ impl WeightFormat {
 /// Round to the nearest bf16 (ties to even), as `vcvtneps2bf16`; NaN stays NaN.
 #[inline(always)]
 pub fn f32_to_bf16(x: f32) -> u16 {
-    half::bf16::from_f32(x).to_bits()
+    let b = x.to_bits();
+    let r = (b.wrapping_add(0x7fff + ((b >> 16) & 1)) >> 16) as u16;
+    if x.is_nan() {
+        0x7fc0
+    } else {
+        r
+    }
 }
 #[inline(always)]
 pub fn bf16_to_f32(b: u16) -> f32 {
@@ -226,33 +232,41 @@ pub(crate) fn a_tile_words(afmt: AFormat, kc: usize) -> usize {
     }
 }
 
-/// Pack one `A` tile: `rows ≤ MR` rows, `kc` k values, `get(i, k)`; padding is zero.
+/// Pack an `A` tile given by k: `col(k)` returns the `rows` values of
+/// column k (contiguous over i), e.g. Vᵀ from row-major V.
 #[inline]
-pub(crate) fn pack_a_tile(afmt: AFormat, dst: &mut [u32], rows: usize, kc: usize, get: impl Fn(usize, usize) -> f32) {
+pub(crate) fn pack_a_tile_cols<'a>(afmt: AFormat, dst: &mut [u32], rows: usize, kc: usize, col: impl Fn(usize) -> &'a [f32]) {
     let words = a_tile_words(afmt, kc);
     let dst = &mut dst[..words];
+    if rows < MR || kc % 2 == 1 {
+        dst.fill(0);
+    }
     match afmt {
-        AFormat::F32 | AFormat::F32Bf16 => {
-            let round = afmt == AFormat::F32Bf16;
-            if rows < MR || (round && kc % 2 == 1) {
-                dst.fill(0);
+        AFormat::F32 => {
+            for k in 0..kc {
+                for (d, &v) in dst[k * MR..k * MR + rows].iter_mut().zip(&col(k)[..rows]) {
+                    *d = v.to_bits();
+                }
             }
-            for i in 0..rows {
-                for k in 0..kc {
-                    let v = get(i, k);
-                    dst[k * MR + i] = if round { round_bf16(v) } else { v }.to_bits();
+        }
+        AFormat::F32Bf16 => {
+            for k in 0..kc {
+                for (d, &v) in dst[k * MR..k * MR + rows].iter_mut().zip(&col(k)[..rows]) {
+                    *d = round_bf16(v).to_bits();
                 }
             }
         }
         AFormat::Bf16Pairs => {
-            if rows < MR {
-                dst.fill(0);
+            for k2 in 0..kc / 2 {
+                let (lo, hi) = (&col(2 * k2)[..rows], &col(2 * k2 + 1)[..rows]);
+                for i in 0..rows {
+                    dst[k2 * MR + i] = f32_to_bf16(lo[i]) as u32 | ((f32_to_bf16(hi[i]) as u32) << 16);
+                }
             }
-            for i in 0..rows {
-                for k2 in 0..kc.div_ceil(2) {
-                    let lo = f32_to_bf16(get(i, 2 * k2)) as u32;
-                    let hi = if 2 * k2 + 1 < kc { f32_to_bf16(get(i, 2 * k2 + 1)) as u32 } else { 0 };
-                    dst[k2 * MR + i] = lo | (hi << 16);
+            if kc % 2 == 1 {
+                let lo = &col(kc - 1)[..rows];
+                for i in 0..rows {
+                    dst[(kc / 2) * MR + i] = f32_to_bf16(lo[i]) as u32;
                 }
             }
         }
@@ -274,7 +288,32 @@ pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize,
                 }
             }
         }
-        _ => pack_a_tile(afmt, dst, rows, kc, |i, k| a[i * lda + k]),
+        AFormat::F32Bf16 => {
+            let kp = kc.div_ceil(2) * 2;
+            if rows < MR || kp != kc {
+                dst[..kp * MR].fill(0);
+            }
+            for i in 0..rows {
+                for (k, &v) in a[i * lda..i * lda + kc].iter().enumerate() {
+                    dst[k * MR + i] = round_bf16(v).to_bits();
+                }
+            }
+        }
+        AFormat::Bf16Pairs => {
+            if rows < MR {
+                dst[..kc.div_ceil(2) * MR].fill(0);
+            }
+            for i in 0..rows {
+                let src = &a[i * lda..i * lda + kc];
+                let mut pairs = src.chunks_exact(2);
+                for (k2, p) in pairs.by_ref().enumerate() {
+                    dst[k2 * MR + i] = f32_to_bf16(p[0]) as u32 | ((f32_to_bf16(p[1]) as u32) << 16);
+                }
+                if let [last] = pairs.remainder() {
+                    dst[(kc / 2) * MR + i] = f32_to_bf16(*last) as u32;
+                }
+            }
+        }
     }
 }
 
