@@ -1,5 +1,6 @@
-//! Geometry: object poses (rotation encodings, normalisation).
+//! Geometry: object poses (rotation encodings, normalisation) and mesh voxelisation.
 
 pub mod pose;
 pub mod pointmap;
 pub mod camera_pose;
+pub mod voxelize;
