@@ -48,7 +48,7 @@ use crate::inputs::frame::{depth_valid, RgbdFrame};
 use crate::inputs::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::pipeline::{ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, ViewInput, WeightFiles};
 use crate::{Error, Result};
-use candle_core::{DType, Device};
+use candle_core::Device;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -286,26 +286,17 @@ impl Engine {
         Ok(Self { pipeline: Pipeline::load(config, weights_dir)? })
     }
 
-    /// [`Self::load`] with the parameters held in `dtype` (see [`Self::reconstruct_with`]).
-    pub fn load_dtype(config: &Path, weights_dir: &Path, dtype: DType) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::load_dtype(config, weights_dir, crate::pipeline::Stages::All, dtype)? })
-    }
-
     /// Weights named by a manifest (`recgen`, or a manifest file), from the
     /// Hugging Face cache `cache` ([`crate::weights::manifest::resolve_module_files`]).
-    pub fn load_manifest(config: &Path, manifest: &str, cache: &Path, dtype: DType) -> Result<Self> {
+    pub fn load_manifest(config: &Path, manifest: &str, cache: &Path) -> Result<Self> {
         let cfg = crate::model::config::RecGenConfig::load(config)?;
         let files: WeightFiles = crate::weights::manifest::resolve_module_files(manifest, &cfg, cache)?;
-        Ok(Self { pipeline: Pipeline::load_files(config, &files, crate::pipeline::Stages::All, dtype)? })
+        Ok(Self { pipeline: Pipeline::load_files(config, &files, crate::pipeline::Stages::All)? })
     }
 
     /// In-memory random weights: NOT a trained model (results say so).
     pub fn random(config: &Path, seed: u64) -> Result<Self> {
         Ok(Self { pipeline: Pipeline::random(config, seed)? })
-    }
-
-    pub fn random_dtype(config: &Path, seed: u64, dtype: DType) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::random_dtype(config, seed, crate::pipeline::Stages::All, dtype)? })
     }
 
     /// Reconstruct every object of a frame (single view).
@@ -322,9 +313,7 @@ impl Engine {
     /// pose selection, face budget; `progress` hears what is running.
     ///
     /// Per-object problems (masks, depth, an empty occupancy for every seed)
-    /// become [`FrameResult::skipped`]. A model failure with a parameter
-    /// dtype other than f32 is fatal: it means this build cannot run that
-    /// dtype on the CPU, and every object would fail the same way.
+    /// become [`FrameResult::skipped`].
     pub fn reconstruct_with(
         &self,
         frame: &RgbdFrame,
@@ -417,25 +406,9 @@ impl Engine {
             let seed = opts.run.seed.wrapping_add(s as u64);
             progress(Progress::Sample { index: s, total: opts.samples, seed });
             let run = RunOptions { seed, ..opts.run.clone() };
-            let stage = std::cell::Cell::new(None);
-            let rec = match self.pipeline.run_observed(&inputs, &run, &|st| {
-                stage.set(Some(st));
-                progress(Progress::Stage(st))
-            }) {
+            let rec = match self.pipeline.run_observed(&inputs, &run, &|st| progress(Progress::Stage(st))) {
                 Ok(r) => r,
                 Err(e) => {
-                    let dt = self.pipeline.dtype();
-                    if dt != DType::F32 {
-                        let at = stage.get().map(|s| s.name()).unwrap_or("setup");
-                        // candle may append a backtrace; the first line says what failed.
-                        let e = e.to_string();
-                        let e = e.lines().next().unwrap_or_default();
-                        return Err(Error::msg(format!(
-                            "--dtype {}: the model failed in its {at} stage on the CPU ({e}). This build cannot run that stage in {} yet; use --dtype f32",
-                            dtype_name(dt),
-                            dtype_name(dt)
-                        )));
-                    }
                     notes.push(format!("seed {seed}: {e}"));
                     last_err = Some(e.to_string());
                     continue;
@@ -545,16 +518,6 @@ impl Engine {
             samples: opts.samples,
             notes,
         }))
-    }
-}
-
-/// `f32`, `bf16`, `f16`.
-pub fn dtype_name(d: DType) -> &'static str {
-    match d {
-        DType::F32 => "f32",
-        DType::BF16 => "bf16",
-        DType::F16 => "f16",
-        _ => "other",
     }
 }
 

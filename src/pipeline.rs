@@ -284,8 +284,6 @@ pub struct Pipeline {
     layout: NineDLayout,
     slat_norm: SLatNormalization,
     weights: WeightsSource,
-    /// Parameter dtype; inputs and noise are cast to it.
-    dtype: DType,
 }
 
 const NOISE_ORDER: &str = "SeededRng(seed): ss latent [1,Cin,R,R,R], ss pose tokens [1,K,P], slat feats [N,Cin]";
@@ -315,11 +313,6 @@ impl Pipeline {
     }
 
     pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
-        Self::load_dtype(config_path, weights_dir, stages, DType::F32)
-    }
-
-    /// [`Self::load_stages`] with the parameters held in `dtype`.
-    pub fn load_dtype(config_path: &Path, weights_dir: &Path, stages: Stages, dtype: DType) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
@@ -338,11 +331,11 @@ impl Pipeline {
                 })?;
             files.modules.insert(key.to_string(), path);
         }
-        Self::load_files(config_path, &files, stages, dtype)
+        Self::load_files(config_path, &files, stages)
     }
 
     /// Build from explicit checkpoint files (one per module key).
-    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages, dtype: DType) -> Result<Self> {
+    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut vbs = HashMap::new();
         let mut files = Vec::new();
@@ -361,11 +354,11 @@ impl Pipeline {
             if path.extension().is_some_and(|e| e == "safetensors") {
                 random_init |= crate::weights::init::is_random_init(&path)?;
             }
-            vbs.insert(key, ck.into_var_builder(dtype, &Device::Cpu));
+            vbs.insert(key, ck.into_var_builder(DType::F32, &Device::Cpu));
             files.push(path);
         }
         let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
-        let mut p = Self::build(config, vbs, weights, stages, dtype)?;
+        let mut p = Self::build(config, vbs, weights, stages)?;
         if let Some(f) = &weight_files.ss_stats {
             p.ss_stats = PoseStats::from_json_file(f)?;
         }
@@ -376,11 +369,6 @@ impl Pipeline {
     }
 
     pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
-        Self::random_dtype(config_path, seed, stages, DType::F32)
-    }
-
-    /// [`Self::random_stages`] with the parameters held in `dtype`.
-    pub fn random_dtype(config_path: &Path, seed: u64, stages: Stages, dtype: DType) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut vbs = HashMap::new();
         for (key, spec) in config.modules() {
@@ -390,18 +378,12 @@ impl Pipeline {
             let label = format!("{}: {key}", config_path.display());
             let t = registry::random_weights(&module_cfg(spec), registry::module_seed(seed, key), &label)?;
             let t: HashMap<String, Tensor> = t.into_iter().collect();
-            vbs.insert(key, VarBuilder::from_tensors(t, dtype, &Device::Cpu));
+            vbs.insert(key, VarBuilder::from_tensors(t, DType::F32, &Device::Cpu));
         }
-        Self::build(config, vbs, WeightsSource::Random { seed }, stages, dtype)
+        Self::build(config, vbs, WeightsSource::Random { seed }, stages)
     }
 
-    fn build(
-        config: RecGenConfig,
-        mut vbs: HashMap<&'static str, VarBuilder<'static>>,
-        weights: WeightsSource,
-        stages: Stages,
-        dtype: DType,
-    ) -> Result<Self> {
+    fn build(config: RecGenConfig, mut vbs: HashMap<&'static str, VarBuilder<'static>>, weights: WeightsSource, stages: Stages) -> Result<Self> {
         let mut take = |key: &str| vbs.remove(key).ok_or_else(|| Error::msg(format!("pipeline: no weights for `{key}`")));
         let label = |key: &str| format!("{}: {key}", config.name);
         let dino = registry::build_dinov2(&module_cfg(&config.image_cond_model), take("image_cond_model")?, &label("image_cond_model"))?;
@@ -439,13 +421,7 @@ impl Pipeline {
             stage2,
             weights,
             config,
-            dtype,
         })
-    }
-
-    /// The parameter dtype.
-    pub fn dtype(&self) -> DType {
-        self.dtype
     }
 
     /// Where the weights came from (random weights are labelled).
@@ -516,21 +492,18 @@ impl Pipeline {
         let slat_settings = Self::sampler_settings(&self.config.samplers.slat, opts.slat_steps, opts.slat_cfg_strength)?;
         let mut tm = StageTimings::default();
 
-        // 1. Image encoder (inputs in the parameter dtype).
+        // 1. Image encoder.
         on_stage(Stage::ImageEncoder);
         let t = Instant::now();
-        let dt = self.dtype;
         let tokens: Vec<Tensor> =
-            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels.to_dtype(dt)?)).collect::<candle_core::Result<_>>()?;
+            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
         tm.image_encoder = secs(t);
         let views: Vec<ViewInputs> = inputs
             .views
             .iter()
             .zip(&tokens)
-            .map(|(v, tok)| {
-                Ok(ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.to_dtype(dt)?), mask: Some(v.mask.to_dtype(dt)?) })
-            })
-            .collect::<candle_core::Result<_>>()?;
+            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
+            .collect();
 
         // 2–3. Stage 1: condition, then latent + pose sampling.
         on_stage(Stage::SsSampling);
@@ -539,7 +512,7 @@ impl Pipeline {
         tm.ss_condition = secs(t);
         let t = Instant::now();
         let mut rng = SeededRng::new(opts.seed);
-        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?.into_iter().map(|n| n.to_dtype(dt)).collect::<candle_core::Result<_>>()?;
+        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?;
         let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&self.ss_flow, noise, &cond, Some(&neg))?;
         let (z, pose_tok) = match out.as_slice() {
             [z, p] => (z.clone(), p.clone()),
@@ -550,7 +523,7 @@ impl Pipeline {
         // 4. Occupancy.
         on_stage(Stage::SsDecoder);
         let t = Instant::now();
-        let logits = self.ss_decoder.forward(&z)?.to_dtype(DType::F32)?;
+        let logits = self.ss_decoder.forward(&z)?;
         let ss_resolution = logits.dim(2)?;
         let coords4 = occupied_coords(&logits)?;
         tm.ss_decoder = secs(t);
@@ -566,7 +539,6 @@ impl Pipeline {
         // 5. Pose.
         let t = Instant::now();
         let k = self.ss_flow.cfg.num_pose_tokens.max(1);
-        let pose_tok = pose_tok.to_dtype(DType::F32)?;
         let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
         let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
         let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
@@ -598,15 +570,15 @@ impl Pipeline {
             // 6. Stage-2 condition.
             on_stage(Stage::SlatSampling);
             let t = Instant::now();
-            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose.to_dtype(dt)?))?;
+            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose))?;
             tm.slat_condition = secs(t);
 
             // 7. Stage-2 sampling on the occupied voxels, then denormalise.
             let t = Instant::now();
-            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?.to_dtype(dt)?;
+            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?;
             let model = SlatVelocity { model: &s2.slat_flow, coords: &coords4 };
             let out = FlowEulerGuidanceIntervalSampler::new(slat_settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
-            let feats = self.slat_norm.denormalize(&out[0].to_dtype(DType::F32)?)?.to_dtype(dt)?;
+            let feats = self.slat_norm.denormalize(&out[0])?;
             let slat = SparseTensor::new(coords4.clone(), feats, 1)?;
             tm.slat_sampling = secs(t);
             metadata.slat_sampler = Some(slat_settings);

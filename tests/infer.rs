@@ -160,23 +160,6 @@ fn objects_of_two_views_pair_by_id_or_order() {
     assert!(e.contains("--masks2") && e.contains("order"), "{e}");
 }
 
-/// A dtype the CPU kernels cannot run fails with a message naming the flag,
-/// instead of silently computing in f32.
-#[test]
-fn unsupported_dtype_fails_clearly() {
-    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
-    let (objects, _) = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap().objects(Some(&[8]));
-    let engine = Engine::random_dtype(&root().join("models/recgen-tiny.json"), 7, candle_core::DType::BF16).unwrap();
-    assert_eq!(engine.pipeline.dtype(), candle_core::DType::BF16);
-    match engine.reconstruct(&frame, objects, &InferOptions::default()) {
-        Ok(r) => panic!("bf16 ran on the CPU: {} objects; update this test and the --dtype help", r.objects.len()),
-        Err(e) => {
-            let e = e.to_string();
-            assert!(e.contains("--dtype bf16") && e.contains("--dtype f32") && !e.contains('\n'), "{e}");
-        }
-    }
-}
-
 fn recon_cli(args: &[&str], env: &[(&str, &std::path::Path)]) -> std::process::Output {
     let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_recon"));
     c.args(args).current_dir(root());
@@ -215,6 +198,10 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("recon weights fetch --manifest recgen") && err.contains("ss_flow"), "{err}");
+    // A precision the pipeline cannot run is refused, not silently run in f32.
+    let o = with(&["--dtype", "bf16"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--dtype bf16"), "{}", String::from_utf8_lossy(&o.stderr));
     let o = with(&["--weights", "no-such-thing"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a directory"), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(!out.exists());

@@ -260,7 +260,7 @@ mod tests {
         let wf = resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
         assert_eq!(wf.modules.len(), 6);
         assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
-        let p = crate::pipeline::Pipeline::load_files(&cfg_path, &wf, crate::pipeline::Stages::All, candle_core::DType::F32).unwrap();
+        let p = crate::pipeline::Pipeline::load_files(&cfg_path, &wf, crate::pipeline::Stages::All).unwrap();
         assert!(p.weights().is_random());
         let _ = std::fs::remove_dir_all(&root);
     }
