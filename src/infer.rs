@@ -409,8 +409,10 @@ impl Engine {
             let rec = match self.pipeline.run_observed(&inputs, &run, &|st| progress(Progress::Stage(st))) {
                 Ok(r) => r,
                 Err(e) => {
+                    // candle may append a backtrace; the first line says what failed.
+                    let e = e.to_string().lines().next().unwrap_or_default().to_string();
                     notes.push(format!("seed {seed}: {e}"));
-                    last_err = Some(e.to_string());
+                    last_err = Some(e);
                     continue;
                 }
             };
