@@ -21,5 +21,6 @@ pub mod conformance;
 pub mod eval;
 pub mod sensor;
 pub mod train;
+pub mod synth;
 
 pub use error::{Error, Result};
