@@ -19,6 +19,7 @@ pub mod bench;
 pub mod conformance;
 pub mod eval;
 pub mod sensor;
+pub mod synth;
 pub mod audit;
 
 pub use error::{Error, Result};
