@@ -22,5 +22,6 @@ pub mod eval;
 pub mod sensor;
 pub mod train;
 pub mod synth;
+pub mod audit;
 
 pub use error::{Error, Result};
