@@ -19,5 +19,6 @@ pub mod bench;
 pub mod conformance;
 pub mod eval;
 pub mod sensor;
+pub mod sim;
 
 pub use error::{Error, Result};
