@@ -23,5 +23,6 @@ pub mod sensor;
 pub mod train;
 pub mod synth;
 pub mod audit;
+pub mod sim;
 
 pub use error::{Error, Result};
