@@ -196,11 +196,12 @@ impl candle_core::CustomOp3 for Conv3dOp {
                                 }
                                 let srow = &src[(sz as usize * h + sy as usize) * wd..][..wd];
                                 let drow = &mut dst[(z * oh + y) * ow..][..ow];
-                                for (xo, v) in drow.iter_mut().enumerate() {
-                                    let sx = xo as isize + c - p;
-                                    if sx >= 0 && sx < wd as isize {
-                                        *v = srow[sx as usize];
-                                    }
+                                // Output x reads input x + c − p: copy the in-range run.
+                                let lo = (p - c).max(0) as usize;
+                                let hi = ((wd as isize + p - c).min(ow as isize)).max(0) as usize;
+                                if lo < hi {
+                                    let s0 = (lo as isize + c - p) as usize;
+                                    drow[lo..hi].copy_from_slice(&srow[s0..s0 + hi - lo]);
                                 }
                             }
                         }
