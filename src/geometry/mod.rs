@@ -1,6 +1,8 @@
-//! Geometry: object poses (rotation encodings, normalisation) and mesh voxelisation.
+//! Geometry: object poses (rotation encodings, normalisation), point-map ↔ mesh
+//! alignment, and mesh voxelisation.
 
 pub mod pose;
 pub mod pointmap;
 pub mod camera_pose;
+pub mod alignment;
 pub mod voxelize;

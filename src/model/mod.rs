@@ -4,6 +4,7 @@
 //! Stage 2: structured-latent flow.
 
 pub mod common;
+pub mod fast;
 pub mod config;
 pub mod embedders;
 pub mod sampler;
