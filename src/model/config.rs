@@ -167,7 +167,7 @@ mod tests {
 
     #[test]
     fn shipped_configs_parse() -> Result<()> {
-        for (file, c, blocks) in [("recgen-large.json", 1024, 24), ("recgen-tiny.json", 64, 2), ("recgen-nano.json", 128, 6)] {
+        for (file, c, blocks) in [("recgen-large.json", 1024, 24), ("recgen-tiny.json", 64, 2), ("recgen-nano.json", 128, 8)] {
             let cfg = RecGenConfig::load(&models_dir().join(file))?;
             let ss = cfg.ss_flow_config()?;
             assert_eq!((ss.model_channels, ss.num_blocks), (c, blocks), "{file}");

@@ -37,14 +37,26 @@ pub fn read_log(path: &Path) -> Result<Vec<LogRecord>> {
 }
 
 /// Keep the records up to `step` (a resumed run continues from there).
+/// Kept lines are copied byte for byte (re-printing parsed floats could
+/// change their last digit).
 pub fn truncate_log(path: &Path, step: usize) -> Result<()> {
-    let kept: Vec<LogRecord> = read_log(path)?.into_iter().filter(|r| r.step <= step).collect();
-    let mut text = String::new();
-    for r in &kept {
-        text.push_str(&serde_json::to_string(r).map_err(|e| Error::msg(e.to_string()))?);
-        text.push('\n');
+    if !path.exists() {
+        return Ok(());
     }
-    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut kept = String::new();
+    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        #[derive(serde::Deserialize)]
+        struct Step {
+            step: usize,
+        }
+        let s: Step = serde_json::from_str(line).map_err(|e| Error::input(path.display().to_string(), format!("line {}: {e}", i + 1)))?;
+        if s.step <= step {
+            kept.push_str(line);
+            kept.push('\n');
+        }
+    }
+    std::fs::write(path, kept).map_err(|e| Error::io(path, e))
 }
 
 pub fn append_log(path: &Path, r: &LogRecord) -> Result<()> {
