@@ -28,7 +28,7 @@ use crate::geometry::pointmap::{prepare_frame_objects, PrepareOptions};
 use crate::geometry::pose::Pose;
 use crate::inputs::frame::RgbdFrame;
 use crate::inputs::masks::{MaskSkip, ObjectMask};
-use crate::pipeline::{ObjectInputs, Pipeline, RunMetadata, RunOptions, StageTimings, ViewInput};
+use crate::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, StageTimings, Stages, ViewInput};
 use crate::{Error, Result};
 use candle_core::Device;
 use serde::Serialize;
@@ -91,6 +91,16 @@ impl Engine {
     /// In-memory random weights: NOT a trained model (results say so).
     pub fn random(config: &Path, seed: u64) -> Result<Self> {
         Ok(Self { pipeline: Pipeline::random(config, seed)? })
+    }
+
+    /// [`Engine::load`] with explicit kernels/precision (`--dtype`) and residency.
+    pub fn load_with(config: &Path, weights_dir: &Path, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::load_with(config, weights_dir, Stages::All, options)? })
+    }
+
+    /// [`Engine::random`] with explicit kernels/precision and residency.
+    pub fn random_with(config: &Path, seed: u64, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::random_with(config, seed, Stages::All, options)? })
     }
 
     /// Reconstruct every object of a frame (single view).

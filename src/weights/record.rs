@@ -130,6 +130,55 @@ pub fn random_values(seed: u64, name: &str, n: usize) -> Vec<f32> {
     }
 }
 
+/// The values [`RandomInit`] hands out for `name` with shape `s`.
+pub fn random_tensor_values(seed: u64, name: &str, s: &Shape) -> Vec<f32> {
+    // A rank-1 `weight` is a norm scale whatever its module is called
+    // (`out_layer.0`, `act_layers.0` are LayerNorm / GroupNorm): 1, so
+    // random-weight activations keep their scale.
+    if s.rank() == 1 && name.ends_with("weight") {
+        vec![1.0; s.elem_count()]
+    } else {
+        random_values(seed, name, s.elem_count())
+    }
+}
+
+/// The same values as [`RandomInit`], generated when requested and not kept:
+/// building a module on it holds one f32 tensor at a time, so a module built
+/// with packed (fast) weights never has its whole f32 copy in memory.
+/// `overrides` replace the noise of computed buffers.
+#[derive(Clone)]
+pub struct RandomStream {
+    seed: u64,
+    overrides: Arc<BTreeMap<String, Tensor>>,
+}
+
+impl RandomStream {
+    pub fn new(seed: u64, overrides: BTreeMap<String, Tensor>) -> Self {
+        Self { seed, overrides: Arc::new(overrides) }
+    }
+    pub fn var_builder(&self, dev: &Device) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), DType::F32, dev.clone())
+    }
+}
+
+impl SimpleBackend for RandomStream {
+    fn get(&self, s: Shape, name: &str, _h: candle_nn::Init, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        if let Some(t) = self.overrides.get(name) {
+            if t.shape() != &s {
+                candle_core::bail!("random weights: buffer `{name}` has shape {:?}, requested {:?}", t.dims(), s.dims());
+            }
+            return t.to_device(dev)?.to_dtype(dtype);
+        }
+        Tensor::from_vec(random_tensor_values(self.seed, name, &s), s, dev)?.to_dtype(dtype)
+    }
+    fn get_unchecked(&self, name: &str, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("random weights: `{name}` requested without a shape; cannot infer it")
+    }
+    fn contains_tensor(&self, _name: &str) -> bool {
+        true
+    }
+}
+
 /// Records every `get` and returns (and keeps) deterministic random tensors.
 #[derive(Clone)]
 pub struct RandomInit {
@@ -158,14 +207,7 @@ impl SimpleBackend for RandomInit {
         if let Some(t) = m.get(name) {
             return t.to_dtype(dtype);
         }
-        // A rank-1 `weight` is a norm scale whatever its module is called
-        // (`out_layer.0`, `act_layers.0` are LayerNorm / GroupNorm): 1, so
-        // random-weight activations keep their scale.
-        let vals = if s.rank() == 1 && name.ends_with("weight") {
-            vec![1.0; s.elem_count()]
-        } else {
-            random_values(self.seed, name, s.elem_count())
-        };
+        let vals = random_tensor_values(self.seed, name, &s);
         let t = Tensor::from_vec(vals, s, dev)?;
         m.insert(name.to_string(), t.clone());
         t.to_dtype(dtype)
