@@ -5,6 +5,7 @@
 //! small std keep activations finite. Reports wall time and peak RSS (VmHWM).
 //!
 //! Run: `cargo bench --bench ss_flow` (env `BENCH_ITERS`, default 1;
+//! `BENCH_BLOCKS=n` runs n blocks instead of 24;
 //! `BENCH_DTYPE=f32|bf16|f16` builds the model on the fast kernels in that
 //! precision, unset = the plain candle path measured below).
 //!
@@ -62,7 +63,11 @@ fn vm_hwm_kib() -> Option<u64> {
 fn main() -> recon::Result<()> {
     let dev = Device::Cpu;
     let cfg_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-large.json");
-    let cfg = RecGenConfig::load(&cfg_path)?.ss_flow_config()?;
+    let mut cfg = RecGenConfig::load(&cfg_path)?.ss_flow_config()?;
+    // `BENCH_BLOCKS` runs fewer blocks (for profiling); the time scales per block.
+    if let Some(n) = std::env::var("BENCH_BLOCKS").ok().and_then(|v| v.parse().ok()) {
+        cfg.num_blocks = n;
+    }
     let t0 = Instant::now();
     let vb = VarBuilder::from_backend(Box::new(RandomWeights), DType::F32, dev.clone());
     let compute = match std::env::var("BENCH_DTYPE") {

@@ -85,22 +85,24 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         }
         eprintln!("GEMM…");
         report.gemm = bench::bench_gemm(&report.peaks, a.reps, a.quick)?;
-        println!("\n{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8} {:>9} {:>6} {:>6}", "GEMM", "M", "K", "N", "isa", "w", "s", "GFLOP/s", "peak%", "load");
+        println!("\n{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8} {:>9} {:>7} {:>6} {:>6}", "GEMM", "M", "K", "N", "isa", "w", "s", "GFLOP/s", "peak", "peak%", "load");
         for r in &report.gemm {
             println!(
-                "{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8.3} {:>9.1} {:>6} {:>6}",
+                "{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
                 r.what, r.m, r.k, r.n, r.isa, r.format, r.seconds, r.gflops,
+                opt(r.peak_gflops, |p| format!("{p:.1}")),
                 opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
                 opt(r.load_average, |v| format!("{v:.1}"))
             );
         }
         eprintln!("attention…");
         report.attention = bench::bench_attention(&report.peaks, a.reps)?;
-        println!("\n{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8} {:>9} {:>6} {:>6}", "attention", "B", "H", "Lq", "Lk", "prec", "isa", "s", "GFLOP/s", "peak%", "load");
+        println!("\n{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8} {:>9} {:>7} {:>6} {:>6}", "attention", "B", "H", "Lq", "Lk", "prec", "isa", "s", "GFLOP/s", "peak", "peak%", "load");
         for r in &report.attention {
             println!(
-                "{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8.3} {:>9.1} {:>6} {:>6}",
+                "{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
                 r.what, r.batch, r.heads, r.lq, r.lk, r.precision, r.isa, r.seconds, r.gflops,
+                opt(r.peak_gflops, |p| format!("{p:.1}")),
                 opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
                 opt(r.load_average, |v| format!("{v:.1}"))
             );

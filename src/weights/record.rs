@@ -109,22 +109,30 @@ pub enum InitRule {
 }
 
 /// Deterministic random values for `name` (Box–Muller over splitmix64).
+/// Pair j of outputs uses stream draws 2j and 2j+1; splitmix64 can jump to
+/// any draw, so large tensors are filled in parallel with the same values.
 pub fn random_values(seed: u64, name: &str, n: usize) -> Vec<f32> {
     match init_rule(name) {
         InitRule::Const(c) => vec![c; n],
         InitRule::Normal(std) => {
-            let mut st = seed ^ fnv1a(name);
-            let mut out = Vec::with_capacity(n);
-            while out.len() < n {
-                let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
-                let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
-                let r = (-2.0 * u1.ln()).sqrt();
-                let a = 2.0 * std::f64::consts::PI * u2;
-                out.push((r * a.cos()) as f32 * std);
-                if out.len() < n {
-                    out.push((r * a.sin()) as f32 * std);
+            use rayon::prelude::*;
+            let st0 = seed ^ fnv1a(name);
+            let mut out = vec![0f32; n];
+            // Chunks of whole pairs; each starts its stream at its first draw.
+            const CHUNK: usize = 1 << 16;
+            out.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, chunk)| {
+                let mut st = st0.wrapping_add(((ci * CHUNK) as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+                for pair in chunk.chunks_mut(2) {
+                    let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+                    let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
+                    let r = (-2.0 * u1.ln()).sqrt();
+                    let a = 2.0 * std::f64::consts::PI * u2;
+                    pair[0] = (r * a.cos()) as f32 * std;
+                    if pair.len() > 1 {
+                        pair[1] = (r * a.sin()) as f32 * std;
+                    }
                 }
-            }
+            });
             out
         }
     }
@@ -247,6 +255,25 @@ mod tests {
         })
         .unwrap();
         assert_eq!(specs.iter().map(|s| s.name.as_str()).collect::<Vec<_>>(), vec!["ln.bias", "ln.weight"]);
+    }
+
+    /// The parallel fill gives the sequential stream's values.
+    #[test]
+    fn random_values_match_the_sequential_stream() {
+        let n = (1 << 16) * 2 + 7;
+        let got = random_values(3, "w.weight", n);
+        let mut st = 3 ^ fnv1a("w.weight");
+        let mut want = Vec::with_capacity(n);
+        while want.len() < n {
+            let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+            let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
+            let (r, a) = ((-2.0 * u1.ln()).sqrt(), 2.0 * std::f64::consts::PI * u2);
+            want.push((r * a.cos()) as f32 * 0.02);
+            if want.len() < n {
+                want.push((r * a.sin()) as f32 * 0.02);
+            }
+        }
+        assert_eq!(got, want);
     }
 
     #[test]
