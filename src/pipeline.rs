@@ -186,6 +186,45 @@ pub struct StageMemory {
     pub gaussian_decoder: Option<f64>,
 }
 
+/// The stages of [`Pipeline::run`], reported to an observer as each starts
+/// ([`Pipeline::run_observed`]), e.g. to drive a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    ImageEncoder,
+    SsSampling,
+    SsDecoder,
+    SlatSampling,
+    MeshDecoder,
+    GaussianDecoder,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::ImageEncoder => "image encoder",
+            Stage::SsSampling => "ss sampling",
+            Stage::SsDecoder => "ss decoder",
+            Stage::SlatSampling => "slat sampling",
+            Stage::MeshDecoder => "mesh decoder",
+            Stage::GaussianDecoder => "gaussian decoder",
+        }
+    }
+}
+
+/// Where each module's checkpoint is, for layouts other than
+/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
+/// weights manifest).
+#[derive(Debug, Clone, Default)]
+pub struct WeightFiles {
+    /// Reported as the weights' origin.
+    pub dir: PathBuf,
+    /// Module key ([`RecGenConfig::modules`]) → checkpoint file.
+    pub modules: HashMap<String, PathBuf>,
+    /// Pose statistics to use instead of the files the architecture names.
+    pub ss_stats: Option<PathBuf>,
+    pub slat_stats: Option<PathBuf>,
+}
+
 /// The stage-1 pose prediction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PredictedPose {
@@ -374,13 +413,9 @@ impl Pipeline {
     }
 
     /// [`Pipeline::load_stages`] with explicit kernels/precision and residency.
-    /// Every checkpoint is validated against its config here, also when the
-    /// modules are built later (`per_stage`).
     pub fn load_with(config_path: &Path, weights_dir: &Path, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
-        let mut sources = HashMap::new();
-        let mut files = Vec::new();
-        let mut random_init = false;
+        let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
             if stages == Stages::SparseStructure && !is_stage1(key) {
                 continue;
@@ -395,6 +430,31 @@ impl Pipeline {
                         format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
                     )
                 })?;
+            files.modules.insert(key.to_string(), path);
+        }
+        Self::load_files_with(config_path, &files, stages, options)
+    }
+
+    /// Build from explicit checkpoint files (one per module key).
+    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages) -> Result<Self> {
+        Self::load_files_with(config_path, weight_files, stages, &LoadOptions::default())
+    }
+
+    /// [`Pipeline::load_files`] with explicit kernels/precision and residency.
+    /// Every checkpoint is validated against its config here, also when the
+    /// modules are built later (`per_stage`).
+    pub fn load_files_with(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
+        let config = RecGenConfig::load(config_path)?;
+        let mut sources = HashMap::new();
+        let mut files = Vec::new();
+        let mut random_init = false;
+        for (key, spec) in config.modules() {
+            if stages == Stages::SparseStructure && !is_stage1(key) {
+                continue;
+            }
+            let path = weight_files.modules.get(key).cloned().ok_or_else(|| {
+                Error::input(weight_files.dir.display().to_string(), format!("no checkpoint file for module `{key}` ({})", spec.name))
+            })?;
             let label = format!("{}: {key}", config_path.display());
             let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
             let ck = Checkpoint::open(&path, None)?;
@@ -405,8 +465,15 @@ impl Pipeline {
             sources.insert(key, Source::File(path.clone()));
             files.push(path);
         }
-        let weights = WeightsSource::Files { dir: weights_dir.to_path_buf(), files, random_init };
-        Self::build(config, sources, weights, stages, *options)
+        let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
+        let mut p = Self::build(config, sources, weights, stages, *options)?;
+        if let Some(f) = &weight_files.ss_stats {
+            p.ss_stats = PoseStats::from_json_file(f)?;
+        }
+        if let Some(f) = &weight_files.slat_stats {
+            p.slat_stats = PoseStats::from_json_file(f)?;
+        }
+        Ok(p)
     }
 
     /// [`Pipeline::random_stages`] with explicit kernels/precision and residency.
@@ -560,6 +627,11 @@ impl Pipeline {
 
     /// Run both stages (or stage 1 only) on one object.
     pub fn run(&self, inputs: &ObjectInputs, opts: &RunOptions) -> Result<ObjectReconstruction> {
+        self.run_observed(inputs, opts, &|_| {})
+    }
+
+    /// [`Self::run`], calling `on_stage` as each stage starts.
+    pub fn run_observed(&self, inputs: &ObjectInputs, opts: &RunOptions, on_stage: &dyn Fn(Stage)) -> Result<ObjectReconstruction> {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
         let dev = Device::Cpu;
@@ -582,6 +654,7 @@ impl Pipeline {
         let r = &self.resident;
 
         // 1. Image encoder.
+        on_stage(Stage::ImageEncoder);
         mark();
         let t = Instant::now();
         let dino = self.hold(&r.dino, "image_cond_model", registry::build_dinov2, &mut tm.loading)?;
@@ -597,6 +670,7 @@ impl Pipeline {
             .collect();
 
         // 2–3. Stage 1: condition, then latent + pose sampling.
+        on_stage(Stage::SsSampling);
         mark();
         let t = Instant::now();
         let ss_flow = self.hold(&r.ss_flow, "ss_flow", registry::build_ss_flow, &mut tm.loading)?;
@@ -615,6 +689,7 @@ impl Pipeline {
         mem.ss_flow = peak();
 
         // 4. Occupancy.
+        on_stage(Stage::SsDecoder);
         mark();
         let t = Instant::now();
         let ss_decoder = self.hold(&r.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut tm.loading)?;
@@ -665,6 +740,7 @@ impl Pipeline {
                 return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
             }
             // 6. Stage-2 condition.
+            on_stage(Stage::SlatSampling);
             mark();
             let t = Instant::now();
             let slat_flow = self.hold(&r.slat_flow, "slat_flow", registry::build_slat_flow, &mut tm.loading)?;
@@ -685,6 +761,7 @@ impl Pipeline {
 
             // 8. Decoders.
             if opts.decode_mesh {
+                on_stage(Stage::MeshDecoder);
                 mark();
                 let t = Instant::now();
                 let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut tm.loading)?;
@@ -694,6 +771,7 @@ impl Pipeline {
                 mem.mesh_decoder = peak();
             }
             if opts.decode_gaussians {
+                on_stage(Stage::GaussianDecoder);
                 mark();
                 let t = Instant::now();
                 let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut tm.loading)?;

@@ -5,7 +5,7 @@
 //! ops, differentiable for training; built inside it, the same layers run the
 //! inference kernels of `recon-kernels` (see [`super::fast`]).
 
-use candle_core::{DType, Module, Result, Tensor, D};
+use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
 use candle_nn::VarBuilder;
 
 use super::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
@@ -145,7 +145,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
         let len = chunk.min(lq - start);
         let qc = (q.narrow(2, start, len)? * scale)?.contiguous()?;
         let s = qc.matmul(&kt)?;
-        let p = candle_nn::ops::softmax_last_dim(&s)?;
+        let p = softmax_last_dim(&s)?;
         outs.push(p.matmul(&v)?);
         start += len;
     }
@@ -153,6 +153,57 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
         Ok(outs.pop().unwrap())
     } else {
         Tensor::cat(&outs, 2)
+    }
+}
+
+/// Softmax over the last dim with a backward pass. The forward is candle's
+/// `softmax_last_dim` kernel step for step (so inference results are
+/// bit-identical to it), but candle's op has no gradient, and every
+/// transformer here must stay trainable.
+pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
+    if x.device().is_cpu() && x.dtype() == DType::F32 {
+        x.contiguous()?.apply_op1(SoftmaxLastDim)
+    } else {
+        candle_nn::ops::softmax(x, D::Minus1)
+    }
+}
+
+struct SoftmaxLastDim;
+
+impl candle_core::CustomOp1 for SoftmaxLastDim {
+    fn name(&self) -> &'static str {
+        "recon-softmax-last-dim"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        use candle_core::cpu::kernels::VecOps;
+        use rayon::prelude::*;
+        let CpuStorage::F32(src) = storage else { candle_core::bail!("softmax: f32 only") };
+        let Some((o1, o2)) = layout.contiguous_offsets() else { candle_core::bail!("softmax: input must be contiguous") };
+        let src = &src[o1..o2];
+        let dims = layout.shape().dims();
+        let n = dims[dims.len() - 1];
+        let mut dst = vec![0f32; src.len()];
+        src.par_chunks(n).zip(dst.par_chunks_mut(n)).for_each(|(s, d)| {
+            let mut max = f32::NEG_INFINITY;
+            // SAFETY: both slices hold exactly `n` elements.
+            unsafe { f32::vec_reduce_max(s.as_ptr(), &mut max, n) };
+            for (a, b) in s.iter().zip(d.iter_mut()) {
+                *b = (*a - max).exp();
+            }
+            let mut sum = 0f32;
+            unsafe { f32::vec_reduce_sum(d.as_ptr(), &mut sum, n) };
+            for b in d.iter_mut() {
+                *b /= sum;
+            }
+        });
+        Ok((CpuStorage::F32(dst), Shape::from_dims(dims)))
+    }
+
+    /// dL/dx = y ⊙ (g − Σ g ⊙ y) along the last dim.
+    fn bwd(&self, _arg: &Tensor, res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        let dot = (grad_res * res)?.sum_keepdim(D::Minus1)?;
+        Ok(Some(res.mul(&grad_res.broadcast_sub(&dot)?)?))
     }
 }
 
@@ -455,6 +506,23 @@ mod tests {
         let a = fast.forward(&x, Some(&c1))?;
         let b = plain.cross_attn.forward(&x, Some(&c1.broadcast_as((2, 29, 24))?.contiguous()?))?;
         assert!(max_diff(&a, &b) < 1e-4);
+        Ok(())
+    }
+
+    #[test]
+    fn softmax_matches_candle_kernel_and_has_gradient() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 3.0, (3, 5, 37), &dev)?;
+        let fast = candle_nn::ops::softmax_last_dim(&x)?;
+        let ours = softmax_last_dim(&x)?;
+        assert_eq!(fast.flatten_all()?.to_vec1::<f32>()?, ours.flatten_all()?.to_vec1::<f32>()?, "forward must be bit-identical");
+        // Gradient equals the one of the composed (differentiable) softmax.
+        let v = candle_core::Var::from_tensor(&x)?;
+        let w = Tensor::randn(0f32, 1.0, (3, 5, 37), &dev)?;
+        let g1 = (softmax_last_dim(v.as_tensor())? * &w)?.sum_all()?.backward()?;
+        let g2 = (candle_nn::ops::softmax(v.as_tensor(), D::Minus1)? * &w)?.sum_all()?.backward()?;
+        let d = (g1.get(v.as_tensor()).unwrap() - g2.get(v.as_tensor()).unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-6, "gradient diff {d}");
         Ok(())
     }
 
