@@ -4,7 +4,10 @@
 //! voxel tokens + 2 pose tokens, 1369 condition tokens. Random weights with a
 //! small std keep activations finite. Reports wall time and peak RSS (VmHWM).
 //!
-//! Run: `cargo bench --bench ss_flow` (env `BENCH_ITERS`, default 1).
+//! Run: `cargo bench --bench ss_flow` (env `BENCH_ITERS`, default 1;
+//! `BENCH_BLOCKS=n` runs n blocks instead of 24;
+//! `BENCH_DTYPE=f32|bf16|f16` builds the model on the fast kernels in that
+//! precision, unset = the plain candle path measured below).
 //!
 //! About 10.5 TFLOP per forward (≈ 436 GFLOP per block: linears 270, self-
 //! attention 138, cross-attention 46). Measured on the shared 2-core dev box
@@ -60,10 +63,19 @@ fn vm_hwm_kib() -> Option<u64> {
 fn main() -> recon::Result<()> {
     let dev = Device::Cpu;
     let cfg_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-large.json");
-    let cfg = RecGenConfig::load(&cfg_path)?.ss_flow_config()?;
+    let mut cfg = RecGenConfig::load(&cfg_path)?.ss_flow_config()?;
+    // `BENCH_BLOCKS` runs fewer blocks (for profiling); the time scales per block.
+    if let Some(n) = std::env::var("BENCH_BLOCKS").ok().and_then(|v| v.parse().ok()) {
+        cfg.num_blocks = n;
+    }
     let t0 = Instant::now();
     let vb = VarBuilder::from_backend(Box::new(RandomWeights), DType::F32, dev.clone());
-    let model = SparseStructureFlowModel::new(&cfg, vb)?;
+    let compute = match std::env::var("BENCH_DTYPE") {
+        Ok(v) => recon::model::fast::Compute::fast(v.parse().map_err(recon::Error::msg)?),
+        Err(_) => recon::model::fast::Compute::Plain,
+    };
+    println!("compute: {}", compute.describe());
+    let model = recon::model::fast::build_with(compute, || SparseStructureFlowModel::new(&cfg, vb))?;
     let build_s = t0.elapsed().as_secs_f64();
     let hwm_weights = vm_hwm_kib().unwrap_or(0);
 

@@ -46,7 +46,7 @@ use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser
 use crate::geometry::pose::Pose;
 use crate::inputs::frame::{depth_valid, RgbdFrame};
 use crate::inputs::masks::{MaskSkip, ObjectMask, SkipReason};
-use crate::pipeline::{ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, ViewInput, WeightFiles};
+use crate::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput, WeightFiles};
 use crate::{Error, Result};
 use candle_core::Device;
 use serde::Serialize;
@@ -243,6 +243,7 @@ fn add_timings(a: &mut StageTimings, b: &StageTimings) {
     a.slat_sampling += b.slat_sampling;
     a.mesh_decoder += b.mesh_decoder;
     a.gaussian_decoder += b.gaussian_decoder;
+    a.loading += b.loading;
     a.total += b.total;
 }
 
@@ -289,14 +290,29 @@ impl Engine {
     /// Weights named by a manifest (`recgen`, or a manifest file), from the
     /// Hugging Face cache `cache` ([`crate::weights::manifest::resolve_module_files`]).
     pub fn load_manifest(config: &Path, manifest: &str, cache: &Path) -> Result<Self> {
+        Self::load_manifest_with(config, manifest, cache, &LoadOptions::default())
+    }
+
+    /// [`Engine::load_manifest`] with explicit kernels/precision and residency.
+    pub fn load_manifest_with(config: &Path, manifest: &str, cache: &Path, options: &LoadOptions) -> Result<Self> {
         let cfg = crate::model::config::RecGenConfig::load(config)?;
         let files: WeightFiles = crate::weights::manifest::resolve_module_files(manifest, &cfg, cache)?;
-        Ok(Self { pipeline: Pipeline::load_files(config, &files, crate::pipeline::Stages::All)? })
+        Ok(Self { pipeline: Pipeline::load_files_with(config, &files, Stages::All, options)? })
     }
 
     /// In-memory random weights: NOT a trained model (results say so).
     pub fn random(config: &Path, seed: u64) -> Result<Self> {
         Ok(Self { pipeline: Pipeline::random(config, seed)? })
+    }
+
+    /// [`Engine::load`] with explicit kernels/precision (`--dtype`) and residency.
+    pub fn load_with(config: &Path, weights_dir: &Path, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::load_with(config, weights_dir, Stages::All, options)? })
+    }
+
+    /// [`Engine::random`] with explicit kernels/precision and residency.
+    pub fn random_with(config: &Path, seed: u64, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::random_with(config, seed, Stages::All, options)? })
     }
 
     /// Reconstruct every object of a frame (single view).

@@ -22,6 +22,8 @@ enum Cmd {
     Eval(cli::eval::EvalArgs),
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
+    /// Benchmarks: kernel GFLOP/s vs measured peak, per-module time and memory at full size, precision errors, end to end.
+    Bench(cli::bench::BenchArgs),
     /// Train a stage-1 model (SS VAE, SS flow with pose tokens) on BOP-format synthetic data.
     Train(cli::train::TrainArgs),
     /// Synthetic occluded RGB-D scenes with exact ground truth, in the BOP format.
@@ -40,6 +42,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Eval(a) => cli::eval::run(a)?,
         Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Bench(a) => cli::bench::run(a)?,
         Cmd::Train(a) => cli::train::run(a)?,
         Cmd::Synth(a) => cli::synth::run(a)?,
     };

@@ -29,6 +29,16 @@
 //!
 //! Producing them from RGB-D frames is the job of the preprocessing code.
 //!
+//! **Kernels, precision, memory** ([`LoadOptions`], [`Pipeline::load_with`],
+//! [`Pipeline::random_with`]): by default every layer runs the fast
+//! inference kernels in f32 and all modules stay resident. `compute:
+//! Compute::fast(Precision::Bf16 | F16)` stores weights in bf16/f16 (half
+//! the memory; bf16 also computes in bf16 with f32 accumulation, see
+//! [`crate::model::fast`]); `Compute::Plain` runs the differentiable candle
+//! path. `per_stage: true` builds each module when its stage runs and frees
+//! it afterwards, so the peak is the largest stage plus activations
+//! ([`RunOptions::measure_memory`] reports it per stage).
+//!
 //! **Weights** ([`Pipeline::load`]): the architecture file names six modules;
 //! module `<key>` is read from `<weights_dir>/<key>.safetensors` (or `.pt`/
 //! `.pth`), keys `image_cond_model`, `ss_flow`, `ss_decoder`, `slat_flow`,
@@ -81,12 +91,13 @@ use crate::decoders::Mesh;
 use crate::export::splat::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::dinov2::Dinov2;
+use crate::model::dinov2::{Dinov2, Dinov2Config};
 use crate::model::embedders::ViewInputs;
+use crate::model::fast::{self, Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, SeededRng, VelocityModel};
-use crate::model::slat_flow::{SLatFlowModel, SLatNormalization};
+use crate::model::slat_flow::{SLatFlowConfig, SLatFlowModel, SLatNormalization};
 use crate::model::ss_decoder::{occupied_coords, SparseStructureDecoder};
-use crate::model::ss_flow::SparseStructureFlowModel;
+use crate::model::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::sparse::SparseTensor;
 use crate::weights::load::Checkpoint;
 use crate::weights::registry::{self, ModuleConfig};
@@ -122,6 +133,11 @@ pub struct RunOptions {
     pub stage1_only: bool,
     pub decode_mesh: bool,
     pub decode_gaussians: bool,
+    /// Record the peak resident memory of each stage in
+    /// [`ObjectReconstruction::memory`]. Resets the process-wide high-water
+    /// mark (Linux `clear_refs`) before every stage, so leave it off when
+    /// something else in the process reads VmHWM.
+    pub measure_memory: bool,
 }
 
 impl Default for RunOptions {
@@ -135,6 +151,7 @@ impl Default for RunOptions {
             stage1_only: false,
             decode_mesh: true,
             decode_gaussians: true,
+            measure_memory: false,
         }
     }
 }
@@ -151,7 +168,22 @@ pub struct StageTimings {
     pub slat_sampling: f64,
     pub mesh_decoder: f64,
     pub gaussian_decoder: f64,
+    /// Building modules during the run ([`LoadOptions::per_stage`]); also
+    /// counted in the stage it belongs to.
+    pub loading: f64,
     pub total: f64,
+}
+
+/// Peak resident memory (VmHWM, MiB) of each stage, module building
+/// included; `None` for stages that did not run or where unavailable.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct StageMemory {
+    pub image_encoder: Option<f64>,
+    pub ss_flow: Option<f64>,
+    pub ss_decoder: Option<f64>,
+    pub slat_flow: Option<f64>,
+    pub mesh_decoder: Option<f64>,
+    pub gaussian_decoder: Option<f64>,
 }
 
 /// The stages of [`Pipeline::run`], reported to an observer as each starts
@@ -255,6 +287,8 @@ pub struct ObjectReconstruction {
     /// Activated Gaussians in the object frame.
     pub gaussians: Option<Gaussians>,
     pub timings: StageTimings,
+    /// Filled when [`RunOptions::measure_memory`] is set.
+    pub memory: Option<StageMemory>,
     pub metadata: RunMetadata,
 }
 
@@ -266,19 +300,77 @@ pub enum Stages {
     SparseStructure,
 }
 
-struct Stage2 {
-    slat_flow: SLatFlowModel,
-    mesh_decoder: SLatMeshDecoder,
-    gs_decoder: SLatGaussianDecoder,
+/// How a pipeline builds and keeps its modules.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LoadOptions {
+    /// Kernels and precision of every layer. Default: the fast inference
+    /// kernels in f32 ([`Compute::fast`]); [`Compute::Plain`] runs the
+    /// differentiable candle path (what the conformance fixtures check).
+    pub compute: Compute,
+    /// Build each module when its stage runs and free it right after, so the
+    /// peak memory is the largest stage plus activations instead of the whole
+    /// pipeline. Every run then pays the build (weight loading and packing)
+    /// time, reported in [`StageTimings::loading`].
+    pub per_stage: bool,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self { compute: Compute::fast(Precision::F32), per_stage: false }
+    }
+}
+
+impl LoadOptions {
+    /// Fast kernels at `precision` (the `--dtype` of the CLI), all modules resident.
+    pub fn precision(precision: Precision) -> Self {
+        Self { compute: Compute::fast(precision), per_stage: false }
+    }
+}
+
+/// Where a module's weights come from.
+#[derive(Debug, Clone)]
+enum Source {
+    File(PathBuf),
+    Random(u64),
+}
+
+/// Modules built at load time (all of them unless `per_stage`).
+#[derive(Default)]
+struct Resident {
+    dino: Option<Dinov2>,
+    ss_flow: Option<SparseStructureFlowModel>,
+    ss_decoder: Option<SparseStructureDecoder>,
+    slat_flow: Option<SLatFlowModel>,
+    mesh_decoder: Option<SLatMeshDecoder>,
+    gs_decoder: Option<SLatGaussianDecoder>,
+}
+
+/// A module for the duration of a stage: the resident one, or one built for it.
+enum Held<'a, T> {
+    Resident(&'a T),
+    Built(T),
+}
+
+impl<T> std::ops::Deref for Held<'_, T> {
+    type Target = T;
+    fn deref(&self) -> &T {
+        match self {
+            Held::Resident(t) => t,
+            Held::Built(t) => t,
+        }
+    }
 }
 
 /// All modules of one architecture file with their weights.
 pub struct Pipeline {
     pub config: RecGenConfig,
-    dino: Dinov2,
-    ss_flow: SparseStructureFlowModel,
-    ss_decoder: SparseStructureDecoder,
-    stage2: Option<Stage2>,
+    options: LoadOptions,
+    stages: Stages,
+    sources: HashMap<&'static str, Source>,
+    resident: Resident,
+    dino_cfg: Dinov2Config,
+    ss_cfg: SsFlowConfig,
+    slat_cfg: Option<SLatFlowConfig>,
     ss_stats: PoseStats,
     slat_stats: PoseStats,
     layout: NineDLayout,
@@ -303,16 +395,25 @@ fn secs(t: Instant) -> f64 {
 impl Pipeline {
     /// Build every module from `<weights_dir>/<key>.safetensors` (see module docs).
     pub fn load(config_path: &Path, weights_dir: &Path) -> Result<Self> {
-        Self::load_stages(config_path, weights_dir, Stages::All)
+        Self::load_with(config_path, weights_dir, Stages::All, &LoadOptions::default())
     }
 
     /// In-memory random weights, identical to what
     /// `recon weights init --config <config> --seed <seed>` writes.
     pub fn random(config_path: &Path, seed: u64) -> Result<Self> {
-        Self::random_stages(config_path, seed, Stages::All)
+        Self::random_with(config_path, seed, Stages::All, &LoadOptions::default())
     }
 
     pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
+        Self::load_with(config_path, weights_dir, stages, &LoadOptions::default())
+    }
+
+    pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
+        Self::random_with(config_path, seed, stages, &LoadOptions::default())
+    }
+
+    /// [`Pipeline::load_stages`] with explicit kernels/precision and residency.
+    pub fn load_with(config_path: &Path, weights_dir: &Path, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
@@ -331,13 +432,20 @@ impl Pipeline {
                 })?;
             files.modules.insert(key.to_string(), path);
         }
-        Self::load_files(config_path, &files, stages)
+        Self::load_files_with(config_path, &files, stages, options)
     }
 
     /// Build from explicit checkpoint files (one per module key).
     pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages) -> Result<Self> {
+        Self::load_files_with(config_path, weight_files, stages, &LoadOptions::default())
+    }
+
+    /// [`Pipeline::load_files`] with explicit kernels/precision and residency.
+    /// Every checkpoint is validated against its config here, also when the
+    /// modules are built later (`per_stage`).
+    pub fn load_files_with(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
-        let mut vbs = HashMap::new();
+        let mut sources = HashMap::new();
         let mut files = Vec::new();
         let mut random_init = false;
         for (key, spec) in config.modules() {
@@ -354,11 +462,11 @@ impl Pipeline {
             if path.extension().is_some_and(|e| e == "safetensors") {
                 random_init |= crate::weights::init::is_random_init(&path)?;
             }
-            vbs.insert(key, ck.into_var_builder(DType::F32, &Device::Cpu));
+            sources.insert(key, Source::File(path.clone()));
             files.push(path);
         }
         let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
-        let mut p = Self::build(config, vbs, weights, stages)?;
+        let mut p = Self::build(config, sources, weights, stages, *options)?;
         if let Some(f) = &weight_files.ss_stats {
             p.ss_stats = PoseStats::from_json_file(f)?;
         }
@@ -368,60 +476,103 @@ impl Pipeline {
         Ok(p)
     }
 
-    pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
+    /// [`Pipeline::random_stages`] with explicit kernels/precision and residency.
+    /// Random tensors are generated one at a time while a module is built.
+    pub fn random_with(config_path: &Path, seed: u64, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
-        let mut vbs = HashMap::new();
-        for (key, spec) in config.modules() {
+        let mut sources = HashMap::new();
+        for (key, _) in config.modules() {
             if stages == Stages::SparseStructure && !is_stage1(key) {
                 continue;
             }
-            let label = format!("{}: {key}", config_path.display());
-            let t = registry::random_weights(&module_cfg(spec), registry::module_seed(seed, key), &label)?;
-            let t: HashMap<String, Tensor> = t.into_iter().collect();
-            vbs.insert(key, VarBuilder::from_tensors(t, DType::F32, &Device::Cpu));
+            sources.insert(key, Source::Random(registry::module_seed(seed, key)));
         }
-        Self::build(config, vbs, WeightsSource::Random { seed }, stages)
+        Self::build(config, sources, WeightsSource::Random { seed }, stages, *options)
     }
 
-    fn build(config: RecGenConfig, mut vbs: HashMap<&'static str, VarBuilder<'static>>, weights: WeightsSource, stages: Stages) -> Result<Self> {
-        let mut take = |key: &str| vbs.remove(key).ok_or_else(|| Error::msg(format!("pipeline: no weights for `{key}`")));
+    fn build(config: RecGenConfig, sources: HashMap<&'static str, Source>, weights: WeightsSource, stages: Stages, options: LoadOptions) -> Result<Self> {
         let label = |key: &str| format!("{}: {key}", config.name);
-        let dino = registry::build_dinov2(&module_cfg(&config.image_cond_model), take("image_cond_model")?, &label("image_cond_model"))?;
-        let ss_flow = registry::build_ss_flow(&module_cfg(&config.ss_flow), take("ss_flow")?, &label("ss_flow"))?;
-        let ss_decoder = registry::build_ss_decoder(&module_cfg(&config.ss_decoder), take("ss_decoder")?, &label("ss_decoder"))?;
-        let stage2 = match stages {
-            Stages::SparseStructure => None,
-            Stages::All => Some(Stage2 {
-                slat_flow: registry::build_slat_flow(&module_cfg(&config.slat_flow), take("slat_flow")?, &label("slat_flow"))?,
-                mesh_decoder: registry::build_mesh_decoder(&module_cfg(&config.slat_dec_mesh), take("slat_dec_mesh")?, &label("slat_dec_mesh"))?,
-                gs_decoder: registry::build_gaussian_decoder(&module_cfg(&config.slat_dec_gs), take("slat_dec_gs")?, &label("slat_dec_gs"))?,
-            }),
-        };
-        if ss_flow.cfg.pose_channels() != Some(10) {
+        let dino_cfg = registry::dinov2_config(&config.image_cond_model.args, &label("image_cond_model"))?;
+        let ss_cfg = SsFlowConfig::from_value(&config.ss_flow.args, &label("ss_flow"))?;
+        if ss_cfg.pose_channels() != Some(10) {
             return Err(Error::config(&config.name, "ss_flow.args.pose_representation", "the pipeline needs RecGen pose tokens (6d_translation_scale)"));
         }
-        if let Some(s2) = &stage2 {
-            let c = &s2.slat_flow.cfg;
-            if c.cond_channels != ss_flow.cfg.cond_channels || !c.use_pose_embedder || c.pose_dim()? != 13 {
-                return Err(Error::config(&config.name, "slat_flow.args", "needs cond_channels equal to the SS flow's and a 9d_translation_scale pose embedder"));
+        let slat_cfg = match stages {
+            Stages::SparseStructure => None,
+            Stages::All => {
+                let c = SLatFlowConfig::from_json(&config.slat_flow.args)?;
+                if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim()? != 13 {
+                    return Err(Error::config(&config.name, "slat_flow.args", "needs cond_channels equal to the SS flow's and a 9d_translation_scale pose embedder"));
+                }
+                if config.slat_normalization.mean.len() != c.out_channels {
+                    return Err(Error::config(&config.name, "slat_normalization", "length must equal slat_flow out_channels"));
+                }
+                Some(c)
             }
-            if config.slat_normalization.mean.len() != c.out_channels {
-                return Err(Error::config(&config.name, "slat_normalization", "length must equal slat_flow out_channels"));
-            }
-        }
+        };
         let slat_norm = SLatNormalization { mean: config.slat_normalization.mean.clone(), std: config.slat_normalization.std.clone() };
-        Ok(Self {
+        let mut p = Self {
             ss_stats: config.ss_pose_stats()?,
             slat_stats: config.slat_pose_stats()?,
             layout: config.nine_d_layout()?,
             slat_norm,
-            dino,
-            ss_flow,
-            ss_decoder,
-            stage2,
+            options,
+            stages,
+            sources,
+            resident: Resident::default(),
+            dino_cfg,
+            ss_cfg,
+            slat_cfg,
             weights,
             config,
-        })
+        };
+        if !options.per_stage {
+            p.resident.dino = Some(p.build_module("image_cond_model", registry::build_dinov2)?);
+            p.resident.ss_flow = Some(p.build_module("ss_flow", registry::build_ss_flow)?);
+            p.resident.ss_decoder = Some(p.build_module("ss_decoder", registry::build_ss_decoder)?);
+            if stages == Stages::All {
+                p.resident.slat_flow = Some(p.build_module("slat_flow", registry::build_slat_flow)?);
+                p.resident.mesh_decoder = Some(p.build_module("slat_dec_mesh", registry::build_mesh_decoder)?);
+                p.resident.gs_decoder = Some(p.build_module("slat_dec_gs", registry::build_gaussian_decoder)?);
+            }
+        }
+        Ok(p)
+    }
+
+    /// Build module `key` from its source with this pipeline's compute setting.
+    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>) -> Result<T> {
+        let spec = self
+            .config
+            .modules()
+            .into_iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, s)| module_cfg(s))
+            .ok_or_else(|| Error::msg(format!("pipeline: no module `{key}` in {}", self.config.name)))?;
+        let label = format!("{}: {key}", self.config.name);
+        let vb = match self.sources.get(key) {
+            Some(Source::File(path)) => Checkpoint::open(path, None)?.into_var_builder(DType::F32, &Device::Cpu),
+            Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed, &label)?,
+            None => return Err(Error::msg(format!("pipeline: module `{key}` was not loaded (stage-1-only pipeline?)"))),
+        };
+        fast::build_with(self.options.compute, || f(&spec, vb, &label))
+    }
+
+    /// The resident module, or one built now (counted in `loading`).
+    fn hold<'a, T>(&'a self, resident: &'a Option<T>, key: &str, f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>, loading: &mut f64) -> Result<Held<'a, T>> {
+        match resident {
+            Some(m) => Ok(Held::Resident(m)),
+            None => {
+                let t = Instant::now();
+                let m = self.build_module(key, f)?;
+                *loading += secs(t);
+                Ok(Held::Built(m))
+            }
+        }
+    }
+
+    /// Kernels/precision and residency of this pipeline.
+    pub fn load_options(&self) -> &LoadOptions {
+        &self.options
     }
 
     /// Where the weights came from (random weights are labelled).
@@ -431,12 +582,12 @@ impl Pipeline {
 
     /// DINO input side `S`.
     pub fn image_size(&self) -> usize {
-        self.dino.cfg.img_size
+        self.dino_cfg.img_size
     }
 
     /// Most views a run accepts (the stage-1 model's pose-token count).
     pub fn max_views(&self) -> usize {
-        self.ss_flow.cfg.num_pose_tokens.max(1)
+        self.ss_cfg.num_pose_tokens.max(1)
     }
 
     fn sampler_settings(base: &SamplerSettings, steps: Option<usize>, cfg: Option<f64>) -> Result<SamplerSettings> {
@@ -484,20 +635,33 @@ impl Pipeline {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
         let dev = Device::Cpu;
-        let stage1_only = opts.stage1_only || (!opts.decode_mesh && !opts.decode_gaussians && self.stage2.is_none());
-        if !stage1_only && self.stage2.is_none() {
+        let built_stage2 = self.stages == Stages::All;
+        let stage1_only = opts.stage1_only || (!opts.decode_mesh && !opts.decode_gaussians && !built_stage2);
+        if !stage1_only && !built_stage2 {
             return Err(Error::msg("pipeline: built for stage 1 only; set RunOptions::stage1_only"));
         }
         let ss_settings = Self::sampler_settings(&self.config.samplers.sparse_structure, opts.ss_steps, opts.ss_cfg_strength)?;
         let slat_settings = Self::sampler_settings(&self.config.samplers.slat, opts.slat_steps, opts.slat_cfg_strength)?;
         let mut tm = StageTimings::default();
+        let mut mem = StageMemory::default();
+        // Peak RSS of each stage (module building included) when asked for.
+        let mark = || {
+            if opts.measure_memory {
+                crate::bench::reset_peak_rss();
+            }
+        };
+        let peak = || if opts.measure_memory { crate::bench::peak_rss_mib() } else { None };
+        let r = &self.resident;
 
         // 1. Image encoder.
         on_stage(Stage::ImageEncoder);
+        mark();
         let t = Instant::now();
-        let tokens: Vec<Tensor> =
-            inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
+        let dino = self.hold(&r.dino, "image_cond_model", registry::build_dinov2, &mut tm.loading)?;
+        let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
+        drop(dino);
         tm.image_encoder = secs(t);
+        mem.image_encoder = peak();
         let views: Vec<ViewInputs> = inputs
             .views
             .iter()
@@ -507,26 +671,34 @@ impl Pipeline {
 
         // 2–3. Stage 1: condition, then latent + pose sampling.
         on_stage(Stage::SsSampling);
+        mark();
         let t = Instant::now();
-        let (cond, neg) = self.ss_flow.condition(&views)?;
+        let ss_flow = self.hold(&r.ss_flow, "ss_flow", registry::build_ss_flow, &mut tm.loading)?;
+        let (cond, neg) = ss_flow.condition(&views)?;
         tm.ss_condition = secs(t);
         let t = Instant::now();
         let mut rng = SeededRng::new(opts.seed);
-        let noise = self.ss_flow.initial_state(&mut rng, 1, &dev)?;
-        let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&self.ss_flow, noise, &cond, Some(&neg))?;
+        let noise = ss_flow.initial_state(&mut rng, 1, &dev)?;
+        let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&*ss_flow, noise, &cond, Some(&neg))?;
+        drop(ss_flow);
         let (z, pose_tok) = match out.as_slice() {
             [z, p] => (z.clone(), p.clone()),
             _ => return Err(Error::msg("pipeline: stage-1 sampler returned no pose tokens")),
         };
         tm.ss_sampling = secs(t);
+        mem.ss_flow = peak();
 
         // 4. Occupancy.
         on_stage(Stage::SsDecoder);
+        mark();
         let t = Instant::now();
-        let logits = self.ss_decoder.forward(&z)?;
+        let ss_decoder = self.hold(&r.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut tm.loading)?;
+        let logits = ss_decoder.forward(&z)?;
+        drop(ss_decoder);
         let ss_resolution = logits.dim(2)?;
         let coords4 = occupied_coords(&logits)?;
         tm.ss_decoder = secs(t);
+        mem.ss_decoder = peak();
         if coords4.is_empty() {
             let max = logits.flatten_all()?.max(0)?.to_scalar::<f32>()?;
             return Err(Error::msg(format!(
@@ -538,7 +710,7 @@ impl Pipeline {
 
         // 5. Pose.
         let t = Instant::now();
-        let k = self.ss_flow.cfg.num_pose_tokens.max(1);
+        let k = self.ss_cfg.num_pose_tokens.max(1);
         let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
         let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
         let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
@@ -562,45 +734,58 @@ impl Pipeline {
         let (mut mesh, mut gaussians) = (None, None);
 
         if !stage1_only {
-            let s2 = self.stage2.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
-            let res = s2.slat_flow.cfg.resolution;
+            let slat_cfg = self.slat_cfg.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
+            let res = slat_cfg.resolution;
             if ss_resolution != res {
                 return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
             }
             // 6. Stage-2 condition.
             on_stage(Stage::SlatSampling);
+            mark();
             let t = Instant::now();
-            let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose))?;
+            let slat_flow = self.hold(&r.slat_flow, "slat_flow", registry::build_slat_flow, &mut tm.loading)?;
+            let (cond, neg) = slat_flow.condition(&views, Some(&slat_pose))?;
             tm.slat_condition = secs(t);
 
             // 7. Stage-2 sampling on the occupied voxels, then denormalise.
             let t = Instant::now();
-            let noise = rng.randn(&[coords4.len(), s2.slat_flow.cfg.in_channels], &dev)?;
-            let model = SlatVelocity { model: &s2.slat_flow, coords: &coords4 };
+            let noise = rng.randn(&[coords4.len(), slat_cfg.in_channels], &dev)?;
+            let model = SlatVelocity { model: &slat_flow, coords: &coords4 };
             let out = FlowEulerGuidanceIntervalSampler::new(slat_settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
+            drop(slat_flow);
             let feats = self.slat_norm.denormalize(&out[0])?;
             let slat = SparseTensor::new(coords4.clone(), feats, 1)?;
             tm.slat_sampling = secs(t);
+            mem.slat_flow = peak();
             metadata.slat_sampler = Some(slat_settings);
 
             // 8. Decoders.
             if opts.decode_mesh {
                 on_stage(Stage::MeshDecoder);
+                mark();
                 let t = Instant::now();
-                mesh = Some(s2.mesh_decoder.forward(&slat)?.into_iter().next().unwrap_or_default());
+                let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut tm.loading)?;
+                mesh = Some(dec.forward(&slat)?.into_iter().next().unwrap_or_default());
+                drop(dec);
                 tm.mesh_decoder = secs(t);
+                mem.mesh_decoder = peak();
             }
             if opts.decode_gaussians {
                 on_stage(Stage::GaussianDecoder);
+                mark();
                 let t = Instant::now();
-                let g = s2.gs_decoder.forward(&slat)?;
+                let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut tm.loading)?;
+                let g = dec.forward(&slat)?;
+                drop(dec);
                 let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
                 gaussians = Some(g.to_gaussians()?);
                 tm.gaussian_decoder = secs(t);
+                mem.gaussian_decoder = peak();
             }
         }
         tm.total = secs(t_all);
-        Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, metadata })
+        let memory = opts.measure_memory.then_some(mem);
+        Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, memory, metadata })
     }
 }
 

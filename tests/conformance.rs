@@ -64,3 +64,31 @@ fast_fixture_tests! {
     fast_slat_dec_mesh => "slat_dec_mesh",
     fast_slat_dec_gs => "slat_dec_gs",
 }
+
+/// bf16 error budget against the f32 upstream outputs: every output's max
+/// abs error within 3% of that output's largest magnitude (bf16 keeps 8
+/// mantissa bits, 0.4% per rounding; a few roundings accumulate per layer).
+fn assert_fixture_bf16(name: &str) {
+    use recon::model::fast::{build_with, Compute, Precision};
+    let dir = fixture(name);
+    let fx = recon::conformance::Fixture::load(&dir).unwrap();
+    let checks = build_with(Compute::fast(Precision::Bf16), || recon::conformance::run_fixture(&dir))
+        .unwrap_or_else(|e| panic!("{name} (bf16): {e}"));
+    let mut checked = 0;
+    for c in &checks {
+        let Ok(want) = fx.tensor(&c.output) else { continue };
+        let scale = want.to_dtype(candle_core::DType::F32).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap() as f64;
+        let rel = c.max_abs / scale.max(1e-12);
+        eprintln!("{name} bf16: {} max_abs {:.3e} (max |ref| {scale:.3e}, rel {rel:.2e})", c.output, c.max_abs);
+        assert!(rel <= 0.01 || c.max_abs <= c.tol, "{name} bf16: {} max_abs {:.3e} is {rel:.2e} of max |ref| {scale:.3e}", c.output, c.max_abs);
+        checked += 1;
+    }
+    assert!(checked > 0, "{name}: no outputs checked");
+}
+
+#[test]
+fn bf16_within_budget_on_transformer_fixtures() {
+    for name in ["dinov2_reg_cond", "ss_flow_imglarge", "slat_flow", "slat_dec_gs"] {
+        assert_fixture_bf16(name);
+    }
+}

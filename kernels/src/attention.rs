@@ -270,11 +270,10 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], pack: &[u32], qr: Range<u
                 microkernel(isa, fmt, dp, kpack.as_ptr().add(tile * kw), qpanel.as_ptr() as *const u8, sbuf.as_mut_ptr().add(t * MR * NR), NR, rows, NR, false);
             }
             softmax_block(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha);
-            // Rescale the running output by exp(m_old − m_new) per query.
-            for row in obuf.chunks_exact_mut(NR) {
-                for (o, &a) in row.iter_mut().zip(&alpha) {
-                    *o *= a;
-                }
+            // Rescale the running output by exp(m_old − m_new) per query
+            // (nothing to do once the running maxima stop changing).
+            if alpha.iter().any(|&a| a != 1.0) {
+                scale_columns(isa, obuf, &alpha);
             }
             // Oᵀ += Vᵀ·P, P (= Sᵀ after exp) as the B operand [key][query].
             let nkp = fmt.k_padded(nk);
@@ -362,6 +361,22 @@ fn softmax_block(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut 
     *m = mn;
 }
 
+/// `o[r][c] *= alpha[c]` for every row of `NR` columns.
+fn scale_columns(isa: Isa, o: &mut [f32], alpha: &[f32; NR]) {
+    #[cfg(target_arch = "x86_64")]
+    if isa >= Isa::Avx512 {
+        // SAFETY: the ISA is supported (checked by the caller).
+        unsafe { x86::scale_columns(o, alpha) };
+        return;
+    }
+    let _ = isa;
+    for row in o.chunks_exact_mut(NR) {
+        for (v, &a) in row.iter_mut().zip(alpha) {
+            *v *= a;
+        }
+    }
+}
+
 /// `Sᵀ` rows `[nk][NR]` f32 → bf16 pairs over keys: word `(j/2, c)` =
 /// `bf16(s[j][c]) | bf16(s[j+1][c]) << 16` (round to nearest even; an odd last
 /// key is paired with zero).
@@ -447,6 +462,17 @@ mod x86 {
         _mm512_storeu_ps(l.as_mut_ptr().add(16), l1);
         _mm512_storeu_ps(m.as_mut_ptr(), m0);
         _mm512_storeu_ps(m.as_mut_ptr().add(16), m1);
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    pub unsafe fn scale_columns(o: &mut [f32], alpha: &[f32; NR]) {
+        let a0 = _mm512_loadu_ps(alpha.as_ptr());
+        let a1 = _mm512_loadu_ps(alpha.as_ptr().add(16));
+        for row in o.chunks_exact_mut(NR) {
+            let p = row.as_mut_ptr();
+            _mm512_storeu_ps(p, _mm512_mul_ps(_mm512_loadu_ps(p), a0));
+            _mm512_storeu_ps(p.add(16), _mm512_mul_ps(_mm512_loadu_ps(p.add(16)), a1));
+        }
     }
 
     /// Round-to-nearest-even f32 → bf16 bits kept in the high half of each lane.

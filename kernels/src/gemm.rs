@@ -29,8 +29,20 @@ use rayon::prelude::*;
 pub const MR: usize = 14;
 /// Columns of the register tile (two 16-lane vectors).
 pub const NR: usize = 32;
-/// Rows of `C` per task (a multiple of `MR`).
-const MC: usize = MR * 24;
+/// Cache blocking of [`gemm`]: rows of `C` per task (`mc`, rounded up to a
+/// multiple of `MR`) and k values per slice (`kc`, even).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Blocking {
+    pub mc: usize,
+    pub kc: usize,
+}
+
+impl Blocking {
+    /// Defaults per weight format (tuned on Zen 4: 32 KiB L1, 1 MiB L2).
+    pub fn for_format(format: WeightFormat) -> Self {
+        Blocking { mc: MR * 24, kc: format.kc() }
+    }
+}
 
 /// Storage format of a packed `B` operand.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -417,7 +429,26 @@ pub fn gemm(
     c: &mut [f32],
     ldc: usize,
 ) -> Result<(), String> {
+    gemm_blocked(isa, a, m, lda, b, bias, act, c, ldc, Blocking::for_format(b.format))
+}
+
+/// [`gemm`] with explicit cache blocking (for tuning).
+#[allow(clippy::too_many_arguments)]
+pub fn gemm_blocked(
+    isa: Isa,
+    a: &[f32],
+    m: usize,
+    lda: usize,
+    b: &PackedMatrix,
+    bias: Option<&[f32]>,
+    act: Activation,
+    c: &mut [f32],
+    ldc: usize,
+    blocking: Blocking,
+) -> Result<(), String> {
     let (k, n) = (b.k, b.n);
+    let mc = blocking.mc.div_ceil(MR).max(1) * MR;
+    let kc_blk = (blocking.kc.div_ceil(2) * 2).max(2);
     if !isa.supported() {
         return Err(format!("gemm: instruction set {} is not supported by this CPU", isa.name()));
     }
@@ -436,19 +467,19 @@ pub fn gemm(
         }
     }
     let afmt = a_format(isa, b.format);
-    let kc_max = b.format.kc().min(b.format.k_padded(k).max(1));
+    let kc_max = kc_blk.min(b.format.k_padded(k).max(1));
     let panels = n.div_ceil(NR);
-    let mblocks = m.div_ceil(MC);
+    let mblocks = m.div_ceil(mc);
     // Enough tasks to balance the pool; split N only when M gives too few.
     let threads = rayon::current_num_threads().max(1);
     let ngroups = (4 * threads).div_ceil(mblocks).clamp(1, panels);
     let cptr = SendPtr(c.as_mut_ptr());
     (0..mblocks * ngroups).into_par_iter().for_each_init(
-        || AlignedBuf::<u32>::zeroed(MC.div_ceil(MR) * a_tile_words(afmt, kc_max)),
+        || AlignedBuf::<u32>::zeroed(mc.div_ceil(MR) * a_tile_words(afmt, kc_max)),
         |abuf, task| {
             let (mb, ng) = (task / ngroups, task % ngroups);
-            let m0 = mb * MC;
-            let rows = MC.min(m - m0);
+            let m0 = mb * mc;
+            let rows = mc.min(m - m0);
             let tiles = rows.div_ceil(MR);
             let (p0, p1) = (ng * panels / ngroups, (ng + 1) * panels / ngroups);
             if k == 0 {

@@ -109,24 +109,81 @@ pub enum InitRule {
 }
 
 /// Deterministic random values for `name` (Box–Muller over splitmix64).
+/// Pair j of outputs uses stream draws 2j and 2j+1; splitmix64 can jump to
+/// any draw, so large tensors are filled in parallel with the same values.
 pub fn random_values(seed: u64, name: &str, n: usize) -> Vec<f32> {
     match init_rule(name) {
         InitRule::Const(c) => vec![c; n],
         InitRule::Normal(std) => {
-            let mut st = seed ^ fnv1a(name);
-            let mut out = Vec::with_capacity(n);
-            while out.len() < n {
-                let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
-                let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
-                let r = (-2.0 * u1.ln()).sqrt();
-                let a = 2.0 * std::f64::consts::PI * u2;
-                out.push((r * a.cos()) as f32 * std);
-                if out.len() < n {
-                    out.push((r * a.sin()) as f32 * std);
+            use rayon::prelude::*;
+            let st0 = seed ^ fnv1a(name);
+            let mut out = vec![0f32; n];
+            // Chunks of whole pairs; each starts its stream at its first draw.
+            const CHUNK: usize = 1 << 16;
+            out.par_chunks_mut(CHUNK).enumerate().for_each(|(ci, chunk)| {
+                let mut st = st0.wrapping_add(((ci * CHUNK) as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+                for pair in chunk.chunks_mut(2) {
+                    let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+                    let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
+                    let r = (-2.0 * u1.ln()).sqrt();
+                    let a = 2.0 * std::f64::consts::PI * u2;
+                    pair[0] = (r * a.cos()) as f32 * std;
+                    if pair.len() > 1 {
+                        pair[1] = (r * a.sin()) as f32 * std;
+                    }
                 }
-            }
+            });
             out
         }
+    }
+}
+
+/// The values [`RandomInit`] hands out for `name` with shape `s`.
+pub fn random_tensor_values(seed: u64, name: &str, s: &Shape) -> Vec<f32> {
+    // A rank-1 `weight` is a norm scale whatever its module is called
+    // (`out_layer.0`, `act_layers.0` are LayerNorm / GroupNorm): 1, so
+    // random-weight activations keep their scale.
+    if s.rank() == 1 && name.ends_with("weight") {
+        vec![1.0; s.elem_count()]
+    } else {
+        random_values(seed, name, s.elem_count())
+    }
+}
+
+/// The same values as [`RandomInit`], generated when requested and not kept:
+/// building a module on it holds one f32 tensor at a time, so a module built
+/// with packed (fast) weights never has its whole f32 copy in memory.
+/// `overrides` replace the noise of computed buffers.
+#[derive(Clone)]
+pub struct RandomStream {
+    seed: u64,
+    overrides: Arc<BTreeMap<String, Tensor>>,
+}
+
+impl RandomStream {
+    pub fn new(seed: u64, overrides: BTreeMap<String, Tensor>) -> Self {
+        Self { seed, overrides: Arc::new(overrides) }
+    }
+    pub fn var_builder(&self, dev: &Device) -> VarBuilder<'static> {
+        VarBuilder::from_backend(Box::new(self.clone()), DType::F32, dev.clone())
+    }
+}
+
+impl SimpleBackend for RandomStream {
+    fn get(&self, s: Shape, name: &str, _h: candle_nn::Init, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        if let Some(t) = self.overrides.get(name) {
+            if t.shape() != &s {
+                candle_core::bail!("random weights: buffer `{name}` has shape {:?}, requested {:?}", t.dims(), s.dims());
+            }
+            return t.to_device(dev)?.to_dtype(dtype);
+        }
+        Tensor::from_vec(random_tensor_values(self.seed, name, &s), s, dev)?.to_dtype(dtype)
+    }
+    fn get_unchecked(&self, name: &str, _dtype: DType, _dev: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("random weights: `{name}` requested without a shape; cannot infer it")
+    }
+    fn contains_tensor(&self, _name: &str) -> bool {
+        true
     }
 }
 
@@ -158,14 +215,7 @@ impl SimpleBackend for RandomInit {
         if let Some(t) = m.get(name) {
             return t.to_dtype(dtype);
         }
-        // A rank-1 `weight` is a norm scale whatever its module is called
-        // (`out_layer.0`, `act_layers.0` are LayerNorm / GroupNorm): 1, so
-        // random-weight activations keep their scale.
-        let vals = if s.rank() == 1 && name.ends_with("weight") {
-            vec![1.0; s.elem_count()]
-        } else {
-            random_values(self.seed, name, s.elem_count())
-        };
+        let vals = random_tensor_values(self.seed, name, &s);
         let t = Tensor::from_vec(vals, s, dev)?;
         m.insert(name.to_string(), t.clone());
         t.to_dtype(dtype)
@@ -205,6 +255,25 @@ mod tests {
         })
         .unwrap();
         assert_eq!(specs.iter().map(|s| s.name.as_str()).collect::<Vec<_>>(), vec!["ln.bias", "ln.weight"]);
+    }
+
+    /// The parallel fill gives the sequential stream's values.
+    #[test]
+    fn random_values_match_the_sequential_stream() {
+        let n = (1 << 16) * 2 + 7;
+        let got = random_values(3, "w.weight", n);
+        let mut st = 3 ^ fnv1a("w.weight");
+        let mut want = Vec::with_capacity(n);
+        while want.len() < n {
+            let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
+            let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
+            let (r, a) = ((-2.0 * u1.ln()).sqrt(), 2.0 * std::f64::consts::PI * u2);
+            want.push((r * a.cos()) as f32 * 0.02);
+            if want.len() < n {
+                want.push((r * a.sin()) as f32 * 0.02);
+            }
+        }
+        assert_eq!(got, want);
     }
 
     #[test]

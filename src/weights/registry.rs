@@ -11,7 +11,7 @@
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
-use super::record::{RandomInit, Recorder, TensorSpec};
+use super::record::{RandomInit, RandomStream, Recorder, TensorSpec};
 use crate::decoders::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
 use crate::decoders::slat_mesh::SLatMeshDecoder;
 use crate::model::dinov2::{Dinov2, Dinov2Config};
@@ -184,28 +184,47 @@ pub const SS_DECODER_OCCUPANCY_PRIOR: f64 = 2.0;
 /// Replace random values of deterministic buffers by what upstream registers,
 /// and set the random-init occupancy prior.
 fn fill_buffers(cfg: &ModuleConfig, t: &mut BTreeMap<String, Tensor>, file: &str) -> Result<()> {
+    for (name, v) in buffer_overrides(cfg, file)? {
+        if let Some(old) = t.get(&name) {
+            if old.dims() != v.dims() {
+                return Err(Error::msg(format!("{file}: buffer `{name}` has shape {:?}, computed {:?}", old.dims(), v.dims())));
+            }
+            t.insert(name, v);
+        }
+    }
+    Ok(())
+}
+
+/// Computed values of the module's deterministic buffers (see [`random_weights`]).
+fn buffer_overrides(cfg: &ModuleConfig, file: &str) -> Result<BTreeMap<String, Tensor>> {
     let dev = Device::Cpu;
+    let mut t = BTreeMap::new();
     match kind(cfg, file)? {
-        ModuleKind::SsFlow if t.contains_key("pos_emb") => {
+        ModuleKind::SsFlow => {
             let c = SsFlowConfig::from_value(&cfg.args, file)?;
             let pe = SparseStructureFlowModel::grid_position_embedding(c.resolution / c.patch_size, c.model_channels, &dev)?;
             t.insert("pos_emb".into(), pe.to_dtype(DType::F32)?);
         }
-        ModuleKind::SsDecoder if t.contains_key("out_layer.2.bias") => {
+        ModuleKind::SsDecoder => {
             let c = SparseStructureDecoderConfig::from_json(&cfg.args)?;
             let last = *c.channels.last().unwrap_or(&1) as f64;
             let sigma = 0.01 * (27.0 * last).sqrt();
-            let b = &t["out_layer.2.bias"];
-            let prior = Tensor::full((-SS_DECODER_OCCUPANCY_PRIOR * sigma) as f32, b.dims(), &dev)?;
+            let prior = Tensor::full((-SS_DECODER_OCCUPANCY_PRIOR * sigma) as f32, c.out_channels, &dev)?;
             t.insert("out_layer.2.bias".into(), prior);
         }
-        ModuleKind::GaussianDecoder if t.contains_key("offset_perturbation") => {
+        ModuleKind::GaussianDecoder => {
             let g = GaussianConfig::from_args(&cfg.args)?;
             t.insert("offset_perturbation".into(), offset_perturbation(g.num_gaussians, g.voxel_size, &dev)?);
         }
         _ => {}
     }
-    Ok(())
+    Ok(t)
+}
+
+/// A VarBuilder giving exactly the tensors of [`random_weights`], generated
+/// one at a time when the module asks for them (nothing is kept).
+pub fn random_var_builder(cfg: &ModuleConfig, seed: u64, file: &str) -> Result<VarBuilder<'static>> {
+    Ok(RandomStream::new(seed, buffer_overrides(cfg, file)?).var_builder(&Device::Cpu))
 }
 
 /// Per-module seed derived from a run seed and the module's key, so modules
@@ -240,6 +259,16 @@ mod tests {
         let want = SparseStructureFlowModel::grid_position_embedding(8, 64, &Device::Cpu)?;
         assert_eq!(crate::conformance::max_abs_diff(&w["pos_emb"], &want)?, 0.0);
         assert!(ModuleKind::of("NoSuchModel").is_none());
+        // The streaming builder hands out the same tensors.
+        for (key, spec) in arch.modules() {
+            let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
+            let w = random_weights(&cfg, 3, key)?;
+            let vb = random_var_builder(&cfg, 3, key)?;
+            for s in expected_tensors(&cfg, key)? {
+                let got = vb.get(s.shape.as_slice(), &s.name)?;
+                assert_eq!(crate::conformance::max_abs_diff(&got, &w[&s.name])?, 0.0, "{key} {}", s.name);
+            }
+        }
         assert_ne!(module_seed(1, "ss_flow"), module_seed(1, "slat_flow"));
         Ok(())
     }

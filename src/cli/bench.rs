@@ -1,0 +1,231 @@
+//! `recon bench`: kernel throughput against the measured peak, per-module
+//! forward time and peak memory at full size (random weights), precision
+//! errors, an end-to-end object; tables on stdout, JSON with `--json`.
+use std::path::PathBuf;
+
+use anyhow::Context;
+use recon::bench::{self, upstream, BenchReport};
+use recon::model::fast::{Compute, Precision};
+
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Architecture file (full size: models/recgen-large.json).
+    #[arg(long, default_value = "models/recgen-large.json")]
+    config: PathBuf,
+    /// Sections to run: kernels, modules, precision, occupancy, e2e (comma separated).
+    #[arg(long, value_delimiter = ',', default_value = "kernels,modules")]
+    sections: Vec<String>,
+    /// Precisions of the fast kernels for modules / e2e / comparisons.
+    #[arg(long, value_delimiter = ',', default_value = "f32,bf16")]
+    dtype: Vec<Precision>,
+    /// Modules for `modules` and `precision` (image_cond_model, ss_flow, ss_decoder, slat_flow, slat_dec_mesh, slat_dec_gs).
+    #[arg(long, value_delimiter = ',')]
+    modules: Option<Vec<String>>,
+    /// Also run the plain candle path in the module section (slow at full size).
+    #[arg(long)]
+    plain: bool,
+    /// Sampler steps per stage of the end-to-end object.
+    #[arg(long, default_value_t = 2)]
+    steps: usize,
+    /// Stage-1 sampler steps of the occupancy comparison.
+    #[arg(long, default_value_t = 2)]
+    occupancy_steps: usize,
+    /// Repetitions of each kernel timing (best of).
+    #[arg(long, default_value_t = 2)]
+    reps: usize,
+    /// Fewer kernel shapes.
+    #[arg(long)]
+    quick: bool,
+    /// Write the report as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
+    v.map(f).unwrap_or_else(|| "-".into())
+}
+
+pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
+    if let Some(n) = a.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
+    }
+    let known = ["kernels", "modules", "precision", "occupancy", "e2e"];
+    if let Some(s) = a.sections.iter().find(|s| !known.contains(&s.as_str())) {
+        anyhow::bail!("--sections: unknown section `{s}` (known: {})", known.join(", "));
+    }
+    let modules: Vec<&str> = match &a.modules {
+        Some(m) => {
+            if let Some(bad) = m.iter().find(|k| !bench::MODULES.contains(&k.as_str())) {
+                anyhow::bail!("--modules: unknown module `{bad}` (known: {})", bench::MODULES.join(", "));
+            }
+            bench::MODULES.iter().copied().filter(|k| m.iter().any(|x| x == k)).collect()
+        }
+        None => bench::MODULES.to_vec(),
+    };
+    let has = |s: &str| a.sections.iter().any(|x| x == s);
+    let mut report = BenchReport { machine: Some(bench::MachineInfo::detect()), ..Default::default() };
+    let m = report.machine.as_ref().unwrap();
+    println!("machine: {} | {} threads | ISAs {:?} (using {}) | load {}", m.cpu, m.threads, m.supported_isas, m.best_isa, opt(m.load_average, |v| format!("{v:.2}")));
+    report.notes.push(
+        "upstream figures (issue 8) were measured on a 2-core Intel Xeon with AVX-512, AVX512-BF16 and AMX-BF16; \
+         ratios against them compare different machines unless this report comes from that machine type"
+            .into(),
+    );
+    report.notes.push("AMX is not implemented (no AMX unit on the development machine; untested tile code is not shipped)".into());
+
+    if has("kernels") {
+        eprintln!("measuring instruction-set peaks…");
+        report.peaks = bench::measure_peaks();
+        println!("\n{:<12} {:<9} {:>10} {:>6}", "isa", "kind", "GFLOP/s", "load");
+        for p in &report.peaks {
+            println!("{:<12} {:<9} {:>10.1} {:>6}", p.isa, p.kind, p.gflops, opt(p.load_average, |v| format!("{v:.1}")));
+        }
+        eprintln!("GEMM…");
+        report.gemm = bench::bench_gemm(&report.peaks, a.reps, a.quick)?;
+        println!("\n{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8} {:>9} {:>7} {:>6} {:>6}", "GEMM", "M", "K", "N", "isa", "w", "s", "GFLOP/s", "peak", "peak%", "load");
+        for r in &report.gemm {
+            println!(
+                "{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
+                r.what, r.m, r.k, r.n, r.isa, r.format, r.seconds, r.gflops,
+                opt(r.peak_gflops, |p| format!("{p:.1}")),
+                opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
+                opt(r.load_average, |v| format!("{v:.1}"))
+            );
+        }
+        eprintln!("attention…");
+        report.attention = bench::bench_attention(&report.peaks, a.reps)?;
+        println!("\n{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8} {:>9} {:>7} {:>6} {:>6}", "attention", "B", "H", "Lq", "Lk", "prec", "isa", "s", "GFLOP/s", "peak", "peak%", "load");
+        for r in &report.attention {
+            println!(
+                "{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
+                r.what, r.batch, r.heads, r.lq, r.lk, r.precision, r.isa, r.seconds, r.gflops,
+                opt(r.peak_gflops, |p| format!("{p:.1}")),
+                opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
+                opt(r.load_average, |v| format!("{v:.1}"))
+            );
+        }
+    }
+
+    if has("modules") {
+        let mut computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
+        if a.plain {
+            computes.push(Compute::Plain);
+        }
+        println!("\n{:<17} {:<28} {:>8} {:>9} {:>9} {:>6}  input", "module", "compute", "build s", "forward s", "peak MiB", "load");
+        report.modules = bench::bench_modules(&a.config, &modules, &computes, |r| {
+            println!(
+                "{:<17} {:<28} {:>8.2} {:>9.2} {:>9} {:>6}  {}",
+                r.module, r.precision, r.build_seconds, r.forward_seconds,
+                opt(r.peak_rss_mib, |v| format!("{v:.0}")),
+                opt(r.load_average, |v| format!("{v:.1}")),
+                r.input
+            );
+        })?;
+    }
+
+    if has("precision") {
+        println!("\n{:<17} {:<6} {:<9} {:>10} {:>10}", "module", "dtype", "vs", "max rel", "mean rel");
+        let cmp_modules: Vec<&str> = modules.iter().copied().filter(|m| *m != "ss_decoder").collect();
+        report.precision = bench::compare_precisions(&a.config, &cmp_modules, &a.dtype, |r| {
+            println!("{:<17} {:<6} {:<9} {:>10.2e} {:>10.2e}", r.module, r.precision, r.reference, r.max_rel, r.mean_rel);
+        })?;
+        report.notes.push("precision errors: max_rel = max|a−b| / max|b|, mean_rel = mean|a−b| / mean|b|, b = fast f32 output on the same input and weights".into());
+    }
+
+    if has("occupancy") {
+        println!("\n{:<6} {:>5} {:>8} {:>9} {:>9} {:>8} {:>10} {:>10} {:>10}", "dtype", "steps", "grid", "occ f32", "occupied", "flipped", "of grid", "of occ", "pose Δ");
+        for &p in a.dtype.iter().filter(|p| **p != Precision::F32) {
+            let r = bench::compare_occupancy(&a.config, p, a.occupancy_steps, 0)?;
+            println!(
+                "{:<6} {:>5} {:>8} {:>9} {:>9} {:>8} {:>10.2e} {:>10.2e} {:>10.2e}",
+                r.precision, r.steps, r.grid_voxels, r.occupied_f32, r.occupied, r.flipped, r.flip_fraction_of_grid, r.flip_fraction_of_occupied, r.pose_token_max_abs_diff
+            );
+            report.occupancy.push(r);
+        }
+    }
+
+    if has("e2e") {
+        println!("\nend to end (random weights, synthetic view, modules built per stage and freed):");
+        for &p in &a.dtype {
+            let r = bench::bench_end_to_end(&a.config, Compute::fast(p), a.steps, 0)?;
+            let t = &r.timings;
+            println!(
+                "  {} | steps {}/{} | {} voxels, {:?} faces, {:?} gaussians | total {:.1} s (loading {:.1}): encoder {:.1}, ss {:.1}, ss dec {:.1}, slat {:.1}, mesh {:.1}, gs {:.1} | load {}",
+                r.precision, r.ss_steps, r.slat_steps, r.occupied_voxels, r.faces, r.gaussians, t.total, t.loading,
+                t.image_encoder, t.ss_condition + t.ss_sampling, t.ss_decoder, t.slat_condition + t.slat_sampling, t.mesh_decoder, t.gaussian_decoder,
+                opt(r.load_average, |v| format!("{v:.1}"))
+            );
+            if let Some(m) = &r.memory {
+                let f = |v: Option<f64>| opt(v, |x| format!("{x:.0}"));
+                println!(
+                    "    peak RSS MiB per stage: encoder {}, ss flow {}, ss dec {}, slat flow {}, mesh {}, gs {}",
+                    f(m.image_encoder), f(m.ss_flow), f(m.ss_decoder), f(m.slat_flow), f(m.mesh_decoder), f(m.gaussian_decoder)
+                );
+            }
+            report.end_to_end.push(r);
+        }
+    }
+
+    let arch = recon::model::config::RecGenConfig::load(&a.config)?;
+    if arch.name == "recgen-large" {
+        print_ratios(&report);
+    } else {
+        println!("\n(ratios against the upstream figures are printed for models/recgen-large.json only; this is {})", arch.name);
+        for n in &report.notes {
+            println!("note: {n}");
+        }
+    }
+    if let Some(path) = &a.json {
+        let text = serde_json::to_string_pretty(&report)?;
+        let tmp = path.with_extension("json.partial");
+        std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+        std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
+        println!("\nwrote {}", path.display());
+    }
+    Ok(true)
+}
+
+/// Ratios against the upstream table of issue 8 (throughput: recon/upstream;
+/// time: upstream seconds / recon seconds; > 1 means recon is faster).
+fn print_ratios(r: &BenchReport) {
+    let mut lines = Vec::new();
+    let gemm = |fmt: &str| r.gemm.iter().find(|g| g.what == "4096³" && g.format == fmt).map(|g| g.gflops);
+    if let Some(g) = gemm("f32") {
+        lines.push(format!("GEMM 4096³ f32: {g:.0} GFLOP/s = {:.2}× upstream MKL ({}), {:.2}× stock candle there ({})", g / upstream::GEMM_4096_F32_GFLOPS, upstream::GEMM_4096_F32_GFLOPS, g / upstream::CANDLE_4096_F32_GFLOPS, upstream::CANDLE_4096_F32_GFLOPS));
+    }
+    if let Some(g) = gemm("bf16") {
+        lines.push(format!("GEMM 4096³ bf16: {g:.0} GFLOP/s = {:.2}× upstream oneDNN AMX ({}), {:.2}× stock candle there ({})", g / upstream::GEMM_4096_BF16_GFLOPS, upstream::GEMM_4096_BF16_GFLOPS, g / upstream::CANDLE_4096_BF16_GFLOPS, upstream::CANDLE_4096_BF16_GFLOPS));
+    }
+    if let Some(c) = r.gemm.iter().find(|g| g.isa == "candle") {
+        if let Some(g) = gemm("f32") {
+            lines.push(format!("GEMM 4096³ f32 here: recon {g:.0} vs stock candle {:.0} GFLOP/s ({:.2}×)", c.gflops, g / c.gflops));
+        }
+    }
+    let module = |key: &str, prec: &str| r.modules.iter().find(|m| m.module == key && m.precision.starts_with(&format!("fast {prec}")));
+    for (key, prec, up_s, up_gb) in [
+        ("ss_flow", "f32", upstream::SS_FLOW_F32_S, upstream::SS_FLOW_F32_GB),
+        ("ss_flow", "bf16", upstream::SS_FLOW_BF16_S, upstream::SS_FLOW_BF16_GB),
+        ("ss_decoder", "f32", upstream::SS_DECODER_F32_S, upstream::SS_DECODER_F32_GB),
+    ] {
+        if let Some(m) = module(key, prec) {
+            lines.push(format!(
+                "{key} {prec}: {:.1} s → upstream/recon = {:.2} (upstream {up_s} s); peak {} GB (upstream {up_gb} GB)",
+                m.forward_seconds,
+                up_s / m.forward_seconds,
+                opt(m.peak_rss_mib, |v| format!("{:.2}", v / 1024.0))
+            ));
+        }
+    }
+    if !lines.is_empty() {
+        println!("\nratios vs issue 8's upstream figures (different machine: see notes):");
+        for l in lines {
+            println!("  {l}");
+        }
+    }
+    for n in &r.notes {
+        println!("note: {n}");
+    }
+}
