@@ -601,20 +601,7 @@ fn safe_name(label: &str) -> String {
 /// An existing `out` is replaced only when it is an earlier recon output
 /// (it holds [`MARKER`]); any other existing non-empty folder is an error.
 pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObject>> {
-    if out.exists() {
-        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
-        if !empty && !out.join(MARKER).exists() {
-            return Err(Error::input(
-                out.display().to_string(),
-                format!("output folder exists and is not a recon output (no {MARKER}); remove it or choose another --out"),
-            ));
-        }
-    }
-    let staging = out.with_extension("partial");
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
-    }
-    std::fs::create_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    let staging = begin_output(out)?;
     // Camera frame stays as is (OpenCV: x right, y down, z forward) in every file.
     let glb = GlbOptions { axes: Axes::ZUp, vertex_colors: true };
     let ply = PlyOptions { axes: Axes::ZUp, normals: true, vertex_colors: true };
@@ -695,12 +682,39 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
         "skipped": result.skipped.iter().map(|s| s.to_string()).collect::<Vec<_>>(),
         "notes": result.notes,
     });
+    finish_output(&staging, out, &index)?;
+    Ok(written)
+}
+
+/// Starts a recon output folder `out`: checks that an existing `out` is empty or an
+/// earlier recon output (holds [`MARKER`]), and returns a fresh, empty staging folder
+/// beside it to write into. [`finish_output`] then moves it into place.
+pub fn begin_output(out: &Path) -> Result<PathBuf> {
+    if out.exists() {
+        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
+        if !empty && !out.join(MARKER).exists() {
+            return Err(Error::input(
+                out.display().to_string(),
+                format!("output folder exists and is not a recon output (no {MARKER}); remove it or choose another --out"),
+            ));
+        }
+    }
+    let staging = out.with_extension("partial");
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    }
+    std::fs::create_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    Ok(staging)
+}
+
+/// Writes the [`MARKER`] index last, then replaces `out` with the staging folder.
+pub fn finish_output(staging: &Path, out: &Path, index: &serde_json::Value) -> Result<()> {
     let marker = staging.join(MARKER);
-    std::fs::write(&marker, serde_json::to_string_pretty(&index).map_err(|e| Error::msg(e.to_string()))?)
+    std::fs::write(&marker, serde_json::to_string_pretty(index).map_err(|e| Error::msg(e.to_string()))?)
         .map_err(|e| Error::io(&marker, e))?;
     if out.exists() {
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
     }
-    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
-    Ok(written)
+    std::fs::rename(staging, out).map_err(|e| Error::io(out, e))?;
+    Ok(())
 }

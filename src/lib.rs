@@ -21,5 +21,8 @@ pub mod conformance;
 pub mod eval;
 pub mod sensor;
 pub mod train;
+pub mod synth;
+pub mod audit;
+pub mod sim;
 
 pub use error::{Error, Result};
