@@ -107,6 +107,9 @@ pub enum Progress<'a> {
     Object { index: usize, total: usize, label: &'a str },
     Sample { index: usize, total: usize, seed: u64 },
     Stage(Stage),
+    /// Applying the face budget.
+    Decimating,
+    /// Scoring the candidate poses.
     Selecting,
     ObjectDone { label: &'a str, seconds: f64 },
 }
@@ -433,6 +436,7 @@ impl Engine {
                 }
             };
             add_timings(&mut timings, &rec.timings);
+            progress(Progress::Decimating);
             let t = Instant::now();
             let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
             let mesh = rec.mesh.map(|m| match opts.max_faces {

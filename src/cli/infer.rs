@@ -171,6 +171,7 @@ struct BarState {
     object: (usize, usize),
     seed: u64,
     stage: Option<(recon::pipeline::Stage, std::time::Instant)>,
+    what: &'static str,
     done: Vec<String>,
 }
 
@@ -204,9 +205,11 @@ impl Bar {
                 s.label = label.to_string();
                 s.object = (index + 1, total);
                 s.done.clear();
+                s.what = "preparing";
             }
             Progress::Sample { index, seed, .. } => {
                 close_stage(&mut s);
+                s.what = "starting";
                 if index > 0 {
                     self.pb.inc(1);
                 }
@@ -215,8 +218,13 @@ impl Bar {
             Progress::Stage(st) => {
                 close_stage(&mut s);
                 s.stage = Some((st, std::time::Instant::now()));
+                s.what = st.name();
             }
-            Progress::Selecting => close_stage(&mut s),
+            Progress::Decimating => {
+                close_stage(&mut s);
+                s.what = "decimating";
+            }
+            Progress::Selecting => s.what = "scoring poses",
             Progress::ObjectDone { label, seconds } => {
                 close_stage(&mut s);
                 self.pb.inc(1);
@@ -224,8 +232,8 @@ impl Bar {
                 s.done.clear();
             }
         }
-        let stage = s.stage.map(|(st, _)| st.name()).unwrap_or("selecting");
-        self.pb.set_message(format!("{} [{}/{}] seed {}: {stage}", s.label, s.object.0, s.object.1, s.seed));
+        let seed = if s.what == "preparing" { String::new() } else { format!(" seed {}", s.seed) };
+        self.pb.set_message(format!("{} [{}/{}]{seed}: {}", s.label, s.object.0, s.object.1, s.what));
     }
 }
 
