@@ -720,6 +720,23 @@ mod tests {
     }
 
     #[test]
+    fn edge_distance_can_ignore_the_background() {
+        // A box face 0.9 m away in front of a wall at 0.91 m: a 1 % depth step is no
+        // discontinuity, so with the wall the box face has no edges; over the box alone
+        // its silhouette is one.
+        let b = RenderMesh::from_mesh(&box_mesh(0.2, 0.2, 0.2), "box").unwrap();
+        let wall = quad(10.0);
+        let c = cam(40, 30, 40.0);
+        let id = Similarity::identity().r;
+        let r = render(&[Instance::new(&wall, Similarity::rigid(id, [0.0, 0.0, 0.91]), 0), Instance::new(&b, Similarity::rigid(id, [0.0, 0.0, 1.0]), 1)], &c, &RenderOptions::default()).unwrap();
+        let all = r.edge_distance(None);
+        assert!(all.iter().all(|&d| d == 70.0), "no discontinuity anywhere: capped at w + h");
+        let boxed = r.edge_distance(Some(&[false, true]));
+        assert_eq!(boxed[15 * 40 + 20], 3.0);
+        assert_eq!(r.covariates_full(0, None, Some(&[false, true]))[15 * 40 + 20].edge_distance, 3.0);
+    }
+
+    #[test]
     fn bad_meshes_are_refused_with_their_name() {
         let e = RenderMesh::new(&[[0.0; 3]], &[[0, 1, 2]], "obj_000003.ply").err().unwrap().to_string();
         assert!(e.contains("obj_000003.ply") && e.contains("indexes past"), "{e}");

@@ -385,7 +385,6 @@ mod tests {
             assert!(amodal > 30, "scene {seed}: target covers {amodal} px");
             let occ = target_occlusion(&r, &[1]);
             pairs.push((s.occlusion_goal, occ));
-            eprintln!("goal {:.3} trial {:.3} full {:.3} objects {}", s.occlusion_goal, s.occlusion_trial, occ, s.objects.len());
         }
         // Aimed, not random: the achieved occlusion tracks the goal.
         let close = pairs.iter().filter(|(g, o)| (g - o).abs() < 0.15).count();
