@@ -297,7 +297,7 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
             "parts": opts.parts,
             "occlusion_goal": s.occlusion_goal,
             "occlusion_trial": s.occlusion_trial,
-            "support": {"size_m": [4.0, 4.0, 0.02], "top_z_m": 0.0, "object_covariate": 0, "material": s.support_material},
+            "support": {"size_m": [2.0 * scene::SUPPORT_HALF, 2.0 * scene::SUPPORT_HALF, scene::SUPPORT_THICK], "top_z_m": 0.0, "object_covariate": 0, "material": s.support_material},
             "instances": instances,
             "images": images,
         }),
