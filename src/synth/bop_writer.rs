@@ -49,6 +49,15 @@ pub fn write_mask(path: &Path, mask: &[bool], w: usize, h: usize) -> Result<()> 
     png(path, &px, w, h, ExtendedColorType::L8)
 }
 
+/// Unit normals → RGB `(n + 1) / 2 · 255`; pixels without a surface (zero normal) are black.
+pub fn write_normals(path: &Path, normals: &[[f32; 3]], w: usize, h: usize) -> Result<()> {
+    let px: Vec<u8> = normals
+        .iter()
+        .flat_map(|n| if n == &[0.0; 3] { [0; 3] } else { n.map(|x| ((x + 1.0) * 127.5).round().clamp(0.0, 255.0) as u8) })
+        .collect();
+    png(path, &px, w, h, ExtendedColorType::Rgb8)
+}
+
 /// Metric depth (metres, 0 = missing) → 16-bit PNG in units of [`DEPTH_SCALE_MM`].
 /// Returns how many pixels were beyond the 16-bit range (stored as missing).
 pub fn write_depth(path: &Path, depth_m: &[f32], w: usize, h: usize) -> Result<usize> {

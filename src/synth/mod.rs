@@ -19,7 +19,7 @@ pub use scene::{Scene, SceneConfig};
 use crate::model::sampler::SeededRng;
 use crate::sensor::SensorModel;
 use crate::{Error, Result};
-use bop_writer::{camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask, write_rgb, DEPTH_SCALE_MM};
+use bop_writer::{camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask, write_normals, write_rgb, DEPTH_SCALE_MM};
 use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -186,7 +186,7 @@ pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -
     )?;
     let marker = json!({
         "generator": "recon synth",
-        "format": "BOP scenewise; models/ in mm; depth × depth_scale = mm; extra per-scene scene_meta.json",
+        "format": "BOP scenewise; models/ in mm; depth × depth_scale = mm (sensor model applied); extras per scene: scene_meta.json (kind, part, target flag, materials, lights), depth_gt/ (noise-free depth, same scale), normals/ (camera-frame face normals, RGB = (n + 1) / 2 · 255, 0 where no surface)",
         "options": {"scenes": opts.scenes, "views": opts.views, "seed": opts.seed, "width": opts.width, "height": opts.height, "parts": opts.parts},
         "sensor_model": opts.sensor,
         "split": SPLIT,
@@ -211,7 +211,7 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
     let units = s.units(opts.parts)?;
     let ids = unit_ids(units.len(), first_id);
     let dir = root.join(SPLIT).join(format!("{index:06}"));
-    for sub in ["rgb", "depth", "mask", "mask_visib"] {
+    for sub in ["rgb", "depth", "depth_gt", "normals", "mask", "mask_visib"] {
         mkdir(&dir.join(sub))?;
     }
     // Models (object units only; unit 0 is the support).
@@ -242,6 +242,10 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
         let measured = opts.sensor.apply(&covs, w, h, derived_seed(opts.seed, index as u64, 1 + v as u64));
         write_rgb(&dir.join("rgb").join(format!("{v:06}.png")), &r.rgb, w, h)?;
         clipped += write_depth(&dir.join("depth").join(format!("{v:06}.png")), &measured, w, h)?;
+        // Extras beside the BOP folders (ignored by BOP tools): noise-free depth and
+        // camera-frame face normals.
+        write_depth(&dir.join("depth_gt").join(format!("{v:06}.png")), &r.depth, w, h)?;
+        write_normals(&dir.join("normals").join(format!("{v:06}.png")), &r.normal_cam, w, h)?;
         let w2c = s.views[v].camera.world_to_cam;
         cams.insert(v.to_string(), camera_entry(&r, &w2c));
         let mut gt = Vec::new();
@@ -293,7 +297,7 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
             "parts": opts.parts,
             "occlusion_goal": s.occlusion_goal,
             "occlusion_trial": s.occlusion_trial,
-            "support": {"size_m": [4.0, 4.0, 0.02], "top_z_m": 0.0, "object_covariate": 0, "material": s.support_material},
+            "support": {"size_m": [2.0 * scene::SUPPORT_HALF, 2.0 * scene::SUPPORT_HALF, scene::SUPPORT_THICK], "top_z_m": 0.0, "object_covariate": 0, "material": s.support_material},
             "instances": instances,
             "images": images,
         }),

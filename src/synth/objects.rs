@@ -587,8 +587,13 @@ mod tests {
                 }
             }
         }
-        // A mug (handle) has no symmetry; a box is not symmetric under a quarter turn.
+        // A mug (its handle) has no symmetry, and the check above can fail: a quarter turn
+        // does not map a box with distinct sides onto itself.
         let mut rng = SeededRng::new(0);
         assert_eq!(Object::random(Kind::Mug, &mut rng).symmetry, Symmetry::default());
+        let b = box_mesh(0.1, 0.2, 0.3);
+        let q = Similarity::rigid(axis_angle(Z, PI / 2.0), [0.0; 3]);
+        let moved = q.apply(&b.vertices[0].map(|x| x as f64));
+        assert!(b.vertices.iter().all(|w| (0..3).map(|k| (moved[k] - w[k] as f64).powi(2)).sum::<f64>().sqrt() > 1e-3));
     }
 }

@@ -13,6 +13,12 @@
 //! object as if alone) come out of the same pass as the visible image. Rows run in
 //! parallel (rayon) and each pixel is a pure function of the inputs, so the result does
 //! not depend on the thread count.
+//!
+//! Rendering a BOP frame's GT (models read with `eval::bop`, already in metres):
+//! `RenderMesh::from_trimesh(&model.mesh, name)` once per model, then per frame
+//! `Instance::new(&mesh, Similarity::rigid(gt.r, gt.t), obj_id as i64)` for each GT
+//! instance, `render(&instances, &Camera::new(w, h, k), &RenderOptions::default())`, and
+//! `covariates_full(frame_index, Some(&measured_rgb), None)` for the sensor covariates.
 
 use crate::decoders::Mesh;
 use crate::eval::mesh::{Similarity, TriMesh};
@@ -248,9 +254,8 @@ struct Prepared {
     /// Camera → mesh: `x_mesh = m · x_cam + o`.
     m: [[f64; 3]; 3],
     o: [f64; 3],
-    /// Mesh → camera rotation and mesh → world rotation (for normals).
+    /// Mesh → camera rotation (for normals).
     r_cam: [[f64; 3]; 3],
-    r_world: [[f64; 3]; 3],
     /// Pixel rectangle that can contain the instance (inclusive), or None if off-screen.
     rect: Option<(usize, usize, usize, usize)>,
 }
@@ -294,8 +299,7 @@ fn prepare(inst: &Instance, cam: &Camera) -> Prepared {
         let cl = |x: f64, n: usize| x.clamp(0.0, (n - 1) as f64) as usize;
         Some((cl(r[0].floor() - 1.0, cam.width), cl(r[1].floor() - 1.0, cam.height), cl(r[2].ceil() + 1.0, cam.width), cl(r[3].ceil() + 1.0, cam.height)))
     };
-    let r_world = inst.pose.r;
-    Prepared { m, o, r_cam: m2c.r, r_world, rect }
+    Prepared { m, o, r_cam: m2c.r, rect }
 }
 
 struct Row {
@@ -365,7 +369,6 @@ pub fn render(instances: &[Instance], camera: &Camera, opts: &RenderOptions) -> 
                 let n_mesh = instances[i].mesh.normals.get(tri as usize).copied().unwrap_or([0.0; 3]);
                 let n_cam = mat_vec(&prep[i].r_cam, n_mesh);
                 let n_world = mat_vec(&instances[i].pose.r, n_mesh);
-                let _ = &prep[i].r_world;
                 let dn = normalize(d);
                 let c = dot(n_cam, dn);
                 row.depth[u] = t;
@@ -717,6 +720,23 @@ mod tests {
         // Intensity from a supplied image instead.
         let grey = vec![128u8; 3 * 40 * 30];
         assert!((r.covariates_full(0, Some(&grey), None)[0].intensity - 128.0 / 255.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn edge_distance_can_ignore_the_background() {
+        // A box face 0.9 m away in front of a wall at 0.91 m: a 1 % depth step is no
+        // discontinuity, so with the wall the box face has no edges; over the box alone
+        // its silhouette is one.
+        let b = RenderMesh::from_mesh(&box_mesh(0.2, 0.2, 0.2), "box").unwrap();
+        let wall = quad(10.0);
+        let c = cam(40, 30, 40.0);
+        let id = Similarity::identity().r;
+        let r = render(&[Instance::new(&wall, Similarity::rigid(id, [0.0, 0.0, 0.91]), 0), Instance::new(&b, Similarity::rigid(id, [0.0, 0.0, 1.0]), 1)], &c, &RenderOptions::default()).unwrap();
+        let all = r.edge_distance(None);
+        assert!(all.iter().all(|&d| d == 70.0), "no discontinuity anywhere: capped at w + h");
+        let boxed = r.edge_distance(Some(&[false, true]));
+        assert_eq!(boxed[15 * 40 + 20], 3.0);
+        assert_eq!(r.covariates_full(0, None, Some(&[false, true]))[15 * 40 + 20].edge_distance, 3.0);
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //!
 //! World frame: the table top is the plane z = 0, z up, the target stands near the
 //! origin. Occlusion of the target is aimed, not left to chance: each scene draws a goal
-//! occlusion uniformly in [0, `max_occlusion`] for its first view and places one or two
+//! occlusion for its first view (a RecGen occlusion bin at random, uniform inside it; at
+//! most `max_occlusion`) and places one or two
 //! "front" distractors between that camera and the target, keeping the trial placement
 //! (low-resolution render) whose occlusion is closest to the goal. The other distractors
 //! stand away from the camera–target line. Further views circle the target at random.
@@ -78,8 +79,9 @@ pub struct Unit {
     pub part: Option<usize>,
 }
 
-const SUPPORT_HALF: f64 = 2.0;
-const SUPPORT_THICK: f64 = 0.02;
+/// Half side and thickness of the table slab (metres).
+pub const SUPPORT_HALF: f64 = 2.0;
+pub const SUPPORT_THICK: f64 = 0.02;
 
 fn yaw(a: f64) -> [[f64; 3]; 3] {
     axis_angle([0.0, 0.0, 1.0], a)
@@ -192,8 +194,12 @@ impl Scene {
         let az0 = TAU * rng.uniform();
         let cam0 = view_camera(&mut rng, cfg, k, target_centre, az0);
         let n_distract = cfg.min_distractors + (rng.next_u64() % (cfg.max_distractors - cfg.min_distractors + 1) as u64) as usize;
-        let goal = cfg.max_occlusion * rng.uniform();
-        let n_front = if goal < 0.03 { 0 } else if goal > 0.35 && rng.uniform() < 0.5 { 2 } else { 1 }.min(n_distract);
+        // Goal: one of the RecGen occlusion bins (0–3, 3–20, 20–40, 40–max %) with equal
+        // probability, uniform inside it, so every bin gets scenes.
+        let edges = [0.0, 0.03, 0.2, 0.4, cfg.max_occlusion.max(0.4)];
+        let bin = (rng.next_u64() % 4) as usize;
+        let goal = (edges[bin] + (edges[bin + 1] - edges[bin]) * rng.uniform()).min(cfg.max_occlusion);
+        let n_front = if goal < 0.03 { 0 } else if goal > 0.35 { 2 } else { 1 }.min(n_distract);
 
         // Ground direction from the target towards camera 0, and its left normal.
         let eye = cam0.eye();
@@ -227,7 +233,7 @@ impl Scene {
         let mut best: Option<(f64, Vec<Similarity>)> = None;
         let mut achieved = 0.0;
         if n_front > 0 {
-            for _trial in 0..24 {
+            for _trial in 0..32 {
                 let mut poses: Vec<Similarity> = Vec::new();
                 let mut spots: Vec<([f64; 2], f64)> = vec![([target_centre[0], target_centre[1]], r_target)];
                 for (o, r, _) in &distractors[..n_front] {
@@ -385,7 +391,6 @@ mod tests {
             assert!(amodal > 30, "scene {seed}: target covers {amodal} px");
             let occ = target_occlusion(&r, &[1]);
             pairs.push((s.occlusion_goal, occ));
-            eprintln!("goal {:.3} trial {:.3} full {:.3} objects {}", s.occlusion_goal, s.occlusion_trial, occ, s.objects.len());
         }
         // Aimed, not random: the achieved occlusion tracks the goal.
         let close = pairs.iter().filter(|(g, o)| (g - o).abs() < 0.15).count();
