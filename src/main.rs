@@ -22,6 +22,10 @@ enum Cmd {
     Eval(cli::eval::EvalArgs),
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
+    /// Train a stage-1 model (SS VAE, SS flow with pose tokens) on BOP-format synthetic data.
+    Train(cli::train::TrainArgs),
+    /// Synthetic occluded RGB-D scenes with exact ground truth, in the BOP format.
+    Synth(cli::synth::SynthArgs),
     /// Checkpoints: download, verify, random-initialise.
     Weights {
         #[command(subcommand)]
@@ -36,6 +40,8 @@ fn main() -> anyhow::Result<()> {
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Eval(a) => cli::eval::run(a)?,
         Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Train(a) => cli::train::run(a)?,
+        Cmd::Synth(a) => cli::synth::run(a)?,
     };
     if !ok {
         std::process::exit(1);

@@ -1,11 +1,15 @@
-//! export: mesh (GLB, PLY, OBJ) and Gaussian-splat (3DGS PLY) writers, and
-//! the similarity transform that places objects in the camera frame.
+//! export: mesh (GLB, PLY, OBJ) and Gaussian-splat (3DGS PLY) writers, the
+//! similarity transform that places objects in the camera frame, and the
+//! simulator formats of a settled scene (URDF, MJCF, USD).
 
 pub mod glb;
+pub mod mjcf;
 pub mod obj;
 pub mod ply;
 pub mod splat;
 pub mod transform;
+pub mod urdf;
+pub mod usd;
 
 pub use glb::{glb_bytes, save_glb, GlbOptions};
 pub use splat::Gaussians;
