@@ -127,7 +127,7 @@ pub fn occlusion_bin(visib_fract: f64) -> Option<usize> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::eval::mesh::{axis_angle, diameter, TriMesh};
     use crate::model::sampler::SeededRng;
@@ -194,6 +194,59 @@ mod tests {
         let posed = gt.apply_all(&pts);
         let shifted = est.apply_all(&pts);
         assert!(add_sb(&shifted, &posed) <= d + 1e-12);
+    }
+
+    #[test]
+    fn translation_offset_gives_exact_add_sb_and_f1() {
+        // A planar grid (spacing a) shifted by δ with in-plane part < a/2 per grid axis:
+        // every point's nearest shifted point is its own copy, so both Chamfer directions
+        // are |δ| exactly, and F1@τ is 1 for τ ≥ |δ| and 0 below.
+        let a = 0.002;
+        let grid: Vec<P3> = (0..40).flat_map(|i| (0..30).map(move |j| [i as f64 * a, j as f64 * a, 0.7])).collect();
+        for delta in [[0.0, 0.0, 0.004], [0.0006, -0.0003, 0.0025], [0.0009, 0.0, 0.0]] {
+            let shifted: Vec<P3> = grid.iter().map(|p| [p[0] + delta[0], p[1] + delta[1], p[2] + delta[2]]).collect();
+            let norm = (delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2]).sqrt();
+            let sb = add_sb(&shifted, &grid);
+            assert!((sb - norm).abs() < 1e-15, "{delta:?}: ADD-SB {sb} vs {norm}");
+            assert_eq!(f1_score(&shifted, &grid, norm * (1.0 + 1e-9)).f1, 1.0);
+            assert_eq!(f1_score(&shifted, &grid, norm * (1.0 - 1e-9)).f1, 0.0);
+        }
+    }
+
+    #[test]
+    fn sphere_scale_offset_gives_exact_values() {
+        // Points r·u on a sphere and s·r·u for the same directions: for any direction set
+        // |r u − s r v|² = r²(1 + s² − 2 s u·v) ≥ r²(1 − s)², equality at v = u, so both
+        // Chamfer directions are |s − 1|·r exactly; the diameter scales by s (DRE = |s − 1|)
+        // and, directions coming in ± pairs (equal centroids), ICP stays at the identity:
+        // CD_norm = |s − 1|·r / (2r).
+        let mut rng = SeededRng::new(12);
+        let c = [0.02, -0.01, 0.8];
+        let r = 0.05;
+        let mut dirs = Vec::new();
+        for _ in 0..2000 {
+            let v = [rng.normal(), rng.normal(), rng.normal()];
+            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            dirs.push([v[0] / n, v[1] / n, v[2] / n]);
+            dirs.push([-v[0] / n, -v[1] / n, -v[2] / n]);
+        }
+        let at = |rad: f64| dirs.iter().map(|u| [c[0] + rad * u[0], c[1] + rad * u[1], c[2] + rad * u[2]]).collect::<Vec<P3>>();
+        let gt = at(r);
+        let (dgt, _) = diameter(&gt);
+        assert!((dgt - 2.0 * r).abs() < 1e-12, "{dgt}");
+        for s in [0.9, 1.04, 1.2] {
+            let pred = at(s * r);
+            let want = (s - 1.0f64).abs() * r;
+            let sb = add_sb(&pred, &gt);
+            assert!((sb - want).abs() < 1e-12, "s {s}: ADD-SB {sb} vs {want}");
+            let e = dre(diameter(&pred).0, dgt);
+            assert!((e - (s - 1.0f64).abs()).abs() < 1e-9, "s {s}: DRE {e}");
+            assert_eq!(e < 0.05, s == 1.04);
+            let (cd, res) = cd_norm(&pred, &gt, 2.0 * r, &IcpOptions::default());
+            assert!((cd - want / (2.0 * r)).abs() < 1e-9, "s {s}: CD_norm {cd} after {} iters", res.iters);
+            assert_eq!(f1_score(&pred, &gt, want * (1.0 + 1e-6)).f1, 1.0);
+            assert_eq!(f1_score(&pred, &gt, want * (1.0 - 1e-6)).f1, 0.0);
+        }
     }
 
     #[test]

@@ -574,6 +574,120 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    fn ascii_ply(m: &TriMesh) -> String {
+        let mut s = format!("ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\nproperty double z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n", m.vertices.len(), m.faces.len());
+        for v in &m.vertices {
+            s += &format!("{} {} {}\n", v[0], v[1], v[2]);
+        }
+        for f in &m.faces {
+            s += &format!("3 {} {} {}\n", f[0], f[1], f[2]);
+        }
+        s
+    }
+
+    /// One-frame BOP dataset: obj 1 = closed cylinder r 40, h 100 mm (256 segments, so a
+    /// 90° spin maps it onto itself), obj 2 = box 40×20×10 mm; four GT instances.
+    fn symmetric_dataset(dir: &Path) -> (Vec<GtInstance>, f64, f64) {
+        use crate::eval::mesh::axis_angle;
+        let scene = dir.join("test/000001");
+        std::fs::create_dir_all(&scene).unwrap();
+        std::fs::create_dir_all(dir.join("models")).unwrap();
+        std::fs::write(dir.join("models/obj_000001.ply"), ascii_ply(&crate::eval::metrics::tests::cylinder(40.0, 100.0, 256))).unwrap();
+        std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::eval::baseline::box_mesh([20.0, 10.0, 5.0]))).unwrap();
+        std::fs::write(scene.join("scene_camera.json"), r#"{"1": {"cam_K": [600, 0, 320, 0, 600, 240, 0, 0, 1], "depth_scale": 1.0}}"#).unwrap();
+        let poses = [
+            (axis_angle([0.2, 1.0, 0.1], 0.5), [0.0, 0.0, 700.0], 1),
+            (axis_angle([1.0, 0.0, 0.3], 1.2), [100.0, 20.0, 800.0], 1),
+            (axis_angle([0.0, 1.0, 1.0], 0.8), [-80.0, 10.0, 650.0], 2),
+            (axis_angle([1.0, 1.0, 0.0], 2.0), [50.0, -60.0, 900.0], 2),
+        ];
+        let gt: Vec<serde_json::Value> = poses.iter().map(|(r, t, id)| serde_json::json!({"cam_R_m2c": r.concat(), "cam_t_m2c": t, "obj_id": id})).collect();
+        std::fs::write(scene.join("scene_gt.json"), serde_json::json!({"1": gt}).to_string()).unwrap();
+        let info: Vec<serde_json::Value> = [1.0, 0.9, 0.7, 0.5].iter().map(|v| serde_json::json!({"visib_fract": v})).collect();
+        std::fs::write(scene.join("scene_gt_info.json"), serde_json::json!({"1": info}).to_string()).unwrap();
+        let ds = load_dataset(dir).unwrap();
+        let (d1, d2) = (ds.models[&1].diameter, ds.models[&2].diameter);
+        (ds.frames[0].gt.clone(), d1, d2)
+    }
+
+    #[test]
+    fn rates_pin_identity_symmetry_and_offsets() {
+        use crate::eval::mesh::axis_angle;
+        let dir = tmpdir("sym");
+        let (gt, d_cyl, d_box) = symmetric_dataset(&dir);
+        assert!((d_cyl - (0.08f64 * 0.08 + 0.01).sqrt()).abs() < 1e-9 && (d_box - 0.0021f64.sqrt()).abs() < 1e-9);
+        let spun = Similarity::rigid(gt[1].r, gt[1].t).compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3]));
+        let box_ply = dir.join("models/obj_000002.ply");
+        let preds = serde_json::json!({"predictions": [
+            // 0: identical to the GT (pose only: the GT model is used).
+            {"scene": "000001", "frame": 1, "obj_id": 1, "gt_index": 0, "R": gt[0].r, "t": gt[0].t},
+            // 1: the cylinder spun 90° about its own axis: same surface, other model frame.
+            {"scene": "000001", "frame": 1, "obj_id": 1, "gt_index": 1, "R": spun.r, "t": spun.t},
+            // 2: the box shifted by exactly 3 mm along camera x.
+            {"scene": "000001", "frame": 1, "obj_id": 2, "gt_index": 2, "R": gt[2].r, "t": [gt[2].t[0] + 0.003, gt[2].t[1], gt[2].t[2]]},
+            // 3: the box model (mm) at the GT pose, 3 % too large.
+            {"scene": "000001", "frame": 1, "obj_id": 2, "gt_index": 3, "R": gt[3].r, "t": gt[3].t, "scale": 0.00103, "mesh": box_ply}
+        ]});
+        let pf = dir.join("preds.json");
+        std::fs::write(&pf, preds.to_string()).unwrap();
+        let r = run_eval(&dir, &pf, &EvalOptions { n_samples: 20_000, ..Default::default() }).unwrap();
+        let m: Vec<&ObjectMetrics> = r.objects.iter().map(|o| o.metrics.as_ref().unwrap()).collect();
+        // Identical: zero errors, every success, F1 = 1.
+        assert_eq!((m[0].add, m[0].add_s, m[0].add_sb, m[0].dre), (Some(0.0), Some(0.0), 0.0, 0.0));
+        assert!(m[0].cd_norm < 1e-12 && m[0].f1_posed.f1 == 1.0 && m[0].f1_aligned.f1 == 1.0);
+        let b0 = &r.by_occlusion[0];
+        assert_eq!((b0.label.as_str(), b0.n_gt), ("0-3%", 1));
+        for (name, v) in [("ADD-SB@10", b0.add_sb_10), ("ADD-SB@5", b0.add_sb_05), ("DRE@5", b0.dre_05), ("ADD@10", b0.add_10), ("ADD-S@10", b0.add_s_10), ("F1", b0.f1_posed_mean)] {
+            assert_eq!(v, 1.0, "{name}");
+        }
+        assert!(b0.add_sb_norm_mean == 0.0 && b0.cd_norm_mean < 1e-12 && b0.dre_mean == 0.0, "{b0:?}");
+        // Spun cylinder: ADD fails (side points move by r·√2 = 56.6 mm ≫ 12.8 mm), ADD-S and
+        // ADD-SB pass (only sampling density remains).
+        let b1 = &r.by_occlusion[1];
+        assert_eq!(b1.n_gt, 1);
+        assert!(m[1].add_norm.unwrap() > 0.3, "{:?}", m[1].add_norm);
+        assert!(m[1].add_s_norm.unwrap() < 0.02 && m[1].add_sb_norm < 0.02, "{:?} {}", m[1].add_s_norm, m[1].add_sb_norm);
+        assert_eq!((b1.add_10, b1.add_s_10, b1.add_sb_10, b1.add_sb_05), (0.0, 1.0, 1.0, 1.0));
+        assert!(m[1].dre < 1e-12);
+        // Shifted box: ADD = 3 mm exactly, ADD-S and ADD-SB at most that.
+        assert!((m[2].add.unwrap() - 0.003).abs() < 1e-12, "{:?}", m[2].add);
+        assert!(m[2].add_s.unwrap() <= 0.003 + 1e-12 && m[2].add_sb <= 0.003 + 1e-12);
+        assert!(m[2].dre < 1e-12 && m[2].cd_norm < 0.01);
+        // Scaled box: DRE = 3 % exactly (passes @5 %), ADD-S of the pose is 0.
+        assert!((m[3].dre - 0.03).abs() < 1e-9, "{}", m[3].dre);
+        assert!(m[3].dre_success_05 && m[3].add == Some(0.0));
+        assert!((m[3].pred_diameter - 1.03 * d_box).abs() < 1e-9);
+        assert_eq!(r.overall.dre_05, 1.0);
+
+        // The same four as own-frame predictions (model_frame: false): no ADD at all.
+        let mut p2 = preds.clone();
+        for p in p2["predictions"].as_array_mut().unwrap() {
+            p["model_frame"] = serde_json::json!(false);
+        }
+        std::fs::write(&pf, p2.to_string()).unwrap();
+        let r2 = run_eval(&dir, &pf, &EvalOptions { n_samples: 20_000, ..Default::default() }).unwrap();
+        assert!(r2.objects.iter().all(|o| o.metrics.as_ref().unwrap().add.is_none()));
+        assert!(r2.overall.add_10.is_nan() && r2.overall.add_s_10.is_nan());
+        assert_eq!(r2.overall.add_sb_10, r.overall.add_sb_10);
+        let v: serde_json::Value = serde_json::from_str(&r2.to_json().unwrap()).unwrap();
+        assert!(v["overall"]["add_10"].is_null() && v["objects"][0]["metrics"]["add"].is_null());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn all_frames_counts_unpredicted_frames_as_missed() {
+        let dir = tmpdir("allframes");
+        write_bop(&dir);
+        let pf = dir.join("p.json");
+        std::fs::write(&pf, r#"{"predictions": [{"scene": "000048", "frame": 2, "obj_id": 1, "R": [[1,0,0],[0,0,-1],[0,1,0]], "t": [0, 0, 0.6]}]}"#).unwrap();
+        let only = run_eval(&dir, &pf, &EvalOptions { n_samples: 2000, ..Default::default() }).unwrap();
+        assert_eq!((only.overall.n_gt, only.overall.n_missed, only.overall.add_sb_10), (1, 0, 1.0));
+        let all = run_eval(&dir, &pf, &EvalOptions { n_samples: 2000, all_frames: true, ..Default::default() }).unwrap();
+        assert_eq!((all.overall.n_gt, all.overall.n_missed), (3, 2));
+        assert!((all.overall.add_sb_10 - 1.0 / 3.0).abs() < 1e-12);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     /// Real data: YCB-Video frame 0001/000001, the BOP mesh of 002_master_chef_can as the
     /// "prediction" at the GT pose, scored against the YCB-Video points.xyz GT model.
     /// The BOP mesh is re-centred (README: x_bop_mm ≈ 1000·x_ycbv_m + off, ±1 mm), which is
