@@ -20,6 +20,8 @@ enum Cmd {
     },
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
+    /// Posed meshes (a scene file or a recon infer output) → settled, simulator-ready scene: URDF, MJCF, USD, GLB.
+    Scene(cli::scene::SceneArgs),
     /// Checkpoints: download, verify, random-initialise.
     Weights {
         #[command(subcommand)]
@@ -33,6 +35,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Conformance { dirs } => recon::conformance::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Scene(a) => cli::scene::run(a)?,
     };
     if !ok {
         std::process::exit(1);
