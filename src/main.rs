@@ -18,8 +18,14 @@ enum Cmd {
         #[arg(required = true)]
         dirs: Vec<std::path::PathBuf>,
     },
+    /// Score predictions (or the `observed` baseline) against a BOP or YCB-Video dataset: occlusion-binned table, report JSON, SVG plot.
+    Eval(cli::eval::EvalArgs),
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
+    /// Train a stage-1 model (SS VAE, SS flow with pose tokens) on BOP-format synthetic data.
+    Train(cli::train::TrainArgs),
+    /// Synthetic occluded RGB-D scenes with exact ground truth, in the BOP format.
+    Synth(cli::synth::SynthArgs),
     /// Posed meshes (a scene file or a recon infer output) → settled, simulator-ready scene: URDF, MJCF, USD, GLB.
     Scene(cli::scene::SceneArgs),
     /// Checkpoints: download, verify, random-initialise.
@@ -34,7 +40,10 @@ fn main() -> anyhow::Result<()> {
     let ok = match cli.cmd {
         Cmd::Conformance { dirs } => recon::conformance::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
+        Cmd::Eval(a) => cli::eval::run(a)?,
         Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Train(a) => cli::train::run(a)?,
+        Cmd::Synth(a) => cli::synth::run(a)?,
         Cmd::Scene(a) => cli::scene::run(a)?,
     };
     if !ok {

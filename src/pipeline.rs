@@ -154,6 +154,45 @@ pub struct StageTimings {
     pub total: f64,
 }
 
+/// The stages of [`Pipeline::run`], reported to an observer as each starts
+/// ([`Pipeline::run_observed`]), e.g. to drive a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    ImageEncoder,
+    SsSampling,
+    SsDecoder,
+    SlatSampling,
+    MeshDecoder,
+    GaussianDecoder,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::ImageEncoder => "image encoder",
+            Stage::SsSampling => "ss sampling",
+            Stage::SsDecoder => "ss decoder",
+            Stage::SlatSampling => "slat sampling",
+            Stage::MeshDecoder => "mesh decoder",
+            Stage::GaussianDecoder => "gaussian decoder",
+        }
+    }
+}
+
+/// Where each module's checkpoint is, for layouts other than
+/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
+/// weights manifest).
+#[derive(Debug, Clone, Default)]
+pub struct WeightFiles {
+    /// Reported as the weights' origin.
+    pub dir: PathBuf,
+    /// Module key ([`RecGenConfig::modules`]) → checkpoint file.
+    pub modules: HashMap<String, PathBuf>,
+    /// Pose statistics to use instead of the files the architecture names.
+    pub ss_stats: Option<PathBuf>,
+    pub slat_stats: Option<PathBuf>,
+}
+
 /// The stage-1 pose prediction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PredictedPose {
@@ -275,9 +314,7 @@ impl Pipeline {
 
     pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
-        let mut vbs = HashMap::new();
-        let mut files = Vec::new();
-        let mut random_init = false;
+        let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
             if stages == Stages::SparseStructure && !is_stage1(key) {
                 continue;
@@ -292,6 +329,24 @@ impl Pipeline {
                         format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
                     )
                 })?;
+            files.modules.insert(key.to_string(), path);
+        }
+        Self::load_files(config_path, &files, stages)
+    }
+
+    /// Build from explicit checkpoint files (one per module key).
+    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages) -> Result<Self> {
+        let config = RecGenConfig::load(config_path)?;
+        let mut vbs = HashMap::new();
+        let mut files = Vec::new();
+        let mut random_init = false;
+        for (key, spec) in config.modules() {
+            if stages == Stages::SparseStructure && !is_stage1(key) {
+                continue;
+            }
+            let path = weight_files.modules.get(key).cloned().ok_or_else(|| {
+                Error::input(weight_files.dir.display().to_string(), format!("no checkpoint file for module `{key}` ({})", spec.name))
+            })?;
             let label = format!("{}: {key}", config_path.display());
             let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
             let ck = Checkpoint::open(&path, None)?;
@@ -302,8 +357,15 @@ impl Pipeline {
             vbs.insert(key, ck.into_var_builder(DType::F32, &Device::Cpu));
             files.push(path);
         }
-        let weights = WeightsSource::Files { dir: weights_dir.to_path_buf(), files, random_init };
-        Self::build(config, vbs, weights, stages)
+        let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
+        let mut p = Self::build(config, vbs, weights, stages)?;
+        if let Some(f) = &weight_files.ss_stats {
+            p.ss_stats = PoseStats::from_json_file(f)?;
+        }
+        if let Some(f) = &weight_files.slat_stats {
+            p.slat_stats = PoseStats::from_json_file(f)?;
+        }
+        Ok(p)
     }
 
     pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
@@ -414,6 +476,11 @@ impl Pipeline {
 
     /// Run both stages (or stage 1 only) on one object.
     pub fn run(&self, inputs: &ObjectInputs, opts: &RunOptions) -> Result<ObjectReconstruction> {
+        self.run_observed(inputs, opts, &|_| {})
+    }
+
+    /// [`Self::run`], calling `on_stage` as each stage starts.
+    pub fn run_observed(&self, inputs: &ObjectInputs, opts: &RunOptions, on_stage: &dyn Fn(Stage)) -> Result<ObjectReconstruction> {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
         let dev = Device::Cpu;
@@ -426,6 +493,7 @@ impl Pipeline {
         let mut tm = StageTimings::default();
 
         // 1. Image encoder.
+        on_stage(Stage::ImageEncoder);
         let t = Instant::now();
         let tokens: Vec<Tensor> =
             inputs.views.iter().map(|v| self.dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
@@ -438,6 +506,7 @@ impl Pipeline {
             .collect();
 
         // 2–3. Stage 1: condition, then latent + pose sampling.
+        on_stage(Stage::SsSampling);
         let t = Instant::now();
         let (cond, neg) = self.ss_flow.condition(&views)?;
         tm.ss_condition = secs(t);
@@ -452,6 +521,7 @@ impl Pipeline {
         tm.ss_sampling = secs(t);
 
         // 4. Occupancy.
+        on_stage(Stage::SsDecoder);
         let t = Instant::now();
         let logits = self.ss_decoder.forward(&z)?;
         let ss_resolution = logits.dim(2)?;
@@ -498,6 +568,7 @@ impl Pipeline {
                 return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
             }
             // 6. Stage-2 condition.
+            on_stage(Stage::SlatSampling);
             let t = Instant::now();
             let (cond, neg) = s2.slat_flow.condition(&views, Some(&slat_pose))?;
             tm.slat_condition = secs(t);
@@ -514,11 +585,13 @@ impl Pipeline {
 
             // 8. Decoders.
             if opts.decode_mesh {
+                on_stage(Stage::MeshDecoder);
                 let t = Instant::now();
                 mesh = Some(s2.mesh_decoder.forward(&slat)?.into_iter().next().unwrap_or_default());
                 tm.mesh_decoder = secs(t);
             }
             if opts.decode_gaussians {
+                on_stage(Stage::GaussianDecoder);
                 let t = Instant::now();
                 let g = s2.gs_decoder.forward(&slat)?;
                 let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;

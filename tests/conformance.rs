@@ -34,3 +34,33 @@ fixture_tests! {
     flexicubes_sphere_r16 => "flexicubes_sphere_r16",
     flexicubes_box_r16_color => "flexicubes_box_r16_color",
 }
+
+/// The same fixtures with every layer built on the fast inference kernels in
+/// f32 (packed GEMM, flash attention, fused norms): within the same tolerances.
+fn assert_fixture_fast(name: &str) {
+    use recon::model::fast::{build_with, Compute, Precision};
+    let checks = build_with(Compute::fast(Precision::F32), || recon::conformance::run_fixture(&fixture(name)))
+        .unwrap_or_else(|e| panic!("{name} (fast f32): {e}"));
+    assert!(!checks.is_empty(), "{name}: no outputs checked");
+    for c in &checks {
+        eprintln!("{name} fast f32: {} max_abs {:.3e} tol {:.1e}", c.output, c.max_abs, c.tol);
+        assert!(c.pass, "{name} fast f32: {} max_abs {:.3e} exceeds tol {:.1e}", c.output, c.max_abs, c.tol);
+    }
+}
+
+macro_rules! fast_fixture_tests {
+    ($($test:ident => $dir:literal),* $(,)?) => {
+        $( #[test] fn $test() { assert_fixture_fast($dir); } )*
+    };
+}
+
+fast_fixture_tests! {
+    fast_dinov2_reg_cond => "dinov2_reg_cond",
+    fast_ss_flow_base => "ss_flow_base",
+    fast_ss_flow_imglarge => "ss_flow_imglarge",
+    fast_ss_flow_sharemod_qknorm_cross => "ss_flow_sharemod_qknorm_cross",
+    fast_ss_sampler_interval_cfg => "ss_sampler_interval_cfg",
+    fast_slat_flow => "slat_flow",
+    fast_slat_dec_mesh => "slat_dec_mesh",
+    fast_slat_dec_gs => "slat_dec_gs",
+}

@@ -361,3 +361,326 @@ fn sample_frame_objects_prepare_with_recgen_invariants() {
         );
     }
 }
+
+// ---------------------------------------------------------------------------
+// `recon infer` end to end on the three real datasets (random tiny weights).
+
+/// Run `recon infer … --json` and return the parsed summary.
+fn run_infer(args: &[String]) -> serde_json::Value {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_recon"))
+        .arg("infer")
+        .args(args)
+        .args(["--steps", "1", "--json"])
+        .current_dir(repo())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "recon infer {args:?} failed:\n{err}");
+    assert!(err.contains("RANDOM weights"), "the random-weights notice is missing: {err}");
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("--json output: {e}\n{}", String::from_utf8_lossy(&out.stdout)))
+}
+
+/// A GLB file: header, JSON chunk and BIN chunk in place; returns the JSON.
+fn check_glb(path: &Path) -> serde_json::Value {
+    let b = std::fs::read(path).unwrap();
+    let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().unwrap()) as usize;
+    assert_eq!(&b[0..4], b"glTF", "{}", path.display());
+    assert_eq!(u32_at(4), 2);
+    assert_eq!(u32_at(8), b.len());
+    let jlen = u32_at(12);
+    assert_eq!(&b[16..20], b"JSON");
+    let doc: serde_json::Value = serde_json::from_slice(&b[20..20 + jlen]).unwrap();
+    assert_eq!(&b[20 + jlen + 4..20 + jlen + 8], b"BIN\0");
+    assert_eq!(20 + jlen + 8 + u32_at(20 + jlen), b.len());
+    assert_eq!(doc["asset"]["version"], "2.0");
+    doc
+}
+
+/// Every file of a `recon infer` output folder, and the summary's fields.
+fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
+    let out = PathBuf::from(summary["out"].as_str().unwrap());
+    assert!(out.join("recon-output.json").is_file());
+    let objects = summary["objects"].as_array().unwrap();
+    assert!(!objects.is_empty(), "no object reconstructed: {summary}");
+    assert_eq!(summary["views"], views);
+    for k in ["encoder", "ss_sampling", "ss_decoder", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"] {
+        assert!(summary["stage_totals_s"][k].as_f64().is_some(), "stage_totals_s.{k}");
+    }
+    assert!(summary["stage_totals_s"]["total"].as_f64().unwrap() > 0.0);
+    for o in objects {
+        let files = &o["files"];
+        let pose: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(files["pose"].as_str().unwrap()).unwrap()).unwrap();
+        // Rotation (proper, orthonormal), translation in metres, scale, sampler settings and seed.
+        let r: Vec<Vec<f64>> = serde_json::from_value(pose["rotation"].clone()).unwrap();
+        for i in 0..3 {
+            for j in 0..3 {
+                let d: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
+                assert!((d - if i == j { 1.0 } else { 0.0 }).abs() < 1e-4, "{r:?}");
+            }
+        }
+        let t: Vec<f64> = serde_json::from_value(pose["translation_m"].clone()).unwrap();
+        assert!(t.len() == 3 && t.iter().all(|x| x.is_finite()));
+        assert!(pose["scale_m"].as_f64().unwrap() > 0.0);
+        assert!(pose["frame"].as_str().unwrap().contains("camera"));
+        assert!(pose["run"]["seed"].as_u64().is_some() && pose["run"]["ss_sampler"]["steps"] == 1 && pose["run"]["slat_sampler"]["steps"] == 1);
+        assert_eq!(pose["run"]["random_weights"], true);
+        assert!(pose["selection"]["method"].is_string() && pose["selection"]["score_m"].as_f64().unwrap().is_finite());
+        let pv = pose["views"].as_array().unwrap();
+        assert_eq!(pv.len(), views);
+        // The object sits where its points were observed (random weights: within its own extent).
+        let c: Vec<f64> = serde_json::from_value(pv[0]["normaliser_centre_m"].clone()).unwrap();
+        let d = ((t[0] - c[0]).powi(2) + (t[1] - c[1]).powi(2) + (t[2] - c[2]).powi(2)).sqrt();
+        assert!(d < 0.5 * pv[0]["normaliser_diameter_m"].as_f64().unwrap() + 0.05, "translation {t:?} vs observed centre {c:?}");
+        assert!(o["stage_seconds"]["total"].as_f64().unwrap() > 0.0);
+        let mesh = check_glb(Path::new(files["mesh_glb"].as_str().unwrap()));
+        let attrs = &mesh["meshes"][0]["primitives"][0]["attributes"];
+        assert!(attrs.get("POSITION").is_some() && attrs.get("COLOR_0").is_some());
+        let ply = std::fs::read(files["gaussians_ply"].as_str().unwrap()).unwrap();
+        assert!(ply.starts_with(b"ply\n"));
+    }
+    let scene = check_glb(&out.join("scene.glb"));
+    let meshes = scene["meshes"].as_array().unwrap();
+    assert_eq!(meshes.len(), 2 * objects.len(), "one mesh and one observed cloud per object");
+    let points: Vec<&serde_json::Value> = meshes.iter().filter(|m| m["primitives"][0]["mode"] == 0).collect();
+    assert_eq!(points.len(), objects.len());
+    for p in points {
+        let acc = &scene["accessors"][p["primitives"][0]["attributes"]["POSITION"].as_u64().unwrap() as usize];
+        assert!(acc["count"].as_u64().unwrap() > 100);
+    }
+    println!("{}: {}", out.display(), serde_json::to_string(&summary["stage_totals_s"]).unwrap());
+}
+
+fn tmp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("recon-realdata-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// YCB-Video: the label map is the instance mask; the face budget is applied.
+#[test]
+fn infer_cli_ycb_video() {
+    let Some(root) = realdata() else { return };
+    let d = root.join("ycbv_video_oprb/0000");
+    let tmp = tmp_dir("ycb");
+    let s = |p: PathBuf| p.to_string_lossy().to_string();
+    let summary = run_infer(&[
+        "--rgbd".into(), s(d.join("000001-color.png")),
+        "--masks".into(), s(d.join("000001-label.png")),
+        "--objects".into(), "21".into(),
+        "--max-faces".into(), "600000".into(),
+        "--out".into(), s(tmp.join("out")),
+    ]);
+    check_infer_outputs(&summary, 1);
+    let o = &summary["objects"][0];
+    let (faces, decoded) = (o["faces"].as_u64().unwrap(), o["faces_decoded"].as_u64().unwrap());
+    assert!(faces <= 600_000 && (decoded <= 600_000 || faces < decoded), "{faces} of {decoded}");
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// LINEMOD ships no mask: a depth-based one for the watering can (pixels of
+/// a box around it standing ≥ 15 mm in front of the board, the board depth
+/// taken per row just left and right of the box).
+#[test]
+fn infer_cli_linemod_with_depth_mask() {
+    let Some(root) = realdata() else { return };
+    let d = root.join("lm_benchvise_sam6d");
+    let frame = RgbdFrame::open(&d.join("rgb.png"), &FrameOptions::default()).unwrap();
+    let (w, h) = (frame.width, frame.height);
+    let (x0, x1, y0, y1) = (370, 440, 225, 315);
+    let mut mask = image::GrayImage::new(w as u32, h as u32);
+    let mut n = 0;
+    for y in y0..y1 {
+        let mut side: Vec<f32> = (x0 - 8..x0).chain(x1..x1 + 8).map(|x| frame.depth_m[y * w + x]).filter(|z| *z > 0.0).collect();
+        side.sort_by(|a, b| a.total_cmp(b));
+        let board = side[side.len() / 2];
+        for x in x0..x1 {
+            let z = frame.depth_m[y * w + x];
+            if z > 0.0 && z < board - 0.015 {
+                mask.put_pixel(x as u32, y as u32, image::Luma([255]));
+                n += 1;
+            }
+        }
+    }
+    assert!(n > 2000, "{n} mask pixels");
+    let tmp = tmp_dir("lm");
+    mask.save(tmp.join("can-mask.png")).unwrap();
+    let s = |p: PathBuf| p.to_string_lossy().to_string();
+    let summary = run_infer(&[
+        "--rgbd".into(), s(d.join("rgb.png")),
+        "--masks".into(), s(tmp.join("can-mask.png")),
+        "--max-faces".into(), "0".into(),
+        "--out".into(), s(tmp.join("out")),
+    ]);
+    check_infer_outputs(&summary, 1);
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// RealSense: PoseCNN's predicted label map (not ground truth) as the instance mask.
+#[test]
+fn infer_cli_realsense_with_posecnn_labels() {
+    let Some(root) = realdata() else { return };
+    let d = root.join("realsense_ycb_posecnn_pytorch");
+    let mat = MatFile::open(&d.join("posecnn_predictions/000000-color.png.mat")).unwrap();
+    let labels = mat.get("labels").unwrap();
+    assert_eq!(labels.dims, vec![480, 640]);
+    let mut img = image::GrayImage::new(640, 480);
+    for y in 0..480 {
+        for x in 0..640 {
+            img.put_pixel(x as u32, y as u32, image::Luma([labels.at(&[y, x]).unwrap() as u8]));
+        }
+    }
+    let tmp = tmp_dir("rs");
+    img.save(tmp.join("labels.png")).unwrap();
+    let s = |p: PathBuf| p.to_string_lossy().to_string();
+    // Class 5 = mustard bottle (README).
+    let summary = run_infer(&[
+        "--rgbd".into(), s(d.join("000000-color.png")),
+        "--masks".into(), s(tmp.join("labels.png")),
+        "--objects".into(), "5".into(),
+        "--max-faces".into(), "0".into(),
+        "--out".into(), s(tmp.join("out")),
+    ]);
+    check_infer_outputs(&summary, 1);
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// 4×4 GT object-to-camera pose of the object at column `k` of a YCB meta file.
+fn ycb_gt(meta: &MatFile, k: usize) -> [[f64; 4]; 4] {
+    let p = meta.get("poses").unwrap();
+    let mut m = [[0.0; 4]; 4];
+    for a in 0..3 {
+        for b in 0..4 {
+            m[a][b] = if p.dims.len() == 3 { p.at(&[a, b, k]).unwrap() } else { p.at(&[a, b]).unwrap() };
+        }
+    }
+    m[3][3] = 1.0;
+    m
+}
+
+fn mat4_mul(a: &[[f64; 4]; 4], b: &[[f64; 4]; 4]) -> [[f64; 4]; 4] {
+    std::array::from_fn(|i| std::array::from_fn(|j| (0..4).map(|k| a[i][k] * b[k][j]).sum()))
+}
+
+fn rigid_inv(a: &[[f64; 4]; 4]) -> [[f64; 4]; 4] {
+    let mut m = [[0.0; 4]; 4];
+    for i in 0..3 {
+        for j in 0..3 {
+            m[i][j] = a[j][i];
+        }
+        m[i][3] = -(0..3).map(|k| a[k][i] * a[k][3]).sum::<f64>();
+    }
+    m[3][3] = 1.0;
+    m
+}
+
+/// `T_c1_c2 = T_c1_obj · T_c2_obj⁻¹` from the GT poses of object column `k`.
+fn ycb_rel_pose(seq: &Path, f1: usize, f2: usize, k: usize) -> [[f64; 4]; 4] {
+    let m1 = MatFile::open(&seq.join(format!("{f1:06}-meta.mat"))).unwrap();
+    let m2 = MatFile::open(&seq.join(format!("{f2:06}-meta.mat"))).unwrap();
+    mat4_mul(&ycb_gt(&m1, k), &rigid_inv(&ycb_gt(&m2, k)))
+}
+
+/// Two YCB-Video frames of one sequence with the relative camera pose from
+/// their GT object poses (written as a `T_c1_c2` JSON file).
+#[test]
+fn infer_cli_two_view_ycb_video() {
+    let Some(root) = realdata() else { return };
+    let d = root.join("ycbv_video_oprb/0000");
+    let tmp = tmp_dir("ycb2");
+    let rel = ycb_rel_pose(&d, 1, 5, 0);
+    std::fs::write(tmp.join("rel.json"), serde_json::json!({ "T_c1_c2": rel }).to_string()).unwrap();
+    let s = |p: PathBuf| p.to_string_lossy().to_string();
+    let summary = run_infer(&[
+        "--rgbd".into(), s(d.join("000001-color.png")),
+        "--masks".into(), s(d.join("000001-label.png")),
+        "--view2".into(), s(d.join("000005-color.png")),
+        "--masks2".into(), s(d.join("000005-label.png")),
+        "--rel-pose".into(), s(tmp.join("rel.json")),
+        "--objects".into(), "8".into(),
+        "--select".into(), "cross".into(),
+        "--max-faces".into(), "0".into(),
+        "--out".into(), s(tmp.join("out")),
+    ]);
+    check_infer_outputs(&summary, 2);
+    let o = &summary["objects"][0];
+    let views = o["views"].as_array().unwrap();
+    assert!(views[1]["frame"].as_str().unwrap().ends_with("000005-color.png"));
+    // The selected pose seen from camera 2, mapped with T_c1_c2, is the reported camera-1 pose.
+    let p2 = &views[1]["pose_selected"];
+    let t2: Vec<f64> = serde_json::from_value(p2["translation"].clone()).unwrap();
+    let t1: Vec<f64> = serde_json::from_value(o["translation_m"].clone()).unwrap();
+    for a in 0..3 {
+        let mapped = (0..3).map(|b| rel[a][b] * t2[b]).sum::<f64>() + rel[a][3];
+        assert!((mapped - t1[a]).abs() < 1e-5, "{mapped} vs {}", t1[a]);
+    }
+    let pose: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(o["files"]["pose"].as_str().unwrap()).unwrap()).unwrap();
+    assert_eq!(pose["candidates"].as_array().unwrap().len(), 2);
+    assert_eq!(pose["run"]["num_views"], 2);
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// Pose scoring on real depth: the BOP meshes of the master chef can and the
+/// cracker box (YCB-Video 0001), placed at their GT poses through the same
+/// normalised-frame → camera-frame code path as predictions, against the
+/// observed points of frame 1 (`single`) and of frames 1 and 5 (`cross`, via
+/// the GT relative pose); a pose 1 cm / 5° off must score clearly worse.
+#[test]
+fn alignment_scores_gt_meshes_on_real_depth() {
+    use recon::eval::mesh::{axis_angle, Similarity as Sim64};
+    use recon::eval::ply::read_ply;
+    use recon::geometry::alignment::{pose_to_similarity, score_candidate, AlignOptions, Surface, ViewPoints};
+    let Some(root) = realdata() else { return };
+    let ycb = root.join("ycbv_video_oprb");
+    let seq = ycb.join("0001");
+    let opts = AlignOptions::default();
+    let load = |f: usize| {
+        let frame = RgbdFrame::open(&seq.join(format!("{f:06}-color.png")), &FrameOptions::default()).unwrap();
+        let labels = InstanceMap::open(&seq.join(format!("{f:06}-label.png"))).unwrap();
+        (frame, labels, MatFile::open(&seq.join(format!("{f:06}-meta.mat"))).unwrap())
+    };
+    let (f1, l1, m1) = load(1);
+    let (f5, l5, _) = load(5);
+    let cls: Vec<u32> = m1.get("cls_indexes").unwrap().data.iter().map(|&c| c as u32).collect();
+    // (class id, BOP model, README offset x_bop_mm = 1000·x_ycbv_m + offset)
+    for (id, ply, off) in [(1u32, "obj_000001.ply", [1.39, -0.45, 3.60]), (2, "obj_000002.ply", [0.61, 1.76, 4.77])] {
+        let k = cls.iter().position(|&c| c == id).unwrap();
+        let mut mesh = read_ply(&ycb.join("models_bop_ply_recentred").join(ply)).unwrap();
+        for v in mesh.vertices.iter_mut() {
+            *v = std::array::from_fn(|a| (v[a] - off[a]) / 1000.0);
+        }
+        let surface = Surface::new(mesh, 50_000, 0).unwrap();
+        let pts = |f: &RgbdFrame, l: &InstanceMap| {
+            let (o, _) = l.objects(Some(&[id]));
+            object_points(f, &o[0].mask, Some(Default::default())).unwrap().0
+        };
+        let (p1, p5) = (pts(&f1, &l1), pts(&f5, &l5));
+        let g = ycb_gt(&m1, k);
+        let gt = Pose {
+            rotation: std::array::from_fn(|a| std::array::from_fn(|b| g[a][b] as f32)),
+            translation: std::array::from_fn(|a| g[a][3] as f32),
+            scale: 1.0,
+        };
+        // Through the prediction path: normalised frame of OUR preprocessing, back to the camera.
+        let nz = Normaliser::fit(&p1, 0.05).unwrap();
+        let placed = pose_to_similarity(&pose_to_camera(&pose_to_normalised(&gt, &nz), &nz));
+        let rel = ycb_rel_pose(&seq, 1, 5, k);
+        let to1 = Sim64 { r: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])), t: [rel[0][3], rel[1][3], rel[2][3]], s: 1.0 };
+        let views = [ViewPoints { points: p1, to_anchor: Sim64::identity() }, ViewPoints { points: p5, to_anchor: to1 }];
+        let good = score_candidate(&surface, &placed, 0, &views, &opts);
+        let off_pose = Sim64 { t: [placed.t[0] + 0.01, placed.t[1], placed.t[2]], ..placed }
+            .compose(&Sim64 { r: axis_angle([0.0, 0.0, 1.0], 5f64.to_radians()), t: [0.0; 3], s: 1.0 });
+        let bad = score_candidate(&surface, &off_pose, 0, &views, &opts);
+        println!(
+            "{ply} (id {id}): GT pose trimmed-mean distance view 1 {:.2} mm, view 5 {:.2} mm, cross {:.2} mm; 1 cm/5° off: single {:.2} mm, cross {:.2} mm",
+            good.per_view_m[0] * 1e3,
+            good.per_view_m[1] * 1e3,
+            good.cross() * 1e3,
+            bad.single() * 1e3,
+            bad.cross() * 1e3
+        );
+        assert!(good.single() < 0.006 && good.cross() < 0.006, "{good:?}");
+        assert!(bad.single() > 1.5 * good.single() && bad.cross() > 1.5 * good.cross(), "{bad:?} vs {good:?}");
+    }
+}

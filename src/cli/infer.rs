@@ -1,5 +1,5 @@
-//! `recon infer`: RGB-D frame + masks → posed meshes, Gaussians and poses.
-use std::path::PathBuf;
+//! `recon infer`: RGB-D frame(s) + masks → posed meshes, Gaussians and poses.
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct InferArgs {
@@ -11,7 +11,7 @@ pub struct InferArgs {
     /// Instance-id PNG (0 = background), or several binary mask files.
     #[arg(long, num_args = 1.., required = true)]
     masks: Vec<PathBuf>,
-    /// Instance ids to reconstruct (default: all present).
+    /// Instance ids to reconstruct (default: all present). Applies to both views.
     #[arg(long, value_delimiter = ',')]
     objects: Option<Vec<u32>>,
     /// Depth image (16-bit PNG).
@@ -23,13 +23,50 @@ pub struct InferArgs {
     /// Metres per depth unit (e.g. 0.001 for millimetres).
     #[arg(long)]
     depth_scale: Option<f64>,
-    /// Architecture file.
-    #[arg(long, default_value = "models/recgen-tiny.json")]
-    config: PathBuf,
-    /// Weights directory (`<module>.safetensors` per module). Without it the model
-    /// runs with RANDOM weights (plumbing only; results are not meaningful).
+    /// Second view's colour image (same conventions as --rgbd): two-view conditioning.
+    /// Results are reported in the camera frame of --rgbd.
+    #[arg(long, requires_all = ["masks2", "rel_pose"])]
+    view2: Option<PathBuf>,
+    /// Second view's masks (instance-id PNG or binary masks). Objects are matched to
+    /// --masks by instance id, or by file order for binary masks.
+    #[arg(long, num_args = 1.., requires = "view2")]
+    masks2: Vec<PathBuf>,
+    /// Second view's depth image.
+    #[arg(long, requires = "view2")]
+    depth2: Option<PathBuf>,
+    /// Second view's intrinsics: `fx,fy,cx,cy` or a JSON file.
+    #[arg(long, requires = "view2")]
+    intrinsics2: Option<String>,
+    /// Second view's metres per depth unit.
+    #[arg(long, requires = "view2")]
+    depth_scale2: Option<f64>,
+    /// Relative camera pose T_c1_c2, camera 2 → camera 1 (x_cam1 = R·x_cam2 + t, metres):
+    /// 16 numbers of the 4×4 matrix, row-major, or a JSON file with "T_c1_c2" (4×4 rows).
+    #[arg(long, requires = "view2", allow_hyphen_values = true)]
+    rel_pose: Option<String>,
+    /// Pose selection among views and samples: `single` (each pose scored in its own view),
+    /// `cross` (scored in every view), `first` (view 1's pose). Score: trimmed mean (top 10 %
+    /// dropped) of observed-point-to-mesh distances, metres.
+    #[arg(long, default_value = "cross", value_parser = ["single", "cross", "first"])]
+    select: String,
+    /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
+    /// the per-sample poses reported as uncertainty.
+    #[arg(long, default_value_t = 1)]
+    samples: usize,
+    /// Architecture file (default: models/recgen-tiny.json; models/recgen-large.json
+    /// with a manifest name in --weights).
     #[arg(long)]
-    weights: Option<PathBuf>,
+    config: Option<PathBuf>,
+    /// Weights: a directory (`<module>.safetensors` per module) or a manifest name
+    /// (e.g. `recgen`, or a manifest .json) resolved in the Hugging Face cache after
+    /// `recon weights fetch`. Without it the model runs with RANDOM weights
+    /// (plumbing only; results are not meaningful).
+    #[arg(long)]
+    weights: Option<String>,
+    /// Model precision. This build's pipeline computes in f32 only: bf16/f16 stop with an
+    /// error rather than silently running in f32.
+    #[arg(long, default_value = "f32", value_parser = ["f32", "bf16", "f16"])]
+    dtype: String,
     #[arg(long, default_value_t = 42)]
     seed: u64,
     /// Sampler steps for both stages (default: the config's).
@@ -38,6 +75,9 @@ pub struct InferArgs {
     /// Classifier-free guidance strength for both stages (default: the config's).
     #[arg(long)]
     cfg: Option<f64>,
+    /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
+    #[arg(long, default_value_t = recon::infer::DEFAULT_MAX_FACES)]
+    max_faces: usize,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -49,53 +89,212 @@ pub struct InferArgs {
     json: bool,
 }
 
-pub fn run(a: InferArgs) -> anyhow::Result<bool> {
-    use anyhow::Context;
-    use recon::infer::{write_outputs, Engine, InferOptions};
-    use recon::inputs::frame::{FrameOptions, Intrinsics, RgbdFrame};
-    use recon::inputs::masks::{load_binary_masks, InstanceMap};
-    if let Some(n) = a.threads {
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
-    }
-    let mut fo = FrameOptions { depth: a.depth.clone(), depth_scale: a.depth_scale, ..Default::default() };
-    if let Some(k) = &a.intrinsics {
+fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Option<f64>, flag: &str) -> anyhow::Result<recon::inputs::frame::FrameOptions> {
+    use recon::inputs::frame::{FrameOptions, Intrinsics};
+    let mut fo = FrameOptions { depth: depth.clone(), depth_scale: scale, ..Default::default() };
+    if let Some(k) = intrinsics {
         let nums: Vec<f64> = k.split(',').filter_map(|v| v.trim().parse().ok()).collect();
         if nums.len() == 4 && k.split(',').count() == 4 {
             fo.intrinsics = Some(Intrinsics::new(nums[0], nums[1], nums[2], nums[3])?);
-        } else {
+        } else if Path::new(k).is_file() {
             fo.intrinsics_file = Some(PathBuf::from(k));
+        } else {
+            anyhow::bail!("{flag} `{k}`: expected fx,fy,cx,cy or an intrinsics JSON file");
         }
     }
-    let frame = RgbdFrame::open(&a.rgbd, &fo)?;
-    // One file is an instance-id map (a binary 0/255 mask is the one-object case);
-    // several files are binary masks, one object each.
-    let (objects, mut skipped) = if a.masks.len() == 1 {
-        InstanceMap::open(&a.masks[0])?.objects(a.objects.as_deref())
+    Ok(fo)
+}
+
+type Masks = (Vec<recon::inputs::masks::ObjectMask>, Vec<recon::inputs::masks::MaskSkip>);
+
+/// One file is an instance-id map (a binary 0/255 mask is the one-object
+/// case); several files are binary masks, one object each.
+fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
+    use recon::inputs::masks::{load_binary_masks, InstanceMap};
+    if files.len() == 1 {
+        Ok(InstanceMap::open(&files[0])?.objects(ids))
     } else {
-        if a.objects.is_some() {
+        if ids.is_some() {
             anyhow::bail!("--objects selects ids of an instance-id map; with several binary mask files, list only the masks you want");
         }
-        load_binary_masks(&a.masks)
+        Ok(load_binary_masks(files))
+    }
+}
+
+enum Weights {
+    Random,
+    Dir(PathBuf),
+    Manifest(String),
+}
+
+fn classify_weights(w: &Option<String>) -> anyhow::Result<Weights> {
+    use recon::weights::manifest::{Manifest, EMBEDDED};
+    let Some(w) = w else { return Ok(Weights::Random) };
+    let p = Path::new(w);
+    if p.is_dir() {
+        return Ok(Weights::Dir(p.to_path_buf()));
+    }
+    if EMBEDDED.iter().any(|(n, _)| n == w) || (p.is_file() && Manifest::load(w).is_ok()) {
+        return Ok(Weights::Manifest(w.clone()));
+    }
+    let known: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
+    anyhow::bail!("--weights `{w}`: not a directory, and not a manifest name ({}) or manifest file", known.join(", "))
+}
+
+/// Per-stage seconds of one object (model stages summed over samples).
+fn stage_row(o: &recon::infer::ObjectResult) -> [f64; 9] {
+    let t = &o.timings;
+    [
+        t.image_encoder,
+        t.ss_condition + t.ss_sampling,
+        t.ss_decoder + t.pose,
+        t.slat_condition + t.slat_sampling,
+        t.mesh_decoder,
+        t.gaussian_decoder,
+        o.postprocess_seconds,
+        o.select_seconds,
+        t.total + o.postprocess_seconds + o.select_seconds,
+    ]
+}
+
+const STAGES: [&str; 9] = ["encoder", "ss_sampling", "ss_decoder", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
+
+/// A terminal progress bar (hidden unless both stdout and stderr are terminals).
+struct Bar {
+    pb: indicatif::ProgressBar,
+    state: std::sync::Mutex<BarState>,
+}
+
+#[derive(Default)]
+struct BarState {
+    label: String,
+    object: (usize, usize),
+    seed: u64,
+    stage: Option<(recon::pipeline::Stage, std::time::Instant)>,
+    done: Vec<String>,
+}
+
+impl Bar {
+    fn new(units: u64) -> Self {
+        use std::io::IsTerminal;
+        let pb = if std::io::stdout().is_terminal() && std::io::stderr().is_terminal() {
+            let pb = indicatif::ProgressBar::new(units);
+            pb.set_style(
+                indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:24} {pos}/{len} {msg}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            );
+            pb.enable_steady_tick(std::time::Duration::from_millis(200));
+            pb
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        Bar { pb, state: Default::default() }
+    }
+
+    fn event(&self, e: recon::infer::Progress) {
+        use recon::infer::Progress;
+        let Ok(mut s) = self.state.lock() else { return };
+        let close_stage = |s: &mut BarState| {
+            if let Some((st, t0)) = s.stage.take() {
+                s.done.push(format!("{} {:.1}s", st.name(), t0.elapsed().as_secs_f64()));
+            }
+        };
+        match e {
+            Progress::Object { index, total, label } => {
+                s.label = label.to_string();
+                s.object = (index + 1, total);
+                s.done.clear();
+            }
+            Progress::Sample { index, seed, .. } => {
+                close_stage(&mut s);
+                if index > 0 {
+                    self.pb.inc(1);
+                }
+                s.seed = seed;
+            }
+            Progress::Stage(st) => {
+                close_stage(&mut s);
+                s.stage = Some((st, std::time::Instant::now()));
+            }
+            Progress::Selecting => close_stage(&mut s),
+            Progress::ObjectDone { label, seconds } => {
+                close_stage(&mut s);
+                self.pb.inc(1);
+                self.pb.println(format!("{label}: {seconds:.1} s ({})", s.done.join(", ")));
+                s.done.clear();
+            }
+        }
+        let stage = s.stage.map(|(st, _)| st.name()).unwrap_or("selecting");
+        self.pb.set_message(format!("{} [{}/{}] seed {}: {stage}", s.label, s.object.0, s.object.1, s.seed));
+    }
+}
+
+pub fn run(a: InferArgs) -> anyhow::Result<bool> {
+    use anyhow::Context;
+    use recon::geometry::alignment::{parse_rel_pose, SelectMethod};
+    use recon::infer::{write_outputs, Engine, InferOptions, SecondView};
+    use recon::model::fast::Precision;
+    use recon::inputs::frame::RgbdFrame;
+    if let Some(n) = a.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
+    }
+    if a.samples == 0 {
+        anyhow::bail!("--samples must be at least 1");
+    }
+    let select: SelectMethod = a.select.parse().map_err(|e: String| anyhow::anyhow!("--select {e}"))?;
+    let dtype: Precision = a.dtype.parse().map_err(|e: String| anyhow::anyhow!("--dtype: {e}"))?;
+    if dtype != Precision::F32 {
+        // The reduced-precision CPU kernels (src/model/fast.rs) are not wired into the
+        // pipeline in this build; running f32 under a bf16 label would be a lie.
+        anyhow::bail!("--dtype {dtype}: not available in this build (the pipeline computes in f32 only); use --dtype f32");
+    }
+    let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
+    let (objects, mut skipped) = load_masks(&a.masks, a.objects.as_deref())?;
+    let second = match &a.view2 {
+        Some(v2) => {
+            let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
+            let (o2, s2) = load_masks(&a.masks2, a.objects.as_deref())?;
+            skipped.extend(s2.into_iter().map(|mut s| {
+                s.label = format!("view 2 {}", s.label);
+                s
+            }));
+            let rel = a.rel_pose.as_deref().context("--view2 needs --rel-pose")?;
+            Some((f2, o2, parse_rel_pose(rel)?))
+        }
+        None => None,
     };
-    let random = a.weights.is_none();
-    let engine = match &a.weights {
-        Some(dir) => Engine::load(&a.config, dir)?,
-        None => Engine::random(&a.config, a.seed)?,
+
+    let weights = classify_weights(&a.weights)?;
+    let config = a.config.clone().unwrap_or_else(|| match weights {
+        Weights::Manifest(_) => PathBuf::from("models/recgen-large.json"),
+        _ => PathBuf::from("models/recgen-tiny.json"),
+    });
+    let engine = match &weights {
+        Weights::Random => Engine::random(&config, a.seed)?,
+        Weights::Dir(d) => Engine::load(&config, d)?,
+        Weights::Manifest(m) => Engine::load_manifest(&config, m, &recon::weights::fetch::default_hf_cache())?,
     };
+    let random = engine.pipeline.weights().is_random();
     if random {
         eprintln!(
-            "NOTE: no --weights given: running {} with RANDOM weights (seed {}). The plumbing is real; the shapes and poses are not meaningful.",
-            a.config.display(),
+            "NOTE: running {} with RANDOM weights (seed {}). The plumbing is real; the shapes and poses are not meaningful.",
+            config.display(),
             a.seed
         );
     }
-    let mut opts = InferOptions::default();
+    let mut opts = InferOptions { samples: a.samples, select, max_faces: (a.max_faces > 0).then_some(a.max_faces), ..Default::default() };
     opts.run.seed = a.seed;
     opts.run.ss_steps = a.steps;
     opts.run.slat_steps = a.steps;
     opts.run.ss_cfg_strength = a.cfg;
     opts.run.slat_cfg_strength = a.cfg;
-    let result = engine.reconstruct(&frame, objects, &opts)?;
+
+    let bar = Bar::new((objects.len() * a.samples) as u64);
+    let progress = |e: recon::infer::Progress<'_>| bar.event(e);
+    let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
+    let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
+    bar.pb.finish_and_clear();
+    let result = result?;
     skipped.extend(result.skipped.iter().cloned());
     let out = match a.out {
         Some(o) => o,
@@ -105,6 +304,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         }
     };
     let written = write_outputs(&result, &out)?;
+    let totals: Vec<f64> = (0..STAGES.len()).map(|k| result.objects.iter().map(|o| stage_row(o)[k]).sum()).collect();
     if a.json {
         let objs: Vec<serde_json::Value> = result
             .objects
@@ -114,45 +314,80 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
                 serde_json::json!({
                     "object": o.label, "id": o.id,
                     "rotation": o.pose_camera.rotation, "translation_m": o.pose_camera.translation, "scale_m": o.pose_camera.scale,
+                    "selection": o.selection, "uncertainty": o.uncertainty, "views": o.views,
                     "occupied_voxels": o.occupied_voxels,
+                    "faces_decoded": o.faces_decoded,
                     "faces": o.mesh_camera.as_ref().map(|m| m.faces.len()),
                     "gaussians": o.gaussians_camera.as_ref().map(|g| g.len()),
-                    "timings_s": o.timings, "files": w,
+                    "timings_s": o.timings, "postprocess_s": o.postprocess_seconds, "select_s": o.select_seconds,
+                    "stage_seconds": STAGES.iter().zip(stage_row(o)).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
+                    "notes": o.notes, "files": w,
                 })
             })
             .collect();
         let skips: Vec<serde_json::Value> =
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
-            "out": out, "random_weights": random, "config": a.config,
-            "preprocess_s": result.preprocess_seconds, "objects": objs, "skipped": skips,
+            "out": out, "random_weights": random, "config": config, "dtype": dtype.name(),
+            "views": if second.is_some() { 2 } else { 1 }, "samples": a.samples, "select": select, "seed": a.seed,
+            "preprocess_s": result.preprocess_seconds,
+            "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
+            "objects": objs, "skipped": skips, "notes": result.notes,
         });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
-        println!("{:<14} {:>9} {:>9} {:>9} {:>8} {:>8} {:>9} {:>8}", "object", "x_m", "y_m", "z_m", "scale_m", "voxels", "faces", "time_s");
+        println!(
+            "{:<14} {:>9} {:>9} {:>9} {:>8} {:>4} {:>6} {:>9} {:>8} {:>8} {:>7} {:>7} {:>8}",
+            "object", "x_m", "y_m", "z_m", "scale_m", "view", "seed", "score_mm", "t_sd_mm", "r_sd_deg", "s_sd", "voxels", "faces"
+        );
         for o in &result.objects {
             let t = o.pose_camera.translation;
+            let u = o.uncertainty.as_ref();
+            let opt = |v: Option<f64>, k: usize| v.map_or("-".to_string(), |v| format!("{v:.k$}"));
             println!(
-                "{:<14} {:>9.4} {:>9.4} {:>9.4} {:>8.4} {:>8} {:>9} {:>8.2}",
+                "{:<14} {:>9.4} {:>9.4} {:>9.4} {:>8.4} {:>4} {:>6} {:>9.2} {:>8} {:>8} {:>7} {:>7} {:>8}",
                 o.label,
                 t[0],
                 t[1],
                 t[2],
                 o.pose_camera.scale,
+                o.selection.view,
+                o.selection.seed,
+                o.selection.score_m * 1e3,
+                opt(u.map(|u| u.translation_sd_mm), 1),
+                opt(u.map(|u| u.rotation_sd_deg), 1),
+                opt(u.map(|u| u.scale_sd_rel), 3),
                 o.occupied_voxels,
                 o.mesh_camera.as_ref().map(|m| m.faces.len()).unwrap_or(0),
-                o.timings.total
             );
+            for n in &o.notes {
+                println!("  note: {n}");
+            }
         }
         for s in &skipped {
             println!("{s}");
         }
-        if let Some(o) = result.objects.first() {
-            let t = &o.timings;
-            println!(
-                "stage seconds ({}): encoder {:.2}, ss sampling {:.2}, ss decoder {:.2}, slat sampling {:.2}, mesh {:.2}, gaussians {:.2}; preprocessing (all objects) {:.2}",
-                o.label, t.image_encoder, t.ss_sampling, t.ss_decoder, t.slat_sampling, t.mesh_decoder, t.gaussian_decoder, result.preprocess_seconds
-            );
+        for n in &result.notes {
+            println!("note: {n}");
+        }
+        if !result.objects.is_empty() {
+            print!("\n{:<14}", "seconds");
+            for s in STAGES {
+                print!(" {s:>13}");
+            }
+            println!();
+            for o in &result.objects {
+                print!("{:<14}", o.label);
+                for v in stage_row(o) {
+                    print!(" {v:>13.2}");
+                }
+                println!();
+            }
+            print!("{:<14}", "all objects");
+            for v in &totals {
+                print!(" {v:>13.2}");
+            }
+            println!("\npreprocessing (all objects): {:.2} s", result.preprocess_seconds);
         }
         println!("wrote {}{}", out.display(), if random { " (RANDOM weights)" } else { "" });
     }

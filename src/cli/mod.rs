@@ -1,4 +1,7 @@
 //! Subcommands of the `recon` binary, one file each.
+pub mod eval;
 pub mod infer;
 pub mod scene;
+pub mod synth;
+pub mod train;
 pub mod weights;

@@ -11,7 +11,8 @@ use crate::model::common::{layer_norm_plain, linear};
 use crate::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{DType, Device, Module, Tensor, D};
-use candle_nn::{Linear, VarBuilder};
+use crate::model::common::Linear;
+use candle_nn::VarBuilder;
 
 pub use crate::export::splat::SH_C0;
 

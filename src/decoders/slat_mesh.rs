@@ -16,7 +16,8 @@ use crate::model::common::linear;
 use crate::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{DType, Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use crate::model::common::Linear;
+use candle_nn::VarBuilder;
 use recon_kernels::sparse::CoordHash;
 use std::ops::Range;
 

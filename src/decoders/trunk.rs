@@ -8,7 +8,8 @@ use crate::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use crate::model::common::Linear;
+use candle_nn::VarBuilder;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AttnMode {

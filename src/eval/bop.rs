@@ -31,8 +31,11 @@ pub struct GtInstance {
     pub r: [[f64; 3]; 3],
     /// Metres.
     pub t: P3,
-    /// Fraction of the object's projected silhouette that is visible, if the dataset says.
+    /// Fraction of the object's projected silhouette that is visible, if the dataset says
+    /// (or, with `visib_estimated`, as estimated by [`super::visibility`]).
     pub visib_fract: Option<f64>,
+    /// `visib_fract` is our estimate, not the dataset's annotation (YCB-Video).
+    pub visib_estimated: bool,
     /// Visible 2D box `[x, y, w, h]` in pixels, if known.
     pub bbox_visib: Option<[f64; 4]>,
 }
@@ -48,9 +51,20 @@ pub struct Frame {
     pub gt: Vec<GtInstance>,
 }
 
+/// On-disk layout a [`Dataset`] was read from (decides where its images are).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Layout {
+    /// `<split>/<scene>/{depth,mask_visib}/…` ([`load_bop`]); `root` is the split folder.
+    #[default]
+    Bop,
+    /// `<root>/<seq>/NNNNNN-{depth,label}.png` ([`load_ycbv`]).
+    Ycbv,
+}
+
 #[derive(Debug, Clone, Default)]
 pub struct Dataset {
     pub root: PathBuf,
+    pub layout: Layout,
     pub models: BTreeMap<u32, Model>,
     pub frames: Vec<Frame>,
 }
@@ -59,6 +73,44 @@ impl Dataset {
     pub fn frame(&self, scene: &str, frame: u32) -> Option<&Frame> {
         self.frames.iter().find(|f| f.scene == scene && f.frame == frame)
     }
+
+    /// Keeps only the frames of the named scenes. A name matches a scene folder exactly or,
+    /// when both are integers, by value (`48` selects `000048`). Unknown names are an error.
+    pub fn retain_scenes(&mut self, names: &[String]) -> Result<()> {
+        let same = |a: &str, b: &str| a == b || matches!((a.parse::<u64>(), b.parse::<u64>()), (Ok(x), Ok(y)) if x == y);
+        if let Some(bad) = names.iter().find(|n| !self.frames.iter().any(|f| same(&f.scene, n))) {
+            let mut have: Vec<&str> = self.frames.iter().map(|f| f.scene.as_str()).collect();
+            have.dedup();
+            return Err(Error::input(self.root.display().to_string(), format!("no scene `{bad}` (scenes: {})", have.join(", "))));
+        }
+        self.frames.retain(|f| names.iter().any(|n| same(&f.scene, n)));
+        Ok(())
+    }
+
+    /// Depth image of a frame (16-bit PNG; raw value × `depth_scale_mm` = millimetres).
+    pub fn depth_path(&self, f: &Frame) -> PathBuf {
+        match self.layout {
+            Layout::Bop => self.root.join(&f.scene).join("depth").join(format!("{:06}.png", f.frame)),
+            Layout::Ycbv => self.root.join(&f.scene).join(format!("{:06}-depth.png", f.frame)),
+        }
+    }
+
+    /// Where the visible mask of GT instance `gt_index` of frame `f` is: a BOP
+    /// `mask_visib/NNNNNN_GGGGGG.png` (non-zero = visible), or the YCB-Video label map
+    /// (`NNNNNN-label.png`, visible pixels hold the class index = `obj_id`).
+    pub fn visible_mask_source(&self, f: &Frame, gt_index: usize) -> MaskSource {
+        match self.layout {
+            Layout::Bop => MaskSource::Binary(self.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{gt_index:06}.png", f.frame))),
+            Layout::Ycbv => MaskSource::Label(self.root.join(&f.scene).join(format!("{:06}-label.png", f.frame)), f.gt[gt_index].obj_id),
+        }
+    }
+}
+
+/// A visible-mask file: a binary mask, or a label map and the value that marks the object.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MaskSource {
+    Binary(PathBuf),
+    Label(PathBuf, u32),
 }
 
 fn read_json(path: &Path) -> Result<Value> {
@@ -148,7 +200,7 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                     None => None,
                 };
                 used.insert(obj_id);
-                gts.push(GtInstance { obj_id, r, t: [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0], visib_fract, bbox_visib });
+                gts.push(GtInstance { obj_id, r, t: [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0], visib_fract, visib_estimated: false, bbox_visib });
             }
             ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_mm, gt: gts });
         }
@@ -228,7 +280,9 @@ pub fn read_xyz(path: &Path) -> Result<Vec<P3>> {
 /// Loads the YCB-Video layout: `<root>/<seq>/NNNNNN-meta.mat` (poses 3×4×N in metres,
 /// `cls_indexes`, `intrinsic_matrix`, `factor_depth`) and models from
 /// `<root>/models_points_xyz/<class name>/points.xyz` (metres, point clouds; diameters are
-/// computed exactly from them). There is no visibility annotation (`visib_fract = None`).
+/// computed exactly from them). There is no visibility annotation: `visib_fract` is
+/// estimated from the model, the GT pose and the `-label.png` map
+/// ([`super::visibility`], `visib_estimated = true`), and left `None` without a label map.
 pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     let mut metas: Vec<(String, u32, PathBuf)> = Vec::new();
     let mut seqs: Vec<PathBuf> = std::fs::read_dir(root).map_err(|e| Error::io(root, e))?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
@@ -246,7 +300,7 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     if metas.is_empty() {
         return Err(Error::input(root.display().to_string(), "no <seq>/NNNNNN-meta.mat files"));
     }
-    let mut ds = Dataset { root: root.to_path_buf(), ..Default::default() };
+    let mut ds = Dataset { root: root.to_path_buf(), layout: Layout::Ycbv, ..Default::default() };
     let mut used = BTreeSet::new();
     for (scene, id, path) in metas {
         let m = MatFile::open(&path)?.vars;
@@ -280,7 +334,7 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
             let r = [[at(0, 0), at(0, 1), at(0, 2)], [at(1, 0), at(1, 1), at(1, 2)], [at(2, 0), at(2, 1), at(2, 2)]];
             let t = [at(0, 3), at(1, 3), at(2, 3)];
             used.insert(c as u32);
-            gts.push(GtInstance { obj_id: c as u32, r, t, visib_fract: None, bbox_visib: None });
+            gts.push(GtInstance { obj_id: c as u32, r, t, visib_fract: None, visib_estimated: false, bbox_visib: None });
         }
         ds.frames.push(Frame { scene, frame: id, k, depth_scale_mm: 1000.0 / fd, gt: gts });
     }
@@ -291,7 +345,34 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
         let (diameter, diameter_source) = diameter_of(&mesh);
         ds.models.insert(id, Model { name: name.to_string(), path, mesh, diameter, diameter_source });
     }
+    estimate_visibility(&mut ds)?;
     Ok(ds)
+}
+
+/// Fills `visib_fract` of every GT instance that has a label map (module docs of
+/// [`super::visibility`]).
+fn estimate_visibility(ds: &mut Dataset) -> Result<()> {
+    use super::visibility::{surface_patches, visible_fraction};
+    use crate::inputs::masks::InstanceMap;
+    let patches: BTreeMap<u32, _> = ds.models.iter().map(|(id, m)| (*id, surface_patches(&m.mesh.used_vertices(), 10))).collect();
+    let mut frames = std::mem::take(&mut ds.frames);
+    for f in frames.iter_mut() {
+        let Some(MaskSource::Label(path, _)) = (!f.gt.is_empty()).then(|| ds.visible_mask_source(f, 0)) else { continue };
+        if !path.is_file() {
+            continue;
+        }
+        let map = InstanceMap::open(&path)?;
+        for g in f.gt.iter_mut() {
+            let mask: Vec<bool> = map.ids.iter().map(|&v| v == g.obj_id).collect();
+            let pose = super::mesh::Similarity::rigid(g.r, g.t);
+            if let Some(v) = patches.get(&g.obj_id).and_then(|s| visible_fraction(s, &pose, &f.k, &mask, map.width, map.height)) {
+                g.visib_fract = Some(v);
+                g.visib_estimated = true;
+            }
+        }
+    }
+    ds.frames = frames;
+    Ok(())
 }
 
 /// Loads a dataset, detecting the layout:

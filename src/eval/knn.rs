@@ -87,6 +87,50 @@ impl KdTree {
     pub fn nearest_all(&self, queries: &[P3]) -> Vec<(usize, f64)> {
         queries.par_iter().map(|q| self.nearest(q).unwrap_or((usize::MAX, f64::INFINITY))).collect()
     }
+
+    /// The `k` nearest tree points to `q` as (caller's index, distance), nearest first
+    /// (fewer when the tree is smaller). Equal distances are ordered by index, so the
+    /// result does not depend on the tree's internal order.
+    pub fn k_nearest(&self, q: &P3, k: usize) -> Vec<(usize, f64)> {
+        if self.nodes.is_empty() || k == 0 {
+            return Vec::new();
+        }
+        // Sorted list of the best k (squared distance, caller index); k is small.
+        let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+        self.search_k(0, q, k, &mut best);
+        best.into_iter().map(|(d, i)| (i, d.sqrt())).collect()
+    }
+
+    fn search_k(&self, node: usize, q: &P3, k: usize, best: &mut Vec<(f64, usize)>) {
+        let worst = |b: &Vec<(f64, usize)>| if b.len() < k { f64::INFINITY } else { b[b.len() - 1].0 };
+        match self.nodes[node] {
+            Node::Leaf { start, end } => {
+                for i in start..end {
+                    let c = (dist2(&self.pts[i], q), self.idx[i]);
+                    if c.0 <= worst(best) {
+                        let at = best.partition_point(|b| b.0 < c.0 || (b.0 == c.0 && b.1 < c.1));
+                        if at < k {
+                            best.insert(at, c);
+                            best.truncate(k);
+                        }
+                    }
+                }
+            }
+            Node::Split { axis, value, left, right } => {
+                let diff = q[axis] - value;
+                let (near, far) = if diff <= 0.0 { (left, right) } else { (right, left) };
+                self.search_k(near, q, k, best);
+                if diff * diff <= worst(best) {
+                    self.search_k(far, q, k, best);
+                }
+            }
+        }
+    }
+
+    /// [`Self::k_nearest`] for every query (parallel, order preserved).
+    pub fn k_nearest_all(&self, queries: &[P3], k: usize) -> Vec<Vec<(usize, f64)>> {
+        queries.par_iter().map(|q| self.k_nearest(q, k)).collect()
+    }
 }
 
 /// Builds the subtree over `order[..]` (whose positions are `offset..offset+len` in the
@@ -139,6 +183,24 @@ mod tests {
             assert!((dist2(&pts2[i], &q).sqrt() - d).abs() < 1e-12);
         }
         assert!(KdTree::new(&[]).nearest(&[0.0; 3]).is_none());
+    }
+
+    #[test]
+    fn k_nearest_matches_brute_force() {
+        let mut rng = SeededRng::new(9);
+        let mut pts: Vec<P3> = (0..2000).map(|_| [rng.uniform(), rng.uniform(), rng.uniform() * 0.1]).collect();
+        // Exact ties: the tie order must be by index.
+        pts.extend([[2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [2.0, 0.0, 0.0]]);
+        let tree = KdTree::new(&pts);
+        for q in (0..300).map(|_| [rng.uniform() * 1.2 - 0.1, rng.uniform(), rng.uniform() * 0.1]).chain([[2.0, 0.0, 0.0]]) {
+            let got = tree.k_nearest(&q, 8);
+            let mut bf: Vec<(f64, usize)> = pts.iter().enumerate().map(|(i, p)| (dist2(p, &q), i)).collect();
+            bf.sort_by(|a, b| a.partial_cmp(b).unwrap());
+            let want: Vec<(usize, f64)> = bf[..8].iter().map(|&(d, i)| (i, d.sqrt())).collect();
+            assert_eq!(got, want);
+        }
+        assert_eq!(KdTree::new(&pts[..3]).k_nearest(&[0.0; 3], 8).len(), 3);
+        assert!(KdTree::new(&[]).k_nearest(&[0.0; 3], 8).is_empty());
     }
 
     #[test]

@@ -103,10 +103,20 @@ impl TriMesh {
     /// seeded subset of `n` of them without replacement. Face indices must be valid
     /// (the PLY reader checks them).
     pub fn sample_surface(&self, n: usize, seed: u64) -> Vec<P3> {
+        self.sample_surface_faces(n, seed).0
+    }
+
+    /// [`Self::sample_surface`] plus, per sample, the index of the face it lies on
+    /// (`u32::MAX` for point-cloud samples); same samples for the same seed.
+    pub fn sample_surface_faces(&self, n: usize, seed: u64) -> (Vec<P3>, Vec<u32>) {
         let mut rng = SeededRng::new(seed);
         if self.faces.is_empty() {
+            let none = |v: Vec<P3>| {
+                let k = v.len();
+                (v, vec![u32::MAX; k])
+            };
             if self.vertices.len() <= n {
-                return self.vertices.clone();
+                return none(self.vertices.clone());
             }
             // Partial Fisher–Yates: first n of a seeded permutation.
             let mut idx: Vec<usize> = (0..self.vertices.len()).collect();
@@ -114,7 +124,7 @@ impl TriMesh {
                 let j = i + (rng.next_u64() % (idx.len() - i) as u64) as usize;
                 idx.swap(i, j);
             }
-            return idx[..n].iter().map(|&i| self.vertices[i]).collect();
+            return none(idx[..n].iter().map(|&i| self.vertices[i]).collect());
         }
         let mut cdf = Vec::with_capacity(self.faces.len());
         let mut acc = 0.0;
@@ -124,7 +134,7 @@ impl TriMesh {
         }
         if acc <= 0.0 {
             // Fully degenerate mesh: fall back to its vertices.
-            return TriMesh { vertices: self.used_vertices(), faces: vec![] }.sample_surface(n, seed);
+            return TriMesh { vertices: self.used_vertices(), faces: vec![] }.sample_surface_faces(n, seed);
         }
         (0..n)
             .map(|_| {
@@ -134,13 +144,14 @@ impl TriMesh {
                 // Square-root trick: uniform density over the triangle.
                 let (r1, r2) = (rng.uniform().sqrt(), rng.uniform());
                 let (wa, wb, wc) = (1.0 - r1, r1 * (1.0 - r2), r1 * r2);
-                [
+                let p = [
                     wa * a[0] + wb * b[0] + wc * c[0],
                     wa * a[1] + wb * b[1] + wc * c[1],
                     wa * a[2] + wb * b[2] + wc * c[2],
-                ]
+                ];
+                (p, k as u32)
             })
-            .collect()
+            .unzip()
     }
 }
 

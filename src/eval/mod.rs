@@ -4,6 +4,7 @@
 //! - [`mesh`], [`knn`], [`icp`]: surface sampling, nearest neighbours, ICP alignment.
 //! - [`ply`], [`mat`], [`bop`]: reading BOP-format and YCB-Video datasets.
 //! - [`report`]: prediction files, [`report::evaluate`] and the report (JSON, text, SVG).
+//! - [`baseline`]: the non-learned `observed` predictor (visible points → box + hull).
 //!
 //! Entry point for the CLI: [`run_eval`].
 
@@ -15,5 +16,7 @@ pub mod ply;
 
 pub mod bop;
 pub mod report;
+pub mod baseline;
+pub mod visibility;
 
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

@@ -15,11 +15,16 @@
 //!   list; without it, `obj_id` must be unique in the frame.
 //! - ADD / ADD-S use the GT model points with the predicted `(R, t)` only (scale ignored):
 //!   they are meaningful when the prediction's frame is the GT model frame.
+//! - `model_frame` (optional, default `true`): `false` says the mesh lives in a frame of
+//!   the prediction's own choosing (e.g. the `observed` baseline's bounding-box frame), so
+//!   `(R, t)` is a placement, not a 6D pose of the GT model: ADD / ADD-S are then not
+//!   defined and reported as `null` ("-" in the table); the surface metrics are unaffected.
 //!
 //! # What is evaluated
-//! Every GT instance of every frame that has at least one prediction. A GT instance
-//! without a prediction is *missed*: it counts as a failure in all success rates and is
-//! left out of the means.
+//! Every GT instance of every frame that has at least one prediction (with
+//! [`EvalOptions::all_frames`], of every frame of the dataset). A GT instance without a
+//! prediction is *missed*: it counts as a failure in all success rates and is left out of
+//! the means.
 
 use super::bop::{load_dataset, Dataset, GtInstance, Model};
 use super::icp::IcpOptions;
@@ -54,10 +59,17 @@ pub struct Prediction {
     pub scale: f64,
     #[serde(default)]
     pub mesh: Option<PathBuf>,
+    /// Whether `(R, t)` maps the GT model frame (module docs).
+    #[serde(default = "yes")]
+    pub model_frame: bool,
 }
 
 fn one() -> f64 {
     1.0
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// Reads and validates a predictions file (structure, finite values, orthonormal R with
@@ -101,13 +113,16 @@ pub struct EvalOptions {
     pub seed: u64,
     /// F1 distance threshold as a fraction of the GT diameter.
     pub f1_tau_rel: f64,
+    /// Score every frame of the dataset, not only frames with a prediction (a method that
+    /// ran on every frame must not escape its misses by skipping a whole frame).
+    pub all_frames: bool,
     #[serde(skip)]
     pub icp: IcpOptions,
 }
 
 impl Default for EvalOptions {
     fn default() -> Self {
-        EvalOptions { n_samples: 10_000, seed: 0, f1_tau_rel: 0.05, icp: IcpOptions::default() }
+        EvalOptions { n_samples: 10_000, seed: 0, f1_tau_rel: 0.05, all_frames: false, icp: IcpOptions::default() }
     }
 }
 
@@ -120,6 +135,8 @@ pub struct ObjectResult {
     pub gt_index: usize,
     pub model: String,
     pub visib_fract: Option<f64>,
+    /// `visib_fract` is an estimate (dataset without visibility annotation).
+    pub visib_estimated: bool,
     /// Occlusion in percent (1 − visib_fract).
     pub occlusion_pct: Option<f64>,
     pub occlusion_bin: Option<String>,
@@ -130,10 +147,11 @@ pub struct ObjectResult {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct ObjectMetrics {
-    pub add: f64,
-    pub add_s: f64,
-    pub add_norm: f64,
-    pub add_s_norm: f64,
+    /// ADD family: `None` when the prediction is not in the model frame (`model_frame: false`).
+    pub add: Option<f64>,
+    pub add_s: Option<f64>,
+    pub add_norm: Option<f64>,
+    pub add_s_norm: Option<f64>,
     pub add_sb: f64,
     pub add_sb_norm: f64,
     pub add_sb_success_10: bool,
@@ -152,6 +170,8 @@ pub struct ObjectMetrics {
 
 /// Aggregates over a set of GT instances. Rates are fractions in [0, 1] over all
 /// instances (missed = failure); means are over predicted instances (NaN if none).
+/// ADD rates leave out predictions that are not in the model frame (NaN if no instance
+/// remains).
 #[derive(Debug, Clone, Serialize, Default)]
 pub struct Summary {
     pub label: String,
@@ -175,6 +195,14 @@ impl Summary {
         let n = objs.len();
         let mean = |f: &dyn Fn(&ObjectMetrics) -> f64| if ms.is_empty() { f64::NAN } else { ms.iter().map(|m| f(m)).sum::<f64>() / ms.len() as f64 };
         let rate = |f: &dyn Fn(&ObjectMetrics) -> bool| if n == 0 { f64::NAN } else { ms.iter().filter(|m| f(m)).count() as f64 / n as f64 };
+        let n_add = n - ms.iter().filter(|m| m.add.is_none()).count();
+        let add_rate = |f: &dyn Fn(&ObjectMetrics) -> Option<f64>| {
+            if n_add == 0 {
+                f64::NAN
+            } else {
+                ms.iter().filter(|m| f(m).is_some_and(|x| x < 0.1)).count() as f64 / n_add as f64
+            }
+        };
         Summary {
             label,
             n_gt: n,
@@ -187,8 +215,8 @@ impl Summary {
             dre_05: rate(&|m| m.dre_success_05),
             f1_posed_mean: mean(&|m| m.f1_posed.f1),
             f1_aligned_mean: mean(&|m| m.f1_aligned.f1),
-            add_10: rate(&|m| m.add_norm < 0.1),
-            add_s_10: rate(&|m| m.add_s_norm < 0.1),
+            add_10: add_rate(&|m| m.add_norm),
+            add_s_10: add_rate(&|m| m.add_s_norm),
         }
     }
 }
@@ -213,9 +241,12 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
     let gt_pose = pose_of(g);
     let est_rt = Similarity::rigid(pred.r, pred.t);
     // ADD / ADD-S: GT model points (vertices, or the point cloud) under both poses.
-    let model_pts = model.mesh.used_vertices();
-    let add = metrics::add(&model_pts, &gt_pose, &est_rt);
-    let add_s = metrics::add_s(&model_pts, &gt_pose, &est_rt);
+    let (add, add_s) = if pred.model_frame {
+        let model_pts = model.mesh.used_vertices();
+        (Some(metrics::add(&model_pts, &gt_pose, &est_rt)), Some(metrics::add_s(&model_pts, &gt_pose, &est_rt)))
+    } else {
+        (None, None)
+    };
     // Surfaces in the camera frame.
     let gt_s: Vec<P3> = gt_pose.apply_all(&model.mesh.sample_surface(opts.n_samples, opts.seed));
     let est_full = Similarity { r: pred.r, t: pred.t, s: pred.scale };
@@ -230,8 +261,8 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
     ObjectMetrics {
         add,
         add_s,
-        add_norm: add / d,
-        add_s_norm: add_s / d,
+        add_norm: add.map(|a| a / d),
+        add_s_norm: add_s.map(|a| a / d),
         add_sb,
         add_sb_norm: add_sb / d,
         add_sb_success_10: add_sb < 0.1 * d,
@@ -254,6 +285,11 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
     let base = pred_file.parent().map(Path::to_path_buf).unwrap_or_default();
     // Match predictions to GT instances.
     let mut matched: BTreeMap<(String, u32), HashMap<usize, usize>> = BTreeMap::new();
+    if opts.all_frames {
+        for f in &ds.frames {
+            matched.insert((f.scene.clone(), f.frame), HashMap::new());
+        }
+    }
     for (i, p) in preds.predictions.iter().enumerate() {
         let field = |n: &str| format!("predictions[{i}].{n}");
         let fr = ds.frame(&p.scene, p.frame).ok_or_else(|| Error::config(&file, field("frame"), format!("scene `{}` frame {} is not in the dataset", p.scene, p.frame)))?;
@@ -310,6 +346,7 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
                 gt_index: gi,
                 model: model.name.clone(),
                 visib_fract: g.visib_fract,
+                visib_estimated: g.visib_estimated,
                 occlusion_pct: occ,
                 occlusion_bin: g.visib_fract.and_then(occlusion_bin).map(occlusion_bin_label),
                 gt_diameter: model.diameter,
@@ -361,6 +398,15 @@ fn num(x: f64) -> String {
 }
 
 impl Report {
+    /// Writes `report.json`, `report.txt` (the table) and `plot.svg` into `dir`.
+    pub fn write_files(&self, dir: &Path) -> Result<()> {
+        for (name, text) in [("report.json", self.to_json()?), ("report.txt", self.text_table()), ("plot.svg", self.svg())] {
+            let p = dir.join(name);
+            std::fs::write(&p, text).map_err(|e| Error::io(&p, e))?;
+        }
+        Ok(())
+    }
+
     pub fn to_json(&self) -> Result<String> {
         // NaN (empty means) is not JSON: serde_json writes it as null.
         serde_json::to_string_pretty(self).map_err(|e| Error::msg(format!("serialising report: {e}")))
@@ -403,6 +449,13 @@ impl Report {
             100.0 * self.options.f1_tau_rel,
             self.options.n_samples
         ));
+        let est = self.objects.iter().filter(|o| o.visib_estimated).count();
+        if est > 0 {
+            out.push_str(&format!(
+                "Occlusion of {est} of {} instances estimated from the GT model, pose and visible mask (the dataset has no visib_fract).\n",
+                self.objects.len()
+            ));
+        }
         out
     }
 
@@ -472,7 +525,7 @@ mod tests {
         // Only frame 1 has predictions: its two GT instances are evaluated.
         assert_eq!(r.objects.len(), 2);
         let a = r.objects[0].metrics.as_ref().unwrap();
-        assert_eq!((a.add, a.add_s), (0.0, 0.0));
+        assert_eq!((a.add, a.add_s), (Some(0.0), Some(0.0)));
         // Same seed, mesh in mm × 0.001 vs GT in m: equal up to rounding.
         assert!(a.add_sb < 1e-12, "{}", a.add_sb);
         assert!(a.cd_norm < 1e-12 && a.dre < 1e-12 && a.add_sb_success_05 && a.dre_success_05);
@@ -480,8 +533,9 @@ mod tests {
         assert_eq!(r.objects[0].occlusion_bin.as_deref(), Some("0-3%"));
         // Pose-only prediction of object 2, off by (3, 4, 0) mm → ADD = 5 mm exactly.
         let b = r.objects[1].metrics.as_ref().unwrap();
-        assert!((b.add - 0.005).abs() < 1e-12, "{}", b.add);
-        assert!(b.add_s <= 0.005 + 1e-12 && b.add_sb <= 0.005 + 1e-12);
+        let (badd, badd_s) = (b.add.unwrap(), b.add_s.unwrap());
+        assert!((badd - 0.005).abs() < 1e-12, "{badd}");
+        assert!(badd_s <= 0.005 + 1e-12 && b.add_sb <= 0.005 + 1e-12);
         assert!(b.dre < 1e-12 && b.cd_norm < 0.01);
         assert_eq!(r.objects[1].occlusion_bin.as_deref(), Some("20-40%"));
         assert_eq!(r.overall.n_gt, 2);
@@ -551,7 +605,10 @@ mod tests {
         assert!(m.f1_aligned.f1 > 0.9, "{m:?}");
         // 3 objects of that frame are not predicted: missed, counted as failures.
         assert_eq!((r.overall.n_gt, r.overall.n_missed), (4, 3));
-        assert_eq!(r.by_occlusion.last().map(|s| s.label.as_str()), Some("unknown"));
+        // No visib_fract in YCB-Video: estimated for every instance; the can is unoccluded.
+        assert!(r.objects.iter().all(|o| o.visib_estimated && o.visib_fract.is_some()));
+        assert!(r.objects[0].visib_fract.unwrap() > 0.9, "{:?}", r.objects[0].visib_fract);
+        assert!(r.text_table().contains("estimated"));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -1,5 +1,6 @@
-//! Binary glTF 2.0 (GLB) mesh writer: POSITION, NORMAL, optional COLOR_0,
-//! u32 indices, one primitive, one node.
+//! Binary glTF 2.0 (GLB) writer: a mesh (POSITION, NORMAL, optional COLOR_0,
+//! u32 indices, one primitive, one node), or a scene of named meshes and
+//! coloured point clouds.
 
 use super::{write_file, Axes};
 use crate::decoders::Mesh;
@@ -29,95 +30,172 @@ impl Default for GlbOptions {
     }
 }
 
+/// Binary buffer, buffer views and accessors of a GLB under construction.
+#[derive(Default)]
+struct Builder {
+    bin: Vec<u8>,
+    views: Vec<serde_json::Value>,
+    accessors: Vec<serde_json::Value>,
+}
+
+impl Builder {
+    fn push_view(&mut self, bytes: &[u8], target: u32) -> usize {
+        // Every view starts 4-byte aligned (all components are 4 bytes).
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        self.views.push(json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len(), "target": target}));
+        self.bin.extend_from_slice(bytes);
+        self.views.len() - 1
+    }
+
+    /// A float VEC3 accessor; `bounds` adds min/max (required for POSITION).
+    fn vec3(&mut self, rows: &[[f32; 3]], bounds: bool) -> usize {
+        let v = self.push_view(&f32_bytes(rows), ARRAY_BUFFER);
+        let mut acc = json!({"bufferView": v, "componentType": FLOAT, "count": rows.len(), "type": "VEC3"});
+        if bounds {
+            let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+            for p in rows {
+                for k in 0..3 {
+                    lo[k] = lo[k].min(p[k]);
+                    hi[k] = hi[k].max(p[k]);
+                }
+            }
+            acc["min"] = json!(lo);
+            acc["max"] = json!(hi);
+        }
+        self.accessors.push(acc);
+        self.accessors.len() - 1
+    }
+
+    /// A triangle primitive for `mesh` (material 0).
+    fn mesh_primitive(&mut self, mesh: &Mesh, opts: &GlbOptions) -> Result<serde_json::Value> {
+        mesh.validate()?;
+        if mesh.vertices.is_empty() || mesh.faces.is_empty() {
+            return Err(Error::msg("glb: mesh is empty"));
+        }
+        let positions: Vec<[f32; 3]> = mesh.vertices.iter().map(|&v| opts.axes.apply(v)).collect();
+        // Unreferenced vertices have no normal; glTF wants unit normals everywhere.
+        let normals: Vec<[f32; 3]> = mesh
+            .vertex_normals()
+            .into_iter()
+            .map(|n| if n == [0.0; 3] { [0.0, 0.0, 1.0] } else { n })
+            .map(|n| opts.axes.apply(n))
+            .collect();
+        let colors = if opts.vertex_colors { mesh.vertex_colors() } else { None }
+            .map(|c| c.into_iter().map(|c| c.map(|x| x.clamp(0.0, 1.0))).collect::<Vec<_>>());
+        let pos = self.vec3(&positions, true);
+        let nrm = self.vec3(&normals, false);
+        let mut attributes = json!({"POSITION": pos, "NORMAL": nrm});
+        if let Some(c) = &colors {
+            attributes["COLOR_0"] = json!(self.vec3(c, false));
+        }
+        let idx: Vec<u8> = mesh.faces.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
+        let v = self.push_view(&idx, ELEMENT_ARRAY_BUFFER);
+        self.accessors.push(json!({"bufferView": v, "componentType": UNSIGNED_INT, "count": mesh.faces.len() * 3, "type": "SCALAR"}));
+        let indices = self.accessors.len() - 1;
+        Ok(json!({"attributes": attributes, "indices": indices, "mode": 4, "material": 0}))
+    }
+
+    /// The GLB file image of `meshes` (each `{"primitives": [...], "name"?: ...}`), one node each.
+    fn finish(mut self, meshes: Vec<serde_json::Value>, node_names: Vec<Option<String>>) -> Result<Vec<u8>> {
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        let nodes: Vec<serde_json::Value> = node_names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| match n {
+                Some(n) => json!({"mesh": i, "name": n}),
+                None => json!({"mesh": i}),
+            })
+            .collect();
+        let doc = json!({
+            "asset": {"version": "2.0", "generator": "recon"},
+            "scene": 0,
+            "scenes": [{"nodes": (0..nodes.len()).collect::<Vec<_>>()}],
+            "nodes": nodes,
+            "meshes": meshes,
+            "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+            "accessors": self.accessors,
+            "bufferViews": self.views,
+            "buffers": [{"byteLength": self.bin.len()}],
+        });
+        let mut json_bytes = serde_json::to_vec(&doc).map_err(|e| Error::msg(format!("glb: {e}")))?;
+        while !json_bytes.len().is_multiple_of(4) {
+            json_bytes.push(b' ');
+        }
+        let total = 12 + 8 + json_bytes.len() + 8 + self.bin.len();
+        let total32 = u32::try_from(total).map_err(|_| Error::msg("glb: file over 4 GiB"))?;
+        let mut out = Vec::with_capacity(total);
+        out.extend_from_slice(&GLB_MAGIC.to_le_bytes());
+        out.extend_from_slice(&2u32.to_le_bytes());
+        out.extend_from_slice(&total32.to_le_bytes());
+        out.extend_from_slice(&(json_bytes.len() as u32).to_le_bytes());
+        out.extend_from_slice(&CHUNK_JSON.to_le_bytes());
+        out.extend_from_slice(&json_bytes);
+        out.extend_from_slice(&(self.bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
+        out.extend_from_slice(&self.bin);
+        Ok(out)
+    }
+}
+
 /// Serialise `mesh` as a GLB file image.
 pub fn glb_bytes(mesh: &Mesh, opts: &GlbOptions) -> Result<Vec<u8>> {
-    mesh.validate()?;
-    if mesh.vertices.is_empty() || mesh.faces.is_empty() {
-        return Err(Error::msg("glb: mesh is empty"));
-    }
-    let positions: Vec<[f32; 3]> = mesh.vertices.iter().map(|&v| opts.axes.apply(v)).collect();
-    // Unreferenced vertices have no normal; glTF wants unit normals everywhere.
-    let normals: Vec<[f32; 3]> = mesh
-        .vertex_normals()
-        .into_iter()
-        .map(|n| if n == [0.0; 3] { [0.0, 0.0, 1.0] } else { n })
-        .map(|n| opts.axes.apply(n))
-        .collect();
-    let colors = if opts.vertex_colors { mesh.vertex_colors() } else { None }
-        .map(|c| c.into_iter().map(|c| c.map(|x| x.clamp(0.0, 1.0))).collect::<Vec<_>>());
-
-    let mut bin: Vec<u8> = Vec::new();
-    let mut views = Vec::new();
-    let mut accessors = Vec::new();
-    let mut push_view = |bin: &mut Vec<u8>, bytes: &[u8], target: u32| -> usize {
-        // Every view starts 4-byte aligned (all components are 4 bytes).
-        while !bin.len().is_multiple_of(4) {
-            bin.push(0);
-        }
-        views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len(), "target": target}));
-        bin.extend_from_slice(bytes);
-        views.len() - 1
-    };
-
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for p in &positions {
-        for k in 0..3 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    let n = positions.len();
-    let v = push_view(&mut bin, &f32_bytes(&positions), ARRAY_BUFFER);
-    accessors.push(json!({"bufferView": v, "componentType": FLOAT, "count": n, "type": "VEC3", "min": lo, "max": hi}));
-    let v = push_view(&mut bin, &f32_bytes(&normals), ARRAY_BUFFER);
-    accessors.push(json!({"bufferView": v, "componentType": FLOAT, "count": n, "type": "VEC3"}));
-    let mut attributes = json!({"POSITION": 0, "NORMAL": 1});
-    if let Some(c) = &colors {
-        let v = push_view(&mut bin, &f32_bytes(c), ARRAY_BUFFER);
-        accessors.push(json!({"bufferView": v, "componentType": FLOAT, "count": n, "type": "VEC3"}));
-        attributes["COLOR_0"] = json!(accessors.len() - 1);
-    }
-    let idx: Vec<u8> = mesh.faces.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
-    let v = push_view(&mut bin, &idx, ELEMENT_ARRAY_BUFFER);
-    accessors.push(json!({"bufferView": v, "componentType": UNSIGNED_INT, "count": mesh.faces.len() * 3, "type": "SCALAR"}));
-    let indices = accessors.len() - 1;
-    while !bin.len().is_multiple_of(4) {
-        bin.push(0);
-    }
-
-    let doc = json!({
-        "asset": {"version": "2.0", "generator": "recon"},
-        "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": attributes, "indices": indices, "mode": 4, "material": 0}]}],
-        "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
-        "accessors": accessors,
-        "bufferViews": views,
-        "buffers": [{"byteLength": bin.len()}],
-    });
-    let mut json_bytes = serde_json::to_vec(&doc).map_err(|e| Error::msg(format!("glb: {e}")))?;
-    while !json_bytes.len().is_multiple_of(4) {
-        json_bytes.push(b' ');
-    }
-    let total = 12 + 8 + json_bytes.len() + 8 + bin.len();
-    let total32 = u32::try_from(total).map_err(|_| Error::msg("glb: file over 4 GiB"))?;
-    let mut out = Vec::with_capacity(total);
-    out.extend_from_slice(&GLB_MAGIC.to_le_bytes());
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&total32.to_le_bytes());
-    out.extend_from_slice(&(json_bytes.len() as u32).to_le_bytes());
-    out.extend_from_slice(&CHUNK_JSON.to_le_bytes());
-    out.extend_from_slice(&json_bytes);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
-    out.extend_from_slice(&bin);
-    Ok(out)
+    let mut b = Builder::default();
+    let prim = b.mesh_primitive(mesh, opts)?;
+    b.finish(vec![json!({"primitives": [prim]})], vec![None])
 }
 
 /// Write `mesh` to a `.glb` file.
 pub fn save_glb(mesh: &Mesh, path: &Path, opts: &GlbOptions) -> Result<()> {
     write_file(path, &glb_bytes(mesh, opts)?)
+}
+
+/// A coloured point cloud for a scene file.
+pub struct PointCloud<'a> {
+    pub name: &'a str,
+    pub points: &'a [[f32; 3]],
+    /// Per-point sRGB colour.
+    pub colors: &'a [[u8; 3]],
+}
+
+/// Several named meshes (one node each) and coloured point clouds (glTF
+/// `POINTS` primitives, one node each) in one GLB, all in the same frame.
+pub fn scene_glb_bytes(meshes: &[(&str, &Mesh)], clouds: &[PointCloud], opts: &GlbOptions) -> Result<Vec<u8>> {
+    let mut b = Builder::default();
+    let (mut out, mut names) = (Vec::new(), Vec::new());
+    for (name, m) in meshes {
+        let prim = b.mesh_primitive(m, opts)?;
+        out.push(json!({"name": name, "primitives": [prim]}));
+        names.push(Some(name.to_string()));
+    }
+    for c in clouds.iter().filter(|c| !c.points.is_empty()) {
+        if c.colors.len() != c.points.len() {
+            return Err(Error::msg(format!("glb: point cloud `{}` has {} colours for {} points", c.name, c.colors.len(), c.points.len())));
+        }
+        let pos: Vec<[f32; 3]> = c.points.iter().map(|&p| opts.axes.apply(p)).collect();
+        let col: Vec<[f32; 3]> = c.colors.iter().map(|c| c.map(|x| srgb_to_linear(x))).collect();
+        let pa = b.vec3(&pos, true);
+        let ca = b.vec3(&col, false);
+        out.push(json!({"name": c.name, "primitives": [{"attributes": {"POSITION": pa, "COLOR_0": ca}, "mode": 0, "material": 0}]}));
+        names.push(Some(c.name.to_string()));
+    }
+    if out.is_empty() {
+        return Err(Error::msg("glb: empty scene"));
+    }
+    b.finish(out, names)
+}
+
+/// glTF vertex colours are linear.
+fn srgb_to_linear(c: u8) -> f32 {
+    let x = c as f32 / 255.0;
+    if x <= 0.04045 {
+        x / 12.92
+    } else {
+        ((x + 0.055) / 1.055).powf(2.4)
+    }
 }
 
 fn f32_bytes<const K: usize>(rows: &[[f32; K]]) -> Vec<u8> {
@@ -191,5 +269,42 @@ mod tests {
         assert!(doc["meshes"][0]["primitives"][0]["attributes"].get("COLOR_0").is_none());
         assert_eq!(doc["accessors"].as_array().unwrap().len(), 3);
         assert!(glb_bytes(&Mesh::default(), &GlbOptions::default()).is_err());
+    }
+
+    #[test]
+    fn scene_with_meshes_and_points() {
+        let mut a = tetrahedron();
+        a.vertex_attrs = Some(vec![[1.0, 0.0, 0.0, 0.5, 0.5, 1.0]; 4]);
+        let mut b2 = tetrahedron();
+        b2.vertices.iter_mut().for_each(|v| v[0] += 2.0);
+        let pts = [[0.0f32, 0.0, 1.0], [0.5, 0.5, 1.5], [1.0, -1.0, 2.0]];
+        let cols = [[255u8, 0, 0], [0, 255, 0], [10, 20, 30]];
+        let cloud = PointCloud { name: "observed", points: &pts, colors: &cols };
+        let opts = GlbOptions { axes: Axes::ZUp, vertex_colors: true };
+        let b = scene_glb_bytes(&[("a", &a), ("b", &b2)], &[cloud], &opts).unwrap();
+        assert_eq!(u32_at(&b, 0), GLB_MAGIC);
+        assert_eq!(u32_at(&b, 8) as usize, b.len());
+        let jlen = u32_at(&b, 12) as usize;
+        let doc: serde_json::Value = serde_json::from_slice(&b[20..20 + jlen]).unwrap();
+        assert_eq!(doc["nodes"].as_array().unwrap().len(), 3);
+        assert_eq!(doc["scenes"][0]["nodes"], json!([0, 1, 2]));
+        assert_eq!(doc["nodes"][2]["name"], "observed");
+        let p = &doc["meshes"][2]["primitives"][0];
+        assert_eq!(p["mode"], 0);
+        let pos = &doc["accessors"][p["attributes"]["POSITION"].as_u64().unwrap() as usize];
+        assert_eq!(pos["count"], 3);
+        assert_eq!(pos["max"], json!([1.0, 0.5, 2.0]));
+        // Second mesh's positions are its own (shifted) vertices.
+        let p1 = &doc["meshes"][1]["primitives"][0];
+        let pos1 = &doc["accessors"][p1["attributes"]["POSITION"].as_u64().unwrap() as usize];
+        assert_eq!(pos1["min"][0], 2.0);
+        // Single-mesh writer unchanged in structure.
+        let one = glb_bytes(&a, &opts).unwrap();
+        let jl = u32_at(&one, 12) as usize;
+        let d1: serde_json::Value = serde_json::from_slice(&one[20..20 + jl]).unwrap();
+        assert_eq!(d1["nodes"], json!([{"mesh": 0}]));
+        let bad = PointCloud { name: "x", points: &pts, colors: &cols[..1] };
+        assert!(scene_glb_bytes(&[], &[bad], &opts).is_err());
+        assert!(scene_glb_bytes(&[], &[], &opts).is_err());
     }
 }

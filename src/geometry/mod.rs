@@ -1,5 +1,8 @@
-//! Geometry: object poses (rotation encodings, normalisation).
+//! Geometry: object poses (rotation encodings, normalisation), point-map ↔ mesh
+//! alignment, and mesh voxelisation.
 
 pub mod pose;
 pub mod pointmap;
 pub mod camera_pose;
+pub mod alignment;
+pub mod voxelize;

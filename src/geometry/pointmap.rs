@@ -280,19 +280,29 @@ pub fn object_points(frame: &RgbdFrame, mask: &[bool], erosion: Option<Erosion>)
         Some(e) => erode(mask, w, h, e),
         None => mask.to_vec(),
     };
-    let k = &frame.intrinsics;
+    let pts = masked_points(&frame.depth_m, w, h, &frame.intrinsics, &eroded)?;
+    Ok((pts, eroded))
+}
+
+/// Camera-frame points of the pixels under `mask` that have a valid depth
+/// (the back-projection of [`backproject`], restricted to the mask), in
+/// row-major pixel order. For callers that hold a depth image but no colour.
+pub fn masked_points(depth_m: &[f32], w: usize, h: usize, k: &Intrinsics, mask: &[bool]) -> Result<Vec<[f64; 3]>> {
+    if depth_m.len() != w * h || mask.len() != w * h {
+        return Err(Error::input("depth/mask", format!("expected {w}×{h} = {} values, got depth {} and mask {}", w * h, depth_m.len(), mask.len())));
+    }
     let mut pts = Vec::new();
     for v in 0..h {
         for u in 0..w {
             let i = v * w + u;
-            let z = frame.depth_m[i];
-            if eroded[i] && depth_valid(z) {
+            let z = depth_m[i];
+            if mask[i] && depth_valid(z) {
                 let z = z as f64;
                 pts.push([(u as f64 - k.cx) * z / k.fx, (v as f64 - k.cy) * z / k.fy, z]);
             }
         }
     }
-    Ok((pts, eroded))
+    Ok(pts)
 }
 
 pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: &PrepareOptions, dev: &Device) -> Result<PreparedView> {

@@ -1,14 +1,28 @@
 //! Building blocks shared by the transformer models (TRELLIS `modules/`):
 //! norms, timestep and position embeddings, attention, MLP, and the
-//! adaLN-modulated cross-attention block. Everything is plain candle ops, so
-//! it stays differentiable for training.
+//! adaLN-modulated cross-attention block. Built outside
+//! [`fast::build_with`](super::fast::build_with) everything is plain candle
+//! ops, differentiable for training; built inside it, the same layers run the
+//! inference kernels of `recon-kernels` (see [`super::fast`]).
 
-use candle_core::{DType, Module, Result, Tensor, D};
-use candle_nn::{Linear, VarBuilder};
+use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
+use candle_nn::VarBuilder;
 
-/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`, `{prefix}.bias`).
+use super::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
+pub use super::fast::Linear;
+
+/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
+/// `{prefix}.bias`), for the current build setting ([`fast::build_compute`]).
 pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
-    candle_nn::linear(in_dim, out_dim, vb)
+    Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, fast::build_compute())
+}
+
+/// [`layer_norm_plain`], or its fused kernel on the fast path.
+pub fn layer_norm_with(compute: Compute, x: &Tensor, eps: f64) -> Result<Tensor> {
+    match compute.fast_parts() {
+        Some((_, isa)) => fast::layer_norm(isa, x, eps, None, None),
+        None => layer_norm_plain(x, eps),
+    }
 }
 
 /// LayerNorm over the last dim without affine parameters (computed in f32).
@@ -27,13 +41,17 @@ pub struct LayerNorm {
     weight: Tensor,
     bias: Tensor,
     eps: f64,
+    compute: Compute,
 }
 
 impl LayerNorm {
     pub fn new(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps })
+        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps, compute: fast::build_compute() })
     }
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if let Some((_, isa)) = self.compute.fast_parts() {
+            return fast::layer_norm(isa, x, self.eps, Some(&self.weight), Some(&self.bias));
+        }
         layer_norm_plain(x, self.eps)?.broadcast_mul(&self.weight)?.broadcast_add(&self.bias)
     }
 }
@@ -92,7 +110,7 @@ pub fn abs_position_embedding(coords: &Tensor, channels: usize) -> Result<Tensor
 /// `MultiHeadRMSNorm`: L2-normalise each head vector, times gamma[h, :]·√d.
 #[derive(Debug, Clone)]
 pub struct MultiHeadRmsNorm {
-    gamma: Tensor, // [H, D]
+    pub(crate) gamma: Tensor, // [H, D]
     scale: f64,
 }
 
@@ -127,7 +145,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
         let len = chunk.min(lq - start);
         let qc = (q.narrow(2, start, len)? * scale)?.contiguous()?;
         let s = qc.matmul(&kt)?;
-        let p = candle_nn::ops::softmax_last_dim(&s)?;
+        let p = softmax_last_dim(&s)?;
         outs.push(p.matmul(&v)?);
         start += len;
     }
@@ -135,6 +153,57 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
         Ok(outs.pop().unwrap())
     } else {
         Tensor::cat(&outs, 2)
+    }
+}
+
+/// Softmax over the last dim with a backward pass. The forward is candle's
+/// `softmax_last_dim` kernel step for step (so inference results are
+/// bit-identical to it), but candle's op has no gradient, and every
+/// transformer here must stay trainable.
+pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
+    if x.device().is_cpu() && x.dtype() == DType::F32 {
+        x.contiguous()?.apply_op1(SoftmaxLastDim)
+    } else {
+        candle_nn::ops::softmax(x, D::Minus1)
+    }
+}
+
+struct SoftmaxLastDim;
+
+impl candle_core::CustomOp1 for SoftmaxLastDim {
+    fn name(&self) -> &'static str {
+        "recon-softmax-last-dim"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        use candle_core::cpu::kernels::VecOps;
+        use rayon::prelude::*;
+        let CpuStorage::F32(src) = storage else { candle_core::bail!("softmax: f32 only") };
+        let Some((o1, o2)) = layout.contiguous_offsets() else { candle_core::bail!("softmax: input must be contiguous") };
+        let src = &src[o1..o2];
+        let dims = layout.shape().dims();
+        let n = dims[dims.len() - 1];
+        let mut dst = vec![0f32; src.len()];
+        src.par_chunks(n).zip(dst.par_chunks_mut(n)).for_each(|(s, d)| {
+            let mut max = f32::NEG_INFINITY;
+            // SAFETY: both slices hold exactly `n` elements.
+            unsafe { f32::vec_reduce_max(s.as_ptr(), &mut max, n) };
+            for (a, b) in s.iter().zip(d.iter_mut()) {
+                *b = (*a - max).exp();
+            }
+            let mut sum = 0f32;
+            unsafe { f32::vec_reduce_sum(d.as_ptr(), &mut sum, n) };
+            for b in d.iter_mut() {
+                *b /= sum;
+            }
+        });
+        Ok((CpuStorage::F32(dst), Shape::from_dims(dims)))
+    }
+
+    /// dL/dx = y ⊙ (g − Σ g ⊙ y) along the last dim.
+    fn bwd(&self, _arg: &Tensor, res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        let dot = (grad_res * res)?.sum_keepdim(D::Minus1)?;
+        Ok(Some(res.mul(&grad_res.broadcast_sub(&dot)?)?))
     }
 }
 
@@ -150,8 +219,9 @@ impl FeedForward {
         let hidden = (channels as f64 * mlp_ratio) as usize;
         Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"))?, fc2: linear(hidden, channels, vb.pp("mlp.2"))? })
     }
+    /// GELU (tanh form) is fused into `fc1` on the fast path.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.fc2.forward(&self.fc1.forward(x)?.gelu()?)
+        self.fc2.forward(&self.fc1.forward_act(x, Activation::GeluTanh)?)
     }
 }
 
@@ -167,6 +237,7 @@ pub struct MultiHeadAttention {
     q_norm: Option<MultiHeadRmsNorm>,
     k_norm: Option<MultiHeadRmsNorm>,
     to_out: Linear,
+    compute: Compute,
 }
 
 impl MultiHeadAttention {
@@ -185,7 +256,22 @@ impl MultiHeadAttention {
         } else {
             (None, None)
         };
-        Ok(Self { heads, head_dim, to_qkv, to_q, to_kv, q_norm, k_norm, to_out: linear(channels, channels, vb.pp("to_out"))? })
+        Ok(Self {
+            heads,
+            head_dim,
+            to_qkv,
+            to_q,
+            to_kv,
+            q_norm,
+            k_norm,
+            to_out: linear(channels, channels, vb.pp("to_out"))?,
+            compute: fast::build_compute(),
+        })
+    }
+
+    /// Whether this layer runs the fast kernels.
+    pub fn is_fast(&self) -> bool {
+        self.compute.is_fast()
     }
 
     /// Project to per-head q, k, v, each `[B, L, H, D]` (qk-norm applied).
@@ -217,11 +303,80 @@ impl MultiHeadAttention {
         self.to_out.forward(&o.reshape((b, l, h * d))?)
     }
 
-    /// Full attention: `x` `[B, L, C]`, optional context `[B, Lc, Cc]`.
+    /// Full attention: `x` `[B, L, C]`, optional context `[B or 1, Lc, Cc]`.
     pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        if self.is_fast() {
+            let (b, l, c) = x.dims3()?;
+            let (ctx_rows, lc, cb) = match ctx {
+                Some(cx) => {
+                    let (cb, lc, cc) = cx.dims3()?;
+                    (Some(cx.reshape((cb * lc, cc))?), lc, cb)
+                }
+                None => (None, l, b),
+            };
+            if cb != b && cb != 1 {
+                candle_core::bail!("attention: context batch {cb} for input batch {b}");
+            }
+            let segs: Vec<AttnSegment> = (0..b)
+                .map(|i| {
+                    let kv0 = if cb == 1 { 0 } else { i * lc };
+                    AttnSegment { q: i * l..(i + 1) * l, kv: kv0..kv0 + lc }
+                })
+                .collect();
+            let y = self.forward_rows(&x.reshape((b * l, c))?, ctx_rows.as_ref(), &segs)?;
+            return y.reshape((b, l, c));
+        }
         let (q, k, v) = self.qkv(x, ctx)?;
         let o = attention(&q.transpose(1, 2)?, &k.transpose(1, 2)?, &v.transpose(1, 2)?)?;
         self.out(&o.transpose(1, 2)?)
+    }
+
+    /// Fast path on rows: `x` `[N, C]`, context rows `[Nc, Cc]` for
+    /// cross-attention; query rows of each segment attend to its key rows
+    /// (rows of `x` for self-attention). Returns `[N, C]`; rows outside every
+    /// segment get the output projection of zeros (its bias).
+    pub fn forward_rows(&self, x: &Tensor, ctx: Option<&Tensor>, segments: &[AttnSegment]) -> Result<Tensor> {
+        let Some((precision, isa)) = self.compute.fast_parts() else {
+            candle_core::bail!("attention: forward_rows needs a layer built with fast kernels");
+        };
+        let (n, _) = x.dims2()?;
+        let (h, d) = (self.heads, self.head_dim);
+        let c = h * d;
+        fn fl(l: &Linear) -> Result<&fast::FastLinear> {
+            l.fast().ok_or_else(|| candle_core::Error::Msg("attention: layer not packed".into()))
+        }
+        let gamma = |nrm: &Option<MultiHeadRmsNorm>| -> Result<Option<Vec<f32>>> {
+            nrm.as_ref().map(|m| m.gamma.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()).transpose()
+        };
+        let o = match (&self.to_qkv, ctx) {
+            (Some(to_qkv), None) => {
+                let mut qkv = fast::with_f32(x, |xs| fl(to_qkv)?.forward_slice(xs, n, Activation::None))?;
+                if let Some(g) = gamma(&self.q_norm)? {
+                    fast::rms_norm_heads(&mut qkv, n, 3 * c, 0, &g, h, d);
+                }
+                if let Some(g) = gamma(&self.k_norm)? {
+                    fast::rms_norm_heads(&mut qkv, n, 3 * c, c, &g, h, d);
+                }
+                let lay = |off| AttnLayout::new(3 * c, off);
+                fast::attention_rows(isa, precision, h, d, (&qkv, lay(0)), (&qkv, lay(c)), (&qkv, lay(2 * c)), n, segments)?
+            }
+            (None, Some(ctx)) => {
+                let (nc, _) = ctx.dims2()?;
+                let mut q = fast::with_f32(x, |xs| fl(self.to_q.as_ref().unwrap())?.forward_slice(xs, n, Activation::None))?;
+                let mut kv = fast::with_f32(ctx, |cs| fl(self.to_kv.as_ref().unwrap())?.forward_slice(cs, nc, Activation::None))?;
+                if let Some(g) = gamma(&self.q_norm)? {
+                    fast::rms_norm_heads(&mut q, n, c, 0, &g, h, d);
+                }
+                if let Some(g) = gamma(&self.k_norm)? {
+                    fast::rms_norm_heads(&mut kv, nc, 2 * c, 0, &g, h, d);
+                }
+                let (ql, kl, vl) = (AttnLayout::new(c, 0), AttnLayout::new(2 * c, 0), AttnLayout::new(2 * c, c));
+                fast::attention_rows(isa, precision, h, d, (&q, ql), (&kv, kl), (&kv, vl), n, segments)?
+            }
+            _ => candle_core::bail!("attention: context given to self-attention or missing for cross-attention"),
+        };
+        let y = fl(&self.to_out)?.forward_slice(&o, n, Activation::None)?;
+        Tensor::from_vec(y, (n, c), x.device())
     }
 }
 
@@ -234,6 +389,7 @@ pub struct ModulatedTransformerCrossBlock {
     norm2: LayerNorm,
     mlp: FeedForward,
     ada_ln: Option<Linear>,
+    compute: Compute,
 }
 
 /// Hyper-parameters of a modulated cross block.
@@ -257,6 +413,7 @@ impl ModulatedTransformerCrossBlock {
             norm2: LayerNorm::new(c, 1e-6, vb.pp("norm2"))?,
             mlp: FeedForward::new(c, cfg.mlp_ratio, vb.pp("mlp"))?,
             ada_ln: if cfg.share_mod { None } else { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) },
+            compute: fast::build_compute(),
         })
     }
 
@@ -268,6 +425,14 @@ impl ModulatedTransformerCrossBlock {
             None => emb.clone(),
         };
         let ch = m.chunk(6, 1)?;
+        if let Some((_, isa)) = self.compute.fast_parts() {
+            // Fused kernels: LN + modulation, gated residuals (same math).
+            let h = fast::layer_norm(isa, x, 1e-6, Some(&(&ch[1] + 1.0)?), Some(&ch[0]))?;
+            let x = fast::gated_residual(x, &self.self_attn.forward(&h, None)?, Some(&ch[2]))?;
+            let x = fast::gated_residual(&x, &self.cross_attn.forward(&self.norm2.forward(&x)?, Some(cond))?, None)?;
+            let h = fast::layer_norm(isa, &x, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
+            return fast::gated_residual(&x, &self.mlp.forward(&h)?, Some(&ch[5]));
+        }
         let (shift_msa, scale_msa, gate_msa) = (ch[0].unsqueeze(1)?, ch[1].unsqueeze(1)?, ch[2].unsqueeze(1)?);
         let (shift_mlp, scale_mlp, gate_mlp) = (ch[3].unsqueeze(1)?, ch[4].unsqueeze(1)?, ch[5].unsqueeze(1)?);
 
@@ -300,6 +465,64 @@ mod tests {
         let want = candle_nn::ops::softmax_last_dim(&s)?.matmul(&v)?;
         let d = (got - want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
         assert!(d < 1e-5, "diff {d}");
+        Ok(())
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+    }
+
+    /// A modulated cross block built on the fast kernels matches the plain
+    /// (differentiable) one: f32 tightly, bf16/f16 within their rounding.
+    #[test]
+    fn fast_cross_block_matches_plain() -> crate::Result<()> {
+        use crate::model::fast::{build_with, Compute, Precision};
+        use candle_nn::VarMap;
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let cfg = CrossBlockConfig { channels: 64, ctx_channels: 24, heads: 4, mlp_ratio: 4.0, share_mod: false, qk_rms_norm: true, qk_rms_norm_cross: true };
+        let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"))?;
+        // Non-trivial weights (VarMap init gives zero biases / unit norms).
+        let mut rng = crate::model::sampler::SeededRng::new(3);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            var.set(&((rng.randn(var.dims(), &dev)? * 0.1)? + 0.05)?)?;
+        }
+        let x = rng.randn(&[2, 37, 64], &dev)?;
+        let emb = rng.randn(&[2, 64], &dev)?;
+        let cond = rng.randn(&[2, 29, 24], &dev)?;
+        let want = plain.forward(&x, &emb, &cond)?;
+        let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        for (p, tol) in [(Precision::F32, 1e-5f32), (Precision::F16, 2e-3), (Precision::Bf16, 3e-2)] {
+            let fast = build_with(Compute::fast(p), || ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk")))?;
+            assert!(fast.self_attn.is_fast() && fast.mlp.fc1.fast().is_some());
+            let got = fast.forward(&x, &emb, &cond)?;
+            let d = max_diff(&got, &want);
+            assert!(d <= tol * scale, "{p}: max diff {d} (output scale {scale})");
+        }
+        // Cross-attention to a batch-1 context is broadcast over the batch.
+        let fast = build_with(Compute::fast(Precision::F32), || MultiHeadAttention::new(64, 4, Some(24), true, vb.pp("blk.cross_attn")))?;
+        let c1 = cond.narrow(0, 0, 1)?;
+        let a = fast.forward(&x, Some(&c1))?;
+        let b = plain.cross_attn.forward(&x, Some(&c1.broadcast_as((2, 29, 24))?.contiguous()?))?;
+        assert!(max_diff(&a, &b) < 1e-4);
+        Ok(())
+    }
+
+    #[test]
+    fn softmax_matches_candle_kernel_and_has_gradient() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 3.0, (3, 5, 37), &dev)?;
+        let fast = candle_nn::ops::softmax_last_dim(&x)?;
+        let ours = softmax_last_dim(&x)?;
+        assert_eq!(fast.flatten_all()?.to_vec1::<f32>()?, ours.flatten_all()?.to_vec1::<f32>()?, "forward must be bit-identical");
+        // Gradient equals the one of the composed (differentiable) softmax.
+        let v = candle_core::Var::from_tensor(&x)?;
+        let w = Tensor::randn(0f32, 1.0, (3, 5, 37), &dev)?;
+        let g1 = (softmax_last_dim(v.as_tensor())? * &w)?.sum_all()?.backward()?;
+        let g2 = (candle_nn::ops::softmax(v.as_tensor(), D::Minus1)? * &w)?.sum_all()?.backward()?;
+        let d = (g1.get(v.as_tensor()).unwrap() - g2.get(v.as_tensor()).unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-6, "gradient diff {d}");
         Ok(())
     }
 

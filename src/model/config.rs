@@ -53,6 +53,10 @@ pub struct RecGenConfig {
     pub slat_flow: ModuleSpec,
     pub slat_dec_mesh: ModuleSpec,
     pub slat_dec_gs: ModuleSpec,
+    /// SS VAE encoder: only training needs it (`recon train ss-vae`), so it
+    /// is optional and not one of [`Self::modules`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ss_encoder: Option<ModuleSpec>,
     pub samplers: SamplerSpecs,
     pub slat_normalization: SlatNormalization,
     pub pose: PoseSpec,
@@ -134,6 +138,16 @@ impl RecGenConfig {
         if lat != Some(ss.out_channels as u64) {
             return Err(Error::config(file, "ss_decoder.args.latent_channels", "must equal ss_flow out_channels"));
         }
+        if let Some(enc) = &self.ss_encoder {
+            let e = crate::model::ss_encoder::SparseStructureEncoderConfig::from_json(&enc.args)?;
+            if Some(e.latent_channels as u64) != lat {
+                return Err(Error::config(file, "ss_encoder.args.latent_channels", "must equal ss_decoder latent_channels"));
+            }
+            let dec_up = self.ss_decoder.args.get("channels").and_then(|v| v.as_array()).map(|a| a.len());
+            if dec_up != Some(e.channels.len()) {
+                return Err(Error::config(file, "ss_encoder.args.channels", "needs as many levels as ss_decoder.args.channels (the encoder must downsample as much as the decoder upsamples)"));
+            }
+        }
         let dino = self.image_cond_model.args.get("hidden_size").and_then(|v| v.as_u64());
         if dino != Some(ss.cond_channels as u64) {
             return Err(Error::config(file, "image_cond_model.args.hidden_size", "must equal ss_flow cond_channels"));
@@ -153,7 +167,7 @@ mod tests {
 
     #[test]
     fn shipped_configs_parse() -> Result<()> {
-        for (file, c, blocks) in [("recgen-large.json", 1024, 24), ("recgen-tiny.json", 64, 2)] {
+        for (file, c, blocks) in [("recgen-large.json", 1024, 24), ("recgen-tiny.json", 64, 2), ("recgen-nano.json", 128, 6)] {
             let cfg = RecGenConfig::load(&models_dir().join(file))?;
             let ss = cfg.ss_flow_config()?;
             assert_eq!((ss.model_channels, ss.num_blocks), (c, blocks), "{file}");
@@ -168,6 +182,9 @@ mod tests {
             assert!(cfg.slat_flow.args.get("io_block_channels").is_some());
             assert!(cfg.slat_dec_mesh.args.get("representation_config").is_some());
         }
+        // Only the nano config carries the (training-only) SS VAE encoder.
+        let nano = RecGenConfig::load(&models_dir().join("recgen-nano.json"))?;
+        assert!(nano.ss_encoder.is_some() && !nano.modules().iter().any(|(k, _)| *k == "ss_encoder"));
         let large = RecGenConfig::load(&models_dir().join("recgen-large.json"))?;
         assert_eq!(large.samplers.sparse_structure.steps, 25);
         assert_eq!(large.ss_flow_config()?.heads(), 16);

@@ -7,9 +7,10 @@
 //! covers cls + patches and is added *before* the registers are inserted, so
 //! registers carry no position.
 
-use crate::model::common::{attention, layer_norm_plain, linear, LayerNorm};
+use crate::model::common::{attention, layer_norm_plain, linear, LayerNorm, Linear};
+use crate::model::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2d, Conv2dConfig, Linear, VarBuilder};
+use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use serde::{Deserialize, Serialize};
 
 /// Hyper-parameters of a DINOv2 ViT with registers.
@@ -115,15 +116,24 @@ struct Attention {
     qkv: Linear,
     proj: Linear,
     heads: usize,
+    compute: Compute,
 }
 
 impl Attention {
     fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { qkv: linear(dim, 3 * dim, vb.pp("qkv"))?, proj: linear(dim, dim, vb.pp("proj"))?, heads })
+        Ok(Self { qkv: linear(dim, 3 * dim, vb.pp("qkv"))?, proj: linear(dim, dim, vb.pp("proj"))?, heads, compute: fast::build_compute() })
     }
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
         let d = c / self.heads;
+        if let (Some((precision, isa)), Some(qkv_l)) = (self.compute.fast_parts(), self.qkv.fast()) {
+            // Fused kernels reading q, k, v in place from the qkv rows.
+            let qkv = fast::with_f32(x, |xs| qkv_l.forward_slice(xs, b * n, Activation::None))?;
+            let lay = |off| AttnLayout::new(3 * c, off);
+            let segs: Vec<AttnSegment> = (0..b).map(|i| AttnSegment { q: i * n..(i + 1) * n, kv: i * n..(i + 1) * n }).collect();
+            let o = fast::attention_rows(isa, precision, self.heads, d, (&qkv, lay(0)), (&qkv, lay(c)), (&qkv, lay(2 * c)), b * n, &segs)?;
+            return self.proj.forward(&Tensor::from_vec(o, (b, n, c), x.device())?);
+        }
         // qkv is laid out [q | k | v], each split into heads.
         let qkv = self.qkv.forward(x)?.reshape((b, n, 3, self.heads, d))?.permute((2, 0, 3, 1, 4))?;
         let (q, k, v) = (qkv.get(0)?, qkv.get(1)?, qkv.get(2)?);
@@ -141,7 +151,7 @@ struct Mlp {
 impl Mlp {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         // nn.GELU() default: exact erf form (not the tanh approximation).
-        self.fc2.forward(&self.fc1.forward(x)?.gelu_erf()?)
+        self.fc2.forward(&self.fc1.forward_act(x, Activation::GeluErf)?)
     }
 }
 
@@ -153,6 +163,7 @@ struct Block {
     norm2: LayerNorm,
     mlp: Mlp,
     ls2: Tensor,
+    compute: Compute,
 }
 
 impl Block {
@@ -166,9 +177,14 @@ impl Block {
             norm2: LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm2"))?,
             mlp: Mlp { fc1: linear(d, h, vb.pp("mlp.fc1"))?, fc2: linear(h, d, vb.pp("mlp.fc2"))? },
             ls2: vb.pp("ls2").get(d, "gamma")?,
+            compute: fast::build_compute(),
         })
     }
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if self.compute.is_fast() {
+            let x = fast::gated_residual(x, &self.attn.forward(&self.norm1.forward(x)?)?, Some(&self.ls1))?;
+            return fast::gated_residual(&x, &self.mlp.forward(&self.norm2.forward(&x)?)?, Some(&self.ls2));
+        }
         let x = (x + self.attn.forward(&self.norm1.forward(x)?)?.broadcast_mul(&self.ls1)?)?;
         &x + self.mlp.forward(&self.norm2.forward(&x)?)?.broadcast_mul(&self.ls2)?
     }
@@ -335,6 +351,30 @@ mod tests {
         assert_eq!(crate::conformance::max_abs_diff(&c, &t).unwrap(), 0.0);
         // A different grid is refused, not silently mis-embedded.
         assert!(m.forward(&Tensor::zeros((1, 3, 42, 42), DType::F32, &dev)?).is_err());
+        Ok(())
+    }
+
+    /// DINOv2 on the fast kernels (erf GELU fused into fc1, flash attention on
+    /// the qkv rows) matches the plain model.
+    #[test]
+    fn fast_model_matches_plain() -> crate::Result<()> {
+        use crate::model::fast::{build_with, Compute, Precision};
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let cfg = Dinov2Config { embed_dim: 32, depth: 2, ..tiny() };
+        let plain = Dinov2::new(&cfg, vb.clone())?;
+        let mut rng = crate::model::sampler::SeededRng::new(5);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            var.set(&((rng.randn(var.dims(), &dev)? * 0.1)? + 0.02)?)?;
+        }
+        let fast = build_with(Compute::fast(Precision::F32), || Dinov2::new(&cfg, vb))?;
+        assert!(fast.blocks[0].attn.qkv.fast().is_some() && fast.blocks[0].compute.is_fast());
+        let img = rng.randn(&[2, 3, 28, 28], &dev)?;
+        let a = plain.forward(&img)?.x_prenorm;
+        let b = fast.forward(&img)?.x_prenorm;
+        let d = crate::conformance::max_abs_diff(&a, &b).unwrap();
+        assert!(d < 1e-4, "diff {d}");
         Ok(())
     }
 

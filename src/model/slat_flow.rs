@@ -21,7 +21,8 @@ use crate::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseC
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use crate::model::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
-use candle_nn::{Linear, VarBuilder};
+use crate::model::common::Linear;
+use candle_nn::VarBuilder;
 use serde::Deserialize;
 
 fn default_head_channels() -> usize {

@@ -9,7 +9,8 @@
 //! LayerNorm (eps 1e-5) → split → `out_layer` + unpatchify, `out_layer_pose`.
 
 use candle_core::{DType, Device, Module, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use crate::model::common::Linear;
+use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 use super::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
@@ -519,6 +520,34 @@ mod tests {
         assert!((v - v2)?.abs()?.sum_all()?.to_scalar::<f32>()? > 0.0);
         // Pose shape errors are reported, not panicked.
         assert!(m.forward(&state[0], Some(&Tensor::zeros((2, 3), DType::F32, &Device::Cpu)?), &t, &cond).is_err());
+        Ok(())
+    }
+
+    /// The whole model built on the fast kernels agrees with the plain one
+    /// (same weights): f32 tightly, bf16 within its rounding.
+    #[test]
+    fn fast_model_matches_plain() -> Result<()> {
+        use crate::model::fast::{build_with, Compute, Precision};
+        let cfg = tiny_cfg(1, true);
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let plain = SparseStructureFlowModel::new(&cfg, vb.clone())?;
+        let mut rng = SeededRng::new(7);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            var.set(&(rng.randn(var.dims(), &Device::Cpu)? * 0.2)?)?;
+        }
+        let state = plain.initial_state(&mut rng, 2, &Device::Cpu)?;
+        let cond = rng.randn(&[2, 5, 16], &Device::Cpu)?;
+        let t = Tensor::new(&[500f32, 100.0], &Device::Cpu)?;
+        let (v0, p0) = plain.forward(&state[0], Some(&state[1]), &t, &cond)?;
+        for (p, tol) in [(Precision::F32, 2e-5f32), (Precision::Bf16, 5e-2)] {
+            let fast = build_with(Compute::fast(p), || SparseStructureFlowModel::new(&cfg, vb.clone()))?;
+            let (v1, p1) = fast.forward(&state[0], Some(&state[1]), &t, &cond)?;
+            let scale = v0.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?.max(1.0);
+            let dv = (&v1 - &v0)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            let dp = (p1.unwrap() - p0.as_ref().unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(dv <= tol * scale && dp <= tol * scale, "{p}: v diff {dv}, pose diff {dp} (scale {scale})");
+        }
         Ok(())
     }
 

@@ -4,8 +4,10 @@
 //! instead of exploding), and the simulation runs until every object is at
 //! rest on the plane z = 0 (gravity −z) or the time limit is reached.
 //!
-//! Single-threaded, with rapier's `enhanced-determinism`: the same input
-//! gives the same poses bit for bit.
+//! Single-threaded (rapier without its `parallel` feature): the same input
+//! gives the same poses bit for bit on a given build. Bit-identity across
+//! platforms is not claimed (that needs rapier's `enhanced-determinism`,
+//! which would also force libm/scalar math on the synth renderer's parry).
 
 use crate::export::transform::{matrix_to_quat, quat_to_matrix, Similarity};
 use crate::sim::collision::{Part, Primitive};

@@ -5,7 +5,7 @@ pub mod attention;
 pub mod conv;
 pub mod spatial;
 
-pub use attention::varlen_attention;
+pub use attention::{varlen_attention, varlen_attention_with};
 pub use conv::{neighbour_map, SparseConv3d};
 pub use spatial::{sparse_downsample, sparse_upsample, DownsampleCache};
 

@@ -128,10 +128,40 @@ pub fn windowed_attention(q: &Tensor, k: &Tensor, v: &Tensor, part: &WindowParti
 /// with a given window partition (use [`WindowPartition::per_batch`] for
 /// full attention).
 pub fn sparse_self_attention(attn: &MultiHeadAttention, feats: &Tensor, part: &WindowPartition) -> Result<Tensor> {
+    if attn.is_fast() {
+        return sparse_self_attention_fast(attn, feats, part);
+    }
     let (q, k, v) = attn.qkv(&feats.unsqueeze(0)?, None)?; // each [1, N, H, D]
     let flat = |t: Tensor| -> Result<Tensor> { Ok(t.squeeze(0)?.contiguous()?) };
     let o = windowed_attention(&flat(q)?, &flat(k)?, &flat(v)?, part)?;
     Ok(attn.out(&o.unsqueeze(0)?)?.squeeze(0)?)
+}
+
+/// Fast path: rows gathered into window order so that each window is one
+/// contiguous segment of the fused flash-attention kernel, then scattered back.
+fn sparse_self_attention_fast(attn: &MultiHeadAttention, feats: &Tensor, part: &WindowPartition) -> Result<Tensor> {
+    let n = feats.dim(0)?;
+    if part.order.len() != n {
+        return Err(Error::msg(format!("windowed attention: partition has {} rows, tensor {n}", part.order.len())));
+    }
+    if n == 0 {
+        return Ok(feats.clone());
+    }
+    let dev = feats.device();
+    let order: Vec<u32> = part.order.iter().map(|&i| i as u32).collect();
+    let mut inv = vec![0u32; n];
+    for (pos, &row) in part.order.iter().enumerate() {
+        inv[row] = pos as u32;
+    }
+    let xs = feats.index_select(&Tensor::from_vec(order, n, dev)?, 0)?;
+    let mut segs = Vec::with_capacity(part.seq_lens.len());
+    let mut start = 0;
+    for &l in &part.seq_lens {
+        segs.push(crate::model::fast::AttnSegment { q: start..start + l, kv: start..start + l });
+        start += l;
+    }
+    let y = attn.forward_rows(&xs, None, &segs)?;
+    Ok(y.index_select(&Tensor::from_vec(inv, n, dev)?, 0)?)
 }
 
 /// Plain per-window reference (one window at a time), for tests.
@@ -207,6 +237,29 @@ mod tests {
         let s = (g(&q).matmul(&g(&k).t()?)? / 8f64.sqrt())?;
         let want = candle_nn::ops::softmax(&s, D::Minus1)?.matmul(&g(&v))?.transpose(0, 1)?;
         assert!(max_diff(&a.narrow(0, 0, n0)?, &want) < 1e-5);
+        Ok(())
+    }
+
+    /// The fused-kernel path of a layer built with fast kernels gives the
+    /// plain path's result (f32), including uneven window sizes.
+    #[test]
+    fn fast_sparse_attention_matches_plain() -> Result<()> {
+        use crate::model::fast::{build_with, Compute, Precision};
+        use candle_nn::{VarBuilder, VarMap};
+        let coords = shell(14, 2);
+        let n = coords.len();
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, candle_core::DType::F32, &dev);
+        let plain = MultiHeadAttention::new(48, 3, None, true, vb.pp("attn"))?;
+        let fast = build_with(Compute::fast(Precision::F32), || MultiHeadAttention::new(48, 3, None, true, vb.pp("attn")))?;
+        assert!(fast.is_fast() && !plain.is_fast());
+        let feats = Tensor::randn(0f32, 1.0, (n, 48), &dev)?;
+        for p in [WindowPartition::new(&coords, 4, 0)?, WindowPartition::new(&coords, 4, 2)?, WindowPartition::new(&coords, 64, 0)?] {
+            let a = sparse_self_attention(&plain, &feats, &p)?;
+            let b = sparse_self_attention(&fast, &feats, &p)?;
+            assert!(max_diff(&a, &b) < 1e-4, "diff {}", max_diff(&a, &b));
+        }
         Ok(())
     }
 

@@ -111,6 +111,91 @@ impl Manifest {
     }
 }
 
+/// Checkpoint kinds that hold weights (not configs).
+fn is_weights_file(f: &ManifestFile) -> bool {
+    matches!(f.kind.as_str(), "safetensors" | "pt" | "pth")
+}
+
+/// The checkpoint of every module of an architecture, from the files a
+/// manifest lists, as they lie in a Hugging Face cache (`cache`, the `hub`
+/// folder; see [`Manifest::resolve_dir`]) after `recon weights fetch`.
+///
+/// Each module is matched by class family ([`ModuleKind`]) to a weights
+/// file of the named manifest; a family the manifest does not list at all
+/// (RecGen ships no DINOv2) is taken from the other embedded manifests. The
+/// manifest's pose-statistics files (role "stage-1/stage-2 pose normaliser
+/// statistics"), when present, replace the architecture's. Missing files are
+/// one error listing every path looked at.
+pub fn resolve_module_files(
+    name_or_path: &str,
+    config: &crate::model::config::RecGenConfig,
+    cache: &Path,
+) -> Result<crate::pipeline::WeightFiles> {
+    use crate::weights::registry::ModuleKind;
+    let primary = Manifest::load(name_or_path)?;
+    let others: Vec<Manifest> = Manifest::all()?.into_iter().filter(|m| m.name != primary.name).collect();
+    let lists = |m: &Manifest, kind: ModuleKind| -> Option<ManifestFile> {
+        m.files
+            .iter()
+            .find(|f| is_weights_file(f) && !f.optional && f.module.as_deref().and_then(ModuleKind::of) == Some(kind))
+            .cloned()
+    };
+    let mut out = crate::pipeline::WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
+    let mut missing = Vec::new();
+    let mut fetch = vec![primary.name.clone()];
+    for (key, spec) in config.modules() {
+        let Some(kind) = ModuleKind::of(&spec.name) else {
+            missing.push(format!("{key}: module class `{}` is unknown", spec.name));
+            continue;
+        };
+        let found = lists(&primary, kind)
+            .map(|f| (&primary, f))
+            .or_else(|| others.iter().find_map(|m| lists(m, kind).map(|f| (m, f))));
+        let Some((m, f)) = found else {
+            missing.push(format!("{key}: no manifest lists a {} checkpoint", spec.name));
+            continue;
+        };
+        let path = m.resolve_dir(cache).join(&f.path);
+        if path.is_file() {
+            out.modules.insert(key.to_string(), path);
+        } else {
+            missing.push(format!("{key}: {}", path.display()));
+            if !fetch.contains(&m.name) {
+                fetch.push(m.name.clone());
+            }
+        }
+    }
+    if !missing.is_empty() {
+        let cmds: Vec<String> = fetch.iter().map(|n| format!("`recon weights fetch --manifest {n}`")).collect();
+        return Err(Error::input(
+            cache.display().to_string(),
+            format!(
+                "weights manifest `{}`: the cache does not hold every checkpoint; missing: {}. Download them first with {} (the cache is $HF_HOME/hub, else ~/.cache/huggingface/hub)",
+                primary.name,
+                missing.join("; "),
+                cmds.join(" and ")
+            ),
+        ));
+    }
+    let dir = primary.resolve_dir(cache);
+    for f in primary.files.iter().filter(|f| f.kind == "json") {
+        let role = f.role.as_deref().unwrap_or("");
+        if !role.contains("pose normaliser statistics") {
+            continue;
+        }
+        let p = dir.join(&f.path);
+        if !p.is_file() {
+            continue;
+        }
+        if role.contains("stage-1") {
+            out.ss_stats = Some(p);
+        } else if role.contains("stage-2") {
+            out.slat_stats = Some(p);
+        }
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -145,5 +230,38 @@ mod tests {
         let params: usize = want.iter().map(|s| s.shape.iter().product::<usize>()).sum();
         // spec §10: 304.37 M weights (+1024 for the unused mask_token).
         assert_eq!(params, 304_372_736);
+    }
+
+    /// A fake Hugging Face cache for a custom manifest: tiny random weights at
+    /// the manifest's paths resolve to a loadable pipeline; an empty cache is
+    /// a clear error naming the missing files and the fetch command.
+    #[test]
+    fn manifest_files_resolve_from_a_cache() {
+        use crate::model::config::RecGenConfig;
+        let root = std::env::temp_dir().join(format!("recon-manifest-resolve-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let cfg_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
+        let cfg = RecGenConfig::load(&cfg_path).unwrap();
+        let files: Vec<serde_json::Value> = cfg
+            .modules()
+            .iter()
+            .map(|(k, spec)| serde_json::json!({"path": format!("sub/{k}.safetensors"), "kind": "safetensors", "module": spec.name}))
+            .collect();
+        let manifest = serde_json::json!({"name": "tiny-test", "source": "huggingface", "repo": "recon-test/tiny", "revision": "abc", "files": files});
+        let mpath = root.join("tiny-test.json");
+        std::fs::create_dir_all(&root).unwrap();
+        std::fs::write(&mpath, manifest.to_string()).unwrap();
+        let cache = root.join("hub");
+        std::fs::create_dir_all(&cache).unwrap();
+        let e = resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap_err().to_string();
+        assert!(e.contains("recon weights fetch --manifest tiny-test") && e.contains("ss_flow.safetensors"), "{e}");
+        let snap = cache.join("models--recon-test--tiny/snapshots/abc/sub");
+        crate::weights::init::write_random_architecture(&cfg_path, &snap, 3).unwrap();
+        let wf = resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
+        assert_eq!(wf.modules.len(), 6);
+        assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
+        let p = crate::pipeline::Pipeline::load_files(&cfg_path, &wf, crate::pipeline::Stages::All).unwrap();
+        assert!(p.weights().is_random());
+        let _ = std::fs::remove_dir_all(&root);
     }
 }

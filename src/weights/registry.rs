@@ -7,6 +7,7 @@
 //! Every module of the architecture file (`models/recgen-*.json`) is known:
 //! the DINOv2 image encoder, the stage-1 flow (`SparseStructureFlowModel`,
 //! RecGen `SparseStructurePoseFlowModel`), `SparseStructureDecoder`, the
+//! SS VAE encoder (`SparseStructureEncoder`, training only), the
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
@@ -16,6 +17,7 @@ use crate::decoders::slat_mesh::SLatMeshDecoder;
 use crate::model::dinov2::{Dinov2, Dinov2Config};
 use crate::model::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use crate::model::ss_decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
+use crate::model::ss_encoder::{SparseStructureEncoder, SparseStructureEncoderConfig};
 use crate::model::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
@@ -44,6 +46,7 @@ pub const KNOWN_MODULES: &[&str] = &[
     "SparseStructureFlowModel",
     "SparseStructurePoseFlowModel",
     "SparseStructureDecoder",
+    "SparseStructureEncoder",
     "SLatFlowModel",
     "ElasticSLatFlowModel",
     "SLatCondFlowModel",
@@ -60,6 +63,7 @@ pub enum ModuleKind {
     Dinov2,
     SsFlow,
     SsDecoder,
+    SsEncoder,
     SlatFlow,
     MeshDecoder,
     GaussianDecoder,
@@ -72,6 +76,7 @@ impl ModuleKind {
             n if n.starts_with("dinov2_") => Self::Dinov2,
             "SparseStructureFlowModel" | "SparseStructurePoseFlowModel" => Self::SsFlow,
             "SparseStructureDecoder" => Self::SsDecoder,
+            "SparseStructureEncoder" => Self::SsEncoder,
             "SLatFlowModel" | "ElasticSLatFlowModel" | "SLatCondFlowModel" | "ElasticSLatCondFlowModel" => Self::SlatFlow,
             "SLatMeshDecoder" | "ElasticSLatMeshDecoder" => Self::MeshDecoder,
             "SLatGaussianDecoder" | "ElasticSLatGaussianDecoder" => Self::GaussianDecoder,
@@ -114,6 +119,10 @@ pub fn build_ss_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Resu
     SparseStructureDecoder::new(&SparseStructureDecoderConfig::from_json(&cfg.args)?, vb)
 }
 
+pub fn build_ss_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SparseStructureEncoder> {
+    SparseStructureEncoder::new(&SparseStructureEncoderConfig::from_json(&cfg.args)?, vb)
+}
+
 pub fn build_slat_flow(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatFlowModel> {
     SLatFlowModel::new(&SLatFlowConfig::from_json(&cfg.args)?, vb)
 }
@@ -133,6 +142,7 @@ pub fn build(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<()> {
         ModuleKind::Dinov2 => drop(build_dinov2(cfg, vb, file)?),
         ModuleKind::SsFlow => drop(build_ss_flow(cfg, vb, file)?),
         ModuleKind::SsDecoder => drop(build_ss_decoder(cfg, vb, file)?),
+        ModuleKind::SsEncoder => drop(build_ss_encoder(cfg, vb, file)?),
         ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file)?),
         ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file)?),
         ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file)?),

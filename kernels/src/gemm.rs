@@ -1,0 +1,755 @@
+//! Matrix multiply `C = A·B (+ bias, activation)` with `B` packed once.
+//!
+//! `A` (`[M, K]`, activations) is f32 and packed per call into `MR`-row
+//! tiles; `B` (`[K, N]`, weights) is packed at load time into `NR`-column
+//! panels in its storage format ([`WeightFormat`]): f32, bf16 (k in pairs,
+//! the layout `vdpbf16ps` reads) or f16. Results are always f32.
+//!
+//! Blocking follows the usual GotoBLAS/BLIS structure: a task owns `MC`
+//! rows of `C` and a range of panels; for each `KC` slice of `K` it packs
+//! its `A` rows once (kept in L2), then sweeps the panels (each `KC×NR`
+//! micro-panel stays in L1 while the `MR×NR` register tile walks down the
+//! rows). Each element of `C` is computed by exactly one task with a fixed
+//! summation order, so results do not depend on the thread count.
+//!
+//! Kernels, chosen by [`Isa`] at run time:
+//! - f32 weights: AVX-512 FMA `14×32` tile / portable;
+//! - bf16 weights: `vdpbf16ps` on bf16 pairs of A and B (A rounded to bf16,
+//!   f32 accumulation) with AVX512-BF16; otherwise B is widened to f32 in
+//!   registers and A rounded to bf16 first, so every ISA computes the same
+//!   products;
+//! - f16 weights: widened with `vcvtph2ps` (AVX-512) / in software; A stays f32.
+
+use crate::buf::AlignedBuf;
+use crate::isa::Isa;
+use crate::vecmath::{self, Activation};
+use rayon::prelude::*;
+
+/// Rows of the register tile.
+pub const MR: usize = 14;
+/// Columns of the register tile (two 16-lane vectors).
+pub const NR: usize = 32;
+/// Rows of `C` per task (a multiple of `MR`).
+const MC: usize = MR * 24;
+
+/// Storage format of a packed `B` operand.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum WeightFormat {
+    F32,
+    Bf16,
+    F16,
+}
+
+impl WeightFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            WeightFormat::F32 => "f32",
+            WeightFormat::Bf16 => "bf16",
+            WeightFormat::F16 => "f16",
+        }
+    }
+    pub fn bytes_per_element(self) -> usize {
+        match self {
+            WeightFormat::F32 => 4,
+            _ => 2,
+        }
+    }
+    /// K values per slice of a task (the L1-resident micro-panel is `KC×NR`).
+    fn kc(self) -> usize {
+        match self {
+            WeightFormat::F32 => 256,
+            _ => 512,
+        }
+    }
+    /// K rounded up to the format's step (bf16 packs k in pairs).
+    pub fn k_padded(self, k: usize) -> usize {
+        match self {
+            WeightFormat::Bf16 => k.div_ceil(2) * 2,
+            _ => k,
+        }
+    }
+}
+
+/// Round to the nearest bf16 (ties to even), as `vcvtneps2bf16`; NaN stays NaN.
+#[inline(always)]
+pub fn f32_to_bf16(x: f32) -> u16 {
+    let b = x.to_bits();
+    let r = (b.wrapping_add(0x7fff + ((b >> 16) & 1)) >> 16) as u16;
+    if x.is_nan() {
+        0x7fc0
+    } else {
+        r
+    }
+}
+#[inline(always)]
+pub fn bf16_to_f32(b: u16) -> f32 {
+    f32::from_bits((b as u32) << 16)
+}
+/// `x` rounded to bf16 precision, as f32.
+#[inline(always)]
+pub fn round_bf16(x: f32) -> f32 {
+    bf16_to_f32(f32_to_bf16(x))
+}
+#[inline(always)]
+pub fn f32_to_f16(x: f32) -> u16 {
+    half::f16::from_f32(x).to_bits()
+}
+#[inline(always)]
+pub fn f16_to_f32(b: u16) -> f32 {
+    half::f16::from_bits(b).to_f32()
+}
+
+#[derive(Clone, Debug)]
+enum Store {
+    F32(AlignedBuf<f32>),
+    U16(AlignedBuf<u16>),
+}
+
+/// A `[K, N]` right operand packed into `NR`-column panels (zero padded to a
+/// whole panel and, for bf16, to even `K`). Panel `p` holds columns
+/// `p·NR .. p·NR+NR`; inside it, element `(k, j)` is at `k·NR + j` (f32, f16)
+/// or `(k/2)·2NR + 2j + k%2` (bf16 pairs).
+#[derive(Clone, Debug)]
+pub struct PackedMatrix {
+    k: usize,
+    n: usize,
+    format: WeightFormat,
+    store: Store,
+}
+
+impl PackedMatrix {
+    /// Pack `B[k][n] = get(k, n)`.
+    pub fn pack_with(k: usize, n: usize, format: WeightFormat, get: impl Fn(usize, usize) -> f32 + Sync) -> Self {
+        let kp = format.k_padded(k);
+        let panels = n.div_ceil(NR);
+        let stride = kp * NR;
+        let fill = |p: usize, panel: &mut dyn FnMut(usize, f32)| {
+            for kk in 0..k {
+                for j in 0..NR.min(n - p * NR) {
+                    let idx = match format {
+                        WeightFormat::Bf16 => (kk / 2) * 2 * NR + 2 * j + kk % 2,
+                        _ => kk * NR + j,
+                    };
+                    panel(idx, get(kk, p * NR + j));
+                }
+            }
+        };
+        let store = match format {
+            WeightFormat::F32 => {
+                let mut buf = AlignedBuf::<f32>::zeroed(panels * stride);
+                buf.par_chunks_mut(stride.max(1)).enumerate().for_each(|(p, dst)| fill(p, &mut |i, v| dst[i] = v));
+                Store::F32(buf)
+            }
+            WeightFormat::Bf16 | WeightFormat::F16 => {
+                let conv = if format == WeightFormat::Bf16 { f32_to_bf16 } else { f32_to_f16 };
+                let mut buf = AlignedBuf::<u16>::zeroed(panels * stride);
+                buf.par_chunks_mut(stride.max(1)).enumerate().for_each(|(p, dst)| fill(p, &mut |i, v| dst[i] = conv(v)));
+                Store::U16(buf)
+            }
+        };
+        Self { k, n, format, store }
+    }
+
+    /// Pack a PyTorch `Linear` weight `W` (`[N, K]` row-major, `y = x·Wᵀ`).
+    pub fn from_linear_weight(w: &[f32], n: usize, k: usize, format: WeightFormat) -> Result<Self, String> {
+        if w.len() != n * k {
+            return Err(format!("linear weight has {} values, expected {n}×{k}", w.len()));
+        }
+        Ok(Self::pack_with(k, n, format, |kk, nn| w[nn * k + kk]))
+    }
+
+    /// Pack a row-major `[K, N]` matrix.
+    pub fn from_kn(b: &[f32], k: usize, n: usize, format: WeightFormat) -> Result<Self, String> {
+        if b.len() != n * k {
+            return Err(format!("matrix has {} values, expected {k}×{n}", b.len()));
+        }
+        Ok(Self::pack_with(k, n, format, |kk, nn| b[kk * n + nn]))
+    }
+
+    pub fn k(&self) -> usize {
+        self.k
+    }
+    pub fn n(&self) -> usize {
+        self.n
+    }
+    pub fn format(&self) -> WeightFormat {
+        self.format
+    }
+    /// Bytes held by the packed values.
+    pub fn bytes(&self) -> usize {
+        match &self.store {
+            Store::F32(b) => b.len() * 4,
+            Store::U16(b) => b.len() * 2,
+        }
+    }
+
+    /// The stored value of `B[k][n]` (after rounding to the format).
+    pub fn get(&self, k: usize, n: usize) -> f32 {
+        let (p, j) = (n / NR, n % NR);
+        let base = p * self.format.k_padded(self.k) * NR;
+        match (&self.store, self.format) {
+            (Store::F32(b), _) => b[base + k * NR + j],
+            (Store::U16(b), WeightFormat::Bf16) => bf16_to_f32(b[base + (k / 2) * 2 * NR + 2 * j + k % 2]),
+            (Store::U16(b), _) => f16_to_f32(b[base + k * NR + j]),
+        }
+    }
+
+    /// Pointer to panel `p` at k offset `k0` (`k0` even for bf16).
+    fn panel_ptr(&self, p: usize, k0: usize) -> *const u8 {
+        let off = p * self.format.k_padded(self.k) * NR + k0 * NR;
+        match &self.store {
+            Store::F32(b) => b[off..].as_ptr() as *const u8,
+            Store::U16(b) => b[off..].as_ptr() as *const u8,
+        }
+    }
+}
+
+/// How a kernel wants its `A` tile.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum AFormat {
+    /// f32 `[k][MR]`.
+    F32,
+    /// f32 `[k][MR]` with values rounded to bf16 (k padded to even).
+    F32Bf16,
+    /// bf16 pairs `[k/2][MR]` as u32 (low half = even k).
+    Bf16Pairs,
+}
+
+pub(crate) fn a_format(isa: Isa, format: WeightFormat) -> AFormat {
+    match format {
+        WeightFormat::F32 | WeightFormat::F16 => AFormat::F32,
+        WeightFormat::Bf16 if isa >= Isa::Avx512Bf16 => AFormat::Bf16Pairs,
+        WeightFormat::Bf16 => AFormat::F32Bf16,
+    }
+}
+
+/// u32 words of one packed `A` tile of `kc` k values.
+pub(crate) fn a_tile_words(afmt: AFormat, kc: usize) -> usize {
+    match afmt {
+        AFormat::F32 => kc * MR,
+        AFormat::F32Bf16 => kc.div_ceil(2) * 2 * MR,
+        AFormat::Bf16Pairs => kc.div_ceil(2) * MR,
+    }
+}
+
+/// Pack an `A` tile given by k: `col(k)` returns the `rows` values of
+/// column k (contiguous over i), e.g. Vᵀ from row-major V.
+#[inline]
+pub(crate) fn pack_a_tile_cols<'a>(afmt: AFormat, dst: &mut [u32], rows: usize, kc: usize, col: impl Fn(usize) -> &'a [f32]) {
+    let words = a_tile_words(afmt, kc);
+    let dst = &mut dst[..words];
+    if rows < MR || kc % 2 == 1 {
+        dst.fill(0);
+    }
+    match afmt {
+        AFormat::F32 => {
+            for k in 0..kc {
+                for (d, &v) in dst[k * MR..k * MR + rows].iter_mut().zip(&col(k)[..rows]) {
+                    *d = v.to_bits();
+                }
+            }
+        }
+        AFormat::F32Bf16 => {
+            for k in 0..kc {
+                for (d, &v) in dst[k * MR..k * MR + rows].iter_mut().zip(&col(k)[..rows]) {
+                    *d = round_bf16(v).to_bits();
+                }
+            }
+        }
+        AFormat::Bf16Pairs => {
+            for k2 in 0..kc / 2 {
+                let (lo, hi) = (&col(2 * k2)[..rows], &col(2 * k2 + 1)[..rows]);
+                for i in 0..rows {
+                    dst[k2 * MR + i] = f32_to_bf16(lo[i]) as u32 | ((f32_to_bf16(hi[i]) as u32) << 16);
+                }
+            }
+            if kc % 2 == 1 {
+                let lo = &col(kc - 1)[..rows];
+                for i in 0..rows {
+                    dst[(kc / 2) * MR + i] = f32_to_bf16(lo[i]) as u32;
+                }
+            }
+        }
+    }
+}
+
+/// Pack an `A` tile from row-major f32 rows (`a[i·lda + k]`), the hot case.
+#[inline]
+pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize, rows: usize, kc: usize) {
+    match afmt {
+        AFormat::F32 => {
+            if rows < MR {
+                dst[..kc * MR].fill(0);
+            }
+            for i in 0..rows {
+                let src = &a[i * lda..i * lda + kc];
+                for (k, &v) in src.iter().enumerate() {
+                    dst[k * MR + i] = v.to_bits();
+                }
+            }
+        }
+        AFormat::F32Bf16 => {
+            let kp = kc.div_ceil(2) * 2;
+            if rows < MR || kp != kc {
+                dst[..kp * MR].fill(0);
+            }
+            for i in 0..rows {
+                for (k, &v) in a[i * lda..i * lda + kc].iter().enumerate() {
+                    dst[k * MR + i] = round_bf16(v).to_bits();
+                }
+            }
+        }
+        AFormat::Bf16Pairs => {
+            if rows < MR {
+                dst[..kc.div_ceil(2) * MR].fill(0);
+            }
+            for i in 0..rows {
+                let src = &a[i * lda..i * lda + kc];
+                let mut pairs = src.chunks_exact(2);
+                for (k2, p) in pairs.by_ref().enumerate() {
+                    dst[k2 * MR + i] = f32_to_bf16(p[0]) as u32 | ((f32_to_bf16(p[1]) as u32) << 16);
+                }
+                if let [last] = pairs.remainder() {
+                    dst[(kc / 2) * MR + i] = f32_to_bf16(*last) as u32;
+                }
+            }
+        }
+    }
+}
+
+/// One register tile: `C[rows, cols] (+)= A_tile · B_panel` over `kc` k values
+/// (`kc` even for bf16 formats). `load`: add to the existing `C` values.
+///
+/// # Safety
+/// `a` holds a packed tile of `kc` values in the format `a_format(isa, format)`,
+/// `b` a panel slice of `kc` values, `c` is valid for `rows` rows of stride
+/// `ldc` and `cols` columns, `rows ≤ MR`, `cols ≤ NR`, and `isa` is supported.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+pub(crate) unsafe fn microkernel(
+    isa: Isa,
+    format: WeightFormat,
+    kc: usize,
+    a: *const u32,
+    b: *const u8,
+    c: *mut f32,
+    ldc: usize,
+    rows: usize,
+    cols: usize,
+    load: bool,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if isa >= Isa::Avx512 {
+        match (format, isa) {
+            (WeightFormat::F32, _) => x86::kern_f32(kc, a as *const f32, b as *const f32, c, ldc, rows, cols, load),
+            (WeightFormat::F16, _) => x86::kern_f16(kc, a as *const f32, b as *const u16, c, ldc, rows, cols, load),
+            (WeightFormat::Bf16, Isa::Avx512Bf16) => x86::kern_bf16_dp(kc / 2, a, b as *const u16, c, ldc, rows, cols, load),
+            (WeightFormat::Bf16, _) => x86::kern_bf16_widen(kc / 2, a as *const f32, b as *const u16, c, ldc, rows, cols, load),
+        }
+        return;
+    }
+    let _ = isa;
+    portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
+}
+
+#[allow(clippy::too_many_arguments)]
+unsafe fn portable_kernel(format: WeightFormat, kc: usize, a: *const f32, b: *const u8, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+    let mut acc = [[0f32; NR]; MR];
+    let mut brow = [0f32; NR];
+    for k in 0..kc {
+        match format {
+            WeightFormat::F32 => {
+                let src = std::slice::from_raw_parts((b as *const f32).add(k * NR), NR);
+                brow.copy_from_slice(src);
+            }
+            WeightFormat::F16 => {
+                let src = std::slice::from_raw_parts((b as *const u16).add(k * NR), NR);
+                for j in 0..NR {
+                    brow[j] = f16_to_f32(src[j]);
+                }
+            }
+            WeightFormat::Bf16 => {
+                let src = std::slice::from_raw_parts((b as *const u16).add((k / 2) * 2 * NR), 2 * NR);
+                for j in 0..NR {
+                    brow[j] = bf16_to_f32(src[2 * j + k % 2]);
+                }
+            }
+        }
+        let arow = std::slice::from_raw_parts(a.add(k * MR), MR);
+        for i in 0..MR {
+            let ai = arow[i];
+            for j in 0..NR {
+                acc[i][j] += ai * brow[j];
+            }
+        }
+    }
+    for i in 0..rows {
+        let dst = std::slice::from_raw_parts_mut(c.add(i * ldc), cols);
+        for j in 0..cols {
+            dst[j] = if load { dst[j] + acc[i][j] } else { acc[i][j] };
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+pub(crate) struct SendPtr(pub *mut f32);
+// SAFETY: used only to hand disjoint output regions to worker threads.
+unsafe impl Send for SendPtr {}
+unsafe impl Sync for SendPtr {}
+impl SendPtr {
+    pub fn get(self) -> *mut f32 {
+        self.0
+    }
+}
+
+/// `C[m, n] = act(A[m, :] · B + bias)` for row-major `A` (`lda ≥ K`) and `C`
+/// (`ldc ≥ N`). Runs on the rayon pool; the result does not depend on the
+/// number of threads.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm(
+    isa: Isa,
+    a: &[f32],
+    m: usize,
+    lda: usize,
+    b: &PackedMatrix,
+    bias: Option<&[f32]>,
+    act: Activation,
+    c: &mut [f32],
+    ldc: usize,
+) -> Result<(), String> {
+    let (k, n) = (b.k, b.n);
+    if !isa.supported() {
+        return Err(format!("gemm: instruction set {} is not supported by this CPU", isa.name()));
+    }
+    if m == 0 || n == 0 {
+        return Ok(());
+    }
+    if lda < k || a.len() < (m - 1) * lda + k {
+        return Err(format!("gemm: A has {} values, {m} rows of stride {lda} and {k} columns need {}", a.len(), (m - 1) * lda + k));
+    }
+    if ldc < n || c.len() < (m - 1) * ldc + n {
+        return Err(format!("gemm: C has {} values, {m} rows of stride {ldc} and {n} columns need {}", c.len(), (m - 1) * ldc + n));
+    }
+    if let Some(bv) = bias {
+        if bv.len() != n {
+            return Err(format!("gemm: bias has {} values, expected {n}", bv.len()));
+        }
+    }
+    let afmt = a_format(isa, b.format);
+    let kc_max = b.format.kc().min(b.format.k_padded(k).max(1));
+    let panels = n.div_ceil(NR);
+    let mblocks = m.div_ceil(MC);
+    // Enough tasks to balance the pool; split N only when M gives too few.
+    let threads = rayon::current_num_threads().max(1);
+    let ngroups = (4 * threads).div_ceil(mblocks).clamp(1, panels);
+    let cptr = SendPtr(c.as_mut_ptr());
+    (0..mblocks * ngroups).into_par_iter().for_each_init(
+        || AlignedBuf::<u32>::zeroed(MC.div_ceil(MR) * a_tile_words(afmt, kc_max)),
+        |abuf, task| {
+            let (mb, ng) = (task / ngroups, task % ngroups);
+            let m0 = mb * MC;
+            let rows = MC.min(m - m0);
+            let tiles = rows.div_ceil(MR);
+            let (p0, p1) = (ng * panels / ngroups, (ng + 1) * panels / ngroups);
+            if k == 0 {
+                for i in 0..rows {
+                    // SAFETY: rows m0..m0+rows and columns of panels p0..p1 belong to this task.
+                    let row = unsafe {
+                        let c0 = (p0 * NR).min(n);
+                        let c1 = (p1 * NR).min(n);
+                        std::slice::from_raw_parts_mut(cptr.get().add((m0 + i) * ldc + c0), c1 - c0)
+                    };
+                    row.fill(0.0);
+                    vecmath::bias_act(isa, row, bias.map(|bv| &bv[(p0 * NR).min(n)..]), act);
+                }
+                return;
+            }
+            let mut k0 = 0;
+            while k0 < k {
+                let kc = kc_max.min(k - k0);
+                let kc_step = b.format.k_padded(kc);
+                let tw = a_tile_words(afmt, kc);
+                for t in 0..tiles {
+                    let r0 = t * MR;
+                    let tr = MR.min(rows - r0);
+                    pack_a_rows(afmt, &mut abuf[t * tw..(t + 1) * tw], &a[(m0 + r0) * lda + k0..], lda, tr, kc);
+                }
+                let last = k0 + kc >= k;
+                for p in p0..p1 {
+                    let bp = b.panel_ptr(p, k0);
+                    let cols = NR.min(n - p * NR);
+                    for t in 0..tiles {
+                        let r0 = t * MR;
+                        let tr = MR.min(rows - r0);
+                        // SAFETY: the tile lies inside this task's rows and panel range; the
+                        // packed operands hold kc_step values (zero padded).
+                        unsafe {
+                            let cp = cptr.get().add((m0 + r0) * ldc + p * NR);
+                            microkernel(isa, b.format, kc_step, abuf.as_ptr().add(t * tw), bp, cp, ldc, tr, cols, k0 > 0);
+                            if last && (bias.is_some() || act != Activation::None) {
+                                for i in 0..tr {
+                                    let row = std::slice::from_raw_parts_mut(cp.add(i * ldc), cols);
+                                    vecmath::bias_act(isa, row, bias.map(|bv| &bv[p * NR..p * NR + cols]), act);
+                                }
+                            }
+                        }
+                    }
+                }
+                k0 += kc;
+            }
+        },
+    );
+    Ok(())
+}
+
+/// Straightforward triple loop in f64 on the values as the kernels see them
+/// (B as stored; A rounded to bf16 for bf16 weights), for tests.
+pub fn gemm_reference(a: &[f32], m: usize, lda: usize, b: &PackedMatrix, bias: Option<&[f32]>, act: Activation) -> Vec<f32> {
+    let (k, n) = (b.k, b.n);
+    let mut out = vec![0f32; m * n];
+    for i in 0..m {
+        for j in 0..n {
+            let mut s = 0f64;
+            for kk in 0..k {
+                let av = a[i * lda + kk];
+                let av = if b.format == WeightFormat::Bf16 { round_bf16(av) } else { av };
+                s += av as f64 * b.get(kk, j) as f64;
+            }
+            out[i * n + j] = s as f32;
+        }
+        vecmath::bias_act(Isa::Portable, &mut out[i * n..(i + 1) * n], bias, act);
+    }
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::{MR, NR};
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    fn mask(cols: usize) -> (__mmask16, __mmask16) {
+        let m0 = crate::vecmath::x86::tail_mask(cols.min(16));
+        let m1 = crate::vecmath::x86::tail_mask(cols.saturating_sub(16));
+        (m0, if cols <= 16 { 0 } else { m1 })
+    }
+
+    #[inline(always)]
+    unsafe fn store(acc: &[[__m512; 2]; MR], c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+        if cols == NR {
+            for i in 0..MR {
+                if i < rows {
+                    let p = c.add(i * ldc);
+                    let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
+                    if load {
+                        v0 = _mm512_add_ps(v0, _mm512_loadu_ps(p));
+                        v1 = _mm512_add_ps(v1, _mm512_loadu_ps(p.add(16)));
+                    }
+                    _mm512_storeu_ps(p, v0);
+                    _mm512_storeu_ps(p.add(16), v1);
+                }
+            }
+        } else {
+            let (m0, m1) = mask(cols);
+            for i in 0..MR {
+                if i < rows {
+                    let p = c.add(i * ldc);
+                    let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
+                    if load {
+                        v0 = _mm512_add_ps(v0, _mm512_maskz_loadu_ps(m0, p));
+                        v1 = _mm512_add_ps(v1, _mm512_maskz_loadu_ps(m1, p.add(16)));
+                    }
+                    _mm512_mask_storeu_ps(p, m0, v0);
+                    _mm512_mask_storeu_ps(p.add(16), m1, v1);
+                }
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn kern_f32(kc: usize, a: *const f32, b: *const f32, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc {
+            let b0 = _mm512_load_ps(b);
+            let b1 = _mm512_load_ps(b.add(16));
+            for i in 0..MR {
+                let ai = _mm512_set1_ps(*a.add(i));
+                acc[i][0] = _mm512_fmadd_ps(ai, b0, acc[i][0]);
+                acc[i][1] = _mm512_fmadd_ps(ai, b1, acc[i][1]);
+            }
+            a = a.add(MR);
+            b = b.add(NR);
+        }
+        store(&acc, c, ldc, rows, cols, load);
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn kern_f16(kc: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc {
+            let b0 = _mm512_cvtph_ps(_mm256_load_si256(b as *const __m256i));
+            let b1 = _mm512_cvtph_ps(_mm256_load_si256(b.add(16) as *const __m256i));
+            for i in 0..MR {
+                let ai = _mm512_set1_ps(*a.add(i));
+                acc[i][0] = _mm512_fmadd_ps(ai, b0, acc[i][0]);
+                acc[i][1] = _mm512_fmadd_ps(ai, b1, acc[i][1]);
+            }
+            a = a.add(MR);
+            b = b.add(NR);
+        }
+        store(&acc, c, ldc, rows, cols, load);
+    }
+
+    /// bf16 pairs widened in registers: for each k pair, the low halves are
+    /// the even k, the high halves the odd k.
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn kern_bf16_widen(kc2: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+        let hi_mask = _mm512_set1_epi32(0xffff_0000u32 as i32);
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc2 {
+            let r0 = _mm512_load_si512(b as *const __m512i);
+            let r1 = _mm512_load_si512(b.add(32) as *const __m512i);
+            let e0 = _mm512_castsi512_ps(_mm512_slli_epi32::<16>(r0));
+            let e1 = _mm512_castsi512_ps(_mm512_slli_epi32::<16>(r1));
+            let o0 = _mm512_castsi512_ps(_mm512_and_si512(r0, hi_mask));
+            let o1 = _mm512_castsi512_ps(_mm512_and_si512(r1, hi_mask));
+            for i in 0..MR {
+                let ae = _mm512_set1_ps(*a.add(i));
+                let ao = _mm512_set1_ps(*a.add(MR + i));
+                acc[i][0] = _mm512_fmadd_ps(ao, o0, _mm512_fmadd_ps(ae, e0, acc[i][0]));
+                acc[i][1] = _mm512_fmadd_ps(ao, o1, _mm512_fmadd_ps(ae, e1, acc[i][1]));
+            }
+            a = a.add(2 * MR);
+            b = b.add(2 * NR);
+        }
+        store(&acc, c, ldc, rows, cols, load);
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,avx512bf16,fma")]
+    #[allow(clippy::too_many_arguments)]
+    pub unsafe fn kern_bf16_dp(kc2: usize, a: *const u32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc2 {
+            let b0: __m512bh = std::mem::transmute(_mm512_load_si512(b as *const __m512i));
+            let b1: __m512bh = std::mem::transmute(_mm512_load_si512(b.add(32) as *const __m512i));
+            for i in 0..MR {
+                let ai: __m512bh = std::mem::transmute(_mm512_set1_epi32(*a.add(i) as i32));
+                acc[i][0] = _mm512_dpbf16_ps(acc[i][0], ai, b0);
+                acc[i][1] = _mm512_dpbf16_ps(acc[i][1], ai, b1);
+            }
+            a = a.add(MR);
+            b = b.add(2 * NR);
+        }
+        store(&acc, c, ldc, rows, cols, load);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Lcg(u64);
+    impl Lcg {
+        fn next(&mut self) -> f32 {
+            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        }
+        fn vec(&mut self, n: usize) -> Vec<f32> {
+            (0..n).map(|_| self.next()).collect()
+        }
+    }
+
+    fn check(isa: Isa, format: WeightFormat, m: usize, k: usize, n: usize, lda: usize, act: Activation, seed: u64) {
+        let mut r = Lcg(seed);
+        let a = r.vec((m.max(1) - 1) * lda + k);
+        let w = r.vec(n * k);
+        let bias = r.vec(n);
+        let b = PackedMatrix::from_linear_weight(&w, n, k, format).unwrap();
+        let ldc = n + 3;
+        let mut c = vec![f32::NAN; (m.max(1) - 1) * ldc + n];
+        gemm(isa, &a, m, lda, &b, Some(&bias), act, &mut c, ldc).unwrap();
+        let want = gemm_reference(&a, m, lda, &b, Some(&bias), act);
+        // f32 sums of k products of magnitude ≤ 1: error grows like √k·ulp.
+        let tol = 1e-5 * (k as f32).sqrt().max(1.0) * 4.0;
+        for i in 0..m {
+            for j in 0..n {
+                let (g, e) = (c[i * ldc + j], want[i * n + j]);
+                assert!((g - e).abs() <= tol * e.abs().max(1.0), "{isa:?} {format:?} m{m} k{k} n{n}: C[{i}][{j}] = {g}, want {e}");
+            }
+        }
+    }
+
+    #[test]
+    fn every_isa_and_format_matches_reference_on_awkward_shapes() {
+        let shapes = [(1, 1, 1), (1, 7, 1), (3, 1, 5), (14, 32, 32), (15, 33, 33), (29, 64, 65), (13, 257, 31), (337, 70, 40), (2, 1030, 70), (50, 3, 97)];
+        for isa in Isa::all_supported() {
+            for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+                for (s, &(m, k, n)) in shapes.iter().enumerate() {
+                    let act = [Activation::None, Activation::GeluTanh, Activation::GeluErf][s % 3];
+                    check(isa, format, m, k, n, k + (s % 2) * 5, act, s as u64 + 1);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn k_slices_beyond_kc_and_zero_k() {
+        for isa in Isa::all_supported() {
+            // K spans several KC slices (256 f32 / 512 bf16), odd K for the bf16 pairs.
+            check(isa, WeightFormat::F32, 20, 600, 40, 600, Activation::None, 9);
+            check(isa, WeightFormat::Bf16, 20, 1101, 40, 1101, Activation::None, 10);
+            // K = 0: C = act(bias).
+            let b = PackedMatrix::from_linear_weight(&[], 5, 0, WeightFormat::F32).unwrap();
+            let mut c = vec![7f32; 2 * 5];
+            gemm(isa, &[], 2, 0, &b, Some(&[1.0, -1.0, 0.0, 2.0, 3.0]), Activation::None, &mut c, 5).unwrap();
+            assert_eq!(c, vec![1.0, -1.0, 0.0, 2.0, 3.0, 1.0, -1.0, 0.0, 2.0, 3.0]);
+        }
+    }
+
+    #[test]
+    fn result_does_not_depend_on_thread_count() {
+        let mut r = Lcg(3);
+        let (m, k, n) = (700, 300, 200);
+        let a = r.vec(m * k);
+        let w = r.vec(n * k);
+        for isa in Isa::all_supported() {
+            let b = PackedMatrix::from_linear_weight(&w, n, k, WeightFormat::Bf16).unwrap();
+            let run = |t: usize| {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+                let mut c = vec![0f32; m * n];
+                pool.install(|| gemm(isa, &a, m, k, &b, None, Activation::None, &mut c, n).unwrap());
+                c
+            };
+            assert_eq!(run(1), run(3), "{isa:?}");
+        }
+    }
+
+    #[test]
+    fn bad_shapes_are_errors() {
+        let b = PackedMatrix::from_linear_weight(&[0.0; 6], 2, 3, WeightFormat::F32).unwrap();
+        let mut c = vec![0f32; 4];
+        assert!(gemm(Isa::Portable, &[0.0; 5], 2, 3, &b, None, Activation::None, &mut c, 2).is_err());
+        assert!(gemm(Isa::Portable, &[0.0; 6], 2, 3, &b, Some(&[0.0]), Activation::None, &mut c, 2).is_err());
+        assert!(gemm(Isa::Portable, &[0.0; 6], 2, 3, &b, None, Activation::None, &mut c[..3], 2).is_err());
+        assert!(PackedMatrix::from_linear_weight(&[0.0; 5], 2, 3, WeightFormat::F32).is_err());
+    }
+
+    #[test]
+    fn packed_values_round_as_the_format() {
+        let w = [1.0f32 + 1.0 / 256.0 + 1.0 / 512.0, -3.0e-3];
+        let b = PackedMatrix::from_linear_weight(&w, 2, 1, WeightFormat::Bf16).unwrap();
+        assert_eq!(b.get(0, 0), round_bf16(w[0]));
+        assert_eq!(b.get(0, 1), round_bf16(w[1]));
+        assert_ne!(b.get(0, 0), w[0]);
+        let h = PackedMatrix::from_linear_weight(&w, 2, 1, WeightFormat::F16).unwrap();
+        assert_eq!(h.get(0, 0), w[0]); // exact in f16 (11-bit mantissa)
+        assert_eq!(b.bytes(), 2 * NR * 2);
+    }
+}

@@ -1,0 +1,70 @@
+//! Instruction-set selection. Every fast kernel has a portable version that
+//! runs anywhere; the AVX-512 versions are chosen at run time from what the
+//! CPU reports, never at compile time, so one binary serves every x86-64
+//! machine.
+//!
+//! AMX is not implemented: the development machine (AMD Zen 4) has no AMX
+//! unit, and untested tile code is not shipped.
+
+use std::sync::OnceLock;
+
+/// A kernel family. Ordered from most portable to most specialised.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Isa {
+    /// Plain Rust (compiler auto-vectorisation at the target's baseline).
+    Portable,
+    /// AVX-512 F + BW (f32 FMA; bf16/f16 weights widened to f32 in registers).
+    Avx512,
+    /// AVX-512 BF16 (`vdpbf16ps`: bf16 pairs, f32 accumulation) on top of [`Isa::Avx512`].
+    Avx512Bf16,
+}
+
+impl Isa {
+    pub const ALL: [Isa; 3] = [Isa::Portable, Isa::Avx512, Isa::Avx512Bf16];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Isa::Portable => "portable",
+            Isa::Avx512 => "avx512",
+            Isa::Avx512Bf16 => "avx512bf16",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Isa> {
+        Isa::ALL.into_iter().find(|i| i.name() == s.trim().to_ascii_lowercase())
+    }
+
+    /// Whether this CPU can run the family.
+    pub fn supported(self) -> bool {
+        match self {
+            Isa::Portable => true,
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => {
+                is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw") && is_x86_feature_detected!("fma")
+            }
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512Bf16 => Isa::Avx512.supported() && is_x86_feature_detected!("avx512bf16"),
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    }
+
+    /// Every family this CPU runs (tests exercise each of them).
+    pub fn all_supported() -> Vec<Isa> {
+        Isa::ALL.into_iter().filter(|i| i.supported()).collect()
+    }
+
+    /// The family used by default: the most specialised supported one, capped
+    /// by the environment variable `RECON_ISA` (`portable`, `avx512`,
+    /// `avx512bf16`) when set. Detected once per process.
+    pub fn best() -> Isa {
+        static BEST: OnceLock<Isa> = OnceLock::new();
+        *BEST.get_or_init(|| {
+            let detected = Isa::ALL.into_iter().rev().find(|i| i.supported()).unwrap_or(Isa::Portable);
+            match std::env::var("RECON_ISA").ok().and_then(|v| Isa::parse(&v)) {
+                Some(cap) => cap.min(detected),
+                None => detected,
+            }
+        })
+    }
+}

@@ -1,0 +1,98 @@
+//! Measured arithmetic peak of each instruction set: independent
+//! register-only FMA (or `vdpbf16ps`) chains on every pool thread, so GEMM
+//! efficiency can be reported against what this machine actually sustains
+//! (clock, SMT sharing and other load included) rather than a datasheet.
+
+use crate::isa::Isa;
+use std::time::Instant;
+
+/// Which multiply-accumulate to time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PeakKind {
+    /// f32 FMA (`vfmadd231ps zmm`, or scalar-vectorised portable code).
+    F32,
+    /// bf16 pair dot product with f32 accumulation (`vdpbf16ps zmm`); 2 FLOP per bf16 product.
+    Bf16,
+}
+
+/// GFLOP/s over all threads of the current rayon pool (best of `reps` runs of
+/// `iters` iterations each). `None` when `isa` cannot run `kind`.
+pub fn measure_peak_gflops(isa: Isa, kind: PeakKind, iters: usize, reps: usize) -> Option<f64> {
+    if !isa.supported() || (kind == PeakKind::Bf16 && isa < Isa::Avx512Bf16) {
+        return None;
+    }
+    let threads = rayon::current_num_threads().max(1);
+    let mut best = 0f64;
+    for _ in 0..reps.max(1) {
+        let t0 = Instant::now();
+        let flops: f64 = rayon::broadcast(|_| run(isa, kind, iters)).into_iter().sum();
+        let s = t0.elapsed().as_secs_f64();
+        best = best.max(flops / s / 1e9);
+    }
+    let _ = threads;
+    Some(best)
+}
+
+fn run(isa: Isa, kind: PeakKind, iters: usize) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if isa >= Isa::Avx512 {
+        // SAFETY: support checked by the caller.
+        return unsafe {
+            match kind {
+                PeakKind::F32 => x86::fma(iters),
+                PeakKind::Bf16 => x86::dpbf16(iters),
+            }
+        };
+    }
+    let _ = (isa, kind);
+    portable(iters)
+}
+
+fn portable(iters: usize) -> f64 {
+    let mut acc = [[0f32; 16]; 8];
+    let a = std::hint::black_box(1.000_000_1f32);
+    let b = std::hint::black_box(0.999_999f32);
+    for _ in 0..iters {
+        for row in acc.iter_mut() {
+            for v in row.iter_mut() {
+                *v = *v * a + b;
+            }
+        }
+    }
+    std::hint::black_box(acc);
+    (iters * 8 * 16 * 2) as f64
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    const CHAINS: usize = 24;
+
+    #[target_feature(enable = "avx512f,fma")]
+    pub unsafe fn fma(iters: usize) -> f64 {
+        let mut acc = [_mm512_setzero_ps(); CHAINS];
+        let a = _mm512_set1_ps(std::hint::black_box(1.000_000_1));
+        let b = _mm512_set1_ps(std::hint::black_box(0.999_999));
+        for _ in 0..iters {
+            for v in acc.iter_mut() {
+                *v = _mm512_fmadd_ps(a, b, *v);
+            }
+        }
+        std::hint::black_box(acc);
+        (iters * CHAINS * 32) as f64
+    }
+
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    pub unsafe fn dpbf16(iters: usize) -> f64 {
+        let mut acc = [_mm512_setzero_ps(); CHAINS];
+        let one: __m512bh = std::mem::transmute(_mm512_set1_epi16(std::hint::black_box(0x3f80)));
+        for _ in 0..iters {
+            for v in acc.iter_mut() {
+                *v = _mm512_dpbf16_ps(*v, one, one);
+            }
+        }
+        std::hint::black_box(acc);
+        (iters * CHAINS * 64) as f64
+    }
+}

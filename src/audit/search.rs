@@ -1,0 +1,548 @@
+//! The effect search: greedy forward selection of covariate terms, judged on held-out
+//! units (frames).
+//!
+//! **Protocol.** Units are split into folds (leave-one-unit-out up to `max_folds`
+//! units, else `max_folds` folds of shuffled units). Every model is fitted on each
+//! fold's training units and scored on its held-out units, so every unit gets a
+//! cross-fitted held-out log-likelihood. A candidate term's held-out gain per unit is
+//! its log-likelihood minus the current model's, in the candidate's channel (the
+//! Gaussian part for bias/noise, the Bernoulli part for dropout). The evidence is a
+//! one-sided t-test of "mean gain per unit > 0" across units: the unit, not the pixel,
+//! is the independent observation, so the correlation of pixels within a frame (a pose
+//! error, a warm-up offset) cannot manufacture significance. A step's threshold and a
+//! group's categories are chosen inside each training fold, so selection is part of
+//! what is validated.
+//!
+//! **Multiple comparisons.** Each round considers every candidate (3 targets × every
+//! covariate × its forms); the smallest p-value must pass Bonferroni, `p · m < alpha`.
+//! A cheap pixel-level score test (at the full-data fit) skips the fits of candidates
+//! with no sign of an effect (`p_score ≥ screen_alpha`); they count in `m`, so the
+//! screen can only make the procedure more conservative. The first round therefore
+//! controls the chance of reporting anything on data without effects at `alpha`.
+//!
+//! **Selection.** Among significant candidates the largest mean held-out gain wins;
+//! a more complex form (quadratic, step) replaces a significant linear term of the
+//! same target and covariate only if it beats it on held-out units (paired t-test,
+//! `parsimony_alpha`). The winner joins the model (all parameters refitted) and the
+//! search repeats until nothing is significant or `max_findings` is reached. Then one
+//! interaction round tries each finding multiplied by another numeric covariate.
+//!
+//! **Uncertainty.** Parameter standard errors are the delete-one-fold jackknife over
+//! the fold fits of the final model (frame-level, so within-frame correlation is
+//! accounted for); thresholds get one too.
+use super::fit::{fit_bern, fit_gauss, is_gauss, score_stat, structure, working, Ctx, FittedTerm, FormKind, Model, Pred, Term};
+use super::stats::{chi2_upper_tail, one_sided_t};
+use super::table::ColumnKind;
+use crate::model::sampler::SeededRng;
+use crate::sensor::Target;
+use crate::{Error, Result};
+use rayon::prelude::*;
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug)]
+pub struct SearchOptions {
+    /// Family-wise level of each selection round (Bonferroni over its candidates).
+    pub alpha: f64,
+    /// Pixel-level score pre-screen: candidates with p_score above this are not fitted.
+    pub screen_alpha: f64,
+    /// A more complex form must beat the linear one at this level (paired, held out).
+    pub parsimony_alpha: f64,
+    pub max_findings: usize,
+    /// Outlier-robust Gaussian part (uniform contamination component).
+    pub robust: bool,
+    /// Try one interaction (a finding × another covariate) at the end.
+    pub interactions: bool,
+    /// Leave-one-unit-out up to this many units; K-fold beyond.
+    pub max_folds: usize,
+    /// Fold assignment when K-fold.
+    pub seed: u64,
+    /// Targets searched (default all three).
+    pub targets: Vec<Target>,
+}
+
+impl Default for SearchOptions {
+    fn default() -> Self {
+        SearchOptions {
+            alpha: 0.01,
+            screen_alpha: 0.01,
+            parsimony_alpha: 0.01,
+            max_findings: 6,
+            robust: true,
+            interactions: true,
+            max_folds: 20,
+            seed: 0,
+            targets: vec![Target::Bias, Target::Noise, Target::Dropout],
+        }
+    }
+}
+
+/// Row sets per fold; index `k` (= number of folds) is the full data.
+pub struct Folds {
+    pub k: usize,
+    pub unit_fold: Vec<usize>,
+    pub train_valid: Vec<Vec<usize>>,
+    pub train_all: Vec<Vec<usize>>,
+    pub test_valid: Vec<Vec<usize>>,
+    pub test_all: Vec<Vec<usize>>,
+}
+
+impl Folds {
+    pub fn new(ctx: &Ctx, max_folds: usize, seed: u64) -> Self {
+        let t = ctx.table;
+        let nu = t.n_units();
+        let mut present = vec![false; nu];
+        for &u in &t.unit {
+            present[u] = true;
+        }
+        let units: Vec<usize> = (0..nu).filter(|&u| present[u]).collect();
+        let mut unit_fold = vec![usize::MAX; nu];
+        let k = if units.len() <= max_folds {
+            for (f, &u) in units.iter().enumerate() {
+                unit_fold[u] = f;
+            }
+            units.len()
+        } else {
+            // Seeded Fisher–Yates shuffle, then round-robin.
+            let mut order = units.clone();
+            let mut rng = SeededRng::new(seed);
+            for i in (1..order.len()).rev() {
+                let j = (rng.next_u64() % (i as u64 + 1)) as usize;
+                order.swap(i, j);
+            }
+            for (p, &u) in order.iter().enumerate() {
+                unit_fold[u] = p % max_folds;
+            }
+            max_folds
+        };
+        let mut f = Folds { k, unit_fold, train_valid: vec![vec![]; k + 1], train_all: vec![vec![]; k + 1], test_valid: vec![vec![]; k], test_all: vec![vec![]; k] };
+        for i in 0..t.len() {
+            let fold = f.unit_fold[t.unit[i]];
+            let valid = !t.missing(i);
+            for g in 0..=k {
+                if g == fold {
+                    f.test_all[g].push(i);
+                    if valid {
+                        f.test_valid[g].push(i);
+                    }
+                } else {
+                    f.train_all[g].push(i);
+                    if valid {
+                        f.train_valid[g].push(i);
+                    }
+                }
+            }
+        }
+        f
+    }
+}
+
+/// A model fitted in every fold (and on the full data, last) with its cross-fitted
+/// held-out log-likelihood per unit and channel.
+#[derive(Clone)]
+pub struct Cv {
+    pub models: Vec<Model>,
+    pub unit_ll_gauss: Vec<f64>,
+    pub unit_ll_bern: Vec<f64>,
+}
+
+impl Cv {
+    pub fn full(&self) -> &Model {
+        self.models.last().expect("full-data model")
+    }
+
+    fn baseline(ctx: &Ctx, folds: &Folds) -> Self {
+        let nu = ctx.table.n_units();
+        let mut cv = Cv { models: vec![], unit_ll_gauss: vec![0.0; nu], unit_ll_bern: vec![0.0; nu] };
+        for f in 0..=folds.k {
+            let mut m = Model::initial(ctx, &folds.train_valid[f], &folds.train_all[f]);
+            fit_gauss(ctx, &folds.train_valid[f], &mut m);
+            fit_bern(ctx, &folds.train_all[f], &mut m);
+            if f < folds.k {
+                for (&i, l) in folds.test_valid[f].iter().zip(m.ll_gauss_rows(ctx, &folds.test_valid[f])) {
+                    cv.unit_ll_gauss[ctx.table.unit[i]] += l;
+                }
+                for &i in &folds.test_all[f] {
+                    cv.unit_ll_bern[ctx.table.unit[i]] += m.ll_bern(ctx, i);
+                }
+            }
+            cv.models.push(m);
+        }
+        cv
+    }
+
+    /// The parent plus `term`, refitted in the term's channel in every fold. None when a
+    /// fold's training rows cannot carry the term.
+    fn with(&self, ctx: &Ctx, folds: &Folds, term: Term) -> Option<Cv> {
+        let gauss = is_gauss(term.target);
+        let nu = ctx.table.n_units();
+        let mut models = Vec::with_capacity(folds.k + 1);
+        let mut ll = vec![0.0; nu];
+        for f in 0..=folds.k {
+            let rows = if gauss { &folds.train_valid[f] } else { &folds.train_all[f] };
+            let mut m = self.models[f].clone();
+            let ft = structure(ctx, &m, term, rows)?;
+            m.terms.push(ft);
+            if gauss {
+                fit_gauss(ctx, rows, &mut m);
+            } else {
+                fit_bern(ctx, rows, &mut m);
+            }
+            if f < folds.k {
+                if gauss {
+                    for (&i, l) in folds.test_valid[f].iter().zip(m.ll_gauss_rows(ctx, &folds.test_valid[f])) {
+                        ll[ctx.table.unit[i]] += l;
+                    }
+                } else {
+                    for &i in &folds.test_all[f] {
+                        ll[ctx.table.unit[i]] += m.ll_bern(ctx, i);
+                    }
+                }
+            }
+            models.push(m);
+        }
+        let (g, b) = if gauss { (ll, self.unit_ll_bern.clone()) } else { (self.unit_ll_gauss.clone(), ll) };
+        Some(Cv { models, unit_ll_gauss: g, unit_ll_bern: b })
+    }
+
+    fn unit_ll(&self, gauss: bool) -> &[f64] {
+        if gauss {
+            &self.unit_ll_gauss
+        } else {
+            &self.unit_ll_bern
+        }
+    }
+
+    /// Held-out predictions of every row (from the fold that held it out).
+    pub fn heldout_predictions(&self, ctx: &Ctx, folds: &Folds) -> Vec<Pred> {
+        let mut out = vec![Pred::default(); ctx.table.len()];
+        for f in 0..folds.k {
+            for &i in &folds.test_all[f] {
+                out[i] = self.models[f].predict(ctx, i);
+            }
+        }
+        out
+    }
+}
+
+/// Held-out evidence for one candidate in one round.
+#[derive(Clone, Debug)]
+pub struct Evidence {
+    pub term: Term,
+    /// Pixel-level score-test p-value at the full-data fit (the pre-screen).
+    pub p_screen: f64,
+    /// Per-unit held-out gains (nats); empty when not fitted.
+    pub gains: Vec<f64>,
+    pub t: f64,
+    /// One-sided t-test p-value across units.
+    pub p: f64,
+    /// Held-out gain per held-out row of the channel (nats).
+    pub gain_per_row: f64,
+    pub gain_total: f64,
+}
+
+/// One accepted term.
+#[derive(Clone, Debug)]
+pub struct Selected {
+    pub evidence: Evidence,
+    /// Bonferroni-adjusted p-value (p · m, capped at 1).
+    pub p_adjusted: f64,
+    /// Candidates in the round (m).
+    pub candidates: usize,
+    /// Candidates fitted after the screen.
+    pub fitted: usize,
+    pub round: usize,
+}
+
+#[derive(Clone, Debug)]
+pub struct Round {
+    pub candidates: usize,
+    pub fitted: usize,
+    /// Fitted candidates, best held-out gain first (at most 12 kept).
+    pub top: Vec<Evidence>,
+    pub selected: Option<Term>,
+}
+
+pub struct SearchResult {
+    pub folds: Folds,
+    pub baseline: Cv,
+    pub final_cv: Cv,
+    pub selected: Vec<Selected>,
+    pub rounds: Vec<Round>,
+}
+
+/// Candidate terms for the table's columns: numeric columns × {linear, quadratic, step},
+/// categorical × {group}, for each target; constant columns are skipped, and dropout
+/// when no row is missing.
+pub fn candidates(ctx: &Ctx, targets: &[Target]) -> Vec<Term> {
+    let t = ctx.table;
+    let any_missing = (0..t.len()).any(|i| t.missing(i));
+    let mut out = vec![];
+    for &target in targets {
+        if target == Target::Dropout && !any_missing {
+            continue;
+        }
+        for (c, col) in t.columns.iter().enumerate() {
+            let first = col.values[0];
+            if col.values.iter().all(|&v| v == first) {
+                continue;
+            }
+            let forms: &[FormKind] = match col.kind {
+                ColumnKind::Categorical => &[FormKind::Group],
+                ColumnKind::Numeric => &[FormKind::Linear, FormKind::Quadratic, FormKind::Step],
+            };
+            for &form in forms {
+                out.push(Term { target, col: c, form, by: None });
+            }
+        }
+    }
+    out
+}
+
+fn screen(ctx: &Ctx, full: &Model, folds: &Folds, term: Term) -> f64 {
+    let rows = if is_gauss(term.target) { &folds.train_valid[folds.k] } else { &folds.train_all[folds.k] };
+    let Some(ft) = structure(ctx, full, term, rows) else { return 1.0 };
+    let wk = working(ctx, full, term.target, rows);
+    let k = ft.k();
+    let mut z = vec![0.0; rows.len() * k];
+    for (j, &i) in rows.iter().enumerate() {
+        ft.features(ctx, i, &mut z[j * k..(j + 1) * k]);
+    }
+    chi2_upper_tail(score_stat(&wk, &z, k), k as f64)
+}
+
+fn evidence(ctx: &Ctx, folds: &Folds, parent: &Cv, term: Term, p_screen: f64, fit: bool) -> (Evidence, Option<Cv>) {
+    let mut ev = Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, gain_per_row: 0.0, gain_total: 0.0 };
+    if !fit {
+        return (ev, None);
+    }
+    let Some(cv) = parent.with(ctx, folds, term) else { return (ev, None) };
+    let gauss = is_gauss(term.target);
+    let (a, b) = (cv.unit_ll(gauss), parent.unit_ll(gauss));
+    let mut rows_per_unit = vec![0usize; ctx.table.n_units()];
+    for i in 0..ctx.table.len() {
+        if !gauss || !ctx.table.missing(i) {
+            rows_per_unit[ctx.table.unit[i]] += 1;
+        }
+    }
+    ev.gains = (0..a.len()).filter(|&u| rows_per_unit[u] > 0).map(|u| a[u] - b[u]).collect();
+    let (t, p) = one_sided_t(&ev.gains);
+    ev.t = t;
+    ev.p = p;
+    ev.gain_total = ev.gains.iter().sum();
+    ev.gain_per_row = ev.gain_total / rows_per_unit.iter().sum::<usize>().max(1) as f64;
+    (ev, Some(cv))
+}
+
+/// Paired one-sided test that `a`'s per-unit gains exceed `b`'s.
+fn beats(a: &Evidence, b: &Evidence) -> f64 {
+    if a.gains.len() != b.gains.len() || a.gains.is_empty() {
+        return 1.0;
+    }
+    let d: Vec<f64> = a.gains.iter().zip(&b.gains).map(|(x, y)| x - y).collect();
+    one_sided_t(&d).1
+}
+
+fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &SearchOptions, round: usize) -> (Round, Option<(Selected, Cv)>) {
+    let full = parent.full();
+    let screened: Vec<(Term, f64)> = cands.par_iter().map(|&t| (t, screen(ctx, full, folds, t))).collect();
+    let results: Vec<(Evidence, Option<Cv>)> = screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
+    let m = cands.len();
+    let fitted = results.iter().filter(|r| r.1.is_some()).count();
+    let significant = |e: &Evidence| e.p * (m as f64) < opts.alpha && e.gain_total > 0.0;
+    let mut best: Option<usize> = None;
+    for (i, (e, cv)) in results.iter().enumerate() {
+        if cv.is_some() && significant(e) && best.is_none_or(|b| e.gain_total > results[b].0.gain_total) {
+            best = Some(i);
+        }
+    }
+    // Parsimony: prefer the linear form of the same target and covariate unless the
+    // chosen form beats it on held-out units.
+    if let Some(b) = best {
+        let e = &results[b].0;
+        if e.term.form != FormKind::Linear {
+            let lin = results.iter().position(|(x, cv)| cv.is_some() && x.term == Term { form: FormKind::Linear, ..e.term });
+            if let Some(l) = lin {
+                if significant(&results[l].0) && beats(e, &results[l].0) >= opts.parsimony_alpha {
+                    best = Some(l);
+                }
+            }
+        }
+    }
+    let mut top: Vec<Evidence> = results.iter().filter(|r| r.1.is_some()).map(|r| r.0.clone()).collect();
+    top.sort_by(|a, b| b.gain_total.total_cmp(&a.gain_total));
+    top.truncate(12);
+    let mut rd = Round { candidates: m, fitted, top, selected: None };
+    let sel = best.map(|b| {
+        let (e, cv) = results.into_iter().nth(b).expect("index in range");
+        rd.selected = Some(e.term);
+        (Selected { p_adjusted: (e.p * m as f64).min(1.0), evidence: e, candidates: m, fitted, round }, cv.expect("fitted"))
+    });
+    (rd, sel)
+}
+
+/// Runs the search on the context's table.
+pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
+    let t = ctx.table;
+    t.validate()?;
+    let folds = Folds::new(ctx, opts.max_folds.max(2), opts.seed);
+    if folds.k < 3 {
+        return Err(Error::input(t.source.clone(), format!("{} split unit(s) (frames); the held-out test needs at least 3", folds.k)));
+    }
+    if (0..t.len()).all(|i| t.missing(i)) {
+        return Err(Error::input(t.source.clone(), "every measurement is missing"));
+    }
+    let baseline = Cv::baseline(ctx, &folds);
+    let mut current = baseline.clone();
+    let all = candidates(ctx, &opts.targets);
+    let mut selected: Vec<Selected> = vec![];
+    let mut rounds = vec![];
+    while selected.len() < opts.max_findings {
+        let taken: Vec<(Target, usize)> = selected.iter().map(|s| (s.evidence.term.target, s.evidence.term.col)).collect();
+        let cands: Vec<Term> = all.iter().copied().filter(|c| !taken.contains(&(c.target, c.col))).collect();
+        if cands.is_empty() {
+            break;
+        }
+        let (rd, sel) = run_round(ctx, &folds, &current, &cands, opts, rounds.len());
+        rounds.push(rd);
+        match sel {
+            Some((s, cv)) => {
+                selected.push(s);
+                current = cv;
+            }
+            None => break,
+        }
+    }
+    if opts.interactions && !selected.is_empty() && selected.len() < opts.max_findings {
+        let mut cands = vec![];
+        for s in &selected {
+            let base = s.evidence.term;
+            for (c, col) in t.columns.iter().enumerate() {
+                let first = col.values[0];
+                if c != base.col && col.kind == ColumnKind::Numeric && col.values.iter().any(|&v| v != first) {
+                    cands.push(Term { by: Some(c), ..base });
+                }
+            }
+        }
+        if !cands.is_empty() {
+            let (rd, sel) = run_round(ctx, &folds, &current, &cands, opts, rounds.len());
+            rounds.push(rd);
+            if let Some((s, cv)) = sel {
+                selected.push(s);
+                current = cv;
+            }
+        }
+    }
+    Ok(SearchResult { folds, baseline, final_cv: current, selected, rounds })
+}
+
+/// Delete-one-fold jackknife standard errors of named parameters: `est[f]` are the fold
+/// estimates (None where a fold lacks the parameter).
+pub fn jackknife(est: &[Option<f64>]) -> f64 {
+    let v: Vec<f64> = est.iter().flatten().copied().collect();
+    let k = v.len() as f64;
+    if v.len() < 2 {
+        return f64::NAN;
+    }
+    let m = v.iter().sum::<f64>() / k;
+    ((k - 1.0) / k * v.iter().map(|x| (x - m).powi(2)).sum::<f64>()).sqrt()
+}
+
+/// Jackknife SEs of a term's parameters across the fold models (term index `ti`).
+pub fn term_standard_errors(ctx: &Ctx, cv: &Cv, folds: &Folds, ti: usize) -> BTreeMap<String, f64> {
+    let full = cv.full().terms[ti].params(ctx);
+    let per_fold: Vec<BTreeMap<String, f64>> = (0..folds.k).map(|f| cv.models[f].terms[ti].params(ctx)).collect();
+    full.keys().map(|name| (name.clone(), jackknife(&per_fold.iter().map(|p| p.get(name).copied()).collect::<Vec<_>>()))).collect()
+}
+
+/// The global parameters of a model, in sensor-model units.
+pub fn globals(ctx: &Ctx, m: &Model) -> BTreeMap<String, f64> {
+    let mut g = BTreeMap::new();
+    g.insert("bias".to_string(), m.bias);
+    g.insert("noise".to_string(), m.noise(ctx));
+    g.insert("dropout".to_string(), m.dropout);
+    g.insert("outlier_fraction".to_string(), m.outlier);
+    g
+}
+
+pub fn globals_standard_errors(ctx: &Ctx, cv: &Cv, folds: &Folds) -> BTreeMap<String, f64> {
+    let per_fold: Vec<BTreeMap<String, f64>> = (0..folds.k).map(|f| globals(ctx, &cv.models[f])).collect();
+    globals(ctx, cv.full()).keys().map(|k| (k.clone(), jackknife(&per_fold.iter().map(|p| p.get(k).copied()).collect::<Vec<_>>()))).collect()
+}
+
+/// Index of each selected term in the final model's term list (terms are appended in
+/// selection order, so this is the identity; kept explicit for readers).
+pub fn final_term<'a>(res: &'a SearchResult, i: usize) -> &'a FittedTerm {
+    &res.final_cv.full().terms[i]
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::audit::depth::{residual_table, PixelSample};
+    use crate::sensor::{Covariate, Effect, Form, PixelCovariates, SensorModel};
+
+    /// Pseudo-rendered pixels: `per` per frame with plausible, partly correlated covariates,
+    /// measured through `model`.
+    pub(crate) fn pixels(model: &SensorModel, frames: usize, per: usize, seed: u64) -> Vec<PixelSample> {
+        let mut rng = SeededRng::new(seed);
+        let mut out = vec![];
+        for f in 0..frames {
+            let objs = [1 + f % 4, 1 + (f + 1) % 4, 1 + (f + 2) % 4];
+            let zf = 0.5 + 0.8 * rng.uniform();
+            for _ in 0..per {
+                let u = 640.0 * rng.uniform();
+                let v = 480.0 * rng.uniform();
+                let c = PixelCovariates {
+                    depth: zf + 0.6 * rng.uniform(),
+                    radius: ((u - 320.0f64).powi(2) + (v - 240.0f64).powi(2)).sqrt() / 400.0,
+                    incidence: 88.0 * rng.uniform().powf(0.7),
+                    edge_distance: (-8.0 * rng.uniform().ln()).floor().min(60.0),
+                    intensity: 0.05 + 0.9 * rng.uniform(),
+                    object: objs[(rng.next_u64() % 3) as usize] as i64,
+                    frame: f as i64,
+                    u,
+                    v,
+                };
+                let m = model.sample(&c, &mut rng);
+                out.push(PixelSample { cov: c, measured: m });
+            }
+        }
+        out
+    }
+
+    fn run(audited: &SensorModel, truth: &SensorModel, seed: u64) -> (SearchResult, crate::audit::table::ResidualTable) {
+        let px = pixels(truth, 10, 1200, seed);
+        let t = residual_table(audited, &px, "synthetic");
+        let ctx = Ctx::new(&t, true);
+        let r = search(&ctx, &SearchOptions::default()).unwrap();
+        drop(ctx);
+        (r, t)
+    }
+
+    #[test]
+    fn null_data_gives_no_finding() {
+        let m = SensorModel::stereo_default();
+        let (r, _) = run(&m, &m, 11);
+        let names: Vec<_> = r.selected.iter().map(|s| s.evidence.term).collect();
+        assert!(r.selected.is_empty(), "spurious findings {names:?}; rounds {:?}", r.rounds.iter().map(|x| x.top.first().map(|e| (e.term, e.p))).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn finds_planted_quadratic_depth_bias() {
+        let audited = SensorModel::stereo_default();
+        let mut truth = audited.clone();
+        truth.effects.push(Effect { target: Target::Bias, covariate: Covariate::Depth, form: Form::Quadratic { linear: 0.0, quadratic: 0.004 }, by: None, cause: None });
+        let (r, t) = run(&audited, &truth, 12);
+        let ctx = Ctx::new(&t, true);
+        assert!(!r.selected.is_empty());
+        let s = &r.selected[0].evidence.term;
+        assert_eq!((s.target, t.columns[s.col].name.as_str(), s.form), (Target::Bias, "depth", FormKind::Quadratic), "{:?}", r.rounds[0].top);
+        let f = r.final_cv.full().terms[0].form(&ctx);
+        let full = r.final_cv.full();
+        for z in [0.7, 1.0, 1.3, 1.6] {
+            let got = full.bias + f.eval(z);
+            let want = 0.004 * z * z;
+            assert!((got - want).abs() < 0.0004, "z {z}: {got} vs {want} ({f:?}, bias {})", full.bias);
+        }
+    }
+}

@@ -1,0 +1,160 @@
+//! `recon eval`: score predictions (or a built-in baseline) against a BOP-format or
+//! YCB-Video dataset; prints the occlusion-binned table, writes report JSON + SVG plot.
+use std::path::PathBuf;
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum Method {
+    /// Visible depth points → oriented bounding box (pose) + convex hull (shape).
+    Observed,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum ShapeArg {
+    Hull,
+    Box,
+}
+
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    /// Dataset: a BOP split or dataset folder (from `recon synth`, or a real BOP dataset),
+    /// or a YCB-Video folder (sequences + models_points_xyz/).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Predictions JSON (format in the recon::eval::report docs).
+    #[arg(long, conflicts_with = "method", required_unless_present = "method")]
+    predictions: Option<PathBuf>,
+    /// Run a built-in predictor on every frame instead of reading predictions; its
+    /// predictions file and meshes are written to --out for re-scoring.
+    #[arg(long, value_enum)]
+    method: Option<Method>,
+    /// Shape output by --method observed.
+    #[arg(long, value_enum, default_value = "hull")]
+    shape: ShapeArg,
+    /// Output folder (report.json, report.txt, plot.svg; with --method also
+    /// predictions.json + meshes/). Default with --method: `<dataset name>-<method>-eval`
+    /// in the current folder; with --predictions: print only.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Print the whole report as JSON instead of the table.
+    #[arg(long)]
+    json: bool,
+    /// F1 distance threshold as a fraction of the GT diameter.
+    #[arg(long, default_value_t = 0.05)]
+    f1_tau: f64,
+    /// Only these scenes (comma-separated; `48` matches `000048`).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Option<Vec<String>>,
+    /// Surface samples per mesh.
+    #[arg(long, default_value_t = 10_000)]
+    samples: usize,
+    /// Surface-sampling seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Score every frame of the dataset, also frames without any prediction (always on
+    /// with --method).
+    #[arg(long)]
+    all_frames: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+/// Removes a staging folder left by a failed run (after success it has been renamed away).
+struct Staging(Option<PathBuf>);
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if let Some(p) = self.0.as_ref().filter(|p| p.exists()) {
+            let _ = std::fs::remove_dir_all(p);
+        }
+    }
+}
+
+pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
+    use anyhow::{bail, Context};
+    use recon::eval::baseline::{observe_dataset, ObservedOptions, Shape};
+    use recon::eval::bop::load_dataset;
+    use recon::eval::report::{evaluate, read_predictions, EvalOptions};
+    use recon::infer::{begin_output, finish_output};
+    if let Some(n) = a.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
+    }
+    if !(a.f1_tau > 0.0 && a.f1_tau <= 1.0) {
+        bail!("--f1-tau {} must be a fraction of the diameter in (0, 1]", a.f1_tau);
+    }
+    if a.samples == 0 {
+        bail!("--samples must be positive");
+    }
+    let mut ds = load_dataset(&a.dataset).with_context(|| format!("loading dataset {}", a.dataset.display()))?;
+    if let Some(s) = &a.scenes {
+        ds.retain_scenes(s)?;
+    }
+    let opts = EvalOptions { n_samples: a.samples, seed: a.seed, f1_tau_rel: a.f1_tau, all_frames: a.all_frames || a.method.is_some(), ..Default::default() };
+    let (report, out, staging, index) = match (a.method, &a.predictions) {
+        (Some(Method::Observed), _) => {
+            let shape = match a.shape {
+                ShapeArg::Hull => Shape::Hull,
+                ShapeArg::Box => Shape::Box,
+            };
+            let out = a.out.clone().unwrap_or_else(|| {
+                let name = a.dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
+                PathBuf::from(format!("{name}-observed-eval"))
+            });
+            let staging = Staging(Some(begin_output(&out)?));
+            let dir = staging.0.clone().unwrap_or_default();
+            let t0 = std::time::Instant::now();
+            let run = observe_dataset(&ds, &ObservedOptions { shape, ..Default::default() })?;
+            let n_box = run.predictions.iter().filter(|p| p.observed.shape == Shape::Box).count();
+            eprintln!(
+                "observed baseline: {} predictions ({} as box) on {} frames, {} GT instances skipped, {:.1} s",
+                run.predictions.len(),
+                n_box,
+                ds.frames.len(),
+                run.skipped.len(),
+                t0.elapsed().as_secs_f64()
+            );
+            for s in run.skipped.iter().take(10) {
+                eprintln!("  skipped scene {} frame {} gt {} (obj {}): {}", s.scene, s.frame, s.gt_index, s.obj_id, s.reason);
+            }
+            if run.skipped.len() > 10 {
+                eprintln!("  … {} more in recon-output.json", run.skipped.len() - 10);
+            }
+            let pf = run.write(&dir)?;
+            let t1 = std::time::Instant::now();
+            // Score what was written (JSON-parsed poses), so re-scoring the folder with
+            // --predictions reproduces these numbers to the last bit.
+            let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
+            eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
+            report.predictions = out.join("predictions.json").display().to_string();
+            let index = serde_json::json!({ "kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped });
+            (report, Some(out), staging, index)
+        }
+        (None, Some(p)) => {
+            let mut preds = read_predictions(p)?;
+            if a.scenes.is_some() {
+                let before = preds.predictions.len();
+                preds.predictions.retain(|q| ds.frames.iter().any(|f| f.scene == q.scene));
+                if preds.predictions.len() < before {
+                    eprintln!("--scenes: {} predictions of other scenes left out", before - preds.predictions.len());
+                }
+            }
+            let staging = Staging(a.out.as_ref().map(|o| begin_output(o)).transpose()?);
+            let t1 = std::time::Instant::now();
+            let report = evaluate(&ds, &preds, p, &opts)?;
+            eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
+            (report, a.out.clone(), staging, serde_json::json!({ "kind": "recon eval --predictions" }))
+        }
+        (None, None) => bail!("give --predictions FILE or --method observed"),
+    };
+    if a.json {
+        println!("{}", report.to_json()?);
+    } else {
+        print!("{}", report.text_table());
+    }
+    if let (Some(out), Some(dir)) = (out, staging.0.as_ref()) {
+        report.write_files(dir)?;
+        finish_output(dir, &out, &index)?;
+        eprintln!("wrote {}", out.display());
+    }
+    Ok(true)
+}

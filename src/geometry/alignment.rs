@@ -1,0 +1,601 @@
+//! How well a posed mesh explains the observed depth, and pose selection
+//! among several predictions (RecGen appendix B).
+//!
+//! **Score.** A candidate pose places the decoded mesh in metric camera
+//! space; its score in one view is the *trimmed mean* of the distances from
+//! that view's observed object points (eroded mask, valid depth, metres) to
+//! the posed mesh surface, dropping the largest [`AlignOptions::trim`]
+//! (10 %) of the distances so that mask bleeding, flying pixels and the
+//! unobserved back of the object do not dominate. Lower is better.
+//!
+//! Distances are to the surface, not to vertices: the mesh is densely
+//! sampled once in its canonical frame ([`Surface`]), the nearest sample is
+//! found with the k-d tree of [`crate::eval::knn`], and the distance is
+//! refined to the exact point-to-triangle distance of that sample's face
+//! (never larger than the sample distance, never smaller than the true one).
+//! Placing the mesh by a similarity `x ↦ s·R·x + t` scales distances by `s`,
+//! so the points are mapped into the canonical frame instead of re-sampling
+//! the mesh for every candidate. Without a mesh (mesh decoding off) a point
+//! set such as the Gaussian centres stands in ([`Surface::from_points`]).
+//!
+//! **Selection** ([`SelectMethod`]): each view's predicted pose is a
+//! candidate (and each sample's, with several seeds).
+//! - `single`: every candidate is scored in its own view only;
+//! - `cross`: every candidate is scored in every view, the other views'
+//!   points brought into its frame with the relative camera pose, and the
+//!   per-view scores are averaged (views count equally whatever their point
+//!   counts); with one view this equals `single`;
+//! - `first`: only the first (anchor) view's poses are candidates, scored in
+//!   that view (with one sample there is nothing to choose).
+//!
+//! The lowest score wins; ties go to the earliest candidate (sample order,
+//! then view order), so the choice is deterministic.
+
+use crate::eval::knn::{dist2, KdTree, P3};
+use crate::eval::mesh::{Similarity, TriMesh};
+use crate::geometry::pose::Pose;
+use crate::{Error, Result};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::Path;
+
+/// Scoring settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AlignOptions {
+    /// Fraction of the largest distances dropped (RecGen: 0.1).
+    pub trim: f64,
+    /// Surface samples per mesh.
+    pub surface_samples: usize,
+    /// Observed points used per view (a deterministic stride subset above this).
+    pub max_points: usize,
+    /// Seed of the surface sampling.
+    pub seed: u64,
+}
+
+impl Default for AlignOptions {
+    fn default() -> Self {
+        AlignOptions { trim: 0.1, surface_samples: 20_000, max_points: 20_000, seed: 0 }
+    }
+}
+
+/// Closest point to `p` on triangle `abc` (Ericson, *Real-Time Collision
+/// Detection* §5.1.5: Voronoi regions of vertices, edges, face).
+pub fn closest_point_on_triangle(p: &P3, a: &P3, b: &P3, c: &P3) -> P3 {
+    let sub = |u: &P3, v: &P3| [u[0] - v[0], u[1] - v[1], u[2] - v[2]];
+    let dot = |u: &P3, v: &P3| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let at = |o: &P3, d: &P3, t: f64| [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+    let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
+    let (d1, d2) = (dot(&ab, &ap), dot(&ac, &ap));
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return *a;
+    }
+    let bp = sub(p, b);
+    let (d3, d4) = (dot(&ab, &bp), dot(&ac, &bp));
+    if d3 >= 0.0 && d4 <= d3 {
+        return *b;
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        return at(a, &ab, d1 / (d1 - d3));
+    }
+    let cp = sub(p, c);
+    let (d5, d6) = (dot(&ab, &cp), dot(&ac, &cp));
+    if d6 >= 0.0 && d5 <= d6 {
+        return *c;
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        return at(a, &ac, d2 / (d2 - d6));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        return at(b, &sub(c, b), (d4 - d3) / ((d4 - d3) + (d5 - d6)));
+    }
+    let denom = va + vb + vc;
+    if denom.abs() < f64::MIN_POSITIVE {
+        // Degenerate (zero-area) triangle: the nearest of its vertices.
+        return *[a, b, c].into_iter().min_by(|x, y| dist2(x, p).total_cmp(&dist2(y, p))).unwrap_or(a);
+    }
+    let (v, w) = (vb / denom, vc / denom);
+    [a[0] + ab[0] * v + ac[0] * w, a[1] + ab[1] * v + ac[1] * w, a[2] + ab[2] * v + ac[2] * w]
+}
+
+/// A mesh surface ready for distance queries (in the mesh's own frame).
+pub struct Surface {
+    tree: KdTree,
+    face_of: Vec<u32>,
+    mesh: TriMesh,
+}
+
+impl Surface {
+    /// Sample `samples` surface points (seeded) and index them. A mesh
+    /// without faces is a point set (e.g. Gaussian centres when no mesh was
+    /// decoded): distances are then to its nearest point.
+    pub fn new(mesh: TriMesh, samples: usize, seed: u64) -> Result<Self> {
+        if mesh.vertices.is_empty() || (!mesh.faces.is_empty() && mesh.surface_area() <= 0.0) {
+            return Err(Error::msg("alignment: the mesh has no surface to score against"));
+        }
+        let (pts, face_of) = mesh.sample_surface_faces(samples.max(1), seed);
+        Ok(Surface { tree: KdTree::new(&pts), face_of, mesh })
+    }
+
+    /// From a decoder mesh (f32, any frame).
+    pub fn from_mesh(m: &crate::decoders::Mesh, samples: usize, seed: u64) -> Result<Self> {
+        let mesh = TriMesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f64)).collect(), faces: m.faces.clone() };
+        Self::new(mesh, samples, seed)
+    }
+
+    /// A point set (all points kept).
+    pub fn from_points(points: &[[f32; 3]]) -> Result<Self> {
+        let mesh = TriMesh { vertices: points.iter().map(|v| v.map(|x| x as f64)).collect(), faces: Vec::new() };
+        let n = mesh.vertices.len();
+        Self::new(mesh, n, 0)
+    }
+
+    /// Distance from `q` to the surface (see the module docs).
+    pub fn distance(&self, q: &P3) -> f64 {
+        let Some((i, d)) = self.tree.nearest(q) else { return f64::INFINITY };
+        match self.face_of.get(i).copied() {
+            Some(f) if f != u32::MAX => {
+                let [a, b, c] = self.mesh.faces[f as usize].map(|k| self.mesh.vertices[k as usize]);
+                d.min(dist2(&closest_point_on_triangle(q, &a, &b, &c), q).sqrt())
+            }
+            _ => d,
+        }
+    }
+
+    pub fn distances(&self, qs: &[P3]) -> Vec<f64> {
+        qs.par_iter().map(|q| self.distance(q)).collect()
+    }
+}
+
+/// Mean of the values after dropping the largest `trim` fraction
+/// (`floor(n·trim)` values). NaN for an empty input.
+pub fn trimmed_mean(d: &[f64], trim: f64) -> f64 {
+    let n = d.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let drop = ((n as f64 * trim.clamp(0.0, 1.0)).floor() as usize).min(n - 1);
+    let keep = n - drop;
+    let mut v = d.to_vec();
+    if drop > 0 {
+        v.select_nth_unstable_by(keep - 1, |a, b| a.total_cmp(b));
+    }
+    v[..keep].iter().sum::<f64>() / keep as f64
+}
+
+/// The inverse of a similarity (`s > 0`, `R` a rotation).
+pub fn inverse(t: &Similarity) -> Similarity {
+    let rt: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| t.r[j][i]));
+    let s = 1.0 / t.s;
+    let tt = std::array::from_fn(|i| -s * (rt[i][0] * t.t[0] + rt[i][1] * t.t[1] + rt[i][2] * t.t[2]));
+    Similarity { r: rt, t: tt, s }
+}
+
+/// A pose as an f64 similarity.
+pub fn pose_to_similarity(p: &Pose) -> Similarity {
+    Similarity {
+        r: p.rotation.map(|row| row.map(|x| x as f64)),
+        t: p.translation.map(|x| x as f64),
+        s: p.scale as f64,
+    }
+}
+
+pub fn similarity_to_pose(s: &Similarity) -> Pose {
+    Pose { rotation: s.r.map(|row| row.map(|x| x as f32)), translation: s.t.map(|x| x as f32), scale: s.s as f32 }
+}
+
+/// One view's observed object points.
+#[derive(Debug, Clone)]
+pub struct ViewPoints {
+    /// Points in this view's camera frame, metres.
+    pub points: Vec<P3>,
+    /// This camera → the anchor (first) camera, rigid.
+    pub to_anchor: Similarity,
+}
+
+/// Which candidates compete and how they are scored (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SelectMethod {
+    First,
+    Single,
+    Cross,
+}
+
+impl SelectMethod {
+    pub fn name(self) -> &'static str {
+        match self {
+            SelectMethod::First => "first",
+            SelectMethod::Single => "single",
+            SelectMethod::Cross => "cross",
+        }
+    }
+
+    /// The selection key of a candidate predicted for view `own_view`
+    /// (`None`: not a candidate under this method).
+    pub fn key(self, s: &CandidateScore) -> Option<f64> {
+        match self {
+            SelectMethod::First => (s.own_view == 0).then(|| s.single()),
+            SelectMethod::Single => Some(s.single()),
+            SelectMethod::Cross => Some(s.cross()),
+        }
+    }
+}
+
+impl std::str::FromStr for SelectMethod {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "first" => Ok(SelectMethod::First),
+            "single" => Ok(SelectMethod::Single),
+            "cross" => Ok(SelectMethod::Cross),
+            _ => Err(format!("`{s}`: expected single, cross or first")),
+        }
+    }
+}
+
+/// A candidate's trimmed-mean distance in every view (metres).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CandidateScore {
+    /// The view whose pose token produced the candidate.
+    pub own_view: usize,
+    pub per_view_m: Vec<f64>,
+}
+
+impl CandidateScore {
+    /// Score in the candidate's own view.
+    pub fn single(&self) -> f64 {
+        self.per_view_m[self.own_view]
+    }
+
+    /// Mean of the per-view scores.
+    pub fn cross(&self) -> f64 {
+        self.per_view_m.iter().sum::<f64>() / self.per_view_m.len() as f64
+    }
+}
+
+/// Trimmed-mean distance from `view`'s points to `surface` placed by
+/// `pose` (surface frame → anchor camera).
+pub fn view_score(surface: &Surface, pose: &Similarity, view: &ViewPoints, opts: &AlignOptions) -> f64 {
+    let to_surface = inverse(pose).compose(&view.to_anchor);
+    let stride = view.points.len().div_ceil(opts.max_points.max(1)).max(1);
+    let q: Vec<P3> = view.points.iter().step_by(stride).map(|p| to_surface.apply(p)).collect();
+    let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s).collect();
+    trimmed_mean(&d, opts.trim)
+}
+
+/// Score one candidate in every view.
+pub fn score_candidate(surface: &Surface, pose: &Similarity, own_view: usize, views: &[ViewPoints], opts: &AlignOptions) -> CandidateScore {
+    CandidateScore { own_view, per_view_m: views.iter().map(|v| view_score(surface, pose, v, opts)).collect() }
+}
+
+/// Index of the winning candidate: lowest key, ties to the first; NaN keys
+/// and non-candidates never win. `None` when nothing is eligible.
+pub fn select_best(method: SelectMethod, scores: &[CandidateScore]) -> Option<usize> {
+    let mut best: Option<(usize, f64)> = None;
+    for (i, s) in scores.iter().enumerate() {
+        let Some(k) = method.key(s).filter(|k| !k.is_nan()) else { continue };
+        if best.is_none_or(|(_, b)| k < b) {
+            best = Some((i, k));
+        }
+    }
+    best.map(|b| b.0)
+}
+
+/// Spread of several pose estimates of one object (the `--samples` uncertainty).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PoseSpread {
+    pub samples: usize,
+    /// `sqrt(Σ|t_i − t̄|² / (n−1))`, millimetres.
+    pub translation_sd_mm: f64,
+    /// `sqrt(Σ θ_i² / (n−1))` with `θ_i` the geodesic angle from the chordal
+    /// mean rotation, degrees.
+    pub rotation_sd_deg: f64,
+    /// Sample standard deviation of the scale over its mean.
+    pub scale_sd_rel: f64,
+}
+
+/// Spread of `poses` (metres); `None` for fewer than two.
+pub fn pose_spread(poses: &[Similarity]) -> Option<PoseSpread> {
+    let n = poses.len();
+    if n < 2 {
+        return None;
+    }
+    let nf = n as f64;
+    let tm: P3 = std::array::from_fn(|a| poses.iter().map(|p| p.t[a]).sum::<f64>() / nf);
+    let t_ss: f64 = poses.iter().map(|p| dist2(&p.t, &tm)).sum();
+    let rm = mean_rotation(poses.iter().map(|p| p.r));
+    let ang_ss: f64 = poses.iter().map(|p| geodesic_angle(&rm, &p.r).powi(2)).sum();
+    let sm = poses.iter().map(|p| p.s).sum::<f64>() / nf;
+    let s_ss: f64 = poses.iter().map(|p| (p.s - sm).powi(2)).sum();
+    Some(PoseSpread {
+        samples: n,
+        translation_sd_mm: (t_ss / (nf - 1.0)).sqrt() * 1e3,
+        rotation_sd_deg: (ang_ss / (nf - 1.0)).sqrt().to_degrees(),
+        scale_sd_rel: (s_ss / (nf - 1.0)).sqrt() / sm,
+    })
+}
+
+/// Chordal L2 mean: the rotation nearest (Frobenius) to the sum of the matrices.
+pub fn mean_rotation(rs: impl Iterator<Item = [[f64; 3]; 3]>) -> [[f64; 3]; 3] {
+    let mut m = nalgebra::Matrix3::<f64>::zeros();
+    for r in rs {
+        m += nalgebra::Matrix3::from_fn(|i, j| r[i][j]);
+    }
+    let svd = m.svd(true, true);
+    let (Some(mut u), Some(vt)) = (svd.u, svd.v_t) else { return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] };
+    if (u * vt).determinant() < 0.0 {
+        // The smallest singular value is last (nalgebra sorts them descending).
+        u.column_mut(2).neg_mut();
+    }
+    let r = u * vt;
+    std::array::from_fn(|i| std::array::from_fn(|j| r[(i, j)]))
+}
+
+/// Angle (radians) of `aᵀ·b`.
+pub fn geodesic_angle(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> f64 {
+    let tr: f64 = (0..3).map(|i| (0..3).map(|k| a[k][i] * b[k][i]).sum::<f64>()).sum();
+    ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos()
+}
+
+/// The relative camera pose `T_c1_c2` (camera 2 → camera 1: `x₁ = R·x₂ + t`,
+/// metres) from `--rel-pose`: 16 numbers of the 4×4 matrix, row-major,
+/// separated by commas or spaces, or a JSON file holding `"T_c1_c2"` (4×4
+/// rows or 16 numbers). The rotation must be proper and orthonormal to 1e-3.
+pub fn parse_rel_pose(arg: &str) -> Result<Similarity> {
+    let path = Path::new(arg);
+    let (nums, file): (Vec<f64>, String) = if path.is_file() {
+        let file = path.display().to_string();
+        let v: serde_json::Value = crate::config::read_json(path)?;
+        let m = v.get("T_c1_c2").ok_or_else(|| Error::config(&file, "T_c1_c2", "missing: expected the 4×4 camera-2-to-camera-1 transform"))?;
+        let mut flat = Vec::new();
+        fn walk(v: &serde_json::Value, out: &mut Vec<f64>) -> bool {
+            match v {
+                serde_json::Value::Array(a) => a.iter().all(|x| walk(x, out)),
+                serde_json::Value::Number(n) => n.as_f64().map(|x| out.push(x)).is_some(),
+                _ => false,
+            }
+        }
+        if !walk(m, &mut flat) {
+            return Err(Error::config(&file, "T_c1_c2", "must hold only numbers (4×4 rows or 16 numbers)"));
+        }
+        (flat, file)
+    } else {
+        let parts: Vec<&str> = arg.split(|c: char| c == ',' || c.is_whitespace()).filter(|s| !s.is_empty()).collect();
+        let nums: std::result::Result<Vec<f64>, _> = parts.iter().map(|s| s.parse::<f64>()).collect();
+        let nums = nums.map_err(|_| {
+            Error::input("--rel-pose", format!("`{arg}` is neither a file nor 16 numbers (4×4 row-major camera-2-to-camera-1 transform)"))
+        })?;
+        (nums, "--rel-pose".to_string())
+    };
+    if nums.len() != 16 || nums.iter().any(|x| !x.is_finite()) {
+        return Err(Error::input(&file, format!("T_c1_c2 needs 16 finite numbers (4×4, row-major), got {}", nums.len())));
+    }
+    let m = |i: usize, j: usize| nums[4 * i + j];
+    if (m(3, 0).abs() + m(3, 1).abs() + m(3, 2).abs() + (m(3, 3) - 1.0).abs()) > 1e-6 {
+        return Err(Error::input(&file, "T_c1_c2: the last row must be 0 0 0 1 (a rigid transform)"));
+    }
+    let r: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m(i, j)));
+    let mut err: f64 = 0.0;
+    for i in 0..3 {
+        for j in 0..3 {
+            let d: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
+            err = err.max((d - if i == j { 1.0 } else { 0.0 }).abs());
+        }
+    }
+    let det = nalgebra::Matrix3::from_fn(|i, j| r[i][j]).determinant();
+    if err > 1e-3 || det <= 0.0 {
+        return Err(Error::input(&file, format!("T_c1_c2: the 3×3 block is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.4})")));
+    }
+    Ok(Similarity { r, t: [m(0, 3), m(1, 3), m(2, 3)], s: 1.0 })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::mesh::axis_angle;
+    use crate::model::sampler::SeededRng;
+
+    /// Axis-aligned box with half extents `h`, centred at the origin, 12 triangles.
+    fn cuboid(h: [f64; 3]) -> TriMesh {
+        let v: Vec<P3> = (0..8).map(|i| [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }]).collect();
+        let q = [[0, 2, 6, 4], [1, 5, 7, 3], [0, 4, 5, 1], [2, 3, 7, 6], [0, 1, 3, 2], [4, 6, 7, 5]];
+        let faces = q.iter().flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]]).collect();
+        TriMesh { vertices: v, faces }
+    }
+
+    trait Mm {
+        fn map_mm(&self) -> Vec<f64>;
+    }
+    impl Mm for Vec<f64> {
+        fn map_mm(&self) -> Vec<f64> {
+            self.iter().map(|x| (x * 1e4).round() / 10.0).collect()
+        }
+    }
+
+    fn noisy(pts: &[P3], sigma: f64, rng: &mut SeededRng) -> Vec<P3> {
+        pts.iter().map(|p| p.map(|x| x + sigma * rng.normal())).collect()
+    }
+
+    #[test]
+    fn triangle_closest_points() {
+        let (a, b, c) = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
+        let near = |p: P3, q: P3| assert!(dist2(&p, &q) < 1e-24, "{p:?} vs {q:?}");
+        near(closest_point_on_triangle(&[0.2, 0.2, 3.0], &a, &b, &c), [0.2, 0.2, 0.0]); // face
+        near(closest_point_on_triangle(&[-1.0, -1.0, 0.5], &a, &b, &c), a); // vertex
+        near(closest_point_on_triangle(&[2.0, -0.1, 0.0], &a, &b, &c), b);
+        near(closest_point_on_triangle(&[0.5, -2.0, 0.0], &a, &b, &c), [0.5, 0.0, 0.0]); // edge ab
+        near(closest_point_on_triangle(&[1.0, 1.0, 0.0], &a, &b, &c), [0.5, 0.5, 0.0]); // edge bc
+        // Brute force over a fine barycentric grid agrees.
+        let mut rng = SeededRng::new(5);
+        for _ in 0..200 {
+            let q = [rng.normal(), rng.normal(), rng.normal()];
+            let got = dist2(&closest_point_on_triangle(&q, &a, &b, &c), &q).sqrt();
+            let mut best = f64::INFINITY;
+            for i in 0..=100 {
+                for j in 0..=(100 - i) {
+                    let p = [i as f64 / 100.0, j as f64 / 100.0, 0.0];
+                    best = best.min(dist2(&p, &q).sqrt());
+                }
+            }
+            assert!(got <= best + 1e-12 && best - got < 0.01, "{got} vs {best}");
+        }
+    }
+
+    #[test]
+    fn surface_distance_is_exact_for_a_box() {
+        let s = Surface::new(cuboid([0.05, 0.03, 0.02]), 5000, 1).unwrap();
+        // Above the top face, beside a side face, and inside.
+        assert!((s.distance(&[0.01, 0.0, 0.03]) - 0.01).abs() < 1e-12);
+        assert!((s.distance(&[0.07, 0.01, 0.0]) - 0.02).abs() < 1e-12);
+        assert!((s.distance(&[0.0, 0.0, 0.015]) - 0.005).abs() < 1e-12);
+        assert!(Surface::new(TriMesh::default(), 10, 0).is_err());
+        let pts = Surface::from_points(&[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]).unwrap();
+        assert!((pts.distance(&[0.9, 0.0, 0.0]) - 0.1).abs() < 1e-12 && (pts.distance(&[0.2, 0.0, 0.0]) - 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn trimmed_mean_drops_the_largest_tenth() {
+        let mut v: Vec<f64> = (1..=9).map(|x| x as f64).collect();
+        v.push(1e6);
+        assert_eq!(trimmed_mean(&v, 0.1), 5.0);
+        assert_eq!(trimmed_mean(&v[..9], 0.1), 5.0); // floor(0.9) = 0 dropped
+        assert_eq!(trimmed_mean(&[2.0], 0.5), 2.0);
+        assert!(trimmed_mean(&[], 0.1).is_nan());
+    }
+
+    #[test]
+    fn similarity_inverse_round_trips() {
+        let t = Similarity { r: axis_angle([0.3, -1.0, 0.2], 1.1), t: [0.1, -0.2, 0.9], s: 0.37 };
+        let id = inverse(&t).compose(&t);
+        let p = [0.3, 0.4, -0.5];
+        let q = id.apply(&p);
+        assert!(dist2(&p, &q) < 1e-24);
+    }
+
+    /// A box seen by one camera: points sampled from its surface at the true pose,
+    /// 1 mm noise, 5 % gross outliers. The true pose must score at noise level and
+    /// beat perturbed ones; the trimming must absorb the outliers.
+    #[test]
+    fn correct_pose_beats_perturbed_poses() {
+        let mesh = cuboid([0.5, 0.3, 0.15]); // canonical frame, longest side 1
+        let truth = Similarity { r: axis_angle([0.2, 1.0, -0.4], 0.7), t: [0.05, -0.02, 0.8], s: 0.12 };
+        let mut rng = SeededRng::new(11);
+        let on_surface = truth.apply_all(&mesh.sample_surface(3000, 2));
+        let mut pts = noisy(&on_surface, 0.001, &mut rng);
+        for _ in 0..150 {
+            pts.push([truth.t[0] + 0.3 * (rng.uniform() - 0.5), truth.t[1] + 0.3 * (rng.uniform() - 0.5), truth.t[2] + 0.3 * (rng.uniform() - 0.5)]);
+        }
+        let view = ViewPoints { points: pts, to_anchor: Similarity::identity() };
+        let surface = Surface::new(mesh, 20_000, 3).unwrap();
+        let opts = AlignOptions::default();
+        let good = view_score(&surface, &truth, &view, &opts);
+        // E|N(0, σ)| = 0.8σ along the normal; the trimmed tail removes the outliers.
+        assert!(good < 0.0012, "true pose scores {good} m");
+        let untrimmed = view_score(&surface, &truth, &view, &AlignOptions { trim: 0.0, ..opts });
+        assert!(untrimmed > 2.0 * good, "outliers must matter without trimming: {untrimmed} vs {good}");
+        // 10° about the box's own vertical axis (through its centre).
+        let rot_about_centre = truth.compose(&Similarity { r: axis_angle([0.0, 0.0, 1.0], 10f64.to_radians()), t: [0.0; 3], s: 1.0 });
+        let shifted = Similarity { t: [truth.t[0] + 0.01, truth.t[1], truth.t[2]], ..truth };
+        let bigger = Similarity { s: truth.s * 1.15, ..truth };
+        let cands = [shifted, truth, rot_about_centre, bigger];
+        let scores: Vec<CandidateScore> = cands.iter().map(|c| score_candidate(&surface, c, 0, std::slice::from_ref(&view), &opts)).collect();
+        println!("true {:.3} mm (untrimmed {:.3} mm); shifted 1 cm, rotated 10°, scaled 1.15: {:?} mm", good * 1e3, untrimmed * 1e3, [0, 2, 3].map(|i| (scores[i].single() * 1e4).round() / 10.0));
+        for (i, s) in scores.iter().enumerate() {
+            if i != 1 {
+                assert!(s.single() > good + 0.001, "candidate {i}: {} vs true {good}", s.single());
+            }
+        }
+        for m in [SelectMethod::First, SelectMethod::Single, SelectMethod::Cross] {
+            assert_eq!(select_best(m, &scores), Some(1), "{m:?}");
+        }
+    }
+
+    /// Two cameras; view 2 sees only the top face of the box, view 1 a side
+    /// face. Candidate A (view 2's prediction) is the box flipped about an axis
+    /// in its top face: perfect in view 2, wrong in view 1. Candidate B (view
+    /// 1's prediction) is the true pose 2 mm off. `single` is fooled by A,
+    /// `cross` picks B, `first` takes view 1's candidate.
+    #[test]
+    fn cross_view_scoring_rejects_a_pose_right_only_in_its_own_view() {
+        let h = [0.5, 0.3, 0.15];
+        let mesh = cuboid(h);
+        let truth = Similarity { r: axis_angle([0.0, 1.0, 0.0], 0.3), t: [0.0, 0.02, 0.7], s: 0.1 };
+        // Camera 2: rotated 70° about y and shifted; T_c1_c2 maps camera-2 points to camera 1.
+        let t_c1_c2 = Similarity { r: axis_angle([0.1, 1.0, 0.0], 70f64.to_radians()), t: [-0.5, 0.0, 0.3], s: 1.0 };
+        let t_c2_c1 = inverse(&t_c1_c2);
+        let mut rng = SeededRng::new(3);
+        let face = |axis: usize, sign: f64, n: usize, rng: &mut SeededRng| -> Vec<P3> {
+            (0..n)
+                .map(|_| {
+                    let mut p: P3 = std::array::from_fn(|a| h[a] * (2.0 * rng.uniform() - 1.0));
+                    p[axis] = sign * h[axis];
+                    p
+                })
+                .collect()
+        };
+        let side = truth.apply_all(&face(0, 1.0, 1500, &mut rng)); // camera 1 sees +x
+        let top = t_c2_c1.apply_all(&truth.apply_all(&face(2, 1.0, 1500, &mut rng))); // camera 2 sees +z
+        let views = [
+            ViewPoints { points: noisy(&side, 0.0005, &mut rng), to_anchor: Similarity::identity() },
+            ViewPoints { points: noisy(&top, 0.0005, &mut rng), to_anchor: t_c1_c2 },
+        ];
+        // A: rotate 180° about the canonical x axis through (0, 0, h_z): (x, y, z) ↦ (x, −y, 2h_z − z).
+        let flip = Similarity { r: axis_angle([1.0, 0.0, 0.0], std::f64::consts::PI), t: [0.0, 0.0, 2.0 * h[2]], s: 1.0 };
+        let a = truth.compose(&flip);
+        let b = Similarity { t: [truth.t[0] + 0.002, truth.t[1], truth.t[2]], ..truth };
+        let surface = Surface::new(mesh, 20_000, 1).unwrap();
+        let opts = AlignOptions::default();
+        let scores = vec![score_candidate(&surface, &b, 0, &views, &opts), score_candidate(&surface, &a, 1, &views, &opts)];
+        let (sb, sa) = (&scores[0], &scores[1]);
+        println!("A per view {:?} mm, B per view {:?} mm", sa.per_view_m.map_mm(), sb.per_view_m.map_mm());
+        assert!(sa.single() < 0.0006, "A fits view 2: {}", sa.single());
+        assert!(sa.per_view_m[0] > 0.005, "A is wrong in view 1: {}", sa.per_view_m[0]);
+        assert!(sb.single() > sa.single() + 0.001 && sb.single() < 0.0025, "B in view 1: {}", sb.single());
+        assert!(sb.cross() < sa.cross(), "{} vs {}", sb.cross(), sa.cross());
+        assert_eq!(select_best(SelectMethod::Single, &scores), Some(1));
+        assert_eq!(select_best(SelectMethod::Cross, &scores), Some(0));
+        assert_eq!(select_best(SelectMethod::First, &scores), Some(0));
+        // Without the view-1 candidate, `first` has nothing to choose.
+        assert_eq!(select_best(SelectMethod::First, &scores[1..]), None);
+    }
+
+    #[test]
+    fn spread_of_known_poses() {
+        let z5 = axis_angle([0.0, 0.0, 1.0], 5f64.to_radians());
+        let zm5 = axis_angle([0.0, 0.0, 1.0], -5f64.to_radians());
+        let poses = [Similarity { r: z5, t: [0.01, 0.0, 1.0], s: 0.9 }, Similarity { r: zm5, t: [-0.01, 0.0, 1.0], s: 1.1 }];
+        let s = pose_spread(&poses).unwrap();
+        // Two values ±a about the mean: sqrt(2a²/1) = a·√2.
+        assert!((s.translation_sd_mm - 10.0 * 2f64.sqrt()).abs() < 1e-9, "{s:?}");
+        assert!((s.rotation_sd_deg - 5.0 * 2f64.sqrt()).abs() < 1e-6, "{s:?}");
+        assert!((s.scale_sd_rel - 0.1 * 2f64.sqrt()).abs() < 1e-9, "{s:?}");
+        assert!(pose_spread(&poses[..1]).is_none());
+        // Identical poses: zero spread.
+        let z = pose_spread(&[poses[0], poses[0], poses[0]]).unwrap();
+        assert!(z.translation_sd_mm < 1e-9 && z.rotation_sd_deg < 1e-4 && z.scale_sd_rel < 1e-12, "{z:?}");
+    }
+
+    #[test]
+    fn rel_pose_parsing() {
+        let t = parse_rel_pose("0,-1,0,0.1, 1,0,0,0.2, 0,0,1,0.3, 0,0,0,1").unwrap();
+        assert_eq!(t.t, [0.1, 0.2, 0.3]);
+        assert_eq!(t.apply(&[1.0, 0.0, 0.0]), [0.1, 1.2, 0.3]);
+        assert!(parse_rel_pose("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1").is_ok());
+        for bad in ["1,2,3", "2,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1", "1,0,0,0, 0,1,0,0, 0,0,-1,0, 0,0,0,1", "1,0,0,0, 0,1,0,0, 0,0,1,0, 1,0,0,1", "a b"] {
+            let e = parse_rel_pose(bad).unwrap_err().to_string();
+            assert!(e.contains("rel-pose") || e.contains("T_c1_c2"), "{bad}: {e}");
+        }
+        let dir = std::env::temp_dir().join(format!("recon-relpose-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("rel.json");
+        std::fs::write(&f, r#"{"T_c1_c2": [[1,0,0,0.5],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}"#).unwrap();
+        assert_eq!(parse_rel_pose(f.to_str().unwrap()).unwrap().t, [0.5, 0.0, 0.0]);
+        std::fs::write(&f, r#"{"T": 1}"#).unwrap();
+        let e = parse_rel_pose(f.to_str().unwrap()).unwrap_err().to_string();
+        assert!(e.contains("rel.json") && e.contains("T_c1_c2"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,302 @@
+//! `recon synth`: occluded tabletop RGB-D scenes with exact ground truth.
+//!
+//! objects (procedural meshes, parts) → scene (placement, cameras, appearance) →
+//! render (ray casting) → sensor model (`crate::sensor`) → BOP writer.
+//!
+//! A dataset is a pure function of its options: scene `i` is generated from a seed
+//! derived from (`seed`, `i`) alone and each view's sensor noise from (`seed`, `i`, view),
+//! so the bytes do not depend on the thread count or scheduling. Output goes to a staging
+//! folder renamed into place at the end, with `recon-synth.json` written last.
+
+pub mod bop_writer;
+pub mod objects;
+pub mod render;
+pub mod scene;
+
+pub use render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
+pub use scene::{Scene, SceneConfig};
+
+use crate::model::sampler::SeededRng;
+use crate::sensor::SensorModel;
+use crate::{Error, Result};
+use bop_writer::{camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask, write_rgb, DEPTH_SCALE_MM};
+use rayon::prelude::*;
+use serde::Serialize;
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Marker (and summary) file of a finished dataset.
+pub const MARKER: &str = "recon-synth.json";
+/// The BOP split the scenes are written to.
+pub const SPLIT: &str = "test";
+
+#[derive(Clone, Debug)]
+pub struct SynthOptions {
+    pub scenes: usize,
+    pub views: usize,
+    pub seed: u64,
+    pub width: usize,
+    pub height: usize,
+    /// Write composite objects as their rigid parts (one model and GT instance each).
+    pub parts: bool,
+    pub sensor: SensorModel,
+}
+
+impl Default for SynthOptions {
+    fn default() -> Self {
+        SynthOptions { scenes: 1, views: 1, seed: 0, width: 640, height: 480, parts: false, sensor: SensorModel::ideal() }
+    }
+}
+
+impl SynthOptions {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &str, msg: String| Err(Error::config("recon synth", field, msg));
+        if self.scenes == 0 || self.scenes > 1_000_000 {
+            return bad("--scenes", format!("expected 1..=1000000, got {}", self.scenes));
+        }
+        if self.views == 0 || self.views > 1_000 {
+            return bad("--views", format!("expected 1..=1000, got {}", self.views));
+        }
+        if !(16..=8192).contains(&self.width) || !(12..=8192).contains(&self.height) {
+            return bad("--width/--height", format!("expected 16..=8192 × 12..=8192 pixels, got {}×{}", self.width, self.height));
+        }
+        self.sensor.validate("--sensor")
+    }
+}
+
+/// What a run produced (also stored in `recon-synth.json`).
+#[derive(Serialize, Clone, Debug, Default)]
+pub struct Summary {
+    pub scenes: usize,
+    pub images: usize,
+    /// GT instances over all images (objects, or parts in parts mode).
+    pub instances: usize,
+    pub models: usize,
+    /// Objects per kind over all scenes.
+    pub objects_by_kind: BTreeMap<String, usize>,
+    /// Objects per scene: min, mean, max.
+    pub objects_per_scene: [f64; 3],
+    /// Target occlusion (1 − visib_fract) of every image, in image order.
+    pub target_occlusion: Vec<f64>,
+    /// Counts of `target_occlusion` in the bins 0–3, 3–20, 20–40, 40–70, >70 %.
+    pub target_occlusion_bins: [usize; 5],
+    /// Depth pixels beyond the 16-bit range, written as missing.
+    pub depth_clipped_px: usize,
+}
+
+fn derived_seed(seed: u64, a: u64, b: u64) -> u64 {
+    let mut r = SeededRng::new(seed ^ a.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ b.wrapping_mul(0xC2B2_AE3D_27D4_EB4F));
+    r.next_u64()
+}
+
+fn occlusion_bin(o: f64) -> usize {
+    match o {
+        o if o < 0.03 => 0,
+        o if o < 0.20 => 1,
+        o if o < 0.40 => 2,
+        o if o <= 0.70 => 3,
+        _ => 4,
+    }
+}
+
+/// The object ids a scene's render units get: 0 for the support, then `first_obj_id..`.
+fn unit_ids(n_units: usize, first_obj_id: u32) -> Vec<i64> {
+    (0..n_units).map(|i| if i == 0 { 0 } else { (first_obj_id + i as u32 - 1) as i64 }).collect()
+}
+
+/// Generate the dataset into `out` (a BOP dataset root: `models/`, `test/<scene>/`,
+/// `camera.json`, and [`MARKER`]). `progress` is called once per scene generated and once
+/// per scene rendered (2 × scenes calls). An existing `out` is replaced only if it is an
+/// earlier `recon synth` output.
+pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -> Result<Summary> {
+    opts.validate()?;
+    if out.exists() {
+        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
+        if !empty && !out.join(MARKER).exists() {
+            return Err(Error::input(out.display().to_string(), format!("output folder exists and is not a recon synth dataset (no {MARKER}); remove it or choose another --out")));
+        }
+    }
+    let staging = out.with_extension("partial");
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    }
+    mkdir(&staging.join("models"))?;
+    mkdir(&staging.join(SPLIT))?;
+
+    let cfg = SceneConfig { width: opts.width, height: opts.height, views: opts.views, ..Default::default() };
+    // Phase 1: scenes (cheap), so object ids can be assigned in scene order.
+    let scenes: Vec<Scene> = (0..opts.scenes)
+        .into_par_iter()
+        .map(|i| {
+            let s = Scene::generate(derived_seed(opts.seed, i as u64, 0), &cfg);
+            progress();
+            s
+        })
+        .collect::<Result<_>>()?;
+    let mut first_ids = Vec::with_capacity(scenes.len());
+    let mut next = 1u32;
+    for s in &scenes {
+        first_ids.push(next);
+        let n: usize = if opts.parts { s.objects.iter().map(|o| o.object.parts.len()).sum() } else { s.objects.len() };
+        next += n as u32;
+    }
+
+    // Phase 2: render, apply the sensor, write.
+    let results: Vec<SceneResult> = scenes
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let r = write_scene(&staging, i, s, first_ids[i], opts);
+            progress();
+            r
+        })
+        .collect::<Result<_>>()?;
+
+    let mut models_info = serde_json::Map::new();
+    let mut summary = Summary { scenes: scenes.len(), images: scenes.len() * opts.views, ..Default::default() };
+    let mut counts = Vec::new();
+    for (s, r) in scenes.iter().zip(&results) {
+        for (id, info) in &r.models_info {
+            models_info.insert(id.to_string(), info.clone());
+        }
+        summary.instances += r.instances;
+        summary.depth_clipped_px += r.clipped;
+        summary.target_occlusion.extend(&r.target_occlusion);
+        counts.push(s.objects.len() as f64);
+        for o in &s.objects {
+            *summary.objects_by_kind.entry(o.object.kind.name().to_string()).or_default() += 1;
+        }
+    }
+    summary.models = models_info.len();
+    for &o in &summary.target_occlusion {
+        summary.target_occlusion_bins[occlusion_bin(o)] += 1;
+    }
+    summary.objects_per_scene = [
+        counts.iter().copied().fold(f64::INFINITY, f64::min),
+        counts.iter().sum::<f64>() / counts.len() as f64,
+        counts.iter().copied().fold(0.0, f64::max),
+    ];
+    write_json(&staging.join("models").join("models_info.json"), &Value::Object(models_info))?;
+    // Nominal camera (per-image intrinsics are in scene_camera.json).
+    let (sx, sy) = (opts.width as f64 / 640.0, opts.height as f64 / 480.0);
+    write_json(
+        &staging.join("camera.json"),
+        &json!({"fx": 600.0 * sx, "fy": 600.0 * sy, "cx": (opts.width as f64 - 1.0) / 2.0, "cy": (opts.height as f64 - 1.0) / 2.0, "width": opts.width, "height": opts.height, "depth_scale": DEPTH_SCALE_MM}),
+    )?;
+    let marker = json!({
+        "generator": "recon synth",
+        "format": "BOP scenewise; models/ in mm; depth × depth_scale = mm; extra per-scene scene_meta.json",
+        "options": {"scenes": opts.scenes, "views": opts.views, "seed": opts.seed, "width": opts.width, "height": opts.height, "parts": opts.parts},
+        "sensor_model": opts.sensor,
+        "split": SPLIT,
+        "summary": summary,
+    });
+    write_json(&staging.join(MARKER), &marker)?;
+    if out.exists() {
+        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
+    }
+    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+    Ok(summary)
+}
+
+struct SceneResult {
+    models_info: Vec<(u32, Value)>,
+    instances: usize,
+    clipped: usize,
+    target_occlusion: Vec<f64>,
+}
+
+fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &SynthOptions) -> Result<SceneResult> {
+    let units = s.units(opts.parts)?;
+    let ids = unit_ids(units.len(), first_id);
+    let dir = root.join(SPLIT).join(format!("{index:06}"));
+    for sub in ["rgb", "depth", "mask", "mask_visib"] {
+        mkdir(&dir.join(sub))?;
+    }
+    // Models (object units only; unit 0 is the support).
+    let mut models_info = Vec::new();
+    for (u, &id) in units.iter().zip(&ids).skip(1) {
+        let o = &s.objects[u.object.unwrap_or(0)];
+        let (mesh, sym) = match u.part {
+            Some(j) => (o.object.parts[j].mesh.clone(), o.object.parts[j].symmetry.clone()),
+            None => (o.object.mesh(), o.object.symmetry.clone()),
+        };
+        write_bytes(&root.join("models").join(format!("obj_{id:06}.ply")), &model_ply_bytes(&mesh, o.material.color)?)?;
+        models_info.push((id as u32, model_info(&mesh, &sym)));
+    }
+    let (w, h) = (opts.width, opts.height);
+    let mut cams = serde_json::Map::new();
+    let mut gts = serde_json::Map::new();
+    let mut infos = serde_json::Map::new();
+    let mut images = serde_json::Map::new();
+    let mut clipped = 0;
+    let mut target_occlusion = Vec::new();
+    let is_object: Vec<bool> = units.iter().map(|u| u.object.is_some()).collect();
+    let target_units: Vec<usize> = (0..units.len()).filter(|&i| units[i].object == Some(0)).collect();
+    for v in 0..s.views.len() {
+        let frame = (index * opts.views + v) as i64;
+        let r = s.render_view(&units, &ids, v)?;
+        // Edge distance as the audit defines it: discontinuities of the GT objects' depth.
+        let covs = r.covariates_full(frame, None, Some(&is_object));
+        let measured = opts.sensor.apply(&covs, w, h, derived_seed(opts.seed, index as u64, 1 + v as u64));
+        write_rgb(&dir.join("rgb").join(format!("{v:06}.png")), &r.rgb, w, h)?;
+        clipped += write_depth(&dir.join("depth").join(format!("{v:06}.png")), &measured, w, h)?;
+        let w2c = s.views[v].camera.world_to_cam;
+        cams.insert(v.to_string(), camera_entry(&r, &w2c));
+        let mut gt = Vec::new();
+        let mut info = Vec::new();
+        for (g, ui) in (1..units.len()).enumerate() {
+            let m2c = w2c.compose(&units[ui].pose);
+            gt.push(gt_entry(&m2c, ids[ui] as u32));
+            info.push(gt_info_entry(&r, ui, &measured));
+            write_mask(&dir.join("mask").join(format!("{v:06}_{g:06}.png")), &r.amodal[ui], w, h)?;
+            write_mask(&dir.join("mask_visib").join(format!("{v:06}_{g:06}.png")), &r.visible_mask(ui), w, h)?;
+        }
+        // The target as a whole (all its parts).
+        let all = (0..w * h).filter(|&p| target_units.iter().any(|&t| r.amodal[t][p])).count();
+        let vis = r.index.iter().filter(|&&i| i >= 0 && target_units.contains(&(i as usize))).count();
+        let occ = if all > 0 { 1.0 - vis as f64 / all as f64 } else { 1.0 };
+        target_occlusion.push(occ);
+        images.insert(v.to_string(), json!({"frame_index": frame, "light": s.views[v].light, "target_visib_fract": 1.0 - occ, "target_px_count_all": all}));
+        gts.insert(v.to_string(), Value::Array(gt));
+        infos.insert(v.to_string(), Value::Array(info));
+    }
+    write_json(&dir.join("scene_camera.json"), &Value::Object(cams))?;
+    write_json(&dir.join("scene_gt.json"), &Value::Object(gts))?;
+    write_json(&dir.join("scene_gt_info.json"), &Value::Object(infos))?;
+    let instances: Vec<Value> = (1..units.len())
+        .enumerate()
+        .map(|(g, ui)| {
+            let u = &units[ui];
+            let oi = u.object.unwrap_or(0);
+            let o = &s.objects[oi];
+            json!({
+                "gt_idx": g,
+                "obj_id": ids[ui],
+                "object_index": oi,
+                "kind": o.object.kind.name(),
+                "part": u.part.map(|j| o.object.parts[j].name),
+                "part_pose_in_object": u.part.map(|j| { let p = &o.object.parts[j].pose; json!({"R": bop_writer::flat3(&p.r), "t_mm": p.t.map(|x| x * 1000.0)}) }),
+                "target": o.target,
+                "shell": o.object.shell,
+                "dims_m": o.object.dims.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<serde_json::Map<_, _>>(),
+                "material": u.material,
+            })
+        })
+        .collect();
+    write_json(
+        &dir.join("scene_meta.json"),
+        &json!({
+            "generator": "recon synth",
+            "scene_seed": s.seed,
+            "parts": opts.parts,
+            "occlusion_goal": s.occlusion_goal,
+            "occlusion_trial": s.occlusion_trial,
+            "support": {"size_m": [4.0, 4.0, 0.02], "top_z_m": 0.0, "object_covariate": 0, "material": s.support_material},
+            "instances": instances,
+            "images": images,
+        }),
+    )?;
+    Ok(SceneResult { models_info, instances: (units.len() - 1) * s.views.len(), clipped, target_occlusion })
+}

@@ -1,0 +1,234 @@
+//! `recon train` on CI-sized data: the smoke training (losses go down, the
+//! trained folder runs stage 1), determinism, bit-identical resume, refusal
+//! of foreign output folders, and the BOP reader on a folder written from
+//! the toy generator. Uses a micro architecture derived from recgen-nano,
+//! so every run takes seconds.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::Device;
+use recon::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use recon::train::bop::{BopOptions, BopSource};
+use recon::train::data::{canonical_frame, prepare_train_view, TrainingSource};
+use recon::train::run::{run, Resume, Stage, TrainOptions};
+use recon::train::toy::{micro_architecture, ToyConfig, ToySource};
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// A fresh temp folder holding the micro architecture file and its pose stats.
+fn workdir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("recon-train-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo().join("models/recgen-nano.json")).unwrap()).unwrap();
+    std::fs::write(d.join("recgen-micro.json"), serde_json::to_string_pretty(&micro_architecture(&v)).unwrap()).unwrap();
+    for f in ["stereo_pose_stats.example.json", "slat_pose_stats.example.json"] {
+        std::fs::copy(repo().join("models").join(f), d.join(f)).unwrap();
+    }
+    d
+}
+
+fn toy(second_view: bool) -> ToySource {
+    ToySource::new(ToyConfig { models: 4, samples: 10, width: 96, height: 72, seed: 7, occluders: true, second_view }).unwrap()
+}
+
+fn opts(stage: Stage, dir: &Path, out: &str, steps: usize, lr: f64) -> TrainOptions {
+    let mut o = TrainOptions::new(stage, dir.join("recgen-micro.json"), dir.join(out));
+    o.settings.steps = steps;
+    o.settings.batch = 4;
+    o.settings.lr = lr;
+    o.settings.checkpoint_every = 1000;
+    o.progress = false;
+    o.eval_batches = 3;
+    o
+}
+
+fn tensors(path: &Path) -> BTreeMap<String, Vec<f32>> {
+    candle_core::safetensors::load(path, &Device::Cpu)
+        .unwrap()
+        .into_iter()
+        .map(|(k, t)| (k, t.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+        .collect()
+}
+
+/// The CI smoke training: both stage-1 objectives reduce their fixed-batch
+/// loss, and the ss-flow folder loads and runs as a stage-1 pipeline.
+#[test]
+fn smoke_training_reduces_loss_and_output_runs_stage1() {
+    let dir = workdir("smoke");
+    let src = toy(true);
+    let vae = run(&src, &{
+        let mut o = opts(Stage::SsVae, &dir, "vae", 40, 3e-3);
+        o.recon_loss = recon::model::ss_encoder::ReconLoss::Bce;
+        o
+    })
+    .unwrap();
+    let (b, a) = (vae.eval_before.unwrap(), vae.eval_after.unwrap());
+    eprintln!("ss-vae fixed-batch loss {b:.4} → {a:.4}; {:?}", vae.summary);
+    assert!(a < 0.6 * b, "ss-vae loss did not go down enough: {b} → {a}");
+    assert!(dir.join("vae/ss_encoder.safetensors").is_file() && dir.join("vae/loss.svg").is_file());
+
+    let mut fo = opts(Stage::SsFlow, &dir, "flow", 40, 2e-3);
+    fo.vae = Some(dir.join("vae"));
+    let flow = run(&src, &fo).unwrap();
+    let (b, a) = (flow.eval_before.unwrap(), flow.eval_after.unwrap());
+    eprintln!("ss-flow fixed-batch loss {b:.4} → {a:.4}; {:?}; notes {:?}", flow.summary, flow.notes);
+    assert!(a < 0.8 * b, "ss-flow loss did not go down enough: {b} → {a}");
+    let log = std::fs::read_to_string(dir.join("flow/loss.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 40);
+    assert!(log.contains("mse_pose"));
+
+    // The folder is a stage-1 model: trained weights (not labelled random),
+    // the architecture copy reading the training-set pose stats.
+    let out = dir.join("flow");
+    for key in ["image_cond_model", "ss_flow", "ss_decoder"] {
+        assert!(!recon::weights::init::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap());
+    }
+    let p = Pipeline::load_stages(&out.join("recgen-micro.json"), &out, Stages::SparseStructure).unwrap();
+    assert!(!p.weights().is_random());
+    let s = src.sample(0).unwrap();
+    let canon = canonical_frame(&src.model(s.model).unwrap().mesh).unwrap();
+    let v = prepare_train_view(&s.views[0], &canon, p.image_size(), 1.2).unwrap();
+    let inputs = ObjectInputs { views: vec![ViewInput { pixels: v.pixels, pointmap: v.pointmap, mask: v.mask }] };
+    match p.run(&inputs, &RunOptions { stage1_only: true, ss_steps: Some(4), ..Default::default() }) {
+        Ok(r) => assert!(r.pose.pose.scale.is_finite() && r.pose.pose.scale > 0.0),
+        // 40 steps may not yet give an occupied grid; the error must say so.
+        Err(e) => assert!(e.to_string().contains("empty occupancy"), "{e}"),
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Same seed → same weights; another seed → other weights; a run stopped
+/// at a checkpoint and resumed ends bit-identical to the uninterrupted run
+/// (VAE and flow, the flow with two-view batches and CFG dropout).
+#[test]
+fn training_is_deterministic_and_resume_is_bit_identical() {
+    let dir = workdir("resume");
+    let src = toy(true);
+    let mk = |stage: Stage, out: &str, steps: usize, seed: u64| {
+        let mut o = opts(stage, &dir, out, steps, 2e-3);
+        o.settings.seed = seed;
+        o.settings.checkpoint_every = 2;
+        o.eval_batches = 0;
+        o.vae = Some(dir.join("vae-a"));
+        o.flow.p_uncond = 0.3;
+        o
+    };
+    for stage in [Stage::SsVae, Stage::SsFlow] {
+        let (n, key) = match stage {
+            Stage::SsVae => ("vae", "ss_encoder"),
+            Stage::SsFlow => ("flow", "ss_flow"),
+        };
+        run(&src, &mk(stage, &format!("{n}-a"), 4, 1)).unwrap();
+        run(&src, &mk(stage, &format!("{n}-b"), 4, 1)).unwrap();
+        run(&src, &mk(stage, &format!("{n}-c"), 4, 2)).unwrap();
+        let w = |o: &str| tensors(&dir.join(o).join(format!("{key}.safetensors")));
+        assert_eq!(w(&format!("{n}-a")), w(&format!("{n}-b")), "{n}: same seed must give the same weights");
+        assert_ne!(w(&format!("{n}-a")), w(&format!("{n}-c")), "{n}: another seed must differ");
+        // Interrupted after step 2, resumed to 4.
+        run(&src, &mk(stage, &format!("{n}-d"), 2, 1)).unwrap();
+        let mut r = mk(stage, &format!("{n}-d"), 4, 1);
+        r.resume = Some(Resume::Latest);
+        run(&src, &r).unwrap();
+        assert_eq!(w(&format!("{n}-a")), w(&format!("{n}-d")), "{n}: resumed run differs from the uninterrupted one");
+        let la = std::fs::read_to_string(dir.join(format!("{n}-a/loss.jsonl"))).unwrap();
+        let ld = std::fs::read_to_string(dir.join(format!("{n}-d/loss.jsonl"))).unwrap();
+        let strip = |s: &str| s.lines().map(|l| l.split(",\"seconds\"").next().unwrap().to_string()).collect::<Vec<_>>();
+        assert_eq!(strip(&la), strip(&ld), "{n}: loss logs differ");
+        // Resuming with other settings is refused, naming what differs.
+        let mut bad = mk(stage, &format!("{n}-d"), 6, 1);
+        bad.settings.lr = 1e-3;
+        bad.resume = Some(Resume::Latest);
+        let e = run(&src, &bad).unwrap_err().to_string();
+        assert!(e.contains("loop") && e.contains("--steps"), "{e}");
+    }
+    // Foreign or finished folders are not overwritten.
+    std::fs::create_dir_all(dir.join("foreign")).unwrap();
+    std::fs::write(dir.join("foreign/notes.txt"), "mine").unwrap();
+    let e = run(&src, &mk(Stage::SsVae, "foreign", 2, 1)).unwrap_err().to_string();
+    assert!(e.contains("not a recon train output"), "{e}");
+    let e = run(&src, &mk(Stage::SsVae, "vae-a", 2, 1)).unwrap_err().to_string();
+    assert!(e.contains("--resume"), "{e}");
+    let mut nv = mk(Stage::SsFlow, "novae", 2, 1);
+    nv.vae = None;
+    assert!(run(&src, &nv).unwrap_err().to_string().contains("--vae"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Write toy samples as a BOP folder (the layout `recon synth` writes) and
+/// read it back with `BopSource`.
+#[test]
+fn bop_source_reads_a_bop_folder() {
+    let dir = workdir("bop");
+    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
+    let models = dir.join("data/models");
+    std::fs::create_dir_all(&models).unwrap();
+    for m in 0..src.num_models() {
+        let mesh = src.model(m).unwrap().mesh;
+        let mut ply = format!("ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n", mesh.vertices.len(), mesh.faces.len());
+        for v in &mesh.vertices {
+            ply += &format!("{} {} {}\n", v[0] * 1000.0, v[1] * 1000.0, v[2] * 1000.0);
+        }
+        for f in &mesh.faces {
+            ply += &format!("3 {} {} {}\n", f[0], f[1], f[2]);
+        }
+        std::fs::write(models.join(format!("obj_{:06}.ply", m + 1)), ply).unwrap();
+    }
+    // Scene i holds sample i's two views as frames 0 and 1.
+    for i in 0..src.num_samples() {
+        let s = src.sample(i).unwrap();
+        let scene = dir.join(format!("data/train/{i:06}"));
+        for sub in ["rgb", "depth", "mask_visib"] {
+            std::fs::create_dir_all(scene.join(sub)).unwrap();
+        }
+        let (mut cams, mut gts, mut infos) = (serde_json::Map::new(), serde_json::Map::new(), serde_json::Map::new());
+        for (fi, v) in s.views.iter().enumerate() {
+            let f = &v.frame;
+            let (w, h) = (f.width as u32, f.height as u32);
+            image::RgbImage::from_raw(w, h, f.rgb.clone()).unwrap().save(scene.join(format!("rgb/{fi:06}.png"))).unwrap();
+            let d: Vec<u16> = f.depth_m.iter().map(|&z| (z as f64 * 10000.0).round() as u16).collect();
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, d).unwrap().save(scene.join(format!("depth/{fi:06}.png"))).unwrap();
+            let m: Vec<u8> = v.mask.iter().map(|&b| if b { 255 } else { 0 }).collect();
+            image::GrayImage::from_raw(w, h, m).unwrap().save(scene.join(format!("mask_visib/{fi:06}_000000.png"))).unwrap();
+            let k = f.intrinsics;
+            cams.insert(fi.to_string(), serde_json::json!({"cam_K": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0], "depth_scale": 0.1}));
+            let r: Vec<f64> = v.r.iter().flatten().copied().collect();
+            gts.insert(fi.to_string(), serde_json::json!([{"cam_R_m2c": r, "cam_t_m2c": v.t.map(|x| x * 1000.0), "obj_id": s.model + 1}]));
+            infos.insert(fi.to_string(), serde_json::json!([{"visib_fract": 0.9, "bbox_visib": [0, 0, 10, 10]}]));
+        }
+        std::fs::write(scene.join("scene_camera.json"), serde_json::Value::Object(cams).to_string()).unwrap();
+        std::fs::write(scene.join("scene_gt.json"), serde_json::Value::Object(gts).to_string()).unwrap();
+        std::fs::write(scene.join("scene_gt_info.json"), serde_json::Value::Object(infos).to_string()).unwrap();
+    }
+    let bop = BopSource::open(&dir.join("data/train"), &models, &BopOptions::default()).unwrap();
+    assert_eq!(bop.num_samples(), 4, "{}", bop.describe());
+    for i in 0..src.num_samples() {
+        let want = src.sample(i).unwrap();
+        // Frame 0 of scene i is BOP sample 2i; its second view is frame 1.
+        let got = bop.sample(2 * i).unwrap();
+        assert_eq!(got.views.len(), 2);
+        assert_eq!(bop.model(got.model).unwrap().key, format!("obj_{:06}", want.model + 1));
+        for (g, w) in got.views.iter().zip(&want.views) {
+            assert_eq!(g.mask, w.mask);
+            assert_eq!(g.frame.rgb, w.frame.rgb);
+            for a in 0..3 {
+                assert!((g.t[a] - w.t[a]).abs() < 1e-9);
+                for b in 0..3 {
+                    assert!((g.r[a][b] - w.r[a][b]).abs() < 1e-12);
+                }
+            }
+            let worst = g.frame.depth_m.iter().zip(&w.frame.depth_m).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+            assert!(worst < 6e-5, "depth differs by {worst} m");
+        }
+        let gm = &bop.model(got.model).unwrap().mesh;
+        let wm = &src.model(want.model).unwrap().mesh;
+        assert!((gm.vertices[3][1] - wm.vertices[3][1]).abs() < 1e-6);
+    }
+    // Instances below the visibility threshold are skipped.
+    let none = BopSource::open(&dir.join("data/train"), &models, &BopOptions { min_visib_fract: 0.95, second_view: false });
+    assert!(none.is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+}
