@@ -258,7 +258,7 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
         .output()
         .unwrap();
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("not a recon scene output"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no recon-scene.json"), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.join("keep.txt").is_file());
     // A recon infer folder without --frame says what is missing.
     let infer = dir.join("infer");
@@ -300,6 +300,8 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
         let placed = Mesh { vertices: mesh.vertices.iter().map(|v| cam([v[0] + at[0], v[1] + at[1], v[2] + at[2]])).collect(), ..mesh };
         std::fs::create_dir_all(infer.join(label)).unwrap();
         write_ply(&placed, &infer.join(label).join("mesh.ply"));
+        // pose.json records the frame recon infer read; recon scene finds the depth through it.
+        std::fs::write(infer.join(label).join("pose.json"), serde_json::json!({"views": [{"view": 1, "frame": color}]}).to_string()).unwrap();
         // Paths as recon infer writes them (relative to wherever it ran).
         entries.push(serde_json::json!({"object": label, "pose": format!("elsewhere/{label}/pose.json"), "mesh_ply": format!("elsewhere/{label}/mesh.ply")}));
     }
@@ -307,7 +309,7 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
     std::fs::write(infer.join(recon::infer::MARKER), serde_json::json!({"objects": entries, "skipped": []}).to_string()).unwrap();
     let out = dir.join("scene");
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
-        .args(["scene", "--input", infer.to_str().unwrap(), "--frame", color.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "primitive"])
+        .args(["scene", "--input", infer.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "primitive"])
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);

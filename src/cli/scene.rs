@@ -23,8 +23,9 @@ pub struct SceneArgs {
     /// Output folder (replaced only if it is an earlier `recon scene` output).
     #[arg(long)]
     out: PathBuf,
-    /// With a `recon infer` folder: the colour image given to `recon infer`;
-    /// its depth gives the support plane. Depth/intrinsics are found beside it.
+    /// With a `recon infer` folder: the colour image given to `recon infer`
+    /// (default: the one its pose.json records); its depth gives the support
+    /// plane. Depth/intrinsics are found beside it.
     #[arg(long)]
     frame: Option<PathBuf>,
     /// Depth image for --frame (16-bit PNG), if not found beside it.
@@ -104,12 +105,13 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
                 recon::infer::MARKER
             );
         }
-        let color = a.frame.clone().with_context(|| {
-            format!(
-                "{}: a recon infer output holds no view of the support plane; pass --frame <the colour image given to recon infer>",
+        let color = match a.frame.clone().or_else(|| recon::sim::inputs::infer_frame(&a.input)) {
+            Some(c) => c,
+            None => anyhow::bail!(
+                "{}: the support plane comes from the frame's depth, and the colour image recorded in its pose.json is not found; pass --frame <the colour image given to recon infer>",
                 a.input.display()
-            )
-        })?;
+            ),
+        };
         let fo = FrameOptions { depth: a.depth.clone(), depth_scale: a.depth_scale, ..Default::default() };
         let frame = RgbdFrame::open(&color, &fo).with_context(|| format!("--frame {}", color.display()))?;
         let (scene, notes) = recon::sim::inputs::scene_from_infer_output(&a.input, &frame, &table, &plane_opts)?;

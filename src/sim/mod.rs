@@ -368,19 +368,7 @@ pub struct Written {
 /// replaced only when it is an earlier `recon scene` output.
 pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
     let t0 = std::time::Instant::now();
-    if out.exists() {
-        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
-        if !empty && !out.join(MARKER).exists() {
-            return Err(Error::input(
-                out.display().to_string(),
-                format!("output folder exists and is not a recon scene output (no {MARKER}); remove it or choose another --out"),
-            ));
-        }
-    }
-    let staging = out.with_extension("partial");
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
-    }
+    let staging = crate::infer::begin_output_marked(out, MARKER)?;
     let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
     let write = |p: &Path, bytes: &[u8]| std::fs::write(p, bytes).map_err(|e| Error::io(p, e));
     mkdir(&staging.join("urdf"))?;
@@ -443,12 +431,7 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         "objects": scene.summaries(),
         "files": written,
     });
-    let text = serde_json::to_string_pretty(&report).map_err(|e| Error::msg(e.to_string()))?;
-    write(&staging.join(MARKER), text.as_bytes())?;
-    if out.exists() {
-        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
-    }
-    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+    crate::infer::finish_output_marked(&staging, out, MARKER, &report)?;
     Ok(written)
 }
 
