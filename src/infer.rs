@@ -706,12 +706,17 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
 /// earlier recon output (holds [`MARKER`]), and returns a fresh, empty staging folder
 /// beside it to write into. [`finish_output`] then moves it into place.
 pub fn begin_output(out: &Path) -> Result<PathBuf> {
+    begin_output_marked(out, MARKER)
+}
+
+/// [`begin_output`] for an output family with its own marker file (`recon scene`).
+pub fn begin_output_marked(out: &Path, marker: &str) -> Result<PathBuf> {
     if out.exists() {
         let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
-        if !empty && !out.join(MARKER).exists() {
+        if !empty && !out.join(marker).exists() {
             return Err(Error::input(
                 out.display().to_string(),
-                format!("output folder exists and is not a recon output (no {MARKER}); remove it or choose another --out"),
+                format!("output folder exists and is not a recon output of this kind (no {marker}); remove it or choose another --out"),
             ));
         }
     }
@@ -725,7 +730,12 @@ pub fn begin_output(out: &Path) -> Result<PathBuf> {
 
 /// Writes the [`MARKER`] index last, then replaces `out` with the staging folder.
 pub fn finish_output(staging: &Path, out: &Path, index: &serde_json::Value) -> Result<()> {
-    let marker = staging.join(MARKER);
+    finish_output_marked(staging, out, MARKER, index)
+}
+
+/// [`finish_output`] with the output family's own marker file.
+pub fn finish_output_marked(staging: &Path, out: &Path, marker: &str, index: &serde_json::Value) -> Result<()> {
+    let marker = staging.join(marker);
     std::fs::write(&marker, serde_json::to_string_pretty(index).map_err(|e| Error::msg(e.to_string()))?)
         .map_err(|e| Error::io(&marker, e))?;
     if out.exists() {

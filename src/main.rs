@@ -28,6 +28,8 @@ enum Cmd {
     Train(cli::train::TrainArgs),
     /// Synthetic occluded RGB-D scenes with exact ground truth, in the BOP format.
     Synth(cli::synth::SynthArgs),
+    /// Posed meshes (a scene file or a recon infer output) → settled, simulator-ready scene: URDF, MJCF, USD, GLB.
+    Scene(cli::scene::SceneArgs),
     /// Checkpoints: download, verify, random-initialise.
     Weights {
         #[command(subcommand)]
@@ -45,6 +47,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Bench(a) => cli::bench::run(a)?,
         Cmd::Train(a) => cli::train::run(a)?,
         Cmd::Synth(a) => cli::synth::run(a)?,
+        Cmd::Scene(a) => cli::scene::run(a)?,
     };
     if !ok {
         std::process::exit(1);

@@ -2,6 +2,7 @@
 pub mod bench;
 pub mod eval;
 pub mod infer;
-pub mod train;
+pub mod scene;
 pub mod synth;
+pub mod train;
 pub mod weights;

@@ -539,7 +539,8 @@ fn surface_report(mesh: &Mesh, parts: &[Part], mesh_samples: &[[f64; 3]], n: usi
     let q = PartQuery::new(parts);
     let d1: Vec<f64> = mesh_samples.iter().map(|p| q.distance(*p)).collect();
     // Collision surface samples, per part proportional to its area; samples
-    // inside another part lie on internal faces, not on the outer surface.
+    // inside (or on) another part lie on internal faces such as shared cut
+    // planes, not on the outer surface.
     let meshes: Vec<Mesh> = parts.iter().map(|p| p.surface_mesh()).collect();
     let areas: Vec<f64> = meshes.iter().map(|m| m.area()).collect();
     let total: f64 = areas.iter().sum::<f64>().max(1e-30);
@@ -548,7 +549,7 @@ fn surface_report(mesh: &Mesh, parts: &[Part], mesh_samples: &[[f64; 3]], n: usi
     for (i, m) in meshes.iter().enumerate() {
         let k = ((n as f64 * areas[i] / total).ceil() as usize).max(1);
         for p in surface_samples(m, k, seed.wrapping_add(i as u64 + 1)) {
-            if !(0..parts.len()).any(|j| j != i && q.inside(j, p, -tol)) {
+            if !(0..parts.len()).any(|j| j != i && q.inside(j, p, tol)) {
                 pts.push(p);
             }
         }

@@ -43,6 +43,20 @@ pub fn guess_category(label: &str, table: &MaterialTable) -> String {
         .unwrap_or_else(|| "object".into())
 }
 
+/// The colour image `recon infer` read for `dir` (its first object's
+/// `pose.json`, `views[0].frame`), when that file still exists.
+pub fn infer_frame(dir: &Path) -> Option<PathBuf> {
+    let v: serde_json::Value = crate::config::read_json(&dir.join(crate::infer::MARKER)).ok()?;
+    for o in v.get("objects")?.as_array()? {
+        let p = PathBuf::from(o.get("pose")?.as_str()?);
+        let pose = dir.join(p.parent()?.file_name()?).join(p.file_name()?);
+        let Ok(rec) = crate::config::read_json::<serde_json::Value>(&pose) else { continue };
+        let frame = PathBuf::from(rec.get("views")?.get(0)?.get("frame")?.as_str()?);
+        return frame.is_file().then_some(frame);
+    }
+    None
+}
+
 /// Scene file for a `recon infer` output folder: each object's camera-frame
 /// mesh (`<object>/mesh.ply`, metres) placed in the world frame of the
 /// support plane seen in `frame` (the colour image given to `recon infer`).
@@ -147,6 +161,16 @@ pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable
         let a = v.as_array().filter(|a| a.len() == n).ok_or_else(|| Error::config(&gt_file, field, format!("expected {n} numbers")))?;
         a.iter().map(|x| x.as_f64().ok_or_else(|| Error::config(&gt_file, field, "expected numbers"))).collect()
     };
+    // `recon synth` records each GT instance's object kind in scene_meta.json.
+    let meta: Option<serde_json::Value> = match scene_dir.join("scene_meta.json") {
+        p if p.is_file() => Some(crate::config::read_json(&p)?),
+        _ => None,
+    };
+    let kind_of = |gt_idx: usize| -> Option<String> {
+        let inst = meta.as_ref()?.get("instances")?.as_array()?;
+        let e = inst.iter().find(|e| e.get("gt_idx").and_then(|g| g.as_u64()) == Some(gt_idx as u64))?;
+        Some(e.get("kind")?.as_str()?.to_string())
+    };
     let mut objects = Vec::new();
     let mut seen = std::collections::BTreeMap::<u64, usize>::new();
     for (i, e) in entries.iter().enumerate() {
@@ -163,8 +187,9 @@ pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable
         let n = seen.entry(obj_id).or_default();
         *n += 1;
         let name = if *n == 1 { format!("obj_{obj_id:06}") } else { format!("obj_{obj_id:06}_{n}") };
+        let category = kind_of(i).filter(|k| table.categories.contains_key(k)).unwrap_or_else(|| guess_category(&name, table));
         objects.push(ObjectSpec {
-            category: guess_category(&name, table),
+            category,
             name,
             mesh: models.join(format!("obj_{obj_id:06}.ply")),
             scale: 1e-3,

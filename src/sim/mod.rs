@@ -262,6 +262,11 @@ pub struct ObjectSummary<'a> {
     pub collision: &'a collision::CollisionReport,
     pub start_pose: PoseSpec,
     pub settled_pose: PoseSpec,
+    /// Deepest overlap at the start pose (with the plane or another object), and what with.
+    pub start_penetration_mm: f64,
+    pub start_penetration_with: Option<&'a str>,
+    /// Deepest overlap left after settling.
+    pub end_penetration_mm: f64,
     pub displacement_mm: f64,
     pub rotation_deg: f64,
     /// Lowest mesh point above the plane after settling.
@@ -288,6 +293,9 @@ impl SimScene {
                 collision: &o.collision.report,
                 start_pose: PoseSpec::from_similarity(&o.start),
                 settled_pose: PoseSpec::from_similarity(&o.end),
+                start_penetration_mm: o.settle.start_penetration_m * 1e3,
+                start_penetration_with: o.settle.start_penetration_with.as_deref(),
+                end_penetration_mm: o.settle.end_penetration_m * 1e3,
                 displacement_mm: o.settle.displacement_m * 1e3,
                 rotation_deg: o.settle.rotation_deg,
                 bottom_above_plane_mm: o.bottom_z_m * 1e3,
@@ -311,17 +319,21 @@ impl SimScene {
         s
     }
 
-    /// Fixed-width per-object table: displacement, rotation, plane gap, flags.
+    /// Fixed-width per-object table: deepest overlap (mm) at the start and
+    /// after settling, displacement, rotation, lowest point above the plane
+    /// (`gap_mm`), collision parts, mass model, flags.
     pub fn table(&self) -> String {
         let mut s = format!(
-            "{:<24} {:>9} {:>8} {:>9} {:>6} {:>9} {:>10} {:>7}  {}\n",
-            "object", "mass_kg", "move_mm", "rot_deg", "parts", "gap_mm", "collision", "shell", "flag"
+            "{:<20} {:>8} {:>9} {:>8} {:>8} {:>8} {:>6} {:>8} {:>10} {:>6}  {}\n",
+            "object", "mass_kg", "overlap0", "overlap1", "move_mm", "rot_deg", "parts", "gap_mm", "collision", "model", "flag"
         );
         for o in &self.objects {
             s += &format!(
-                "{:<24} {:>9.4} {:>8.2} {:>9.2} {:>6} {:>9.2} {:>10} {:>7}  {}\n",
+                "{:<20} {:>8.4} {:>9.2} {:>8.2} {:>8.2} {:>8.2} {:>6} {:>8.2} {:>10} {:>6}  {}\n",
                 o.name,
                 o.inertial.mass_kg,
+                o.settle.start_penetration_m * 1e3,
+                o.settle.end_penetration_m * 1e3,
                 o.settle.displacement_m * 1e3,
                 o.settle.rotation_deg,
                 o.collision.report.parts,
@@ -356,19 +368,7 @@ pub struct Written {
 /// replaced only when it is an earlier `recon scene` output.
 pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
     let t0 = std::time::Instant::now();
-    if out.exists() {
-        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
-        if !empty && !out.join(MARKER).exists() {
-            return Err(Error::input(
-                out.display().to_string(),
-                format!("output folder exists and is not a recon scene output (no {MARKER}); remove it or choose another --out"),
-            ));
-        }
-    }
-    let staging = out.with_extension("partial");
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
-    }
+    let staging = crate::infer::begin_output_marked(out, MARKER)?;
     let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
     let write = |p: &Path, bytes: &[u8]| std::fs::write(p, bytes).map_err(|e| Error::io(p, e));
     mkdir(&staging.join("urdf"))?;
@@ -431,12 +431,7 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         "objects": scene.summaries(),
         "files": written,
     });
-    let text = serde_json::to_string_pretty(&report).map_err(|e| Error::msg(e.to_string()))?;
-    write(&staging.join(MARKER), text.as_bytes())?;
-    if out.exists() {
-        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
-    }
-    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+    crate::infer::finish_output_marked(&staging, out, MARKER, &report)?;
     Ok(written)
 }
 

@@ -4,8 +4,10 @@
 //! instead of exploding), and the simulation runs until every object is at
 //! rest on the plane z = 0 (gravity −z) or the time limit is reached.
 //!
-//! Single-threaded, with rapier's `enhanced-determinism`: the same input
-//! gives the same poses bit for bit.
+//! Single-threaded (rapier without its `parallel` feature): the same input
+//! gives the same poses bit for bit on a given build. Bit-identity across
+//! platforms is not claimed (that needs rapier's `enhanced-determinism`,
+//! which would also force libm/scalar math on the synth renderer's parry).
 
 use crate::export::transform::{matrix_to_quat, quat_to_matrix, Similarity};
 use crate::sim::collision::{Part, Primitive};
@@ -37,8 +39,8 @@ impl Default for SettleOptions {
             dt_s: 1.0 / 240.0,
             solver_iterations: 8,
             max_corrective_velocity_m_s: 0.05,
-            rest_linear_m_s: 0.002,
-            rest_angular_rad_s: 0.02,
+            rest_linear_m_s: 0.0005,
+            rest_angular_rad_s: 0.01,
             rest_duration_s: 0.25,
             flag_displacement_m: 0.01,
             flag_rotation_deg: 10.0,
@@ -92,6 +94,8 @@ pub struct BodySettle {
     /// What that overlap was with ("plane" or an object name).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub start_penetration_with: Option<String>,
+    /// Deepest overlap left after settling.
+    pub end_penetration_m: f64,
     pub displacement_m: f64,
     pub rotation_deg: f64,
     pub final_speed_m_s: f64,
@@ -111,6 +115,22 @@ pub struct SettleResult {
 }
 
 pub const PLANE: &str = "plane";
+
+// Collision groups. parry builds a contact manifold from at most four
+// vertices of a convex polyhedron's face (the first four of its loop), so a
+// hull resting on a large polygon (a can's base, a flat-bottomed VHACD
+// part) is held on a small arc of its rim and tips over. Against the plane,
+// hull parts therefore collide through their surface triangles (a triangle
+// mesh copy, `FOOT`), which gives the whole support polygon; between
+// objects they collide as solid convex shapes (`OBJECT`) so overlaps are
+// pushed apart. Primitives have exact plane contacts.
+const OBJECT: Group = Group::GROUP_1;
+const FOOT: Group = Group::GROUP_2;
+const GROUND: Group = Group::GROUP_3;
+
+fn groups(member: Group, filter: Group) -> InteractionGroups {
+    InteractionGroups::new(member, filter, InteractionTestMode::And)
+}
 
 fn to_pose(s: &Similarity) -> Pose {
     let q = matrix_to_quat(&s.rotation);
@@ -175,39 +195,50 @@ pub fn body_distance(a: &Body, b: &Body) -> Result<f64> {
     Ok(best)
 }
 
-/// Per body: the deepest overlap of its colliders with the plane or any
-/// other body's colliders at the current poses, and with what.
-fn start_penetrations(
+/// Per body: the deepest overlap of its collision geometry with the plane
+/// (lowest point below z = 0) or with another body (solid convex parts).
+fn penetrations(
     world: &PhysicsWorld,
     owner: &std::collections::HashMap<ColliderHandle, String>,
-    n: usize,
+    bodies: &[Body],
     handles: &[RigidBodyHandle],
 ) -> Vec<(f64, Option<String>)> {
     use parry3d::bounding_volume::BoundingVolume;
+    let mut out: Vec<(f64, Option<String>)> = bodies
+        .iter()
+        .zip(handles)
+        .map(|(b, h)| {
+            let pose = from_pose(world.bodies[*h].position());
+            let low = b
+                .parts
+                .iter()
+                .flat_map(|p| p.surface_mesh().vertices)
+                .map(|v| pose.apply_point(v)[2] as f64)
+                .fold(f64::INFINITY, f64::min);
+            if low < 0.0 {
+                (-low, Some(PLANE.to_string()))
+            } else {
+                (0.0, None)
+            }
+        })
+        .collect();
     let index: std::collections::HashMap<RigidBodyHandle, usize> = handles.iter().enumerate().map(|(i, h)| (*h, i)).collect();
-    let cols: Vec<(ColliderHandle, &Collider, Option<usize>)> =
-        world.colliders.iter().map(|(h, c)| (h, c, c.parent().and_then(|p| index.get(&p).copied()))).collect();
-    let mut out = vec![(0.0f64, None); n];
+    let cols: Vec<(ColliderHandle, &Collider, usize)> = world
+        .colliders
+        .iter()
+        .filter(|(_, c)| c.collision_groups().memberships.contains(OBJECT))
+        .filter_map(|(h, c)| Some((h, c, *index.get(&c.parent()?)?)))
+        .collect();
     for (a, (ha, ca, ba)) in cols.iter().enumerate() {
         for (hb, cb, bb) in &cols[a + 1..] {
-            if ba == bb || (ba.is_none() && bb.is_none()) {
-                continue;
-            }
-            // A half-space has an unbounded AABB; everything else is filtered by AABBs.
-            let plane = ba.is_none() || bb.is_none();
-            if !plane && !ca.compute_aabb().intersects(&cb.compute_aabb()) {
+            if ba == bb || !ca.compute_aabb().intersects(&cb.compute_aabb()) {
                 continue;
             }
             let Ok(Some(c)) = parry3d::query::contact(ca.position(), ca.shape(), cb.position(), cb.shape(), 0.0) else { continue };
             let depth = -(c.dist as f64);
-            if depth <= 0.0 {
-                continue;
-            }
             for (me, other) in [(ba, hb), (bb, ha)] {
-                if let Some(i) = me {
-                    if depth > out[*i].0 {
-                        out[*i] = (depth, owner.get(other).cloned());
-                    }
+                if depth > out[*me].0 {
+                    out[*me] = (depth, owner.get(other).cloned());
                 }
             }
         }
@@ -235,8 +266,18 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
     ip.normalized_max_corrective_velocity = (opts.max_corrective_velocity_m_s / 0.1) as f32;
     // Recycled contacts may be stale by several millimetres; resting heights must be exact.
     ip.contact_recycling = false;
+    // Contact slop 0.1 mm (0.001 × length_unit): resting overlaps stay well under a millimetre.
+    ip.normalized_allowed_linear_error = 0.001;
+    // Friction also in the position-correction pass: otherwise floor friction
+    // in the relax pass undoes the push-apart and leaves ~0.5 mm overlaps
+    // between resting neighbours. (Rapier warns this destabilises tall
+    // stacks; tabletop scenes are one layer.)
+    ip.friction_in_bias_pass = true;
     let ground = world.insert_collider(
-        ColliderBuilder::new(SharedShape::halfspace(Vector::Z)).friction(plane_friction as f32).restitution(plane_restitution as f32),
+        ColliderBuilder::new(SharedShape::halfspace(Vector::Z))
+            .friction(plane_friction as f32)
+            .restitution(plane_restitution as f32)
+            .collision_groups(groups(GROUND, FOOT.union(OBJECT))),
         None,
     );
     let mut handles = Vec::new();
@@ -252,17 +293,25 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
         let mp = MassProperties::with_inertia_matrix(Vector::ZERO, b.mass_kg as f32, inertia);
         let h = world.insert_body(RigidBodyBuilder::dynamic().pose(to_pose(&b.pose)).additional_mass_properties(mp).can_sleep(false));
         for p in &b.parts {
-            let c = part_collider(p)
-                .ok_or_else(|| Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name)))?
-                .density(0.0)
-                .friction(b.friction as f32)
-                .restitution(b.restitution as f32);
-            let ch = world.insert_collider(c, Some(h));
-            owner.insert(ch, b.name.clone());
+            let degenerate = || Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name));
+            let mut builders = vec![];
+            match p {
+                Part::Hull(m) => {
+                    builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT)));
+                    let v: Vec<Vector> = m.vertices.iter().map(|v| Vector::new(v[0], v[1], v[2])).collect();
+                    let foot = ColliderBuilder::trimesh(v, m.faces.clone()).map_err(|_| degenerate())?;
+                    builders.push(foot.collision_groups(groups(FOOT, GROUND)));
+                }
+                Part::Primitive(_) => builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT.union(GROUND)))),
+            }
+            for c in builders {
+                let ch = world.insert_collider(c.density(0.0).friction(b.friction as f32).restitution(b.restitution as f32), Some(h));
+                owner.insert(ch, b.name.clone());
+            }
         }
         handles.push(h);
     }
-    let start_pen = start_penetrations(&world, &owner, bodies.len(), &handles);
+    let start_pen = penetrations(&world, &owner, bodies, &handles);
     let steps_max = (opts.max_time_s / opts.dt_s).ceil() as usize;
     let rest_steps = (opts.rest_duration_s / opts.dt_s).ceil() as usize;
     let min_steps = (0.1 / opts.dt_s).ceil() as usize;
@@ -282,8 +331,13 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             break;
         }
     }
+    // Collider poses follow their bodies at the next step; refresh them so the
+    // end-state overlap query sees the settled poses.
+    world.integration_parameters.dt = 0.0;
+    world.step();
+    let end_pen = penetrations(&world, &owner, bodies, &handles);
     let mut out = Vec::new();
-    for ((b, h), (pen, pen_with)) in bodies.iter().zip(&handles).zip(start_pen) {
+    for (((b, h), (pen, pen_with)), (end_pen, _)) in bodies.iter().zip(&handles).zip(start_pen).zip(end_pen) {
         let rb = &world.bodies[*h];
         let end = from_pose(rb.position());
         let d = (0..3).map(|k| ((end.translation[k] - b.pose.translation[k]) as f64).powi(2)).sum::<f64>().sqrt();
@@ -320,6 +374,7 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             translation_m: end.translation,
             start_penetration_m: pen,
             start_penetration_with: pen_with,
+            end_penetration_m: end_pen,
             displacement_m: d,
             rotation_deg: rot,
             final_speed_m_s: speed,
@@ -390,6 +445,7 @@ mod tests {
         for b in &r.bodies {
             assert!((b.translation_m[2] - 0.03).abs() < 1e-3, "{} at z {}", b.name, b.translation_m[2]);
             assert!(b.rotation_deg < 2.0 && b.displacement_m < 0.01, "{b:?}");
+            assert!(b.end_penetration_m < 5e-4, "{b:?}");
         }
         let again = settle(&bodies, 0.6, 0.0, &SettleOptions::default()).unwrap();
         assert_eq!(serde_json::to_string(&again).unwrap(), serde_json::to_string(&r).unwrap());

@@ -1,0 +1,169 @@
+//! `recon scene`: posed meshes → settled, simulator-ready scene (URDF, MJCF, USD, GLB).
+use std::path::PathBuf;
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum CollisionArg {
+    /// Approximate convex decomposition (VHACD).
+    Convex,
+    /// One convex hull per object.
+    Hull,
+    /// Box, cylinder or sphere when one fits well, else the decomposition.
+    Primitive,
+}
+
+#[derive(clap::Args)]
+pub struct SceneArgs {
+    /// A scene file (scene.json, version 1), a `recon infer` output folder, or a
+    /// BOP scene folder (`<root>/<split>/<scene>`, e.g. from `recon synth`: GT models at GT poses).
+    #[arg(long)]
+    input: PathBuf,
+    /// With a BOP scene folder: the image id (default: the first).
+    #[arg(long)]
+    view: Option<u32>,
+    /// Output folder (replaced only if it is an earlier `recon scene` output).
+    #[arg(long)]
+    out: PathBuf,
+    /// With a `recon infer` folder: the colour image given to `recon infer`
+    /// (default: the one its pose.json records); its depth gives the support
+    /// plane. Depth/intrinsics are found beside it.
+    #[arg(long)]
+    frame: Option<PathBuf>,
+    /// Depth image for --frame (16-bit PNG), if not found beside it.
+    #[arg(long)]
+    depth: Option<PathBuf>,
+    /// Metres per depth unit for --frame's depth.
+    #[arg(long)]
+    depth_scale: Option<f64>,
+    /// Plane inlier distance for the support-plane fit (mm).
+    #[arg(long, default_value_t = 10.0)]
+    plane_threshold_mm: f64,
+    /// Material table (default: the shipped models/materials.json).
+    #[arg(long)]
+    materials: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "convex")]
+    collision: CollisionArg,
+    /// VHACD voxel resolution (longest axis).
+    #[arg(long, default_value_t = 64)]
+    vhacd_resolution: u32,
+    /// VHACD maximum concavity per part.
+    #[arg(long, default_value_t = 0.01)]
+    vhacd_concavity: f32,
+    /// VHACD maximum number of convex parts per object.
+    #[arg(long, default_value_t = 16)]
+    vhacd_max_hulls: u32,
+    /// Primitive fit: accepted excess volume over the mesh (fraction).
+    #[arg(long, default_value_t = 0.05)]
+    primitive_volume_tolerance: f64,
+    /// Simulated settling time limit (s).
+    #[arg(long, default_value_t = 5.0)]
+    settle_time: f64,
+    /// Bound on the depenetration speed (m/s).
+    #[arg(long, default_value_t = 0.05)]
+    max_corrective_velocity: f64,
+    /// Flag objects that moved more than this while settling (mm).
+    #[arg(long, default_value_t = 10.0)]
+    flag_mm: f64,
+    /// Flag objects that rotated more than this while settling (degrees).
+    #[arg(long, default_value_t = 10.0)]
+    flag_deg: f64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Print the per-object report as JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
+    use anyhow::Context;
+    use recon::inputs::frame::{FrameOptions, RgbdFrame};
+    use recon::sim::collision::{CollisionMethod, VhacdOptions};
+    use recon::sim::materials::MaterialTable;
+    use recon::sim::plane::PlaneFitOptions;
+    use recon::sim::scene_file::SceneFile;
+    use recon::sim::{build_scene, write_outputs, SceneOptions};
+
+    let table = match &a.materials {
+        Some(p) => MaterialTable::load(p)?,
+        None => MaterialTable::builtin(),
+    };
+    let plane_opts = PlaneFitOptions { threshold_m: a.plane_threshold_mm * 1e-3, seed: a.seed, ..Default::default() };
+    let (scene, file) = if a.input.is_dir() && a.input.join("scene_gt.json").is_file() {
+        let (scene, check) = recon::sim::inputs::scene_from_bop(&a.input, a.view, &table, &plane_opts)?;
+        if let Some(c) = check {
+            println!(
+                "support plane vs the dataset's world plane: normal {:.3}°, distance {:.2} mm",
+                c.normal_error_deg,
+                c.offset_error_m * 1e3
+            );
+        }
+        (scene, a.input.join("scene_gt.json").display().to_string())
+    } else if a.input.is_dir() {
+        if !a.input.join(recon::infer::MARKER).is_file() {
+            anyhow::bail!(
+                "{}: neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)",
+                a.input.display(),
+                recon::infer::MARKER
+            );
+        }
+        let color = match a.frame.clone().or_else(|| recon::sim::inputs::infer_frame(&a.input)) {
+            Some(c) => c,
+            None => anyhow::bail!(
+                "{}: the support plane comes from the frame's depth, and the colour image recorded in its pose.json is not found; pass --frame <the colour image given to recon infer>",
+                a.input.display()
+            ),
+        };
+        let fo = FrameOptions { depth: a.depth.clone(), depth_scale: a.depth_scale, ..Default::default() };
+        let frame = RgbdFrame::open(&color, &fo).with_context(|| format!("--frame {}", color.display()))?;
+        let (scene, notes) = recon::sim::inputs::scene_from_infer_output(&a.input, &frame, &table, &plane_opts)?;
+        for n in notes {
+            eprintln!("note: {n}");
+        }
+        (scene, a.input.join(recon::infer::MARKER).display().to_string())
+    } else {
+        (SceneFile::load(&a.input)?, a.input.display().to_string())
+    };
+    let mut opts = SceneOptions::default();
+    opts.collision = match a.collision {
+        CollisionArg::Convex => CollisionMethod::Convex,
+        CollisionArg::Hull => CollisionMethod::Hull,
+        CollisionArg::Primitive => CollisionMethod::Primitive,
+    };
+    opts.collision_opts.vhacd =
+        VhacdOptions { resolution: a.vhacd_resolution, concavity: a.vhacd_concavity, max_convex_hulls: a.vhacd_max_hulls, ..Default::default() };
+    opts.collision_opts.primitive.volume_tolerance = a.primitive_volume_tolerance;
+    opts.collision_opts.seed = a.seed;
+    opts.settle.max_time_s = a.settle_time;
+    opts.settle.max_corrective_velocity_m_s = a.max_corrective_velocity;
+    opts.settle.flag_displacement_m = a.flag_mm * 1e-3;
+    opts.settle.flag_rotation_deg = a.flag_deg;
+
+    let mut sim = build_scene(&scene, &table, &opts, &file)?;
+    write_outputs(&mut sim, &a.out)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&sim.summaries())?);
+    } else {
+        if let Some(f) = &sim.input.support_plane.fit {
+            println!(
+                "support plane: {} inliers of {} points, rms residual {:.2} mm, median |residual| {:.2} mm (RANSAC threshold {:.1} mm, final band {:.1} mm)",
+                f.inliers,
+                f.points,
+                f.rms_residual_m * 1e3,
+                f.median_abs_residual_m * 1e3,
+                f.threshold_m * 1e3,
+                f.band_m * 1e3
+            );
+        }
+        println!(
+            "settled {} objects in {:.2} s simulated ({} steps){}",
+            sim.objects.len(),
+            sim.settle.simulated_s,
+            sim.settle.steps,
+            if sim.settle.at_rest { "" } else { ": NOT at rest at the time limit" }
+        );
+        print!("{}", sim.table());
+        let t = &sim.timings;
+        println!("timings: annotate+collision {:.2} s, settle {:.2} s, export {:.2} s", t.annotate_and_collision_s, t.settle_s, t.export_s);
+        println!("wrote {}", a.out.display());
+    }
+    Ok(true)
+}
