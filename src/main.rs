@@ -20,6 +20,11 @@ enum Cmd {
     },
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
+    /// Measured vs simulated: find what the simulation gets wrong, name the cause, extend the sensor model.
+    Audit {
+        #[command(subcommand)]
+        cmd: cli::audit::AuditCmd,
+    },
     /// Checkpoints: download, verify, random-initialise.
     Weights {
         #[command(subcommand)]
@@ -33,6 +38,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Conformance { dirs } => recon::conformance::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Audit { cmd } => cli::audit::run(cmd)?,
     };
     if !ok {
         std::process::exit(1);
