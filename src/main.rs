@@ -30,6 +30,11 @@ enum Cmd {
     Synth(cli::synth::SynthArgs),
     /// Posed meshes (a scene file or a recon infer output) → settled, simulator-ready scene: URDF, MJCF, USD, GLB.
     Scene(cli::scene::SceneArgs),
+    /// Measured vs simulated: find what the simulation gets wrong, name the cause, extend the sensor model.
+    Audit {
+        #[command(subcommand)]
+        cmd: cli::audit::AuditCmd,
+    },
     /// Checkpoints: download, verify, random-initialise.
     Weights {
         #[command(subcommand)]
@@ -48,6 +53,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Train(a) => cli::train::run(a)?,
         Cmd::Synth(a) => cli::synth::run(a)?,
         Cmd::Scene(a) => cli::scene::run(a)?,
+        Cmd::Audit { cmd } => cli::audit::run(cmd)?,
     };
     if !ok {
         std::process::exit(1);

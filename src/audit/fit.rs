@@ -200,7 +200,7 @@ impl FittedTerm {
         }
     }
 
-    /// Named parameters in model units (for reports and the jackknife).
+    /// Named parameters in model units (for reports and the bootstrap).
     pub fn params(&self, ctx: &Ctx) -> BTreeMap<String, f64> {
         form_params(&self.form(ctx))
     }

@@ -4,15 +4,17 @@
 //! {
 //!   "version": 1, "kind": "depth" | "table",
 //!   "data":     {source, rows, valid, missing, units, unit_names, covariates, folds, split},
-//!   "method":   {likelihood, test, correction, alpha, screen_alpha, parsimony_alpha, uncertainty},
+//!   "method":   {likelihood, test, correction, alpha, screen_alpha, parsimony_alpha, uncertainty, …},
 //!   "input":    metrics of the simulation as given (no refit; log-likelihoods null),
 //!   "baseline": {"parameters": {bias, noise, dropout, outlier_fraction},
 //!                "standard_errors": {same keys}, "heldout": metrics},
 //!   "findings": [{"target", "covariate", "form", "by" (interactions only),
 //!                 "parameters": the form's fields (slope | linear, quadratic | threshold, delta | values),
 //!                 "standard_errors": same keys, "heldout_gain": nats per held-out pixel of the
-//!                 target's channel, "heldout_gain_total": nats, "units_improved": "k/n",
-//!                 "t", "p_value": Bonferroni-adjusted, "p_value_raw", "candidates",
+//!                 target's channel, "heldout_gain_total": nats, "folds_improved": "k/n",
+//!                 "t" (of the fold gains, descriptive), "p_value": family-wise
+//!                 (randomisation max statistic over the round's candidates),
+//!                 "p_value_raw": the candidate's own randomisation p, "candidates",
 //!                 "cause", "effect": the sensor-model Effect (depth only)}], strongest first,
 //!   "extended_model": path | null,
 //!   "after":    {"parameters", "standard_errors", "heldout": metrics,
@@ -32,7 +34,7 @@
 //! the binned median residual (bias), of observed robust sd − predicted sd (noise), and of
 //! observed − predicted missing rate.
 use super::fit::{Ctx, Pred};
-use super::search::{globals, globals_standard_errors, term_standard_errors, Cv, SearchOptions, SearchResult};
+use super::search::{bootstrap, globals, Cv, SearchOptions, SearchResult};
 use super::stats::{median, quantile_sorted, robust_sd};
 use super::table::ColumnKind;
 use crate::sensor::{Effect, Form, Target};
@@ -69,7 +71,7 @@ pub struct Finding {
     pub standard_errors: Value,
     pub heldout_gain: f64,
     pub heldout_gain_total: f64,
-    pub units_improved: String,
+    pub folds_improved: String,
     pub t: f64,
     pub p_value: f64,
     pub p_value_raw: f64,
@@ -276,12 +278,14 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
     let (base_m, before) = cv_metrics(ctx, res, &res.baseline);
     let (after_m, after) = cv_metrics(ctx, res, &res.final_cv);
     let full = res.final_cv.full();
+    let unc = bootstrap(ctx, full, opts.bootstrap, opts.seed);
+    let unc_base = bootstrap(ctx, res.baseline.full(), opts.bootstrap, opts.seed);
     let mut findings = vec![];
     for (ti, s) in res.selected.iter().enumerate() {
         let ft = &full.terms[ti];
         let form = ft.form(ctx);
-        let se = term_standard_errors(ctx, &res.final_cv, &res.folds, ti);
-        let (params, ses) = params_json(&form, &se, ctx, ft.term.col);
+        let se = &unc.terms[ti];
+        let (params, ses) = params_json(&form, se, ctx, ft.term.col);
         let cov = t.columns[ft.term.col].name.clone();
         let by = ft.term.by.map(|b| t.columns[b].name.clone());
         let cause = super::cause::describe(ft.term.target, &cov, &form, by.as_deref(), col_range(ctx, ft.term.col), &t.value_unit, depth_sensor);
@@ -295,7 +299,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             standard_errors: ses,
             heldout_gain: ev.gain_per_row,
             heldout_gain_total: ev.gain_total,
-            units_improved: format!("{}/{}", ev.gains.iter().filter(|&&g| g > 0.0).count(), ev.gains.len()),
+            folds_improved: format!("{}/{}", ev.gains.iter().filter(|&&g| g > 0.0).count(), ev.gains.len()),
             t: ev.t,
             p_value: s.p_adjusted,
             p_value_raw: ev.p,
@@ -325,21 +329,21 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
     });
     let method = json!({
         "likelihood": if opts.robust { "Gaussian with a uniform outlier component (valid rows) + Bernoulli (missing)" } else { "Gaussian (valid rows) + Bernoulli (missing)" },
-        "test": "one-sided t-test across held-out units of the cross-fitted log-likelihood gain in the candidate's channel",
-        "correction": "Bonferroni over all candidates of the round (p_value = p_value_raw × candidates)",
+        "test": "randomisation test: signs of whole held-out folds' log-likelihood gains flipped (all 2^K patterns for K ≤ 16 folds, else 20000 draws)",
+        "correction": "max statistic over the round's fitted candidates (Westfall–Young); screened-out candidates (pixel-level score p ≥ screen_alpha) are not fitted",
         "alpha": opts.alpha, "screen_alpha": opts.screen_alpha, "parsimony_alpha": opts.parsimony_alpha,
-        "uncertainty": "delete-one-fold jackknife over the fold fits of the final model",
+        "uncertainty": format!("bootstrap over units (frames): {} resamples of the units with replacement, every parameter refitted (step thresholds re-chosen)", opts.bootstrap),
         "max_findings": opts.max_findings, "interactions": opts.interactions,
     });
     let gjson = |m: &BTreeMap<String, f64>| -> Value { m.iter().map(|(k, v)| (k.clone(), num(Some(*v)))).collect::<serde_json::Map<_, _>>().into() };
     let baseline = json!({
         "parameters": gjson(&globals(ctx, res.baseline.full())),
-        "standard_errors": gjson(&globals_standard_errors(ctx, &res.baseline, &res.folds)),
+        "standard_errors": gjson(&unc_base.globals),
         "heldout": base_m,
     });
     let after_v = json!({
         "parameters": gjson(&globals(ctx, full)),
-        "standard_errors": gjson(&globals_standard_errors(ctx, &res.final_cv, &res.folds)),
+        "standard_errors": gjson(&unc.globals),
         "heldout": after_m,
         "improvement": improvement,
     });
@@ -381,7 +385,7 @@ impl Report {
             self.data["split"].as_str().unwrap_or("")
         );
         s += &format!(
-            "test: held-out log-likelihood gain per unit, one-sided t-test, Bonferroni over each round's candidates at alpha {}\n",
+            "test: held-out log-likelihood gain per fold, sign-flip randomisation with a max-statistic correction over each round's candidates, alpha {}\n",
             self.method["alpha"]
         );
         let bp = &self.baseline["parameters"];
@@ -400,7 +404,7 @@ impl Report {
             for (i, f) in self.findings.iter().enumerate() {
                 let by = f.by.as_ref().map(|b| format!(" × {b}")).unwrap_or_default();
                 s += &format!(
-                    "  {}. {} ~ {}({}){by}: {} ± {}\n     held-out gain {:.4} nats/pixel ({:.1} total, {} units better), p = {:.2e} ({} candidates)\n     {}\n",
+                    "  {}. {} ~ {}({}){by}: {} ± {}\n     held-out gain {:.4} nats/pixel ({:.1} total, {} folds better), p = {:.2e} ({} candidates)\n     {}\n",
                     i + 1,
                     f.target,
                     f.form,
@@ -409,7 +413,7 @@ impl Report {
                     f.standard_errors,
                     f.heldout_gain,
                     f.heldout_gain_total,
-                    f.units_improved,
+                    f.folds_improved,
                     f.p_value,
                     f.candidates,
                     f.cause

@@ -4,33 +4,38 @@
 //! **Protocol.** Units are split into folds (leave-one-unit-out up to `max_folds`
 //! units, else `max_folds` folds of shuffled units). Every model is fitted on each
 //! fold's training units and scored on its held-out units, so every unit gets a
-//! cross-fitted held-out log-likelihood. A candidate term's held-out gain per unit is
+//! cross-fitted held-out log-likelihood. A candidate term's held-out gain per fold is
 //! its log-likelihood minus the current model's, in the candidate's channel (the
-//! Gaussian part for bias/noise, the Bernoulli part for dropout). The evidence is a
-//! one-sided t-test of "mean gain per unit > 0" across units: the unit, not the pixel,
-//! is the independent observation, so the correlation of pixels within a frame (a pose
-//! error, a warm-up offset) cannot manufacture significance. A step's threshold and a
-//! group's categories are chosen inside each training fold, so selection is part of
-//! what is validated.
+//! Gaussian part for bias/noise, the Bernoulli part for dropout); nats are comparable
+//! across channels. A step's threshold and a group's categories are chosen inside each
+//! training fold, so that choice is validated too.
 //!
-//! **Multiple comparisons.** Each round considers every candidate (3 targets × every
-//! covariate × its forms); the smallest p-value must pass Bonferroni, `p · m < alpha`.
-//! A cheap pixel-level score test (at the full-data fit) skips the fits of candidates
-//! with no sign of an effect (`p_score ≥ screen_alpha`); they count in `m`, so the
-//! screen can only make the procedure more conservative. The first round therefore
-//! controls the chance of reporting anything on data without effects at `alpha`.
+//! **Significance: a randomisation test with frames as the unit.** If no candidate
+//! helps, a fold's gain is as likely to be negative as positive (overfitting even makes
+//! it lean negative), so flipping the signs of whole folds' gains generates the null.
+//! A candidate's p-value is the share of the 2^K sign patterns (all of them for K ≤ 16,
+//! else 20 000 seeded draws) under which its flipped total reaches the observed total.
+//! The multiple-comparison correction is the max statistic (Westfall–Young): the
+//! family-wise p-value is the share of patterns under which the best flipped total of
+//! *any* fitted candidate of the round reaches it. Pixels never count as independent
+//! evidence, so correlation within a frame (a pose error, warm-up) cannot manufacture
+//! significance; the price is that K folds can give at best p = 2^-K (K ≥ 7 for 0.01).
+//! A cheap pixel-level score test at the full-data fit (loose, `screen_alpha`) skips the
+//! fits of candidates with no sign of an effect; their small held-out gains would not
+//! raise the null maximum noticeably.
 //!
-//! **Selection.** Among significant candidates the largest mean held-out gain wins;
-//! a more complex form (quadratic, step) replaces a significant linear term of the
-//! same target and covariate only if it beats it on held-out units (paired t-test,
-//! `parsimony_alpha`). The winner joins the model (all parameters refitted) and the
-//! search repeats until nothing is significant or `max_findings` is reached. Then one
-//! interaction round tries each finding multiplied by another numeric covariate.
+//! **Selection.** Among candidates with family-wise p < `alpha` the largest total
+//! held-out gain wins; a more complex form (quadratic, step) replaces a significant
+//! linear term of the same target and covariate only if it beats it on held-out folds
+//! (paired randomisation test at `parsimony_alpha`). The winner joins the model (all
+//! parameters refitted) and the search repeats until nothing is significant or
+//! `max_findings` is reached. Then one interaction round tries each finding multiplied
+//! by another numeric covariate.
 //!
-//! **Uncertainty.** Parameter standard errors are the delete-one-fold jackknife over
-//! the fold fits of the final model (frame-level, so within-frame correlation is
-//! accounted for); thresholds get one too.
-use super::fit::{fit_bern, fit_gauss, is_gauss, score_stat, structure, working, Ctx, FittedTerm, FormKind, Model, Pred, Term};
+//! **Uncertainty.** Parameter standard errors come from a bootstrap over units
+//! ([`bootstrap`]): frames resampled with replacement, the final model refitted on each
+//! resample (thresholds re-chosen), so within-frame correlation is accounted for.
+use super::fit::{fit_bern, fit_gauss, is_gauss, score_stat, structure, working, Ctx, FormKind, Model, Pred, Term};
 use super::stats::{chi2_upper_tail, one_sided_t};
 use super::table::ColumnKind;
 use crate::model::sampler::SeededRng;
@@ -41,7 +46,7 @@ use std::collections::BTreeMap;
 
 #[derive(Clone, Debug)]
 pub struct SearchOptions {
-    /// Family-wise level of each selection round (Bonferroni over its candidates).
+    /// Family-wise level of each selection round (randomisation max statistic).
     pub alpha: f64,
     /// Pixel-level score pre-screen: candidates with p_score above this are not fitted.
     pub screen_alpha: f64,
@@ -58,6 +63,8 @@ pub struct SearchOptions {
     pub seed: u64,
     /// Targets searched (default all three).
     pub targets: Vec<Target>,
+    /// Bootstrap resamples (over units) for the standard errors.
+    pub bootstrap: usize,
 }
 
 impl Default for SearchOptions {
@@ -66,12 +73,13 @@ impl Default for SearchOptions {
             alpha: 0.01,
             screen_alpha: 0.01,
             parsimony_alpha: 0.01,
-            max_findings: 6,
+            max_findings: 8,
             robust: true,
             interactions: true,
             max_folds: 20,
             seed: 0,
             targets: vec![Target::Bias, Target::Noise, Target::Dropout],
+            bootstrap: 100,
         }
     }
 }
@@ -230,11 +238,14 @@ pub struct Evidence {
     pub term: Term,
     /// Pixel-level score-test p-value at the full-data fit (the pre-screen).
     pub p_screen: f64,
-    /// Per-unit held-out gains (nats); empty when not fitted.
+    /// Held-out gains per fold (nats; = per unit when leave-one-unit-out); empty when not fitted.
     pub gains: Vec<f64>,
+    /// t statistic of the fold gains (descriptive).
     pub t: f64,
-    /// One-sided t-test p-value across units.
+    /// Randomisation p-value of this candidate alone (sign flips of fold gains).
     pub p: f64,
+    /// Family-wise p-value over the round's fitted candidates (max statistic).
+    pub p_adjusted: f64,
     /// Held-out gain per held-out row of the channel (nats).
     pub gain_per_row: f64,
     pub gain_total: f64,
@@ -244,7 +255,7 @@ pub struct Evidence {
 #[derive(Clone, Debug)]
 pub struct Selected {
     pub evidence: Evidence,
-    /// Bonferroni-adjusted p-value (p · m, capped at 1).
+    /// Family-wise p-value (max-statistic randomisation test over the round's candidates).
     pub p_adjusted: f64,
     /// Candidates in the round (m).
     pub candidates: usize,
@@ -311,44 +322,97 @@ fn screen(ctx: &Ctx, full: &Model, folds: &Folds, term: Term) -> f64 {
 }
 
 fn evidence(ctx: &Ctx, folds: &Folds, parent: &Cv, term: Term, p_screen: f64, fit: bool) -> (Evidence, Option<Cv>) {
-    let mut ev = Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, gain_per_row: 0.0, gain_total: 0.0 };
+    let mut ev = Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, p_adjusted: 1.0, gain_per_row: 0.0, gain_total: 0.0 };
     if !fit {
         return (ev, None);
     }
     let Some(cv) = parent.with(ctx, folds, term) else { return (ev, None) };
     let gauss = is_gauss(term.target);
     let (a, b) = (cv.unit_ll(gauss), parent.unit_ll(gauss));
-    let mut rows_per_unit = vec![0usize; ctx.table.n_units()];
-    for i in 0..ctx.table.len() {
-        if !gauss || !ctx.table.missing(i) {
-            rows_per_unit[ctx.table.unit[i]] += 1;
+    // Gains per fold (= per unit when leave-one-unit-out): the exchangeable blocks.
+    ev.gains = vec![0.0; folds.k];
+    for u in 0..a.len() {
+        if folds.unit_fold[u] < folds.k {
+            ev.gains[folds.unit_fold[u]] += a[u] - b[u];
         }
     }
-    ev.gains = (0..a.len()).filter(|&u| rows_per_unit[u] > 0).map(|u| a[u] - b[u]).collect();
-    let (t, p) = one_sided_t(&ev.gains);
-    ev.t = t;
-    ev.p = p;
+    let rows = (0..ctx.table.len()).filter(|&i| !gauss || !ctx.table.missing(i)).count();
+    ev.t = one_sided_t(&ev.gains).0;
     ev.gain_total = ev.gains.iter().sum();
-    ev.gain_per_row = ev.gain_total / rows_per_unit.iter().sum::<usize>().max(1) as f64;
+    ev.gain_per_row = ev.gain_total / rows.max(1) as f64;
     (ev, Some(cv))
 }
 
-/// Paired one-sided test that `a`'s per-unit gains exceed `b`'s.
-fn beats(a: &Evidence, b: &Evidence) -> f64 {
+/// Sign-flip patterns over `k` folds (bit f set: fold f's gain changes sign): all 2^k
+/// for k ≤ 16, else 20 000 seeded random ones; the identity is always included.
+pub fn sign_patterns(k: usize, seed: u64) -> Vec<u64> {
+    if k <= 16 {
+        return (0..(1u64 << k)).collect();
+    }
+    let mask = if k >= 64 { u64::MAX } else { (1u64 << k) - 1 };
+    let mut rng = SeededRng::new(seed ^ 0x51_6E_F1_1B);
+    std::iter::once(0).chain((1..20_000).map(|_| rng.next_u64() & mask)).collect()
+}
+
+fn flipped(g: &[f64], m: u64) -> f64 {
+    g.iter().enumerate().map(|(f, &x)| if (m >> f) & 1 == 1 { -x } else { x }).sum()
+}
+
+/// Share of sign patterns whose flipped total reaches `obs` (ties count).
+fn flip_p(g: &[f64], obs: f64, patterns: &[u64]) -> f64 {
+    let tol = 1e-9 * obs.abs().max(1e-12);
+    patterns.iter().filter(|&&m| flipped(g, m) >= obs - tol).count() as f64 / patterns.len() as f64
+}
+
+/// Paired randomisation test that `a`'s per-fold gains exceed `b`'s.
+fn beats(a: &Evidence, b: &Evidence, patterns: &[u64]) -> f64 {
     if a.gains.len() != b.gains.len() || a.gains.is_empty() {
         return 1.0;
     }
     let d: Vec<f64> = a.gains.iter().zip(&b.gains).map(|(x, y)| x - y).collect();
-    one_sided_t(&d).1
+    let obs: f64 = d.iter().sum();
+    if obs <= 0.0 {
+        return 1.0;
+    }
+    flip_p(&d, obs, patterns)
+}
+
+/// Fills `p` (one candidate's own randomisation p-value) and `p_adjusted` (family-wise:
+/// the share of sign patterns under which the best flipped total of *any* fitted
+/// candidate reaches this candidate's total; Westfall–Young max statistic).
+fn randomisation_test(results: &mut [(Evidence, Option<Cv>)], patterns: &[u64]) {
+    let fitted: Vec<usize> = (0..results.len()).filter(|&i| results[i].1.is_some()).collect();
+    if fitted.is_empty() {
+        return;
+    }
+    let gains: Vec<&[f64]> = fitted.iter().map(|&i| results[i].0.gains.as_slice()).collect();
+    let maxes: Vec<f64> = patterns.par_iter().map(|&m| gains.iter().map(|g| flipped(g, m)).fold(f64::NEG_INFINITY, f64::max)).collect();
+    for &i in &fitted {
+        let obs = results[i].0.gain_total;
+        let tol = 1e-9 * obs.abs().max(1e-12);
+        let p = flip_p(&results[i].0.gains, obs, patterns);
+        let pa = maxes.iter().filter(|&&x| x >= obs - tol).count() as f64 / patterns.len() as f64;
+        results[i].0.p = p;
+        results[i].0.p_adjusted = pa;
+    }
 }
 
 fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &SearchOptions, round: usize) -> (Round, Option<(Selected, Cv)>) {
     let full = parent.full();
     let screened: Vec<(Term, f64)> = cands.par_iter().map(|&t| (t, screen(ctx, full, folds, t))).collect();
-    let results: Vec<(Evidence, Option<Cv>)> = screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
+    let mut results: Vec<(Evidence, Option<Cv>)> = screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
+    let patterns = sign_patterns(folds.k, opts.seed);
+    randomisation_test(&mut results, &patterns);
     let m = cands.len();
     let fitted = results.iter().filter(|r| r.1.is_some()).count();
-    let significant = |e: &Evidence| e.p * (m as f64) < opts.alpha && e.gain_total > 0.0;
+    if std::env::var("AUDIT_DEBUG").is_ok() {
+        for (e, cv) in &results {
+            if cv.is_some() {
+                eprintln!("DBG round {round} {:?} {} col{} total {:.1} p {:.4} padj {:.4} gains {:?}", e.term.target, e.term.form.name(), e.term.col, e.gain_total, e.p, e.p_adjusted, e.gains.iter().map(|g| (g * 10.0).round() / 10.0).collect::<Vec<_>>());
+            }
+        }
+    }
+    let significant = |e: &Evidence| e.p_adjusted < opts.alpha && e.gain_total > 0.0;
     let mut best: Option<usize> = None;
     for (i, (e, cv)) in results.iter().enumerate() {
         if cv.is_some() && significant(e) && best.is_none_or(|b| e.gain_total > results[b].0.gain_total) {
@@ -356,13 +420,13 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
         }
     }
     // Parsimony: prefer the linear form of the same target and covariate unless the
-    // chosen form beats it on held-out units.
+    // chosen form beats it on held-out folds.
     if let Some(b) = best {
         let e = &results[b].0;
         if e.term.form != FormKind::Linear {
             let lin = results.iter().position(|(x, cv)| cv.is_some() && x.term == Term { form: FormKind::Linear, ..e.term });
             if let Some(l) = lin {
-                if significant(&results[l].0) && beats(e, &results[l].0) >= opts.parsimony_alpha {
+                if significant(&results[l].0) && beats(e, &results[l].0, &patterns) >= opts.parsimony_alpha {
                     best = Some(l);
                 }
             }
@@ -375,7 +439,7 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
     let sel = best.map(|b| {
         let (e, cv) = results.into_iter().nth(b).expect("index in range");
         rd.selected = Some(e.term);
-        (Selected { p_adjusted: (e.p * m as f64).min(1.0), evidence: e, candidates: m, fitted, round }, cv.expect("fitted"))
+        (Selected { p_adjusted: e.p_adjusted, evidence: e, candidates: m, fitted, round }, cv.expect("fitted"))
     });
     (rd, sel)
 }
@@ -384,7 +448,7 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
 pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
     let t = ctx.table;
     t.validate()?;
-    let folds = Folds::new(ctx, opts.max_folds.max(2), opts.seed);
+    let folds = Folds::new(ctx, opts.max_folds.clamp(2, 64), opts.seed);
     if folds.k < 3 {
         return Err(Error::input(t.source.clone(), format!("{} split unit(s) (frames); the held-out test needs at least 3", folds.k)));
     }
@@ -435,25 +499,6 @@ pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
     Ok(SearchResult { folds, baseline, final_cv: current, selected, rounds })
 }
 
-/// Delete-one-fold jackknife standard errors of named parameters: `est[f]` are the fold
-/// estimates (None where a fold lacks the parameter).
-pub fn jackknife(est: &[Option<f64>]) -> f64 {
-    let v: Vec<f64> = est.iter().flatten().copied().collect();
-    let k = v.len() as f64;
-    if v.len() < 2 {
-        return f64::NAN;
-    }
-    let m = v.iter().sum::<f64>() / k;
-    ((k - 1.0) / k * v.iter().map(|x| (x - m).powi(2)).sum::<f64>()).sqrt()
-}
-
-/// Jackknife SEs of a term's parameters across the fold models (term index `ti`).
-pub fn term_standard_errors(ctx: &Ctx, cv: &Cv, folds: &Folds, ti: usize) -> BTreeMap<String, f64> {
-    let full = cv.full().terms[ti].params(ctx);
-    let per_fold: Vec<BTreeMap<String, f64>> = (0..folds.k).map(|f| cv.models[f].terms[ti].params(ctx)).collect();
-    full.keys().map(|name| (name.clone(), jackknife(&per_fold.iter().map(|p| p.get(name).copied()).collect::<Vec<_>>()))).collect()
-}
-
 /// The global parameters of a model, in sensor-model units.
 pub fn globals(ctx: &Ctx, m: &Model) -> BTreeMap<String, f64> {
     let mut g = BTreeMap::new();
@@ -464,15 +509,88 @@ pub fn globals(ctx: &Ctx, m: &Model) -> BTreeMap<String, f64> {
     g
 }
 
-pub fn globals_standard_errors(ctx: &Ctx, cv: &Cv, folds: &Folds) -> BTreeMap<String, f64> {
-    let per_fold: Vec<BTreeMap<String, f64>> = (0..folds.k).map(|f| globals(ctx, &cv.models[f])).collect();
-    globals(ctx, cv.full()).keys().map(|k| (k.clone(), jackknife(&per_fold.iter().map(|p| p.get(k).copied()).collect::<Vec<_>>()))).collect()
+/// Standard errors of a model's parameters from a bootstrap over units (frames).
+#[derive(Clone, Debug, Default)]
+pub struct Uncertainty {
+    pub resamples: usize,
+    pub globals: BTreeMap<String, f64>,
+    /// Per term, by parameter name (`form_params` names).
+    pub terms: Vec<BTreeMap<String, f64>>,
 }
 
-/// Index of each selected term in the final model's term list (terms are appended in
-/// selection order, so this is the identity; kept explicit for readers).
-pub fn final_term<'a>(res: &'a SearchResult, i: usize) -> &'a FittedTerm {
-    &res.final_cv.full().terms[i]
+/// Resamples units with replacement `b` times and refits `full` (all terms; steps
+/// re-choose their thresholds, as the search did) on each resample; the standard error
+/// of a parameter is its standard deviation over the resamples. Units, not pixels, are
+/// resampled, so correlation within a frame is accounted for. A group value counts only
+/// in resamples that contain its category.
+pub fn bootstrap(ctx: &Ctx, full: &Model, b: usize, seed: u64) -> Uncertainty {
+    let t = ctx.table;
+    let nu = t.n_units();
+    let mut valid_of = vec![vec![]; nu];
+    let mut all_of = vec![vec![]; nu];
+    for i in 0..t.len() {
+        all_of[t.unit[i]].push(i);
+        if !t.missing(i) {
+            valid_of[t.unit[i]].push(i);
+        }
+    }
+    let units: Vec<usize> = (0..nu).filter(|&u| !all_of[u].is_empty()).collect();
+    let samples: Vec<(BTreeMap<String, f64>, Vec<BTreeMap<String, f64>>)> = (0..b)
+        .into_par_iter()
+        .map(|k| {
+            let mut rng = SeededRng::new(seed ^ (k as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03));
+            let (mut valid, mut all) = (vec![], vec![]);
+            for _ in 0..units.len() {
+                let u = units[(rng.next_u64() % units.len() as u64) as usize];
+                valid.extend_from_slice(&valid_of[u]);
+                all.extend_from_slice(&all_of[u]);
+            }
+            let mut m = full.clone();
+            for j in 0..m.terms.len() {
+                let term = m.terms[j].term;
+                if term.form == FormKind::Step {
+                    let mut parent = m.clone();
+                    parent.terms.remove(j);
+                    let rows = if is_gauss(term.target) { &valid } else { &all };
+                    if let Some((thr, _)) = super::fit::best_step(ctx, &working(ctx, &parent, term.target, rows), term.col, term.by) {
+                        m.terms[j].threshold = thr;
+                    }
+                }
+            }
+            fit_gauss(ctx, &valid, &mut m);
+            fit_bern(ctx, &all, &mut m);
+            let terms = m
+                .terms
+                .iter()
+                .map(|ft| {
+                    let rows = if is_gauss(ft.term.target) { &valid } else { &all };
+                    let mut p = ft.params(ctx);
+                    if ft.term.form == FormKind::Group {
+                        let present: std::collections::BTreeSet<i64> = rows.iter().map(|&i| ctx.value(ft.term.col, i).round() as i64).collect();
+                        p.retain(|k, _| k.strip_prefix("values.").and_then(|c| c.parse::<i64>().ok()).is_none_or(|c| present.contains(&c) && present.contains(&ft.reference)));
+                    }
+                    p
+                })
+                .collect();
+            (globals(ctx, &m), terms)
+        })
+        .collect();
+    let sd = |xs: Vec<f64>| -> f64 {
+        if xs.len() < 2 {
+            return f64::NAN;
+        }
+        let n = xs.len() as f64;
+        let m = xs.iter().sum::<f64>() / n;
+        (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    };
+    let globals_se = globals(ctx, full).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.0.get(k).copied()).collect()))).collect();
+    let terms = full
+        .terms
+        .iter()
+        .enumerate()
+        .map(|(j, ft)| ft.params(ctx).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.1[j].get(k).copied()).collect()))).collect())
+        .collect();
+    Uncertainty { resamples: b, globals: globals_se, terms }
 }
 
 #[cfg(test)]
@@ -544,5 +662,54 @@ pub(crate) mod tests {
             let want = 0.004 * z * z;
             assert!((got - want).abs() < 0.0004, "z {z}: {got} vs {want} ({f:?}, bias {})", full.bias);
         }
+    }
+
+    #[test]
+    fn randomisation_p_values_are_exact_on_small_cases() {
+        let pats = sign_patterns(4, 0);
+        assert_eq!(pats.len(), 16);
+        // All positive, distinct magnitudes: only the identity reaches the total.
+        assert_eq!(flip_p(&[1.0, 2.0, 3.0, 4.0], 10.0, &pats), 1.0 / 16.0);
+        // A fold with zero gain ties under its flip.
+        assert_eq!(flip_p(&[0.0, 2.0, 3.0, 4.0], 9.0, &pats), 2.0 / 16.0);
+        // Totals ≥ 8: the identity (10) and the flip of the 1 (8).
+        assert_eq!(flip_p(&[1.0, 2.0, 3.0, 4.0], 8.0, &pats), 2.0 / 16.0);
+        let many = sign_patterns(20, 1);
+        assert_eq!((many.len(), many[0]), (20_000, 0));
+        assert!(many.iter().all(|&m| m < (1 << 20)));
+    }
+
+    #[test]
+    fn table_audit_finds_a_categorical_offset_with_rows_as_units() {
+        // Weighed vs annotated masses: metal parts weigh 50 g more than annotated.
+        let dir = std::env::temp_dir().join(format!("recon-audit-table-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut rng = SeededRng::new(5);
+        let mut csv = String::from("id,annotated_kg,weighed_kg,material,volume_l\n");
+        for i in 0..400 {
+            let m = 0.1 + 1.9 * rng.uniform();
+            let mat = ["wood", "metal", "plastic"][(rng.next_u64() % 3) as usize];
+            let w = m + if mat == "metal" { 0.05 } else { 0.0 } + 0.01 * rng.normal();
+            let weighed = if rng.uniform() < 0.03 { String::new() } else { format!("{w:.5}") };
+            csv += &format!("{i},{m:.5},{weighed},{mat},{:.3}\n", 2.0 * rng.uniform());
+        }
+        let p = dir.join("masses.csv");
+        std::fs::write(&p, csv).unwrap();
+        let (t, skipped) = crate::audit::table::ResidualTable::from_csv(&p, "weighed_kg", "annotated_kg", None, &[], &["id".to_string()]).unwrap();
+        assert_eq!((skipped, t.n_units()), (0, 400));
+        let a = crate::audit::audit_table(&t, &SearchOptions { bootstrap: 20, ..Default::default() }).unwrap();
+        let r = &a.report;
+        assert_eq!(r.findings.len(), 1, "{}", r.summary());
+        let f = &r.findings[0];
+        assert_eq!((f.target.as_str(), f.covariate.as_str(), f.form.as_str()), ("bias", "material", "group"));
+        // The metal offset, whichever category is the reference: metal − others ≈ 0.05.
+        let v = &f.parameters["values"];
+        let val = |k: &str| v.get(k).and_then(|x| x.as_f64()).unwrap_or(0.0);
+        let (metal, wood, plastic) = (val("metal"), val("wood"), val("plastic"));
+        assert!((metal - wood - 0.05).abs() < 0.006 && (metal - plastic - 0.05).abs() < 0.006, "{v}");
+        assert!(f.heldout_gain > 0.0 && f.p_value < 0.01);
+        assert!(a.extended.is_none() && f.effect.is_none(), "plain tables have no sensor model");
+        assert!(r.summary().contains("material"));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -1,4 +1,5 @@
 //! Subcommands of the `recon` binary, one file each.
+pub mod audit;
 pub mod bench;
 pub mod eval;
 pub mod infer;

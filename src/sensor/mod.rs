@@ -423,10 +423,20 @@ impl SensorModel {
     /// (0 = no surface); row-major `width × height`. Edge fattening first (a stereo
     /// matcher's window bleeds the foreground), then per-pixel sampling.
     pub fn apply(&self, covs: &[PixelCovariates], width: usize, height: usize, seed: u64) -> Vec<f32> {
-        assert_eq!(covs.len(), width * height, "covariates must be width × height");
-        let fattened = if self.edge_fattening_px > 0.0 { fatten_edges(covs, width, height, self.edge_fattening_px) } else { covs.to_vec() };
+        let fattened = self.fattened(covs, width, height);
         let mut rng = SeededRng::new(seed);
         fattened.iter().map(|c| self.sample(c, &mut rng) as f32).collect()
+    }
+
+    /// The covariates the per-pixel model sees after edge fattening (what [`Self::apply`]
+    /// samples from): the audit evaluates the model's expectation on exactly these.
+    pub fn fattened(&self, covs: &[PixelCovariates], width: usize, height: usize) -> Vec<PixelCovariates> {
+        assert_eq!(covs.len(), width * height, "covariates must be width × height");
+        if self.edge_fattening_px > 0.0 {
+            fatten_edges(covs, width, height, self.edge_fattening_px)
+        } else {
+            covs.to_vec()
+        }
     }
 }
 
