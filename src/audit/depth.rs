@@ -41,6 +41,7 @@ pub fn residual_table(model: &SensorModel, pixels: &[PixelSample], source: &str)
         let b = model.base_sd(z);
         let q = quantisation_sd(model, z);
         t.sd_floor.push((b * b + q * q).sqrt());
+        t.sd_clamp.push(q);
         t.sd_offset.push(model.effects.iter().filter(|e| e.target == Target::Noise).map(|e| e.eval(c)).sum());
         t.p_offset.push(model.effects.iter().filter(|e| e.target == Target::Dropout).map(|e| e.eval(c)).sum());
         t.unit.push(frames.binary_search(&c.frame).expect("frame listed"));

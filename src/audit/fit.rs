@@ -114,6 +114,11 @@ impl<'a> Ctx<'a> {
         }
     }
 
+    /// Lowest σ of row i: the table's clamp (quantisation) or the numerical floor.
+    pub fn sd_lowest(&self, i: usize) -> f64 {
+        self.table.sd_clamp.get(i).copied().unwrap_or(0.0).max(self.sd_min)
+    }
+
     pub fn value(&self, col: usize, i: usize) -> f64 {
         self.table.columns[col].values[i]
     }
@@ -282,7 +287,7 @@ impl Model {
     pub fn predict(&self, ctx: &Ctx, i: usize) -> Pred {
         let mu = self.bias + self.sum(ctx, Target::Bias, i);
         let (s0, _) = sd0(ctx, self.sd0, i);
-        let sigma = (s0 + ctx.table.sd_offset[i] + self.sum(ctx, Target::Noise, i)).max(ctx.sd_min);
+        let sigma = (s0 + ctx.table.sd_offset[i] + self.sum(ctx, Target::Noise, i)).max(ctx.sd_lowest(i));
         let p = (self.dropout + ctx.table.p_offset[i] + self.sum(ctx, Target::Dropout, i)).clamp(P_EPS, 1.0 - P_EPS);
         Pred { mu, sigma, p }
     }
@@ -629,7 +634,8 @@ pub fn fit_gauss(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
             for a in 1..ks {
                 sig_raw += xsr[a - 1] * ts[a];
             }
-            let sigma = sig_raw.max(ctx.sd_min);
+            let lowest = ctx.sd_lowest(i);
+            let sigma = sig_raw.max(lowest);
             let r = ctx.resid[i];
             let (l, resp) = mix.ll(r, mu, sigma);
             ps.ll += l;
@@ -642,7 +648,8 @@ pub fn fit_gauss(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
                     ps.ab[a * kb + c] += wa * xbr[c];
                 }
             }
-            let (gs, ws) = (resp * (z * z - 1.0) / sigma, 2.0 * resp / (sigma * sigma));
+            // At the clamp σ does not move with the noise parameters.
+            let (gs, ws) = if sig_raw < lowest { (0.0, 0.0) } else { (resp * (z * z - 1.0) / sigma, 2.0 * resp / (sigma * sigma)) };
             jac[0] = d0;
             jac[1..].copy_from_slice(xsr);
             for a in 0..ks {

@@ -15,9 +15,9 @@
 //! it lean negative), so flipping the signs of whole folds' gains generates the null.
 //! A candidate's p-value is the share of the 2^K sign patterns (all of them for K ≤ 16,
 //! else 20 000 seeded draws) under which its flipped total reaches the observed total.
-//! The multiple-comparison correction is the max statistic (Westfall–Young): the
-//! family-wise p-value is the share of patterns under which the best flipped total of
-//! *any* fitted candidate of the round reaches it. Pixels never count as independent
+//! The multiple-comparison correction is the studentised max statistic (Westfall–Young
+//! max-T): the family-wise p-value is the share of patterns under which the largest
+//! flipped fold-t of *any* fitted candidate of the round reaches the candidate's own. Pixels never count as independent
 //! evidence, so correlation within a frame (a pose error, warm-up) cannot manufacture
 //! significance; the price is that K folds can give at best p = 2^-K (K ≥ 7 for 0.01).
 //! A cheap pixel-level score test at the full-data fit (loose, `screen_alpha`) skips the
@@ -358,6 +358,20 @@ fn flipped(g: &[f64], m: u64) -> f64 {
     g.iter().enumerate().map(|(f, &x)| if (m >> f) & 1 == 1 { -x } else { x }).sum()
 }
 
+/// One-sample t of the flipped gains (`sumsq`: their sum of squares, unchanged by flips).
+fn flipped_t(g: &[f64], sumsq: f64, m: u64) -> f64 {
+    let k = g.len() as f64;
+    let mean = flipped(g, m) / k;
+    if g.len() < 2 {
+        return mean;
+    }
+    let var = (sumsq - k * mean * mean) / (k - 1.0);
+    if var <= 1e-12 * sumsq.max(1e-300) {
+        return if mean > 0.0 { f64::INFINITY } else if mean < 0.0 { f64::NEG_INFINITY } else { 0.0 };
+    }
+    mean / (var / k).sqrt()
+}
+
 /// Share of sign patterns whose flipped total reaches `obs` (ties count).
 fn flip_p(g: &[f64], obs: f64, patterns: &[u64]) -> f64 {
     let tol = 1e-9 * obs.abs().max(1e-12);
@@ -378,20 +392,32 @@ fn beats(a: &Evidence, b: &Evidence, patterns: &[u64]) -> f64 {
 }
 
 /// Fills `p` (one candidate's own randomisation p-value) and `p_adjusted` (family-wise:
-/// the share of sign patterns under which the best flipped total of *any* fitted
-/// candidate reaches this candidate's total; Westfall–Young max statistic).
+/// the share of sign patterns under which the largest flipped fold-t of *any* fitted
+/// candidate reaches this candidate's own t; Westfall–Young max-T).
 fn randomisation_test(results: &mut [(Evidence, Option<Cv>)], patterns: &[u64]) {
     let fitted: Vec<usize> = (0..results.len()).filter(|&i| results[i].1.is_some()).collect();
     if fitted.is_empty() {
         return;
     }
-    let gains: Vec<&[f64]> = fitted.iter().map(|&i| results[i].0.gains.as_slice()).collect();
-    let maxes: Vec<f64> = patterns.par_iter().map(|&m| gains.iter().map(|g| flipped(g, m)).fold(f64::NEG_INFINITY, f64::max)).collect();
-    for &i in &fitted {
+    // Studentised (max-T): on raw totals a candidate whose gains swing widely between
+    // folds (a per-object offset fitted to one frame) would dominate the null maximum
+    // and mask a consistent effect. Under sign flips t is monotone in the total, so a
+    // candidate's own p-value is the same on either scale.
+    let gains: Vec<(Vec<f64>, f64)> = fitted
+        .iter()
+        .map(|&i| {
+            let g = results[i].0.gains.clone();
+            let q = g.iter().map(|x| x * x).sum::<f64>();
+            (g, q)
+        })
+        .collect();
+    let maxes: Vec<f64> = patterns.par_iter().map(|&m| gains.iter().map(|(g, q)| flipped_t(g, *q, m)).fold(f64::NEG_INFINITY, f64::max)).collect();
+    for (&i, (g, q)) in fitted.iter().zip(&gains) {
         let obs = results[i].0.gain_total;
-        let tol = 1e-9 * obs.abs().max(1e-12);
         let p = flip_p(&results[i].0.gains, obs, patterns);
-        let pa = maxes.iter().filter(|&&x| x >= obs - tol).count() as f64 / patterns.len() as f64;
+        let t_obs = flipped_t(g, *q, 0);
+        let t_tol = 1e-9 * t_obs.abs().max(1e-12);
+        let pa = maxes.iter().filter(|&&x| x >= t_obs - t_tol).count() as f64 / patterns.len() as f64;
         results[i].0.p = p;
         results[i].0.p_adjusted = pa;
     }

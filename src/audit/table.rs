@@ -46,6 +46,10 @@ pub struct ResidualTable {
     pub sd_floor: Vec<f64>,
     /// Spread already explained by the current model's noise effects (added).
     pub sd_offset: Vec<f64>,
+    /// Lowest spread a row can show whatever the effects (the sensor's quantisation);
+    /// empty = none. Negative noise terms stop here instead of at ~0, where a
+    /// quantised residual would count as a wild outlier.
+    pub sd_clamp: Vec<f64>,
     /// Missing rate already explained by the current model's dropout effects (added).
     pub p_offset: Vec<f64>,
     /// Unit (frame) index of each row, into `unit_names`.
@@ -86,6 +90,9 @@ impl ResidualTable {
             if len != n {
                 return bad(format!("column `{name}` has {len} rows, expected {n}"));
             }
+        }
+        if !self.sd_clamp.is_empty() && self.sd_clamp.len() != n {
+            return bad(format!("column `sd_clamp` has {} rows, expected {n} (or none)", self.sd_clamp.len()));
         }
         if n == 0 {
             return bad("no rows to compare".into());

@@ -154,10 +154,11 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
             );
         }
         println!(
-            "settled {} objects in {:.2} s simulated ({} steps){}",
+            "settled {} objects in {:.2} s simulated ({} steps; depenetration {:.2} s){}",
             sim.objects.len(),
             sim.settle.simulated_s,
             sim.settle.steps,
+            sim.settle.depenetration_s,
             if sim.settle.at_rest { "" } else { ": NOT at rest at the time limit" }
         );
         print!("{}", sim.table());

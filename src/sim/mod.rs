@@ -424,6 +424,7 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         "settle": {
             "options": scene.options.settle,
             "simulated_s": scene.settle.simulated_s,
+            "depenetration_s": scene.settle.depenetration_s,
             "steps": scene.settle.steps,
             "at_rest": scene.settle.at_rest,
         },

@@ -23,6 +23,14 @@ pub struct SettleOptions {
     pub solver_iterations: usize,
     /// Bound on the speed at which overlaps are pushed apart (m/s).
     pub max_corrective_velocity_m_s: f64,
+    /// Quasi-static depenetration before the dynamic settle: at most this long
+    /// (simulated s), until no overlap is deeper than `depenetrated_m`.
+    pub max_depenetration_s: f64,
+    pub depenetrated_m: f64,
+    /// Angular velocity damping (1/s), standing in for rolling resistance, which
+    /// rapier does not model: without it a sphere or can nudged by the
+    /// depenetration rolls on a flat plane forever.
+    pub angular_damping: f64,
     /// At rest: every body slower than these for `rest_duration_s`.
     pub rest_linear_m_s: f64,
     pub rest_angular_rad_s: f64,
@@ -39,6 +47,9 @@ impl Default for SettleOptions {
             dt_s: 1.0 / 240.0,
             solver_iterations: 8,
             max_corrective_velocity_m_s: 0.05,
+            max_depenetration_s: 1.0,
+            depenetrated_m: 0.0003,
+            angular_damping: 1.0,
             rest_linear_m_s: 0.0005,
             rest_angular_rad_s: 0.01,
             rest_duration_s: 0.25,
@@ -60,6 +71,11 @@ impl SettleOptions {
         pos(self.max_time_s, "settle time")?;
         pos(self.dt_s, "time step")?;
         pos(self.max_corrective_velocity_m_s, "max corrective velocity")?;
+        pos(self.max_depenetration_s, "depenetration time")?;
+        pos(self.depenetrated_m, "depenetration tolerance")?;
+        if !(self.angular_damping.is_finite() && self.angular_damping >= 0.0) {
+            return Err(Error::input("settle options", format!("angular damping must be ≥ 0, got {}", self.angular_damping)));
+        }
         pos(self.flag_displacement_m, "flag displacement")?;
         pos(self.flag_rotation_deg, "flag rotation")?;
         if self.solver_iterations == 0 || self.dt_s > 0.05 || self.max_time_s > 600.0 {
@@ -108,7 +124,10 @@ pub struct BodySettle {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct SettleResult {
+    /// Simulated time of the whole settle, depenetration included.
     pub simulated_s: f64,
+    /// Simulated time of the quasi-static depenetration phase (0 without overlaps).
+    pub depenetration_s: f64,
     pub steps: usize,
     pub at_rest: bool,
     pub bodies: Vec<BodySettle>,
@@ -291,7 +310,7 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             [i[0][2], i[1][2], i[2][2]],
         ]);
         let mp = MassProperties::with_inertia_matrix(Vector::ZERO, b.mass_kg as f32, inertia);
-        let h = world.insert_body(RigidBodyBuilder::dynamic().pose(to_pose(&b.pose)).additional_mass_properties(mp).can_sleep(false));
+        let h = world.insert_body(RigidBodyBuilder::dynamic().pose(to_pose(&b.pose)).additional_mass_properties(mp).angular_damping(opts.angular_damping as f32).can_sleep(false));
         for p in &b.parts {
             let degenerate = || Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name));
             let mut builders = vec![];
@@ -312,11 +331,45 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
         handles.push(h);
     }
     let start_pen = penetrations(&world, &owner, bodies, &handles);
-    let steps_max = (opts.max_time_s / opts.dt_s).ceil() as usize;
+    // Depenetration: overlaps are pushed apart at the bounded corrective speed
+    // while every velocity is cleared after each step, so the push moves objects
+    // without giving them momentum (a sphere pushed out of the table would
+    // otherwise keep rolling: nothing on a flat plane stops it).
+    let mut depen_steps = 0;
+    if start_pen.iter().any(|(p, _)| *p > opts.depenetrated_m) {
+        let max_steps = (opts.max_depenetration_s / opts.dt_s).ceil() as usize;
+        let check_every = (0.025 / opts.dt_s).ceil().max(1.0) as usize;
+        // Translations only: the reconstructed orientations are kept (an
+        // off-centre push would otherwise tip a sphere off its resting facet).
+        for h in &handles {
+            if let Some(b) = world.bodies.get_mut(*h) {
+                b.lock_rotations(true, true);
+            }
+        }
+        while depen_steps < max_steps {
+            world.step();
+            depen_steps += 1;
+            for h in &handles {
+                if let Some(b) = world.bodies.get_mut(*h) {
+                    b.set_linvel(Vector::ZERO, true);
+                    b.set_angvel(Vector::ZERO, true);
+                }
+            }
+            if depen_steps % check_every == 0 && penetrations(&world, &owner, bodies, &handles).iter().all(|(p, _)| *p <= opts.depenetrated_m) {
+                break;
+            }
+        }
+        for h in &handles {
+            if let Some(b) = world.bodies.get_mut(*h) {
+                b.lock_rotations(false, true);
+            }
+        }
+    }
+    let steps_max = (opts.max_time_s / opts.dt_s).ceil() as usize + depen_steps;
     let rest_steps = (opts.rest_duration_s / opts.dt_s).ceil() as usize;
     let min_steps = (0.1 / opts.dt_s).ceil() as usize;
     let mut calm = 0;
-    let mut steps = 0;
+    let mut steps = depen_steps;
     let mut at_rest = false;
     while steps < steps_max {
         world.step();
@@ -326,7 +379,7 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             (b.linvel().length() as f64) < opts.rest_linear_m_s && (b.angvel().length() as f64) < opts.rest_angular_rad_s
         });
         calm = if still { calm + 1 } else { 0 };
-        if calm >= rest_steps && steps >= min_steps {
+        if calm >= rest_steps && steps >= min_steps + depen_steps {
             at_rest = true;
             break;
         }
@@ -383,7 +436,7 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             flag_reasons: reasons,
         });
     }
-    Ok(SettleResult { simulated_s: steps as f64 * opts.dt_s, steps, at_rest, bodies: out })
+    Ok(SettleResult { simulated_s: steps as f64 * opts.dt_s, depenetration_s: depen_steps as f64 * opts.dt_s, steps, at_rest, bodies: out })
 }
 
 #[cfg(test)]
