@@ -195,7 +195,10 @@ impl Summary {
         let n = objs.len();
         let mean = |f: &dyn Fn(&ObjectMetrics) -> f64| if ms.is_empty() { f64::NAN } else { ms.iter().map(|m| f(m)).sum::<f64>() / ms.len() as f64 };
         let rate = |f: &dyn Fn(&ObjectMetrics) -> bool| if n == 0 { f64::NAN } else { ms.iter().filter(|m| f(m)).count() as f64 / n as f64 };
-        let n_add = n - ms.iter().filter(|m| m.add.is_none()).count();
+        // ADD needs model-frame predictions; a method that never gives one has no ADD
+        // rate at all (its misses must not turn into a 0 %).
+        let with_add = ms.iter().filter(|m| m.add.is_some()).count();
+        let n_add = if with_add == 0 { 0 } else { with_add + (n - ms.len()) };
         let add_rate = |f: &dyn Fn(&ObjectMetrics) -> Option<f64>| {
             if n_add == 0 {
                 f64::NAN
@@ -671,6 +674,12 @@ mod tests {
         assert_eq!(r2.overall.add_sb_10, r.overall.add_sb_10);
         let v: serde_json::Value = serde_json::from_str(&r2.to_json().unwrap()).unwrap();
         assert!(v["overall"]["add_10"].is_null() && v["objects"][0]["metrics"]["add"].is_null());
+        // A missed instance does not make an ADD rate of 0 % for a method without ADD.
+        p2["predictions"].as_array_mut().unwrap().pop();
+        std::fs::write(&pf, p2.to_string()).unwrap();
+        let r3 = run_eval(&dir, &pf, &EvalOptions { n_samples: 20_000, ..Default::default() }).unwrap();
+        assert_eq!(r3.overall.n_missed, 1);
+        assert!(r3.overall.add_10.is_nan() && r3.overall.add_s_10.is_nan());
         let _ = std::fs::remove_dir_all(&dir);
     }
 
