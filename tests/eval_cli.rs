@@ -1,5 +1,5 @@
 //! `recon eval` end to end through the binary: the `observed` baseline on the real
-//! YCB-Video frames (skipped, with a note, when /work/shared is absent), re-scoring its
+//! YCB-Video frames (skipped, with a note, when ../shared/realdata is absent), re-scoring its
 //! predictions file, and clear errors on bad input.
 
 use std::path::{Path, PathBuf};
@@ -22,7 +22,7 @@ fn json(p: &Path) -> serde_json::Value {
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
-    let root = Path::new("/work/shared/realdata/ycbv_video_oprb");
+    let root = &recon::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
     if !root.is_dir() {
         eprintln!("note: {} absent; skipping the YCB-Video baseline test", root.display());
         return;

@@ -1,7 +1,8 @@
 //! Real RGB-D data: loading the three curated datasets, and the coordinate
 //! plumbing proof on YCB-Video ground truth.
 //!
-//! The datasets live in /work/shared/realdata (not in the repository); tests
+//! The datasets live in ../shared/realdata (not in the repository; see
+//! `recon::inputs::shared_realdata`); tests
 //! that need them print a note and return when the folder is absent, so CI
 //! passes without them. The one YCB-Video frame shipped in `data/sample/`
 //! is always tested.
@@ -16,16 +17,12 @@ use recon::inputs::frame::{FrameOptions, RgbdFrame};
 use recon::inputs::masks::{validate_objects, InstanceMap, MaskOptions};
 use recon::inputs::matv5::MatFile;
 
-const REALDATA: &str = "/work/shared/realdata";
-
 fn realdata() -> Option<PathBuf> {
-    let p = PathBuf::from(REALDATA);
-    if p.is_dir() {
-        Some(p)
-    } else {
-        eprintln!("note: {REALDATA} is absent; skipping this real-data test");
-        None
+    let p = recon::inputs::shared_realdata();
+    if p.is_none() {
+        eprintln!("note: the shared real-data folder is absent (set RECON_REALDATA); skipping this real-data test");
     }
+    p
 }
 
 fn repo() -> PathBuf {

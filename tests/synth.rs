@@ -244,7 +244,7 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
     use recon::eval::ply::read_ply;
     use recon::inputs::frame::Intrinsics;
     use recon::synth::{render, Camera, Instance, RenderMesh, RenderOptions};
-    let root = Path::new("/work/shared/realdata/ycbv_video_oprb");
+    let root = &recon::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
     if !root.is_dir() {
         eprintln!("note: {} is absent; skipping this real-data test", root.display());
         return;

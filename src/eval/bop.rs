@@ -499,13 +499,11 @@ pub(crate) mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    const YCBV: &str = "/work/shared/realdata/ycbv_video_oprb";
-
     #[test]
     fn loads_ycbv_real_frames() {
-        let root = Path::new(YCBV);
+        let root = &crate::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
         if !root.is_dir() {
-            eprintln!("note: {YCBV} absent; skipping the YCB-Video loading test");
+            eprintln!("note: {} absent; skipping the YCB-Video loading test", root.display());
             return;
         }
         let ds = load_dataset(root).unwrap();

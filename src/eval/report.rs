@@ -703,7 +703,7 @@ mod tests {
     /// folded into t: R(0.001·v_bop) + t − 0.001·R·off.
     #[test]
     fn ycbv_bop_mesh_at_gt_pose_scores_well() {
-        let root = Path::new("/work/shared/realdata/ycbv_video_oprb");
+        let root = &crate::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
         if !root.is_dir() {
             eprintln!("note: {} absent; skipping the YCB-Video evaluation test", root.display());
             return;

@@ -4,3 +4,17 @@ pub mod image;
 pub mod matv5;
 pub mod frame;
 pub mod masks;
+
+/// The shared real-data folder (`realdata/` beside the repository, as on the
+/// development machines), for tests and examples that use the real frames:
+/// `RECON_REALDATA` if set, else `<repo>/../shared/realdata`, else
+/// `/work/shared/realdata`. None when none of them exists.
+pub fn shared_realdata() -> Option<std::path::PathBuf> {
+    use std::path::PathBuf;
+    let candidates = [
+        std::env::var_os("RECON_REALDATA").map(PathBuf::from),
+        Some(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/realdata")),
+        Some(PathBuf::from("/work/shared/realdata")),
+    ];
+    candidates.into_iter().flatten().find(|p| p.is_dir())
+}
