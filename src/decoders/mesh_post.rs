@@ -241,23 +241,6 @@ impl PartialOrd for Candidate {
     }
 }
 
-/// Number of values in both sorted, deduplicated slices.
-fn sorted_common(a: &[u32], b: &[u32]) -> usize {
-    let (mut i, mut j, mut n) = (0, 0, 0);
-    while i < a.len() && j < b.len() {
-        match a[i].cmp(&b[j]) {
-            Ordering::Less => i += 1,
-            Ordering::Greater => j += 1,
-            Ordering::Equal => {
-                n += 1;
-                i += 1;
-                j += 1;
-            }
-        }
-    }
-    n
-}
-
 fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
@@ -336,21 +319,17 @@ impl Decimator {
         }
     }
 
-    /// The vertices sharing a live face with `v`, sorted (a valence-sized Vec: hashing
-    /// dominated the decimation time).
-    fn neighbours(&self, v: u32) -> Vec<u32> {
-        let mut s = Vec::with_capacity(16);
+    fn neighbours(&self, v: u32) -> HashSet<u32> {
+        let mut s = HashSet::new();
         for &f in &self.vfaces[v as usize] {
             if self.face_alive[f as usize] {
                 for &w in &self.faces[f as usize] {
                     if w != v {
-                        s.push(w);
+                        s.insert(w);
                     }
                 }
             }
         }
-        s.sort_unstable();
-        s.dedup();
         s
     }
 
@@ -396,7 +375,7 @@ impl Decimator {
         if shared.len() != 2 {
             return false;
         }
-        let common = sorted_common(&nu, &nv);
+        let common = nu.intersection(&nv).count();
         if common != 2 {
             return false;
         }
