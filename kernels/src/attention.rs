@@ -502,16 +502,7 @@ mod x86 {
 mod tests {
     use super::*;
 
-    struct Lcg(u64);
-    impl Lcg {
-        fn next(&mut self) -> f32 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        }
-        fn vec(&mut self, n: usize, amp: f32) -> Vec<f32> {
-            (0..n).map(|_| self.next() * amp).collect()
-        }
-    }
+    use crate::test_rng::Lcg;
 
     /// Fused qkv layout (`[L, 3, H, d]`) for self-attention, or separate q and kv buffers.
     fn run_case(isa: Isa, precision: AttnPrecision, h: usize, d: usize, segs: &[Segment], fused: bool, seed: u64) {

@@ -686,22 +686,13 @@ mod x86 {
 mod tests {
     use super::*;
 
-    struct Lcg(u64);
-    impl Lcg {
-        fn next(&mut self) -> f32 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        }
-        fn vec(&mut self, n: usize) -> Vec<f32> {
-            (0..n).map(|_| self.next()).collect()
-        }
-    }
+    use crate::test_rng::Lcg;
 
     fn check(isa: Isa, format: WeightFormat, m: usize, k: usize, n: usize, lda: usize, act: Activation, seed: u64) {
         let mut r = Lcg(seed);
-        let a = r.vec((m.max(1) - 1) * lda + k);
-        let w = r.vec(n * k);
-        let bias = r.vec(n);
+        let a = r.vec((m.max(1) - 1) * lda + k, 1.0);
+        let w = r.vec(n * k, 1.0);
+        let bias = r.vec(n, 1.0);
         let b = PackedMatrix::from_linear_weight(&w, n, k, format).unwrap();
         let ldc = n + 3;
         let mut c = vec![f32::NAN; (m.max(1) - 1) * ldc + n];
@@ -748,8 +739,8 @@ mod tests {
     fn result_does_not_depend_on_thread_count() {
         let mut r = Lcg(3);
         let (m, k, n) = (700, 300, 200);
-        let a = r.vec(m * k);
-        let w = r.vec(n * k);
+        let a = r.vec(m * k, 1.0);
+        let w = r.vec(n * k, 1.0);
         for isa in Isa::all_supported() {
             let b = PackedMatrix::from_linear_weight(&w, n, k, WeightFormat::Bf16).unwrap();
             let run = |t: usize| {

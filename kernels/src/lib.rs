@@ -12,4 +12,6 @@ pub mod gemm;
 pub mod isa;
 pub mod peak;
 pub mod sparse;
+#[cfg(test)]
+mod test_rng;
 pub mod vecmath;

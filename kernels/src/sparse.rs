@@ -229,14 +229,7 @@ pub fn submanifold_conv3d(
 mod tests {
     use super::*;
 
-    /// Deterministic pseudo-random numbers in [-1, 1).
-    struct Lcg(u64);
-    impl Lcg {
-        fn next(&mut self) -> f32 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
-        }
-    }
+    use crate::test_rng::Lcg;
 
     /// Naive dense conv3d with zero padding (k/2), cross-correlation,
     /// torch weight layout [c_out, c_in, k, k, k]. x is [c_in, s, s, s].
