@@ -50,32 +50,25 @@ pub fn inc_beta(x: f64, a: f64, b: f64) -> f64 {
     }
     d = 1.0 / d;
     let mut f = d;
+    // One modified-Lentz step with coefficient `num`: the factor it multiplies f by.
+    let mut step = |num: f64| {
+        d = 1.0 + num * d;
+        if d.abs() < tiny {
+            d = tiny;
+        }
+        c = 1.0 + num / c;
+        if c.abs() < tiny {
+            c = tiny;
+        }
+        d = 1.0 / d;
+        d * c
+    };
     for m in 1..500 {
         let m = m as f64;
         // Even step.
-        let num = m * (b - m) * x / ((a + 2.0 * m - 1.0) * (a + 2.0 * m));
-        d = 1.0 + num * d;
-        if d.abs() < tiny {
-            d = tiny;
-        }
-        c = 1.0 + num / c;
-        if c.abs() < tiny {
-            c = tiny;
-        }
-        d = 1.0 / d;
-        f *= d * c;
+        f *= step(m * (b - m) * x / ((a + 2.0 * m - 1.0) * (a + 2.0 * m)));
         // Odd step.
-        let num = -(a + m) * (a + b + m) * x / ((a + 2.0 * m) * (a + 2.0 * m + 1.0));
-        d = 1.0 + num * d;
-        if d.abs() < tiny {
-            d = tiny;
-        }
-        c = 1.0 + num / c;
-        if c.abs() < tiny {
-            c = tiny;
-        }
-        d = 1.0 / d;
-        let delta = d * c;
+        let delta = step(-(a + m) * (a + b + m) * x / ((a + 2.0 * m) * (a + 2.0 * m + 1.0)));
         f *= delta;
         if (delta - 1.0).abs() < 1e-15 {
             break;
