@@ -22,11 +22,11 @@ fn json(p: &Path) -> serde_json::Value {
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
-    let root = &recon::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
-    if !root.is_dir() {
-        eprintln!("note: {} absent; skipping the YCB-Video baseline test", root.display());
+    let Some(root) = recon::inputs::shared_dataset("ycbv_video_oprb") else {
+        eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video baseline test");
         return;
-    }
+    };
+    let root = root.as_path();
     let dir = tmpdir("ycbv");
     let out = dir.join("observed");
     let (r, o) = (root.to_str().unwrap(), out.to_str().unwrap());

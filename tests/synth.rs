@@ -244,11 +244,11 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
     use recon::eval::ply::read_ply;
     use recon::inputs::frame::Intrinsics;
     use recon::synth::{render, Camera, Instance, RenderMesh, RenderOptions};
-    let root = &recon::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
-    if !root.is_dir() {
-        eprintln!("note: {} is absent; skipping this real-data test", root.display());
+    let Some(root) = recon::inputs::shared_dataset("ycbv_video_oprb") else {
+        eprintln!("note: realdata/ycbv_video_oprb absent; skipping this real-data test");
         return;
-    }
+    };
+    let root = root.as_path();
     let ds = load_ycbv(root).unwrap();
     // BOP meshes (mm, re-centred) → YCB-Video GT frame (m), offsets from the folder's README.
     let offsets = [(1u32, [1.39, -0.45, 3.60]), (2u32, [0.61, 1.76, 4.77])];

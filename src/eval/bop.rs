@@ -501,11 +501,11 @@ pub(crate) mod tests {
 
     #[test]
     fn loads_ycbv_real_frames() {
-        let root = &crate::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
-        if !root.is_dir() {
-            eprintln!("note: {} absent; skipping the YCB-Video loading test", root.display());
+        let Some(root) = crate::inputs::shared_dataset("ycbv_video_oprb") else {
+            eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video loading test");
             return;
-        }
+        };
+        let root = root.as_path();
         let ds = load_dataset(root).unwrap();
         assert_eq!(ds.frames.len(), 15);
         assert_eq!(ds.models.len(), 12);

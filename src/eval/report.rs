@@ -703,11 +703,11 @@ mod tests {
     /// folded into t: R(0.001·v_bop) + t − 0.001·R·off.
     #[test]
     fn ycbv_bop_mesh_at_gt_pose_scores_well() {
-        let root = &crate::inputs::shared_realdata().unwrap_or_default().join("ycbv_video_oprb");
-        if !root.is_dir() {
-            eprintln!("note: {} absent; skipping the YCB-Video evaluation test", root.display());
+        let Some(root) = crate::inputs::shared_dataset("ycbv_video_oprb") else {
+            eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video evaluation test");
             return;
-        }
+        };
+        let root = root.as_path();
         let ds = load_dataset(root).unwrap();
         let g = ds.frame("0001", 1).unwrap().gt[0].clone();
         assert_eq!(g.obj_id, 1);

@@ -18,3 +18,8 @@ pub fn shared_realdata() -> Option<std::path::PathBuf> {
     ];
     candidates.into_iter().flatten().find(|p| p.is_dir())
 }
+
+/// One dataset folder of [`shared_realdata`] (e.g. `ycbv_video_oprb`), when present.
+pub fn shared_dataset(name: &str) -> Option<std::path::PathBuf> {
+    shared_realdata().map(|p| p.join(name)).filter(|p| p.is_dir())
+}
