@@ -307,6 +307,14 @@ pub fn shell_coords(res: i32, r: f64, b: i32) -> Vec<[i32; 4]> {
 
 /// A synthetic view at DINO size `s`: smooth image, disc mask, sphere-cap pointmap.
 pub fn synthetic_view(s: usize, shift: f32) -> ViewInput {
+    disc_view(s, shift, |u, v, ch| ((3.0 * u + 2.0 * v + ch as f32).sin() * 0.4 + 0.5 - 0.45) / 0.225)
+}
+
+/// A view of side `s` whose normalised pixel (u, v, channel) is `colour(u, v, ch)`,
+/// with a disc mask (radius 0.35·s, centre moved by `shift`·s along x) and, inside
+/// it, the pointmap of a sphere of radius 0.5 centred 1.5 in front of the camera
+/// (zeros outside).
+pub fn disc_view(s: usize, shift: f32, colour: impl Fn(f32, f32, usize) -> f32) -> ViewInput {
     let c = s as f32 * (0.5 + shift);
     let r = s as f32 * 0.35;
     let mut px = vec![0f32; 3 * s * s];
@@ -316,7 +324,7 @@ pub fn synthetic_view(s: usize, shift: f32) -> ViewInput {
         for x in 0..s {
             let (u, v) = (x as f32 / s as f32, y as f32 / s as f32);
             for ch in 0..3 {
-                px[(ch * s + y) * s + x] = ((3.0 * u + 2.0 * v + ch as f32).sin() * 0.4 + 0.5 - 0.45) / 0.225;
+                px[(ch * s + y) * s + x] = colour(u, v, ch);
             }
             let (dx, dy) = ((x as f32 + 0.5 - c) / r, (y as f32 + 0.5 - s as f32 * 0.5) / r);
             let d2 = dx * dx + dy * dy;

@@ -31,31 +31,10 @@ fn view(s: usize, seed: u64, shift: f32) -> ViewInput {
     let mut rng = SeededRng::new(seed);
     let waves: Vec<[f32; 4]> = (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
     let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);
-    let (c, r) = (s as f32 * (0.5 + shift), s as f32 * 0.35);
-    let mut px = vec![0f32; 3 * s * s];
-    let mut pm = vec![0f32; 3 * s * s];
-    let mut mk = vec![0f32; s * s];
-    for y in 0..s {
-        for x in 0..s {
-            let (u, v) = (x as f32 / s as f32, y as f32 / s as f32);
-            for ch in 0..3 {
-                let val: f32 = waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
-                px[(ch * s + y) * s + x] = (val.clamp(0.0, 1.0) - mean[ch]) / std[ch];
-            }
-            let (dx, dy) = ((x as f32 + 0.5 - c) / r, (y as f32 + 0.5 - s as f32 * 0.5) / r);
-            let d2 = dx * dx + dy * dy;
-            if d2 <= 1.0 {
-                mk[y * s + x] = 1.0;
-                // Sphere of radius 0.5 centred 1.5 in front of the camera.
-                let p = [dx * 0.5, dy * 0.5, 1.5 - 0.5 * (1.0 - d2).sqrt()];
-                for ch in 0..3 {
-                    pm[(ch * s + y) * s + x] = p[ch];
-                }
-            }
-        }
-    }
-    let t = |v: Vec<f32>, c: usize| Tensor::from_vec(v, (1, c, s, s), &Device::Cpu).unwrap();
-    ViewInput { pixels: t(px, 3), pointmap: t(pm, 3), mask: t(mk, 1) }
+    recon::bench::disc_view(s, shift, |u, v, ch| {
+        let val: f32 = waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
+        (val.clamp(0.0, 1.0) - mean[ch]) / std[ch]
+    })
 }
 
 fn all_finite3(v: &[[f32; 3]]) -> bool {
