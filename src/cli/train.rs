@@ -1,4 +1,4 @@
-//! `recon train ss-vae|ss-flow`: train a stage-1 model on BOP-format data
+//! `recon train ss-vae|ss-flow|slat-ae`: train a model on BOP-format data
 //! (what `recon synth` writes). Recipe and outputs: `recon::train::run`.
 use std::path::PathBuf;
 
@@ -10,6 +10,8 @@ pub enum StageArg {
     SsVae,
     /// Image encoder + sparse-structure flow with pose tokens (needs --vae).
     SsFlow,
+    /// Structured-latent autoencoder: SLat encoder + mesh and Gaussian decoders, supervised by exact SDF and colours.
+    SlatAe,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -72,6 +74,12 @@ pub struct TrainArgs {
     /// ss-flow: weight of the pose velocity loss.
     #[arg(long, default_value_t = 0.01)]
     pose_alpha: f64,
+    /// slat-ae: crop side in voxels (0: whole objects).
+    #[arg(long, default_value_t = 10)]
+    crop: usize,
+    /// slat-ae: most active voxels per crop.
+    #[arg(long, default_value_t = 400)]
+    max_voxels: usize,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -91,6 +99,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     let stage = match a.stage {
         StageArg::SsVae => Stage::SsVae,
         StageArg::SsFlow => Stage::SsFlow,
+        StageArg::SlatAe => Stage::SlatAe,
     };
     let source = BopSource::open(&split, &models, &BopOptions { min_visib_fract: a.min_visib, second_view: true })
         .with_context(|| format!("reading training data from {}", split.display()))?;
@@ -110,6 +119,8 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     o.flow.pose_alpha = a.pose_alpha;
     o.p_two_view = a.p_two_view;
     o.vae = a.vae.clone();
+    o.crop = a.crop;
+    o.max_voxels = a.max_voxels;
     o.resume = a.resume.as_ref().map(|p| if p.as_os_str().is_empty() { Resume::Latest } else { Resume::Dir(p.clone()) });
     eprintln!("recon train {}: {} → {}", stage.name(), source.describe(), a.out.display());
     let r = run(&source, &o).with_context(|| format!("recon train {}", stage.name()))?;

@@ -88,6 +88,18 @@ pub fn read_ply(path: &Path) -> Result<TriMesh> {
 
 /// Parses PLY bytes; `file` names the source in errors.
 pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
+    Ok(parse_ply_with_colors(bytes, file)?.0)
+}
+
+/// Reads a PLY mesh and its per-vertex colours (`red`, `green`, `blue`,
+/// scaled to [0, 1] for `uchar`), `None` when the file has none.
+pub fn read_ply_with_colors(path: &Path) -> Result<(TriMesh, Option<Vec<[f32; 3]>>)> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    parse_ply_with_colors(&bytes, &path.display().to_string())
+}
+
+/// [`parse_ply`] plus the per-vertex colours.
+pub fn parse_ply_with_colors(bytes: &[u8], file: &str) -> Result<(TriMesh, Option<Vec<[f32; 3]>>)> {
     let err = |m: String| Error::input(file, m);
     // Header ends at the first "end_header" line.
     let marker = b"end_header";
@@ -143,6 +155,7 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
         Format::Binary { le } => Box::new(BinReader { data, pos: 0, le }),
     };
     let n_vertices = elems.iter().find(|e| e.name == "vertex").map_or(0, |e| e.count);
+    let mut colors: Vec<[f32; 3]> = Vec::new();
     for e in &elems {
         let is_vertex = e.name == "vertex";
         let is_face = e.name == "face";
@@ -150,8 +163,13 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
         if is_vertex && xyz.iter().any(Option::is_none) {
             return Err(err("element `vertex` lacks one of the properties x, y, z".into()));
         }
+        let rgb: Vec<Option<usize>> = ["red", "green", "blue"].iter().map(|n| e.props.iter().position(|p| p.name == *n && p.list.is_none())).collect();
+        let has_rgb = is_vertex && rgb.iter().all(Option::is_some);
+        // uchar colours are 0..255; float colours are taken as 0..1.
+        let rgb_scale = if has_rgb && e.props[rgb[0].unwrap_or(0)].ty == Ty::U8 { 1.0 / 255.0 } else { 1.0 };
         for row in 0..e.count {
             let mut v = [0.0; 3];
+            let mut c = [0f32; 3];
             for (pi, p) in e.props.iter().enumerate() {
                 let ctx = || format!("element `{}` row {row} property `{}`", e.name, p.name);
                 match p.list {
@@ -161,6 +179,9 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
                             for k in 0..3 {
                                 if xyz[k] == Some(pi) {
                                     v[k] = x;
+                                }
+                                if has_rgb && rgb[k] == Some(pi) {
+                                    c[k] = (x * rgb_scale) as f32;
                                 }
                             }
                         }
@@ -192,13 +213,17 @@ pub fn parse_ply(bytes: &[u8], file: &str) -> Result<TriMesh> {
             }
             if is_vertex {
                 mesh.vertices.push(v);
+                if has_rgb {
+                    colors.push(c);
+                }
             }
         }
     }
     if mesh.vertices.is_empty() {
         return Err(err("PLY has no vertices".into()));
     }
-    Ok(mesh)
+    let colors = (colors.len() == mesh.vertices.len()).then_some(colors);
+    Ok((mesh, colors))
 }
 
 trait ValueReader {
@@ -263,5 +288,16 @@ mod tests {
         assert!(e.contains("b.ply") && e.contains("face"), "{e}");
         let bad = ascii.replace("4 0 1 2 3", "3 0 1 9");
         assert!(parse_ply(bad.as_bytes(), "c.ply").unwrap_err().to_string().contains("out of range"));
+    }
+
+    #[test]
+    fn vertex_colours_are_read_when_complete() {
+        let ply = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 51\n3 0 1 2\n";
+        let (m, c) = parse_ply_with_colors(ply.as_bytes(), "c.ply").unwrap();
+        assert_eq!(m.faces, vec![[0, 1, 2]]);
+        assert_eq!(c.unwrap(), vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.2]]);
+        // Only `red`: no colours.
+        let red_only = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n0 0 0 1\n1 0 0 2\n0 1 0 3\n";
+        assert!(parse_ply_with_colors(red_only.as_bytes(), "r.ply").unwrap().1.is_none());
     }
 }

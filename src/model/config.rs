@@ -57,6 +57,9 @@ pub struct RecGenConfig {
     /// is optional and not one of [`Self::modules`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ss_encoder: Option<ModuleSpec>,
+    /// SLat VAE encoder: only training needs it (`recon train slat-ae`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slat_encoder: Option<ModuleSpec>,
     pub samplers: SamplerSpecs,
     pub slat_normalization: SlatNormalization,
     pub pose: PoseSpec,

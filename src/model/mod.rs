@@ -1,7 +1,7 @@
 //! Model stages. Stage 1: image conditioning (DINOv2 + point-map/mask
 //! embedders), sparse-structure flow with pose tokens, sampler, SS decoder
 //! (and the SS VAE encoder, which only training uses).
-//! Stage 2: structured-latent flow.
+//! Stage 2: structured-latent flow (and the SLat encoder, which only training uses).
 
 pub mod common;
 pub mod fast;
@@ -13,4 +13,5 @@ pub mod dense3d;
 pub mod ss_decoder;
 pub mod ss_encoder;
 pub mod slat_flow;
+pub mod slat_encoder;
 pub mod dinov2;

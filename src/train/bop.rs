@@ -44,6 +44,7 @@ pub struct BopSource {
     ds: Dataset,
     model_ids: Vec<u32>,
     meshes: Vec<Arc<crate::eval::mesh::TriMesh>>,
+    colors: Vec<Option<Arc<Vec<[f32; 3]>>>>,
     samples: Vec<(usize, InstanceRef, Option<InstanceRef>)>,
 }
 
@@ -83,7 +84,16 @@ impl BopSource {
             return Err(Error::input(split_dir.display().to_string(), format!("no annotated instance with visib_fract ≥ {}", opts.min_visib_fract)));
         }
         let meshes = model_ids.iter().map(|id| Arc::new(ds.models[id].mesh.clone())).collect();
-        Ok(Self { root: split_dir.to_path_buf(), ds, model_ids, meshes, samples })
+        // Vertex colours (stage-2 supervision); models without them stay uncoloured.
+        let colors = model_ids
+            .iter()
+            .map(|id| {
+                let m = &ds.models[id];
+                let is_ply = m.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+                Ok(if is_ply { crate::eval::ply::read_ply_with_colors(&m.path)?.1.map(Arc::new) } else { None })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { root: split_dir.to_path_buf(), ds, model_ids, meshes, colors, samples })
     }
 
     fn view(&self, r: InstanceRef) -> Result<ObjectView> {
@@ -120,7 +130,7 @@ impl TrainingSource for BopSource {
     }
     fn model(&self, i: usize) -> Result<ModelEntry> {
         let id = *self.model_ids.get(i).ok_or_else(|| Error::msg(format!("BOP source: no model {i}")))?;
-        Ok(ModelEntry { key: self.ds.models[&id].name.clone(), mesh: self.meshes[i].clone() })
+        Ok(ModelEntry { key: self.ds.models[&id].name.clone(), mesh: self.meshes[i].clone(), colors: self.colors[i].clone() })
     }
     fn num_samples(&self) -> usize {
         self.samples.len()

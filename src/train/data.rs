@@ -37,6 +37,8 @@ pub struct ModelEntry {
     /// Stable identifier (BOP `obj_id`, generator index, ...).
     pub key: String,
     pub mesh: Arc<TriMesh>,
+    /// Per-vertex colours in [0, 1] (stage-2 colour supervision), if known.
+    pub colors: Option<Arc<Vec<[f32; 3]>>>,
 }
 
 /// One object instance seen in one RGB-D view.

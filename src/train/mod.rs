@@ -1,4 +1,4 @@
-//! Training of the stage-1 models on CPU, in candle (issue 9).
+//! Training of the recgen-nano models on CPU, in candle (issue 9).
 //!
 //! Modules follow the data's path: [`data`] (what a dataset provides and how
 //! a sample becomes inputs and targets; [`bop`] reads `recon synth`'s BOP
@@ -19,8 +19,10 @@
 //! voxelised object models; `recon train ss-flow --vae <ss-vae out>` then
 //! learns the image encoder (DINOv2 architecture, from scratch) and the flow
 //! transformer with pose tokens on the frozen encoder's latents, and writes
-//! the pose statistics of its training set. Stage 2 (structured-latent
-//! autoencoder and flow) is not trained here yet.
+//! the pose statistics of its training set. Stage 2: `recon train slat-ae`
+//! learns the structured-latent encoder and the mesh and Gaussian decoders
+//! from exact signed distances and colours of the object models ([`slat`]).
+//! The structured-latent flow has no trainer yet.
 
 pub mod bop;
 pub mod data;
@@ -30,6 +32,7 @@ pub mod objective;
 pub mod optim;
 pub mod params;
 pub mod run;
+pub mod slat;
 pub mod toy;
 pub mod trainer;
 

@@ -56,6 +56,11 @@ pub fn fixed_eval(obj: &dyn Objective, seed: u64, batches: usize, batch: usize) 
     Ok(acc / batches.max(1) as f64)
 }
 
+/// A scalar tensor's value as f64.
+pub fn scalar_of(t: &Tensor) -> Result<f64> {
+    scalar(t)
+}
+
 fn scalar(t: &Tensor) -> Result<f64> {
     Ok(t.to_dtype(DType::F32)?.to_scalar::<f32>()? as f64)
 }

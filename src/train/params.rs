@@ -185,6 +185,9 @@ pub fn init_rule(kind: ModuleKind, name: &str, shape: &[usize], args: &serde_jso
                 Init::Normal((1.0 / (3.0 * fan_in(shape) as f64)).sqrt() as f32)
             }
         }
+        // Small output layer: the decoded SDF starts near the −1/R bias (a
+        // unit-scale output would be an object-sized distance).
+        ModuleKind::MeshDecoder if name == "out_layer.weight" => Init::Normal(1e-3),
         _ => {
             // Conv nets (SS VAE): PyTorch default; ResBlock conv2 is `zero_module` upstream.
             if parent == "conv2" {

@@ -35,6 +35,7 @@ use crate::{Error, Result};
 pub enum Stage {
     SsVae,
     SsFlow,
+    SlatAe,
 }
 
 impl Stage {
@@ -42,6 +43,7 @@ impl Stage {
         match self {
             Stage::SsVae => "ss-vae",
             Stage::SsFlow => "ss-flow",
+            Stage::SlatAe => "slat-ae",
         }
     }
 }
@@ -71,6 +73,9 @@ pub struct TrainOptions {
     pub p_two_view: f64,
     /// ss-flow: the ss-vae output folder (`ss_encoder.safetensors`, `ss_decoder.safetensors`).
     pub vae: Option<PathBuf>,
+    /// slat-ae: crop side in voxels (0: whole objects) and most voxels per crop.
+    pub crop: usize,
+    pub max_voxels: usize,
     pub progress: bool,
     /// Batches of the fixed evaluation before and after training (0: skip).
     pub eval_batches: usize,
@@ -92,6 +97,8 @@ impl TrainOptions {
             context: [1.2, 2.0],
             p_two_view: 0.5,
             vae: None,
+            crop: 10,
+            max_voxels: 400,
             progress: true,
             eval_batches: 4,
         }
@@ -169,8 +176,11 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     };
     let seed = opts.settings.seed;
     let mut notes = Vec::new();
-    let enc_spec = arch.ss_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
-    let enc_cfg = spec_cfg(enc_spec);
+    let enc_cfg = match (opts.stage, arch.ss_encoder.as_ref()) {
+        (Stage::SlatAe, _) => ModuleConfig { name: String::new(), args: serde_json::Value::Null },
+        (_, Some(spec)) => spec_cfg(spec),
+        (_, None) => return Err(Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section")),
+    };
     let obj: Box<dyn Objective + '_>;
     let mut settings = serde_json::json!({
         "loop": opts.settings,
@@ -216,6 +226,18 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), vae.display().to_string())].into();
             crate::weights::init::write_safetensors(&dec_t, &meta, &dec_path)?;
             obj = Box::new(fo);
+        }
+        Stage::SlatAe => {
+            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
+            let cfgs = [("slat_encoder", spec_cfg(enc_spec)), ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)), ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs))];
+            settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
+            let [e, m, g] = cfgs.map(|(k, c)| ModuleParams::init(k, &c, registry::module_seed(seed, k)));
+            let mut so = super::slat::SlatAeObjective::new(source, e?, m?, g?)?;
+            so.crop = opts.crop;
+            so.max_voxels = opts.max_voxels;
+            settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": super::slat::BAND, "cubes_per_voxel_side": super::slat::SUB});
+            notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
+            obj = Box::new(so);
         }
     }
     let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.clone(), m.num_params())).collect();

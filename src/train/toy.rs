@@ -193,7 +193,7 @@ impl ToySource {
             .map(|i| {
                 let dims = [0.04 + 0.08 * rng.uniform(), 0.04 + 0.08 * rng.uniform(), 0.04 + 0.10 * rng.uniform()];
                 let offset = [0.01 * rng.normal(), 0.01 * rng.normal(), 0.01 * rng.normal()];
-                ModelEntry { key: format!("toy-{i}"), mesh: Arc::new(primitive(i, dims, offset)) }
+                ModelEntry { key: format!("toy-{i}"), mesh: Arc::new(primitive(i, dims, offset)), colors: None }
             })
             .collect();
         let colours: Vec<[f32; 3]> = models.iter().map(|_| std::array::from_fn(|_| 0.2 + 0.8 * rng.uniform() as f32)).collect();
@@ -341,5 +341,20 @@ pub fn micro_architecture(arch: &serde_json::Value) -> serde_json::Value {
     v["ss_decoder"]["args"]["channels"] = serde_json::json!([16, 8, 8]);
     v["ss_encoder"]["args"]["latent_channels"] = 4.into();
     v["ss_encoder"]["args"]["channels"] = serde_json::json!([8, 8, 16]);
+    // Stage 2 at the SS occupancy resolution (4 · 4 = 16); the mesh decoder
+    // keeps 256 channels (its GroupNorm(32) runs on C/8).
+    for key in ["slat_encoder", "slat_dec_mesh", "slat_dec_gs", "slat_flow"] {
+        v[key]["args"]["resolution"] = 16.into();
+        v[key]["args"]["num_blocks"] = 1.into();
+    }
+    for key in ["slat_encoder", "slat_dec_gs"] {
+        v[key]["args"]["model_channels"] = 32.into();
+        v[key]["args"]["num_heads"] = 2.into();
+    }
+    let f = &mut v["slat_flow"]["args"];
+    for (k, x) in [("model_channels", 32), ("cond_channels", 32), ("num_heads", 2), ("num_io_res_blocks", 1), ("point_embedder_out_channels", 32), ("mask_embedder_out_channels", 32), ("pose_embedder_out_channels", 32)] {
+        f[k] = x.into();
+    }
+    f["io_block_channels"] = serde_json::json!([16]);
     v
 }

@@ -55,6 +55,7 @@ pub const KNOWN_MODULES: &[&str] = &[
     "ElasticSLatMeshDecoder",
     "SLatGaussianDecoder",
     "ElasticSLatGaussianDecoder",
+    "SLatEncoder",
 ];
 
 /// Module families, by class name.
@@ -67,6 +68,7 @@ pub enum ModuleKind {
     SlatFlow,
     MeshDecoder,
     GaussianDecoder,
+    SlatEncoder,
 }
 
 impl ModuleKind {
@@ -80,6 +82,7 @@ impl ModuleKind {
             "SLatFlowModel" | "ElasticSLatFlowModel" | "SLatCondFlowModel" | "ElasticSLatCondFlowModel" => Self::SlatFlow,
             "SLatMeshDecoder" | "ElasticSLatMeshDecoder" => Self::MeshDecoder,
             "SLatGaussianDecoder" | "ElasticSLatGaussianDecoder" => Self::GaussianDecoder,
+            "SLatEncoder" | "ElasticSLatEncoder" => Self::SlatEncoder,
             _ => return None,
         })
     }
@@ -131,6 +134,10 @@ pub fn build_mesh_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Re
     SLatMeshDecoder::new(&cfg.args, vb)
 }
 
+pub fn build_slat_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<crate::model::slat_encoder::SLatEncoder> {
+    crate::model::slat_encoder::SLatEncoder::new(&cfg.args, vb)
+}
+
 pub fn build_gaussian_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatGaussianDecoder> {
     SLatGaussianDecoder::new(&cfg.args, vb)
 }
@@ -146,6 +153,7 @@ pub fn build(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<()> {
         ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file)?),
         ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file)?),
         ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file)?),
+        ModuleKind::SlatEncoder => drop(build_slat_encoder(cfg, vb, file)?),
     }
     Ok(())
 }

@@ -23,7 +23,8 @@ use candle_core::DType;
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
-use tables::{CHECK_TABLE, CUBE_CORNERS, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
+use tables::{CHECK_TABLE, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
+pub use tables::CUBE_CORNERS;
 
 /// Channel ranges of the per-cube feature vector (dict order of upstream `_calc_layout`).
 pub const SDF: std::ops::Range<usize> = 0..8;
