@@ -1,4 +1,4 @@
-//! `recon train ss-vae|ss-flow|slat-ae`: train a model on BOP-format data
+//! `recon train ss-vae|ss-flow|slat-ae|slat-flow`: train a model on BOP-format data
 //! (what `recon synth` writes). Recipe and outputs: `recon::train::run`.
 use std::path::PathBuf;
 
@@ -12,6 +12,8 @@ pub enum StageArg {
     SsFlow,
     /// Structured-latent autoencoder: SLat encoder + mesh and Gaussian decoders, supervised by exact SDF and colours.
     SlatAe,
+    /// Structured-latent flow on the frozen slat-ae encoder's latents (needs --stage1 and --slat-ae); writes the complete model folder.
+    SlatFlow,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -80,6 +82,15 @@ pub struct TrainArgs {
     /// slat-ae: most active voxels per crop.
     #[arg(long, default_value_t = 400)]
     max_voxels: usize,
+    /// slat-flow: output folder of `recon train ss-flow`.
+    #[arg(long)]
+    stage1: Option<PathBuf>,
+    /// slat-flow: output folder of `recon train slat-ae`.
+    #[arg(long)]
+    slat_ae: Option<PathBuf>,
+    /// slat-flow: most object models encoded.
+    #[arg(long, default_value_t = 1000)]
+    max_models: usize,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -100,6 +111,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
         StageArg::SsVae => Stage::SsVae,
         StageArg::SsFlow => Stage::SsFlow,
         StageArg::SlatAe => Stage::SlatAe,
+        StageArg::SlatFlow => Stage::SlatFlow,
     };
     let source = BopSource::open(&split, &models, &BopOptions { min_visib_fract: a.min_visib, second_view: true })
         .with_context(|| format!("reading training data from {}", split.display()))?;
@@ -121,6 +133,9 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     o.vae = a.vae.clone();
     o.crop = a.crop;
     o.max_voxels = a.max_voxels;
+    o.stage1 = a.stage1.clone();
+    o.slat_ae = a.slat_ae.clone();
+    o.max_models = a.max_models;
     o.resume = a.resume.as_ref().map(|p| if p.as_os_str().is_empty() { Resume::Latest } else { Resume::Dir(p.clone()) });
     eprintln!("recon train {}: {} → {}", stage.name(), source.describe(), a.out.display());
     let r = run(&source, &o).with_context(|| format!("recon train {}", stage.name()))?;

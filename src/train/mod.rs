@@ -22,7 +22,9 @@
 //! the pose statistics of its training set. Stage 2: `recon train slat-ae`
 //! learns the structured-latent encoder and the mesh and Gaussian decoders
 //! from exact signed distances and colours of the object models ([`slat`]).
-//! The structured-latent flow has no trainer yet.
+//! `recon train slat-flow` then learns the structured-latent flow on the
+//! frozen encoder's latents ([`slat_flow`]) and writes the complete model
+//! folder (every module, pose statistics, latent normalisation).
 
 pub mod bop;
 pub mod data;
@@ -33,6 +35,7 @@ pub mod optim;
 pub mod params;
 pub mod run;
 pub mod slat;
+pub mod slat_flow;
 pub mod toy;
 pub mod trainer;
 

@@ -36,6 +36,7 @@ pub enum Stage {
     SsVae,
     SsFlow,
     SlatAe,
+    SlatFlow,
 }
 
 impl Stage {
@@ -44,6 +45,7 @@ impl Stage {
             Stage::SsVae => "ss-vae",
             Stage::SsFlow => "ss-flow",
             Stage::SlatAe => "slat-ae",
+            Stage::SlatFlow => "slat-flow",
         }
     }
 }
@@ -76,6 +78,13 @@ pub struct TrainOptions {
     /// slat-ae: crop side in voxels (0: whole objects) and most voxels per crop.
     pub crop: usize,
     pub max_voxels: usize,
+    /// slat-flow: the ss-flow output folder (frozen image encoder, pose
+    /// statistics, stage-1 modules copied into the complete model folder).
+    pub stage1: Option<PathBuf>,
+    /// slat-flow: the slat-ae output folder (frozen encoder, decoders copied).
+    pub slat_ae: Option<PathBuf>,
+    /// slat-flow: most models encoded.
+    pub max_models: usize,
     pub progress: bool,
     /// Batches of the fixed evaluation before and after training (0: skip).
     pub eval_batches: usize,
@@ -99,6 +108,9 @@ impl TrainOptions {
             vae: None,
             crop: 10,
             max_voxels: 400,
+            stage1: None,
+            slat_ae: None,
+            max_models: 1000,
             progress: true,
             eval_batches: 4,
         }
@@ -177,11 +189,12 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     let seed = opts.settings.seed;
     let mut notes = Vec::new();
     let enc_cfg = match (opts.stage, arch.ss_encoder.as_ref()) {
-        (Stage::SlatAe, _) => ModuleConfig { name: String::new(), args: serde_json::Value::Null },
+        (Stage::SlatAe | Stage::SlatFlow, _) => ModuleConfig { name: String::new(), args: serde_json::Value::Null },
         (_, Some(spec)) => spec_cfg(spec),
         (_, None) => return Err(Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section")),
     };
     let obj: Box<dyn Objective + '_>;
+    let mut slat_norm: Option<(Vec<f32>, Vec<f32>)> = None;
     let mut settings = serde_json::json!({
         "loop": opts.settings,
         "architecture": arch.name,
@@ -239,6 +252,34 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
             obj = Box::new(so);
         }
+        Stage::SlatFlow => {
+            let s1 = opts.stage1.as_ref().ok_or_else(|| Error::config("recon train slat-flow", "--stage1", "the ss-flow output folder is required (frozen image encoder, pose statistics)"))?;
+            let ae = opts.slat_ae.as_ref().ok_or_else(|| Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)"))?;
+            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents"))?;
+            let encoder = registry::build_slat_encoder(&spec_cfg(enc_spec), frozen_var_builder(load_module(ae, "slat_encoder")?), "slat_encoder")?;
+            let dino = registry::build_dinov2(&spec_cfg(&arch.image_cond_model), frozen_var_builder(load_module(s1, "image_cond_model")?), "image_cond_model")?;
+            let stats_path = s1.join("pose_stats.json");
+            let stats = PoseStats::from_json_file(&stats_path)?;
+            let scan = scan(source)?;
+            let flow_cfg = spec_cfg(&arch.slat_flow);
+            settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
+            settings["slat_flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
+            let flow = ModuleParams::init("slat_flow", &flow_cfg, registry::module_seed(seed, "slat_flow"))?;
+            let mut fo = super::slat_flow::SlatFlowObjective::new(source, scan, stats, arch.nine_d_layout()?, dino, flow, &encoder, opts.max_models, opts.flow.clone())?;
+            fo.context = opts.context;
+            let (models, pool, usable) = fo.counts();
+            notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));
+            notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
+            // The complete model folder: stage 1 and the decoders travel with the flow.
+            for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
+                let t = load_module(dir, key)?;
+                let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), dir.display().to_string())].into();
+                crate::weights::init::write_safetensors(&t, &meta, &opts.out.join(format!("{key}.safetensors")))?;
+            }
+            std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
+            slat_norm = Some((fo.mean.clone(), fo.std.clone()));
+            obj = Box::new(fo);
+        }
     }
     let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.clone(), m.num_params())).collect();
     let mut report = RunReport {
@@ -271,6 +312,24 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     ]
     .into();
     report.files = write_weights(&opts.out, obj.as_ref(), &meta)?;
+    if opts.stage == Stage::SlatFlow {
+        // The architecture file of the complete model: pose statistics and the
+        // latent normalisation of this run.
+        let mut v: serde_json::Value = crate::config::read_json(&opts.config)?;
+        v["pose"]["ss_stats"] = "pose_stats.json".into();
+        v["pose"]["slat_stats"] = "pose_stats.json".into();
+        if let Some((m, s)) = &slat_norm {
+            v["slat_normalization"] = serde_json::json!({"mean": m, "std": s});
+        }
+        let name = opts.config.file_name().ok_or_else(|| Error::input(&cfile, "not a file"))?;
+        let arch_out = opts.out.join(name);
+        write_json(&arch_out, &v)?;
+        for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_dec_mesh", "slat_dec_gs"] {
+            report.files.push(opts.out.join(format!("{key}.safetensors")));
+        }
+        report.files.push(arch_out);
+        report.files.push(opts.out.join("pose_stats.json"));
+    }
     if opts.stage == Stage::SsFlow {
         report.files.push(opts.out.join("ss_decoder.safetensors"));
         // The architecture file, reading its pose statistics from this folder.
