@@ -166,6 +166,20 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     }
     let p = Pipeline::load(&out.join("recgen-micro.json"), &out).unwrap();
     assert!(!p.weights().is_random());
+    // `recon eval --method recgen`'s predictor runs the folder on a BOP dataset: every GT
+    // instance is either predicted (a camera-frame mesh) or skipped with a reason.
+    write_toy_bop(&src, &dir.join("data"));
+    let ds = recon::eval::bop::load_dataset(&dir.join("data/train")).unwrap();
+    let engine = recon::infer::Engine::load(&out.join("recgen-micro.json"), &out).unwrap();
+    let mut io = recon::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
+    io.run.ss_steps = Some(3);
+    io.run.slat_steps = Some(2);
+    let n_gt: usize = ds.frames.iter().map(|f| f.gt.len()).sum();
+    let er = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, &|_, _| {}).unwrap();
+    eprintln!("recgen eval: {} predicted, {} skipped of {n_gt}", er.predictions.len(), er.skipped.len());
+    assert_eq!(er.predictions.len() + er.skipped.len(), n_gt);
+    assert!(er.predictions.iter().all(|p| !p.prediction.model_frame && !p.mesh.faces.is_empty()));
+    assert!(er.skipped.iter().all(|s| !s.reason.is_empty()));
     // Missing inputs are named.
     let mut bad = opts(Stage::SlatFlow, &dir, "s2-bad", 1, 1e-3);
     bad.stage1 = Some(dir.join("flow"));
@@ -237,11 +251,10 @@ fn training_is_deterministic_and_resume_is_bit_identical() {
 
 /// Write toy samples as a BOP folder (the layout `recon synth` writes) and
 /// read it back with `BopSource`.
-#[test]
-fn bop_source_reads_a_bop_folder() {
-    let dir = workdir("bop");
-    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
-    let models = dir.join("data/models");
+/// Writes `src` as a BOP dataset under `root` (`models/` in mm, `train/<i>/` holding
+/// sample i's views as frames 0, 1); returns the models folder.
+fn write_toy_bop(src: &ToySource, root: &Path) -> PathBuf {
+    let models = root.join("models");
     std::fs::create_dir_all(&models).unwrap();
     for m in 0..src.num_models() {
         let mesh = src.model(m).unwrap().mesh;
@@ -257,7 +270,7 @@ fn bop_source_reads_a_bop_folder() {
     // Scene i holds sample i's two views as frames 0 and 1.
     for i in 0..src.num_samples() {
         let s = src.sample(i).unwrap();
-        let scene = dir.join(format!("data/train/{i:06}"));
+        let scene = root.join(format!("train/{i:06}"));
         for sub in ["rgb", "depth", "mask_visib"] {
             std::fs::create_dir_all(scene.join(sub)).unwrap();
         }
@@ -280,6 +293,14 @@ fn bop_source_reads_a_bop_folder() {
         std::fs::write(scene.join("scene_gt.json"), serde_json::Value::Object(gts).to_string()).unwrap();
         std::fs::write(scene.join("scene_gt_info.json"), serde_json::Value::Object(infos).to_string()).unwrap();
     }
+    models
+}
+
+#[test]
+fn bop_source_reads_a_bop_folder() {
+    let dir = workdir("bop");
+    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
+    let models = write_toy_bop(&src, &dir.join("data"));
     let bop = BopSource::open(&dir.join("data/train"), &models, &BopOptions::default()).unwrap();
     assert_eq!(bop.num_samples(), 4, "{}", bop.describe());
     for i in 0..src.num_samples() {

@@ -6,6 +6,9 @@ use std::path::PathBuf;
 pub enum Method {
     /// Visible depth points → oriented bounding box (pose) + convex hull (shape).
     Observed,
+    /// The model (`--weights DIR`, a trained folder with its architecture file) on every GT
+    /// instance's visible mask, as `recon infer` runs it.
+    Recgen,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -54,9 +57,46 @@ pub struct EvalArgs {
     /// with --method).
     #[arg(long)]
     all_frames: bool,
+    /// --method recgen: trained model folder (its architecture file is the one JSON in it
+    /// holding an `ss_flow` section, unless --config names one).
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// --method recgen: architecture file (default: found in --weights).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// --method recgen: samples (seeds) per object; the pose is chosen by point-map alignment.
+    #[arg(long, default_value_t = 1)]
+    seeds: usize,
+    /// --method recgen: first seed.
+    #[arg(long, default_value_t = 0)]
+    model_seed: u64,
+    /// --method recgen: meshes with more faces are decimated to about this many.
+    #[arg(long, default_value_t = 20_000)]
+    max_faces: usize,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+}
+
+/// The architecture file of a trained folder: the JSON holding an `ss_flow` section.
+pub fn find_architecture(dir: &std::path::Path) -> anyhow::Result<PathBuf> {
+    use anyhow::Context;
+    let mut found = Vec::new();
+    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let p = e?.path();
+        if p.extension().is_some_and(|x| x == "json") {
+            let v: Option<serde_json::Value> = std::fs::read_to_string(&p).ok().and_then(|s| serde_json::from_str(&s).ok());
+            if v.is_some_and(|v| v.get("ss_flow").is_some()) {
+                found.push(p);
+            }
+        }
+    }
+    found.sort();
+    match found.len() {
+        1 => Ok(found.remove(0)),
+        0 => anyhow::bail!("{}: no architecture file (a JSON with an `ss_flow` section); pass --config", dir.display()),
+        _ => anyhow::bail!("{}: several architecture files ({found:?}); pass --config", dir.display()),
+    }
 }
 
 /// Removes a staging folder left by a failed run (after success it has been renamed away).
@@ -129,6 +169,51 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let index = serde_json::json!({ "kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped });
             (report, Some(out), staging, index)
         }
+        (Some(Method::Recgen), _) => {
+            let w = a.weights.as_ref().context("--method recgen needs --weights DIR (a trained model folder)")?;
+            let config = match &a.config {
+                Some(c) => c.clone(),
+                None => find_architecture(w)?,
+            };
+            let engine = recon::infer::Engine::load(&config, w).with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
+            if a.seeds == 0 {
+                bail!("--seeds must be at least 1");
+            }
+            let mut io = recon::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), ..Default::default() };
+            io.run.seed = a.model_seed;
+            let out = a.out.clone().unwrap_or_else(|| {
+                let name = a.dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
+                PathBuf::from(format!("{name}-recgen-eval"))
+            });
+            let staging = Staging(Some(begin_output(&out)?));
+            let dir = staging.0.clone().unwrap_or_default();
+            let t0 = std::time::Instant::now();
+            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, &|done, total| {
+                if done % 10 == 0 || done == total {
+                    eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
+                }
+            })?;
+            eprintln!(
+                "recgen: {} predictions on {} frames, {} GT instances skipped, {:.1} s ({:.1} s in the model)",
+                run.predictions.len(),
+                ds.frames.len(),
+                run.skipped.len(),
+                t0.elapsed().as_secs_f64(),
+                run.seconds_model
+            );
+            for s in run.skipped.iter().take(10) {
+                eprintln!("  skipped scene {} frame {} gt {} (obj {}): {}", s.scene, s.frame, s.gt_index, s.obj_id, s.reason);
+            }
+            let pf = run.write(&dir)?;
+            let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
+            report.predictions = out.join("predictions.json").display().to_string();
+            let index = serde_json::json!({
+                "kind": "recon eval --method recgen", "weights": w, "config": config, "seeds": a.seeds,
+                "model_seed": a.model_seed, "max_faces": a.max_faces, "skipped": run.skipped,
+                "seconds_model": run.seconds_model,
+            });
+            (report, Some(out), staging, index)
+        }
         (None, Some(p)) => {
             let mut preds = read_predictions(p)?;
             if a.scenes.is_some() {
@@ -144,7 +229,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
             (report, a.out.clone(), staging, serde_json::json!({ "kind": "recon eval --predictions" }))
         }
-        (None, None) => bail!("give --predictions FILE or --method observed"),
+        (None, None) => bail!("give --predictions FILE or --method observed|recgen"),
     };
     if a.json {
         println!("{}", report.to_json()?);

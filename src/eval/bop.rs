@@ -87,6 +87,22 @@ impl Dataset {
         Ok(())
     }
 
+    /// Colour image of a frame (BOP `rgb/NNNNNN.png` or `.jpg`, YCB-Video `NNNNNN-color.png`).
+    pub fn rgb_path(&self, f: &Frame) -> PathBuf {
+        match self.layout {
+            Layout::Bop => {
+                let dir = self.root.join(&f.scene).join("rgb");
+                let png = dir.join(format!("{:06}.png", f.frame));
+                if png.is_file() {
+                    png
+                } else {
+                    dir.join(format!("{:06}.jpg", f.frame))
+                }
+            }
+            Layout::Ycbv => self.root.join(&f.scene).join(format!("{:06}-color.png", f.frame)),
+        }
+    }
+
     /// Depth image of a frame (16-bit PNG; raw value × `depth_scale_mm` = millimetres).
     pub fn depth_path(&self, f: &Frame) -> PathBuf {
         match self.layout {

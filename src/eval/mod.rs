@@ -17,6 +17,7 @@ pub mod ply;
 pub mod bop;
 pub mod report;
 pub mod baseline;
+pub mod recgen;
 pub mod visibility;
 
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};
