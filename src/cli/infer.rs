@@ -53,8 +53,8 @@ pub struct InferArgs {
     /// the per-sample poses reported as uncertainty.
     #[arg(long, default_value_t = 1)]
     samples: usize,
-    /// Architecture file (default: models/recgen-tiny.json; models/recgen-large.json
-    /// with a manifest name in --weights).
+    /// Architecture file (default: the one in a --weights folder when it holds one,
+    /// else models/recgen-tiny.json; models/recgen-large.json with a manifest name).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Weights: a directory (`<module>.safetensors` per module) or a manifest name
@@ -269,9 +269,11 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     };
 
     let weights = classify_weights(&a.weights)?;
-    let config = a.config.clone().unwrap_or_else(|| match weights {
+    let config = a.config.clone().unwrap_or_else(|| match &weights {
         Weights::Manifest(_) => PathBuf::from("models/recgen-large.json"),
-        _ => PathBuf::from("models/recgen-tiny.json"),
+        // A trained folder carries its architecture file (`recon train slat-flow`).
+        Weights::Dir(d) => crate::cli::eval::find_architecture(d).unwrap_or_else(|_| PathBuf::from("models/recgen-tiny.json")),
+        Weights::Random => PathBuf::from("models/recgen-tiny.json"),
     });
     let engine = match &weights {
         Weights::Random => Engine::random_with(&config, a.seed, &load)?,

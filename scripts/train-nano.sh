@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# The recgen-nano training recipe (README §Training): synthetic data, the four
+# trainable parts in order, then the held-out evaluation. Every step is
+# deterministic for its seed; steps and batch sizes are the ones the shipped
+# weights were trained with (override with the environment variables below).
+#
+#   bash scripts/train-nano.sh [WORK_DIR]      (default: runs/nano)
+#
+# On 2 CPU cores the whole run takes a few hours; the logs are in WORK_DIR/*.log.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+W=${1:-runs/nano}
+RECON=${RECON:-target/release/recon}
+VAE_STEPS=${VAE_STEPS:-1000}
+FLOW_STEPS=${FLOW_STEPS:-1000}
+AE_STEPS=${AE_STEPS:-600}
+S2_STEPS=${S2_STEPS:-400}
+CONFIG=models/recgen-nano.json
+mkdir -p "$W"
+[ -x "$RECON" ] || cargo build --release
+
+# 1. Training scenes: 400 occluded tabletop scenes, two views each, stereo-like depth noise.
+[ -d "$W/data" ] || "$RECON" synth --out "$W/data" --scenes 400 --views 2 --seed 1000 --sensor models/sensors/stereo.json
+D=(--data "$W/data" --split "$W/data/test" --config "$CONFIG" --seed 0)
+
+# 2. Sparse-structure VAE on surface shells (the SLat support of stage 2).
+[ -f "$W/vae/recon-train.json" ] && grep -q '"complete"' "$W/vae/recon-train.json" ||
+  "$RECON" train ss-vae "${D[@]}" --out "$W/vae" --steps "$VAE_STEPS" --batch 8 --fill surface 2>&1 | tee "$W/vae.log"
+
+# 3. Stage-2 autoencoder (independent of 2): SLat encoder + mesh/Gaussian decoders on exact SDF and colours.
+[ -f "$W/slat-ae/recon-train.json" ] && grep -q '"complete"' "$W/slat-ae/recon-train.json" ||
+  "$RECON" train slat-ae "${D[@]}" --out "$W/slat-ae" --steps "$AE_STEPS" --batch 2 --crop 8 --max-voxels 256 2>&1 | tee "$W/slat-ae.log"
+
+# 4. Image encoder + SS flow with pose tokens on the VAE latents.
+[ -f "$W/ss-flow/recon-train.json" ] && grep -q '"complete"' "$W/ss-flow/recon-train.json" ||
+  "$RECON" train ss-flow "${D[@]}" --out "$W/ss-flow" --vae "$W/vae" --fill surface --steps "$FLOW_STEPS" --batch 8 2>&1 | tee "$W/ss-flow.log"
+
+# 5. SLat flow on the frozen encoder's latents; writes the complete model folder.
+[ -f "$W/model/recon-train.json" ] && grep -q '"complete"' "$W/model/recon-train.json" ||
+  "$RECON" train slat-flow "${D[@]}" --out "$W/model" --stage1 "$W/ss-flow" --slat-ae "$W/slat-ae" --steps "$S2_STEPS" --batch 4 2>&1 | tee "$W/slat-flow.log"
+
+# 6. Held-out evaluation: scenes from a seed never used in training.
+[ -d "$W/heldout" ] || "$RECON" synth --out "$W/heldout" --scenes 45 --views 1 --seed 90000 --sensor models/sensors/stereo.json
+"$RECON" eval --dataset "$W/heldout/test" --method observed --out "$W/eval-observed" | tee "$W/eval-observed.txt"
+"$RECON" eval --dataset "$W/heldout/test" --method recgen --weights "$W/model" --out "$W/eval-recgen" | tee "$W/eval-recgen.txt"
