@@ -367,7 +367,7 @@ fn run_infer(args: &[String]) -> serde_json::Value {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_recon"))
         .arg("infer")
         .args(args)
-        .args(["--steps", "1", "--json"])
+        .args(["--steps", "1", "--json", "--weights", "random"])
         .current_dir(repo())
         .output()
         .unwrap();

@@ -57,10 +57,11 @@ pub struct InferArgs {
     /// else models/recgen-tiny.json; models/recgen-large.json with a manifest name).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Weights: a directory (`<module>.safetensors` per module) or a manifest name
+    /// Weights: a directory (`<module>.safetensors` per module), a manifest name
     /// (e.g. `recgen`, or a manifest .json) resolved in the Hugging Face cache after
-    /// `recon weights fetch`. Without it the model runs with RANDOM weights
-    /// (plumbing only; results are not meaningful).
+    /// `recon weights fetch`, or `random` (recgen-tiny with RANDOM weights: plumbing
+    /// only). Default: the trained recgen-nano shipped in models/recgen-nano/ when
+    /// present, else random.
     #[arg(long)]
     weights: Option<String>,
     /// Model precision of the inference kernels: f32, bf16 (bf16 weights and products,
@@ -127,9 +128,21 @@ enum Weights {
     Manifest(String),
 }
 
+/// The trained recgen-nano folder shipped in the repository (models/recgen-nano/,
+/// relative to the working folder, else to the source checkout the binary was built
+/// from), when it holds a complete model.
+pub fn shipped_model() -> Option<PathBuf> {
+    let rel = Path::new("models/recgen-nano");
+    let candidates = [rel.to_path_buf(), Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)];
+    candidates.into_iter().find(|d| d.join("slat_flow.safetensors").is_file() && d.join("recgen-nano.json").is_file())
+}
+
 fn classify_weights(w: &Option<String>) -> anyhow::Result<Weights> {
     use recon::weights::manifest::{Manifest, EMBEDDED};
-    let Some(w) = w else { return Ok(Weights::Random) };
+    let Some(w) = w else { return Ok(shipped_model().map_or(Weights::Random, Weights::Dir)) };
+    if w == "random" {
+        return Ok(Weights::Random);
+    }
     let p = Path::new(w);
     if p.is_dir() {
         return Ok(Weights::Dir(p.to_path_buf()));
