@@ -37,7 +37,7 @@ D=(--data "$W/data" --split "$W/data/test" --config "$CONFIG" --seed 0)
 
 # 5. SLat flow on the frozen encoder's latents; writes the complete model folder.
 [ -f "$W/model/recon-train.json" ] && grep -q '"complete"' "$W/model/recon-train.json" ||
-  "$RECON" train slat-flow "${D[@]}" --out "$W/model" --stage1 "$W/ss-flow" --slat-ae "$W/slat-ae" --steps "$S2_STEPS" --batch 4 2>&1 | tee "$W/slat-flow.log"
+  "$RECON" train slat-flow "${D[@]}" --out "$W/model" --stage1 "$W/ss-flow" --slat-ae "$W/slat-ae" --steps "$S2_STEPS" --batch 4 --max-models 600 2>&1 | tee "$W/slat-flow.log"
 
 # 6. Held-out evaluation: scenes from a seed never used in training.
 [ -d "$W/heldout" ] || "$RECON" synth --out "$W/heldout" --scenes 45 --views 1 --seed 90000 --sensor models/sensors/stereo.json

@@ -88,6 +88,9 @@ pub struct InferArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
+    /// Also write `preview.png`: the input beside the posed meshes ray-cast from its camera.
+    #[arg(long)]
+    preview: bool,
 }
 
 fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Option<f64>, flag: &str) -> anyhow::Result<recon::inputs::frame::FrameOptions> {
@@ -323,6 +326,10 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         }
     };
     let written = write_outputs(&result, &out)?;
+    if a.preview {
+        let meshes: Vec<&recon::decoders::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
+        recon::export::preview::save_preview(&frame, &meshes, &out.join("preview.png"))?;
+    }
     let totals: Vec<f64> = (0..STAGES.len()).map(|k| result.objects.iter().map(|o| stage_row(o)[k]).sum()).collect();
     if a.json {
         let objs: Vec<serde_json::Value> = result

@@ -6,6 +6,7 @@ pub mod glb;
 pub mod mjcf;
 pub mod obj;
 pub mod ply;
+pub mod preview;
 pub mod splat;
 pub mod transform;
 pub mod urdf;
