@@ -99,6 +99,12 @@ pub fn find_architecture(dir: &std::path::Path) -> anyhow::Result<PathBuf> {
     }
 }
 
+/// `<dataset folder name>-<method>-eval` in the current folder.
+fn default_out(dataset: &std::path::Path, method: &str) -> PathBuf {
+    let name = dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
+    PathBuf::from(format!("{name}-{method}-eval"))
+}
+
 /// Removes a staging folder left by a failed run (after success it has been renamed away).
 struct Staging(Option<PathBuf>);
 
@@ -136,10 +142,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
                 ShapeArg::Hull => Shape::Hull,
                 ShapeArg::Box => Shape::Box,
             };
-            let out = a.out.clone().unwrap_or_else(|| {
-                let name = a.dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
-                PathBuf::from(format!("{name}-observed-eval"))
-            });
+            let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "observed"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
@@ -181,10 +184,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             }
             let mut io = recon::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), ..Default::default() };
             io.run.seed = a.model_seed;
-            let out = a.out.clone().unwrap_or_else(|| {
-                let name = a.dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
-                PathBuf::from(format!("{name}-recgen-eval"))
-            });
+            let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();

@@ -405,9 +405,47 @@ pub struct ObservedRun {
     pub skipped: Vec<ObservedSkip>,
 }
 
-fn mesh_name(scene: &str, frame: u32, gi: usize, obj_id: u32) -> String {
+/// File name of a GT instance's predicted mesh (scene name made file-safe).
+pub(crate) fn mesh_name(scene: &str, frame: u32, gi: usize, obj_id: u32) -> String {
     let s: String = scene.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect();
     format!("{s}_{frame:06}_gt{gi:02}_obj{obj_id:06}.ply")
+}
+
+/// Visible mask of GT instance `gi` of frame `f` as `(width, height, mask, file)`;
+/// `label` caches the frame's label map (YCB-Video) across instances.
+pub(crate) fn visible_mask(ds: &Dataset, f: &Frame, gi: usize, label: &mut Option<InstanceMap>) -> Result<(usize, usize, Vec<bool>, PathBuf)> {
+    Ok(match ds.visible_mask_source(f, gi) {
+        MaskSource::Binary(p) => {
+            let m = load_binary_mask(&p)?;
+            (m.width, m.height, m.mask, p)
+        }
+        MaskSource::Label(p, id) => {
+            if label.is_none() {
+                *label = Some(InstanceMap::open(&p)?);
+            }
+            let l = label.as_ref().ok_or_else(|| Error::msg("label map"))?;
+            (l.width, l.height, l.ids.iter().map(|&v| v == id).collect(), p)
+        }
+    })
+}
+
+/// Writes `dir/predictions.json` and each prediction's mesh (binary PLY, metres, in the
+/// prediction's frame, no colours) at its relative `mesh` path; returns the predictions file's path.
+pub(crate) fn write_predictions<'a>(dir: &Path, items: impl Iterator<Item = (&'a Prediction, std::borrow::Cow<'a, crate::decoders::Mesh>)>) -> Result<PathBuf> {
+    use crate::export::{ply::save_mesh_ply, ply::PlyOptions, Axes};
+    let meshes = dir.join("meshes");
+    std::fs::create_dir_all(&meshes).map_err(|e| Error::io(&meshes, e))?;
+    let opts = PlyOptions { axes: Axes::ZUp, normals: false, vertex_colors: false };
+    let mut preds = Vec::new();
+    for (p, mesh) in items {
+        let rel = p.mesh.as_ref().ok_or_else(|| Error::msg("prediction without mesh"))?;
+        save_mesh_ply(&mesh, &dir.join(rel), &opts)?;
+        preds.push(p.clone());
+    }
+    let path = dir.join("predictions.json");
+    let text = serde_json::to_string_pretty(&PredictionsFile { predictions: preds }).map_err(|e| Error::msg(format!("serialising predictions: {e}")))?;
+    std::fs::write(&path, text).map_err(|e| Error::io(&path, e))?;
+    Ok(path)
 }
 
 /// Depth of a frame in metres (0 = no reading).
@@ -427,20 +465,7 @@ pub fn observe_frame(ds: &Dataset, f: &Frame, o: &ObservedOptions) -> Result<(Ve
     let (mut preds, mut skips) = (Vec::new(), Vec::new());
     for (gi, g) in f.gt.iter().enumerate() {
         let skip = |reason: String| ObservedSkip { scene: f.scene.clone(), frame: f.frame, gt_index: gi, obj_id: g.obj_id, reason };
-        let (mask, file) = match ds.visible_mask_source(f, gi) {
-            MaskSource::Binary(p) => {
-                let m = load_binary_mask(&p)?;
-                ((m.width, m.height, m.mask), p)
-            }
-            MaskSource::Label(p, id) => {
-                if label.is_none() {
-                    label = Some(InstanceMap::open(&p)?);
-                }
-                let l = label.as_ref().ok_or_else(|| Error::msg("label map"))?;
-                ((l.width, l.height, l.ids.iter().map(|&v| v == id).collect()), p)
-            }
-        };
-        let (mw, mh, mask) = mask;
+        let (mw, mh, mask, file) = visible_mask(ds, f, gi, &mut label)?;
         if (mw, mh) != (w, h) {
             return Err(Error::input(file.display().to_string(), format!("mask is {mw}×{mh} but the depth image {} is {w}×{h}", ds.depth_path(f).display())));
         }
@@ -500,21 +525,8 @@ impl ObservedRun {
     /// frame), so the run can be re-scored with `recon eval --predictions`. Returns the
     /// predictions file's path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
-        use crate::decoders::Mesh;
-        use crate::export::{ply::save_mesh_ply, ply::PlyOptions, Axes};
-        let meshes = dir.join("meshes");
-        std::fs::create_dir_all(&meshes).map_err(|e| Error::io(&meshes, e))?;
-        let opts = PlyOptions { axes: Axes::ZUp, normals: false, vertex_colors: false };
-        for p in &self.predictions {
-            let rel = p.prediction.mesh.as_ref().ok_or_else(|| Error::msg("baseline prediction without mesh"))?;
-            let m = &p.observed.mesh;
-            let mesh = Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None };
-            save_mesh_ply(&mesh, &dir.join(rel), &opts)?;
-        }
-        let path = dir.join("predictions.json");
-        let text = serde_json::to_string_pretty(&self.predictions_file()).map_err(|e| Error::msg(format!("serialising predictions: {e}")))?;
-        std::fs::write(&path, text).map_err(|e| Error::io(&path, e))?;
-        Ok(path)
+        let mesh = |m: &TriMesh| crate::decoders::Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None };
+        write_predictions(dir, self.predictions.iter().map(|p| (&p.prediction, std::borrow::Cow::Owned(mesh(&p.observed.mesh)))))
     }
 }
 

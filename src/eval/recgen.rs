@@ -8,13 +8,13 @@
 
 use std::path::{Path, PathBuf};
 
-use super::baseline::ObservedSkip;
-use super::bop::{Dataset, Frame, MaskSource};
-use super::report::{Prediction, PredictionsFile};
+use super::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use super::bop::{Dataset, Frame};
+use super::report::Prediction;
 use crate::decoders::Mesh;
 use crate::infer::{Engine, InferOptions};
 use crate::inputs::frame::{FrameOptions, Intrinsics, RgbdFrame};
-use crate::inputs::masks::{load_binary_mask, InstanceMap, ObjectMask};
+use crate::inputs::masks::{InstanceMap, ObjectMask};
 use crate::{Error, Result};
 
 pub struct RecgenPrediction {
@@ -30,11 +30,6 @@ pub struct RecgenRun {
     pub seconds_model: f64,
 }
 
-fn mesh_name(scene: &str, frame: u32, gi: usize, obj_id: u32) -> String {
-    let s: String = scene.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect();
-    format!("{s}_{frame:06}_gt{gi:02}_obj{obj_id:06}.ply")
-}
-
 /// Reconstructs every GT instance of one frame.
 pub fn recgen_frame(ds: &Dataset, f: &Frame, engine: &Engine, opts: &InferOptions) -> Result<RecgenRun> {
     let at = || format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame);
@@ -44,19 +39,7 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, engine: &Engine, opts: &InferOption
     let mut label: Option<InstanceMap> = None;
     let mut masks = Vec::with_capacity(f.gt.len());
     for gi in 0..f.gt.len() {
-        let (w, h, mask) = match ds.visible_mask_source(f, gi) {
-            MaskSource::Binary(p) => {
-                let m = load_binary_mask(&p)?;
-                (m.width, m.height, m.mask)
-            }
-            MaskSource::Label(p, id) => {
-                if label.is_none() {
-                    label = Some(InstanceMap::open(&p)?);
-                }
-                let l = label.as_ref().ok_or_else(|| Error::msg("label map"))?;
-                (l.width, l.height, l.ids.iter().map(|&v| v == id).collect())
-            }
-        };
+        let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
         masks.push(ObjectMask { id: Some(gi as u32), label: format!("gt {gi}"), width: w, height: h, mask });
     }
     let t0 = std::time::Instant::now();
@@ -108,24 +91,8 @@ pub fn recgen_dataset(ds: &Dataset, engine: &Engine, opts: &InferOptions, progre
 }
 
 impl RecgenRun {
-    pub fn predictions_file(&self) -> PredictionsFile {
-        PredictionsFile { predictions: self.predictions.iter().map(|p| p.prediction.clone()).collect() }
-    }
-
     /// Writes `dir/predictions.json` and `dir/meshes/*.ply` (camera frame, metres).
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
-        use crate::export::{ply::save_mesh_ply, ply::PlyOptions, Axes};
-        let meshes = dir.join("meshes");
-        std::fs::create_dir_all(&meshes).map_err(|e| Error::io(&meshes, e))?;
-        let opts = PlyOptions { axes: Axes::ZUp, normals: false, vertex_colors: false };
-        for p in &self.predictions {
-            let rel = p.prediction.mesh.as_ref().ok_or_else(|| Error::msg("recgen prediction without mesh"))?;
-            let m = Mesh { vertices: p.mesh.vertices.clone(), faces: p.mesh.faces.clone(), vertex_attrs: None };
-            save_mesh_ply(&m, &dir.join(rel), &opts)?;
-        }
-        let path = dir.join("predictions.json");
-        let text = serde_json::to_string_pretty(&self.predictions_file()).map_err(|e| Error::msg(format!("serialising predictions: {e}")))?;
-        std::fs::write(&path, text).map_err(|e| Error::io(&path, e))?;
-        Ok(path)
+        write_predictions(dir, self.predictions.iter().map(|p| (&p.prediction, std::borrow::Cow::Borrowed(&p.mesh))))
     }
 }
