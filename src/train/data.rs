@@ -29,6 +29,7 @@ use crate::geometry::pointmap::{object_points, prepare_object_with, Normaliser, 
 use crate::geometry::pose::{rotation_to_9d, Mat3, NineDLayout, Pose, PoseStats};
 use crate::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
 use crate::inputs::frame::RgbdFrame;
+use crate::model::sampler::SeededRng;
 use crate::{Error, Result};
 
 /// One object model (mesh in its model frame, metres).
@@ -145,11 +146,41 @@ fn mean_std(rows: &[Vec<f64>], file: &str) -> Result<(Vec<f64>, Vec<f64>)> {
 /// Floor of every pose statistic's standard deviation.
 pub const MIN_POSE_STD: f64 = 1e-3;
 
+/// Inputs of drawn samples `(sample index, seed)`: each sample's model and
+/// its first `n_views` views, prepared with a crop context drawn in
+/// `context` from the sample's own seeded stream (in parallel; the result
+/// does not depend on scheduling).
+pub fn prepare_picks(
+    source: &dyn TrainingSource,
+    canon: &[CanonicalFrame],
+    picks: &[(usize, u64)],
+    n_views: usize,
+    image_size: usize,
+    context: [f64; 2],
+) -> Result<Vec<(usize, Vec<TrainView>)>> {
+    use rayon::prelude::*;
+    picks
+        .par_iter()
+        .map(|&(i, seed)| {
+            let s = source.sample(i)?;
+            let mut r = SeededRng::new(seed);
+            let c = &canon[s.model];
+            let views = s.views[..n_views]
+                .iter()
+                .map(|v| prepare_train_view(v, c, image_size, context[0] + (context[1] - context[0]) * r.uniform()))
+                .collect::<Result<Vec<_>>>()?;
+            Ok((s.model, views))
+        })
+        .collect()
+}
+
 /// What a pass over the source found: the samples whose anchor view has
 /// depth under its mask (usable), those whose first two views both do, and
 /// the normalised-frame pose of every usable view.
 #[derive(Debug, Clone)]
 pub struct Scan {
+    /// The model of every sample (by sample index).
+    pub models: Vec<usize>,
     pub usable: Vec<usize>,
     pub two_view: Vec<usize>,
     pub poses: Vec<Pose>,
@@ -161,16 +192,16 @@ pub fn scan(source: &dyn TrainingSource) -> Result<Scan> {
     use rayon::prelude::*;
     let canon: Vec<CanonicalFrame> =
         (0..source.num_models()).into_par_iter().map(|i| canonical_frame(&source.model(i)?.mesh)).collect::<Result<_>>()?;
-    let per: Vec<Vec<Option<Pose>>> = (0..source.num_samples())
+    let per: Vec<(usize, Vec<Option<Pose>>)> = (0..source.num_samples())
         .into_par_iter()
         .map(|i| {
             let s = source.sample(i)?;
             let c = canon.get(s.model).ok_or_else(|| Error::input(source.describe(), format!("sample {i} names model {} of {}", s.model, canon.len())))?;
-            Ok(s.views.iter().map(|v| view_normaliser(v).ok().map(|n| pose_to_normalised(&camera_pose(v, c), &n))).collect())
+            Ok((s.model, s.views.iter().map(|v| view_normaliser(v).ok().map(|n| pose_to_normalised(&camera_pose(v, c), &n))).collect()))
         })
         .collect::<Result<_>>()?;
-    let mut out = Scan { usable: Vec::new(), two_view: Vec::new(), poses: Vec::new(), skipped_views: 0 };
-    for (i, views) in per.iter().enumerate() {
+    let mut out = Scan { models: per.iter().map(|(m, _)| *m).collect(), usable: Vec::new(), two_view: Vec::new(), poses: Vec::new(), skipped_views: 0 };
+    for (i, (_, views)) in per.iter().enumerate() {
         out.skipped_views += views.iter().filter(|v| v.is_none()).count();
         if views.first().is_some_and(|v| v.is_some()) {
             out.usable.push(i);

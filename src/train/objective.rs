@@ -8,7 +8,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
-use super::data::{canonical_frame, occupancy, prepare_train_view, Scan, TrainingSource};
+use super::data::{canonical_frame, occupancy, Scan, TrainingSource};
 use super::flow::{drop_condition, masked_pose_mse, FlowMatching};
 use super::params::ModuleParams;
 use crate::geometry::pose::PoseStats;
@@ -200,19 +200,7 @@ impl Objective for FlowObjective<'_> {
         let (pool, n_views) = if two { (&self.scan.two_view, 2) } else { (&self.scan.usable, 1) };
         let picks: Vec<(usize, u64)> = (0..batch).map(|_| (pool[(rng.next_u64() % pool.len() as u64) as usize], rng.next_u64())).collect();
         // Inputs per sample, in parallel; each sample has its own seeded stream.
-        let prepared: Vec<(usize, Vec<super::data::TrainView>)> = picks
-            .par_iter()
-            .map(|&(i, seed)| {
-                let s = self.source.sample(i)?;
-                let mut r = SeededRng::new(seed);
-                let canon = &self.canon[s.model];
-                let views = s.views[..n_views]
-                    .iter()
-                    .map(|v| prepare_train_view(v, canon, self.image_size, self.context[0] + (self.context[1] - self.context[0]) * r.uniform()))
-                    .collect::<Result<Vec<_>>>()?;
-                Ok((s.model, views))
-            })
-            .collect::<Result<_>>()?;
+        let prepared = super::data::prepare_picks(self.source, &self.canon, &picks, n_views, self.image_size, self.context)?;
         let b = prepared.len();
         let x0 = Tensor::stack(&prepared.iter().map(|(m, _)| self.latents[*m].clone()).collect::<Vec<_>>(), 0)?;
         // Pose targets [B, K, 10], z-scored; tokens without a view are unsupervised.

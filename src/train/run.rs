@@ -169,10 +169,34 @@ fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
 fn load_module(dir: &Path, key: &str) -> Result<BTreeMap<String, candle_core::Tensor>> {
     let p = dir.join(format!("{key}.safetensors"));
     if !p.is_file() {
-        return Err(Error::input(dir.display().to_string(), format!("no {key}.safetensors (give the output folder of `recon train ss-vae`)")));
+        return Err(Error::input(dir.display().to_string(), format!("no {key}.safetensors (give the output folder of the `recon train` stage that writes it)")));
     }
     let m = candle_core::safetensors::load(&p, &candle_core::Device::Cpu).map_err(|e| Error::input(p.display().to_string(), format!("cannot read: {e}")))?;
     Ok(m.into_iter().collect())
+}
+
+/// Write `tensors` as `<out>/<key>.safetensors`, labelled trained and copied from `from`
+/// (the modules a run's folder carries beside its own, so the folder runs a pipeline).
+fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &Path, out: &Path, key: &str) -> Result<PathBuf> {
+    let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), from.display().to_string())].into();
+    let path = out.join(format!("{key}.safetensors"));
+    crate::weights::init::write_safetensors(tensors, &meta, &path)?;
+    Ok(path)
+}
+
+/// The architecture file of a run folder: `config` reading its pose statistics from
+/// the folder's `pose_stats.json`, and with `slat_norm` as its `slat_normalization`.
+fn write_architecture(config: &Path, out: &Path, slat_norm: Option<&(Vec<f32>, Vec<f32>)>) -> Result<PathBuf> {
+    let mut v: serde_json::Value = crate::config::read_json(config)?;
+    v["pose"]["ss_stats"] = "pose_stats.json".into();
+    v["pose"]["slat_stats"] = "pose_stats.json".into();
+    if let Some((m, s)) = slat_norm {
+        v["slat_normalization"] = serde_json::json!({"mean": m, "std": s});
+    }
+    let name = config.file_name().ok_or_else(|| Error::input(config.display().to_string(), "not a file"))?;
+    let arch_out = out.join(name);
+    write_json(&arch_out, &v)?;
+    Ok(arch_out)
 }
 
 /// Run one stage on `source` (see the module docs for what is written).
@@ -188,13 +212,14 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     };
     let seed = opts.settings.seed;
     let mut notes = Vec::new();
-    let enc_cfg = match (opts.stage, arch.ss_encoder.as_ref()) {
-        (Stage::SlatAe | Stage::SlatFlow, _) => ModuleConfig { name: String::new(), args: serde_json::Value::Null },
-        (_, Some(spec)) => spec_cfg(spec),
-        (_, None) => return Err(Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section")),
+    let ss_encoder_cfg = || -> Result<ModuleConfig> {
+        let spec = arch.ss_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
+        Ok(spec_cfg(spec))
     };
     let obj: Box<dyn Objective + '_>;
     let mut slat_norm: Option<(Vec<f32>, Vec<f32>)> = None;
+    // Modules copied into the output folder (reported after the trained ones).
+    let mut copied: Vec<PathBuf> = Vec::new();
     let mut settings = serde_json::json!({
         "loop": opts.settings,
         "architecture": arch.name,
@@ -203,6 +228,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     });
     match opts.stage {
         Stage::SsVae => {
+            let enc_cfg = ss_encoder_cfg()?;
             let dec_cfg = spec_cfg(&arch.ss_decoder);
             settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
             settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
@@ -214,6 +240,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
         }
         Stage::SsFlow => {
+            let enc_cfg = ss_encoder_cfg()?;
             let vae = opts.vae.as_ref().ok_or_else(|| Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)"))?;
             let enc_t = load_module(vae, "ss_encoder")?;
             let dec_t = load_module(vae, "ss_decoder")?;
@@ -235,9 +262,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let (m, s) = fo.latent_stats()?;
             notes.push(format!("VAE latents: mean {m:.4}, std {s:.4} (the flow starts from unit noise)"));
             // The decoder travels with the flow so the folder runs stage 1.
-            let dec_path = opts.out.join("ss_decoder.safetensors");
-            let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), vae.display().to_string())].into();
-            crate::weights::init::write_safetensors(&dec_t, &meta, &dec_path)?;
+            copied.push(write_copied_module(&dec_t, vae, &opts.out, "ss_decoder")?);
             obj = Box::new(fo);
         }
         Stage::SlatAe => {
@@ -272,9 +297,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
             // The complete model folder: stage 1 and the decoders travel with the flow.
             for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
-                let t = load_module(dir, key)?;
-                let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), dir.display().to_string())].into();
-                crate::weights::init::write_safetensors(&t, &meta, &opts.out.join(format!("{key}.safetensors")))?;
+                copied.push(write_copied_module(&load_module(dir, key)?, dir, &opts.out, key)?);
             }
             std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
             slat_norm = Some((fo.mean.clone(), fo.std.clone()));
@@ -312,34 +335,11 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     ]
     .into();
     report.files = write_weights(&opts.out, obj.as_ref(), &meta)?;
-    if opts.stage == Stage::SlatFlow {
-        // The architecture file of the complete model: pose statistics and the
-        // latent normalisation of this run.
-        let mut v: serde_json::Value = crate::config::read_json(&opts.config)?;
-        v["pose"]["ss_stats"] = "pose_stats.json".into();
-        v["pose"]["slat_stats"] = "pose_stats.json".into();
-        if let Some((m, s)) = &slat_norm {
-            v["slat_normalization"] = serde_json::json!({"mean": m, "std": s});
-        }
-        let name = opts.config.file_name().ok_or_else(|| Error::input(&cfile, "not a file"))?;
-        let arch_out = opts.out.join(name);
-        write_json(&arch_out, &v)?;
-        for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_dec_mesh", "slat_dec_gs"] {
-            report.files.push(opts.out.join(format!("{key}.safetensors")));
-        }
-        report.files.push(arch_out);
-        report.files.push(opts.out.join("pose_stats.json"));
-    }
-    if opts.stage == Stage::SsFlow {
-        report.files.push(opts.out.join("ss_decoder.safetensors"));
-        // The architecture file, reading its pose statistics from this folder.
-        let mut v: serde_json::Value = crate::config::read_json(&opts.config)?;
-        v["pose"]["ss_stats"] = "pose_stats.json".into();
-        v["pose"]["slat_stats"] = "pose_stats.json".into();
-        let name = opts.config.file_name().ok_or_else(|| Error::input(&cfile, "not a file"))?;
-        let arch_out = opts.out.join(name);
-        write_json(&arch_out, &v)?;
-        report.files.push(arch_out);
+    report.files.extend(copied);
+    if matches!(opts.stage, Stage::SsFlow | Stage::SlatFlow) {
+        // The architecture file, reading its pose statistics (and, for the complete
+        // model, the latent normalisation of this run) from this folder.
+        report.files.push(write_architecture(&opts.config, &opts.out, slat_norm.as_ref())?);
         report.files.push(opts.out.join("pose_stats.json"));
     }
     report.summary = Some(summary);

@@ -302,11 +302,6 @@ impl<'a> SlatAeObjective<'a> {
         let m = self.source.model(i)?;
         SlatGeometry::new(&m.mesh, m.colors.as_deref().map(Vec::as_slice), self.res, seed)
     }
-
-    /// The frozen encoder's posterior mean on whole objects (for the SLat flow).
-    pub fn encoder(&self) -> &SLatEncoder {
-        &self.enc
-    }
 }
 
 fn softplus(x: &Tensor) -> Result<Tensor> {

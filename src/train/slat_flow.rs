@@ -11,7 +11,7 @@
 use candle_core::{Device, Tensor};
 use rayon::prelude::*;
 
-use super::data::{canonical_frame, prepare_train_view, Scan, TrainingSource};
+use super::data::{canonical_frame, prepare_picks, Scan, TrainingSource};
 use super::flow::{drop_condition, FlowMatching};
 use super::objective::{scalar_of, BatchLoss, Objective, Terms};
 use super::params::ModuleParams;
@@ -83,7 +83,7 @@ impl<'a> SlatFlowObjective<'a> {
         let mut chosen = Vec::new();
         let mut seen = vec![false; source.num_models()];
         for &i in &scan.usable {
-            let m = source.sample(i)?.model;
+            let m = scan.models[i];
             if !seen[m] && chosen.len() < max_models {
                 seen[m] = true;
                 chosen.push(m);
@@ -114,7 +114,7 @@ impl<'a> SlatFlowObjective<'a> {
         for (m, coords, l) in raw {
             encoded[m] = Some(Encoded { coords, latents: l.broadcast_sub(&mean_t)?.broadcast_div(&std_t)? });
         }
-        let pool: Vec<usize> = scan.usable.iter().copied().filter(|&i| source.sample(i).map(|s| encoded[s.model].is_some()).unwrap_or(false)).collect();
+        let pool: Vec<usize> = scan.usable.iter().copied().filter(|&i| encoded[scan.models[i]].is_some()).collect();
         let image_size = dino.cfg.img_size;
         Ok(Self {
             params: vec![flow],
@@ -151,15 +151,10 @@ impl Objective for SlatFlowObjective<'_> {
     fn loss(&self, rng: &mut SeededRng, batch: usize) -> Result<BatchLoss> {
         let dev = Device::Cpu;
         let picks: Vec<(usize, u64)> = (0..batch).map(|_| (self.pool[(rng.next_u64() % self.pool.len() as u64) as usize], rng.next_u64())).collect();
-        let prepared: Vec<(usize, super::data::TrainView)> = picks
-            .par_iter()
-            .map(|&(i, seed)| {
-                let s = self.source.sample(i)?;
-                let mut r = SeededRng::new(seed);
-                let ctx = self.context[0] + (self.context[1] - self.context[0]) * r.uniform();
-                Ok((s.model, prepare_train_view(&s.views[0], &self.canon[s.model], self.image_size, ctx)?))
-            })
-            .collect::<Result<_>>()?;
+        let prepared: Vec<(usize, super::data::TrainView)> = prepare_picks(self.source, &self.canon, &picks, 1, self.image_size, self.context)?
+            .into_iter()
+            .map(|(m, mut v)| (m, v.swap_remove(0)))
+            .collect();
         let b = prepared.len();
         let mut coords = Vec::new();
         let mut x0 = Vec::with_capacity(b);
