@@ -70,6 +70,10 @@ pub struct EvalArgs {
     /// --method recgen: first seed.
     #[arg(long, default_value_t = 0)]
     model_seed: u64,
+    /// --method recgen: two-view conditioning: each frame with the next frame of its scene
+    /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
+    #[arg(long)]
+    two_view: bool,
     /// --method recgen: meshes with more faces are decimated to about this many.
     #[arg(long, default_value_t = 20_000)]
     max_faces: usize,
@@ -136,6 +140,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
         ds.retain_scenes(s)?;
     }
     let opts = EvalOptions { n_samples: a.samples, seed: a.seed, f1_tau_rel: a.f1_tau, all_frames: a.all_frames || a.method.is_some(), ..Default::default() };
+    if a.two_view && !matches!(a.method, Some(Method::Recgen)) {
+        bail!("--two-view applies to --method recgen only");
+    }
     let (report, out, staging, index) = match (a.method, &a.predictions) {
         (Some(Method::Observed), _) => {
             let shape = match a.shape {
@@ -188,7 +195,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, &|done, total| {
+            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, a.two_view, &|done, total| {
                 if done % 10 == 0 || done == total {
                     eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
                 }
@@ -209,8 +216,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({
                 "kind": "recon eval --method recgen", "weights": w, "config": config, "seeds": a.seeds,
-                "model_seed": a.model_seed, "max_faces": a.max_faces, "skipped": run.skipped,
+                "model_seed": a.model_seed, "max_faces": a.max_faces, "two_view": a.two_view, "skipped": run.skipped,
                 "seconds_model": run.seconds_model,
+                "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
             });
             (report, Some(out), staging, index)
         }

@@ -91,6 +91,9 @@ pub struct TrainArgs {
     /// slat-flow: most object models encoded.
     #[arg(long, default_value_t = 1000)]
     max_models: usize,
+    /// Warm start: initialise the trained modules from this finished run of the same stage (fresh optimiser; settings may differ).
+    #[arg(long)]
+    init: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -136,6 +139,7 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     o.stage1 = a.stage1.clone();
     o.slat_ae = a.slat_ae.clone();
     o.max_models = a.max_models;
+    o.init = a.init.clone();
     o.resume = a.resume.as_ref().map(|p| if p.as_os_str().is_empty() { Resume::Latest } else { Resume::Dir(p.clone()) });
     eprintln!("recon train {}: {} → {}", stage.name(), source.describe(), a.out.display());
     let r = run(&source, &o).with_context(|| format!("recon train {}", stage.name()))?;

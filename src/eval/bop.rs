@@ -49,6 +49,9 @@ pub struct Frame {
     /// Raw depth value → millimetres (BOP `depth_scale`; YCB-Video: 1000 / factor_depth).
     pub depth_scale_mm: f64,
     pub gt: Vec<GtInstance>,
+    /// World → camera (`x_cam = R·x_w + t`, metres) when the dataset gives it
+    /// (BOP `cam_R_w2c` / `cam_t_w2c`): relates frames of a scene.
+    pub cam_w2c: Option<([[f64; 3]; 3], [f64; 3])>,
 }
 
 /// On-disk layout a [`Dataset`] was read from (decides where its images are).
@@ -195,6 +198,14 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                 Some(v) => v.as_f64().ok_or_else(|| Error::config(cam_path.display().to_string(), format!("{key}.depth_scale"), "not a number"))?,
                 None => 1.0,
             };
+            let cam_w2c = match (c.get("cam_R_w2c"), c.get("cam_t_w2c")) {
+                (Some(r), Some(t)) => {
+                    let r = mat3(nums::<9>(r, &cam_path, &format!("{key}.cam_R_w2c"))?);
+                    let t = nums::<3>(t, &cam_path, &format!("{key}.cam_t_w2c"))?;
+                    Some((r, [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0]))
+                }
+                _ => None,
+            };
             let anns = anns.as_array().ok_or_else(|| Error::config(gt_path.display().to_string(), key.as_str(), "expected a list"))?;
             let infos = info.as_ref().and_then(|i| i.get(&key)).and_then(Value::as_array);
             let mut gts = Vec::new();
@@ -218,7 +229,7 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                 used.insert(obj_id);
                 gts.push(GtInstance { obj_id, r, t: [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0], visib_fract, visib_estimated: false, bbox_visib });
             }
-            ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_mm, gt: gts });
+            ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_mm, gt: gts, cam_w2c });
         }
     }
     let info_path = models_dir.join("models_info.json");
@@ -352,7 +363,7 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
             used.insert(c as u32);
             gts.push(GtInstance { obj_id: c as u32, r, t, visib_fract: None, visib_estimated: false, bbox_visib: None });
         }
-        ds.frames.push(Frame { scene, frame: id, k, depth_scale_mm: 1000.0 / fd, gt: gts });
+        ds.frames.push(Frame { scene, frame: id, k, depth_scale_mm: 1000.0 / fd, gt: gts, cam_w2c: None });
     }
     for id in used {
         let name = YCBV_CLASSES[id as usize - 1];

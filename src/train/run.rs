@@ -85,6 +85,10 @@ pub struct TrainOptions {
     pub slat_ae: Option<PathBuf>,
     /// slat-flow: most models encoded.
     pub max_models: usize,
+    /// Warm start: the trained modules start from this folder's
+    /// `<key>.safetensors` (a finished run of the same stage) instead of
+    /// random; the optimiser starts afresh, so settings may differ.
+    pub init: Option<PathBuf>,
     pub progress: bool,
     /// Batches of the fixed evaluation before and after training (0: skip).
     pub eval_batches: usize,
@@ -111,6 +115,7 @@ impl TrainOptions {
             stage1: None,
             slat_ae: None,
             max_models: 1000,
+            init: None,
             progress: true,
             eval_batches: 4,
         }
@@ -216,6 +221,16 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
         let spec = arch.ss_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
         Ok(spec_cfg(spec))
     };
+    // A trained module: random for the seed, or the --init folder's weights.
+    let module = |key: &str, cfg: &ModuleConfig| -> Result<ModuleParams> {
+        match &opts.init {
+            None => ModuleParams::init(key, cfg, registry::module_seed(seed, key)),
+            Some(dir) => {
+                let file = dir.join(format!("{key}.safetensors"));
+                ModuleParams::from_tensors(key, cfg, &load_module(dir, key)?, &file.display().to_string())
+            }
+        }
+    };
     let obj: Box<dyn Objective + '_>;
     let mut slat_norm: Option<(Vec<f32>, Vec<f32>)> = None;
     // Modules copied into the output folder (reported after the trained ones).
@@ -226,14 +241,18 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
         "data": source.describe(),
         "fill": opts.fill,
     });
+    if let Some(dir) = &opts.init {
+        settings["init"] = serde_json::json!(dir);
+        notes.push(format!("warm start from {}", dir.display()));
+    }
     match opts.stage {
         Stage::SsVae => {
             let enc_cfg = ss_encoder_cfg()?;
             let dec_cfg = spec_cfg(&arch.ss_decoder);
             settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
             settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
-            let enc = ModuleParams::init("ss_encoder", &enc_cfg, registry::module_seed(seed, "ss_encoder"))?;
-            let dec = ModuleParams::init("ss_decoder", &dec_cfg, registry::module_seed(seed, "ss_decoder"))?;
+            let enc = module("ss_encoder", &enc_cfg)?;
+            let dec = module("ss_decoder", &dec_cfg)?;
             let f = crate::model::ss_encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
             let res = arch.ss_flow_config()?.resolution * f;
             obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
@@ -254,8 +273,8 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let flow_cfg = spec_cfg(&arch.ss_flow);
             settings["modules"] = serde_json::json!({"image_cond_model": dino_cfg, "ss_flow": flow_cfg, "ss_encoder": enc_cfg});
             settings["flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "p_two_view": opts.p_two_view, "vae": vae});
-            let dino = ModuleParams::init("image_cond_model", &dino_cfg, registry::module_seed(seed, "image_cond_model"))?;
-            let flow = ModuleParams::init("ss_flow", &flow_cfg, registry::module_seed(seed, "ss_flow"))?;
+            let dino = module("image_cond_model", &dino_cfg)?;
+            let flow = module("ss_flow", &flow_cfg)?;
             let mut fo = FlowObjective::new(source, scan, stats, dino, flow, &encoder, opts.fill, opts.flow.clone())?;
             fo.context = opts.context;
             fo.p_two_view = opts.p_two_view;
@@ -269,7 +288,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
             let cfgs = [("slat_encoder", spec_cfg(enc_spec)), ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)), ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs))];
             settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
-            let [e, m, g] = cfgs.map(|(k, c)| ModuleParams::init(k, &c, registry::module_seed(seed, k)));
+            let [e, m, g] = cfgs.map(|(k, c)| module(k, &c));
             let mut so = super::slat::SlatAeObjective::new(source, e?, m?, g?)?;
             so.crop = opts.crop;
             so.max_voxels = opts.max_voxels;
@@ -289,7 +308,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let flow_cfg = spec_cfg(&arch.slat_flow);
             settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
             settings["slat_flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
-            let flow = ModuleParams::init("slat_flow", &flow_cfg, registry::module_seed(seed, "slat_flow"))?;
+            let flow = module("slat_flow", &flow_cfg)?;
             let mut fo = super::slat_flow::SlatFlowObjective::new(source, scan, stats, arch.nine_d_layout()?, dino, flow, &encoder, opts.max_models, opts.flow.clone())?;
             fo.context = opts.context;
             let (models, pool, usable) = fo.counts();
