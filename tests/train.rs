@@ -330,3 +330,24 @@ fn bop_source_reads_a_bop_folder() {
     assert!(none.is_err());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `--resume` with no value continues the newest checkpoint of `--out` (here: none yet,
+/// so the run is refused with that reason, not with an argument-parsing error).
+#[test]
+fn cli_bare_resume_means_latest_checkpoint() {
+    let dir = workdir("cli-resume");
+    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
+    write_toy_bop(&src, &dir.join("data"));
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_recon"))
+        .args(["train", "ss-vae", "--data"])
+        .arg(dir.join("data"))
+        .arg("--out")
+        .arg(dir.join("run"))
+        .args(["--steps", "1", "--resume"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("--resume: no checkpoint"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -79,6 +79,10 @@ pub struct InferArgs {
     /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
     #[arg(long, default_value_t = recon::infer::DEFAULT_MAX_FACES)]
     max_faces: usize,
+    /// Floater removal: mesh components with less than this fraction of the total area are
+    /// dropped (the largest is always kept); 0 keeps every component.
+    #[arg(long, default_value_t = 0.02)]
+    min_component_area: f64,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -304,7 +308,10 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
             a.seed
         );
     }
-    let mut opts = InferOptions { samples: a.samples, select, max_faces: (a.max_faces > 0).then_some(a.max_faces), ..Default::default() };
+    let mut opts = InferOptions { samples: a.samples, select, max_faces: (a.max_faces > 0).then_some(a.max_faces), floater_area_fraction: a.min_component_area, ..Default::default() };
+    if !(0.0..1.0).contains(&a.min_component_area) {
+        anyhow::bail!("--min-component-area must be in [0, 1), got {}", a.min_component_area);
+    }
     opts.run.seed = a.seed;
     opts.run.ss_steps = a.steps;
     opts.run.slat_steps = a.steps;

@@ -54,8 +54,8 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Continue from the newest checkpoint in --out, or from the given checkpoint folder.
-    #[arg(long, num_args = 0..=1, default_missing_value = "")]
-    resume: Option<PathBuf>,
+    #[arg(long, num_args = 0..=1)]
+    resume: Option<Option<PathBuf>>,
     #[arg(long, default_value_t = 250)]
     checkpoint_every: usize,
     /// ss-flow: output folder of `recon train ss-vae`.
@@ -140,7 +140,10 @@ pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     o.slat_ae = a.slat_ae.clone();
     o.max_models = a.max_models;
     o.init = a.init.clone();
-    o.resume = a.resume.as_ref().map(|p| if p.as_os_str().is_empty() { Resume::Latest } else { Resume::Dir(p.clone()) });
+    o.resume = a.resume.as_ref().map(|p| match p {
+        None => Resume::Latest,
+        Some(dir) => Resume::Dir(dir.clone()),
+    });
     eprintln!("recon train {}: {} → {}", stage.name(), source.describe(), a.out.display());
     let r = run(&source, &o).with_context(|| format!("recon train {}", stage.name()))?;
     for n in &r.notes {
