@@ -60,8 +60,9 @@ pub struct InferArgs {
     /// Weights: a directory (`<module>.safetensors` per module), a manifest name
     /// (e.g. `recgen`, or a manifest .json) resolved in the Hugging Face cache after
     /// `recon weights fetch`, or `random` (recgen-tiny with RANDOM weights: plumbing
-    /// only). Default: the trained recgen-nano shipped in models/recgen-nano/ when
-    /// present, else random.
+    /// only). Default: the trained recgen-nano: models/recgen-nano/ in the working
+    /// folder when present, else the copy embedded in the binary (unpacked once under
+    /// $RECON_CACHE, $XDG_CACHE_HOME/recon or ~/.cache/recon).
     #[arg(long)]
     weights: Option<String>,
     /// Model precision of the inference kernels: f32, bf16 (bf16 weights and products,
@@ -135,18 +136,78 @@ enum Weights {
     Manifest(String),
 }
 
-/// The trained recgen-nano folder shipped in the repository (models/recgen-nano/,
-/// relative to the working folder, else to the source checkout the binary was built
-/// from), when it holds a complete model.
-pub fn shipped_model() -> Option<PathBuf> {
-    let rel = Path::new("models/recgen-nano");
-    let candidates = [rel.to_path_buf(), Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)];
-    candidates.into_iter().find(|d| d.join("slat_flow.safetensors").is_file() && d.join("recgen-nano.json").is_file())
+/// The trained recgen-nano, compiled into the binary so `recon infer` has its trained
+/// default wherever the binary runs (the files of models/recgen-nano/ at build time).
+const EMBEDDED_NANO: [(&str, &[u8]); 8] = [
+    ("recgen-nano.json", include_bytes!("../../models/recgen-nano/recgen-nano.json")),
+    ("pose_stats.json", include_bytes!("../../models/recgen-nano/pose_stats.json")),
+    ("image_cond_model.safetensors", include_bytes!("../../models/recgen-nano/image_cond_model.safetensors")),
+    ("ss_flow.safetensors", include_bytes!("../../models/recgen-nano/ss_flow.safetensors")),
+    ("ss_decoder.safetensors", include_bytes!("../../models/recgen-nano/ss_decoder.safetensors")),
+    ("slat_flow.safetensors", include_bytes!("../../models/recgen-nano/slat_flow.safetensors")),
+    ("slat_dec_mesh.safetensors", include_bytes!("../../models/recgen-nano/slat_dec_mesh.safetensors")),
+    ("slat_dec_gs.safetensors", include_bytes!("../../models/recgen-nano/slat_dec_gs.safetensors")),
+];
+
+/// Where the embedded model is unpacked: `$RECON_CACHE`, else `$XDG_CACHE_HOME/recon`,
+/// else `~/.cache/recon`, else the temporary folder.
+fn cache_root() -> PathBuf {
+    let env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    env("RECON_CACHE")
+        .or_else(|| env("XDG_CACHE_HOME").map(|p| p.join("recon")))
+        .or_else(|| env("HOME").map(|p| p.join(".cache/recon")))
+        .unwrap_or_else(|| std::env::temp_dir().join("recon"))
+}
+
+/// The embedded recgen-nano as a folder: unpacked once per content (the folder name
+/// carries a hash of every file), written beside and renamed into place so a
+/// half-written copy is never used.
+pub fn embedded_model() -> anyhow::Result<PathBuf> {
+    embedded_model_in(&cache_root())
+}
+
+fn embedded_model_in(root: &Path) -> anyhow::Result<PathBuf> {
+    use anyhow::Context;
+    // FNV-1a over names and contents: a changed model gets a new folder.
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for (name, bytes) in EMBEDDED_NANO {
+        for &b in name.as_bytes().iter().chain(bytes.iter()) {
+            h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
+        }
+    }
+    let dir = root.join(format!("recgen-nano-{h:016x}"));
+    if dir.join("recgen-nano.json").is_file() {
+        return Ok(dir);
+    }
+    let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {} to unpack the embedded recgen-nano (set RECON_CACHE to a writable folder)", tmp.display()))?;
+    for (name, bytes) in EMBEDDED_NANO {
+        std::fs::write(tmp.join(name), bytes).with_context(|| format!("writing {}", tmp.join(name).display()))?;
+    }
+    match std::fs::rename(&tmp, &dir) {
+        Ok(()) => Ok(dir),
+        // Another process unpacked it first.
+        Err(_) if dir.join("recgen-nano.json").is_file() => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            Ok(dir)
+        }
+        Err(e) => Err(e).with_context(|| format!("moving {} to {}", tmp.display(), dir.display())),
+    }
+}
+
+/// The default weights: models/recgen-nano/ in the working folder when it holds a
+/// complete model (a checkout, possibly retrained), else the copy embedded in the binary.
+pub fn shipped_model() -> anyhow::Result<PathBuf> {
+    let local = Path::new("models/recgen-nano");
+    if local.join("slat_flow.safetensors").is_file() && local.join("recgen-nano.json").is_file() {
+        return Ok(local.to_path_buf());
+    }
+    embedded_model()
 }
 
 fn classify_weights(w: &Option<String>) -> anyhow::Result<Weights> {
     use recon::weights::manifest::{Manifest, EMBEDDED};
-    let Some(w) = w else { return Ok(shipped_model().map_or(Weights::Random, Weights::Dir)) };
+    let Some(w) = w else { return Ok(Weights::Dir(shipped_model()?)) };
     if w == "random" {
         return Ok(Weights::Random);
     }
@@ -425,4 +486,25 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         println!("wrote {}{}", out.display(), if random { " (RANDOM weights)" } else { "" });
     }
     Ok(!result.objects.is_empty())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_model_unpacks_the_shipped_files_once() {
+        let root = std::env::temp_dir().join(format!("recon-embedded-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let dir = embedded_model_in(&root).unwrap();
+        let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-nano");
+        for (name, _) in EMBEDDED_NANO {
+            assert_eq!(std::fs::read(dir.join(name)).unwrap(), std::fs::read(shipped.join(name)).unwrap(), "{name}");
+        }
+        // Reused, and nothing half-written is left beside it.
+        assert_eq!(embedded_model_in(&root).unwrap(), dir);
+        let entries: Vec<_> = std::fs::read_dir(&root).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(entries.len(), 1, "{entries:?}");
+        let _ = std::fs::remove_dir_all(&root);
+    }
 }
