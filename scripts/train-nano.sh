@@ -15,8 +15,8 @@ VAE_STEPS=${VAE_STEPS:-1000}
 FLOW_STEPS=${FLOW_STEPS:-1000}
 AE_STEPS=${AE_STEPS:-600}
 S2_STEPS=${S2_STEPS:-400}
-FLOW2_STEPS=${FLOW2_STEPS:-4000}
-S2B_STEPS=${S2B_STEPS:-600}
+FLOW2_STEPS=${FLOW2_STEPS:-3000}
+S2B_STEPS=${S2B_STEPS:-500}
 CONFIG=models/recgen-nano.json
 mkdir -p "$W"
 [ -x "$RECON" ] || cargo build --release
@@ -47,7 +47,7 @@ D=(--data "$W/data" --split "$W/data/test" --config "$CONFIG" --seed 0)
 [ -f "$W/ss-flow2/recon-train.json" ] && grep -q '"complete"' "$W/ss-flow2/recon-train.json" ||
   "$RECON" train ss-flow "${D[@]}" --out "$W/ss-flow2" --init "$W/ss-flow" --pose-alpha 1.0 --vae "$W/vae" --fill surface --steps "$FLOW2_STEPS" --batch 8 2>&1 | tee "$W/ss-flow2.log"
 [ -f "$W/model2/recon-train.json" ] && grep -q '"complete"' "$W/model2/recon-train.json" ||
-  "$RECON" train slat-flow "${D[@]}" --out "$W/model2" --init "$W/model" --stage1 "$W/ss-flow2" --slat-ae "$W/slat-ae" --steps "$S2B_STEPS" --batch 4 --max-models 1200 2>&1 | tee "$W/slat-flow2.log"
+  "$RECON" train slat-flow "${D[@]}" --out "$W/model2" --init "$W/model" --stage1 "$W/ss-flow2" --slat-ae "$W/slat-ae" --steps "$S2B_STEPS" --batch 4 --max-models 1000 2>&1 | tee "$W/slat-flow2.log"
 
 # 7. Held-out evaluation: scenes from seeds never used in training. heldout: one view per scene;
 #    heldout2: two views per scene (single view, two views with pose selection, best of 3 seeds).
