@@ -55,7 +55,11 @@ D=(--data "$W/data" --split "$W/data/test" --config "$CONFIG" --seed 0)
 [ -d "$W/heldout2" ] || "$RECON" synth --out "$W/heldout2" --scenes 24 --views 2 --seed 91000 --sensor models/sensors/stereo.json
 "$RECON" eval --dataset "$W/heldout2/test" --method observed --out "$W/eval2-observed" | tee "$W/eval2-observed.txt"
 "$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model2" --out "$W/eval2-recgen" | tee "$W/eval2-recgen.txt"
-"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model2" --two-view --out "$W/eval2-recgen-2view" | tee "$W/eval2-recgen-2view.txt"
+# Two views: scenes 0–11 (half the frames; two views cost more than one), next to one view on them.
+S12=0,1,2,3,4,5,6,7,8,9,10,11
+"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model2" --two-view --scenes $S12 --out "$W/eval2-recgen-2view" | tee "$W/eval2-recgen-2view.txt"
+"$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-recgen/predictions.json" --scenes $S12 --all-frames --out "$W/eval2-recgen-s12" | tee "$W/eval2-recgen-s12.txt"
+"$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-observed/predictions.json" --scenes $S12 --all-frames --out "$W/eval2-observed-s12" | tee "$W/eval2-observed-s12.txt"
 # Best of 3 seeds costs 3× the time: scenes 0–1 only, next to the single-seed predictions re-scored on them.
 S4=0,1
 "$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model2" --seeds 3 --scenes $S4 --out "$W/eval2-recgen-best3" | tee "$W/eval2-recgen-best3.txt"
