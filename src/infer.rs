@@ -31,7 +31,7 @@
 //! pose, mesh and Gaussians, and the spread of the per-sample winners is the
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
-use crate::decoders::mesh_post::{decimate, keep_largest_component, remove_small_components};
+use crate::decoders::mesh_post::{decimate, drop_floaters};
 use crate::decoders::Mesh;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
 use crate::export::ply::{save_mesh_ply, PlyOptions};
@@ -93,20 +93,6 @@ impl Default for InferOptions {
             max_faces: Some(DEFAULT_MAX_FACES),
             floater_area_fraction: 0.02,
         }
-    }
-}
-
-/// Drop floaters (components under `fraction` of the total area), keeping at
-/// least the largest component.
-pub fn drop_floaters(mesh: &Mesh, fraction: f64) -> Mesh {
-    if fraction <= 0.0 || mesh.faces.is_empty() {
-        return mesh.clone();
-    }
-    let kept = remove_small_components(mesh, 0, fraction);
-    if kept.faces.is_empty() {
-        keep_largest_component(mesh)
-    } else {
-        kept
     }
 }
 
@@ -458,7 +444,7 @@ impl Engine {
             progress(Progress::Decimating);
             let t = Instant::now();
             let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
-            let mesh = rec.mesh.map(|m| drop_floaters(&m, opts.floater_area_fraction)).map(|m| match opts.max_faces {
+            let mesh = rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)).map(|m| match opts.max_faces {
                 Some(n) if m.faces.len() > n => decimate(&m, n),
                 _ => m,
             });
@@ -762,36 +748,4 @@ pub fn finish_output_marked(staging: &Path, out: &Path, marker: &str, index: &se
     }
     std::fs::rename(staging, out).map_err(|e| Error::io(out, e))?;
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A flat square of side `s` at `x` (two triangles), appended to `m`.
-    fn square(m: &mut Mesh, x: f32, s: f32) {
-        let b = m.vertices.len() as u32;
-        m.vertices.extend([[x, 0.0, 0.0], [x + s, 0.0, 0.0], [x + s, s, 0.0], [x, s, 0.0]]);
-        m.faces.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
-    }
-
-    #[test]
-    fn floaters_are_dropped_and_the_largest_component_kept() {
-        let mut m = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
-        square(&mut m, 0.0, 1.0);
-        square(&mut m, 5.0, 0.1); // 1 % of the area
-        square(&mut m, 9.0, 0.5); // 20 %
-        let d = drop_floaters(&m, 0.02);
-        assert_eq!(d.faces.len(), 4);
-        assert!(d.vertices.iter().all(|v| v[0] < 5.0 || v[0] >= 9.0));
-        assert_eq!(drop_floaters(&m, 0.0).faces.len(), 6);
-        // Every component under the threshold: the largest survives.
-        let mut many = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
-        for i in 0..60 {
-            square(&mut many, 2.0 * i as f32, if i == 7 { 1.1 } else { 1.0 });
-        }
-        let d = drop_floaters(&many, 0.02);
-        assert_eq!(d.faces.len(), 2);
-        assert!((d.vertices[0][0] - 14.0).abs() < 1e-6);
-    }
 }

@@ -53,9 +53,9 @@ pub fn face_components(mesh: &Mesh) -> (Vec<usize>, usize) {
     (comp, ids.len())
 }
 
-/// Remove components with fewer than `min_faces` faces or less than
-/// `min_area_fraction` of the total area (floaters), then unreferenced vertices.
-pub fn remove_small_components(mesh: &Mesh, min_faces: usize, min_area_fraction: f64) -> Mesh {
+/// Per component (ids from [`face_components`]): each face's component, and
+/// every component's face count and area.
+fn component_stats(mesh: &Mesh) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
     let (comp, n) = face_components(mesh);
     let mut faces = vec![0usize; n];
     let mut area = vec![0f64; n];
@@ -63,30 +63,52 @@ pub fn remove_small_components(mesh: &Mesh, min_faces: usize, min_area_fraction:
         faces[c] += 1;
         area[c] += face_area(&mesh.vertices, f);
     }
-    let total: f64 = area.iter().sum();
-    let keep: Vec<bool> = (0..n).map(|c| faces[c] >= min_faces && area[c] >= min_area_fraction * total).collect();
+    (comp, faces, area)
+}
+
+/// The faces of the components `keep` marks, without unreferenced vertices.
+fn keep_components(mesh: &Mesh, comp: &[usize], keep: &[bool]) -> Mesh {
     let kept = Mesh {
         vertices: mesh.vertices.clone(),
-        faces: mesh.faces.iter().zip(&comp).filter(|(_, &c)| keep[c]).map(|(f, _)| *f).collect(),
+        faces: mesh.faces.iter().zip(comp).filter(|(_, &c)| keep[c]).map(|(f, _)| *f).collect(),
         vertex_attrs: mesh.vertex_attrs.clone(),
     };
     remove_unreferenced_vertices(&kept)
 }
 
+/// The component with the largest area.
+fn largest(area: &[f64]) -> Option<usize> {
+    (0..area.len()).max_by(|&a, &b| area[a].total_cmp(&area[b]))
+}
+
+/// Remove components with fewer than `min_faces` faces or less than
+/// `min_area_fraction` of the total area (floaters), then unreferenced vertices.
+pub fn remove_small_components(mesh: &Mesh, min_faces: usize, min_area_fraction: f64) -> Mesh {
+    let (comp, faces, area) = component_stats(mesh);
+    let total: f64 = area.iter().sum();
+    let keep: Vec<bool> = (0..area.len()).map(|c| faces[c] >= min_faces && area[c] >= min_area_fraction * total).collect();
+    keep_components(mesh, &comp, &keep)
+}
+
 /// Keep only the component with the largest area.
 pub fn keep_largest_component(mesh: &Mesh) -> Mesh {
-    let (comp, n) = face_components(mesh);
-    let mut area = vec![0f64; n];
-    for (f, &c) in mesh.faces.iter().zip(&comp) {
-        area[c] += face_area(&mesh.vertices, f);
+    let (comp, _, area) = component_stats(mesh);
+    let best = largest(&area);
+    let keep: Vec<bool> = (0..area.len()).map(|c| Some(c) == best).collect();
+    keep_components(mesh, &comp, &keep)
+}
+
+/// Drop floaters: components under `fraction` of the total area, always
+/// keeping the largest (so no mesh is emptied); `fraction <= 0` keeps all.
+pub fn drop_floaters(mesh: Mesh, fraction: f64) -> Mesh {
+    if fraction <= 0.0 || mesh.faces.is_empty() {
+        return mesh;
     }
-    let best = (0..n).max_by(|&a, &b| area[a].total_cmp(&area[b]));
-    let kept = Mesh {
-        vertices: mesh.vertices.clone(),
-        faces: mesh.faces.iter().zip(&comp).filter(|(_, &c)| Some(c) == best).map(|(f, _)| *f).collect(),
-        vertex_attrs: mesh.vertex_attrs.clone(),
-    };
-    remove_unreferenced_vertices(&kept)
+    let (comp, _, area) = component_stats(&mesh);
+    let total: f64 = area.iter().sum();
+    let best = largest(&area);
+    let keep: Vec<bool> = (0..area.len()).map(|c| area[c] >= fraction * total || Some(c) == best).collect();
+    keep_components(&mesh, &comp, &keep)
 }
 
 /// RGB vertex colours as bytes (from the first three attribute channels).
@@ -544,6 +566,33 @@ mod tests {
         // Face-count criterion alone.
         let by_count = remove_small_components(&both, small.faces.len() + 1, 0.0);
         assert_eq!(by_count.faces.len(), big.faces.len());
+    }
+
+    /// A flat square of side `s` at `x` (two triangles), appended to `m`.
+    fn square(m: &mut Mesh, x: f32, s: f32) {
+        let b = m.vertices.len() as u32;
+        m.vertices.extend([[x, 0.0, 0.0], [x + s, 0.0, 0.0], [x + s, s, 0.0], [x, s, 0.0]]);
+        m.faces.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
+    }
+
+    #[test]
+    fn floaters_are_dropped_and_the_largest_component_kept() {
+        let mut m = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        square(&mut m, 0.0, 1.0);
+        square(&mut m, 5.0, 0.1); // 1 % of the area
+        square(&mut m, 9.0, 0.5); // 20 %
+        let d = drop_floaters(m.clone(), 0.02);
+        assert_eq!(d.faces.len(), 4);
+        assert!(d.vertices.iter().all(|v| v[0] < 5.0 || v[0] >= 9.0));
+        assert_eq!(drop_floaters(m, 0.0).faces.len(), 6);
+        // Every component under the threshold: the largest survives.
+        let mut many = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        for i in 0..60 {
+            square(&mut many, 2.0 * i as f32, if i == 7 { 1.1 } else { 1.0 });
+        }
+        let d = drop_floaters(many, 0.02);
+        assert_eq!(d.faces.len(), 2);
+        assert!((d.vertices[0][0] - 14.0).abs() < 1e-6);
     }
 
     #[test]

@@ -19,6 +19,7 @@ use super::bop::{Dataset, Frame};
 use super::report::Prediction;
 use crate::decoders::Mesh;
 use crate::eval::mesh::Similarity;
+use crate::geometry::alignment::inverse;
 use crate::geometry::pose::Pose;
 use crate::infer::{Engine, InferOptions, SecondView};
 use crate::inputs::frame::{FrameOptions, Intrinsics, RgbdFrame};
@@ -49,10 +50,8 @@ impl RecgenPrediction {
 /// Camera 2 → camera 1 of two frames with world poses (`None` without them).
 pub fn relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     let ((r1, t1), (r2, t2)) = (f1.cam_w2c?, f2.cam_w2c?);
-    // x₁ = R₁·R₂ᵀ·(x₂ − t₂) + t₁
-    let r: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| r1[i][k] * r2[j][k]).sum()));
-    let t: [f64; 3] = std::array::from_fn(|i| t1[i] - (0..3).map(|j| r[i][j] * t2[j]).sum::<f64>());
-    Some(Similarity::rigid(r, t))
+    // T_c1_c2 = T_c1_w · T_c2_w⁻¹
+    Some(Similarity::rigid(r1, t1).compose(&inverse(&Similarity::rigid(r2, t2))))
 }
 
 /// The frame paired with frame `i` for two-view evaluation: the next frame of
@@ -111,8 +110,8 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
         None => None,
     };
     let t0 = std::time::Instant::now();
-    let r = match &second {
-        Some((frame2, masks2, rel)) => engine.reconstruct_two_view(&frame, masks, SecondView { frame: frame2, objects: masks2.clone(), t_c1_c2: *rel }, opts)?,
+    let r = match second {
+        Some((frame2, masks2, rel)) => engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?,
         None => engine.reconstruct(&frame, masks, opts)?,
     };
     let mut run = RecgenRun { seconds_model: t0.elapsed().as_secs_f64(), ..Default::default() };
