@@ -150,10 +150,11 @@ pub struct Candidate {
     pub seed: u64,
     /// 1 or 2 (the view whose token it is).
     pub view: usize,
-    /// In the anchor camera frame.
+    /// In the anchor camera frame (after refinement with `--pose-fit depth`).
     #[serde(serialize_with = "ser_pose")]
     pub pose_camera: Pose,
-    /// Trimmed-mean distance (metres) to the observed points of each view.
+    /// Per-view score (metres): trimmed-mean distance of the observed points
+    /// to the mesh, plus the free-space term with `--pose-fit depth`.
     pub score: CandidateScore,
 }
 
@@ -265,7 +266,8 @@ struct ObjView<'a> {
 
 fn object_view<'a>(frame: &'a RgbdFrame, label: String, prepared: PreparedView, to_anchor: RigidTransform) -> Result<ObjView<'a>> {
     let (points, _) = object_points(frame, &prepared.mask_full, None)?;
-    Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor } })
+    let depth = crate::geometry::refine::DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics);
+    Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
 }
 
 /// The observed points of a view in the anchor frame, with their colours.
@@ -462,7 +464,10 @@ impl Engine {
             for (k, v) in views.iter().enumerate() {
                 let pose_n = rec.pose.per_token[k];
                 let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
-                let anchor = v.points.to_anchor.compose(&own);
+                let mut anchor = v.points.to_anchor.compose(&own);
+                if let (true, Some(sf)) = (opts.align.refine, &surface) {
+                    anchor = crate::geometry::refine::refine_pose(sf, &anchor, &view_points, &opts.align).pose;
+                }
                 let score = match &surface {
                     Some(sf) => score_candidate(sf, &anchor, k, &view_points, &opts.align),
                     None => CandidateScore { own_view: k, per_view_m: vec![f64::NAN; views.len()] },

@@ -664,7 +664,7 @@ fn alignment_scores_gt_meshes_on_real_depth() {
         let placed = pose_to_similarity(&pose_to_camera(&pose_to_normalised(&gt, &nz), &nz));
         let rel = ycb_rel_pose(&seq, 1, 5, k);
         let to1 = Sim64 { r: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])), t: [rel[0][3], rel[1][3], rel[2][3]], s: 1.0 };
-        let views = [ViewPoints { points: p1, to_anchor: Sim64::identity() }, ViewPoints { points: p5, to_anchor: to1 }];
+        let views = [ViewPoints { points: p1, to_anchor: Sim64::identity(), depth: None }, ViewPoints { points: p5, to_anchor: to1, depth: None }];
         let good = score_candidate(&surface, &placed, 0, &views, &opts);
         let off_pose = Sim64 { t: [placed.t[0] + 0.01, placed.t[1], placed.t[2]], ..placed }
             .compose(&Sim64 { r: axis_angle([0.0, 0.0, 1.0], 5f64.to_radians()), t: [0.0; 3], s: 1.0 });

@@ -70,6 +70,17 @@ pub struct EvalArgs {
     /// --method recgen: first seed.
     #[arg(long, default_value_t = 0)]
     model_seed: u64,
+    /// --method recgen: sampler steps for both stages (default: the config's).
+    #[arg(long)]
+    steps: Option<usize>,
+    /// --method recgen: classifier-free guidance strength for both stages (default: the config's).
+    #[arg(long)]
+    cfg: Option<f64>,
+    /// --method recgen: how the predicted pose is checked against the depth: `depth` (refine
+    /// scale and translation, score with the free-space term) or `recgen` (the paper's
+    /// one-sided point-to-mesh score, no refinement).
+    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "recgen"])]
+    pose_fit: String,
     /// --method recgen: two-view conditioning: each frame with the next frame of its scene
     /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
     #[arg(long)]
@@ -189,8 +200,10 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             if a.seeds == 0 {
                 bail!("--seeds must be at least 1");
             }
-            let mut io = recon::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), ..Default::default() };
+            let align = recon::geometry::alignment::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
+            let mut io = recon::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), align, ..Default::default() };
             io.run.seed = a.model_seed;
+            (io.run.ss_steps, io.run.slat_steps, io.run.ss_cfg_strength, io.run.slat_cfg_strength) = (a.steps, a.steps, a.cfg, a.cfg);
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
@@ -216,7 +229,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({
                 "kind": "recon eval --method recgen", "weights": w, "config": config, "seeds": a.seeds,
-                "model_seed": a.model_seed, "max_faces": a.max_faces, "two_view": a.two_view, "skipped": run.skipped,
+                "model_seed": a.model_seed, "pose_fit": a.pose_fit, "steps": a.steps, "cfg": a.cfg, "max_faces": a.max_faces, "two_view": a.two_view, "skipped": run.skipped,
                 "seconds_model": run.seconds_model,
                 "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
             });

@@ -49,6 +49,12 @@ pub struct InferArgs {
     /// dropped) of observed-point-to-mesh distances, metres.
     #[arg(long, default_value = "cross", value_parser = ["single", "cross", "first"])]
     select: String,
+    /// How each predicted pose is checked against the depth: `depth` refines its scale and
+    /// translation and adds a free-space term to the score (mesh surface in front of the
+    /// measured depth, which an oversized mesh cannot avoid); `recgen` is the paper's
+    /// one-sided score without refinement.
+    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "recgen"])]
+    pose_fit: String,
     /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
     /// the per-sample poses reported as uncertainty.
     #[arg(long, default_value_t = 1)]
@@ -369,7 +375,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
             a.seed
         );
     }
-    let mut opts = InferOptions { samples: a.samples, select, max_faces: (a.max_faces > 0).then_some(a.max_faces), floater_area_fraction: a.min_component_area, ..Default::default() };
+    let align = recon::geometry::alignment::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
+    let mut opts = InferOptions { samples: a.samples, select, align, max_faces: (a.max_faces > 0).then_some(a.max_faces), floater_area_fraction: a.min_component_area, ..Default::default() };
     if !(0.0..1.0).contains(&a.min_component_area) {
         anyhow::bail!("--min-component-area must be in [0, 1), got {}", a.min_component_area);
     }
@@ -423,7 +430,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
             "out": out, "random_weights": random, "config": config, "dtype": dtype.name(),
-            "views": if second.is_some() { 2 } else { 1 }, "samples": a.samples, "select": select, "seed": a.seed,
+            "views": if second.is_some() { 2 } else { 1 }, "samples": a.samples, "select": select, "pose_fit": a.pose_fit, "seed": a.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
             "objects": objs, "skipped": skips, "notes": result.notes,

@@ -50,13 +50,65 @@ pub struct AlignOptions {
     pub max_points: usize,
     /// Seed of the surface sampling.
     pub seed: u64,
+    /// Weight of the free-space term ([`super::refine`]) in a view's score;
+    /// 0 gives RecGen's one-sided score.
+    pub free_space_weight: f64,
+    /// Depth noise allowance of the free-space test (metres).
+    pub free_space_margin_m: f64,
+    /// Largest violation one sample can contribute (metres).
+    pub free_space_cap_m: f64,
+    /// Refine each candidate's scale and translation against the depth
+    /// before scoring ([`super::refine::refine_pose`]).
+    pub refine: bool,
+    /// Points per view and surface samples used inside the refinement.
+    pub refine_points: usize,
+    /// Objective evaluations per refinement.
+    pub refine_evals: usize,
 }
+
+/// Surface samples used for the free-space term of a full score.
+pub const FREE_SPACE_SAMPLES: usize = 5000;
 
 impl Default for AlignOptions {
     fn default() -> Self {
-        AlignOptions { trim: 0.1, surface_samples: 20_000, max_points: 20_000, seed: 0 }
+        AlignOptions {
+            trim: 0.1,
+            surface_samples: 20_000,
+            max_points: 20_000,
+            seed: 0,
+            free_space_weight: 0.0,
+            free_space_margin_m: 0.006,
+            free_space_cap_m: 0.05,
+            refine: false,
+            refine_points: 1500,
+            refine_evals: 160,
+        }
     }
 }
+
+impl AlignOptions {
+    /// RecGen's score (one-sided, no refinement).
+    pub fn recgen() -> Self {
+        Self::default()
+    }
+
+    /// The depth-consistent score with refinement ([`super::refine`]).
+    pub fn depth() -> Self {
+        AlignOptions { free_space_weight: 1.0, refine: true, ..Self::default() }
+    }
+
+    /// By `--pose-fit` name: `recgen` or `depth`.
+    pub fn by_name(name: &str) -> std::result::Result<Self, String> {
+        match name {
+            "recgen" => Ok(Self::recgen()),
+            "depth" => Ok(Self::depth()),
+            _ => Err(format!("`{name}`: expected recgen or depth")),
+        }
+    }
+}
+
+/// `--pose-fit` of `recon infer` and `recon eval` when not given.
+pub const DEFAULT_POSE_FIT: &str = "depth";
 
 /// Closest point to `p` on triangle `abc` (Ericson, *Real-Time Collision
 /// Detection* §5.1.5: Voronoi regions of vertices, edges, face).
@@ -105,6 +157,8 @@ pub struct Surface {
     tree: KdTree,
     face_of: Vec<u32>,
     mesh: TriMesh,
+    /// The samples in drawing order (a stride subset is spread over the surface).
+    pts: Vec<P3>,
 }
 
 impl Surface {
@@ -116,7 +170,7 @@ impl Surface {
             return Err(Error::msg("alignment: the mesh has no surface to score against"));
         }
         let (pts, face_of) = mesh.sample_surface_faces(samples.max(1), seed);
-        Ok(Surface { tree: KdTree::new(&pts), face_of, mesh })
+        Ok(Surface { tree: KdTree::new(&pts), face_of, mesh, pts })
     }
 
     /// From a decoder mesh (f32, any frame).
@@ -146,6 +200,12 @@ impl Surface {
 
     pub fn distances(&self, qs: &[P3]) -> Vec<f64> {
         qs.par_iter().map(|q| self.distance(q)).collect()
+    }
+
+    /// About `n` of the surface samples (a deterministic stride subset).
+    pub fn samples(&self, n: usize) -> Vec<P3> {
+        let stride = self.pts.len().div_ceil(n.max(1)).max(1);
+        self.pts.iter().step_by(stride).copied().collect()
     }
 }
 
@@ -193,6 +253,8 @@ pub struct ViewPoints {
     pub points: Vec<P3>,
     /// This camera → the anchor (first) camera, rigid.
     pub to_anchor: Similarity,
+    /// This view's depth image, for the free-space term (`None`: points only).
+    pub depth: Option<std::sync::Arc<super::refine::DepthView>>,
 }
 
 /// Which candidates compete and how they are scored (module docs).
@@ -257,13 +319,25 @@ impl CandidateScore {
 }
 
 /// Trimmed-mean distance from `view`'s points to `surface` placed by
-/// `pose` (surface frame → anchor camera).
+/// `pose` (surface frame → anchor camera), plus the weighted free-space term
+/// when `opts.free_space_weight > 0` and the view has depth.
 pub fn view_score(surface: &Surface, pose: &Similarity, view: &ViewPoints, opts: &AlignOptions) -> f64 {
+    let samples = if opts.free_space_weight > 0.0 && view.depth.is_some() { surface.samples(FREE_SPACE_SAMPLES) } else { Vec::new() };
+    view_score_with(surface, &samples, pose, view, opts)
+}
+
+/// [`view_score`] with the free-space term over the given surface samples.
+pub fn view_score_with(surface: &Surface, samples: &[P3], pose: &Similarity, view: &ViewPoints, opts: &AlignOptions) -> f64 {
     let to_surface = inverse(pose).compose(&view.to_anchor);
     let stride = view.points.len().div_ceil(opts.max_points.max(1)).max(1);
     let q: Vec<P3> = view.points.iter().step_by(stride).map(|p| to_surface.apply(p)).collect();
     let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s).collect();
-    trimmed_mean(&d, opts.trim)
+    let fit = trimmed_mean(&d, opts.trim);
+    if opts.free_space_weight > 0.0 && !samples.is_empty() {
+        fit + opts.free_space_weight * super::refine::free_space(samples, pose, view, opts)
+    } else {
+        fit
+    }
 }
 
 /// Score one candidate in every view.
@@ -488,7 +562,7 @@ mod tests {
         for _ in 0..150 {
             pts.push([truth.t[0] + 0.3 * (rng.uniform() - 0.5), truth.t[1] + 0.3 * (rng.uniform() - 0.5), truth.t[2] + 0.3 * (rng.uniform() - 0.5)]);
         }
-        let view = ViewPoints { points: pts, to_anchor: Similarity::identity() };
+        let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: None };
         let surface = Surface::new(mesh, 20_000, 3).unwrap();
         let opts = AlignOptions::default();
         let good = view_score(&surface, &truth, &view, &opts);
@@ -539,8 +613,8 @@ mod tests {
         let side = truth.apply_all(&face(0, 1.0, 1500, &mut rng)); // camera 1 sees +x
         let top = t_c2_c1.apply_all(&truth.apply_all(&face(2, 1.0, 1500, &mut rng))); // camera 2 sees +z
         let views = [
-            ViewPoints { points: noisy(&side, 0.0005, &mut rng), to_anchor: Similarity::identity() },
-            ViewPoints { points: noisy(&top, 0.0005, &mut rng), to_anchor: t_c1_c2 },
+            ViewPoints { points: noisy(&side, 0.0005, &mut rng), to_anchor: Similarity::identity(), depth: None },
+            ViewPoints { points: noisy(&top, 0.0005, &mut rng), to_anchor: t_c1_c2, depth: None },
         ];
         // A: rotate 180° about the canonical x axis through (0, 0, h_z): (x, y, z) ↦ (x, −y, 2h_z − z).
         let flip = Similarity { r: axis_angle([1.0, 0.0, 0.0], std::f64::consts::PI), t: [0.0, 0.0, 2.0 * h[2]], s: 1.0 };

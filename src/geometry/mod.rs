@@ -5,4 +5,5 @@ pub mod pose;
 pub mod pointmap;
 pub mod camera_pose;
 pub mod alignment;
+pub mod refine;
 pub mod voxelize;
