@@ -143,6 +143,32 @@ fn two_views_and_samples_select_consistently() {
     close(&f.pose_camera, &f.views[0].pose_own_token);
 }
 
+/// `AlignOptions::depth()` refines every candidate against the depth: the
+/// rotation stays the token's, scale and position move, the run is
+/// deterministic, and the reported score includes the free-space term.
+#[test]
+fn depth_pose_fit_refines_scale_and_position_only() {
+    use recon::geometry::alignment::{AlignOptions, SelectMethod};
+    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
+    let engine = Engine::random(&root().join("models/recgen-tiny.json"), 7).unwrap();
+    let mut opts = InferOptions { samples: 1, select: SelectMethod::Cross, ..Default::default() };
+    opts.run.ss_steps = Some(1);
+    opts.run.slat_steps = Some(1);
+    opts.run.decode_mesh = false;
+    let run = |align: AlignOptions| {
+        let (o1, _) = map.objects(Some(&[8]));
+        engine.reconstruct(&frame, o1, &InferOptions { align, ..opts.clone() }).unwrap().objects.remove(0)
+    };
+    let plain = run(AlignOptions::recgen());
+    let fitted = run(AlignOptions::depth());
+    let (a, b) = (&plain.candidates[0].pose_camera, &fitted.candidates[0].pose_camera);
+    assert_eq!(a.rotation, b.rotation, "the refinement keeps the rotation");
+    assert!((a.scale - b.scale).abs() > 1e-6 || (0..3).any(|i| (a.translation[i] - b.translation[i]).abs() > 1e-6), "{a:?} vs {b:?}");
+    assert!(fitted.selection.score_m.is_finite());
+    assert_eq!(run(AlignOptions::depth()).pose_camera, fitted.pose_camera, "deterministic");
+}
+
 #[test]
 fn objects_of_two_views_pair_by_id_or_order() {
     use recon::infer::match_views;
