@@ -424,10 +424,20 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
         assert!(pose["selection"]["method"].is_string() && pose["selection"]["score_m"].as_f64().unwrap().is_finite());
         let pv = pose["views"].as_array().unwrap();
         assert_eq!(pv.len(), views);
-        // The object sits where its points were observed (random weights: within its own extent).
+        // The predicted object sits where its points were observed (random weights: within its
+        // own extent). That is the token's pose: the depth fit (`--pose-fit depth`, the default)
+        // then moves it to wherever the random mesh best meets the depth, by at most √3 of its
+        // scale (the refinement's bound).
         let c: Vec<f64> = serde_json::from_value(pv[0]["normaliser_centre_m"].clone()).unwrap();
-        let d = ((t[0] - c[0]).powi(2) + (t[1] - c[1]).powi(2) + (t[2] - c[2]).powi(2)).sqrt();
-        assert!(d < 0.5 * pv[0]["normaliser_diameter_m"].as_f64().unwrap() + 0.05, "translation {t:?} vs observed centre {c:?}");
+        let tok: Vec<f64> = serde_json::from_value(pv[0]["pose_own_token"]["translation"].clone()).unwrap();
+        let dist = |a: &[f64], b: &[f64]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        assert!(dist(&tok, &c) < 0.5 * pv[0]["normaliser_diameter_m"].as_f64().unwrap() + 0.05, "token translation {tok:?} vs observed centre {c:?}");
+        if views == 1 {
+            let s_tok = pv[0]["pose_own_token"]["scale"].as_f64().unwrap();
+            assert!(dist(&t, &tok) <= 3f64.sqrt() * s_tok * 1.0001 + 1e-6, "refined {t:?} vs token {tok:?} (scale {s_tok})");
+            let ratio = pose["scale_m"].as_f64().unwrap() / s_tok;
+            assert!((0.5 - 1e-6..=2.0 + 1e-6).contains(&ratio), "refined scale ratio {ratio}");
+        }
         assert!(o["stage_seconds"]["total"].as_f64().unwrap() > 0.0);
         let mesh = check_glb(Path::new(files["mesh_glb"].as_str().unwrap()));
         let attrs = &mesh["meshes"][0]["primitives"][0]["attributes"];
