@@ -44,6 +44,7 @@ use crate::geometry::alignment::{
 use crate::geometry::camera_pose::pose_to_camera;
 use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
 use crate::geometry::pose::Pose;
+use crate::geometry::refine::{refine_pose, DepthView};
 use crate::inputs::frame::{depth_valid, RgbdFrame};
 use crate::inputs::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput, WeightFiles};
@@ -51,6 +52,7 @@ use crate::{Error, Result};
 use candle_core::Device;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 pub use crate::eval::mesh::Similarity as RigidTransform;
@@ -264,10 +266,16 @@ struct ObjView<'a> {
     points: ViewPoints,
 }
 
-fn object_view<'a>(frame: &'a RgbdFrame, label: String, prepared: PreparedView, to_anchor: RigidTransform) -> Result<ObjView<'a>> {
+/// `depth`: the frame's free-space depth view, shared by all its objects.
+fn object_view<'a>(frame: &'a RgbdFrame, label: String, prepared: PreparedView, to_anchor: RigidTransform, depth: Option<Arc<DepthView>>) -> Result<ObjView<'a>> {
     let (points, _) = object_points(frame, &prepared.mask_full, None)?;
-    let depth = crate::geometry::refine::DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics);
     Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+}
+
+/// A frame's depth view for the free-space term (built once per frame, and
+/// only when the score uses it).
+fn depth_view(frame: &RgbdFrame, opts: &AlignOptions) -> Option<Arc<DepthView>> {
+    (opts.free_space_weight > 0.0).then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
 }
 
 /// The observed points of a view in the anchor frame, with their colours.
@@ -368,6 +376,7 @@ impl Engine {
             }
             None => (objects.into_iter().map(|o| (o, None)).collect(), Vec::new(), None, RigidTransform::identity()),
         };
+        let (depth1, depth2) = (depth_view(frame, &opts.align), frame2.and_then(|f| depth_view(f, &opts.align)));
         let mut skipped = Vec::new();
         let mut results = Vec::new();
         let total = pairs.len();
@@ -383,11 +392,11 @@ impl Engine {
                 preprocess_seconds += t.elapsed().as_secs_f64();
                 continue;
             };
-            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity())?];
+            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone())?];
             if let (Some(f2), Some(o2)) = (frame2, o2) {
                 let (mut p2, s2) = prepare_frame_objects(f2, vec![o2], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
                 match p2.pop() {
-                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2)?),
+                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2, depth2.clone())?),
                     None => obj_notes.extend(s2.iter().map(|s| format!("view 2 {s}; reconstructed from view 1 alone"))),
                 }
             } else if frame2.is_some() {
@@ -466,7 +475,7 @@ impl Engine {
                 let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
                 let mut anchor = v.points.to_anchor.compose(&own);
                 if let (true, Some(sf)) = (opts.align.refine, &surface) {
-                    anchor = crate::geometry::refine::refine_pose(sf, &anchor, &view_points, &opts.align).pose;
+                    anchor = refine_pose(sf, &anchor, &view_points, &opts.align).pose;
                 }
                 let score = match &surface {
                     Some(sf) => score_candidate(sf, &anchor, k, &view_points, &opts.align),

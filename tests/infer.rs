@@ -66,6 +66,20 @@ fn sample_frame_reconstructs_in_camera_frame() {
     let _ = std::fs::remove_dir_all(&tmp);
 }
 
+/// The sample frame, its instance map and the random-weight tiny model, run
+/// with one sampler step, `samples` seeds, cross selection and no mesh decoding
+/// (the Gaussian centres are scored) to keep the tests fast.
+fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, InferOptions) {
+    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
+    let engine = Engine::random(&root().join("models/recgen-tiny.json"), 7).unwrap();
+    let mut opts = InferOptions { samples, select: recon::geometry::alignment::SelectMethod::Cross, ..Default::default() };
+    opts.run.ss_steps = Some(1);
+    opts.run.slat_steps = Some(1);
+    opts.run.decode_mesh = false;
+    (frame, map, engine, opts)
+}
+
 /// Two views (the sample frame twice, the second declared as seen from a
 /// camera rotated 0.3 rad about y and shifted), two samples: every
 /// candidate and per-view pose must obey the declared relative pose, the
@@ -77,13 +91,7 @@ fn two_views_and_samples_select_consistently() {
     use recon::eval::mesh::axis_angle;
     use recon::geometry::alignment::{inverse, pose_spread, pose_to_similarity, select_best, SelectMethod};
     use recon::infer::{RigidTransform, SecondView};
-    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
-    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
-    let engine = Engine::random(&root().join("models/recgen-tiny.json"), 7).unwrap();
-    let mut opts = InferOptions { samples: 2, select: SelectMethod::Cross, ..Default::default() };
-    opts.run.ss_steps = Some(1);
-    opts.run.slat_steps = Some(1);
-    opts.run.decode_mesh = false;
+    let (frame, map, engine, opts) = one_step_sample_setup(2);
     let t = RigidTransform { r: axis_angle([0.0, 1.0, 0.0], 0.3), t: [0.1, 0.0, 0.05], s: 1.0 };
     let run = |opts: &InferOptions| {
         let (o1, _) = map.objects(Some(&[8]));
@@ -148,14 +156,8 @@ fn two_views_and_samples_select_consistently() {
 /// deterministic, and the reported score includes the free-space term.
 #[test]
 fn depth_pose_fit_refines_scale_and_position_only() {
-    use recon::geometry::alignment::{AlignOptions, SelectMethod};
-    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
-    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
-    let engine = Engine::random(&root().join("models/recgen-tiny.json"), 7).unwrap();
-    let mut opts = InferOptions { samples: 1, select: SelectMethod::Cross, ..Default::default() };
-    opts.run.ss_steps = Some(1);
-    opts.run.slat_steps = Some(1);
-    opts.run.decode_mesh = false;
+    use recon::geometry::alignment::AlignOptions;
+    let (frame, map, engine, opts) = one_step_sample_setup(1);
     let run = |align: AlignOptions| {
         let (o1, _) = map.objects(Some(&[8]));
         engine.reconstruct(&frame, o1, &InferOptions { align, ..opts.clone() }).unwrap().objects.remove(0)

@@ -322,8 +322,17 @@ impl CandidateScore {
 /// `pose` (surface frame → anchor camera), plus the weighted free-space term
 /// when `opts.free_space_weight > 0` and the view has depth.
 pub fn view_score(surface: &Surface, pose: &Similarity, view: &ViewPoints, opts: &AlignOptions) -> f64 {
-    let samples = if opts.free_space_weight > 0.0 && view.depth.is_some() { surface.samples(FREE_SPACE_SAMPLES) } else { Vec::new() };
-    view_score_with(surface, &samples, pose, view, opts)
+    view_score_with(surface, &free_space_samples(surface, std::slice::from_ref(view), opts), pose, view, opts)
+}
+
+/// The surface samples the free-space term of a full score uses (none when
+/// the term is off or no view has depth).
+fn free_space_samples(surface: &Surface, views: &[ViewPoints], opts: &AlignOptions) -> Vec<P3> {
+    if opts.free_space_weight > 0.0 && views.iter().any(|v| v.depth.is_some()) {
+        surface.samples(FREE_SPACE_SAMPLES)
+    } else {
+        Vec::new()
+    }
 }
 
 /// [`view_score`] with the free-space term over the given surface samples.
@@ -342,7 +351,8 @@ pub fn view_score_with(surface: &Surface, samples: &[P3], pose: &Similarity, vie
 
 /// Score one candidate in every view.
 pub fn score_candidate(surface: &Surface, pose: &Similarity, own_view: usize, views: &[ViewPoints], opts: &AlignOptions) -> CandidateScore {
-    CandidateScore { own_view, per_view_m: views.iter().map(|v| view_score(surface, pose, v, opts)).collect() }
+    let samples = free_space_samples(surface, views, opts);
+    CandidateScore { own_view, per_view_m: views.iter().map(|v| view_score_with(surface, &samples, pose, v, opts)).collect() }
 }
 
 /// Index of the winning candidate: lowest key, ties to the first; NaN keys

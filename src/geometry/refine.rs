@@ -212,15 +212,9 @@ pub fn refine_pose(surface: &Surface, pose: &Similarity, views: &[ViewPoints], o
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::mesh::{axis_angle, TriMesh};
+    use crate::eval::baseline::box_mesh;
+    use crate::eval::mesh::axis_angle;
     use crate::geometry::alignment::view_score;
-
-    fn cuboid(h: [f64; 3]) -> TriMesh {
-        let v: Vec<P3> = (0..8).map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }]).collect();
-        let q = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
-        let faces = q.iter().flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]]).collect();
-        TriMesh { vertices: v, faces }
-    }
 
     const K: Intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 160.0, cy: 120.0 };
     const W: usize = 320;
@@ -258,7 +252,7 @@ mod tests {
         let h = [0.5, 0.3, 0.2];
         let (depth, pts) = render(h, truth, 1.2);
         let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: DepthView::new(&depth, W, H, K) };
-        (Surface::new(cuboid(h), 20_000, 4).unwrap(), view)
+        (Surface::new(box_mesh(h), 20_000, 4).unwrap(), view)
     }
 
     fn truth() -> Similarity {
