@@ -44,6 +44,7 @@ use crate::geometry::alignment::{
 use crate::geometry::camera_pose::pose_to_camera;
 use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
 use crate::geometry::pose::Pose;
+use crate::export::transform::{stretch_gaussians, stretch_mesh};
 use crate::geometry::refine::{refine_pose, DepthView};
 use crate::inputs::frame::{depth_valid, RgbdFrame};
 use crate::inputs::masks::{MaskSkip, ObjectMask, SkipReason};
@@ -155,6 +156,9 @@ pub struct Candidate {
     /// In the anchor camera frame (after refinement with `--pose-fit depth`).
     #[serde(serialize_with = "ser_pose")]
     pub pose_camera: Pose,
+    /// Per-axis stretch of the object frame fitted with `--pose-fit
+    /// depth-stretch` (`[1, 1, 1]` otherwise); the mesh is stretched before the pose.
+    pub stretch: [f64; 3],
     /// Per-view score (metres): trimmed-mean distance of the observed points
     /// to the mesh, plus the free-space term with `--pose-fit depth`.
     pub score: CandidateScore,
@@ -474,14 +478,21 @@ impl Engine {
                 let pose_n = rec.pose.per_token[k];
                 let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
                 let mut anchor = v.points.to_anchor.compose(&own);
+                let mut stretch = [1.0; 3];
                 if let (true, Some(sf)) = (opts.align.refine, &surface) {
-                    anchor = refine_pose(sf, &anchor, &view_points, &opts.align).pose;
+                    let r = refine_pose(sf, &anchor, &view_points, &opts.align);
+                    (anchor, stretch) = (r.pose, r.stretch);
                 }
-                let score = match &surface {
+                // A stretched candidate is scored on its stretched mesh.
+                let stretched = match (&mesh, stretch != [1.0; 3]) {
+                    (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, stretch), opts.align.surface_samples, opts.align.seed).ok(),
+                    _ => None,
+                };
+                let score = match stretched.as_ref().or(surface.as_ref()) {
                     Some(sf) => score_candidate(sf, &anchor, k, &view_points, &opts.align),
                     None => CandidateScore { own_view: k, per_view_m: vec![f64::NAN; views.len()] },
                 };
-                candidates.push(Candidate { seed, view: k + 1, pose_camera: similarity_to_pose(&anchor), score });
+                candidates.push(Candidate { seed, view: k + 1, pose_camera: similarity_to_pose(&anchor), stretch, score });
             }
             let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
             // This sample's own best, for the spread.
@@ -505,7 +516,7 @@ impl Engine {
         };
         let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
         let best = select_best(opts.select, &scores).unwrap_or(0);
-        let chosen = &candidates[best];
+        let chosen = candidates[best].clone();
         if chosen.score.per_view_m.iter().all(|x| x.is_nan()) {
             notes.push("no mesh or Gaussians to score the poses against; took the first candidate".to_string());
         }
@@ -548,8 +559,8 @@ impl Engine {
             candidates,
             occupied_voxels: kept.coords,
             faces_decoded: kept.faces_decoded,
-            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(m)),
-            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(g)),
+            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, chosen.stretch))),
+            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, chosen.stretch))),
             observed_points,
             observed_colors,
             timings,

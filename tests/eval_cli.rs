@@ -61,6 +61,17 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     let rep2: serde_json::Value = serde_json::from_slice(&run2.stdout).unwrap();
     assert_eq!(rep2["overall"], rep["overall"]);
     assert_eq!(json(&out2.join("report.json"))["overall"], rep["overall"]);
+    // --occlusion keeps only the instances of that range, with the same per-object scores.
+    let run4 = recon(&["eval", "--dataset", r, "--predictions", pf.to_str().unwrap(), "--samples", "3000", "--occlusion", "0-3", "--json"]);
+    assert!(run4.status.success(), "{}", String::from_utf8_lossy(&run4.stderr));
+    let rep4: serde_json::Value = serde_json::from_slice(&run4.stdout).unwrap();
+    let want: Vec<&serde_json::Value> = objs.iter().filter(|o| o["occlusion_pct"].as_f64().is_some_and(|x| x < 3.0)).collect();
+    let got = rep4["objects"].as_array().unwrap();
+    assert!(!want.is_empty() && want.len() < objs.len(), "the test needs instances on both sides of 3 %");
+    assert_eq!(got.len(), want.len());
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!(&g, w);
+    }
     // A foreign non-empty folder is never overwritten.
     let foreign = dir.join("foreign");
     std::fs::create_dir_all(&foreign).unwrap();
@@ -79,6 +90,10 @@ fn bad_input_gives_clear_errors() {
     let run = recon(&["eval", "--dataset", d, "--method", "observed"]);
     let e = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success() && e.contains(d) && e.contains("scene_gt.json"), "{e}");
+    // A reversed occlusion range.
+    let run = recon(&["eval", "--dataset", d, "--method", "observed", "--occlusion", "70-20"]);
+    let e = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && e.contains("--occlusion") && e.contains("LO-HI"), "{e}");
     // Neither --predictions nor --method.
     let run = recon(&["eval", "--dataset", d]);
     assert!(!run.status.success());

@@ -175,7 +175,7 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);
     let n_gt: usize = ds.frames.iter().map(|f| f.gt.len()).sum();
-    let er = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, false, &|_, _| {}).unwrap();
+    let er = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, false, None, &|_, _| {}).unwrap();
     eprintln!("recgen eval: {} predicted, {} skipped of {n_gt}", er.predictions.len(), er.skipped.len());
     assert_eq!(er.predictions.len() + er.skipped.len(), n_gt);
     assert!(er.predictions.iter().all(|p| !p.prediction.model_frame && !p.mesh.faces.is_empty()));

@@ -47,6 +47,10 @@ pub struct EvalArgs {
     /// Only these scenes (comma-separated; `48` matches `000048`).
     #[arg(long, value_delimiter = ',')]
     scenes: Option<Vec<String>>,
+    /// Only GT instances occluded LO–HI percent (`20-70`: 20 ≤ occlusion < 70); with
+    /// --method, only those are reconstructed.
+    #[arg(long, value_name = "LO-HI", value_parser = parse_occlusion)]
+    occlusion: Option<[f64; 2]>,
     /// Surface samples per mesh.
     #[arg(long, default_value_t = 10_000)]
     samples: usize,
@@ -79,7 +83,7 @@ pub struct EvalArgs {
     /// --method recgen: how the predicted pose is checked against the depth: `depth` (refine
     /// scale and translation, score with the free-space term) or `recgen` (the paper's
     /// one-sided point-to-mesh score, no refinement).
-    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "recgen"])]
+    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// --method recgen: two-view conditioning: each frame with the next frame of its scene
     /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
@@ -115,6 +119,17 @@ pub fn find_architecture(dir: &std::path::Path) -> anyhow::Result<PathBuf> {
 }
 
 /// `<dataset folder name>-<method>-eval` in the current folder.
+/// `LO-HI` in percent, 0 ≤ LO < HI ≤ 100.
+fn parse_occlusion(v: &str) -> Result<[f64; 2], String> {
+    let bad = || format!("`{v}`: expected LO-HI in percent, 0 ≤ LO < HI ≤ 100 (e.g. 20-70)");
+    let (lo, hi) = v.split_once('-').ok_or_else(bad)?;
+    let (lo, hi): (f64, f64) = (lo.trim().parse().map_err(|_| bad())?, hi.trim().parse().map_err(|_| bad())?);
+    if !(0.0..100.0).contains(&lo) || !(hi > lo && hi <= 100.0) {
+        return Err(bad());
+    }
+    Ok([lo, hi])
+}
+
 fn default_out(dataset: &std::path::Path, method: &str) -> PathBuf {
     let name = dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
     PathBuf::from(format!("{name}-{method}-eval"))
@@ -150,7 +165,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     if let Some(s) = &a.scenes {
         ds.retain_scenes(s)?;
     }
-    let opts = EvalOptions { n_samples: a.samples, seed: a.seed, f1_tau_rel: a.f1_tau, all_frames: a.all_frames || a.method.is_some(), ..Default::default() };
+    let opts = EvalOptions { n_samples: a.samples, seed: a.seed, f1_tau_rel: a.f1_tau, all_frames: a.all_frames || a.method.is_some(), occlusion: a.occlusion, ..Default::default() };
     if a.two_view && !matches!(a.method, Some(Method::Recgen)) {
         bail!("--two-view applies to --method recgen only");
     }
@@ -208,7 +223,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, a.two_view, &|done, total| {
+            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, a.two_view, a.occlusion, &|done, total| {
                 if done % 10 == 0 || done == total {
                     eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
                 }

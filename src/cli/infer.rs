@@ -53,7 +53,7 @@ pub struct InferArgs {
     /// translation and adds a free-space term to the score (mesh surface in front of the
     /// measured depth, which an oversized mesh cannot avoid); `recgen` is the paper's
     /// one-sided score without refinement.
-    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "recgen"])]
+    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
     /// the per-sample poses reported as uncertainty.

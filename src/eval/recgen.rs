@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use super::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
 use super::bop::{Dataset, Frame};
 use super::report::Prediction;
+use super::report::in_occlusion;
 use crate::decoders::Mesh;
 use crate::eval::mesh::Similarity;
 use crate::geometry::alignment::inverse;
@@ -83,11 +84,18 @@ fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
 
 /// Reconstructs every GT instance of one frame; with `second`, objects also
 /// visible there (matched by `obj_id`) are reconstructed from both frames.
-pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &Engine, opts: &InferOptions) -> Result<RecgenRun> {
+/// With `occlusion`, only GT instances in that occlusion range (percent,
+/// [`in_occlusion`]) are reconstructed.
+pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &Engine, opts: &InferOptions, occlusion: Option<[f64; 2]>) -> Result<RecgenRun> {
+    let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
+    let mut run = RecgenRun::default();
+    if !(0..f.gt.len()).any(keep) {
+        return Ok(run);
+    }
     let frame = open_frame(ds, f)?;
     let mut label: Option<InstanceMap> = None;
     let mut masks = Vec::with_capacity(f.gt.len());
-    for gi in 0..f.gt.len() {
+    for gi in (0..f.gt.len()).filter(|&gi| keep(gi)) {
         let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
         masks.push(ObjectMask { id: Some(gi as u32), label: format!("gt {gi}"), width: w, height: h, mask });
     }
@@ -99,7 +107,7 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
             let mut masks2 = Vec::new();
             for (gj, g2) in f2.gt.iter().enumerate() {
                 // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
-                let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id) else { continue };
+                let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
                 let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
                 if mask.iter().any(|&b| b) {
                     masks2.push(ObjectMask { id: Some(gi as u32), label: format!("view 2 gt {gj}"), width: w, height: h, mask });
@@ -114,7 +122,7 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
         Some((frame2, masks2, rel)) => engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?,
         None => engine.reconstruct(&frame, masks, opts)?,
     };
-    let mut run = RecgenRun { seconds_model: t0.elapsed().as_secs_f64(), ..Default::default() };
+    run.seconds_model = t0.elapsed().as_secs_f64();
     for s in r.skipped {
         let gi: usize = s.label.trim_start_matches("gt ").parse().unwrap_or(usize::MAX);
         let obj_id = f.gt.get(gi).map_or(0, |g| g.obj_id);
@@ -149,11 +157,11 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
 
 /// Every frame of `ds`, in order (with `two_view`, each with its [`partner`];
 /// frames without one are reconstructed from one view); `progress(done, total)` after each frame.
-pub fn recgen_dataset(ds: &Dataset, engine: &Engine, opts: &InferOptions, two_view: bool, progress: &dyn Fn(usize, usize)) -> Result<RecgenRun> {
+pub fn recgen_dataset(ds: &Dataset, engine: &Engine, opts: &InferOptions, two_view: bool, occlusion: Option<[f64; 2]>, progress: &dyn Fn(usize, usize)) -> Result<RecgenRun> {
     let mut all = RecgenRun::default();
     for (i, f) in ds.frames.iter().enumerate() {
         let second = if two_view { partner(ds, i).map(|j| &ds.frames[j]) } else { None };
-        let r = recgen_frame(ds, f, second, engine, opts)?;
+        let r = recgen_frame(ds, f, second, engine, opts, occlusion)?;
         all.predictions.extend(r.predictions);
         all.skipped.extend(r.skipped);
         all.seconds_model += r.seconds_model;

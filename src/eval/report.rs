@@ -116,13 +116,24 @@ pub struct EvalOptions {
     /// Score every frame of the dataset, not only frames with a prediction (a method that
     /// ran on every frame must not escape its misses by skipping a whole frame).
     pub all_frames: bool,
+    /// Only GT instances whose occlusion (percent, `1 − visib_fract`) lies in `[lo, hi)`;
+    /// instances without a visibility annotation are left out too.
+    pub occlusion: Option<[f64; 2]>,
     #[serde(skip)]
     pub icp: IcpOptions,
 }
 
+/// Whether GT instance `g` is inside an occlusion range (percent, `[lo, hi)`; `None`: all).
+pub fn in_occlusion(g: &GtInstance, range: Option<[f64; 2]>) -> bool {
+    match range {
+        None => true,
+        Some([lo, hi]) => g.visib_fract.map(|v| (1.0 - v) * 100.0).is_some_and(|o| o >= lo && o < hi),
+    }
+}
+
 impl Default for EvalOptions {
     fn default() -> Self {
-        EvalOptions { n_samples: 10_000, seed: 0, f1_tau_rel: 0.05, all_frames: false, icp: IcpOptions::default() }
+        EvalOptions { n_samples: 10_000, seed: 0, f1_tau_rel: 0.05, all_frames: false, occlusion: None, icp: IcpOptions::default() }
     }
 }
 
@@ -322,6 +333,9 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
     for ((scene, frame), m) in &matched {
         let fr = ds.frame(scene, *frame).ok_or_else(|| Error::msg("frame vanished"))?;
         for (gi, g) in fr.gt.iter().enumerate() {
+            if !in_occlusion(g, opts.occlusion) {
+                continue;
+            }
             let model = ds.models.get(&g.obj_id).ok_or_else(|| Error::input(ds.root.display().to_string(), format!("no model for obj_id {}", g.obj_id)))?;
             let metrics = match m.get(&gi) {
                 None => None,

@@ -90,6 +90,44 @@ impl Similarity {
     }
 }
 
+/// A mesh stretched along the axes of its own frame, `x ↦ diag(k)·x`.
+pub fn stretch_mesh(mesh: &Mesh, k: [f64; 3]) -> Mesh {
+    let k = k.map(|x| x as f32);
+    Mesh { vertices: mesh.vertices.iter().map(|v| [v[0] * k[0], v[1] * k[1], v[2] * k[2]]).collect(), faces: mesh.faces.clone(), vertex_attrs: mesh.vertex_attrs.clone() }
+}
+
+/// Gaussians stretched by `S = diag(k)` in their own frame: centres `S·x`,
+/// covariances `S·Σ·S` (re-factored into scales and a rotation).
+pub fn stretch_gaussians(g: &Gaussians, k: [f64; 3]) -> Gaussians {
+    let kf = k.map(|x| x as f32);
+    let s = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(k[0], k[1], k[2]));
+    let (scales, rotations) = g
+        .scales
+        .iter()
+        .zip(&g.rotations)
+        .map(|(sc, q)| {
+            let r = quat_to_matrix(*q);
+            let r = nalgebra::Matrix3::from_fn(|i, j| r[i][j] as f64);
+            let d = nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(sc[0] as f64, sc[1] as f64, sc[2] as f64).map(|x| x * x));
+            let cov = s * r * d * r.transpose() * s;
+            let e = nalgebra::SymmetricEigen::new(cov);
+            let mut v = e.eigenvectors;
+            if v.determinant() < 0.0 {
+                v.set_column(2, &(-v.column(2)));
+            }
+            let m: [[f32; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| v[(i, j)] as f32));
+            (std::array::from_fn(|i| e.eigenvalues[i].max(0.0).sqrt() as f32), matrix_to_quat(&m))
+        })
+        .unzip();
+    Gaussians {
+        positions: g.positions.iter().map(|p| [p[0] * kf[0], p[1] * kf[1], p[2] * kf[2]]).collect(),
+        scales,
+        rotations,
+        opacities: g.opacities.clone(),
+        dc: g.dc.clone(),
+    }
+}
+
 fn det(m: &[[f32; 3]; 3]) -> f32 {
     m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
@@ -160,6 +198,29 @@ mod tests {
 
     fn close(a: &[[f32; 3]; 3], b: &[[f32; 3]; 3], tol: f32) -> bool {
         (0..3).all(|i| (0..3).all(|j| (a[i][j] - b[i][j]).abs() <= tol))
+    }
+
+    /// The stretched covariance, rebuilt from the new scales and rotation, is `S·Σ·S`.
+    #[test]
+    fn stretched_gaussians_have_the_stretched_covariance() {
+        let q = normalize_quat([0.9, 0.2, -0.3, 0.25]);
+        let g = Gaussians { positions: vec![[0.1, -0.2, 0.3]], scales: vec![[0.03, 0.01, 0.02]], rotations: vec![q], opacities: vec![0.5], dc: vec![[0.0; 3]] };
+        let k = [1.6, 0.7, 1.1];
+        let cov = |s: [f32; 3], q: [f32; 4]| -> [[f64; 3]; 3] {
+            let r = quat_to_matrix(q);
+            std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|a| r[i][a] as f64 * r[j][a] as f64 * (s[a] as f64).powi(2)).sum()))
+        };
+        let c0 = cov(g.scales[0], q);
+        let out = stretch_gaussians(&g, k);
+        let c1 = cov(out.scales[0], out.rotations[0]);
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((c1[i][j] - k[i] * k[j] * c0[i][j]).abs() < 1e-8, "cov[{i}][{j}] {} vs {}", c1[i][j], k[i] * k[j] * c0[i][j]);
+            }
+            assert!((out.positions[0][i] - g.positions[0][i] * k[i] as f32).abs() < 1e-7);
+        }
+        let m = stretch_mesh(&Mesh { vertices: vec![[1.0, 2.0, 3.0]], faces: vec![], vertex_attrs: Default::default() }, k);
+        assert!(m.vertices[0].iter().zip([1.6, 1.4, 3.3]).all(|(a, b)| (a - b).abs() < 1e-6), "{:?}", m.vertices[0]);
     }
 
     #[test]

@@ -64,6 +64,9 @@ pub struct AlignOptions {
     pub refine_points: usize,
     /// Objective evaluations per refinement.
     pub refine_evals: usize,
+    /// Also fit a per-axis stretch of the object frame (the shape's proportions),
+    /// not only its uniform scale ([`super::refine::refine_pose`]).
+    pub refine_stretch: bool,
 }
 
 /// Surface samples used for the free-space term of a full score.
@@ -82,6 +85,7 @@ impl Default for AlignOptions {
             refine: false,
             refine_points: 1500,
             refine_evals: 160,
+            refine_stretch: false,
         }
     }
 }
@@ -102,7 +106,8 @@ impl AlignOptions {
         match name {
             "recgen" => Ok(Self::recgen()),
             "depth" => Ok(Self::depth()),
-            _ => Err(format!("`{name}`: expected recgen or depth")),
+            "depth-stretch" => Ok(AlignOptions { refine_stretch: true, refine_evals: 320, ..Self::depth() }),
+            _ => Err(format!("`{name}`: expected recgen, depth or depth-stretch")),
         }
     }
 }

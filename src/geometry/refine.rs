@@ -177,35 +177,86 @@ pub fn adjust(pose: &Similarity, delta_log_scale: f64, shift: [f64; 3]) -> Simil
 #[derive(Debug, Clone, Copy)]
 pub struct Refined {
     pub pose: Similarity,
+    /// Per-axis stretch of the object frame (`[1, 1, 1]` unless
+    /// `refine_stretch`): the mesh is `diag(stretch)·x` before `pose`.
+    pub stretch: [f64; 3],
     /// Objective before and after (subsampled cross score, metres).
     pub before_m: f64,
     pub after_m: f64,
 }
 
+/// A view's score of the surface stretched per axis by `e^a` (object frame)
+/// and placed by `pose`. Point-to-surface distances are measured in the
+/// unstretched frame and rescaled by the geometric-mean stretch (exact for a
+/// uniform stretch, close for the mild ones the refinement allows).
+pub fn stretched_score(surface: &Surface, samples: &[P3], pose: &Similarity, a: [f64; 3], view: &ViewPoints, opts: &AlignOptions) -> f64 {
+    if a == [0.0; 3] {
+        return super::alignment::view_score_with(surface, samples, pose, view, opts);
+    }
+    let k = a.map(f64::exp);
+    let gm = ((a[0] + a[1] + a[2]) / 3.0).exp();
+    let to_surface = super::alignment::inverse(pose).compose(&view.to_anchor);
+    let stride = view.points.len().div_ceil(opts.max_points.max(1)).max(1);
+    let q: Vec<P3> = view.points.iter().step_by(stride).map(|p| {
+        let c = to_surface.apply(p);
+        [c[0] / k[0], c[1] / k[1], c[2] / k[2]]
+    }).collect();
+    let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s * gm).collect();
+    let fit = trimmed_mean(&d, opts.trim);
+    if opts.free_space_weight > 0.0 && !samples.is_empty() {
+        let st: Vec<P3> = samples.iter().map(|p| [p[0] * k[0], p[1] * k[1], p[2] * k[2]]).collect();
+        fit + opts.free_space_weight * free_space(&st, pose, view, opts)
+    } else {
+        fit
+    }
+}
+
 /// Refines the scale and translation of `pose` (surface → anchor) against
-/// every view's points and depth (module docs). The result is never worse
-/// than the start on the objective.
+/// every view's points and depth (module docs); with `refine_stretch`, the
+/// scale is per axis of the object frame. The result is never worse than
+/// the start on the objective.
 pub fn refine_pose(surface: &Surface, pose: &Similarity, views: &[ViewPoints], opts: &AlignOptions) -> Refined {
     let sub = AlignOptions { max_points: opts.refine_points, ..*opts };
     let samples = surface.samples(opts.refine_points);
-    // Scale changes are bounded to ×/÷ 2 and shifts to one object size.
-    let objective = |x: &[f64; 4]| -> f64 {
-        if x[0].abs() > std::f64::consts::LN_2 || x[1..].iter().any(|v| v.abs() > 1.0) {
+    // x = [log scale per axis (one shared unless stretching), shift]: scale
+    // changes are bounded to ×/÷ 2 and shifts to one object size.
+    let split = |x: &[f64; 6]| -> (f64, [f64; 3]) {
+        if opts.refine_stretch {
+            let m = (x[0] + x[1] + x[2]) / 3.0;
+            (m, [x[0] - m, x[1] - m, x[2] - m])
+        } else {
+            (x[0], [0.0; 3])
+        }
+    };
+    let objective = |x: &[f64; 6]| -> f64 {
+        let n = if opts.refine_stretch { 3 } else { 1 };
+        if x[..n].iter().any(|v| v.abs() > std::f64::consts::LN_2) || x[3..].iter().any(|v| v.abs() > 1.0) {
             return f64::INFINITY;
         }
-        let p = adjust(pose, x[0], [x[1], x[2], x[3]]);
-        let per: Vec<f64> = views.iter().map(|v| super::alignment::view_score_with(surface, &samples, &p, v, &sub)).collect();
+        let (m, a) = split(x);
+        let p = adjust(pose, m, [x[3], x[4], x[5]]);
+        let per: Vec<f64> = views.iter().map(|v| stretched_score(surface, &samples, &p, a, v, &sub)).collect();
         per.iter().sum::<f64>() / per.len().max(1) as f64
     };
-    let before = objective(&[0.0; 4]);
+    let before = objective(&[0.0; 6]);
+    let unchanged = Refined { pose: *pose, stretch: [1.0; 3], before_m: before, after_m: before };
     if !before.is_finite() || views.is_empty() {
-        return Refined { pose: *pose, before_m: before, after_m: before };
+        return unchanged;
     }
-    let (x, after) = nelder_mead(&objective, [0.0; 4], [0.08, 0.05, 0.05, 0.05], opts.refine_evals, 1e-6);
-    if after < before {
-        Refined { pose: adjust(pose, x[0], [x[1], x[2], x[3]]), before_m: before, after_m: after }
+    let x = if opts.refine_stretch {
+        nelder_mead(&objective, [0.0; 6], [0.08, 0.08, 0.08, 0.05, 0.05, 0.05], opts.refine_evals, 1e-6)
     } else {
-        Refined { pose: *pose, before_m: before, after_m: before }
+        // Four free parameters: the shared log scale and the shift.
+        let f4 = |y: &[f64; 4]| objective(&[y[0], 0.0, 0.0, y[1], y[2], y[3]]);
+        let (y, v) = nelder_mead(&f4, [0.0; 4], [0.08, 0.05, 0.05, 0.05], opts.refine_evals, 1e-6);
+        ([y[0], 0.0, 0.0, y[1], y[2], y[3]], v)
+    };
+    let (x, after) = x;
+    if after < before {
+        let (m, a) = split(&x);
+        Refined { pose: adjust(pose, m, [x[3], x[4], x[5]]), stretch: a.map(f64::exp), before_m: before, after_m: after }
+    } else {
+        unchanged
     }
 }
 
@@ -296,6 +347,31 @@ mod tests {
         assert!(r.after_m < r.before_m);
         assert!((ds - 1.0).abs() < 0.05, "scale ratio {ds}");
         assert!(dt < 0.005, "centre error {dt} m");
+    }
+
+    /// A predicted box of the wrong proportions (30 % too long along its x,
+    /// 20 % too thin along z): the uniform fit cannot correct them, the
+    /// per-axis stretch brings the visible proportions back.
+    #[test]
+    fn stretch_refinement_corrects_proportions() {
+        let t = truth();
+        let h = [0.5, 0.3, 0.2];
+        let (depth, pts) = render(h, &t, 1.2);
+        let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: DepthView::new(&depth, W, H, K) };
+        let wrong = [0.5 * 1.3, 0.3, 0.2 * 0.8];
+        let surface = Surface::new(box_mesh(wrong), 20_000, 4).unwrap();
+        let uniform = AlignOptions { free_space_weight: 1.0, ..AlignOptions::default() };
+        let stretch = AlignOptions { refine_stretch: true, refine_evals: 320, ..uniform };
+        let ru = refine_pose(&surface, &t, std::slice::from_ref(&view), &uniform);
+        let rs = refine_pose(&surface, &t, std::slice::from_ref(&view), &stretch);
+        assert_eq!(ru.stretch, [1.0; 3]);
+        // Fitted half-extents (true-pose units) per axis, and their worst relative error.
+        let ext = |r: &Refined| -> [f64; 3] { std::array::from_fn(|i| wrong[i] * r.stretch[i] * r.pose.s / t.s) };
+        let err = |e: [f64; 3]| (0..3).map(|i| (e[i] / h[i] - 1.0).abs()).fold(0.0, f64::max);
+        let (eu, es) = (ext(&ru), ext(&rs));
+        println!("uniform {eu:.3?} ({:.3}), stretch {es:.3?} ({:.3}); objective {:.2} / {:.2} mm", err(eu), err(es), ru.after_m * 1e3, rs.after_m * 1e3);
+        assert!(rs.after_m < ru.after_m, "the stretch fit ends no better than the uniform one");
+        assert!(err(es) < 0.1 && err(es) < 0.5 * err(eu), "proportions: uniform {eu:?}, stretch {es:?}");
     }
 
     #[test]
