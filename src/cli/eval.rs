@@ -81,8 +81,9 @@ pub struct EvalArgs {
     #[arg(long)]
     cfg: Option<f64>,
     /// --method recgen: how the predicted pose is checked against the depth: `depth` (refine
-    /// scale and translation, score with the free-space term) or `recgen` (the paper's
-    /// one-sided point-to-mesh score, no refinement).
+    /// scale and translation, score with the free-space term), `depth-stretch` (also a
+    /// per-axis stretch of the object frame) or `recgen` (the paper's one-sided
+    /// point-to-mesh score, no refinement).
     #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// --method recgen: two-view conditioning: each frame with the next frame of its scene

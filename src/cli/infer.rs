@@ -51,8 +51,9 @@ pub struct InferArgs {
     select: String,
     /// How each predicted pose is checked against the depth: `depth` refines its scale and
     /// translation and adds a free-space term to the score (mesh surface in front of the
-    /// measured depth, which an oversized mesh cannot avoid); `recgen` is the paper's
-    /// one-sided score without refinement.
+    /// measured depth, which an oversized mesh cannot avoid); `depth-stretch` also fits a
+    /// per-axis stretch of the object frame (proportions; can flatten along the rays);
+    /// `recgen` is the paper's one-sided score without refinement.
     #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
