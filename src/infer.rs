@@ -516,14 +516,14 @@ impl Engine {
         };
         let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
         let best = select_best(opts.select, &scores).unwrap_or(0);
-        let chosen = candidates[best].clone();
+        let chosen = &candidates[best];
         if chosen.score.per_view_m.iter().all(|x| x.is_nan()) {
             notes.push("no mesh or Gaussians to score the poses against; took the first candidate".to_string());
         }
         let key = opts.select.key(&chosen.score).unwrap_or(f64::NAN);
         let selection = Selection { method: opts.select, candidate: best, seed: chosen.seed, view: chosen.view, score_m: key };
         let anchor = pose_to_similarity(&chosen.pose_camera);
-        let pose_camera = chosen.pose_camera;
+        let (pose_camera, stretch, chosen_view) = (chosen.pose_camera, chosen.stretch, chosen.view);
         let place = crate::export::transform::Similarity::new(pose_camera.rotation, pose_camera.translation, pose_camera.scale)?;
         let vposes = views
             .iter()
@@ -551,7 +551,7 @@ impl Engine {
         Ok(Ok(ObjectResult {
             label: label.to_string(),
             id,
-            pose_normalised: kept.per_token[chosen.view - 1],
+            pose_normalised: kept.per_token[chosen_view - 1],
             pose_camera,
             selection,
             views: vposes,
@@ -559,8 +559,8 @@ impl Engine {
             candidates,
             occupied_voxels: kept.coords,
             faces_decoded: kept.faces_decoded,
-            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, chosen.stretch))),
-            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, chosen.stretch))),
+            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
+            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),
             observed_points,
             observed_colors,
             timings,

@@ -119,7 +119,6 @@ pub fn find_architecture(dir: &std::path::Path) -> anyhow::Result<PathBuf> {
     }
 }
 
-/// `<dataset folder name>-<method>-eval` in the current folder.
 /// `LO-HI` in percent, 0 ≤ LO < HI ≤ 100.
 fn parse_occlusion(v: &str) -> Result<[f64; 2], String> {
     let bad = || format!("`{v}`: expected LO-HI in percent, 0 ≤ LO < HI ≤ 100 (e.g. 20-70)");
@@ -131,6 +130,7 @@ fn parse_occlusion(v: &str) -> Result<[f64; 2], String> {
     Ok([lo, hi])
 }
 
+/// `<dataset folder name>-<method>-eval` in the current folder.
 fn default_out(dataset: &std::path::Path, method: &str) -> PathBuf {
     let name = dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
     PathBuf::from(format!("{name}-{method}-eval"))

@@ -350,13 +350,42 @@ fn free_space_samples(surface: &Surface, views: &[ViewPoints], opts: &AlignOptio
 
 /// [`view_score`] with the free-space term over the given surface samples.
 pub fn view_score_with(surface: &Surface, samples: &[P3], pose: &Similarity, view: &ViewPoints, opts: &AlignOptions) -> f64 {
+    view_score_stretched(surface, samples, pose, [0.0; 3], view, opts)
+}
+
+/// [`view_score_with`] of the surface stretched per axis by `e^a` (surface
+/// frame) before `pose`. Point-to-surface distances are measured in the
+/// unstretched frame and rescaled by the geometric-mean stretch (exact for a
+/// uniform stretch, close for the mild ones the refinement allows).
+pub fn view_score_stretched(surface: &Surface, samples: &[P3], pose: &Similarity, a: [f64; 3], view: &ViewPoints, opts: &AlignOptions) -> f64 {
+    let stretched = a != [0.0; 3];
+    let k = a.map(f64::exp);
+    let gm = if stretched { ((a[0] + a[1] + a[2]) / 3.0).exp() } else { 1.0 };
     let to_surface = inverse(pose).compose(&view.to_anchor);
     let stride = view.points.len().div_ceil(opts.max_points.max(1)).max(1);
-    let q: Vec<P3> = view.points.iter().step_by(stride).map(|p| to_surface.apply(p)).collect();
-    let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s).collect();
+    let q: Vec<P3> = view
+        .points
+        .iter()
+        .step_by(stride)
+        .map(|p| {
+            let c = to_surface.apply(p);
+            if stretched {
+                [c[0] / k[0], c[1] / k[1], c[2] / k[2]]
+            } else {
+                c
+            }
+        })
+        .collect();
+    let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s * gm).collect();
     let fit = trimmed_mean(&d, opts.trim);
     if opts.free_space_weight > 0.0 && !samples.is_empty() {
-        fit + opts.free_space_weight * super::refine::free_space(samples, pose, view, opts)
+        let fs = if stretched {
+            let st: Vec<P3> = samples.iter().map(|p| [p[0] * k[0], p[1] * k[1], p[2] * k[2]]).collect();
+            super::refine::free_space(&st, pose, view, opts)
+        } else {
+            super::refine::free_space(samples, pose, view, opts)
+        };
+        fit + opts.free_space_weight * fs
     } else {
         fit
     }

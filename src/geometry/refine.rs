@@ -189,32 +189,6 @@ pub struct Refined {
     pub after_m: f64,
 }
 
-/// A view's score of the surface stretched per axis by `e^a` (object frame)
-/// and placed by `pose`. Point-to-surface distances are measured in the
-/// unstretched frame and rescaled by the geometric-mean stretch (exact for a
-/// uniform stretch, close for the mild ones the refinement allows).
-pub fn stretched_score(surface: &Surface, samples: &[P3], pose: &Similarity, a: [f64; 3], view: &ViewPoints, opts: &AlignOptions) -> f64 {
-    if a == [0.0; 3] {
-        return super::alignment::view_score_with(surface, samples, pose, view, opts);
-    }
-    let k = a.map(f64::exp);
-    let gm = ((a[0] + a[1] + a[2]) / 3.0).exp();
-    let to_surface = super::alignment::inverse(pose).compose(&view.to_anchor);
-    let stride = view.points.len().div_ceil(opts.max_points.max(1)).max(1);
-    let q: Vec<P3> = view.points.iter().step_by(stride).map(|p| {
-        let c = to_surface.apply(p);
-        [c[0] / k[0], c[1] / k[1], c[2] / k[2]]
-    }).collect();
-    let d: Vec<f64> = surface.distances(&q).into_iter().map(|x| x * pose.s * gm).collect();
-    let fit = trimmed_mean(&d, opts.trim);
-    if opts.free_space_weight > 0.0 && !samples.is_empty() {
-        let st: Vec<P3> = samples.iter().map(|p| [p[0] * k[0], p[1] * k[1], p[2] * k[2]]).collect();
-        fit + opts.free_space_weight * free_space(&st, pose, view, opts)
-    } else {
-        fit
-    }
-}
-
 /// Refines the scale and translation of `pose` (surface → anchor) against
 /// every view's points and depth (module docs); with `refine_stretch`, the
 /// scale is per axis of the object frame. The result is never worse than
@@ -239,7 +213,7 @@ pub fn refine_pose(surface: &Surface, pose: &Similarity, views: &[ViewPoints], o
         }
         let (m, a) = split(x);
         let p = adjust(pose, m, [x[3], x[4], x[5]]);
-        let per: Vec<f64> = views.iter().map(|v| stretched_score(surface, &samples, &p, a, v, &sub)).collect();
+        let per: Vec<f64> = views.iter().map(|v| super::alignment::view_score_stretched(surface, &samples, &p, a, v, &sub)).collect();
         let prior = opts.refine_prior * pose.s * x[..n].iter().map(|v| v * v).sum::<f64>();
         per.iter().sum::<f64>() / per.len().max(1) as f64 + prior
     };
