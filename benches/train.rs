@@ -16,8 +16,8 @@ use candle_nn::ParamsAdamW;
 use recon::geometry::pose::PoseStats;
 use recon::geometry::voxelize::Fill;
 use recon::model::config::RecGenConfig;
-use recon::model::sampler::SeededRng;
-use recon::model::ss_encoder::ReconLoss;
+use recon::rng::SeededRng;
+use recon::model::stage1::ss_vae::encoder::ReconLoss;
 use recon::train::data::{pose_stats_json, scan};
 use recon::train::flow::FlowMatching;
 use recon::train::objective::{FlowObjective, Objective, VaeObjective};
@@ -87,20 +87,20 @@ fn main() {
     let src = ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true }).unwrap();
     let enc_cfg = cfg(arch.ss_encoder.as_ref().expect("the architecture needs an ss_encoder section"));
     if only != Some("flow") {
-    recon::bench::reset_peak_rss();
+    recon::util::memory::reset_peak_rss();
     let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
     let dec = ModuleParams::init("ss_decoder", &cfg(&arch.ss_decoder), 2).unwrap();
-    let f = recon::model::ss_encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
+    let f = recon::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
     let res = arch.ss_flow_config().unwrap().resolution * f;
     let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3).unwrap();
     let (tf, tb, tu) = time_steps(&vae, batch, steps);
-    println!("ss-vae  ({res}³): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::bench::peak_rss_mib().unwrap_or(f64::NAN));
+    println!("ss-vae  ({res}³): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN));
     }
     if only == Some("vae") {
         return;
     }
 
-    recon::bench::reset_peak_rss();
+    recon::util::memory::reset_peak_rss();
     let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
     let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder").unwrap();
     let sc = scan(&src).unwrap();
@@ -111,6 +111,6 @@ fn main() {
     for (label, p) in [("1 view", 0.0), ("2 views", 1.0)] {
         obj.p_two_view = p;
         let (tf, tb, tu) = time_steps(&obj, batch, steps);
-        println!("ss-flow ({label}): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::bench::peak_rss_mib().unwrap_or(f64::NAN));
+        println!("ss-flow ({label}): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN));
     }
 }

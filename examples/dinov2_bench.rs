@@ -2,7 +2,7 @@
 //! 518×518 image: `cargo run --release --example dinov2_bench [-- N]`.
 
 use candle_core::{Device, Tensor};
-use recon::model::dinov2::{recgen_cond, Dinov2, Dinov2Config};
+use recon::model::stage1::dinov2::{recgen_cond, Dinov2, Dinov2Config};
 use recon::weights::record::RandomInit;
 
 fn main() -> anyhow::Result<()> {

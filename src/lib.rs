@@ -1,28 +1,40 @@
 //! recon: RGB-D frames + object masks → posed meshes and 3D Gaussians.
 //!
-//! Modules follow the data's path through the system:
-//! inputs → geometry → model (stage 1, stage 2) → sparse → decoders → export;
-//! `train` fits the models on synthetic data.
-//! `conformance` checks every model stage against upstream golden fixtures.
+//! Modules follow the data's path through the system, each layer importing
+//! only the layers above it in this list (`docs/ARCHITECTURE.md`; checked by
+//! `tests/layers.rs`):
+//!
+//! - ground floor: [`error`], [`math`], [`rng`], [`util`], [`spatial`],
+//!   [`mesh`], [`gaussians`];
+//! - data: [`dataset`] (frames, masks, BOP/YCB-Video, PLY, MAT v5),
+//!   [`sensor`] (depth sensor models), [`render`] (CPU ray caster),
+//!   [`export`] (GLB, PLY, OBJ, splat PLY);
+//! - [`geometry`]: point maps, pose encodings, voxelisation;
+//! - [`model`]: the networks (stage 1, stage 2, sampler) and [`weights`];
+//! - [`engine`]: both stages on a frame, pose fitting, outputs;
+//! - applications: [`eval`], [`synth`], [`sim`], [`audit`], [`train`],
+//!   [`tools`] (bench, conformance).
 
 pub mod error;
-pub mod config;
-pub mod weights;
-pub mod inputs;
+pub mod math;
+pub mod rng;
+pub mod util;
+pub mod spatial;
+pub mod mesh;
+pub mod gaussians;
+pub mod dataset;
+pub mod sensor;
+pub mod render;
+pub mod export;
 pub mod geometry;
 pub mod model;
-pub mod sparse;
-pub mod decoders;
-pub mod export;
-pub mod pipeline;
-pub mod infer;
-pub mod bench;
-pub mod conformance;
+pub mod weights;
+pub mod engine;
 pub mod eval;
-pub mod sensor;
-pub mod train;
 pub mod synth;
-pub mod audit;
 pub mod sim;
+pub mod audit;
+pub mod train;
+pub mod tools;
 
 pub use error::{Error, Result};

@@ -9,7 +9,7 @@
 use recon::audit::depth::{collect, residual_table, DepthOptions};
 use recon::audit::search::SearchOptions;
 use recon::audit::{audit_depth, write_outputs, Audit};
-use recon::model::sampler::SeededRng;
+use recon::rng::SeededRng;
 use recon::sensor::{Covariate, Effect, Form, SensorModel, Target};
 use recon::synth::{generate, SynthOptions};
 use std::collections::BTreeMap;

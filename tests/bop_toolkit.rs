@@ -5,10 +5,11 @@
 //! `BOP_TOOLKIT_PATH` may name a folder to put on PYTHONPATH (a checkout or a
 //! `pip install --target` folder); .ci/run installs the toolkit.
 
-use recon::eval::knn::P3;
-use recon::eval::mesh::{axis_angle, Similarity, TriMesh};
+use recon::spatial::P3;
+use recon::math::{axis_angle, Similarity};
+use recon::mesh::trimesh::TriMesh;
 use recon::eval::metrics::{add, add_s};
-use recon::model::sampler::SeededRng;
+use recon::rng::SeededRng;
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -74,7 +75,7 @@ fn cases() -> Vec<Case> {
     let cyl = cylinder(40.0, 100.0, 128).sample_surface(3000, 11);
     let gt = Similarity::rigid(random_rot(&mut rng), [10.0, -20.0, 650.0]);
     out.push(Case { pts: cyl.clone(), gt, est: gt.compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3])) });
-    out.push(Case { pts: cyl.clone(), gt, est: Similarity::rigid(gt.r, [gt.t[0] + 7.0, gt.t[1], gt.t[2]]) });
+    out.push(Case { pts: cyl.clone(), gt, est: Similarity::rigid(gt.rotation, [gt.translation[0] + 7.0, gt.translation[1], gt.translation[2]]) });
     out.push(Case { pts: cyl, gt, est: gt });
     out
 }
@@ -87,7 +88,7 @@ fn add_and_add_s_match_the_bop_toolkit() {
     }
     let cs = cases();
     let json = serde_json::json!({ "cases": cs.iter().map(|c| serde_json::json!({
-        "pts": c.pts, "R_gt": c.gt.r, "t_gt": c.gt.t, "R_e": c.est.r, "t_e": c.est.t
+        "pts": c.pts, "R_gt": c.gt.rotation, "t_gt": c.gt.translation, "R_e": c.est.rotation, "t_e": c.est.translation
     })).collect::<Vec<_>>() });
     let file = std::env::temp_dir().join(format!("recon-bop-cross-{}.json", std::process::id()));
     std::fs::write(&file, json.to_string()).unwrap();

@@ -22,7 +22,7 @@ fn json(p: &Path) -> serde_json::Value {
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
-    let Some(root) = recon::inputs::shared_dataset("ycbv_video_oprb") else {
+    let Some(root) = recon::dataset::shared_dataset("ycbv_video_oprb") else {
         eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video baseline test");
         return;
     };

@@ -3,8 +3,8 @@
 //! exact `visib_fract` the synthesiser writes.
 
 use recon::eval::baseline::{observe_dataset, ObservedOptions};
-use recon::eval::bop::load_dataset;
-use recon::eval::mesh::Similarity;
+use recon::dataset::bop::load_dataset;
+use recon::math::Similarity;
 use recon::eval::report::{evaluate, read_predictions, EvalOptions};
 use recon::eval::visibility::{surface_patches, visible_fraction};
 use recon::sensor::SensorModel;

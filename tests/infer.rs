@@ -1,8 +1,9 @@
 //! `recon infer` library path on the shipped YCB-Video sample: real frame,
 //! real masks, random tiny weights.
-use recon::infer::{write_outputs, Engine, InferOptions, MARKER};
-use recon::inputs::frame::{FrameOptions, RgbdFrame};
-use recon::inputs::masks::{InstanceMap, SkipReason};
+use recon::engine::infer::{Engine, InferOptions};
+use recon::engine::output::{write_outputs, MARKER};
+use recon::dataset::frame::{FrameOptions, RgbdFrame};
+use recon::dataset::masks::{InstanceMap, SkipReason};
 use std::path::PathBuf;
 
 fn root() -> PathBuf {
@@ -73,7 +74,7 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
     let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
     let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
     let engine = Engine::random(&root().join("models/recgen-tiny.json"), 7).unwrap();
-    let mut opts = InferOptions { samples, select: recon::geometry::alignment::SelectMethod::Cross, ..Default::default() };
+    let mut opts = InferOptions { samples, select: recon::engine::pose_fit::SelectMethod::Cross, ..Default::default() };
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
     opts.run.decode_mesh = false;
@@ -88,11 +89,12 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
 /// to keep the test fast: the Gaussian centres are scored instead.
 #[test]
 fn two_views_and_samples_select_consistently() {
-    use recon::eval::mesh::axis_angle;
-    use recon::geometry::alignment::{inverse, pose_spread, pose_to_similarity, select_best, SelectMethod};
-    use recon::infer::{RigidTransform, SecondView};
+    use recon::math::axis_angle;
+    use recon::engine::pose_fit::{pose_spread, select_best, SelectMethod};
+    use recon::geometry::pose::pose_to_similarity;
+    use recon::engine::infer::{RigidTransform, SecondView};
     let (frame, map, engine, opts) = one_step_sample_setup(2);
-    let t = RigidTransform { r: axis_angle([0.0, 1.0, 0.0], 0.3), t: [0.1, 0.0, 0.05], s: 1.0 };
+    let t = RigidTransform { rotation: axis_angle([0.0, 1.0, 0.0], 0.3), translation: [0.1, 0.0, 0.05], scale: 1.0 };
     let run = |opts: &InferOptions| {
         let (o1, _) = map.objects(Some(&[8]));
         let (o2, _) = map.objects(Some(&[8, 21])); // 21 has no partner in view 1
@@ -119,11 +121,11 @@ fn two_views_and_samples_select_consistently() {
     close(&o.pose_camera, &best.pose_camera);
     // Per-view poses: view 1 is the anchor; view 2 sees the pose through T⁻¹.
     close(&o.views[0].pose_selected, &o.pose_camera);
-    let in2 = recon::geometry::alignment::similarity_to_pose(&inverse(&t).compose(&pose_to_similarity(&o.pose_camera)));
+    let in2 = recon::geometry::pose::similarity_to_pose(&t.inverse().compose(&pose_to_similarity(&o.pose_camera)));
     close(&o.views[1].pose_selected, &in2);
     // The selected sample's view-2 token, mapped with T, is its view-2 candidate.
     let c2 = o.candidates.iter().find(|c| c.seed == o.selection.seed && c.view == 2).unwrap();
-    close(&recon::geometry::alignment::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token))), &c2.pose_camera);
+    close(&recon::geometry::pose::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token))), &c2.pose_camera);
     // Both views' observed points are in the anchor frame.
     assert_eq!(o.observed_points.len(), o.views[0].observed_points + o.views[1].observed_points);
     assert_eq!(o.observed_colors.len(), o.observed_points.len());
@@ -156,7 +158,7 @@ fn two_views_and_samples_select_consistently() {
 /// deterministic, and the reported score includes the free-space term.
 #[test]
 fn depth_pose_fit_refines_scale_and_position_only() {
-    use recon::geometry::alignment::AlignOptions;
+    use recon::engine::pose_fit::AlignOptions;
     let (frame, map, engine, opts) = one_step_sample_setup(1);
     let run = |align: AlignOptions| {
         let (o1, _) = map.objects(Some(&[8]));
@@ -173,8 +175,8 @@ fn depth_pose_fit_refines_scale_and_position_only() {
 
 #[test]
 fn objects_of_two_views_pair_by_id_or_order() {
-    use recon::infer::match_views;
-    use recon::inputs::masks::ObjectMask;
+    use recon::engine::infer::match_views;
+    use recon::dataset::masks::ObjectMask;
     let m = |id: Option<u32>, label: &str| ObjectMask { id, label: label.into(), width: 1, height: 1, mask: vec![true] };
     let (pairs, notes) = match_views(vec![m(Some(3), "a"), m(Some(5), "b")], vec![m(Some(5), "c"), m(Some(9), "d")]).unwrap();
     assert_eq!(pairs.len(), 2);

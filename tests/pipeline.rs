@@ -5,8 +5,8 @@
 
 use candle_core::{Device, Tensor};
 use recon::export::{save_glb, Axes, GlbOptions};
-use recon::model::sampler::SeededRng;
-use recon::pipeline::{ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, WeightsSource};
+use recon::rng::SeededRng;
+use recon::engine::pipeline::{ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, WeightsSource};
 use std::path::{Path, PathBuf};
 
 fn root() -> PathBuf {
@@ -31,7 +31,7 @@ fn view(s: usize, seed: u64, shift: f32) -> ViewInput {
     let mut rng = SeededRng::new(seed);
     let waves: Vec<[f32; 4]> = (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
     let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);
-    recon::bench::disc_view(s, shift, |u, v, ch| {
+    recon::tools::bench::disc_view(s, shift, |u, v, ch| {
         let val: f32 = waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
         (val.clamp(0.0, 1.0) - mean[ch]) / std[ch]
     })
@@ -208,8 +208,8 @@ fn load_from_initialised_files() {
 /// peak memory of each stage is reported.
 #[test]
 fn load_options_precision_and_per_stage() {
-    use recon::model::fast::{Compute, Precision};
-    use recon::pipeline::LoadOptions;
+    use recon::model::nn::fast::{Compute, Precision};
+    use recon::engine::pipeline::LoadOptions;
     let staged_opts = LoadOptions { per_stage: true, ..Default::default() };
     let resident = Pipeline::random_with(&tiny(), 2, Stages::All, &LoadOptions::default()).unwrap();
     let staged = Pipeline::random_with(&tiny(), 2, Stages::All, &staged_opts).unwrap();

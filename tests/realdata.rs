@@ -2,23 +2,23 @@
 //! plumbing proof on YCB-Video ground truth.
 //!
 //! The datasets live in ../shared/realdata (not in the repository; see
-//! `recon::inputs::shared_realdata`); tests
+//! `recon::dataset::shared_realdata`); tests
 //! that need them print a note and return when the folder is absent, so CI
 //! passes without them. The one YCB-Video frame shipped in `data/sample/`
 //! is always tested.
 
 use std::path::{Path, PathBuf};
 
-use recon::export::transform::Similarity;
+use recon::math::Similarity32;
 use recon::geometry::camera_pose::{canonical_to_camera, pose_to_camera, pose_to_normalised};
 use recon::geometry::pointmap::{object_points, prepare_object, Normaliser};
 use recon::geometry::pose::{Pose, PoseStats};
-use recon::inputs::frame::{FrameOptions, RgbdFrame};
-use recon::inputs::masks::{validate_objects, InstanceMap, MaskOptions};
-use recon::inputs::matv5::MatFile;
+use recon::dataset::frame::{FrameOptions, RgbdFrame};
+use recon::dataset::masks::{validate_objects, InstanceMap, MaskOptions};
+use recon::dataset::matv5::MatFile;
 
 fn realdata() -> Option<PathBuf> {
-    let p = recon::inputs::shared_realdata();
+    let p = recon::dataset::shared_realdata();
     if p.is_none() {
         eprintln!("note: the shared real-data folder is absent (set RECON_REALDATA); skipping this real-data test");
     }
@@ -206,13 +206,13 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
                 let place = canonical_to_camera(&pose_n, &nz).unwrap();
                 let back = pose_to_camera(&pose_n, &nz);
                 let model = read_xyz(&ycb.join(format!("models_points_xyz/{name}/points.xyz")));
-                let direct = Similarity::new(r, t, 1.0).unwrap();
+                let direct = Similarity32::new(r, t, 1.0).unwrap();
                 let placed: Vec<[f64; 3]> = model
                     .iter()
                     .map(|p| {
                         let x = [p[0] as f32, p[1] as f32, p[2] as f32];
-                        let a = place.apply_point(x);
-                        let b = direct.apply_point(x);
+                        let a = place.apply(&x);
+                        let b = direct.apply(&x);
                         for c in 0..3 {
                             worst_plumbing = worst_plumbing.max((a[c] - b[c]).abs() as f64);
                         }
@@ -234,9 +234,9 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
                 // Control: dropping the 0.5 offset of the normalised frame
                 // (t·d + c) must visibly break the placement.
                 let wrong_t: [f32; 3] = std::array::from_fn(|a| (pose_n.translation[a] as f64 * nz.diameter + nz.centre[a]) as f32);
-                let wrong = Similarity::new(r, wrong_t, (pose_n.scale as f64 * nz.diameter) as f32).unwrap();
+                let wrong = Similarity32::new(r, wrong_t, (pose_n.scale as f64 * nz.diameter) as f32).unwrap();
                 let wrong_pts: Vec<[f64; 3]> =
-                    model.iter().map(|p| wrong.apply_point([p[0] as f32, p[1] as f32, p[2] as f32]).map(|v| v as f64)).collect();
+                    model.iter().map(|p| wrong.apply(&[p[0] as f32, p[1] as f32, p[2] as f32]).map(|v| v as f64)).collect();
                 let wgrid = Grid::new(&wrong_pts, 0.02);
                 let (wrong_mean, _) = stats(obs.iter().step_by(7).map(|&q| wgrid.nearest(q)).collect());
 
@@ -265,7 +265,7 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
                 let hi: [f64; 3] = std::array::from_fn(|a| model.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max));
                 let side = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
                 let bc: [f32; 3] = std::array::from_fn(|a| ((lo[a] + hi[a]) / 2.0) as f32);
-                let cube_t = direct.apply_point(bc);
+                let cube_t = direct.apply(&bc);
                 let cube_n = pose_to_normalised(&Pose { rotation: r, translation: cube_t, scale: side as f32 }, &nz);
                 let z = stats_ss.normalize(&cube_n.to_10d()).unwrap();
                 let max_z = z[6..].iter().fold(0f32, |m, v| m.max(v.abs()));
@@ -635,9 +635,10 @@ fn infer_cli_two_view_ycb_video() {
 /// the GT relative pose); a pose 1 cm / 5° off must score clearly worse.
 #[test]
 fn alignment_scores_gt_meshes_on_real_depth() {
-    use recon::eval::mesh::{axis_angle, Similarity as Sim64};
-    use recon::eval::ply::read_ply;
-    use recon::geometry::alignment::{pose_to_similarity, score_candidate, AlignOptions, Surface, ViewPoints};
+    use recon::math::{axis_angle, Similarity as Sim64};
+    use recon::dataset::ply::read_ply;
+    use recon::engine::pose_fit::{score_candidate, AlignOptions, Surface, ViewPoints};
+    use recon::geometry::pose::pose_to_similarity;
     let Some(root) = realdata() else { return };
     let ycb = root.join("ycbv_video_oprb");
     let seq = ycb.join("0001");
@@ -673,11 +674,11 @@ fn alignment_scores_gt_meshes_on_real_depth() {
         let nz = Normaliser::fit(&p1, 0.05).unwrap();
         let placed = pose_to_similarity(&pose_to_camera(&pose_to_normalised(&gt, &nz), &nz));
         let rel = ycb_rel_pose(&seq, 1, 5, k);
-        let to1 = Sim64 { r: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])), t: [rel[0][3], rel[1][3], rel[2][3]], s: 1.0 };
+        let to1 = Sim64 { rotation: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])), translation: [rel[0][3], rel[1][3], rel[2][3]], scale: 1.0 };
         let views = [ViewPoints { points: p1, to_anchor: Sim64::identity(), depth: None }, ViewPoints { points: p5, to_anchor: to1, depth: None }];
         let good = score_candidate(&surface, &placed, 0, &views, &opts);
-        let off_pose = Sim64 { t: [placed.t[0] + 0.01, placed.t[1], placed.t[2]], ..placed }
-            .compose(&Sim64 { r: axis_angle([0.0, 0.0, 1.0], 5f64.to_radians()), t: [0.0; 3], s: 1.0 });
+        let off_pose = Sim64 { translation: [placed.translation[0] + 0.01, placed.translation[1], placed.translation[2]], ..placed }
+            .compose(&Sim64 { rotation: axis_angle([0.0, 0.0, 1.0], 5f64.to_radians()), translation: [0.0; 3], scale: 1.0 });
         let bad = score_candidate(&surface, &off_pose, 0, &views, &opts);
         println!(
             "{ply} (id {id}): GT pose trimmed-mean distance view 1 {:.2} mm, view 5 {:.2} mm, cross {:.2} mm; 1 cm/5° off: single {:.2} mm, cross {:.2} mm",

@@ -5,7 +5,7 @@
 //! Python-backed checks skip with a printed reason when python3 or the
 //! package is missing, unless RECON_REQUIRE_PYTHON_TESTS=1 (CI), where they fail.
 
-use recon::decoders::Mesh;
+use recon::mesh::Mesh;
 use recon::export::ply::{save_mesh_ply, PlyOptions};
 use recon::sim::materials::MaterialTable;
 use recon::sim::scene_file::SceneFile;
@@ -263,7 +263,7 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
     // A recon infer folder without --frame says what is missing.
     let infer = dir.join("infer");
     std::fs::create_dir_all(&infer).unwrap();
-    std::fs::write(infer.join(recon::infer::MARKER), "{\"objects\": []}").unwrap();
+    std::fs::write(infer.join(recon::engine::output::MARKER), "{\"objects\": []}").unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["scene", "--input", infer.to_str().unwrap(), "--out", dir.join("o2").to_str().unwrap()])
         .output()
@@ -275,7 +275,7 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
 
 #[test]
 fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
-    use recon::inputs::frame::{FrameOptions, RgbdFrame};
+    use recon::dataset::frame::{FrameOptions, RgbdFrame};
     use recon::sim::plane::PlaneFitOptions;
     let color = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sample/000001-color.png");
     let frame = RgbdFrame::open(&color, &FrameOptions::default()).unwrap();
@@ -306,7 +306,7 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
         entries.push(serde_json::json!({"object": label, "pose": format!("elsewhere/{label}/pose.json"), "mesh_ply": format!("elsewhere/{label}/mesh.ply")}));
     }
     entries.push(serde_json::json!({"object": "no_mesh", "pose": "elsewhere/no_mesh/pose.json", "mesh_ply": null}));
-    std::fs::write(infer.join(recon::infer::MARKER), serde_json::json!({"objects": entries, "skipped": []}).to_string()).unwrap();
+    std::fs::write(infer.join(recon::engine::output::MARKER), serde_json::json!({"objects": entries, "skipped": []}).to_string()).unwrap();
     let out = dir.join("scene");
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["scene", "--input", infer.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "primitive"])

@@ -2,7 +2,7 @@
 //! the BOP round trip through the evaluator's reader, geometric consistency of depth,
 //! masks, intrinsics and GT poses, parts mode, and the CLI.
 
-use recon::eval::bop::load_dataset;
+use recon::dataset::bop::load_dataset;
 use parry3d::math::Vector;
 use parry3d::query::PointQuery;
 use parry3d::shape::TriMesh as ParryMesh;
@@ -239,12 +239,13 @@ fn cli_writes_a_dataset_and_reports_bad_sensor_files() {
 /// by the GT poses, must render where the Xtion saw them and at the depth it measured.
 #[test]
 fn renders_real_ycbv_objects_where_the_camera_saw_them() {
-    use recon::eval::bop::load_ycbv;
-    use recon::eval::mesh::Similarity;
-    use recon::eval::ply::read_ply;
-    use recon::inputs::frame::Intrinsics;
-    use recon::synth::{render, Camera, Instance, RenderMesh, RenderOptions};
-    let Some(root) = recon::inputs::shared_dataset("ycbv_video_oprb") else {
+    use recon::dataset::bop::load_ycbv;
+    use recon::math::Similarity;
+    use recon::dataset::ply::read_ply;
+    use recon::dataset::frame::Intrinsics;
+    use recon::render::render;
+    use recon::synth::{Camera, Instance, RenderMesh, RenderOptions};
+    let Some(root) = recon::dataset::shared_dataset("ycbv_video_oprb") else {
         eprintln!("note: realdata/ycbv_video_oprb absent; skipping this real-data test");
         return;
     };

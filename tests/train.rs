@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use recon::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use recon::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
 use recon::train::bop::{BopOptions, BopSource};
 use recon::train::data::{canonical_frame, prepare_train_view, TrainingSource};
 use recon::train::run::{run, Resume, Stage, TrainOptions};
@@ -62,7 +62,7 @@ fn smoke_training_reduces_loss_and_output_runs_stage1() {
     let src = toy(true);
     let vae = run(&src, &{
         let mut o = opts(Stage::SsVae, &dir, "vae", 40, 3e-3);
-        o.recon_loss = recon::model::ss_encoder::ReconLoss::Bce;
+        o.recon_loss = recon::model::stage1::ss_vae::encoder::ReconLoss::Bce;
         o
     })
     .unwrap();
@@ -169,9 +169,9 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     // `recon eval --method recgen`'s predictor runs the folder on a BOP dataset: every GT
     // instance is either predicted (a camera-frame mesh) or skipped with a reason.
     write_toy_bop(&src, &dir.join("data"));
-    let ds = recon::eval::bop::load_dataset(&dir.join("data/train")).unwrap();
-    let engine = recon::infer::Engine::load(&out.join("recgen-micro.json"), &out).unwrap();
-    let mut io = recon::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
+    let ds = recon::dataset::bop::load_dataset(&dir.join("data/train")).unwrap();
+    let engine = recon::engine::infer::Engine::load(&out.join("recgen-micro.json"), &out).unwrap();
+    let mut io = recon::engine::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);
     let n_gt: usize = ds.frames.iter().map(|f| f.gt.len()).sum();

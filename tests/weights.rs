@@ -4,7 +4,7 @@
 //! tests/fixtures/weights/make_pt.py), manifest verification and offline fetch.
 
 use candle_core::{DType, Device, Tensor};
-use recon::model::dinov2::{Dinov2, Dinov2Config};
+use recon::model::stage1::dinov2::{Dinov2, Dinov2Config};
 use recon::weights::load::{mmaped_safetensors_vb, Checkpoint};
 use recon::weights::manifest::Manifest;
 use recon::weights::registry::{expected_tensors, ModuleConfig};
@@ -76,7 +76,7 @@ fn random_init_is_labelled_deterministic_and_valid() {
     let a = forward(vb);
     assert!(recon::weights::load_validated(&p, &specs[1..], false, DType::F32, &Device::Cpu).is_err());
     let b = forward(Checkpoint::open(&p2, None).unwrap().into_var_builder(DType::F32, &Device::Cpu));
-    assert_eq!(recon::conformance::max_abs_diff(&a, &b).unwrap(), 0.0);
+    assert_eq!(recon::util::max_abs_diff(&a, &b).unwrap(), 0.0);
 }
 
 #[test]
@@ -137,7 +137,7 @@ fn half_precision_files_load_as_f32() {
     let reference = forward(Checkpoint::open(&p32, None).unwrap().into_var_builder(DType::F32, &Device::Cpu));
     // candle's own mmap backend agrees with ours.
     let via_mmap = forward(mmaped_safetensors_vb(&[p32.clone()], DType::F32, &Device::Cpu).unwrap());
-    assert_eq!(recon::conformance::max_abs_diff(&reference, &via_mmap).unwrap(), 0.0);
+    assert_eq!(recon::util::max_abs_diff(&reference, &via_mmap).unwrap(), 0.0);
     for (dt, tol) in [(DType::F16, 2e-2), (DType::BF16, 1e-1)] {
         let half: HashMap<String, Tensor> = t.iter().map(|(k, v)| (k.clone(), v.to_dtype(dt).unwrap())).collect();
         let p = d.join(format!("{dt:?}.safetensors"));
@@ -147,7 +147,7 @@ fn half_precision_files_load_as_f32() {
         let vb = ck.into_var_builder(DType::F32, &Device::Cpu);
         assert_eq!(vb.get((1, 17, 64), "pos_embed").unwrap().dtype(), DType::F32);
         let out = forward(vb);
-        let err = recon::conformance::max_abs_diff(&out, &reference).unwrap();
+        let err = recon::util::max_abs_diff(&out, &reference).unwrap();
         assert!(err < tol && err > 0.0, "{dt:?}: max abs {err}");
     }
 }

@@ -1,5 +1,5 @@
 //! Depth audit: pixels of GT objects → residual table against a sensor model.
-use super::table::{Column, ResidualTable};
+use crate::audit::table::{Column, ResidualTable};
 use crate::sensor::{Base, Covariate, PixelCovariates, SensorModel, Target};
 
 /// One compared pixel: its covariates (after the model's edge fattening, as the
@@ -94,8 +94,8 @@ pub struct Collected {
 /// the measured colour image, edges of the GT objects' depth), after the model's edge
 /// fattening. `frame` is the frame's position in the dataset (scenes and images sorted).
 pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) -> crate::Result<Collected> {
-    use crate::eval::bop::load_dataset;
-    use crate::inputs::frame::{load_depth_u16, load_rgb};
+    use crate::dataset::bop::load_dataset;
+    use crate::dataset::frame::{load_depth_u16, load_rgb};
     use crate::Error;
     let ds = load_dataset(dir)?;
     let ycbv = dir.join("models_points_xyz").is_dir();
@@ -126,7 +126,7 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
         if (dw, dh) != (w, h) {
             return Err(Error::input(depth_path.display().to_string(), format!("depth is {dw}×{dh}, the colour image is {w}×{h}")));
         }
-        let k = crate::inputs::frame::Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2])?;
+        let k = crate::dataset::frame::Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2])?;
         let rendered = if ycbv {
             let meta = ds.root.join(&f.scene).join(format!("{:06}-meta.mat", f.frame));
             ycbv_rendering(&meta, f, k, w, h, &rgb)?
@@ -134,16 +134,16 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
             let insts: Vec<crate::synth::Instance> = f
                 .gt
                 .iter()
-                .map(|g| crate::synth::Instance::new(&meshes[&g.obj_id], crate::eval::mesh::Similarity::rigid(g.r, g.t), g.obj_id as i64))
+                .map(|g| crate::synth::Instance::new(&meshes[&g.obj_id], crate::math::Similarity::rigid(g.r, g.t), g.obj_id as i64))
                 .collect();
-            crate::synth::render(&insts, &crate::synth::Camera::new(w, h, k), &Default::default())?
+            crate::render::render(&insts, &crate::synth::Camera::new(w, h, k), &Default::default())?
         };
         let covs = model.fattened(&rendered.covariates_full(fi as i64, Some(&rgb), None), w, h);
         let mut idx: Vec<usize> = (0..w * h).filter(|&i| rendered.index[i] >= 0 && covs[i].depth > 0.0).collect();
         out.object_pixels += idx.len();
         if idx.len() > opts.max_pixels_per_frame {
             // Partial Fisher–Yates with a per-frame seed, then back to raster order.
-            let mut rng = crate::model::sampler::SeededRng::new(opts.seed ^ (fi as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            let mut rng = crate::rng::SeededRng::new(opts.seed ^ (fi as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
             for j in 0..opts.max_pixels_per_frame {
                 let r = j + (rng.next_u64() % (idx.len() - j) as u64) as usize;
                 idx.swap(j, r);
@@ -165,10 +165,10 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
 
 /// A `Rendered` view of a YCB-Video frame from its `vertmap` (model-frame coordinates of
 /// every object pixel, rendered by the dataset authors from the GT) and `label` map.
-fn ycbv_rendering(meta: &std::path::Path, f: &crate::eval::bop::Frame, k: crate::inputs::frame::Intrinsics, w: usize, h: usize, rgb: &[u8]) -> crate::Result<crate::synth::Rendered> {
+fn ycbv_rendering(meta: &std::path::Path, f: &crate::dataset::bop::Frame, k: crate::dataset::frame::Intrinsics, w: usize, h: usize, rgb: &[u8]) -> crate::Result<crate::synth::Rendered> {
     use crate::Error;
     let file = meta.display().to_string();
-    let mat = crate::inputs::matv5::MatFile::open(meta)?;
+    let mat = crate::dataset::matv5::MatFile::open(meta)?;
     let vm = mat.require("vertmap", &file)?;
     if vm.dims != [h, w, 3] {
         return Err(Error::config(&file, "vertmap", format!("dims {:?}, expected [{h}, {w}, 3]", vm.dims)));

@@ -16,8 +16,8 @@
 //! (and candidate terms scored) independently. Fitting is Fisher scoring with
 //! step halving, the outlier weight by EM; a term's threshold (`step`) or category set
 //! (`group`) is fixed from the training rows before its coefficients are fitted.
-use super::stats::solve_spd;
-use super::table::{ColumnKind, ResidualTable};
+use crate::audit::stats::solve_spd;
+use crate::audit::table::{ColumnKind, ResidualTable};
 use crate::sensor::{Effect, Form, Target};
 use std::collections::BTreeMap;
 
@@ -96,7 +96,7 @@ impl<'a> Ctx<'a> {
             .collect();
         let resid: Vec<f64> = (0..n).map(|i| table.residual(i)).collect();
         let valid: Vec<f64> = resid.iter().copied().filter(|r| r.is_finite()).collect();
-        let rsd = super::stats::robust_sd(&valid);
+        let rsd = crate::audit::stats::robust_sd(&valid);
         let maxdev = valid.iter().fold(0.0f64, |m, r| m.max(r.abs()));
         let floor_scale = table.sd_floor.iter().cloned().fold(0.0, f64::max);
         let scale_r = if rsd > 0.0 { rsd } else { floor_scale.max(maxdev).max(1e-300) };
@@ -258,8 +258,8 @@ impl Model {
     /// Starting values from robust statistics of the rows.
     pub fn initial(ctx: &Ctx, valid: &[usize], all: &[usize]) -> Self {
         let r: Vec<f64> = valid.iter().map(|&i| ctx.resid[i]).collect();
-        let bias = if r.is_empty() { 0.0 } else { super::stats::median(&r) };
-        let sd = super::stats::robust_sd(&r).max(ctx.sd_min);
+        let bias = if r.is_empty() { 0.0 } else { crate::audit::stats::median(&r) };
+        let sd = crate::audit::stats::robust_sd(&r).max(ctx.sd_min);
         let sd0 = if ctx.quadrature {
             let mf2 = valid.iter().map(|&i| ctx.table.sd_floor[i].powi(2)).sum::<f64>() / valid.len().max(1) as f64;
             (sd * sd - mf2).max(0.0)
@@ -835,7 +835,7 @@ pub fn effect(ctx: &Ctx, ft: &FittedTerm, cause: Option<String>) -> Option<Effec
 mod tests {
     use super::*;
     use crate::audit::table::Column;
-    use crate::model::sampler::SeededRng;
+    use crate::rng::SeededRng;
 
     /// Rows with x ~ U(0, 2) in 10 units, residual = 0.01 + 0.02·x + (0.005 + 0.01·x)·N, 5 % gross
     /// outliers, missing with p = 0.05 + 0.4·[x > 1.5].

@@ -33,10 +33,10 @@
 //! every covariate (10 equal-count bins, or per category): RMS over bins and covariates of
 //! the binned median residual (bias), of observed robust sd − predicted sd (noise), and of
 //! observed − predicted missing rate.
-use super::fit::{Ctx, Pred};
-use super::search::{bootstrap, globals, Cv, SearchOptions, SearchResult};
-use super::stats::{median, quantile_sorted, robust_sd};
-use super::table::ColumnKind;
+use crate::audit::fit::{Ctx, Pred};
+use crate::audit::search::{bootstrap, globals, Cv, SearchOptions, SearchResult};
+use crate::audit::stats::{median, quantile_sorted, robust_sd};
+use crate::audit::table::ColumnKind;
 use crate::sensor::{Effect, Form, Target};
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -288,7 +288,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         let (params, ses) = params_json(&form, se, ctx, ft.term.col);
         let cov = t.columns[ft.term.col].name.clone();
         let by = ft.term.by.map(|b| t.columns[b].name.clone());
-        let cause = super::cause::describe(ft.term.target, &cov, &form, by.as_deref(), col_range(ctx, ft.term.col), &t.value_unit, depth_sensor);
+        let cause = crate::audit::cause::describe(ft.term.target, &cov, &form, by.as_deref(), col_range(ctx, ft.term.col), &t.value_unit, depth_sensor);
         let ev = &s.evidence;
         findings.push(Finding {
             target: ft.term.target.name().into(),
@@ -304,7 +304,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             p_value: s.p_adjusted,
             p_value_raw: ev.p,
             candidates: s.candidates,
-            effect: if depth_sensor { super::fit::effect(ctx, ft, Some(cause.clone())) } else { None },
+            effect: if depth_sensor { crate::audit::fit::effect(ctx, ft, Some(cause.clone())) } else { None },
             cause,
             fitted: Some(form),
             term_index: ti,
@@ -347,7 +347,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         "heldout": after_m,
         "improvement": improvement,
     });
-    let term_name = |tm: &super::fit::Term| {
+    let term_name = |tm: &crate::audit::fit::Term| {
         let by = tm.by.map(|b| format!(" × {}", t.columns[b].name)).unwrap_or_default();
         format!("{} ~ {}({}){by}", tm.target.name(), tm.form.name(), t.columns[tm.col].name)
     };

@@ -35,10 +35,10 @@
 //! **Uncertainty.** Parameter standard errors come from a bootstrap over units
 //! ([`bootstrap`]): frames resampled with replacement, the final model refitted on each
 //! resample (thresholds re-chosen), so within-frame correlation is accounted for.
-use super::fit::{fit_bern, fit_gauss, is_gauss, score_stat, structure, working, Ctx, FormKind, Model, Pred, Term};
-use super::stats::{chi2_upper_tail, one_sided_t};
-use super::table::ColumnKind;
-use crate::model::sampler::SeededRng;
+use crate::audit::fit::{fit_bern, fit_gauss, is_gauss, score_stat, structure, working, Ctx, FormKind, Model, Pred, Term};
+use crate::audit::stats::{chi2_upper_tail, one_sided_t};
+use crate::audit::table::ColumnKind;
+use crate::rng::SeededRng;
 use crate::sensor::Target;
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -578,7 +578,7 @@ pub fn bootstrap(ctx: &Ctx, full: &Model, b: usize, seed: u64) -> Uncertainty {
                     let mut parent = m.clone();
                     parent.terms.remove(j);
                     let rows = if is_gauss(term.target) { &valid } else { &all };
-                    if let Some((thr, _)) = super::fit::best_step(ctx, &working(ctx, &parent, term.target, rows), term.col, term.by) {
+                    if let Some((thr, _)) = crate::audit::fit::best_step(ctx, &working(ctx, &parent, term.target, rows), term.col, term.by) {
                         m.terms[j].threshold = thr;
                     }
                 }

@@ -4,8 +4,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use recon::bench::{self, upstream, BenchReport};
-use recon::model::fast::{Compute, Precision};
+use recon::tools::bench::{self, upstream, BenchReport};
+use recon::model::nn::fast::{Compute, Precision};
 
 #[derive(clap::Args)]
 pub struct BenchArgs {

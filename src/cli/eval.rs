@@ -84,7 +84,7 @@ pub struct EvalArgs {
     /// scale and translation, score with the free-space term), `depth-stretch` (also a
     /// per-axis stretch of the object frame) or `recgen` (the paper's one-sided
     /// point-to-mesh score, no refinement).
-    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
+    #[arg(long, default_value = recon::engine::pose_fit::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// --method recgen: two-view conditioning: each frame with the next frame of its scene
     /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
@@ -150,9 +150,9 @@ impl Drop for Staging {
 pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     use anyhow::{bail, Context};
     use recon::eval::baseline::{observe_dataset, ObservedOptions, Shape};
-    use recon::eval::bop::load_dataset;
+    use recon::dataset::bop::load_dataset;
     use recon::eval::report::{evaluate, read_predictions, EvalOptions};
-    use recon::infer::{begin_output, finish_output};
+    use recon::engine::output::{begin_output, finish_output};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -212,12 +212,12 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
                 Some(c) => c.clone(),
                 None => find_architecture(w)?,
             };
-            let engine = recon::infer::Engine::load(&config, w).with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
+            let engine = recon::engine::infer::Engine::load(&config, w).with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
             if a.seeds == 0 {
                 bail!("--seeds must be at least 1");
             }
-            let align = recon::geometry::alignment::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
-            let mut io = recon::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), align, ..Default::default() };
+            let align = recon::engine::pose_fit::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
+            let mut io = recon::engine::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), align, ..Default::default() };
             io.run.seed = a.model_seed;
             (io.run.ss_steps, io.run.slat_steps, io.run.ss_cfg_strength, io.run.slat_cfg_strength) = (a.steps, a.steps, a.cfg, a.cfg);
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));

@@ -54,7 +54,7 @@ pub struct InferArgs {
     /// measured depth, which an oversized mesh cannot avoid); `depth-stretch` also fits a
     /// per-axis stretch of the object frame (proportions; can flatten along the rays);
     /// `recgen` is the paper's one-sided score without refinement.
-    #[arg(long, default_value = recon::geometry::alignment::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
+    #[arg(long, default_value = recon::engine::pose_fit::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
     pose_fit: String,
     /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
     /// the per-sample poses reported as uncertainty.
@@ -85,7 +85,7 @@ pub struct InferArgs {
     #[arg(long)]
     cfg: Option<f64>,
     /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
-    #[arg(long, default_value_t = recon::infer::DEFAULT_MAX_FACES)]
+    #[arg(long, default_value_t = recon::engine::infer::DEFAULT_MAX_FACES)]
     max_faces: usize,
     /// Floater removal: mesh components with less than this fraction of the total area are
     /// dropped (the largest is always kept); 0 keeps every component.
@@ -105,8 +105,8 @@ pub struct InferArgs {
     preview: bool,
 }
 
-fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Option<f64>, flag: &str) -> anyhow::Result<recon::inputs::frame::FrameOptions> {
-    use recon::inputs::frame::{FrameOptions, Intrinsics};
+fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Option<f64>, flag: &str) -> anyhow::Result<recon::dataset::frame::FrameOptions> {
+    use recon::dataset::frame::{FrameOptions, Intrinsics};
     let mut fo = FrameOptions { depth: depth.clone(), depth_scale: scale, ..Default::default() };
     if let Some(k) = intrinsics {
         let nums: Vec<f64> = k.split(',').filter_map(|v| v.trim().parse().ok()).collect();
@@ -121,12 +121,12 @@ fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Op
     Ok(fo)
 }
 
-type Masks = (Vec<recon::inputs::masks::ObjectMask>, Vec<recon::inputs::masks::MaskSkip>);
+type Masks = (Vec<recon::dataset::masks::ObjectMask>, Vec<recon::dataset::masks::MaskSkip>);
 
 /// One file is an instance-id map (a binary 0/255 mask is the one-object
 /// case); several files are binary masks, one object each.
 fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
-    use recon::inputs::masks::{load_binary_masks, InstanceMap};
+    use recon::dataset::masks::{load_binary_masks, InstanceMap};
     if files.len() == 1 {
         Ok(InstanceMap::open(&files[0])?.objects(ids))
     } else {
@@ -230,7 +230,7 @@ fn classify_weights(w: &Option<String>) -> anyhow::Result<Weights> {
 }
 
 /// Per-stage seconds of one object (model stages summed over samples).
-fn stage_row(o: &recon::infer::ObjectResult) -> [f64; 9] {
+fn stage_row(o: &recon::engine::infer::ObjectResult) -> [f64; 9] {
     let t = &o.timings;
     [
         t.image_encoder,
@@ -258,7 +258,7 @@ struct BarState {
     label: String,
     object: (usize, usize),
     seed: u64,
-    stage: Option<(recon::pipeline::Stage, std::time::Instant)>,
+    stage: Option<(recon::engine::pipeline::Stage, std::time::Instant)>,
     what: &'static str,
     done: Vec<String>,
 }
@@ -280,8 +280,8 @@ impl Bar {
         Bar { pb, state: Default::default() }
     }
 
-    fn event(&self, e: recon::infer::Progress) {
-        use recon::infer::Progress;
+    fn event(&self, e: recon::engine::infer::Progress) {
+        use recon::engine::infer::Progress;
         let Ok(mut s) = self.state.lock() else { return };
         let close_stage = |s: &mut BarState| {
             if let Some((st, t0)) = s.stage.take() {
@@ -327,10 +327,12 @@ impl Bar {
 
 pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
-    use recon::geometry::alignment::{parse_rel_pose, SelectMethod};
-    use recon::infer::{write_outputs, Engine, InferOptions, SecondView};
-    use recon::model::fast::Precision;
-    use recon::inputs::frame::RgbdFrame;
+    use recon::engine::pose_fit::SelectMethod;
+    use recon::geometry::camera_pose::parse_rel_pose;
+    use recon::engine::infer::{Engine, InferOptions, SecondView};
+use recon::engine::output::{write_outputs};
+    use recon::model::nn::fast::Precision;
+    use recon::dataset::frame::RgbdFrame;
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -339,7 +341,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     }
     let select: SelectMethod = a.select.parse().map_err(|e: String| anyhow::anyhow!("--select {e}"))?;
     let dtype: Precision = a.dtype.parse().map_err(|e: String| anyhow::anyhow!("--dtype: {e}"))?;
-    let load = recon::pipeline::LoadOptions::precision(dtype);
+    let load = recon::engine::pipeline::LoadOptions::precision(dtype);
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
     let (objects, mut skipped) = load_masks(&a.masks, a.objects.as_deref())?;
     let second = match &a.view2 {
@@ -376,7 +378,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
             a.seed
         );
     }
-    let align = recon::geometry::alignment::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
+    let align = recon::engine::pose_fit::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
     let mut opts = InferOptions { samples: a.samples, select, align, max_faces: (a.max_faces > 0).then_some(a.max_faces), floater_area_fraction: a.min_component_area, ..Default::default() };
     if !(0.0..1.0).contains(&a.min_component_area) {
         anyhow::bail!("--min-component-area must be in [0, 1), got {}", a.min_component_area);
@@ -388,7 +390,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     opts.run.slat_cfg_strength = a.cfg;
 
     let bar = Bar::new((objects.len() * a.samples) as u64);
-    let progress = |e: recon::infer::Progress<'_>| bar.event(e);
+    let progress = |e: recon::engine::infer::Progress<'_>| bar.event(e);
     let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
     let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
     bar.pb.finish_and_clear();
@@ -403,8 +405,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     };
     let written = write_outputs(&result, &out)?;
     if a.preview {
-        let meshes: Vec<&recon::decoders::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
-        recon::export::preview::save_preview(&frame, &meshes, &out.join("preview.png"))?;
+        let meshes: Vec<&recon::mesh::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
+        recon::render::preview::save_preview(&frame, &meshes, &out.join("preview.png"))?;
     }
     let totals: Vec<f64> = (0..STAGES.len()).map(|k| result.objects.iter().map(|o| stage_row(o)[k]).sum()).collect();
     if a.json {

@@ -75,7 +75,7 @@ pub struct SceneArgs {
 
 pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
-    use recon::inputs::frame::{FrameOptions, RgbdFrame};
+    use recon::dataset::frame::{FrameOptions, RgbdFrame};
     use recon::sim::collision::{CollisionMethod, VhacdOptions};
     use recon::sim::materials::MaterialTable;
     use recon::sim::plane::PlaneFitOptions;
@@ -98,11 +98,11 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         }
         (scene, a.input.join("scene_gt.json").display().to_string())
     } else if a.input.is_dir() {
-        if !a.input.join(recon::infer::MARKER).is_file() {
+        if !a.input.join(recon::engine::output::MARKER).is_file() {
             anyhow::bail!(
                 "{}: neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)",
                 a.input.display(),
-                recon::infer::MARKER
+                recon::engine::output::MARKER
             );
         }
         let color = match a.frame.clone().or_else(|| recon::sim::inputs::infer_frame(&a.input)) {
@@ -118,7 +118,7 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         for n in notes {
             eprintln!("note: {n}");
         }
-        (scene, a.input.join(recon::infer::MARKER).display().to_string())
+        (scene, a.input.join(recon::engine::output::MARKER).display().to_string())
     } else {
         (SceneFile::load(&a.input)?, a.input.display().to_string())
     };

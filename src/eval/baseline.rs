@@ -33,13 +33,14 @@
 //! visible points' diameter; the box diagonal for [`Shape::Box`]) with the GT diameter:
 //! occlusion shortens it.
 
-use super::bop::{Dataset, Frame, MaskSource};
-use super::knn::{KdTree, P3};
-use super::mesh::TriMesh;
-use super::report::{Prediction, PredictionsFile};
+use crate::dataset::bop::{Dataset, Frame, MaskSource};
+use crate::spatial::{KdTree, P3};
+use crate::mesh::primitives::box_mesh;
+use crate::mesh::trimesh::TriMesh;
+use crate::eval::report::{Prediction, PredictionsFile};
 use crate::geometry::pointmap::masked_points;
-use crate::inputs::frame::{load_depth_u16, Intrinsics};
-use crate::inputs::masks::{erode, load_binary_mask, Erosion, InstanceMap};
+use crate::dataset::frame::{load_depth_u16, Intrinsics};
+use crate::dataset::masks::{erode, load_binary_mask, Erosion, InstanceMap};
 use crate::{Error, Result};
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
@@ -332,12 +333,6 @@ fn canonical(pts: &[P3], b: Obb) -> Obb {
     fit_to_axes(pts, [x, y, x.cross(&y)])
 }
 
-/// A closed box mesh `[-h, h]`, outward-facing triangles.
-pub fn box_mesh(h: P3) -> TriMesh {
-    let vertices = (0..8).map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }]).collect();
-    let faces = vec![[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
-    TriMesh { vertices, faces }
-}
 
 /// Convex hull of points (parry3d's quickhull, in f32 about the points' mean so that
 /// camera-frame coordinates keep sub-micrometre precision); `None` when it fails
@@ -431,8 +426,9 @@ pub(crate) fn visible_mask(ds: &Dataset, f: &Frame, gi: usize, label: &mut Optio
 
 /// Writes `dir/predictions.json` and each prediction's mesh (binary PLY, metres, in the
 /// prediction's frame, no colours) at its relative `mesh` path; returns the predictions file's path.
-pub(crate) fn write_predictions<'a>(dir: &Path, items: impl Iterator<Item = (&'a Prediction, std::borrow::Cow<'a, crate::decoders::Mesh>)>) -> Result<PathBuf> {
-    use crate::export::{ply::save_mesh_ply, ply::PlyOptions, Axes};
+pub(crate) fn write_predictions<'a>(dir: &Path, items: impl Iterator<Item = (&'a Prediction, std::borrow::Cow<'a, crate::mesh::Mesh>)>) -> Result<PathBuf> {
+    use crate::export::ply::{save_mesh_ply, PlyOptions};
+    use crate::export::Axes;
     let meshes = dir.join("meshes");
     std::fs::create_dir_all(&meshes).map_err(|e| Error::io(&meshes, e))?;
     let opts = PlyOptions { axes: Axes::ZUp, normals: false, vertex_colors: false };
@@ -516,7 +512,7 @@ pub fn observe_dataset(ds: &Dataset, o: &ObservedOptions) -> Result<ObservedRun>
 }
 
 impl ObservedRun {
-    /// The predictions file (the format of [`super::report`]).
+    /// The predictions file (the format of [`crate::eval::report`]).
     pub fn predictions_file(&self) -> PredictionsFile {
         PredictionsFile { predictions: self.predictions.iter().map(|p| p.prediction.clone()).collect() }
     }
@@ -525,7 +521,7 @@ impl ObservedRun {
     /// frame), so the run can be re-scored with `recon eval --predictions`. Returns the
     /// predictions file's path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
-        let mesh = |m: &TriMesh| crate::decoders::Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None };
+        let mesh = |m: &TriMesh| crate::mesh::Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None };
         write_predictions(dir, self.predictions.iter().map(|p| (&p.prediction, std::borrow::Cow::Owned(mesh(&p.observed.mesh)))))
     }
 }
@@ -533,8 +529,8 @@ impl ObservedRun {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::mesh::{axis_angle, Similarity};
-    use crate::model::sampler::SeededRng;
+    use crate::math::{axis_angle, Similarity};
+    use crate::rng::SeededRng;
 
     fn rotated_box_points(h: P3, rot: [[f64; 3]; 3], t: P3, n: usize, seed: u64) -> Vec<P3> {
         box_mesh(h).transformed(&Similarity::rigid(rot, t)).sample_surface(n, seed)

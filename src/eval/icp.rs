@@ -1,8 +1,8 @@
 //! Point-to-point ICP (Besl & McKay) with the closed-form Umeyama step, rigid or with a
 //! uniform scale.
 
-use super::knn::{KdTree, P3};
-use super::mesh::Similarity;
+use crate::spatial::{KdTree, P3};
+use crate::math::Similarity;
 use nalgebra::{Matrix3, Vector3};
 
 #[derive(Debug, Clone, Copy)]
@@ -69,7 +69,7 @@ pub fn umeyama(src: &[P3], dst: &[P3], with_scale: bool) -> Similarity {
             rr[i][j] = r[(i, j)];
         }
     }
-    Similarity { r: rr, t: [t[0], t[1], t[2]], s }
+    Similarity { rotation: rr, translation: [t[0], t[1], t[2]], scale: s }
 }
 
 /// Aligns `source` onto `target` by point-to-point ICP. Returns the transform to apply to
@@ -87,7 +87,7 @@ pub fn icp(source: &[P3], target: &[P3], opts: &IcpOptions) -> IcpResult {
             [m[0] / n, m[1] / n, m[2] / n]
         };
         let (cs, ct) = (c(source), c(target));
-        tf.t = [ct[0] - cs[0], ct[1] - cs[1], ct[2] - cs[2]];
+        tf.translation = [ct[0] - cs[0], ct[1] - cs[1], ct[2] - cs[2]];
     }
     let mut cur = tf.apply_all(source);
     let mut prev = f64::INFINITY;
@@ -114,21 +114,21 @@ pub fn icp(source: &[P3], target: &[P3], opts: &IcpOptions) -> IcpResult {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::mesh::axis_angle;
-    use crate::model::sampler::SeededRng;
+    use crate::math::axis_angle;
+    use crate::rng::SeededRng;
 
     #[test]
     fn umeyama_recovers_similarity() {
         let mut rng = SeededRng::new(11);
         let src: Vec<P3> = (0..50).map(|_| [rng.normal(), rng.normal(), rng.normal()]).collect();
-        let tf = Similarity { r: axis_angle([1.0, 2.0, -0.5], 1.1), t: [0.3, -2.0, 5.0], s: 1.7 };
+        let tf = Similarity { rotation: axis_angle([1.0, 2.0, -0.5], 1.1), translation: [0.3, -2.0, 5.0], scale: 1.7 };
         let dst = tf.apply_all(&src);
         let est = umeyama(&src, &dst, true);
-        assert!((est.s - 1.7).abs() < 1e-10);
+        assert!((est.scale - 1.7).abs() < 1e-10);
         for i in 0..3 {
-            assert!((est.t[i] - tf.t[i]).abs() < 1e-9);
+            assert!((est.translation[i] - tf.translation[i]).abs() < 1e-9);
             for j in 0..3 {
-                assert!((est.r[i][j] - tf.r[i][j]).abs() < 1e-10);
+                assert!((est.rotation[i][j] - tf.rotation[i][j]).abs() < 1e-10);
             }
         }
     }

@@ -16,9 +16,9 @@
 //!   fraction of GT samples with `nn(g, pred) ≤ τ`, `F1 = 2PR/(P+R)` (0 when P+R = 0).
 //! - **Occlusion** = `1 − visib_fract`, binned by [`occlusion_bin`].
 
-use super::icp::{icp, IcpOptions, IcpResult};
-use super::knn::{KdTree, P3};
-use super::mesh::Similarity;
+use crate::eval::icp::{icp, IcpOptions, IcpResult};
+use crate::spatial::{KdTree, P3};
+use crate::math::Similarity;
 use serde::Serialize;
 
 fn mean(v: &[f64]) -> f64 {
@@ -31,7 +31,7 @@ fn mean(v: &[f64]) -> f64 {
 
 /// ADD: mean distance between corresponding model points under the GT and estimated pose.
 pub fn add(model_pts: &[P3], gt: &Similarity, est: &Similarity) -> f64 {
-    let d: Vec<f64> = model_pts.iter().map(|p| super::knn::dist2(&gt.apply(p), &est.apply(p)).sqrt()).collect();
+    let d: Vec<f64> = model_pts.iter().map(|p| crate::spatial::dist2(&gt.apply(p), &est.apply(p)).sqrt()).collect();
     mean(&d)
 }
 
@@ -129,8 +129,9 @@ pub fn occlusion_bin(visib_fract: f64) -> Option<usize> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::eval::mesh::{axis_angle, diameter, TriMesh};
-    use crate::model::sampler::SeededRng;
+    use crate::math::axis_angle;
+    use crate::mesh::trimesh::{diameter, TriMesh};
+    use crate::rng::SeededRng;
     use std::f64::consts::PI;
 
     /// Closed cylinder of radius r, height h around the z axis (centred), analytic vertices.
@@ -185,7 +186,7 @@ pub(crate) mod tests {
         let d = 0.013;
         let dir = [2.0f64, -1.0, 0.5];
         let n = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-        let est = Similarity::rigid(gt.r, [gt.t[0] + d * dir[0] / n, gt.t[1] + d * dir[1] / n, gt.t[2] + d * dir[2] / n]);
+        let est = Similarity::rigid(gt.rotation, [gt.translation[0] + d * dir[0] / n, gt.translation[1] + d * dir[1] / n, gt.translation[2] + d * dir[2] / n]);
         let a = add(&pts, &gt, &est);
         assert!((a - d).abs() < 1e-12, "ADD {a} vs {d}");
         let s = add_s(&pts, &gt, &est);

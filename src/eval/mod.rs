@@ -8,13 +8,9 @@
 //!
 //! Entry point for the CLI: [`run_eval`].
 
-pub mod knn;
-pub mod mesh;
 pub mod icp;
 pub mod metrics;
-pub mod ply;
 
-pub mod bop;
 pub mod report;
 pub mod baseline;
 pub mod recgen;

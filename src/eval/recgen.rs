@@ -14,17 +14,16 @@
 
 use std::path::{Path, PathBuf};
 
-use super::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
-use super::bop::{Dataset, Frame};
-use super::report::Prediction;
-use super::report::in_occlusion;
-use crate::decoders::Mesh;
-use crate::eval::mesh::Similarity;
-use crate::geometry::alignment::inverse;
+use crate::eval::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use crate::dataset::bop::{Dataset, Frame};
+use crate::eval::report::Prediction;
+use crate::eval::report::in_occlusion;
+use crate::mesh::Mesh;
+use crate::math::Similarity;
 use crate::geometry::pose::Pose;
-use crate::infer::{Engine, InferOptions, SecondView};
-use crate::inputs::frame::{FrameOptions, Intrinsics, RgbdFrame};
-use crate::inputs::masks::{InstanceMap, ObjectMask};
+use crate::engine::infer::{Engine, InferOptions, SecondView};
+use crate::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
+use crate::dataset::masks::{InstanceMap, ObjectMask};
 use crate::{Error, Result};
 
 pub struct RecgenPrediction {
@@ -52,7 +51,7 @@ impl RecgenPrediction {
 pub fn relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     let ((r1, t1), (r2, t2)) = (f1.cam_w2c?, f2.cam_w2c?);
     // T_c1_c2 = T_c1_w · T_c2_w⁻¹
-    Some(Similarity::rigid(r1, t1).compose(&inverse(&Similarity::rigid(r2, t2))))
+    Some(Similarity::rigid(r1, t1).compose(&(Similarity::rigid(r2, t2)).inverse()))
 }
 
 /// The frame paired with frame `i` for two-view evaluation: the next frame of
@@ -210,7 +209,7 @@ mod tests {
         let rel = relative_pose(&f1, &f2).unwrap();
         let xw = [0.2, 0.4, -0.1];
         let (x1, x2) = (apply(&r1, &t1, &xw), apply(&r2, &t2, &xw));
-        let got = apply(&rel.r, &rel.t, &x2);
+        let got = apply(&rel.rotation, &rel.translation, &x2);
         for k in 0..3 {
             assert!((got[k] - x1[k]).abs() < 1e-12, "{got:?} vs {x1:?}");
         }

@@ -26,12 +26,13 @@
 //! prediction is *missed*: it counts as a failure in all success rates and is left out of
 //! the means.
 
-use super::bop::{load_dataset, Dataset, GtInstance, Model};
-use super::icp::IcpOptions;
-use super::knn::P3;
-use super::mesh::{diameter, Similarity, TriMesh};
-use super::metrics::{self, occlusion_bin, occlusion_bin_label, F1Score, OCCLUSION_BINS};
-use super::ply::read_ply;
+use crate::dataset::bop::{load_dataset, Dataset, GtInstance, Model};
+use crate::eval::icp::IcpOptions;
+use crate::spatial::P3;
+use crate::mesh::trimesh::{diameter, TriMesh};
+use crate::math::Similarity;
+use crate::eval::metrics::{self, occlusion_bin, occlusion_bin_label, F1Score, OCCLUSION_BINS};
+use crate::dataset::ply::read_ply;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
@@ -263,7 +264,7 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
     };
     // Surfaces in the camera frame.
     let gt_s: Vec<P3> = gt_pose.apply_all(&model.mesh.sample_surface(opts.n_samples, opts.seed));
-    let est_full = Similarity { r: pred.r, t: pred.t, s: pred.scale };
+    let est_full = Similarity { rotation: pred.r, translation: pred.t, scale: pred.scale };
     let pr_s: Vec<P3> = est_full.apply_all(&pred_mesh.sample_surface(opts.n_samples, opts.seed));
     let tau = opts.f1_tau_rel * d;
     let posed = metrics::nn_dists(&pr_s, &gt_s);
@@ -521,7 +522,7 @@ impl Report {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::bop::tests::{tmpdir, write_bop};
+    use crate::dataset::bop::tests::{tmpdir, write_bop};
 
     #[test]
     fn evaluates_predictions_end_to_end() {
@@ -605,12 +606,12 @@ mod tests {
     /// One-frame BOP dataset: obj 1 = closed cylinder r 40, h 100 mm (256 segments, so a
     /// 90° spin maps it onto itself), obj 2 = box 40×20×10 mm; four GT instances.
     fn symmetric_dataset(dir: &Path) -> (Vec<GtInstance>, f64, f64) {
-        use crate::eval::mesh::axis_angle;
+        use crate::math::axis_angle;
         let scene = dir.join("test/000001");
         std::fs::create_dir_all(&scene).unwrap();
         std::fs::create_dir_all(dir.join("models")).unwrap();
         std::fs::write(dir.join("models/obj_000001.ply"), ascii_ply(&crate::eval::metrics::tests::cylinder(40.0, 100.0, 256))).unwrap();
-        std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::eval::baseline::box_mesh([20.0, 10.0, 5.0]))).unwrap();
+        std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::mesh::primitives::box_mesh([20.0, 10.0, 5.0]))).unwrap();
         std::fs::write(scene.join("scene_camera.json"), r#"{"1": {"cam_K": [600, 0, 320, 0, 600, 240, 0, 0, 1], "depth_scale": 1.0}}"#).unwrap();
         let poses = [
             (axis_angle([0.2, 1.0, 0.1], 0.5), [0.0, 0.0, 700.0], 1),
@@ -629,7 +630,7 @@ mod tests {
 
     #[test]
     fn rates_pin_identity_symmetry_and_offsets() {
-        use crate::eval::mesh::axis_angle;
+        use crate::math::axis_angle;
         let dir = tmpdir("sym");
         let (gt, d_cyl, d_box) = symmetric_dataset(&dir);
         assert!((d_cyl - (0.08f64 * 0.08 + 0.01).sqrt()).abs() < 1e-9 && (d_box - 0.0021f64.sqrt()).abs() < 1e-9);
@@ -639,7 +640,7 @@ mod tests {
             // 0: identical to the GT (pose only: the GT model is used).
             {"scene": "000001", "frame": 1, "obj_id": 1, "gt_index": 0, "R": gt[0].r, "t": gt[0].t},
             // 1: the cylinder spun 90° about its own axis: same surface, other model frame.
-            {"scene": "000001", "frame": 1, "obj_id": 1, "gt_index": 1, "R": spun.r, "t": spun.t},
+            {"scene": "000001", "frame": 1, "obj_id": 1, "gt_index": 1, "R": spun.rotation, "t": spun.translation},
             // 2: the box shifted by exactly 3 mm along camera x.
             {"scene": "000001", "frame": 1, "obj_id": 2, "gt_index": 2, "R": gt[2].r, "t": [gt[2].t[0] + 0.003, gt[2].t[1], gt[2].t[2]]},
             // 3: the box model (mm) at the GT pose, 3 % too large.
@@ -717,7 +718,7 @@ mod tests {
     /// folded into t: R(0.001·v_bop) + t − 0.001·R·off.
     #[test]
     fn ycbv_bop_mesh_at_gt_pose_scores_well() {
-        let Some(root) = crate::inputs::shared_dataset("ycbv_video_oprb") else {
+        let Some(root) = crate::dataset::shared_dataset("ycbv_video_oprb") else {
             eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video evaluation test");
             return;
         };

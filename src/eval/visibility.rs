@@ -13,8 +13,8 @@
 //! BOP, which renders the silhouette beyond the image). Errors: mask boundary noise and
 //! non-convex parts (a mug's handle) bias it by a few per cent.
 
-use super::knn::{KdTree, P3};
-use super::mesh::Similarity;
+use crate::spatial::{KdTree, P3};
+use crate::math::Similarity;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 /// Model points with outward normals and relative patch areas.
@@ -57,7 +57,7 @@ pub fn surface_patches(points: &[P3], k: usize) -> SurfacePatches {
 /// Estimated visible fraction of the posed model (module docs); `None` when no patch
 /// faces the camera. `k` is the pinhole matrix, `mask` the row-major `w·h` visible mask.
 pub fn visible_fraction(s: &SurfacePatches, pose: &Similarity, k: &[[f64; 3]; 3], mask: &[bool], w: usize, h: usize) -> Option<f64> {
-    let rot = Similarity::rigid(pose.r, [0.0; 3]);
+    let rot = Similarity::rigid(pose.rotation, [0.0; 3]);
     let (mut total, mut vis) = (0.0, 0.0);
     for ((p, n), a) in s.points.iter().zip(&s.normals).zip(&s.areas) {
         let q = pose.apply(p);
@@ -85,11 +85,12 @@ pub fn visible_fraction(s: &SurfacePatches, pose: &Similarity, k: &[[f64; 3]; 3]
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::mesh::{axis_angle, TriMesh};
+    use crate::math::axis_angle;
+    use crate::mesh::trimesh::TriMesh;
 
     /// Unit-ish box mesh `[-h, h]`.
     fn box_mesh(h: P3) -> TriMesh {
-        crate::eval::baseline::box_mesh(h)
+        crate::mesh::primitives::box_mesh(h)
     }
 
     #[test]
@@ -119,7 +120,7 @@ mod tests {
         assert!((got - want).abs() < 0.03, "estimated {got}, rasterised {want}");
         // Nothing visible → 0; behind the camera → None.
         assert_eq!(visible_fraction(&s, &pose, &k, &vec![false; w * h], w, h), Some(0.0));
-        let behind = Similarity::rigid(pose.r, [0.0, 0.0, -0.6]);
+        let behind = Similarity::rigid(pose.rotation, [0.0, 0.0, -0.6]);
         assert_eq!(visible_fraction(&s, &behind, &k, &sil, w, h), None);
     }
 }

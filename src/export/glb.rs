@@ -2,8 +2,8 @@
 //! u32 indices, one primitive, one node), or a scene of named meshes and
 //! coloured point clouds.
 
-use super::{write_file, Axes};
-use crate::decoders::Mesh;
+use crate::export::{write_file, Axes};
+use crate::mesh::Mesh;
 use crate::{Error, Result};
 use serde_json::json;
 use std::path::Path;
@@ -205,7 +205,7 @@ fn f32_bytes<const K: usize>(rows: &[[f32; K]]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::export::tests::tetrahedron;
+    use crate::mesh::primitives::tetrahedron;
 
     fn u32_at(b: &[u8], o: usize) -> u32 {
         u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]])

@@ -1,20 +1,13 @@
-//! export: mesh (GLB, PLY, OBJ) and Gaussian-splat (3DGS PLY) writers, the
-//! similarity transform that places objects in the camera frame, and the
-//! simulator formats of a settled scene (URDF, MJCF, USD).
+//! export: the asset formats, mesh (GLB, PLY, OBJ) and Gaussian-splat (3DGS
+//! PLY) writers. The simulator formats of a settled scene (URDF, MJCF, USD)
+//! live with the scene in `crate::sim`.
 
 pub mod glb;
-pub mod mjcf;
 pub mod obj;
 pub mod ply;
-pub mod preview;
 pub mod splat;
-pub mod transform;
-pub mod urdf;
-pub mod usd;
 
 pub use glb::{glb_bytes, save_glb, GlbOptions};
-pub use splat::Gaussians;
-pub use transform::Similarity;
 
 use crate::{Error, Result};
 use std::path::Path;
@@ -51,22 +44,6 @@ pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
 
 #[cfg(test)]
 pub(crate) mod tests {
-    use crate::decoders::Mesh;
-
-    /// A closed, outward-oriented tetrahedron.
-    pub fn tetrahedron() -> Mesh {
-        Mesh {
-            vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            faces: vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
-            vertex_attrs: None,
-        }
-    }
-
-    #[test]
-    fn tetrahedron_is_closed() {
-        assert!(tetrahedron().topology().is_closed_oriented_manifold());
-    }
-
     #[test]
     fn y_up_matrix_matches_apply() {
         let m = super::Axes::YUp.matrix();

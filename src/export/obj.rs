@@ -1,7 +1,7 @@
 //! Wavefront OBJ writer (vertex colours as the common `v x y z r g b` extension).
 
-use super::{write_file, Axes};
-use crate::decoders::Mesh;
+use crate::export::{write_file, Axes};
+use crate::mesh::Mesh;
 use crate::Result;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -44,7 +44,7 @@ pub fn save_obj(mesh: &Mesh, path: &Path, axes: Axes, vertex_colors: bool) -> Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::export::tests::tetrahedron;
+    use crate::mesh::primitives::tetrahedron;
 
     #[test]
     fn obj_is_one_based_and_parses_back() {

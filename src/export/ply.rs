@@ -1,7 +1,7 @@
 //! Binary little-endian PLY mesh writer (optional normals and RGB colours).
 
-use super::{write_file, Axes};
-use crate::decoders::Mesh;
+use crate::export::{write_file, Axes};
+use crate::mesh::Mesh;
 use crate::Result;
 use std::path::Path;
 
@@ -74,7 +74,7 @@ pub fn split_header(b: &[u8]) -> Option<(Vec<String>, &[u8])> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::export::tests::tetrahedron;
+    use crate::mesh::primitives::tetrahedron;
 
     #[test]
     fn header_and_body_sizes() {

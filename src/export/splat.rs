@@ -2,67 +2,17 @@
 //! common splat viewers: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3,
 //! all float, with opacity as a logit, log scales and rotation (w, x, y, z).
 
-use super::transform::{normalize_quat, Similarity};
-use super::{write_file, Axes};
-use crate::{Error, Result};
+use crate::gaussians::Gaussians;
+use crate::math::{normalize_quat, Similarity32};
+use crate::export::{write_file, Axes};
+use crate::Result;
 use std::path::Path;
-
-/// Zeroth-order SH basis constant: RGB = C0·dc + 0.5.
-pub const SH_C0: f32 = 0.282_094_79;
-
-/// Activated Gaussians in one frame. The SLat Gaussian decoder returns this
-/// type directly (`decoders::gaussian::GaussianModel::to_gaussians`).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Gaussians {
-    pub positions: Vec<[f32; 3]>,
-    /// Standard deviations along the local axes (linear, > 0).
-    pub scales: Vec<[f32; 3]>,
-    /// Unit quaternions (w, x, y, z).
-    pub rotations: Vec<[f32; 4]>,
-    /// In (0, 1).
-    pub opacities: Vec<f32>,
-    /// SH degree-0 coefficients; RGB = 0.28209479·dc + 0.5.
-    pub dc: Vec<[f32; 3]>,
-}
 
 /// The 17 per-splat properties, in file order.
 pub const SPLAT_PROPERTIES: [&str; 17] = [
     "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0",
     "rot_1", "rot_2", "rot_3",
 ];
-
-impl Gaussians {
-    pub fn len(&self) -> usize {
-        self.positions.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
-    }
-
-    pub fn validate(&self) -> Result<()> {
-        let n = self.positions.len();
-        if [self.scales.len(), self.rotations.len(), self.opacities.len(), self.dc.len()].iter().any(|&l| l != n) {
-            return Err(Error::msg("gaussians: field lengths differ"));
-        }
-        Ok(())
-    }
-
-    /// Base colour of splat `i`: `C0·dc + 0.5`, clamped at 0 like the rasteriser.
-    pub fn rgb(&self, i: usize) -> [f32; 3] {
-        let d = self.dc[i];
-        [0, 1, 2].map(|c| (SH_C0 * d[c] + 0.5).max(0.0))
-    }
-
-    /// Concatenate (e.g. several objects placed in one scene).
-    pub fn extend(&mut self, other: &Gaussians) {
-        self.positions.extend_from_slice(&other.positions);
-        self.scales.extend_from_slice(&other.scales);
-        self.rotations.extend_from_slice(&other.rotations);
-        self.opacities.extend_from_slice(&other.opacities);
-        self.dc.extend_from_slice(&other.dc);
-    }
-}
 
 fn logit(p: f32) -> f32 {
     let p = p.clamp(1e-6, 1.0 - 1e-6);
@@ -76,7 +26,7 @@ pub fn splat_ply_bytes(g: &Gaussians, axes: Axes) -> Result<Vec<u8>> {
     let g = if axes == Axes::ZUp {
         g
     } else {
-        placed = Similarity::new(axes.matrix(), [0.0; 3], 1.0)?.apply_gaussians(g);
+        placed = Similarity32::new(axes.matrix(), [0.0; 3], 1.0)?.apply_gaussians(g);
         &placed
     };
     let mut h = format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\n", g.len());

@@ -6,7 +6,7 @@
 //! scale `s` that place the decoded object — the TRELLIS canonical frame in
 //! which the voxel grid, the mesh and the Gaussians come out, `[-0.5, 0.5]³`,
 //! z up, exactly as the decoders emit it — into the normalised point-map
-//! frame of [`super::pointmap`]: `x_n = s·R·x_canonical + t`. RecGen applies
+//! frame of [`crate::geometry::pointmap`]: `x_n = s·R·x_canonical + t`. RecGen applies
 //! the pose matrix directly to the raw decoder mesh (`inference.py`,
 //! `_build_result_from_outputs`) and documents the canonical → camera map as
 //! `inv(cam2ncam) @ pose` applied to the Gaussians in their canonical frame
@@ -23,10 +23,11 @@
 //! offset: the normalised frame is centred at `(0.5, 0.5, 0.5)`, not at 0,
 //! which matches the stage-1 pose stats (translation mean ≈ (0.50, 0.49, 0.66)).
 
-use super::pointmap::{Normaliser, NORMALISED_CENTRE};
-use super::pose::Pose;
-use crate::export::transform::Similarity;
-use crate::Result;
+use crate::geometry::pointmap::{Normaliser, NORMALISED_CENTRE};
+use crate::geometry::pose::Pose;
+use crate::math::{Similarity, Similarity32};
+use crate::{Error, Result};
+use std::path::Path;
 
 /// Normalised-frame pose → camera-frame pose (metres).
 pub fn pose_to_camera(p: &Pose, n: &Normaliser) -> Pose {
@@ -45,16 +46,68 @@ pub fn pose_to_normalised(p: &Pose, n: &Normaliser) -> Pose {
 /// centres/scales/rotations) in the metric camera frame, from the predicted
 /// normalised-frame pose: RecGen's `inv(cam2ncam) @ pose_matrix`.
 /// Fails when the rotation is not proper or the scale not positive.
-pub fn canonical_to_camera(p: &Pose, n: &Normaliser) -> Result<Similarity> {
+pub fn canonical_to_camera(p: &Pose, n: &Normaliser) -> Result<Similarity32> {
     let c = pose_to_camera(p, n);
-    Similarity::new(c.rotation, c.translation, c.scale)
+    Similarity32::new(c.rotation, c.translation, c.scale)
+}
+
+/// The relative camera pose `T_c1_c2` (camera 2 → camera 1: `x₁ = R·x₂ + t`,
+/// metres) from `--rel-pose`: 16 numbers of the 4×4 matrix, row-major,
+/// separated by commas or spaces, or a JSON file holding `"T_c1_c2"` (4×4
+/// rows or 16 numbers). The rotation must be proper and orthonormal to 1e-3.
+pub fn parse_rel_pose(arg: &str) -> Result<Similarity> {
+    let path = Path::new(arg);
+    let (nums, file): (Vec<f64>, String) = if path.is_file() {
+        let file = path.display().to_string();
+        let v: serde_json::Value = crate::util::json::read_json(path)?;
+        let m = v.get("T_c1_c2").ok_or_else(|| Error::config(&file, "T_c1_c2", "missing: expected the 4×4 camera-2-to-camera-1 transform"))?;
+        let mut flat = Vec::new();
+        fn walk(v: &serde_json::Value, out: &mut Vec<f64>) -> bool {
+            match v {
+                serde_json::Value::Array(a) => a.iter().all(|x| walk(x, out)),
+                serde_json::Value::Number(n) => n.as_f64().map(|x| out.push(x)).is_some(),
+                _ => false,
+            }
+        }
+        if !walk(m, &mut flat) {
+            return Err(Error::config(&file, "T_c1_c2", "must hold only numbers (4×4 rows or 16 numbers)"));
+        }
+        (flat, file)
+    } else {
+        let parts: Vec<&str> = arg.split(|c: char| c == ',' || c.is_whitespace()).filter(|s| !s.is_empty()).collect();
+        let nums: std::result::Result<Vec<f64>, _> = parts.iter().map(|s| s.parse::<f64>()).collect();
+        let nums = nums.map_err(|_| {
+            Error::input("--rel-pose", format!("`{arg}` is neither a file nor 16 numbers (4×4 row-major camera-2-to-camera-1 transform)"))
+        })?;
+        (nums, "--rel-pose".to_string())
+    };
+    if nums.len() != 16 || nums.iter().any(|x| !x.is_finite()) {
+        return Err(Error::input(&file, format!("T_c1_c2 needs 16 finite numbers (4×4, row-major), got {}", nums.len())));
+    }
+    let m = |i: usize, j: usize| nums[4 * i + j];
+    if (m(3, 0).abs() + m(3, 1).abs() + m(3, 2).abs() + (m(3, 3) - 1.0).abs()) > 1e-6 {
+        return Err(Error::input(&file, "T_c1_c2: the last row must be 0 0 0 1 (a rigid transform)"));
+    }
+    let r: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m(i, j)));
+    let mut err: f64 = 0.0;
+    for i in 0..3 {
+        for j in 0..3 {
+            let d: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
+            err = err.max((d - if i == j { 1.0 } else { 0.0 }).abs());
+        }
+    }
+    let det = nalgebra::Matrix3::from_fn(|i, j| r[i][j]).determinant();
+    if err > 1e-3 || det <= 0.0 {
+        return Err(Error::input(&file, format!("T_c1_c2: the 3×3 block is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.4})")));
+    }
+    Ok(Similarity::rigid(r, [m(0, 3), m(1, 3), m(2, 3)]))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::geometry::pose::rotation_from_6d;
-    use crate::model::sampler::SeededRng;
+    use crate::rng::SeededRng;
 
     #[test]
     fn round_trip_is_exact_on_dyadic_values() {
@@ -95,9 +148,9 @@ mod tests {
             // it in the normalised frame and un-normalising it.
             let sim = canonical_to_camera(&p, &n).unwrap();
             let x = [0.3f32, -0.2, 0.45];
-            let xn = Similarity::new(p.rotation, p.translation, p.scale).unwrap().apply_point(x);
+            let xn = Similarity32::new(p.rotation, p.translation, p.scale).unwrap().apply(&x);
             let want = n.to_camera([xn[0] as f64, xn[1] as f64, xn[2] as f64]);
-            let got = sim.apply_point(x);
+            let got = sim.apply(&x);
             for a in 0..3 {
                 assert!((got[a] as f64 - want[a]).abs() < 1e-5, "{got:?} vs {want:?}");
             }

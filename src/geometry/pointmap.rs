@@ -6,7 +6,7 @@
 //!
 //! What RecGen does, step by step (our implementation follows each):
 //! 1. **Erode** the mask (5×5 square, 1 iteration; see
-//!    [`crate::inputs::masks::erode`]). Depth outside the eroded mask is
+//!    [`crate::dataset::masks::erode`]). Depth outside the eroded mask is
 //!    zeroed; a pixel is *valid* when its depth is > 0 (NaN fails that test,
 //!    so NaN is invalid too).
 //! 2. **Back-project** every pixel with the OpenCV pinhole model: integer
@@ -42,9 +42,9 @@
 
 use candle_core::{Device, Tensor};
 
-use crate::inputs::frame::{depth_valid, Intrinsics, RgbdFrame};
-use crate::inputs::image::{crop, dino_pixel_values, mask_to_tensor, CropBox};
-use crate::inputs::masks::{erode, Erosion};
+use crate::dataset::frame::{depth_valid, Intrinsics, RgbdFrame};
+use crate::dataset::image::{crop, dino_pixel_values, mask_to_tensor, CropBox};
+use crate::dataset::masks::{erode, Erosion};
 use crate::{Error, Result};
 
 /// Back-project a metric depth image (row-major `h·w`) into camera-frame
@@ -261,7 +261,7 @@ pub struct PreparedView {
 /// This is the single entry point between inputs and the pipeline: its
 /// `pixel_values`, `pointmap` and `mask` are the pipeline's per-view
 /// tensors, and its `normaliser` maps the predicted pose back to metres
-/// ([`super::camera_pose::canonical_to_camera`]). With several views, each
+/// ([`crate::geometry::camera_pose::canonical_to_camera`]). With several views, each
 /// view is prepared on its own (its own normaliser), exactly as RecGen's
 /// `generate_multiview` does, and results are expressed in the **anchor**
 /// (first) view's camera frame through the anchor's normaliser.
@@ -335,7 +335,7 @@ pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: 
     let (mask_c, _, _) = crop(&mask_u8, w, h, 1, cbox)?;
     let (pm_c, _, _) = crop(&pm, w, h, 3, cbox)?;
 
-    let rgb_crop = crate::inputs::image::resize_lanczos_u8(&rgb_c, cw, ch, 3, size, size)?;
+    let rgb_crop = crate::dataset::image::resize_lanczos_u8(&rgb_c, cw, ch, 3, size, size)?;
     let pixel_values = dino_pixel_values(&rgb_crop, size, size, size, dev)?;
     let mask_t = mask_to_tensor(&mask_c, cw, ch, size, dev)?;
     let mut pm_r = resize_nearest_torch(&pm_c, cw, ch, 3, size, size)?;
@@ -368,22 +368,22 @@ pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: 
 /// One object ready for the pipeline.
 #[derive(Debug, Clone)]
 pub struct PreparedObject {
-    pub object: crate::inputs::masks::ObjectMask,
+    pub object: crate::dataset::masks::ObjectMask,
     pub view: PreparedView,
 }
 
-/// Validate every object of a frame ([`crate::inputs::masks::validate_objects`],
+/// Validate every object of a frame ([`crate::dataset::masks::validate_objects`],
 /// with the erosion of `opts`) and prepare the ones that pass. Objects that
 /// fail either step are returned as skips; the others are unaffected.
 pub fn prepare_frame_objects(
     frame: &RgbdFrame,
-    objects: Vec<crate::inputs::masks::ObjectMask>,
+    objects: Vec<crate::dataset::masks::ObjectMask>,
     size: usize,
     min_valid_depth_pixels: usize,
     opts: &PrepareOptions,
     dev: &Device,
-) -> (Vec<PreparedObject>, Vec<crate::inputs::masks::MaskSkip>) {
-    use crate::inputs::masks::{validate_objects, MaskOptions, MaskSkip, SkipReason};
+) -> (Vec<PreparedObject>, Vec<crate::dataset::masks::MaskSkip>) {
+    use crate::dataset::masks::{validate_objects, MaskOptions, MaskSkip, SkipReason};
     let mopts = MaskOptions { erosion: opts.erosion, min_valid_depth_pixels };
     let (valid, mut skips) = validate_objects(frame, objects, &mopts);
     let mut out = Vec::new();
@@ -504,7 +504,7 @@ mod tests {
         // 4 → 3: torch picks floor(i·4/3) = 0, 1, 2; PIL picks centres floor((i+0.5)·4/3) = 0, 2, 3.
         let src = [10, 11, 12, 13];
         assert_eq!(resize_nearest_torch(&src, 4, 1, 1, 3, 1).unwrap(), vec![10, 11, 12]);
-        assert_eq!(crate::inputs::image::resize_nearest(&src, 4, 1, 1, 3, 1).unwrap(), vec![10, 12, 13]);
+        assert_eq!(crate::dataset::image::resize_nearest(&src, 4, 1, 1, 3, 1).unwrap(), vec![10, 12, 13]);
         // Upsampling 2 → 4 duplicates.
         assert_eq!(resize_nearest_torch(&[1, 2], 2, 1, 1, 4, 1).unwrap(), vec![1, 1, 2, 2]);
     }

@@ -27,6 +27,7 @@ use std::path::Path;
 use candle_core::{Device, Tensor};
 use serde::Deserialize;
 
+use crate::math::Similarity;
 use crate::{Error, Result};
 
 /// Row-major 3×3 matrix: `m[row][col]`.
@@ -214,7 +215,7 @@ pub struct PoseStats {
 
 impl PoseStats {
     pub fn from_json_file(path: &Path) -> Result<Self> {
-        let v: serde_json::Value = crate::config::read_json(path)?;
+        let v: serde_json::Value = crate::util::json::read_json(path)?;
         Self::from_value(&v, &path.display().to_string())
     }
 
@@ -306,10 +307,23 @@ pub fn ss_pose_to_slat_pose(pose: &Tensor, ss: &PoseStats, slat: &PoseStats, lay
     Ok(Tensor::from_vec(out, shape, &Device::Cpu)?.to_device(pose.device())?)
 }
 
+/// A pose as an f64 similarity.
+pub fn pose_to_similarity(p: &Pose) -> Similarity {
+    Similarity {
+        rotation: p.rotation.map(|row| row.map(|x| x as f64)),
+        translation: p.translation.map(|x| x as f64),
+        scale: p.scale as f64,
+    }
+}
+
+pub fn similarity_to_pose(s: &Similarity) -> Pose {
+    Pose { rotation: s.rotation.map(|row| row.map(|x| x as f32)), translation: s.translation.map(|x| x as f32), scale: s.scale as f32 }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::sampler::SeededRng;
+    use crate::rng::SeededRng;
 
     fn det(r: &Mat3) -> f32 {
         r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::sampler::SamplerSettings;
-use super::ss_flow::SsFlowConfig;
+use crate::model::sampler::SamplerSettings;
+use crate::model::stage1::ss_flow::SsFlowConfig;
 use crate::geometry::pose::{NineDLayout, PoseStats};
 use crate::{Error, Result};
 
@@ -71,7 +71,7 @@ pub struct RecGenConfig {
 impl RecGenConfig {
     /// Read and validate a config file.
     pub fn load(path: &Path) -> Result<Self> {
-        let mut cfg: Self = crate::config::read_json(path)?;
+        let mut cfg: Self = crate::util::json::read_json(path)?;
         cfg.base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
         cfg.validate(&path.display().to_string())?;
         Ok(cfg)
@@ -142,7 +142,7 @@ impl RecGenConfig {
             return Err(Error::config(file, "ss_decoder.args.latent_channels", "must equal ss_flow out_channels"));
         }
         if let Some(enc) = &self.ss_encoder {
-            let e = crate::model::ss_encoder::SparseStructureEncoderConfig::from_json(&enc.args)?;
+            let e = crate::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc.args)?;
             if Some(e.latent_channels as u64) != lat {
                 return Err(Error::config(file, "ss_encoder.args.latent_channels", "must equal ss_decoder latent_channels"));
             }
@@ -196,7 +196,7 @@ mod tests {
 
     #[test]
     fn inconsistent_config_is_rejected() {
-        let mut v: serde_json::Value = crate::config::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
+        let mut v: serde_json::Value = crate::util::json::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
         v["pose"]["ss_representation"] = "9d_translation_scale".into();
         let dir = std::env::temp_dir().join(format!("recon-cfg-test-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();

@@ -1,17 +1,19 @@
-//! Model stages. Stage 1: image conditioning (DINOv2 + point-map/mask
-//! embedders), sparse-structure flow with pose tokens, sampler, SS decoder
-//! (and the SS VAE encoder, which only training uses).
-//! Stage 2: structured-latent flow (and the SLat encoder, which only training uses).
+//! The networks, in the order data passes through them.
+//!
+//! - [`nn`]: shared layers (linear, norms, attention, feed-forward, dense 3D
+//!   convolutions) and the fast inference path;
+//! - [`sparse`]: sparse voxel tensors, sparse convolution and attention;
+//! - [`sampler`]: the rectified-flow Euler sampler with classifier-free
+//!   guidance, generic over [`sampler::VelocityModel`];
+//! - [`stage1`]: image conditioning (DINOv2 + point-map/mask embedders), the
+//!   sparse-structure flow with pose tokens, and the SS VAE;
+//! - [`stage2`]: the structured-latent flow and the SLat VAE (encoder, mesh
+//!   and Gaussian decoders, FlexiCubes);
+//! - [`config`]: the architecture file that names every module.
 
-pub mod common;
-pub mod fast;
-pub mod config;
-pub mod embedders;
+pub mod nn;
+pub mod sparse;
 pub mod sampler;
-pub mod ss_flow;
-pub mod dense3d;
-pub mod ss_decoder;
-pub mod ss_encoder;
-pub mod slat_flow;
-pub mod slat_encoder;
-pub mod dinov2;
+pub mod stage1;
+pub mod stage2;
+pub mod config;

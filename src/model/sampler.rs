@@ -26,7 +26,7 @@
 //! every state tensor; the pose in the unconditional pass is the current pose
 //! state (it is part of x, not of the condition).
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::Tensor;
 use serde::{Deserialize, Serialize};
 
 use crate::{Error, Result};
@@ -265,78 +265,10 @@ impl FlowEulerGuidanceIntervalSampler {
     }
 }
 
-/// Deterministic standard-normal noise from a 64-bit seed (xoshiro256++
-/// seeded by SplitMix64, Box–Muller). candle's CPU `randn` is not seedable, and
-/// a fixed seed must give identical samples on every run and platform.
-#[derive(Debug, Clone)]
-pub struct SeededRng {
-    s: [u64; 4],
-    spare: Option<f64>,
-}
-
-impl SeededRng {
-    pub fn new(seed: u64) -> Self {
-        let mut z = seed;
-        let mut next = || {
-            z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut x = z;
-            x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            x ^ (x >> 31)
-        };
-        Self { s: [next(), next(), next(), next()], spare: None }
-    }
-
-    /// The generator's full state (xoshiro words, cached Box–Muller value as
-    /// f64 bits), for checkpoints; [`Self::from_state`] continues the stream.
-    pub fn state(&self) -> ([u64; 4], Option<u64>) {
-        (self.s, self.spare.map(f64::to_bits))
-    }
-
-    pub fn from_state(s: [u64; 4], spare_bits: Option<u64>) -> Self {
-        Self { s, spare: spare_bits.map(f64::from_bits) }
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        let s = &mut self.s;
-        let result = s[0].wrapping_add(s[3]).rotate_left(23).wrapping_add(s[0]);
-        let t = s[1] << 17;
-        s[2] ^= s[0];
-        s[3] ^= s[1];
-        s[1] ^= s[2];
-        s[0] ^= s[3];
-        s[2] ^= t;
-        s[3] = s[3].rotate_left(45);
-        result
-    }
-
-    /// Uniform in (0, 1) (never exactly 0, so the log in Box–Muller is finite).
-    pub fn uniform(&mut self) -> f64 {
-        ((self.next_u64() >> 11) as f64 + 0.5) * (1.0 / (1u64 << 53) as f64)
-    }
-
-    pub fn normal(&mut self) -> f64 {
-        if let Some(v) = self.spare.take() {
-            return v;
-        }
-        let (u1, u2) = (self.uniform(), self.uniform());
-        let r = (-2.0 * u1.ln()).sqrt();
-        let a = std::f64::consts::TAU * u2;
-        self.spare = Some(r * a.sin());
-        r * a.cos()
-    }
-
-    /// An f32 tensor of standard-normal values.
-    pub fn randn(&mut self, shape: &[usize], device: &Device) -> Result<Tensor> {
-        let n: usize = shape.iter().product();
-        let v: Vec<f32> = (0..n).map(|_| self.normal() as f32).collect();
-        Ok(Tensor::from_vec(v, shape, device)?.to_dtype(DType::F32)?)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use candle_core::Device;
 
     #[test]
     fn time_grid_rescales_and_ends_at_zero() {
@@ -388,26 +320,6 @@ mod tests {
         // Without a negative condition no guidance is applied at all.
         let out2 = FlowEulerGuidanceIntervalSampler::new(s).sample(&model, vec![Tensor::new(&[1f32], &dev)?], &cond, None)?;
         assert_eq!(out2[0].to_vec1::<f32>()?, vec![1.0]);
-        Ok(())
-    }
-
-    #[test]
-    fn seeded_noise_is_deterministic_and_standard() -> Result<()> {
-        let dev = Device::Cpu;
-        let a = SeededRng::new(42).randn(&[10000], &dev)?.to_vec1::<f32>()?;
-        let b = SeededRng::new(42).randn(&[10000], &dev)?.to_vec1::<f32>()?;
-        let c = SeededRng::new(43).randn(&[10000], &dev)?.to_vec1::<f32>()?;
-        assert_eq!(a, b);
-        assert_ne!(a, c);
-        // A restored state continues the stream exactly (also mid Box–Muller pair).
-        let mut r = SeededRng::new(9);
-        r.normal();
-        let (s, spare) = r.state();
-        let mut q = SeededRng::from_state(s, spare);
-        assert_eq!((0..5).map(|_| r.normal()).collect::<Vec<_>>(), (0..5).map(|_| q.normal()).collect::<Vec<_>>());
-        let mean = a.iter().map(|&v| v as f64).sum::<f64>() / a.len() as f64;
-        let var = a.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / a.len() as f64;
-        assert!(mean.abs() < 0.05 && (var - 1.0).abs() < 0.05, "mean {mean} var {var}");
         Ok(())
     }
 }

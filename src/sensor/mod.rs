@@ -18,7 +18,7 @@
 //! The stereo kind also quantises disparity and fattens foreground edges (pixels within
 //! `edge_fattening_px` of a depth discontinuity take the nearer depth).
 
-use crate::model::sampler::SeededRng;
+use crate::rng::SeededRng;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;

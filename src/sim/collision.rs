@@ -11,9 +11,9 @@
 //! the primitive's surface. Of the accepted ones the tightest (smallest
 //! volume) wins; with none accepted the decomposition is used instead.
 
-use crate::decoders::Mesh;
-use crate::eval::mesh::TriMesh;
-use crate::model::sampler::SeededRng;
+use crate::mesh::Mesh;
+use crate::mesh::trimesh::TriMesh;
+use crate::rng::SeededRng;
 use crate::sim::physics::{bbox, bbox_diagonal};
 use crate::{Error, Result};
 use parry3d::math::Vector;
@@ -345,7 +345,7 @@ fn orient_outward(mut m: Mesh) -> Mesh {
     let c = [0, 1, 2].map(|k| m.vertices.iter().map(|v| v[k]).sum::<f32>() / n);
     for f in &mut m.faces {
         let [a, b, d] = f.map(|i| m.vertices[i as usize]);
-        let nrm = crate::decoders::mesh::cross(crate::decoders::mesh::sub(b, a), crate::decoders::mesh::sub(d, a));
+        let nrm = crate::mesh::cross(crate::mesh::sub(b, a), crate::mesh::sub(d, a));
         let fc = [0, 1, 2].map(|k| (a[k] + b[k] + d[k]) / 3.0 - c[k]);
         if nrm[0] * fc[0] + nrm[1] * fc[1] + nrm[2] * fc[2] < 0.0 {
             f.swap(1, 2);
@@ -832,7 +832,7 @@ mod tests {
 
     #[test]
     fn primitives_fit_their_own_shapes_and_nothing_else() {
-        let rot = crate::eval::mesh::axis_angle([0.3, -0.5, 0.8], 0.7);
+        let rot = crate::math::axis_angle([0.3, -0.5, 0.8], 0.7);
         let rotate = |m: Mesh| Mesh {
             vertices: m.vertices.iter().map(|v| [0, 1, 2].map(|i| (0..3).map(|k| rot[i][k] as f32 * v[k]).sum::<f32>() + 0.1)).collect(),
             ..m

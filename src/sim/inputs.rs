@@ -1,8 +1,8 @@
 //! Where scenes come from besides a hand-written scene file: the support
 //! plane of an RGB-D frame, and a `recon infer` output folder.
 
-use crate::export::transform::Similarity;
-use crate::inputs::frame::RgbdFrame;
+use crate::math::Similarity32;
+use crate::dataset::frame::RgbdFrame;
 use crate::sim::materials::MaterialTable;
 use crate::sim::plane::{fit_plane, world_from_camera, PlaneFit, PlaneFitOptions};
 use crate::sim::scene_file::{CameraSpec, IntrinsicsSpec, ObjectSpec, PhysicsOverrides, PlaneRecord, PoseSpec, SceneFile, SupportPlaneSpec, VERSION};
@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 /// The support plane seen in a frame's depth and the world frame it
 /// defines: `(fit, T_world←camera, record for the scene file)`.
-pub fn support_plane_from_frame(frame: &RgbdFrame, opts: &PlaneFitOptions) -> Result<(PlaneFit, Similarity, PlaneRecord)> {
+pub fn support_plane_from_frame(frame: &RgbdFrame, opts: &PlaneFitOptions) -> Result<(PlaneFit, Similarity32, PlaneRecord)> {
     let pts = crate::geometry::pointmap::backproject(&frame.depth_m, frame.width, frame.height, &frame.intrinsics)?;
     let src = frame.depth_path.display().to_string();
     let fit = fit_plane(&pts, opts).map_err(|e| Error::input(&src, format!("support plane: {e}")))?;
@@ -22,7 +22,7 @@ pub fn support_plane_from_frame(frame: &RgbdFrame, opts: &PlaneFitOptions) -> Re
 }
 
 /// The camera entry of a scene file for `frame` at `world_from_camera`.
-pub fn camera_spec(frame: &RgbdFrame, world_from_camera: &Similarity) -> CameraSpec {
+pub fn camera_spec(frame: &RgbdFrame, world_from_camera: &Similarity32) -> CameraSpec {
     let k = frame.intrinsics;
     CameraSpec {
         intrinsics: Some(IntrinsicsSpec { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy, width: frame.width, height: frame.height }),
@@ -46,11 +46,11 @@ pub fn guess_category(label: &str, table: &MaterialTable) -> String {
 /// The colour image `recon infer` read for `dir` (its first object's
 /// `pose.json`, `views[0].frame`), when that file still exists.
 pub fn infer_frame(dir: &Path) -> Option<PathBuf> {
-    let v: serde_json::Value = crate::config::read_json(&dir.join(crate::infer::MARKER)).ok()?;
+    let v: serde_json::Value = crate::util::json::read_json(&dir.join(crate::engine::output::MARKER)).ok()?;
     for o in v.get("objects")?.as_array()? {
         let p = PathBuf::from(o.get("pose")?.as_str()?);
         let pose = dir.join(p.parent()?.file_name()?).join(p.file_name()?);
-        let Ok(rec) = crate::config::read_json::<serde_json::Value>(&pose) else { continue };
+        let Ok(rec) = crate::util::json::read_json::<serde_json::Value>(&pose) else { continue };
         let frame = PathBuf::from(rec.get("views")?.get(0)?.get("frame")?.as_str()?);
         return frame.is_file().then_some(frame);
     }
@@ -62,9 +62,9 @@ pub fn infer_frame(dir: &Path) -> Option<PathBuf> {
 /// support plane seen in `frame` (the colour image given to `recon infer`).
 /// Objects without a mesh are left out, listed in the returned notes.
 pub fn scene_from_infer_output(dir: &Path, frame: &RgbdFrame, table: &MaterialTable, plane: &PlaneFitOptions) -> Result<(SceneFile, Vec<String>)> {
-    let index = dir.join(crate::infer::MARKER);
+    let index = dir.join(crate::engine::output::MARKER);
     let file = index.display().to_string();
-    let v: serde_json::Value = crate::config::read_json(&index)?;
+    let v: serde_json::Value = crate::util::json::read_json(&index)?;
     let objs = v
         .get("objects")
         .and_then(|o| o.as_array())
@@ -134,8 +134,8 @@ pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable
     let gt_path = scene_dir.join("scene_gt.json");
     let cam_path = scene_dir.join("scene_camera.json");
     let gt_file = gt_path.display().to_string();
-    let gt: serde_json::Value = crate::config::read_json(&gt_path)?;
-    let cams: serde_json::Value = crate::config::read_json(&cam_path)?;
+    let gt: serde_json::Value = crate::util::json::read_json(&gt_path)?;
+    let cams: serde_json::Value = crate::util::json::read_json(&cam_path)?;
     let gt = gt.as_object().ok_or_else(|| Error::config(&gt_file, "<root>", "expected an object keyed by image id"))?;
     let mut ids: Vec<u32> = gt.keys().filter_map(|k| k.parse().ok()).collect();
     ids.sort_unstable();
@@ -163,7 +163,7 @@ pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable
     };
     // `recon synth` records each GT instance's object kind in scene_meta.json.
     let meta: Option<serde_json::Value> = match scene_dir.join("scene_meta.json") {
-        p if p.is_file() => Some(crate::config::read_json(&p)?),
+        p if p.is_file() => Some(crate::util::json::read_json(&p)?),
         _ => None,
     };
     let kind_of = |gt_idx: usize| -> Option<String> {
@@ -178,7 +178,7 @@ pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable
         let obj_id = e.get("obj_id").and_then(|x| x.as_u64()).ok_or_else(|| Error::config(&gt_file, format!("{f}.obj_id"), "missing"))?;
         let r = nums(e.get("cam_R_m2c").unwrap_or(&serde_json::Value::Null), &format!("{f}.cam_R_m2c"), 9)?;
         let t = nums(e.get("cam_t_m2c").unwrap_or(&serde_json::Value::Null), &format!("{f}.cam_t_m2c"), 3)?;
-        let m2c = Similarity::new(
+        let m2c = Similarity32::new(
             [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]].map(|row| row.map(|x| x as f32)),
             [t[0], t[1], t[2]].map(|x| (x * 1e-3) as f32),
             1.0,
@@ -246,7 +246,7 @@ mod tests {
         assert!(fit.inlier_fraction > 0.3, "{fit:?}");
         assert!(fit.rms_residual_m < 0.005, "{fit:?}");
         // The camera looks down at the table from above.
-        let cam = world.apply_point([0.0; 3]);
+        let cam = world.apply(&[0.0; 3]);
         assert!(cam[2] > 0.3 && cam[2] < 2.0, "camera height {}", cam[2]);
         assert_eq!(rec.inliers, fit.inliers);
     }

@@ -56,7 +56,7 @@ impl Material {
 
 impl MaterialTable {
     pub fn load(path: &Path) -> Result<Self> {
-        let t: MaterialTable = crate::config::read_json(path)?;
+        let t: MaterialTable = crate::util::json::read_json(path)?;
         t.validate(&path.display().to_string())?;
         Ok(t)
     }

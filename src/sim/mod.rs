@@ -19,10 +19,13 @@ pub mod physics;
 pub mod plane;
 pub mod scene_file;
 pub mod settle;
+pub mod mjcf;
+pub mod urdf;
+pub mod usd;
 
-use crate::decoders::Mesh;
-use crate::eval::mesh::TriMesh;
-use crate::export::transform::Similarity;
+use crate::mesh::Mesh;
+use crate::mesh::trimesh::TriMesh;
+use crate::math::Similarity32;
 use crate::{Error, Result};
 use collision::{build_collision, Collision, CollisionMethod, CollisionOptions};
 use materials::{MaterialSource, MaterialTable};
@@ -73,8 +76,8 @@ pub struct SimObject {
     /// `com` is in the scaled mesh file frame; the inertia is about it.
     pub inertial: Inertial,
     pub collision: Collision,
-    pub start: Similarity,
-    pub end: Similarity,
+    pub start: Similarity32,
+    pub end: Similarity32,
     pub settle: BodySettle,
     /// Lowest visual-mesh point above the plane after settling (metres).
     pub bottom_z_m: f64,
@@ -159,8 +162,8 @@ pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions
         .into_iter()
         .zip(&result.bodies)
         .map(|(p, s)| {
-            let end = Similarity { rotation: s.rotation, translation: s.translation_m, scale: 1.0 };
-            let bottom = p.visual.vertices.iter().map(|v| end.apply_point(*v)[2] as f64).fold(f64::INFINITY, f64::min);
+            let end = Similarity32 { rotation: s.rotation, translation: s.translation_m, scale: 1.0 };
+            let bottom = p.visual.vertices.iter().map(|v| end.apply(&*v)[2] as f64).fold(f64::INFINITY, f64::min);
             SimObject {
                 name: p.spec.name.clone(),
                 id: safe_name(&p.spec.name),
@@ -202,13 +205,13 @@ struct Prepared {
     mesh_report: MeshReport,
     inertial: Inertial,
     collision: Collision,
-    start: Similarity,
+    start: Similarity32,
 }
 
 fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneOptions, file: &str) -> Result<Prepared> {
     let field = format!("objects[{i}]");
     let mesh_file = o.mesh.display().to_string();
-    let tm: TriMesh = crate::eval::ply::read_ply(&o.mesh)?;
+    let tm: TriMesh = crate::dataset::ply::read_ply(&o.mesh)?;
     if tm.faces.is_empty() {
         return Err(Error::input(&mesh_file, "mesh has no faces (a point cloud cannot be simulated)"));
     }
@@ -232,7 +235,7 @@ fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneO
     copts.seed = copts.seed.wrapping_add(i as u64);
     let collision = build_collision(&visual, mesh_report.volume_m3, opts.collision, &copts, &mesh_file)?;
     let pose = o.pose.to_similarity(file, &format!("{field}.pose"))?;
-    let start = Similarity { rotation: pose.rotation, translation: pose.apply_point(com), scale: 1.0 };
+    let start = Similarity32 { rotation: pose.rotation, translation: pose.apply(&com), scale: 1.0 };
     Ok(Prepared {
         spec: o.clone(),
         material,
@@ -368,7 +371,7 @@ pub struct Written {
 /// replaced only when it is an earlier `recon scene` output.
 pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
     let t0 = std::time::Instant::now();
-    let staging = crate::infer::begin_output_marked(out, MARKER)?;
+    let staging = crate::engine::output::begin_output_marked(out, MARKER)?;
     let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
     let write = |p: &Path, bytes: &[u8]| std::fs::write(p, bytes).map_err(|e| Error::io(p, e));
     mkdir(&staging.join("urdf"))?;
@@ -386,12 +389,12 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
     let mut urdf_objects = Vec::new();
     for o in &scene.objects {
         let name = format!("urdf/{}.urdf", o.id);
-        write(&staging.join(&name), crate::export::urdf::object_urdf(o, "../meshes").as_bytes())?;
+        write(&staging.join(&name), crate::sim::urdf::object_urdf(o, "../meshes").as_bytes())?;
         urdf_objects.push(name);
     }
-    write(&staging.join("urdf/scene.urdf"), crate::export::urdf::scene_urdf(scene, "../meshes").as_bytes())?;
-    write(&staging.join("scene.xml"), crate::export::mjcf::scene_mjcf(scene, "meshes").as_bytes())?;
-    write(&staging.join("scene.usda"), crate::export::usd::scene_usda(scene).as_bytes())?;
+    write(&staging.join("urdf/scene.urdf"), crate::sim::urdf::scene_urdf(scene, "../meshes").as_bytes())?;
+    write(&staging.join("scene.xml"), crate::sim::mjcf::scene_mjcf(scene, "meshes").as_bytes())?;
+    write(&staging.join("scene.usda"), crate::sim::usd::scene_usda(scene).as_bytes())?;
     let mut world = Mesh::default();
     for o in &scene.objects {
         let m = o.end.apply_mesh(&o.visual);
@@ -432,7 +435,7 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         "objects": scene.summaries(),
         "files": written,
     });
-    crate::infer::finish_output_marked(&staging, out, MARKER, &report)?;
+    crate::engine::output::finish_output_marked(&staging, out, MARKER, &report)?;
     Ok(written)
 }
 

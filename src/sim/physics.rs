@@ -7,9 +7,9 @@
 //! mass = area × thickness × density and the thin-lamina inertia integrated
 //! over the triangles (parry has no 3D shell mass properties).
 
-use crate::decoders::mesh::{face_area, Topology};
-use crate::decoders::mesh_post::remove_unreferenced_vertices;
-use crate::decoders::Mesh;
+use crate::mesh::{face_area, Topology};
+use crate::mesh::post::remove_unreferenced_vertices;
+use crate::mesh::Mesh;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, HashSet};

@@ -3,8 +3,8 @@
 //! the smallest principal axis of the inliers), and the world frame it
 //! defines (gravity −z, plane at z = 0).
 
-use crate::export::transform::Similarity;
-use crate::model::sampler::SeededRng;
+use crate::math::Similarity32;
+use crate::rng::SeededRng;
 use crate::{Error, Result};
 use serde::Serialize;
 
@@ -190,7 +190,7 @@ pub fn least_squares_plane(pts: &[[f64; 3]]) -> Option<Plane> {
 /// z = 0, the origin is where the optical axis meets the plane (the foot of
 /// the camera centre when the axis grazes it), and world x is the camera x
 /// axis projected onto the plane.
-pub fn world_from_camera(plane_camera: &Plane) -> Result<Similarity> {
+pub fn world_from_camera(plane_camera: &Plane) -> Result<Similarity32> {
     let pl = plane_camera.facing(&[0.0; 3]);
     let n = pl.normal;
     if pl.signed_distance(&[0.0; 3]) <= 1e-6 {
@@ -209,7 +209,7 @@ pub fn world_from_camera(plane_camera: &Plane) -> Result<Similarity> {
     // Rows are the world axes in camera coordinates: p_w = R (p_c − origin).
     let r = [xw, yw, n];
     let t = [0, 1, 2].map(|i| -dot(&r[i], &origin));
-    Similarity::new(r.map(|row| row.map(|v| v as f32)), t.map(|v| v as f32), 1.0)
+    Similarity32::new(r.map(|row| row.map(|v| v as f32)), t.map(|v| v as f32), 1.0)
 }
 
 pub(crate) fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
@@ -297,14 +297,14 @@ mod tests {
         let tw = world_from_camera(&fit.plane).unwrap();
         // Every exact plane point maps to z = 0; the camera is above (z > 0).
         for p in pts.iter().filter(|p| truth.signed_distance(p).abs() < 1e-9).take(200) {
-            let q = tw.apply_point(p.map(|x| x as f32));
+            let q = tw.apply(&p.map(|x| x as f32));
             assert!(q[2].abs() < 1e-5, "{q:?}");
         }
-        let cam = tw.apply_point([0.0; 3]);
+        let cam = tw.apply(&[0.0; 3]);
         assert!((cam[2] - 0.9).abs() < 1e-4, "camera height {}", cam[2]);
         // A point 10 cm above the plane (towards the camera) has z = 0.1.
         let above = [0, 1, 2].map(|k| (-0.9 * truth.normal[k] + 0.1 * truth.normal[k]) as f32);
-        assert!((tw.apply_point(above)[2] - 0.1).abs() < 1e-5);
+        assert!((tw.apply(&above)[2] - 0.1).abs() < 1e-5);
     }
 
     #[test]

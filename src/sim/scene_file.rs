@@ -21,7 +21,7 @@
 //! }
 //! ```
 
-use crate::export::transform::Similarity;
+use crate::math::Similarity32;
 use crate::sim::physics::TreatmentChoice;
 use crate::sim::plane::{Plane, PlaneFit};
 use crate::{Error, Result};
@@ -43,7 +43,7 @@ pub struct PoseSpec {
 }
 
 impl PoseSpec {
-    pub fn from_similarity(s: &Similarity) -> Self {
+    pub fn from_similarity(s: &Similarity32) -> Self {
         PoseSpec {
             rotation: None,
             quaternion_wxyz: Some(s.quaternion().map(|x| x as f64)),
@@ -52,7 +52,7 @@ impl PoseSpec {
     }
 
     /// The rigid transform (scale 1); errors name `file` and `field`.
-    pub fn to_similarity(&self, file: &str, field: &str) -> Result<Similarity> {
+    pub fn to_similarity(&self, file: &str, field: &str) -> Result<Similarity32> {
         let r = match (self.rotation, self.quaternion_wxyz) {
             (Some(r), None) => r.map(|row| row.map(|x| x as f32)),
             (None, Some(q)) => {
@@ -60,14 +60,14 @@ impl PoseSpec {
                 if !(n.is_finite() && (n - 1.0).abs() < 1e-3) {
                     return Err(Error::config(file, format!("{field}.quaternion_wxyz"), format!("expected a unit quaternion (w, x, y, z), norm is {n}")));
                 }
-                crate::export::transform::quat_to_matrix(q.map(|x| x as f32))
+                crate::math::quat_to_matrix(q.map(|x| x as f32))
             }
             _ => return Err(Error::config(file, field, "give exactly one of `rotation` (3×3 rows) and `quaternion_wxyz`")),
         };
         if self.translation_m.iter().any(|t| !t.is_finite()) {
             return Err(Error::config(file, format!("{field}.translation_m"), "expected 3 finite numbers (metres)"));
         }
-        Similarity::new(r, self.translation_m.map(|x| x as f32), 1.0)
+        Similarity32::new(r, self.translation_m.map(|x| x as f32), 1.0)
             .map_err(|e| Error::config(file, format!("{field}.rotation"), format!("expected a proper rotation: {e}")))
     }
 }

@@ -9,7 +9,7 @@
 //! platforms is not claimed (that needs rapier's `enhanced-determinism`,
 //! which would also force libm/scalar math on the synth renderer's parry).
 
-use crate::export::transform::{matrix_to_quat, quat_to_matrix, Similarity};
+use crate::math::{matrix_to_quat, quat_to_matrix, Similarity32};
 use crate::sim::collision::{Part, Primitive};
 use crate::{Error, Result};
 use rapier3d::prelude::*;
@@ -90,7 +90,7 @@ impl SettleOptions {
 pub struct Body {
     pub name: String,
     /// Body frame → world at the start (scale 1).
-    pub pose: Similarity,
+    pub pose: Similarity32,
     pub mass_kg: f64,
     /// About the body origin, body axes.
     pub inertia: [[f64; 3]; 3],
@@ -151,18 +151,18 @@ fn groups(member: Group, filter: Group) -> InteractionGroups {
     InteractionGroups::new(member, filter, InteractionTestMode::And)
 }
 
-fn to_pose(s: &Similarity) -> Pose {
+fn to_pose(s: &Similarity32) -> Pose {
     let q = matrix_to_quat(&s.rotation);
     Pose::from_parts(Vector::new(s.translation[0], s.translation[1], s.translation[2]), Rotation::from_xyzw(q[1], q[2], q[3], q[0]).normalize())
 }
 
-fn from_pose(p: &Pose) -> Similarity {
+fn from_pose(p: &Pose) -> Similarity32 {
     let q = p.rotation;
-    Similarity { rotation: quat_to_matrix([q.w, q.x, q.y, q.z]), translation: [p.translation.x, p.translation.y, p.translation.z], scale: 1.0 }
+    Similarity32 { rotation: quat_to_matrix([q.w, q.x, q.y, q.z]), translation: [p.translation.x, p.translation.y, p.translation.z], scale: 1.0 }
 }
 
 fn mat_pose(r: &[[f32; 3]; 3], t: [f32; 3]) -> Pose {
-    to_pose(&Similarity { rotation: *r, translation: t, scale: 1.0 })
+    to_pose(&Similarity32 { rotation: *r, translation: t, scale: 1.0 })
 }
 
 /// A part's shape and its pose in the body frame.
@@ -176,7 +176,7 @@ fn part_shape(p: &Part) -> Option<(Pose, SharedShape)> {
         Part::Primitive(Primitive::Cylinder { center, rotation, radius, half_height }) => {
             // rapier's cylinder axis is y; ours is the local z: rotate y onto z.
             let y_to_z = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]];
-            let r = crate::export::transform::matmul(rotation, &y_to_z);
+            let r = crate::math::matmul(rotation, &y_to_z);
             (mat_pose(&r, *center), SharedShape::cylinder(*half_height, *radius))
         }
         Part::Primitive(Primitive::Sphere { center, radius }) => {
@@ -232,7 +232,7 @@ fn penetrations(
                 .parts
                 .iter()
                 .flat_map(|p| p.surface_mesh().vertices)
-                .map(|v| pose.apply_point(v)[2] as f64)
+                .map(|v| pose.apply(&v)[2] as f64)
                 .fold(f64::INFINITY, f64::min);
             if low < 0.0 {
                 (-low, Some(PLANE.to_string()))
@@ -452,7 +452,7 @@ mod tests {
         let c = build_collision(&m, rep.volume_m3, method, &CollisionOptions::new(), name).unwrap();
         Body {
             name: name.into(),
-            pose: Similarity { translation: at, ..Similarity::identity() },
+            pose: Similarity32 { translation: at, ..Similarity32::identity() },
             mass_kg: i.mass_kg,
             inertia: i.inertia,
             friction: 0.6,

@@ -5,10 +5,11 @@
 //! recon's own per-instance facts (kind, part, target flag, materials, lights) go in an
 //! extra `scene_meta.json` beside them, which BOP tools ignore.
 
-use super::objects::Symmetry;
-use super::render::Rendered;
-use crate::decoders::Mesh;
-use crate::eval::mesh::{diameter, Similarity};
+use crate::synth::objects::Symmetry;
+use crate::render::Rendered;
+use crate::mesh::Mesh;
+use crate::mesh::trimesh::diameter;
+use crate::math::Similarity;
 use crate::export::ply::{mesh_ply_bytes, PlyOptions};
 use crate::export::Axes;
 use crate::{Error, Result};
@@ -105,8 +106,8 @@ pub fn bbox(mask: &[bool], w: usize) -> [i64; 4] {
 /// A `scene_gt.json` entry: model → camera pose in mm.
 pub fn gt_entry(m2c: &Similarity, obj_id: u32) -> Value {
     json!({
-        "cam_R_m2c": flat3(&m2c.r),
-        "cam_t_m2c": m2c.t.iter().map(|x| x * 1000.0).collect::<Vec<_>>(),
+        "cam_R_m2c": flat3(&m2c.rotation),
+        "cam_t_m2c": m2c.translation.iter().map(|x| x * 1000.0).collect::<Vec<_>>(),
         "obj_id": obj_id,
     })
 }
@@ -117,8 +118,8 @@ pub fn camera_entry(r: &Rendered, w2c: &Similarity) -> Value {
     json!({
         "cam_K": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
         "depth_scale": DEPTH_SCALE_MM,
-        "cam_R_w2c": flat3(&w2c.r),
-        "cam_t_w2c": w2c.t.iter().map(|x| x * 1000.0).collect::<Vec<_>>(),
+        "cam_R_w2c": flat3(&w2c.rotation),
+        "cam_t_w2c": w2c.translation.iter().map(|x| x * 1000.0).collect::<Vec<_>>(),
     })
 }
 

@@ -10,13 +10,12 @@
 
 pub mod bop_writer;
 pub mod objects;
-pub mod render;
 pub mod scene;
 
-pub use render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
+pub use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
 pub use scene::{Scene, SceneConfig};
 
-use crate::model::sampler::SeededRng;
+use crate::rng::SeededRng;
 use crate::sensor::SensorModel;
 use crate::{Error, Result};
 use bop_writer::{camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask, write_normals, write_rgb, DEPTH_SCALE_MM};
@@ -281,7 +280,7 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
                 "object_index": oi,
                 "kind": o.object.kind.name(),
                 "part": u.part.map(|j| o.object.parts[j].name),
-                "part_pose_in_object": u.part.map(|j| { let p = &o.object.parts[j].pose; json!({"R": bop_writer::flat3(&p.r), "t_mm": p.t.map(|x| x * 1000.0)}) }),
+                "part_pose_in_object": u.part.map(|j| { let p = &o.object.parts[j].pose; json!({"R": bop_writer::flat3(&p.rotation), "t_mm": p.translation.map(|x| x * 1000.0)}) }),
                 "target": o.target,
                 "shell": o.object.shell,
                 "dims_m": o.object.dims.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<serde_json::Map<_, _>>(),

@@ -9,9 +9,9 @@
 //! parts (where parts touch, e.g. the mug handle sunk into the wall, the hidden internal
 //! faces are kept).
 
-use crate::decoders::Mesh;
-use crate::eval::mesh::{axis_angle, Similarity};
-use crate::model::sampler::SeededRng;
+use crate::mesh::Mesh;
+use crate::math::{axis_angle, Similarity};
+use crate::rng::SeededRng;
 use serde::Serialize;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -223,7 +223,7 @@ fn composite(kind: Kind, shell: Shell, parts: Vec<(&'static str, Mesh, Symmetry)
             let pc = centre_of(&m);
             let mesh = centred(m);
             let t = [pc[0] - oc[0], pc[1] - oc[1], pc[2] - oc[2]];
-            Part { name, mesh, pose: Similarity { t, ..Similarity::identity() }, symmetry: sym }
+            Part { name, mesh, pose: Similarity { translation: t, ..Similarity::identity() }, symmetry: sym }
         })
         .collect();
     Object { kind, shell, parts, symmetry, dims }
@@ -554,7 +554,7 @@ mod tests {
         assert!(matches!(o.shell, Shell::Walled { wall_thickness_m } if wall_thickness_m > 0.0));
         let h = &o.parts[1];
         assert_eq!(h.name, "handle");
-        assert!(h.pose.t[0] > 0.0 && h.pose.t[1].abs() < 1e-9, "{:?}", h.pose.t);
+        assert!(h.pose.translation[0] > 0.0 && h.pose.translation[1].abs() < 1e-9, "{:?}", h.pose.translation);
         // Parts placed by their poses reproduce the merged mesh vertex for vertex.
         let merged = o.mesh();
         let n0 = o.parts[0].mesh.vertices.len();

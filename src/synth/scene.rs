@@ -9,12 +9,12 @@
 //! (low-resolution render) whose occlusion is closest to the goal. The other distractors
 //! stand away from the camera–target line. Further views circle the target at random.
 
-use super::objects::{box_mesh, Kind, Object};
-use super::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
-use crate::decoders::Mesh;
-use crate::eval::mesh::{axis_angle, Similarity};
-use crate::inputs::frame::Intrinsics;
-use crate::model::sampler::SeededRng;
+use crate::synth::objects::{box_mesh, Kind, Object};
+use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
+use crate::mesh::Mesh;
+use crate::math::{axis_angle, Similarity};
+use crate::dataset::frame::Intrinsics;
+use crate::rng::SeededRng;
 use crate::Result;
 use std::f64::consts::{PI, TAU};
 
@@ -155,7 +155,7 @@ fn random_light(rng: &mut SeededRng, cam: &Camera) -> Light {
     let el = (30.0 + 50.0 * rng.uniform()).to_radians();
     let az = TAU * rng.uniform();
     let d_world = [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()];
-    let r = cam.world_to_cam.r;
+    let r = cam.world_to_cam.rotation;
     let d = [0, 1, 2].map(|i| (0..3).map(|j| r[i][j] * d_world[j]).sum::<f64>());
     Light { direction_cam: normalize(d), ambient: (0.2 + 0.2 * rng.uniform()) as f32, diffuse: (0.6 + 0.3 * rng.uniform()) as f32 }
 }
@@ -187,7 +187,7 @@ impl Scene {
 
         let target_obj = Object::random(random_kind(&mut rng), &mut rng);
         let target_pose = stand(&target_obj, 0.0, 0.0, TAU * rng.uniform());
-        let target_centre = target_pose.t;
+        let target_centre = target_pose.translation;
         let r_target = footprint(&target_obj);
         let mut objects = vec![Placed { object: target_obj, pose: target_pose, material: random_material(&mut rng), target: true }];
 
@@ -294,7 +294,7 @@ impl Scene {
                     None => continue,
                 }
             };
-            spots.push(([pose.t[0], pose.t[1]], r));
+            spots.push(([pose.translation[0], pose.translation[1]], r));
             objects.push(Placed { object: o, pose, material: m, target: false });
         }
 
@@ -315,7 +315,7 @@ impl Scene {
             seed,
             objects,
             support: box_mesh(2.0 * SUPPORT_HALF, 2.0 * SUPPORT_HALF, SUPPORT_THICK),
-            support_pose: Similarity::rigid(Similarity::identity().r, [0.0, 0.0, -SUPPORT_THICK / 2.0]),
+            support_pose: Similarity::rigid(Similarity::identity().rotation, [0.0, 0.0, -SUPPORT_THICK / 2.0]),
             support_material,
             views,
             occlusion_goal: goal,
@@ -370,7 +370,7 @@ mod tests {
                 let zmin = m.vertices.iter().map(|v| p.pose.apply(&v.map(|x| x as f64))[2]).fold(f64::INFINITY, f64::min);
                 assert!(zmin.abs() < 1e-6, "object {i} bottom at {zmin}");
                 for q in &a.objects[i + 1..] {
-                    let d = ((p.pose.t[0] - q.pose.t[0]).powi(2) + (p.pose.t[1] - q.pose.t[1]).powi(2)).sqrt();
+                    let d = ((p.pose.translation[0] - q.pose.translation[0]).powi(2) + (p.pose.translation[1] - q.pose.translation[1]).powi(2)).sqrt();
                     assert!(d > footprint(&p.object) + footprint(&q.object), "overlap in scene {seed}");
                 }
             }

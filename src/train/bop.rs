@@ -2,7 +2,7 @@
 //! `<split>/<scene>/{rgb,depth,mask_visib}/`, `scene_gt.json`,
 //! `scene_camera.json` (optionally `scene_gt_info.json`) and
 //! `models/obj_XXXXXX.ply` in millimetres. Annotations and models are read
-//! by [`crate::eval::bop::load_bop`]; images are read when a sample is
+//! by [`crate::dataset::bop::load_bop`]; images are read when a sample is
 //! asked for.
 //!
 //! One sample per annotated instance (`scene_gt.json[frame][j]`, visible
@@ -15,10 +15,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use super::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
-use crate::eval::bop::{load_bop, Dataset};
-use crate::inputs::frame::{FrameOptions, Intrinsics, RgbdFrame};
-use crate::inputs::masks::load_binary_mask;
+use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
+use crate::dataset::bop::{load_bop, Dataset};
+use crate::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
+use crate::dataset::masks::load_binary_mask;
 use crate::{Error, Result};
 
 #[derive(Debug, Clone)]
@@ -43,7 +43,7 @@ pub struct BopSource {
     root: PathBuf,
     ds: Dataset,
     model_ids: Vec<u32>,
-    meshes: Vec<Arc<crate::eval::mesh::TriMesh>>,
+    meshes: Vec<Arc<crate::mesh::trimesh::TriMesh>>,
     colors: Vec<Option<Arc<Vec<[f32; 3]>>>>,
     samples: Vec<(usize, InstanceRef, Option<InstanceRef>)>,
 }
@@ -90,7 +90,7 @@ impl BopSource {
             .map(|id| {
                 let m = &ds.models[id];
                 let is_ply = m.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("ply"));
-                Ok(if is_ply { crate::eval::ply::read_ply_with_colors(&m.path)?.1.map(Arc::new) } else { None })
+                Ok(if is_ply { crate::dataset::ply::read_ply_with_colors(&m.path)?.1.map(Arc::new) } else { None })
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Self { root: split_dir.to_path_buf(), ds, model_ids, meshes, colors, samples })

@@ -4,8 +4,8 @@
 //! A source knows, per object instance seen in an RGB-D view, the frame,
 //! the object's visible mask, its mesh (model frame, metres) and the exact
 //! model → camera pose — what `recon synth` writes in BOP format
-//! ([`super::bop::BopSource`]) and what the in-memory generator of
-//! [`super::toy`] produces. From that:
+//! ([`crate::train::bop::BopSource`]) and what the in-memory generator of
+//! [`crate::train::toy`] produces. From that:
 //!
 //! - **inputs** are made by [`crate::geometry::pointmap::prepare_object_with`],
 //!   the inference preprocessing itself (erosion, normalisation, square crop,
@@ -23,13 +23,13 @@ use std::sync::Arc;
 
 use candle_core::{Device, Tensor};
 
-use crate::eval::mesh::TriMesh;
+use crate::mesh::trimesh::TriMesh;
 use crate::geometry::camera_pose::pose_to_normalised;
 use crate::geometry::pointmap::{object_points, prepare_object_with, Normaliser, PrepareOptions};
 use crate::geometry::pose::{rotation_to_9d, Mat3, NineDLayout, Pose, PoseStats};
 use crate::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
-use crate::inputs::frame::RgbdFrame;
-use crate::model::sampler::SeededRng;
+use crate::dataset::frame::RgbdFrame;
+use crate::rng::SeededRng;
 use crate::{Error, Result};
 
 /// One object model (mesh in its model frame, metres).

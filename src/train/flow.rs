@@ -19,7 +19,7 @@
 
 use candle_core::{DType, Device, Tensor};
 
-use crate::model::sampler::SeededRng;
+use crate::rng::SeededRng;
 use crate::{Error, Result};
 
 /// Flow-matching hyper-parameters (upstream defaults in [`Default`]).
@@ -168,7 +168,7 @@ mod tests {
         let vars: Vec<(String, Var)> = [("w1", &w1), ("b1", &b1), ("w2", &w2), ("b2", &b2)].iter().map(|(n, v)| (n.to_string(), (*v).clone())).collect();
         let model = |x: &Tensor, t_model: &Tensor| -> Result<Tensor> {
             let t = (t_model / 1000.0)?;
-            let feats = crate::model::common::TimestepEmbedder::sinusoidal(&(t * 10.0)?, 16)?;
+            let feats = crate::model::nn::common::TimestepEmbedder::sinusoidal(&(t * 10.0)?, 16)?;
             let h = feats.matmul(w1.as_tensor())?.broadcast_add(b1.as_tensor())?.silu()?;
             let ab = h.matmul(w2.as_tensor())?.broadcast_add(b2.as_tensor())?; // [B, 4]
             let a = (ab.narrow(1, 0, 2)? - 1.0)?;

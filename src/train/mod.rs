@@ -13,7 +13,7 @@
 //! through its plain candle-ops path: the SS decoder's
 //! `forward_differentiable` (its fast kernels are inference-only), and the
 //! transformers' attention softmax, whose forward is candle's kernel and
-//! whose backward is [`crate::model::common::softmax_last_dim`]'s.
+//! whose backward is [`crate::model::nn::common::softmax_last_dim`]'s.
 //!
 //! Recipe (stage 1): `recon train ss-vae` learns the SS VAE on the
 //! voxelised object models; `recon train ss-flow --vae <ss-vae out>` then
@@ -39,5 +39,3 @@ pub mod slat_flow;
 pub mod toy;
 pub mod trainer;
 
-#[cfg(test)]
-pub(crate) mod gradcheck;

@@ -8,17 +8,17 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
-use super::data::{canonical_frame, occupancy, Scan, TrainingSource};
-use super::flow::{drop_condition, masked_pose_mse, FlowMatching};
-use super::params::ModuleParams;
+use crate::train::data::{canonical_frame, occupancy, Scan, TrainingSource};
+use crate::train::flow::{drop_condition, masked_pose_mse, FlowMatching};
+use crate::train::params::ModuleParams;
 use crate::geometry::pose::PoseStats;
 use crate::geometry::voxelize::{CanonicalFrame, Fill};
-use crate::model::dinov2::Dinov2;
-use crate::model::embedders::ViewInputs;
-use crate::model::sampler::SeededRng;
-use crate::model::ss_decoder::SparseStructureDecoder;
-use crate::model::ss_encoder::{vae_loss, ReconLoss, SparseStructureEncoder};
-use crate::model::ss_flow::SparseStructureFlowModel;
+use crate::model::stage1::dinov2::Dinov2;
+use crate::model::stage1::embedders::ViewInputs;
+use crate::rng::SeededRng;
+use crate::model::stage1::ss_vae::decoder::SparseStructureDecoder;
+use crate::model::stage1::ss_vae::encoder::{vae_loss, ReconLoss, SparseStructureEncoder};
+use crate::model::stage1::ss_flow::SparseStructureFlowModel;
 use crate::weights::registry;
 use crate::{Error, Result};
 
@@ -116,7 +116,7 @@ impl Objective for VaeObjective {
     }
 }
 
-/// Stage-1 flow objective (module docs of [`super::flow`]).
+/// Stage-1 flow objective (module docs of [`crate::train::flow`]).
 pub struct FlowObjective<'a> {
     params: Vec<ModuleParams>,
     dino: Dinov2,
@@ -138,7 +138,7 @@ pub struct FlowObjective<'a> {
 impl<'a> FlowObjective<'a> {
     /// `dino` / `flow` hold the `image_cond_model` / `ss_flow` params;
     /// `encoder` is the trained, frozen SS VAE encoder; `scan` and `stats`
-    /// come from [`super::data::scan`] and the pose statistics of the set.
+    /// come from [`crate::train::data::scan`] and the pose statistics of the set.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         source: &'a dyn TrainingSource,
@@ -200,7 +200,7 @@ impl Objective for FlowObjective<'_> {
         let (pool, n_views) = if two { (&self.scan.two_view, 2) } else { (&self.scan.usable, 1) };
         let picks: Vec<(usize, u64)> = (0..batch).map(|_| (pool[(rng.next_u64() % pool.len() as u64) as usize], rng.next_u64())).collect();
         // Inputs per sample, in parallel; each sample has its own seeded stream.
-        let prepared = super::data::prepare_picks(self.source, &self.canon, &picks, n_views, self.image_size, self.context)?;
+        let prepared = crate::train::data::prepare_picks(self.source, &self.canon, &picks, n_views, self.image_size, self.context)?;
         let b = prepared.len();
         let x0 = Tensor::stack(&prepared.iter().map(|(m, _)| self.latents[*m].clone()).collect::<Vec<_>>(), 0)?;
         // Pose targets [B, K, 10], z-scored; tokens without a view are unsupervised.
@@ -218,7 +218,7 @@ impl Objective for FlowObjective<'_> {
         // Condition: image tokens (trained jointly), + point-map and mask embeddings.
         let mut views = Vec::with_capacity(n_views);
         for vi in 0..n_views {
-            let cat = |f: fn(&super::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(&v[vi])).collect::<Vec<_>>(), 0);
+            let cat = |f: fn(&crate::train::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(&v[vi])).collect::<Vec<_>>(), 0);
             let pixels = cat(|v| &v.pixels)?;
             views.push(ViewInputs { patch_tokens: self.dino.recgen_cond(&pixels)?, pointmap: Some(cat(|v| &v.pointmap)?), mask: Some(cat(|v| &v.mask)?) });
         }
@@ -256,7 +256,7 @@ mod tests {
 
     fn micro() -> RecGenConfig {
         let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-nano.json");
-        let v: serde_json::Value = crate::config::read_json(&p).unwrap();
+        let v: serde_json::Value = crate::util::json::read_json(&p).unwrap();
         serde_json::from_value(micro_architecture(&v)).unwrap()
     }
 
@@ -276,8 +276,8 @@ mod tests {
         let enc_cfg = cfg(arch.ss_encoder.as_ref().unwrap());
         let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
         let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "enc")?;
-        let scan = super::super::data::scan(&src)?;
-        let stats = PoseStats::from_value(&super::super::data::pose_stats_json(&scan.poses, arch.nine_d_layout()?, "toy")?, "toy")?;
+        let scan = crate::train::data::scan(&src)?;
+        let stats = PoseStats::from_value(&crate::train::data::pose_stats_json(&scan.poses, arch.nine_d_layout()?, "toy")?, "toy")?;
         let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 2)?;
         let flow = ModuleParams::init("ss_flow", &cfg(&arch.ss_flow), 3)?;
         // Zero-initialised output layers would hide every upstream gradient: perturb them.
@@ -298,7 +298,7 @@ mod tests {
             if p_two == 0.0 {
                 unused.push("ss_flow/frame_token_embedder");
             }
-            crate::train::gradcheck::directional_check(&vars, &unused, loss, 5, 2e-2)?;
+            crate::model::nn::gradcheck::directional_check(&vars, &unused, loss, 5, 2e-2)?;
         }
         // Two-view batches supervise both pose tokens.
         obj.p_two_view = 1.0;

@@ -113,7 +113,7 @@ pub fn clip_grad_norm(grads: &mut GradStore, vars: &[(String, Var)], max_norm: O
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::sampler::SeededRng;
+    use crate::rng::SeededRng;
     use candle_core::Device;
     use candle_nn::Optimizer;
 

@@ -13,8 +13,8 @@ use std::collections::BTreeMap;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 
-use crate::model::sampler::SeededRng;
-use crate::model::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::rng::SeededRng;
+use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::weights::registry::{self, ModuleConfig, ModuleKind};
 use crate::{Error, Result};
 
@@ -138,8 +138,8 @@ fn buffer_value(kind: ModuleKind, name: &str, cfg: &ModuleConfig, file: &str) ->
             SparseStructureFlowModel::grid_position_embedding(c.resolution / c.patch_size, c.model_channels, &Device::Cpu)
         }
         (ModuleKind::GaussianDecoder, "offset_perturbation") => {
-            let g = crate::decoders::gaussian::GaussianConfig::from_args(&cfg.args)?;
-            crate::decoders::gaussian::offset_perturbation(g.num_gaussians, g.voxel_size, &Device::Cpu)
+            let g = crate::model::stage2::slat_vae::gaussian::GaussianConfig::from_args(&cfg.args)?;
+            crate::model::stage2::slat_vae::gaussian::offset_perturbation(g.num_gaussians, g.voxel_size, &Device::Cpu)
         }
         _ => Err(Error::msg(format!("{file}: tensor `{name}` is neither trained nor a known buffer"))),
     }
@@ -228,7 +228,7 @@ mod tests {
         assert!(a.vars.iter().all(|(k, _)| k != "pos_emb"));
         let ex = a.export()?;
         let want = SparseStructureFlowModel::grid_position_embedding(8, 64, &Device::Cpu)?;
-        assert_eq!(crate::conformance::max_abs_diff(&ex["pos_emb"], &want)?, 0.0);
+        assert_eq!(crate::util::max_abs_diff(&ex["pos_emb"], &want)?, 0.0);
         let expected = registry::expected_tensors(&cfg, "ss_flow")?;
         assert_eq!(ex.len(), expected.len());
         // Names are sorted.

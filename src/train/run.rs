@@ -17,15 +17,15 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use super::data::{pose_stats_json, scan, TrainingSource};
-use super::flow::FlowMatching;
-use super::objective::{fixed_eval, frozen_var_builder, FlowObjective, Objective, VaeObjective};
-use super::params::ModuleParams;
-use super::trainer::{latest_checkpoint, train, write_weights, LoopSettings, RunSummary};
+use crate::train::data::{pose_stats_json, scan, TrainingSource};
+use crate::train::flow::FlowMatching;
+use crate::train::objective::{fixed_eval, frozen_var_builder, FlowObjective, Objective, VaeObjective};
+use crate::train::params::ModuleParams;
+use crate::train::trainer::{latest_checkpoint, train, write_weights, LoopSettings, RunSummary};
 use crate::geometry::pose::PoseStats;
 use crate::geometry::voxelize::Fill;
 use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::ss_encoder::ReconLoss;
+use crate::model::stage1::ss_vae::encoder::ReconLoss;
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
@@ -192,7 +192,7 @@ fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &P
 /// The architecture file of a run folder: `config` reading its pose statistics from
 /// the folder's `pose_stats.json`, and with `slat_norm` as its `slat_normalization`.
 fn write_architecture(config: &Path, out: &Path, slat_norm: Option<&(Vec<f32>, Vec<f32>)>) -> Result<PathBuf> {
-    let mut v: serde_json::Value = crate::config::read_json(config)?;
+    let mut v: serde_json::Value = crate::util::json::read_json(config)?;
     v["pose"]["ss_stats"] = "pose_stats.json".into();
     v["pose"]["slat_stats"] = "pose_stats.json".into();
     if let Some((m, s)) = slat_norm {
@@ -253,7 +253,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
             let enc = module("ss_encoder", &enc_cfg)?;
             let dec = module("ss_decoder", &dec_cfg)?;
-            let f = crate::model::ss_encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
+            let f = crate::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
             let res = arch.ss_flow_config()?.resolution * f;
             obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
             notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
@@ -289,10 +289,10 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let cfgs = [("slat_encoder", spec_cfg(enc_spec)), ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)), ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs))];
             settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
             let [e, m, g] = cfgs.map(|(k, c)| module(k, &c));
-            let mut so = super::slat::SlatAeObjective::new(source, e?, m?, g?)?;
+            let mut so = crate::train::slat::SlatAeObjective::new(source, e?, m?, g?)?;
             so.crop = opts.crop;
             so.max_voxels = opts.max_voxels;
-            settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": super::slat::BAND, "cubes_per_voxel_side": super::slat::SUB});
+            settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": crate::train::slat::BAND, "cubes_per_voxel_side": crate::train::slat::SUB});
             notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
             obj = Box::new(so);
         }
@@ -309,7 +309,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
             settings["slat_flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
             let flow = module("slat_flow", &flow_cfg)?;
-            let mut fo = super::slat_flow::SlatFlowObjective::new(source, scan, stats, arch.nine_d_layout()?, dino, flow, &encoder, opts.max_models, opts.flow.clone())?;
+            let mut fo = crate::train::slat_flow::SlatFlowObjective::new(source, scan, stats, arch.nine_d_layout()?, dino, flow, &encoder, opts.max_models, opts.flow.clone())?;
             fo.context = opts.context;
             let (models, pool, usable) = fo.counts();
             notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));

@@ -11,19 +11,19 @@
 use candle_core::{Device, Tensor};
 use rayon::prelude::*;
 
-use super::data::{canonical_frame, prepare_picks, Scan, TrainingSource};
-use super::flow::{drop_condition, FlowMatching};
-use super::objective::{scalar_of, BatchLoss, Objective, Terms};
-use super::params::ModuleParams;
-use super::slat::{in_channels, SlatGeometry};
+use crate::train::data::{canonical_frame, prepare_picks, Scan, TrainingSource};
+use crate::train::flow::{drop_condition, FlowMatching};
+use crate::train::objective::{scalar_of, BatchLoss, Objective, Terms};
+use crate::train::params::ModuleParams;
+use crate::train::slat::{in_channels, SlatGeometry};
 use crate::geometry::pose::{NineDLayout, PoseStats};
 use crate::geometry::voxelize::CanonicalFrame;
-use crate::model::dinov2::Dinov2;
-use crate::model::embedders::ViewInputs;
-use crate::model::sampler::SeededRng;
-use crate::model::slat_encoder::SLatEncoder;
-use crate::model::slat_flow::{ConvPath, SLatFlowModel};
-use crate::sparse::SparseTensor;
+use crate::model::stage1::dinov2::Dinov2;
+use crate::model::stage1::embedders::ViewInputs;
+use crate::rng::SeededRng;
+use crate::model::stage2::slat_vae::encoder::SLatEncoder;
+use crate::model::stage2::slat_flow::{ConvPath, SLatFlowModel};
+use crate::model::sparse::SparseTensor;
 use crate::weights::registry;
 use crate::{Error, Result};
 
@@ -151,7 +151,7 @@ impl Objective for SlatFlowObjective<'_> {
     fn loss(&self, rng: &mut SeededRng, batch: usize) -> Result<BatchLoss> {
         let dev = Device::Cpu;
         let picks: Vec<(usize, u64)> = (0..batch).map(|_| (self.pool[(rng.next_u64() % self.pool.len() as u64) as usize], rng.next_u64())).collect();
-        let prepared: Vec<(usize, super::data::TrainView)> = prepare_picks(self.source, &self.canon, &picks, 1, self.image_size, self.context)?
+        let prepared: Vec<(usize, crate::train::data::TrainView)> = prepare_picks(self.source, &self.canon, &picks, 1, self.image_size, self.context)?
             .into_iter()
             .map(|(m, mut v)| (m, v.swap_remove(0)))
             .collect();
@@ -167,7 +167,7 @@ impl Objective for SlatFlowObjective<'_> {
         }
         let x0 = Tensor::cat(&x0, 0)?;
         let pose = Tensor::from_vec(pose, (b, 1, 13), &dev)?;
-        let cat = |f: fn(&super::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(v)).collect::<Vec<_>>(), 0);
+        let cat = |f: fn(&crate::train::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(v)).collect::<Vec<_>>(), 0);
         let tokens = self.dino.recgen_cond(&cat(|v| &v.pixels)?)?.detach();
         let views = [ViewInputs { patch_tokens: tokens, pointmap: Some(cat(|v| &v.pointmap)?), mask: Some(cat(|v| &v.mask)?) }];
         let (cond, _neg) = self.flow.condition(&views, Some(&pose))?;

@@ -1,7 +1,7 @@
 //! A tiny in-memory training set of primitive objects (boxes, cylinders,
 //! ellipsoids, cones) rendered into RGB-D views, for the CI smoke training
 //! and the tests. It is not the training data of recgen-nano: that comes
-//! from `recon synth` (BOP folders read by [`super::bop::BopSource`]).
+//! from `recon synth` (BOP folders read by [`crate::train::bop::BopSource`]).
 //!
 //! Each sample is one primitive at a random pose 0.45–0.8 m in front of a
 //! pinhole camera, over a back plane, optionally half-hidden by a second
@@ -13,10 +13,11 @@
 
 use std::sync::Arc;
 
-use super::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
-use crate::eval::mesh::{axis_angle, TriMesh};
-use crate::inputs::frame::{Intrinsics, RgbdFrame};
-use crate::model::sampler::SeededRng;
+use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
+use crate::math::axis_angle;
+use crate::mesh::trimesh::TriMesh;
+use crate::dataset::frame::{Intrinsics, RgbdFrame};
+use crate::rng::SeededRng;
 use crate::Result;
 
 /// What to generate.

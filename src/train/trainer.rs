@@ -24,10 +24,10 @@ use candle_core::{Device, Tensor, Var};
 use candle_nn::ParamsAdamW;
 use serde::{Deserialize, Serialize};
 
-use super::log::{append_log, loss_svg, read_log, truncate_log, LogRecord};
-use super::objective::Objective;
-use super::optim::{clip_grad_norm, AdamW};
-use crate::model::sampler::SeededRng;
+use crate::train::log::{append_log, loss_svg, read_log, truncate_log, LogRecord};
+use crate::train::objective::Objective;
+use crate::train::optim::{clip_grad_norm, AdamW};
+use crate::rng::SeededRng;
 use crate::weights::init::write_safetensors;
 use crate::{Error, Result};
 
@@ -142,7 +142,7 @@ fn load_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>> {
 /// Restore weights, optimizer and RNG from a checkpoint folder; returns its state.
 fn load_checkpoint(dir: &Path, obj: &dyn Objective, opt: &mut AdamW, settings: &serde_json::Value) -> Result<CheckpointState> {
     let sp = dir.join("state.json");
-    let state: CheckpointState = crate::config::read_json(&sp)?;
+    let state: CheckpointState = crate::util::json::read_json(&sp)?;
     let file = sp.display().to_string();
     if state.objective != obj.name() {
         return Err(Error::config(&file, "objective", format!("checkpoint is for `{}`, this run trains `{}`", state.objective, obj.name())));

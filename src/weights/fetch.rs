@@ -3,7 +3,7 @@
 //! URL-sourced files (the torch.hub DINOv2 checkpoint) are downloaded with
 //! `ureq` into `<cache>/recon-url/<manifest>/`.
 
-use super::manifest::Manifest;
+use crate::weights::manifest::Manifest;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 

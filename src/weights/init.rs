@@ -8,7 +8,7 @@
 //! with a copy of the architecture file and its pose-stat files, so that
 //! `Pipeline::load(<out>/<arch file>, <out>)` runs it.
 
-use super::registry::{random_weights, ModuleConfig};
+use crate::weights::registry::{random_weights, ModuleConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use std::collections::BTreeMap;
@@ -20,7 +20,7 @@ pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 /// `<out>/<config stem>.json`. Returns the weights path. For an architecture
 /// file see [`write_random_architecture`] (returns `out`).
 pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
-    let v: serde_json::Value = crate::config::read_json(config)?;
+    let v: serde_json::Value = crate::util::json::read_json(config)?;
     if v.get("ss_flow").is_some() && v.get("args").is_none() {
         write_random_architecture(config, out, seed)?;
         return Ok(out.to_path_buf());
@@ -48,7 +48,7 @@ pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf
 
 /// Random weights for every module of an architecture file: one labelled
 /// `<out>/<key>.safetensors` per module (seed per module:
-/// [`module_seed`](super::registry::module_seed)`(seed, key)`), the
+/// [`module_seed`](crate::weights::registry::module_seed)`(seed, key)`), the
 /// architecture file copied under its own name, and its pose-stat files at
 /// the same relative paths. Returns the written weight files.
 pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result<Vec<PathBuf>> {
@@ -58,7 +58,7 @@ pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result
     let mut written = Vec::new();
     for (key, spec) in arch.modules() {
         let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-        let mseed = super::registry::module_seed(seed, key);
+        let mseed = crate::weights::registry::module_seed(seed, key);
         let tensors = random_weights(&cfg, mseed, &format!("{}: {key}", config.display()))?;
         let meta: BTreeMap<String, String> = [
             (RANDOM_INIT_KEY, "true".to_string()),

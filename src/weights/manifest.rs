@@ -3,7 +3,7 @@
 //! each belongs to, and — where the module exists in this crate — the exact
 //! tensor names and shapes a checkpoint must hold.
 
-use super::record::TensorSpec;
+use crate::weights::record::TensorSpec;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -130,7 +130,7 @@ pub fn resolve_module_files(
     name_or_path: &str,
     config: &crate::model::config::RecGenConfig,
     cache: &Path,
-) -> Result<crate::pipeline::WeightFiles> {
+) -> Result<crate::engine::pipeline::WeightFiles> {
     use crate::weights::registry::ModuleKind;
     let primary = Manifest::load(name_or_path)?;
     let others: Vec<Manifest> = Manifest::all()?.into_iter().filter(|m| m.name != primary.name).collect();
@@ -140,7 +140,7 @@ pub fn resolve_module_files(
             .find(|f| is_weights_file(f) && !f.optional && f.module.as_deref().and_then(ModuleKind::of) == Some(kind))
             .cloned()
     };
-    let mut out = crate::pipeline::WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
+    let mut out = crate::engine::pipeline::WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
     let mut missing = Vec::new();
     let mut fetch = vec![primary.name.clone()];
     for (key, spec) in config.modules() {
@@ -221,7 +221,7 @@ mod tests {
         let f = &m.files[0];
         let cfg = crate::weights::registry::ModuleConfig {
             name: "DinoVisionTransformer".into(),
-            args: serde_json::to_value(crate::model::dinov2::Dinov2Config::vitl14_reg()).unwrap(),
+            args: serde_json::to_value(crate::model::stage1::dinov2::Dinov2Config::vitl14_reg()).unwrap(),
         };
         let want = crate::weights::registry::expected_tensors(&cfg, "vitl14").unwrap();
         assert_eq!(f.tensors.as_ref().unwrap(), &want);
@@ -260,7 +260,7 @@ mod tests {
         let wf = resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
         assert_eq!(wf.modules.len(), 6);
         assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
-        let p = crate::pipeline::Pipeline::load_files(&cfg_path, &wf, crate::pipeline::Stages::All).unwrap();
+        let p = crate::engine::pipeline::Pipeline::load_files(&cfg_path, &wf, crate::engine::pipeline::Stages::All).unwrap();
         assert!(p.weights().is_random());
         let _ = std::fs::remove_dir_all(&root);
     }

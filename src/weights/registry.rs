@@ -1,7 +1,7 @@
 //! Module configs by name: `{"name": ClassName, "args": {...}}` files (the
 //! TRELLIS `ckpts/<name>.json` format) map to a builder that constructs the
-//! module on any VarBuilder. Building on a [`Recorder`](super::record::Recorder)
-//! yields the expected tensor list; on [`RandomInit`](super::record::RandomInit)
+//! module on any VarBuilder. Building on a [`Recorder`](crate::weights::record::Recorder)
+//! yields the expected tensor list; on [`RandomInit`](crate::weights::record::RandomInit)
 //! random weights. New modules plug in by adding a match arm to [`build`].
 //!
 //! Every module of the architecture file (`models/recgen-*.json`) is known:
@@ -11,14 +11,14 @@
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
-use super::record::{RandomInit, RandomStream, Recorder, TensorSpec};
-use crate::decoders::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
-use crate::decoders::slat_mesh::SLatMeshDecoder;
-use crate::model::dinov2::{Dinov2, Dinov2Config};
-use crate::model::slat_flow::{SLatFlowConfig, SLatFlowModel};
-use crate::model::ss_decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
-use crate::model::ss_encoder::{SparseStructureEncoder, SparseStructureEncoderConfig};
-use crate::model::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::weights::record::{RandomInit, RandomStream, Recorder, TensorSpec};
+use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
+use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
+use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
+use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use crate::model::stage1::ss_vae::decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
+use crate::model::stage1::ss_vae::encoder::{SparseStructureEncoder, SparseStructureEncoderConfig};
+use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -35,7 +35,7 @@ pub struct ModuleConfig {
 
 impl ModuleConfig {
     pub fn read(path: &Path) -> Result<Self> {
-        crate::config::read_json(path)
+        crate::util::json::read_json(path)
     }
 }
 
@@ -105,7 +105,7 @@ pub fn dinov2_config(args: &serde_json::Value, file: &str) -> Result<Dinov2Confi
     if args.get("hidden_size").is_some() {
         return Dinov2Config::from_hf_config(args, file);
     }
-    let c: Dinov2Config = crate::config::from_value(args, file)?;
+    let c: Dinov2Config = crate::util::json::from_value(args, file)?;
     c.validate(file)?;
     Ok(c)
 }
@@ -134,8 +134,8 @@ pub fn build_mesh_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Re
     SLatMeshDecoder::new(&cfg.args, vb)
 }
 
-pub fn build_slat_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<crate::model::slat_encoder::SLatEncoder> {
-    crate::model::slat_encoder::SLatEncoder::new(&cfg.args, vb)
+pub fn build_slat_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<crate::model::stage2::slat_vae::encoder::SLatEncoder> {
+    crate::model::stage2::slat_vae::encoder::SLatEncoder::new(&cfg.args, vb)
 }
 
 pub fn build_gaussian_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatGaussianDecoder> {
@@ -265,7 +265,7 @@ mod tests {
         let ss = arch.modules().into_iter().find(|(k, _)| *k == "ss_flow").unwrap().1;
         let w = random_weights(&ModuleConfig { name: ss.name.clone(), args: ss.args.clone() }, 1, "ss")?;
         let want = SparseStructureFlowModel::grid_position_embedding(8, 64, &Device::Cpu)?;
-        assert_eq!(crate::conformance::max_abs_diff(&w["pos_emb"], &want)?, 0.0);
+        assert_eq!(crate::util::max_abs_diff(&w["pos_emb"], &want)?, 0.0);
         assert!(ModuleKind::of("NoSuchModel").is_none());
         // The streaming builder hands out the same tensors.
         for (key, spec) in arch.modules() {
@@ -274,7 +274,7 @@ mod tests {
             let vb = random_var_builder(&cfg, 3, key)?;
             for s in expected_tensors(&cfg, key)? {
                 let got = vb.get(s.shape.as_slice(), &s.name)?;
-                assert_eq!(crate::conformance::max_abs_diff(&got, &w[&s.name])?, 0.0, "{key} {}", s.name);
+                assert_eq!(crate::util::max_abs_diff(&got, &w[&s.name])?, 0.0, "{key} {}", s.name);
             }
         }
         assert_ne!(module_seed(1, "ss_flow"), module_seed(1, "slat_flow"));

@@ -2,8 +2,8 @@
 //! any model is built, so a wrong file fails with the tensor's name and both
 //! shapes instead of deep inside a forward pass.
 
-use super::load::Checkpoint;
-use super::record::TensorSpec;
+use crate::weights::load::Checkpoint;
+use crate::weights::record::TensorSpec;
 use crate::{Error, Result};
 use std::collections::{BTreeMap, BTreeSet};
 

@@ -1,10 +1,10 @@
 //! `recon weights verify DIR`: check that a directory holds a manifest's
 //! files and that every checkpoint with a known tensor list matches it.
 
-use super::load::Checkpoint;
-use super::manifest::Manifest;
-use super::registry::{expected_tensors, ModuleConfig, ModuleKind};
-use super::validate::compare;
+use crate::weights::load::Checkpoint;
+use crate::weights::manifest::Manifest;
+use crate::weights::registry::{expected_tensors, ModuleConfig, ModuleKind};
+use crate::weights::validate::compare;
 use crate::Result;
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -45,7 +45,7 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
             None => {
                 row.ok = true;
                 row.detail = match f.kind.as_str() {
-                    "json" => match crate::config::read_json::<serde_json::Value>(&p) {
+                    "json" => match crate::util::json::read_json::<serde_json::Value>(&p) {
                         Ok(_) => "present (valid JSON)".into(),
                         Err(e) => {
                             row.ok = false;
@@ -89,9 +89,9 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
 /// Expected tensors of `module` from its config file: a module config
 /// (`{"name", "args"}`) or a training config whose `models` map holds an
 /// entry for a known class. `None` when the file is absent or not usable.
-fn derive_expected(module: &str, config: &Path) -> Option<Vec<super::record::TensorSpec>> {
+fn derive_expected(module: &str, config: &Path) -> Option<Vec<crate::weights::record::TensorSpec>> {
     ModuleKind::of(module)?;
-    let v: serde_json::Value = crate::config::read_json(config).ok()?;
+    let v: serde_json::Value = crate::util::json::read_json(config).ok()?;
     let spec = if v.get("args").is_some() {
         v
     } else {
@@ -125,7 +125,7 @@ mod tests {
             "out_channels": 1, "latent_channels": 4, "num_res_blocks": 1, "num_res_blocks_middle": 1, "channels": [16, 8]}});
         let cfg_path = dir.join("ss_dec.json");
         std::fs::write(&cfg_path, cfg.to_string()).map_err(|e| crate::Error::io(&cfg_path, e))?;
-        super::super::init::write_random_init(&cfg_path, &dir, 1)?;
+        crate::weights::init::write_random_init(&cfg_path, &dir, 1)?;
         let m = Manifest::parse(
             r#"{"name": "t", "source": "url", "files": [{"path": "ss_dec.safetensors", "kind": "safetensors",
                 "url": "x", "module": "SparseStructureDecoder", "config": "ss_dec.json", "tensors_note": "derived"}]}"#,

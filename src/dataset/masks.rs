@@ -1,0 +1,448 @@
+//! Object masks: an instance-id PNG (0 = background, one id per object; 8-
+//! or 16-bit) or one binary mask file per object, object selection by id,
+//! RecGen's mask erosion, and per-object validation against the frame.
+//!
+//! Validation never fails the whole frame: each object either passes or is
+//! reported as a [`MaskSkip`] with the reason (absent id, empty mask, size
+//! different from the frame, nothing left after erosion, too few pixels
+//! with a valid depth reading under the eroded mask), so the caller can go
+//! on with the others.
+//!
+//! **Erosion (RecGen `apply_mask_erosion`).** Before anything else RecGen
+//! erodes the object mask with a `k×k` square of ones (`k = 5`, 1 iteration
+//! by default) as `scipy.ndimage.binary_erosion` does: a pixel stays set
+//! only if every pixel of the window centred on it (offsets `-k/2 ..
+//! k-1-k/2`) is set, and pixels outside the image count as unset, so a mask
+//! touching the border loses its border rows. This trims the mixed
+//! object/background depth at silhouettes. The eroded mask is what the
+//! crop, the point statistics and the mask tensor all use.
+
+use std::path::{Path, PathBuf};
+
+use crate::dataset::frame::{depth_valid, RgbdFrame};
+use crate::{Error, Result};
+
+/// One object's mask at full frame resolution.
+#[derive(Debug, Clone)]
+pub struct ObjectMask {
+    /// Instance id in the label map (`None` for a mask file).
+    pub id: Option<u32>,
+    /// Human-readable name for reports (`id 8`, or the file name).
+    pub label: String,
+    pub width: usize,
+    pub height: usize,
+    /// Row-major `height·width`, `true` = object.
+    pub mask: Vec<bool>,
+}
+
+impl ObjectMask {
+    pub fn pixel_count(&self) -> usize {
+        self.mask.iter().filter(|&&m| m).count()
+    }
+
+    /// 8-bit 0/255 copy (the form RecGen hands to PIL).
+    pub fn to_u8(&self) -> Vec<u8> {
+        self.mask.iter().map(|&m| if m { 255 } else { 0 }).collect()
+    }
+}
+
+/// Square binary erosion parameters (RecGen defaults: 5, 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Erosion {
+    pub kernel: usize,
+    pub iterations: usize,
+}
+
+impl Default for Erosion {
+    fn default() -> Self {
+        Erosion { kernel: 5, iterations: 1 }
+    }
+}
+
+/// Binary erosion with a `k×k` square, scipy conventions (module docs).
+/// Separable: a row-wise window minimum followed by a column-wise one.
+pub fn erode(mask: &[bool], w: usize, h: usize, e: Erosion) -> Vec<bool> {
+    let mut cur = mask.to_vec();
+    if e.kernel <= 1 || e.iterations == 0 {
+        return cur;
+    }
+    let lo = (e.kernel / 2) as isize; // window covers [i - lo, i - lo + k - 1]
+    let k = e.kernel as isize;
+    let win_all = |line: &[bool]| -> Vec<bool> {
+        // Prefix counts of unset pixels; outside the line counts as unset.
+        let n = line.len() as isize;
+        let mut pre = vec![0usize; line.len() + 1];
+        for (i, &b) in line.iter().enumerate() {
+            pre[i + 1] = pre[i] + (!b) as usize;
+        }
+        (0..n)
+            .map(|i| {
+                let (a, b) = (i - lo, i - lo + k - 1);
+                if a < 0 || b >= n {
+                    return false;
+                }
+                pre[(b + 1) as usize] - pre[a as usize] == 0
+            })
+            .collect()
+    };
+    for _ in 0..e.iterations {
+        let mut rows = vec![false; w * h];
+        for y in 0..h {
+            rows[y * w..(y + 1) * w].copy_from_slice(&win_all(&cur[y * w..(y + 1) * w]));
+        }
+        let mut col = vec![false; h];
+        for x in 0..w {
+            for y in 0..h {
+                col[y] = rows[y * w + x];
+            }
+            for (y, v) in win_all(&col).into_iter().enumerate() {
+                cur[y * w + x] = v;
+            }
+        }
+    }
+    cur
+}
+
+/// A per-instance label map (0 = background).
+#[derive(Debug, Clone)]
+pub struct InstanceMap {
+    pub width: usize,
+    pub height: usize,
+    pub ids: Vec<u32>,
+    pub path: PathBuf,
+}
+
+impl InstanceMap {
+    /// Read an 8- or 16-bit single-channel PNG of instance ids.
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = path.display().to_string();
+        let img = image::open(path).map_err(|e| Error::input(&file, format!("cannot read instance mask: {e}")))?;
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let ids: Vec<u32> = match img {
+            image::DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(u32::from).collect(),
+            image::DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(u32::from).collect(),
+            other => {
+                return Err(Error::input(
+                    &file,
+                    format!("an instance-id mask must be a single-channel 8- or 16-bit PNG, found {:?}", other.color()),
+                ))
+            }
+        };
+        Ok(InstanceMap { width: w, height: h, ids, path: path.to_path_buf() })
+    }
+
+    /// Non-zero ids present, ascending.
+    pub fn present_ids(&self) -> Vec<u32> {
+        let mut v: Vec<u32> = self.ids.iter().copied().filter(|&i| i != 0).collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+
+    /// Masks for the selected ids (all present ids when `select` is `None`).
+    /// Requested ids that do not occur are reported as skips.
+    pub fn objects(&self, select: Option<&[u32]>) -> (Vec<ObjectMask>, Vec<MaskSkip>) {
+        let ids = match select {
+            Some(s) => s.to_vec(),
+            None => self.present_ids(),
+        };
+        let mut out = Vec::new();
+        let mut skips = Vec::new();
+        for id in ids {
+            let label = format!("id {id}");
+            if id == 0 {
+                skips.push(MaskSkip { label, reason: SkipReason::Background });
+                continue;
+            }
+            let mask: Vec<bool> = self.ids.iter().map(|&v| v == id).collect();
+            if !mask.iter().any(|&m| m) {
+                skips.push(MaskSkip { label, reason: SkipReason::IdAbsent });
+                continue;
+            }
+            out.push(ObjectMask { id: Some(id), label, width: self.width, height: self.height, mask });
+        }
+        (out, skips)
+    }
+}
+
+/// Read one binary mask file: with an alpha channel that is not fully
+/// opaque, `alpha > 0` marks the object; otherwise any non-zero grey value
+/// does (RecGen: "non-zero pixels mark the object").
+pub fn load_binary_mask(path: &Path) -> Result<ObjectMask> {
+    let file = path.display().to_string();
+    let img = image::open(path).map_err(|e| Error::input(&file, format!("cannot read mask: {e}")))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mask: Vec<bool> = if img.color().has_alpha() {
+        let a: Vec<u16> = img.to_luma_alpha16().pixels().map(|p| p.0[1]).collect();
+        if a.iter().any(|&v| v != u16::MAX) {
+            a.iter().map(|&v| v > 0).collect()
+        } else {
+            img.to_luma16().into_raw().into_iter().map(|v| v > 0).collect()
+        }
+    } else {
+        img.to_luma16().into_raw().into_iter().map(|v| v > 0).collect()
+    };
+    let label = path.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or(file);
+    Ok(ObjectMask { id: None, label, width: w, height: h, mask })
+}
+
+/// Read several binary mask files, one object each; a file that cannot be
+/// read becomes a skip for that object only.
+pub fn load_binary_masks(paths: &[PathBuf]) -> (Vec<ObjectMask>, Vec<MaskSkip>) {
+    let mut ok = Vec::new();
+    let mut skips = Vec::new();
+    for p in paths {
+        match load_binary_mask(p) {
+            Ok(m) => ok.push(m),
+            Err(e) => skips.push(MaskSkip { label: p.display().to_string(), reason: SkipReason::Unreadable(e.to_string()) }),
+        }
+    }
+    (ok, skips)
+}
+
+/// Why an object is left out.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SkipReason {
+    /// Id 0 is the background.
+    Background,
+    /// The requested id does not occur in the label map.
+    IdAbsent,
+    /// No pixel is set.
+    Empty,
+    /// The mask's size differs from the frame's.
+    WrongSize { mask: (usize, usize), frame: (usize, usize) },
+    /// Erosion removed every pixel (object thinner than the kernel).
+    EmptyAfterErosion { before: usize },
+    /// Too few pixels under the eroded mask have a valid depth reading.
+    TooFewValidDepth { valid: usize, min: usize },
+    /// Point-map preprocessing failed (message).
+    Preprocessing(String),
+    /// The mask file could not be read (message).
+    Unreadable(String),
+}
+
+impl std::fmt::Display for SkipReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SkipReason::Background => write!(f, "id 0 is the background"),
+            SkipReason::IdAbsent => write!(f, "id not present in the mask"),
+            SkipReason::Empty => write!(f, "mask is empty"),
+            SkipReason::WrongSize { mask, frame } => {
+                write!(f, "mask is {}×{} but the frame is {}×{}", mask.0, mask.1, frame.0, frame.1)
+            }
+            SkipReason::EmptyAfterErosion { before } => write!(f, "mask of {before} px is empty after erosion"),
+            SkipReason::TooFewValidDepth { valid, min } => {
+                write!(f, "only {valid} mask pixels have valid depth (minimum {min})")
+            }
+            SkipReason::Preprocessing(m) => write!(f, "preprocessing failed: {m}"),
+            SkipReason::Unreadable(m) => write!(f, "cannot read the mask: {m}"),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct MaskSkip {
+    pub label: String,
+    pub reason: SkipReason,
+}
+
+impl std::fmt::Display for MaskSkip {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: skipped: {}", self.label, self.reason)
+    }
+}
+
+/// Validation settings.
+#[derive(Debug, Clone, Copy)]
+pub struct MaskOptions {
+    /// `None` disables erosion (RecGen `mask_erosion_enabled = False`).
+    pub erosion: Option<Erosion>,
+    /// Minimum number of eroded-mask pixels with valid depth.
+    pub min_valid_depth_pixels: usize,
+}
+
+impl Default for MaskOptions {
+    fn default() -> Self {
+        MaskOptions { erosion: Some(Erosion::default()), min_valid_depth_pixels: 100 }
+    }
+}
+
+/// An object that passed validation.
+#[derive(Debug, Clone)]
+pub struct ValidObject {
+    pub mask: ObjectMask,
+    /// Pixels under the eroded mask with valid depth.
+    pub valid_depth_pixels: usize,
+}
+
+/// Check every object against the frame; failures become skips.
+pub fn validate_objects(frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &MaskOptions) -> (Vec<ValidObject>, Vec<MaskSkip>) {
+    let mut ok = Vec::new();
+    let mut skips = Vec::new();
+    for m in objects {
+        let skip = |reason| MaskSkip { label: m.label.clone(), reason };
+        if (m.width, m.height) != (frame.width, frame.height) || m.mask.len() != frame.width * frame.height {
+            skips.push(skip(SkipReason::WrongSize { mask: (m.width, m.height), frame: (frame.width, frame.height) }));
+            continue;
+        }
+        let before = m.pixel_count();
+        if before == 0 {
+            skips.push(skip(SkipReason::Empty));
+            continue;
+        }
+        let eroded = match opts.erosion {
+            Some(e) => erode(&m.mask, m.width, m.height, e),
+            None => m.mask.clone(),
+        };
+        if !eroded.iter().any(|&b| b) {
+            skips.push(skip(SkipReason::EmptyAfterErosion { before }));
+            continue;
+        }
+        let valid = eroded.iter().zip(&frame.depth_m).filter(|(&b, &z)| b && depth_valid(z)).count();
+        if valid < opts.min_valid_depth_pixels.max(1) {
+            skips.push(skip(SkipReason::TooFewValidDepth { valid, min: opts.min_valid_depth_pixels.max(1) }));
+            continue;
+        }
+        ok.push(ValidObject { mask: m, valid_depth_pixels: valid });
+    }
+    (ok, skips)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::frame::Intrinsics;
+
+    fn frame(w: usize, h: usize, depth: impl Fn(usize, usize) -> f32) -> RgbdFrame {
+        let mut d = vec![0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                d[y * w + x] = depth(x, y);
+            }
+        }
+        RgbdFrame {
+            width: w,
+            height: h,
+            rgb: vec![0; w * h * 3],
+            depth_m: d,
+            intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: w as f64 / 2.0, cy: h as f64 / 2.0 },
+            rgb_path: PathBuf::new(),
+            depth_path: PathBuf::new(),
+            intrinsics_source: "test".into(),
+            depth_scale: 0.001,
+        }
+    }
+
+    /// Reference erosion straight from the definition.
+    fn erode_naive(m: &[bool], w: usize, h: usize, k: usize) -> Vec<bool> {
+        let lo = (k / 2) as isize;
+        let mut out = vec![false; w * h];
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let mut all = true;
+                for dy in -lo..(k as isize - lo) {
+                    for dx in -lo..(k as isize - lo) {
+                        let (xx, yy) = (x + dx, y + dy);
+                        if xx < 0 || yy < 0 || xx >= w as isize || yy >= h as isize || !m[(yy as usize) * w + xx as usize] {
+                            all = false;
+                        }
+                    }
+                }
+                out[y as usize * w + x as usize] = all;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn erosion_matches_definition() {
+        let (w, h) = (23, 17);
+        let mut s = 12345u64;
+        let m: Vec<bool> = (0..w * h)
+            .map(|_| {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (s >> 33) % 7 != 0
+            })
+            .collect();
+        for k in [2, 3, 4, 5] {
+            assert_eq!(erode(&m, w, h, Erosion { kernel: k, iterations: 1 }), erode_naive(&m, w, h, k), "k={k}");
+        }
+        let twice = erode(&m, w, h, Erosion { kernel: 3, iterations: 2 });
+        assert_eq!(twice, erode_naive(&erode_naive(&m, w, h, 3), w, h, 3));
+        // A 10×10 block loses 2 px per side with k = 5; the border counts as background.
+        let mut b = vec![false; 20 * 20];
+        for y in 5..15 {
+            for x in 0..10 {
+                b[y * 20 + x] = true;
+            }
+        }
+        let e = erode(&b, 20, 20, Erosion::default());
+        assert_eq!(e.iter().filter(|&&v| v).count(), 6 * 6); // x 2..8 (border side too), y 7..13
+        assert!(e[7 * 20 + 2] && !e[7 * 20 + 1] && !e[6 * 20 + 4]);
+    }
+
+    #[test]
+    fn instance_map_selection_and_validation() {
+        let dir = std::env::temp_dir().join(format!("recon-masks-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (40u32, 30u32);
+        // id 3: big block with depth; id 5: 2-px thin line; id 700 (16-bit): block without depth.
+        let lab = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
+            image::Luma([if (5..20).contains(&x) && (5..20).contains(&y) {
+                3
+            } else if y == 25 && x < 30 || y == 26 && x < 30 {
+                5
+            } else if (25..38).contains(&x) && (2..15).contains(&y) {
+                700
+            } else {
+                0
+            }])
+        });
+        let p16 = dir.join("labels16.png");
+        lab.save(&p16).unwrap();
+        let map = InstanceMap::open(&p16).unwrap();
+        assert_eq!(map.present_ids(), vec![3, 5, 700]);
+        let f = frame(40, 30, |x, _| if x < 22 { 0.8 } else { 0.0 });
+        let (objs, skips) = map.objects(Some(&[3, 5, 700, 9, 0]));
+        assert_eq!(objs.len(), 3);
+        assert_eq!(skips.iter().map(|s| s.reason.clone()).collect::<Vec<_>>(), vec![SkipReason::IdAbsent, SkipReason::Background]);
+        let (ok, skips) = validate_objects(&f, objs, &MaskOptions::default());
+        assert_eq!(ok.len(), 1);
+        assert_eq!(ok[0].mask.id, Some(3));
+        assert_eq!(ok[0].valid_depth_pixels, 11 * 11);
+        assert!(matches!(skips[0].reason, SkipReason::EmptyAfterErosion { before: 60 }));
+        assert_eq!(skips[1].reason, SkipReason::TooFewValidDepth { valid: 0, min: 100 });
+        assert!(skips[1].to_string().contains("id 700"));
+
+        // 8-bit map; wrong size against the frame.
+        let lab8 = image::GrayImage::from_fn(20, 10, |x, _| image::Luma([if x > 3 { 2 } else { 0 }]));
+        let p8 = dir.join("labels8.png");
+        lab8.save(&p8).unwrap();
+        let (objs, _) = InstanceMap::open(&p8).unwrap().objects(None);
+        let (ok, skips) = validate_objects(&f, objs, &MaskOptions::default());
+        assert!(ok.is_empty());
+        assert_eq!(skips[0].reason, SkipReason::WrongSize { mask: (20, 10), frame: (40, 30) });
+
+        // An RGB image is not an id map.
+        image::RgbImage::new(4, 4).save(dir.join("rgb.png")).unwrap();
+        assert!(InstanceMap::open(&dir.join("rgb.png")).unwrap_err().to_string().contains("single-channel"));
+
+        // Binary masks: grey non-zero, and RGBA with alpha.
+        let bm = image::GrayImage::from_fn(40, 30, |x, y| image::Luma([if x > 10 && y > 10 { 255 } else { 0 }]));
+        bm.save(dir.join("obj.png")).unwrap();
+        let m = load_binary_mask(&dir.join("obj.png")).unwrap();
+        assert_eq!(m.pixel_count(), 29 * 19);
+        assert_eq!(m.label, "obj.png");
+        let rgba = image::RgbaImage::from_fn(40, 30, |x, _| image::Rgba([9, 9, 9, if x < 5 { 255 } else { 0 }]));
+        rgba.save(dir.join("cut.png")).unwrap();
+        assert_eq!(load_binary_mask(&dir.join("cut.png")).unwrap().pixel_count(), 5 * 30);
+        // Several files: an unreadable one is skipped, the others load.
+        let (ms, sk) = load_binary_masks(&[dir.join("obj.png"), dir.join("missing.png"), dir.join("cut.png")]);
+        assert_eq!(ms.len(), 2);
+        assert!(matches!(&sk[0].reason, SkipReason::Unreadable(_)) && sk[0].label.contains("missing.png"));
+        // Empty mask is a skip, not an error.
+        let empty = ObjectMask { id: None, label: "e".into(), width: 40, height: 30, mask: vec![false; 1200] };
+        let (_, skips) = validate_objects(&f, vec![empty], &MaskOptions::default());
+        assert_eq!(skips[0].reason, SkipReason::Empty);
+    }
+}

@@ -1,0 +1,591 @@
+//! `recon infer` as a library: RGB-D frame + object masks → per-object pose,
+//! mesh and Gaussians in the metric camera frame.
+//!
+//! ```no_run
+//! use recon::engine::infer::{Engine, InferOptions};
+//! use recon::dataset::frame::{FrameOptions, RgbdFrame};
+//! use recon::dataset::masks::InstanceMap;
+//! # fn main() -> recon::Result<()> {
+//! let engine = Engine::random("models/recgen-tiny.json".as_ref(), 0)?; // or Engine::load(config, weights_dir)
+//! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;
+//! let (objects, _skipped) = InstanceMap::open("data/sample/000001-label.png".as_ref())?.objects(None);
+//! let result = engine.reconstruct(&frame, objects, &InferOptions::default())?;
+//! for o in &result.objects { println!("{} {:?}", o.label, o.pose_camera.translation); }
+//! # Ok(()) }
+//! ```
+//!
+//! The model is loaded once ([`Engine`]) and reused for every object.
+//! Objects that fail validation or preprocessing are reported in
+//! [`FrameResult::skipped`] and do not stop the others.
+//!
+//! **Two views** ([`Engine::reconstruct_two_view`]): each view is prepared
+//! on its own (own crop and normaliser, as RecGen's `generate_multiview`)
+//! and both condition one run; pose token `k` belongs to view `k` and is
+//! mapped to view `k`'s camera through view `k`'s normaliser, then to the
+//! anchor (view 1) camera with the relative pose `T_c1_c2`.
+//!
+//! **Samples and selection**: with `samples > 1` the object is run with
+//! seeds `seed, seed + 1, …`. Every (sample, view) pose is a candidate,
+//! scored by the trimmed-mean distance of the observed points to its posed
+//! mesh ([`crate::engine::pose_fit::score`]); the winner gives the reported
+//! pose, mesh and Gaussians, and the spread of the per-sample winners is the
+//! uncertainty figure. Everything is reported in the anchor camera frame.
+
+use crate::mesh::post::{decimate, drop_floaters};
+use crate::mesh::Mesh;
+use crate::gaussians::Gaussians;
+use crate::engine::pose_fit::ViewPoints;
+use crate::engine::pose_fit::AlignOptions;
+use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
+use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
+use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
+use crate::geometry::camera_pose::pose_to_camera;
+use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
+use crate::geometry::pose::Pose;
+use crate::gaussians::stretch_gaussians;
+use crate::mesh::stretch_mesh;
+use crate::engine::pose_fit::DepthView;
+use crate::engine::pose_fit::refine_pose;
+use crate::dataset::frame::{depth_valid, RgbdFrame};
+use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
+use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput, WeightFiles};
+use crate::{Error, Result};
+use candle_core::Device;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+pub use crate::math::Similarity as RigidTransform;
+
+/// Per-frame settings.
+#[derive(Debug, Clone)]
+pub struct InferOptions {
+    /// Model run settings; `run.seed` is the first sample's seed.
+    pub run: RunOptions,
+    /// Minimum eroded-mask pixels with valid depth for an object to run.
+    pub min_valid_depth_pixels: usize,
+    pub prepare: PrepareOptions,
+    /// Samples per object (seeds `run.seed`, `run.seed + 1`, …); the best
+    /// pose is selected and the spread reported.
+    pub samples: usize,
+    /// How the pose is chosen among views and samples ([`SelectMethod`]).
+    pub select: SelectMethod,
+    pub align: AlignOptions,
+    /// Meshes with more faces are decimated (quadric edge collapse) to about
+    /// this many; `None` keeps the decoder's mesh.
+    pub max_faces: Option<usize>,
+    /// Connected components with less than this fraction of the mesh's area
+    /// are dropped as floaters before decimation (0: keep all; the largest
+    /// component is always kept).
+    pub floater_area_fraction: f64,
+}
+
+/// Default face budget of an output mesh.
+pub const DEFAULT_MAX_FACES: usize = 200_000;
+
+impl Default for InferOptions {
+    fn default() -> Self {
+        Self {
+            run: RunOptions::default(),
+            min_valid_depth_pixels: 100,
+            prepare: PrepareOptions::default(),
+            samples: 1,
+            select: SelectMethod::Cross,
+            align: AlignOptions::default(),
+            max_faces: Some(DEFAULT_MAX_FACES),
+            floater_area_fraction: 0.02,
+        }
+    }
+}
+
+/// The second view of a two-view reconstruction.
+pub struct SecondView<'a> {
+    pub frame: &'a RgbdFrame,
+    /// The second frame's masks, matched to the first frame's by instance
+    /// id, or by order when masks carry no id ([`match_views`]).
+    pub objects: Vec<ObjectMask>,
+    /// Camera 2 → camera 1, rigid: `x₁ = R·x₂ + t` (metres).
+    pub t_c1_c2: RigidTransform,
+}
+
+/// What the engine is doing, for progress displays.
+#[derive(Debug, Clone, Copy)]
+pub enum Progress<'a> {
+    Object { index: usize, total: usize, label: &'a str },
+    Sample { index: usize, total: usize, seed: u64 },
+    Stage(Stage),
+    /// Applying the face budget.
+    Decimating,
+    /// Scoring the candidate poses.
+    Selecting,
+    ObjectDone { label: &'a str, seconds: f64 },
+}
+
+/// A loaded model, reused across objects and frames.
+pub struct Engine {
+    pub pipeline: Pipeline,
+}
+
+/// One view of a reconstructed object.
+#[derive(Debug, Clone, Serialize)]
+pub struct ViewPose {
+    /// 1 = the anchor (`--rgbd`), 2 = `--view2`.
+    pub view: usize,
+    pub frame: PathBuf,
+    pub mask: String,
+    /// This view's point normaliser (metres).
+    pub normaliser_centre_m: [f64; 3],
+    pub normaliser_diameter_m: f64,
+    /// Observed object points (eroded mask, valid depth).
+    pub observed_points: usize,
+    /// This view's own pose token of the selected sample, in this view's camera frame.
+    #[serde(serialize_with = "ser_pose")]
+    pub pose_own_token: Pose,
+    /// The selected pose in this view's camera frame.
+    #[serde(serialize_with = "ser_pose")]
+    pub pose_selected: Pose,
+}
+
+/// One candidate pose: one view's token of one sample.
+#[derive(Debug, Clone, Serialize)]
+pub struct Candidate {
+    pub seed: u64,
+    /// 1 or 2 (the view whose token it is).
+    pub view: usize,
+    /// In the anchor camera frame (after refinement with `--pose-fit depth`).
+    #[serde(serialize_with = "ser_pose")]
+    pub pose_camera: Pose,
+    /// Per-axis stretch of the object frame fitted with `--pose-fit
+    /// depth-stretch` (`[1, 1, 1]` otherwise); the mesh is stretched before the pose.
+    pub stretch: [f64; 3],
+    /// Per-view score (metres): trimmed-mean distance of the observed points
+    /// to the mesh, plus the free-space term with `--pose-fit depth`.
+    pub score: CandidateScore,
+}
+
+/// Which candidate won.
+#[derive(Debug, Clone, Serialize)]
+pub struct Selection {
+    pub method: SelectMethod,
+    /// Index into [`ObjectResult::candidates`].
+    pub candidate: usize,
+    pub seed: u64,
+    pub view: usize,
+    /// The selection key (metres): own-view score (`single`, `first`) or the mean over views (`cross`).
+    pub score_m: f64,
+}
+
+/// One reconstructed object.
+#[derive(Debug, Clone)]
+pub struct ObjectResult {
+    pub label: String,
+    pub id: Option<u32>,
+    /// The selected token's pose: canonical object frame → that view's normalised pointmap frame.
+    pub pose_normalised: Pose,
+    /// The selected pose: canonical object frame → metric (anchor) camera frame.
+    pub pose_camera: Pose,
+    pub selection: Selection,
+    pub views: Vec<ViewPose>,
+    pub candidates: Vec<Candidate>,
+    /// Spread of the per-sample poses (with two or more samples).
+    pub uncertainty: Option<PoseSpread>,
+    pub occupied_voxels: usize,
+    /// Faces as decoded, before the face budget.
+    pub faces_decoded: usize,
+    /// Mesh and Gaussians placed in the anchor camera frame (metres).
+    pub mesh_camera: Option<Mesh>,
+    pub gaussians_camera: Option<Gaussians>,
+    /// Observed object points (anchor camera frame, metres) of every view, view 1 first.
+    pub observed_points: Vec<[f32; 3]>,
+    pub observed_colors: Vec<[u8; 3]>,
+    /// Model stages, summed over samples.
+    pub timings: StageTimings,
+    /// Decimation seconds.
+    pub postprocess_seconds: f64,
+    /// Scoring and selection seconds.
+    pub select_seconds: f64,
+    /// The selected sample's run.
+    pub metadata: RunMetadata,
+    pub samples: usize,
+    pub notes: Vec<String>,
+}
+
+/// Everything one frame produces.
+#[derive(Debug, Clone)]
+pub struct FrameResult {
+    pub objects: Vec<ObjectResult>,
+    /// Objects left out, with the reason (validation, preprocessing or model failure).
+    pub skipped: Vec<MaskSkip>,
+    pub preprocess_seconds: f64,
+    /// Frame-level remarks (e.g. masks of view 2 without a partner in view 1).
+    pub notes: Vec<String>,
+}
+
+/// Pair the objects of two views: by instance id when every mask has one,
+/// else by order (then both views must list the same number of masks).
+/// Objects of view 1 without a partner run on view 1 alone; view-2 masks
+/// without a partner are reported in the returned notes.
+#[allow(clippy::type_complexity)]
+pub fn match_views(v1: Vec<ObjectMask>, v2: Vec<ObjectMask>) -> Result<(Vec<(ObjectMask, Option<ObjectMask>)>, Vec<String>)> {
+    let by_id = v1.iter().chain(&v2).all(|o| o.id.is_some());
+    if !by_id {
+        if v1.len() != v2.len() {
+            return Err(Error::input(
+                "--masks2",
+                format!("{} mask(s) for view 2 but {} for view 1: masks without instance ids are matched by order", v2.len(), v1.len()),
+            ));
+        }
+        return Ok((v1.into_iter().zip(v2).map(|(a, b)| (a, Some(b))).collect(), Vec::new()));
+    }
+    let mut v2: Vec<Option<ObjectMask>> = v2.into_iter().map(Some).collect();
+    let mut pairs = Vec::new();
+    for a in v1 {
+        let b = v2.iter_mut().find(|b| b.as_ref().is_some_and(|b| b.id == a.id)).and_then(Option::take);
+        pairs.push((a, b));
+    }
+    let notes = v2.into_iter().flatten().map(|b| format!("view 2: {} has no partner in view 1; ignored", b.label)).collect();
+    Ok((pairs, notes))
+}
+
+fn add_timings(a: &mut StageTimings, b: &StageTimings) {
+    a.image_encoder += b.image_encoder;
+    a.ss_condition += b.ss_condition;
+    a.ss_sampling += b.ss_sampling;
+    a.ss_decoder += b.ss_decoder;
+    a.pose += b.pose;
+    a.slat_condition += b.slat_condition;
+    a.slat_sampling += b.slat_sampling;
+    a.mesh_decoder += b.mesh_decoder;
+    a.gaussian_decoder += b.gaussian_decoder;
+    a.loading += b.loading;
+    a.total += b.total;
+}
+
+/// A prepared view of one object with what scoring needs.
+struct ObjView<'a> {
+    frame: &'a RgbdFrame,
+    label: String,
+    prepared: PreparedView,
+    points: ViewPoints,
+}
+
+/// `depth`: the frame's free-space depth view, shared by all its objects.
+fn object_view<'a>(frame: &'a RgbdFrame, label: String, prepared: PreparedView, to_anchor: RigidTransform, depth: Option<Arc<DepthView>>) -> Result<ObjView<'a>> {
+    let (points, _) = object_points(frame, &prepared.mask_full, None)?;
+    Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+}
+
+/// A frame's depth view for the free-space term (built once per frame, and
+/// only when the score uses it).
+fn depth_view(frame: &RgbdFrame, opts: &AlignOptions) -> Option<Arc<DepthView>> {
+    (opts.free_space_weight > 0.0).then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
+}
+
+/// The observed points of a view in the anchor frame, with their colours.
+fn observed_in_anchor(v: &ObjView) -> (Vec<[f32; 3]>, Vec<[u8; 3]>) {
+    let f = v.frame;
+    let cols = (0..f.width * f.height)
+        .filter(|&i| v.prepared.mask_full[i] && depth_valid(f.depth_m[i]))
+        .map(|i| [f.rgb[3 * i], f.rgb[3 * i + 1], f.rgb[3 * i + 2]])
+        .collect();
+    let pts = v.points.points.iter().map(|p| v.points.to_anchor.apply(p).map(|x| x as f32)).collect();
+    (pts, cols)
+}
+
+/// The outputs kept of the best sample so far.
+struct Kept {
+    per_token: Vec<Pose>,
+    coords: usize,
+    faces_decoded: usize,
+    mesh: Option<Mesh>,
+    gaussians: Option<Gaussians>,
+    metadata: RunMetadata,
+}
+
+impl Engine {
+    /// Trained (or `recon weights init`) weights from `weights_dir`.
+    pub fn load(config: &Path, weights_dir: &Path) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::load(config, weights_dir)? })
+    }
+
+    /// Weights named by a manifest (`recgen`, or a manifest file), from the
+    /// Hugging Face cache `cache` ([`crate::weights::manifest::resolve_module_files`]).
+    pub fn load_manifest(config: &Path, manifest: &str, cache: &Path) -> Result<Self> {
+        Self::load_manifest_with(config, manifest, cache, &LoadOptions::default())
+    }
+
+    /// [`Engine::load_manifest`] with explicit kernels/precision and residency.
+    pub fn load_manifest_with(config: &Path, manifest: &str, cache: &Path, options: &LoadOptions) -> Result<Self> {
+        let cfg = crate::model::config::RecGenConfig::load(config)?;
+        let files: WeightFiles = crate::weights::manifest::resolve_module_files(manifest, &cfg, cache)?;
+        Ok(Self { pipeline: Pipeline::load_files_with(config, &files, Stages::All, options)? })
+    }
+
+    /// In-memory random weights: NOT a trained model (results say so).
+    pub fn random(config: &Path, seed: u64) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::random(config, seed)? })
+    }
+
+    /// [`Engine::load`] with explicit kernels/precision (`--dtype`) and residency.
+    pub fn load_with(config: &Path, weights_dir: &Path, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::load_with(config, weights_dir, Stages::All, options)? })
+    }
+
+    /// [`Engine::random`] with explicit kernels/precision and residency.
+    pub fn random_with(config: &Path, seed: u64, options: &LoadOptions) -> Result<Self> {
+        Ok(Self { pipeline: Pipeline::random_with(config, seed, Stages::All, options)? })
+    }
+
+    /// Reconstruct every object of a frame (single view).
+    pub fn reconstruct(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &InferOptions) -> Result<FrameResult> {
+        self.reconstruct_with(frame, objects, None, opts, &|_| {})
+    }
+
+    /// Reconstruct every object seen in two views (RecGen two-view conditioning).
+    pub fn reconstruct_two_view(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, second: SecondView, opts: &InferOptions) -> Result<FrameResult> {
+        self.reconstruct_with(frame, objects, Some(second), opts, &|_| {})
+    }
+
+    /// The general entry: one or two views, `opts.samples` seeds per object,
+    /// pose selection, face budget; `progress` hears what is running.
+    ///
+    /// Per-object problems (masks, depth, an empty occupancy for every seed)
+    /// become [`FrameResult::skipped`].
+    pub fn reconstruct_with(
+        &self,
+        frame: &RgbdFrame,
+        objects: Vec<ObjectMask>,
+        second: Option<SecondView>,
+        opts: &InferOptions,
+        progress: &(dyn Fn(Progress) + Sync),
+    ) -> Result<FrameResult> {
+        if opts.samples == 0 {
+            return Err(Error::input("infer options", "samples must be at least 1"));
+        }
+        if second.is_some() && self.pipeline.max_views() < 2 {
+            return Err(Error::config(
+                &self.pipeline.config.name,
+                "ss_flow.args.num_pose_tokens",
+                format!("this model takes {} view(s); a second view needs a two-view (num_pose_tokens 2) model", self.pipeline.max_views()),
+            ));
+        }
+        let size = self.pipeline.image_size();
+        let dev = Device::Cpu;
+        let mut preprocess_seconds = 0.0;
+        let (pairs, notes, frame2, t_c1_c2) = match second {
+            Some(sv) => {
+                let (p, n) = match_views(objects, sv.objects)?;
+                (p, n, Some(sv.frame), sv.t_c1_c2)
+            }
+            None => (objects.into_iter().map(|o| (o, None)).collect(), Vec::new(), None, RigidTransform::identity()),
+        };
+        let (depth1, depth2) = (depth_view(frame, &opts.align), frame2.and_then(|f| depth_view(f, &opts.align)));
+        let mut skipped = Vec::new();
+        let mut results = Vec::new();
+        let total = pairs.len();
+        for (index, (o1, o2)) in pairs.into_iter().enumerate() {
+            let t_obj = Instant::now();
+            progress(Progress::Object { index, total, label: &o1.label });
+            let (label, id) = (o1.label.clone(), o1.id);
+            let t = Instant::now();
+            let (mut p1, s1) = prepare_frame_objects(frame, vec![o1], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
+            let mut obj_notes = Vec::new();
+            let Some(p1) = p1.pop() else {
+                skipped.extend(s1);
+                preprocess_seconds += t.elapsed().as_secs_f64();
+                continue;
+            };
+            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone())?];
+            if let (Some(f2), Some(o2)) = (frame2, o2) {
+                let (mut p2, s2) = prepare_frame_objects(f2, vec![o2], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
+                match p2.pop() {
+                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2, depth2.clone())?),
+                    None => obj_notes.extend(s2.iter().map(|s| format!("view 2 {s}; reconstructed from view 1 alone"))),
+                }
+            } else if frame2.is_some() {
+                obj_notes.push("no mask in view 2; reconstructed from view 1 alone".to_string());
+            }
+            preprocess_seconds += t.elapsed().as_secs_f64();
+            match self.reconstruct_object(&label, id, &views, opts, progress, obj_notes)? {
+                Ok(r) => {
+                    progress(Progress::ObjectDone { label: &label, seconds: t_obj.elapsed().as_secs_f64() });
+                    results.push(r);
+                }
+                Err(reason) => skipped.push(MaskSkip { label, reason }),
+            }
+        }
+        Ok(FrameResult { objects: results, skipped, preprocess_seconds, notes })
+    }
+
+    /// All samples of one object. The outer error is fatal, the inner a skip.
+    fn reconstruct_object(
+        &self,
+        label: &str,
+        id: Option<u32>,
+        views: &[ObjView],
+        opts: &InferOptions,
+        progress: &(dyn Fn(Progress) + Sync),
+        mut notes: Vec<String>,
+    ) -> Result<std::result::Result<ObjectResult, SkipReason>> {
+        let inputs = ObjectInputs {
+            views: views
+                .iter()
+                .map(|v| ViewInput { pixels: v.prepared.pixel_values.clone(), pointmap: v.prepared.pointmap.clone(), mask: v.prepared.mask.clone() })
+                .collect(),
+        };
+        let view_points: Vec<ViewPoints> = views.iter().map(|v| v.points.clone()).collect();
+        let mut timings = StageTimings::default();
+        let (mut post_s, mut select_s) = (0.0, 0.0);
+        let mut candidates: Vec<Candidate> = Vec::new();
+        let mut per_sample_best: Vec<crate::math::Similarity> = Vec::new();
+        let mut kept: Option<Kept> = None;
+        let mut last_err = None;
+        for s in 0..opts.samples {
+            let seed = opts.run.seed.wrapping_add(s as u64);
+            progress(Progress::Sample { index: s, total: opts.samples, seed });
+            let run = RunOptions { seed, ..opts.run.clone() };
+            let rec = match self.pipeline.run_observed(&inputs, &run, &|st| progress(Progress::Stage(st))) {
+                Ok(r) => r,
+                Err(e) => {
+                    // candle may append a backtrace; the first line says what failed.
+                    let e = e.to_string().lines().next().unwrap_or_default().to_string();
+                    notes.push(format!("seed {seed}: {e}"));
+                    last_err = Some(e);
+                    continue;
+                }
+            };
+            add_timings(&mut timings, &rec.timings);
+            progress(Progress::Decimating);
+            let t = Instant::now();
+            let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
+            let mesh = rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)).map(|m| match opts.max_faces {
+                Some(n) if m.faces.len() > n => decimate(&m, n),
+                _ => m,
+            });
+            post_s += t.elapsed().as_secs_f64();
+
+            progress(Progress::Selecting);
+            let t = Instant::now();
+            // The mesh; without one (decode_mesh off) the Gaussian centres.
+            let surface = match (&mesh, &rec.gaussians) {
+                (Some(m), _) if !m.faces.is_empty() => Surface::from_mesh(m, opts.align.surface_samples, opts.align.seed).ok(),
+                (_, Some(g)) if !g.is_empty() => Surface::from_points(&g.positions).ok(),
+                _ => None,
+            };
+            let first = candidates.len();
+            for (k, v) in views.iter().enumerate() {
+                let pose_n = rec.pose.per_token[k];
+                let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
+                let mut anchor = v.points.to_anchor.compose(&own);
+                let mut stretch = [1.0; 3];
+                if let (true, Some(sf)) = (opts.align.refine, &surface) {
+                    let r = refine_pose(sf, &anchor, &view_points, &opts.align);
+                    (anchor, stretch) = (r.pose, r.stretch);
+                }
+                // A stretched candidate is scored on its stretched mesh.
+                let stretched = match (&mesh, stretch != [1.0; 3]) {
+                    (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, stretch), opts.align.surface_samples, opts.align.seed).ok(),
+                    _ => None,
+                };
+                let score = match stretched.as_ref().or(surface.as_ref()) {
+                    Some(sf) => score_candidate(sf, &anchor, k, &view_points, &opts.align),
+                    None => CandidateScore { own_view: k, per_view_m: vec![f64::NAN; views.len()] },
+                };
+                candidates.push(Candidate { seed, view: k + 1, pose_camera: similarity_to_pose(&anchor), stretch, score });
+            }
+            let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
+            // This sample's own best, for the spread.
+            let mine = select_best(opts.select, &scores[first..]).map(|i| first + i).unwrap_or(first);
+            per_sample_best.push(pose_to_similarity(&candidates[mine].pose_camera));
+            let best = select_best(opts.select, &scores).unwrap_or(0);
+            if best >= first || kept.is_none() {
+                kept = Some(Kept {
+                    per_token: rec.pose.per_token.clone(),
+                    coords: rec.coords.len(),
+                    faces_decoded,
+                    mesh,
+                    gaussians: rec.gaussians,
+                    metadata: rec.metadata,
+                });
+            }
+            select_s += t.elapsed().as_secs_f64();
+        }
+        let Some(kept) = kept else {
+            return Ok(Err(SkipReason::Preprocessing(format!("model: {}", last_err.unwrap_or_default()))));
+        };
+        let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
+        let best = select_best(opts.select, &scores).unwrap_or(0);
+        let chosen = &candidates[best];
+        if chosen.score.per_view_m.iter().all(|x| x.is_nan()) {
+            notes.push("no mesh or Gaussians to score the poses against; took the first candidate".to_string());
+        }
+        let key = opts.select.key(&chosen.score).unwrap_or(f64::NAN);
+        let selection = Selection { method: opts.select, candidate: best, seed: chosen.seed, view: chosen.view, score_m: key };
+        let anchor = pose_to_similarity(&chosen.pose_camera);
+        let (pose_camera, stretch, chosen_view) = (chosen.pose_camera, chosen.stretch, chosen.view);
+        let place = crate::math::Similarity32::new(pose_camera.rotation, pose_camera.translation, pose_camera.scale)?;
+        let vposes = views
+            .iter()
+            .enumerate()
+            .map(|(k, v)| {
+                let n: &Normaliser = &v.prepared.normaliser;
+                ViewPose {
+                    view: k + 1,
+                    frame: v.frame.rgb_path.clone(),
+                    mask: v.label.clone(),
+                    normaliser_centre_m: n.centre,
+                    normaliser_diameter_m: n.diameter,
+                    observed_points: v.points.points.len(),
+                    pose_own_token: pose_to_camera(&kept.per_token[k], n),
+                    pose_selected: similarity_to_pose(&v.points.to_anchor.inverse().compose(&anchor)),
+                }
+            })
+            .collect();
+        let (mut observed_points, mut observed_colors) = (Vec::new(), Vec::new());
+        for v in views {
+            let (p, c) = observed_in_anchor(v);
+            observed_points.extend(p);
+            observed_colors.extend(c);
+        }
+        Ok(Ok(ObjectResult {
+            label: label.to_string(),
+            id,
+            pose_normalised: kept.per_token[chosen_view - 1],
+            pose_camera,
+            selection,
+            views: vposes,
+            uncertainty: pose_spread(&per_sample_best),
+            candidates,
+            occupied_voxels: kept.coords,
+            faces_decoded: kept.faces_decoded,
+            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
+            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),
+            observed_points,
+            observed_colors,
+            timings,
+            postprocess_seconds: post_s,
+            select_seconds: select_s,
+            metadata: kept.metadata,
+            samples: opts.samples,
+            notes,
+        }))
+    }
+}
+
+fn ser_pose<S: serde::Serializer>(p: &Pose, s: S) -> std::result::Result<S::Ok, S::Error> {
+    PoseJson::from(p).serialize(s)
+}
+
+#[derive(Debug, Serialize)]
+pub struct PoseJson {
+    pub rotation: [[f32; 3]; 3],
+    pub translation: [f32; 3],
+    pub scale: f32,
+}
+
+impl From<&Pose> for PoseJson {
+    fn from(p: &Pose) -> Self {
+        PoseJson { rotation: p.rotation, translation: p.translation, scale: p.scale }
+    }
+}

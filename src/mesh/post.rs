@@ -1,0 +1,713 @@
+//! Mesh post-processing: floater removal by connected components, quadric
+//! edge-collapse decimation, and per-vertex colours.
+//!
+//! Upstream (`to_glb`) decimates with VTK's quadric decimation and removes
+//! floaters by rasterised visibility; this is the CPU-only substitute the
+//! spec's §5.3 "cheapest acceptable path" allows.
+
+use crate::mesh::{face_area, Mesh, UnionFind};
+use std::cmp::Ordering;
+use std::collections::{BinaryHeap, HashSet};
+
+/// Drop vertices no face references, keeping order and attributes.
+pub fn remove_unreferenced_vertices(mesh: &Mesh) -> Mesh {
+    let mut used = vec![false; mesh.vertices.len()];
+    for f in &mesh.faces {
+        for &i in f {
+            used[i as usize] = true;
+        }
+    }
+    let mut remap = vec![u32::MAX; mesh.vertices.len()];
+    let mut next = 0u32;
+    for (i, &u) in used.iter().enumerate() {
+        if u {
+            remap[i] = next;
+            next += 1;
+        }
+    }
+    let keep = |i: &usize| used[*i];
+    Mesh {
+        vertices: (0..mesh.vertices.len()).filter(keep).map(|i| mesh.vertices[i]).collect(),
+        faces: mesh.faces.iter().map(|f| f.map(|i| remap[i as usize])).collect(),
+        vertex_attrs: mesh.vertex_attrs.as_ref().map(|a| (0..a.len()).filter(keep).map(|i| a[i]).collect()),
+    }
+}
+
+/// Face-connected components (faces sharing a vertex), as a component id per face.
+pub fn face_components(mesh: &Mesh) -> (Vec<usize>, usize) {
+    let mut uf = UnionFind::new(mesh.vertices.len());
+    for f in &mesh.faces {
+        uf.union(f[0] as usize, f[1] as usize);
+        uf.union(f[0] as usize, f[2] as usize);
+    }
+    let mut ids = std::collections::HashMap::new();
+    let comp: Vec<usize> = mesh
+        .faces
+        .iter()
+        .map(|f| {
+            let r = uf.find(f[0] as usize);
+            let n = ids.len();
+            *ids.entry(r).or_insert(n)
+        })
+        .collect();
+    (comp, ids.len())
+}
+
+/// Per component (ids from [`face_components`]): each face's component, and
+/// every component's face count and area.
+fn component_stats(mesh: &Mesh) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
+    let (comp, n) = face_components(mesh);
+    let mut faces = vec![0usize; n];
+    let mut area = vec![0f64; n];
+    for (f, &c) in mesh.faces.iter().zip(&comp) {
+        faces[c] += 1;
+        area[c] += face_area(&mesh.vertices, f);
+    }
+    (comp, faces, area)
+}
+
+/// The faces of the components `keep` marks, without unreferenced vertices.
+fn keep_components(mesh: &Mesh, comp: &[usize], keep: &[bool]) -> Mesh {
+    let kept = Mesh {
+        vertices: mesh.vertices.clone(),
+        faces: mesh.faces.iter().zip(comp).filter(|(_, &c)| keep[c]).map(|(f, _)| *f).collect(),
+        vertex_attrs: mesh.vertex_attrs.clone(),
+    };
+    remove_unreferenced_vertices(&kept)
+}
+
+/// The component with the largest area.
+fn largest(area: &[f64]) -> Option<usize> {
+    (0..area.len()).max_by(|&a, &b| area[a].total_cmp(&area[b]))
+}
+
+/// Remove components with fewer than `min_faces` faces or less than
+/// `min_area_fraction` of the total area (floaters), then unreferenced vertices.
+pub fn remove_small_components(mesh: &Mesh, min_faces: usize, min_area_fraction: f64) -> Mesh {
+    let (comp, faces, area) = component_stats(mesh);
+    let total: f64 = area.iter().sum();
+    let keep: Vec<bool> = (0..area.len()).map(|c| faces[c] >= min_faces && area[c] >= min_area_fraction * total).collect();
+    keep_components(mesh, &comp, &keep)
+}
+
+/// Keep only the component with the largest area.
+pub fn keep_largest_component(mesh: &Mesh) -> Mesh {
+    let (comp, _, area) = component_stats(mesh);
+    let best = largest(&area);
+    let keep: Vec<bool> = (0..area.len()).map(|c| Some(c) == best).collect();
+    keep_components(mesh, &comp, &keep)
+}
+
+/// Drop floaters: components under `fraction` of the total area, always
+/// keeping the largest (so no mesh is emptied); `fraction <= 0` keeps all.
+pub fn drop_floaters(mesh: Mesh, fraction: f64) -> Mesh {
+    if fraction <= 0.0 || mesh.faces.is_empty() {
+        return mesh;
+    }
+    let (comp, _, area) = component_stats(&mesh);
+    let total: f64 = area.iter().sum();
+    let best = largest(&area);
+    let keep: Vec<bool> = (0..area.len()).map(|c| area[c] >= fraction * total || Some(c) == best).collect();
+    keep_components(&mesh, &comp, &keep)
+}
+
+/// RGB vertex colours as bytes (from the first three attribute channels).
+pub fn vertex_colors_u8(mesh: &Mesh) -> Option<Vec<[u8; 3]>> {
+    mesh.vertex_colors().map(|c| c.iter().map(|c| c.map(crate::export::ply::to_u8)).collect())
+}
+
+/// Colour every vertex from coloured points (e.g. Gaussian centres with their
+/// RGB): inverse-distance weighting of the `k` nearest points, found through a
+/// uniform grid. Channels 3..6 of the attributes (normal map) are kept, or 0.5.
+pub fn transfer_colors(mesh: &mut Mesh, points: &[[f32; 3]], rgb: &[[f32; 3]], k: usize) {
+    if points.is_empty() || points.len() != rgb.len() || k == 0 {
+        return;
+    }
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in points {
+        for d in 0..3 {
+            lo[d] = lo[d].min(p[d]);
+            hi[d] = hi[d].max(p[d]);
+        }
+    }
+    // Cells sized so that a cell holds a few points on average.
+    let extent = (0..3).map(|d| hi[d] - lo[d]).fold(0f32, f32::max).max(1e-6);
+    let cells = ((points.len() as f32 / 4.0).cbrt().ceil() as usize).clamp(1, 256);
+    let h = extent / cells as f32;
+    let cell_of = |p: [f32; 3]| -> [i64; 3] { [0, 1, 2].map(|d| ((p[d] - lo[d]) / h).floor() as i64) };
+    let mut grid: std::collections::HashMap<[i64; 3], Vec<u32>> = std::collections::HashMap::new();
+    for (i, p) in points.iter().enumerate() {
+        grid.entry(cell_of(*p)).or_default().push(i as u32);
+    }
+    let old = mesh.vertex_attrs.take();
+    let attrs = mesh
+        .vertices
+        .iter()
+        .enumerate()
+        .map(|(vi, &v)| {
+            let c = cell_of(v);
+            let mut best: Vec<(f32, u32)> = Vec::new();
+            // Grow the search shell until k candidates lie within the searched radius.
+            for ring in 0i64..=(2 * cells as i64 + 2) {
+                for x in -ring..=ring {
+                    for y in -ring..=ring {
+                        for z in -ring..=ring {
+                            if x.abs().max(y.abs()).max(z.abs()) != ring {
+                                continue;
+                            }
+                            if let Some(ids) = grid.get(&[c[0] + x, c[1] + y, c[2] + z]) {
+                                for &i in ids {
+                                    let p = points[i as usize];
+                                    let d2 = (0..3).map(|d| (p[d] - v[d]).powi(2)).sum::<f32>();
+                                    best.push((d2, i));
+                                }
+                            }
+                        }
+                    }
+                }
+                best.sort_by(|a, b| a.0.total_cmp(&b.0));
+                best.truncate(k);
+                let covered = ring as f32 * h;
+                if best.len() == k && best[k - 1].0.sqrt() <= covered {
+                    break;
+                }
+            }
+            let mut acc = [0f32; 3];
+            let mut wsum = 0f32;
+            for &(d2, i) in &best {
+                let w = 1.0 / (d2.sqrt() + 1e-6);
+                for d in 0..3 {
+                    acc[d] += w * rgb[i as usize][d];
+                }
+                wsum += w;
+            }
+            let prev = old.as_ref().map_or([0.5; 6], |a| a[vi]);
+            [acc[0] / wsum, acc[1] / wsum, acc[2] / wsum, prev[3], prev[4], prev[5]]
+        })
+        .collect();
+    mesh.vertex_attrs = Some(attrs);
+}
+
+// ---------------------------------------------------------------------------
+// Quadric edge-collapse decimation (Garland & Heckbert).
+
+/// Symmetric 4×4 quadric stored as its upper triangle.
+#[derive(Clone, Copy, Default)]
+struct Quadric([f64; 10]);
+
+impl Quadric {
+    fn plane(n: [f64; 3], d: f64, w: f64) -> Self {
+        let [a, b, c] = n;
+        Quadric([a * a, a * b, a * c, a * d, b * b, b * c, b * d, c * c, c * d, d * d].map(|x| x * w))
+    }
+    fn add(&mut self, o: &Quadric) {
+        for k in 0..10 {
+            self.0[k] += o.0[k];
+        }
+    }
+    fn eval(&self, p: [f64; 3]) -> f64 {
+        let q = &self.0;
+        let [x, y, z] = p;
+        q[0] * x * x + 2.0 * q[1] * x * y + 2.0 * q[2] * x * z + 2.0 * q[3] * x + q[4] * y * y + 2.0 * q[5] * y * z
+            + 2.0 * q[6] * y
+            + q[7] * z * z
+            + 2.0 * q[8] * z
+            + q[9]
+    }
+    /// Minimiser of the quadric, if well conditioned.
+    fn optimum(&self) -> Option<[f64; 3]> {
+        let q = &self.0;
+        let m = [[q[0], q[1], q[2]], [q[1], q[4], q[5]], [q[2], q[5], q[7]]];
+        let b = [-q[3], -q[6], -q[8]];
+        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+        let scale = (q[0] + q[4] + q[7]).powi(3);
+        let well_conditioned = det.abs() > 1e-9 * scale && scale > 0.0; // false on NaN
+        if !well_conditioned {
+            return None;
+        }
+        let solve = |col: usize| {
+            let mut mm = m;
+            for r in 0..3 {
+                mm[r][col] = b[r];
+            }
+            (mm[0][0] * (mm[1][1] * mm[2][2] - mm[1][2] * mm[2][1]) - mm[0][1] * (mm[1][0] * mm[2][2] - mm[1][2] * mm[2][0])
+                + mm[0][2] * (mm[1][0] * mm[2][1] - mm[1][1] * mm[2][0]))
+                / det
+        };
+        Some([solve(0), solve(1), solve(2)])
+    }
+}
+
+#[derive(PartialEq)]
+struct Candidate {
+    cost: f64,
+    u: u32,
+    v: u32,
+    ver_u: u32,
+    ver_v: u32,
+}
+
+impl Eq for Candidate {}
+
+impl Ord for Candidate {
+    fn cmp(&self, other: &Self) -> Ordering {
+        // Min-heap on cost; ties broken by ids for determinism.
+        other.cost.total_cmp(&self.cost).then_with(|| (other.u, other.v).cmp(&(self.u, self.v)))
+    }
+}
+
+impl PartialOrd for Candidate {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn cross64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+fn dot64(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+struct Decimator {
+    pos: Vec<[f64; 3]>,
+    attrs: Option<Vec<[f32; 6]>>,
+    faces: Vec<[u32; 3]>,
+    face_alive: Vec<bool>,
+    vfaces: Vec<Vec<u32>>,
+    quadric: Vec<Quadric>,
+    locked: Vec<bool>,
+    alive: Vec<bool>,
+    version: Vec<u32>,
+    alive_faces: usize,
+}
+
+impl Decimator {
+    fn new(mesh: &Mesh) -> Self {
+        let n = mesh.vertices.len();
+        let pos: Vec<[f64; 3]> = mesh.vertices.iter().map(|v| v.map(|x| x as f64)).collect();
+        let mut vfaces = vec![Vec::new(); n];
+        let mut quadric = vec![Quadric::default(); n];
+        let mut edge_uses: std::collections::HashMap<(u32, u32), u32> = std::collections::HashMap::new();
+        let mut face_alive = vec![true; mesh.faces.len()];
+        for (fi, f) in mesh.faces.iter().enumerate() {
+            if f[0] == f[1] || f[1] == f[2] || f[0] == f[2] {
+                face_alive[fi] = false;
+                continue;
+            }
+            let [a, b, c] = f.map(|i| pos[i as usize]);
+            let nrm = cross64(sub64(b, a), sub64(c, a));
+            let len = dot64(nrm, nrm).sqrt();
+            for k in 0..3 {
+                vfaces[f[k] as usize].push(fi as u32);
+                let (x, y) = (f[k], f[(k + 1) % 3]);
+                *edge_uses.entry((x.min(y), x.max(y))).or_insert(0) += 1;
+            }
+            if len > 0.0 {
+                let n3 = nrm.map(|x| x / len);
+                // Area-weighted plane quadric.
+                let q = Quadric::plane(n3, -dot64(n3, a), 0.5 * len);
+                for &i in f {
+                    quadric[i as usize].add(&q);
+                }
+            }
+        }
+        // Boundary and non-manifold edges pin their vertices: boundaries stay exact.
+        let mut locked = vec![false; n];
+        for (&(a, b), &uses) in &edge_uses {
+            if uses != 2 {
+                locked[a as usize] = true;
+                locked[b as usize] = true;
+            }
+        }
+        let alive_faces = face_alive.iter().filter(|&&a| a).count();
+        Decimator {
+            pos,
+            attrs: mesh.vertex_attrs.clone(),
+            faces: mesh.faces.clone(),
+            face_alive,
+            vfaces,
+            quadric,
+            locked,
+            alive: vec![true; n],
+            version: vec![0; n],
+            alive_faces,
+        }
+    }
+
+    fn neighbours(&self, v: u32) -> HashSet<u32> {
+        let mut s = HashSet::new();
+        for &f in &self.vfaces[v as usize] {
+            if self.face_alive[f as usize] {
+                for &w in &self.faces[f as usize] {
+                    if w != v {
+                        s.insert(w);
+                    }
+                }
+            }
+        }
+        s
+    }
+
+    /// Best position for collapsing edge (u, v) and its cost.
+    fn plan(&self, u: u32, v: u32) -> ([f64; 3], f64) {
+        let mut q = self.quadric[u as usize];
+        q.add(&self.quadric[v as usize]);
+        let (a, b) = (self.pos[u as usize], self.pos[v as usize]);
+        let mid = [0, 1, 2].map(|k| 0.5 * (a[k] + b[k]));
+        let mut cands = vec![a, b, mid];
+        if let Some(p) = q.optimum() {
+            // Ignore optima far off the edge (nearly flat regions).
+            let l2 = dot64(sub64(a, b), sub64(a, b));
+            if dot64(sub64(p, mid), sub64(p, mid)) <= 4.0 * l2 {
+                cands.insert(0, p);
+            }
+        }
+        cands
+            .into_iter()
+            .map(|p| (p, q.eval(p).max(0.0)))
+            .min_by(|x, y| x.1.total_cmp(&y.1))
+            .unwrap_or((mid, 0.0))
+    }
+
+    fn push(&self, heap: &mut BinaryHeap<Candidate>, u: u32, v: u32) {
+        if self.locked[u as usize] || self.locked[v as usize] {
+            return;
+        }
+        let (u, v) = (u.min(v), u.max(v));
+        let (_, cost) = self.plan(u, v);
+        heap.push(Candidate { cost, u, v, ver_u: self.version[u as usize], ver_v: self.version[v as usize] });
+    }
+
+    /// Link condition and normal-flip test for collapsing v into u at `p`.
+    fn allowed(&self, u: u32, v: u32, p: [f64; 3]) -> bool {
+        let nu = self.neighbours(u);
+        let nv = self.neighbours(v);
+        let shared: Vec<u32> = self.vfaces[u as usize]
+            .iter()
+            .copied()
+            .filter(|&f| self.face_alive[f as usize] && self.faces[f as usize].contains(&v))
+            .collect();
+        if shared.len() != 2 {
+            return false;
+        }
+        let common = nu.intersection(&nv).count();
+        if common != 2 {
+            return false;
+        }
+        // The two opposite vertices keep valence ≥ 3.
+        for &f in &shared {
+            let w = self.faces[f as usize].iter().copied().find(|&w| w != u && w != v).unwrap_or(u);
+            if self.neighbours(w).len() <= 3 {
+                return false;
+            }
+        }
+        for x in [u, v] {
+            for &f in &self.vfaces[x as usize] {
+                let face = self.faces[f as usize];
+                if !self.face_alive[f as usize] || face.contains(&u) && face.contains(&v) {
+                    continue;
+                }
+                let before = face.map(|i| self.pos[i as usize]);
+                let after = face.map(|i| if i == u || i == v { p } else { self.pos[i as usize] });
+                let n0 = cross64(sub64(before[1], before[0]), sub64(before[2], before[0]));
+                let n1 = cross64(sub64(after[1], after[0]), sub64(after[2], after[0]));
+                let (l0, l1) = (dot64(n0, n0).sqrt(), dot64(n1, n1).sqrt());
+                if l1 <= 1e-12 * (1.0 + l0) || dot64(n0, n1) < 0.2 * l0 * l1 {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    fn collapse(&mut self, u: u32, v: u32, p: [f64; 3]) {
+        let (ui, vi) = (u as usize, v as usize);
+        if let Some(attrs) = &mut self.attrs {
+            // Attributes follow the position's projection onto the edge.
+            let (a, b) = (self.pos[ui], self.pos[vi]);
+            let e = sub64(b, a);
+            let t = (dot64(sub64(p, a), e) / dot64(e, e).max(1e-300)).clamp(0.0, 1.0) as f32;
+            let (ca, cb) = (attrs[ui], attrs[vi]);
+            attrs[ui] = std::array::from_fn(|k| (1.0 - t) * ca[k] + t * cb[k]);
+        }
+        self.pos[ui] = p;
+        let qv = self.quadric[vi];
+        self.quadric[ui].add(&qv);
+        let moved = std::mem::take(&mut self.vfaces[vi]);
+        for f in moved {
+            let fi = f as usize;
+            if !self.face_alive[fi] {
+                continue;
+            }
+            if self.faces[fi].contains(&u) {
+                self.face_alive[fi] = false;
+                self.alive_faces -= 1;
+            } else {
+                for i in self.faces[fi].iter_mut() {
+                    if *i == v {
+                        *i = u;
+                    }
+                }
+                self.vfaces[ui].push(f);
+            }
+        }
+        let alive = &self.face_alive;
+        self.vfaces[ui].retain(|&f| alive[f as usize]);
+        self.alive[vi] = false;
+        self.version[ui] += 1;
+        self.version[vi] += 1;
+    }
+}
+
+/// Quadric edge-collapse decimation towards `target_faces` faces.
+///
+/// Collapses keep a closed 2-manifold manifold (link condition, valence ≥ 3,
+/// no face flips), so the target may not be reached exactly. Boundary and
+/// non-manifold edges are never collapsed.
+pub fn decimate(mesh: &Mesh, target_faces: usize) -> Mesh {
+    let mut d = Decimator::new(mesh);
+    let target = target_faces.max(4);
+    let mut heap = BinaryHeap::new();
+    let mut seen = HashSet::new();
+    for (fi, f) in d.faces.iter().enumerate() {
+        if !d.face_alive[fi] {
+            continue;
+        }
+        for k in 0..3 {
+            let (a, b) = (f[k].min(f[(k + 1) % 3]), f[k].max(f[(k + 1) % 3]));
+            if seen.insert((a, b)) {
+                d.push(&mut heap, a, b);
+            }
+        }
+    }
+    while d.alive_faces > target {
+        let Some(c) = heap.pop() else { break };
+        let (u, v) = (c.u, c.v);
+        if !d.alive[u as usize] || !d.alive[v as usize] || d.version[u as usize] != c.ver_u || d.version[v as usize] != c.ver_v
+        {
+            continue;
+        }
+        let (p, _) = d.plan(u, v);
+        if !d.allowed(u, v, p) {
+            continue;
+        }
+        d.collapse(u, v, p);
+        for w in d.neighbours(u) {
+            d.push(&mut heap, u, w);
+        }
+    }
+    let out = Mesh {
+        vertices: d.pos.iter().map(|p| p.map(|x| x as f32)).collect(),
+        faces: d.faces.iter().zip(&d.face_alive).filter(|(_, &a)| a).map(|(f, _)| *f).collect(),
+        vertex_attrs: d.attrs,
+    };
+    remove_unreferenced_vertices(&out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::stage2::slat_vae::flexicubes::{SparseFeatures2Mesh, SDF, WEIGHTS};
+    use crate::model::stage2::slat_vae::flexicubes::tables::CUBE_CORNERS;
+
+    fn sphere_mesh(res: usize, radius: f32, center: [f32; 3]) -> Mesh {
+        let r = res as f32;
+        let mut coords = Vec::new();
+        let mut feats = Vec::new();
+        for x in 0..res as i32 {
+            for y in 0..res as i32 {
+                for z in 0..res as i32 {
+                    let s = CUBE_CORNERS.map(|o| {
+                        let p = [x + o[0] as i32, y + o[1] as i32, z + o[2] as i32].map(|v| v as f32 / r - 0.5);
+                        let d = [0, 1, 2].map(|k| p[k] - center[k]);
+                        ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() - radius) * r
+                    });
+                    if s.iter().cloned().fold(f32::INFINITY, f32::min) < 1.5 {
+                        coords.push([x, y, z]);
+                        let mut row = vec![0f32; WEIGHTS.end];
+                        row[SDF].copy_from_slice(&s);
+                        feats.extend(row);
+                    }
+                }
+            }
+        }
+        SparseFeatures2Mesh::new(res, false).extract(&coords, &feats).unwrap()
+    }
+
+    fn merge(a: &Mesh, b: &Mesh) -> Mesh {
+        let off = a.vertices.len() as u32;
+        let mut m = a.clone();
+        m.vertices.extend_from_slice(&b.vertices);
+        m.faces.extend(b.faces.iter().map(|f| f.map(|i| i + off)));
+        m
+    }
+
+    #[test]
+    fn floaters_are_removed() {
+        let big = sphere_mesh(32, 0.3, [0.0; 3]);
+        let small = sphere_mesh(32, 0.06, [0.3, 0.3, 0.3]);
+        let both = merge(&big, &small);
+        assert_eq!(both.topology().components, 2);
+        let kept = remove_small_components(&both, 10, 0.1);
+        let t = kept.topology();
+        assert_eq!(t.components, 1);
+        assert_eq!(t.faces, big.faces.len());
+        assert_eq!(kept.vertices.len(), t.vertices);
+        assert!(kept.vertices.iter().all(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() < 0.34));
+        let largest = keep_largest_component(&both);
+        assert_eq!(largest.faces.len(), big.faces.len());
+        // Face-count criterion alone.
+        let by_count = remove_small_components(&both, small.faces.len() + 1, 0.0);
+        assert_eq!(by_count.faces.len(), big.faces.len());
+    }
+
+    /// A flat square of side `s` at `x` (two triangles), appended to `m`.
+    fn square(m: &mut Mesh, x: f32, s: f32) {
+        let b = m.vertices.len() as u32;
+        m.vertices.extend([[x, 0.0, 0.0], [x + s, 0.0, 0.0], [x + s, s, 0.0], [x, s, 0.0]]);
+        m.faces.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
+    }
+
+    #[test]
+    fn floaters_are_dropped_and_the_largest_component_kept() {
+        let mut m = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        square(&mut m, 0.0, 1.0);
+        square(&mut m, 5.0, 0.1); // 1 % of the area
+        square(&mut m, 9.0, 0.5); // 20 %
+        let d = drop_floaters(m.clone(), 0.02);
+        assert_eq!(d.faces.len(), 4);
+        assert!(d.vertices.iter().all(|v| v[0] < 5.0 || v[0] >= 9.0));
+        assert_eq!(drop_floaters(m, 0.0).faces.len(), 6);
+        // Every component under the threshold: the largest survives.
+        let mut many = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        for i in 0..60 {
+            square(&mut many, 2.0 * i as f32, if i == 7 { 1.1 } else { 1.0 });
+        }
+        let d = drop_floaters(many, 0.02);
+        assert_eq!(d.faces.len(), 2);
+        assert!((d.vertices[0][0] - 14.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn decimated_sphere_stays_a_closed_manifold() {
+        let mut sphere = sphere_mesh(48, 0.3, [0.0; 3]);
+        sphere = remove_unreferenced_vertices(&sphere);
+        sphere.vertex_attrs = Some(sphere.vertices.iter().map(|v| [v[0] + 0.5, 0.2, 0.3, 0.5, 0.5, 0.5]).collect());
+        let n0 = sphere.faces.len();
+        let target = n0 / 10;
+        let dec = decimate(&sphere, target);
+        dec.validate().unwrap();
+        let t = dec.topology();
+        assert!(t.is_closed_oriented_manifold(), "{t:?}");
+        assert_eq!(t.euler(), 2);
+        assert_eq!(t.components, 1);
+        assert!(dec.faces.len() <= target + target / 10, "{} faces for target {target} (from {n0})", dec.faces.len());
+        for v in &dec.vertices {
+            let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            assert!((r - 0.3).abs() < 0.02, "radius {r}");
+        }
+        for (f, n) in dec.faces.iter().zip(dec.face_normals()) {
+            let c = [0, 1, 2].map(|k| f.iter().map(|&i| dec.vertices[i as usize][k]).sum::<f32>() / 3.0);
+            assert!(n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0.0);
+        }
+        // Colours were interpolated along collapsed edges: still a function of x.
+        let attrs = dec.vertex_attrs.as_ref().unwrap();
+        for (v, a) in dec.vertices.iter().zip(attrs) {
+            assert!((a[0] - (v[0] + 0.5)).abs() < 0.05, "{a:?} at {v:?}");
+        }
+    }
+
+    #[test]
+    fn flat_grid_decimates_and_keeps_its_boundary() {
+        let n = 20u32;
+        let mut mesh = Mesh::default();
+        for y in 0..=n {
+            for x in 0..=n {
+                mesh.vertices.push([x as f32 / n as f32, y as f32 / n as f32, 0.0]);
+            }
+        }
+        let id = |x: u32, y: u32| y * (n + 1) + x;
+        for y in 0..n {
+            for x in 0..n {
+                mesh.faces.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
+                mesh.faces.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
+            }
+        }
+        let before = mesh.topology();
+        let dec = decimate(&mesh, 100);
+        let t = dec.topology();
+        assert!(dec.faces.len() < mesh.faces.len() / 2, "{}", dec.faces.len());
+        assert_eq!(t.nonmanifold_edges, 0);
+        assert_eq!(t.misoriented_edges, 0);
+        assert_eq!(t.boundary_edges, before.boundary_edges);
+        assert_eq!(t.euler(), 1);
+        assert!(dec.vertices.iter().all(|v| v[2] == 0.0));
+        assert!((dec.area() - 1.0).abs() < 1e-4);
+        assert!(dec.face_normals().iter().all(|n| n[2] > 0.99));
+    }
+
+    #[test]
+    fn colours_from_points_and_bytes() {
+        let mut m = sphere_mesh(16, 0.3, [0.0; 3]);
+        assert!(vertex_colors_u8(&m).is_none());
+        // Red points on +x, blue on -x.
+        let pts = vec![[0.4, 0.0, 0.0], [-0.4, 0.0, 0.0]];
+        let rgb = vec![[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        transfer_colors(&mut m, &pts, &rgb, 1);
+        let c = vertex_colors_u8(&m).unwrap();
+        for (v, c) in m.vertices.iter().zip(&c) {
+            if v[0] > 0.01 {
+                assert_eq!(*c, [255, 0, 0]);
+            } else if v[0] < -0.01 {
+                assert_eq!(*c, [0, 0, 255]);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod timing {
+    use super::*;
+
+    /// `cargo test --release --lib decimate_timing -- --ignored --nocapture`
+    #[test]
+    #[ignore]
+    fn decimate_timing() {
+        // UV sphere with ~500k faces.
+        let (nu, nv) = (500usize, 500usize);
+        let mut mesh = Mesh::default();
+        mesh.vertices.push([0.0, 0.0, 0.3]);
+        for i in 1..nv {
+            let th = std::f32::consts::PI * i as f32 / nv as f32;
+            for j in 0..nu {
+                let ph = 2.0 * std::f32::consts::PI * j as f32 / nu as f32;
+                mesh.vertices.push([0.3 * th.sin() * ph.cos(), 0.3 * th.sin() * ph.sin(), 0.3 * th.cos()]);
+            }
+        }
+        mesh.vertices.push([0.0, 0.0, -0.3]);
+        let ring = |i: usize, j: usize| (1 + (i - 1) * nu + j % nu) as u32;
+        let south = mesh.vertices.len() as u32 - 1;
+        for j in 0..nu {
+            mesh.faces.push([0, ring(1, j), ring(1, j + 1)]);
+            mesh.faces.push([south, ring(nv - 1, j + 1), ring(nv - 1, j)]);
+        }
+        for i in 1..nv - 1 {
+            for j in 0..nu {
+                mesh.faces.push([ring(i, j), ring(i + 1, j), ring(i + 1, j + 1)]);
+                mesh.faces.push([ring(i, j), ring(i + 1, j + 1), ring(i, j + 1)]);
+            }
+        }
+        assert!(mesh.topology().is_closed_oriented_manifold());
+        let t0 = std::time::Instant::now();
+        let dec = decimate(&mesh, mesh.faces.len() / 20);
+        println!("decimate {} -> {} faces in {:.2} s", mesh.faces.len(), dec.faces.len(), t0.elapsed().as_secs_f64());
+        assert!(dec.topology().is_closed_oriented_manifold());
+    }
+}

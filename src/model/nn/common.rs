@@ -1,0 +1,541 @@
+//! Building blocks shared by the transformer models (TRELLIS `modules/`):
+//! norms, timestep and position embeddings, attention, MLP, and the
+//! adaLN-modulated cross-attention block. Built outside
+//! [`fast::build_with`](crate::model::nn::fast::build_with) everything is plain candle
+//! ops, differentiable for training; built inside it, the same layers run the
+//! inference kernels of `recon-kernels` (see [`crate::model::nn::fast`]).
+
+use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
+use candle_nn::VarBuilder;
+
+use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
+pub use crate::model::nn::fast::Linear;
+
+/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
+/// `{prefix}.bias`), for the current build setting ([`fast::build_compute`]).
+pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
+    Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, fast::build_compute())
+}
+
+/// [`layer_norm_plain`], or its fused kernel on the fast path.
+pub fn layer_norm_with(compute: Compute, x: &Tensor, eps: f64) -> Result<Tensor> {
+    match compute.fast_parts() {
+        Some((_, isa)) => fast::layer_norm(isa, x, eps, None, None),
+        None => layer_norm_plain(x, eps),
+    }
+}
+
+/// LayerNorm over the last dim without affine parameters (computed in f32).
+pub fn layer_norm_plain(x: &Tensor, eps: f64) -> Result<Tensor> {
+    let dtype = x.dtype();
+    let x = x.to_dtype(DType::F32)?;
+    let mean = x.mean_keepdim(D::Minus1)?;
+    let xc = x.broadcast_sub(&mean)?;
+    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+    xc.broadcast_div(&(var + eps)?.sqrt()?)?.to_dtype(dtype)
+}
+
+/// Affine LayerNorm over the last dim (`{prefix}.weight`, `{prefix}.bias`).
+#[derive(Debug, Clone)]
+pub struct LayerNorm {
+    weight: Tensor,
+    bias: Tensor,
+    eps: f64,
+    compute: Compute,
+}
+
+impl LayerNorm {
+    pub fn new(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
+        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps, compute: fast::build_compute() })
+    }
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if let Some((_, isa)) = self.compute.fast_parts() {
+            return fast::layer_norm(isa, x, self.eps, Some(&self.weight), Some(&self.bias));
+        }
+        layer_norm_plain(x, self.eps)?.broadcast_mul(&self.weight)?.broadcast_add(&self.bias)
+    }
+}
+
+/// Sinusoidal timestep embedding followed by an MLP (`t_embedder.mlp.{0,2}`).
+/// `t` is on the model scale (the sampler passes 1000·t). Embedding is [cos, sin].
+#[derive(Debug, Clone)]
+pub struct TimestepEmbedder {
+    mlp0: Linear,
+    mlp2: Linear,
+    freq_size: usize,
+}
+
+impl TimestepEmbedder {
+    pub fn new(hidden: usize, vb: VarBuilder) -> Result<Self> {
+        let freq_size = 256;
+        Ok(Self { mlp0: linear(freq_size, hidden, vb.pp("mlp.0"))?, mlp2: linear(hidden, hidden, vb.pp("mlp.2"))?, freq_size })
+    }
+
+    pub fn sinusoidal(t: &Tensor, dim: usize) -> Result<Tensor> {
+        let half = dim / 2;
+        let freqs: Vec<f32> =
+            (0..half).map(|k| (-(10000f64.ln()) * k as f64 / half as f64).exp() as f32).collect();
+        let freqs = Tensor::from_vec(freqs, (1, half), t.device())?;
+        let args = t.to_dtype(DType::F32)?.unsqueeze(1)?.broadcast_mul(&freqs)?;
+        Tensor::cat(&[args.cos()?, args.sin()?], 1)
+    }
+
+    pub fn forward(&self, t: &Tensor) -> Result<Tensor> {
+        let e = Self::sinusoidal(t, self.freq_size)?;
+        self.mlp2.forward(&self.mlp0.forward(&e)?.silu()?)
+    }
+}
+
+/// Absolute sin/cos position embedding of integer coordinates (TRELLIS
+/// `AbsolutePositionEmbedder`): per axis [sin(x·f), cos(x·f)] with
+/// `freq_dim = C/3/2` frequencies, axes concatenated, zero-padded to C.
+/// `coords` is `[N, 3]` (any numeric dtype); returns `[N, C]` f32.
+pub fn abs_position_embedding(coords: &Tensor, channels: usize) -> Result<Tensor> {
+    let n = coords.dim(0)?;
+    let ndim = coords.dim(1)?;
+    let freq_dim = channels / ndim / 2;
+    let freqs: Vec<f32> = (0..freq_dim).map(|k| (1.0 / 10000f64.powf(k as f64 / freq_dim as f64)) as f32).collect();
+    let freqs = Tensor::from_vec(freqs, (1, 1, freq_dim), coords.device())?;
+    let x = coords.to_dtype(DType::F32)?.unsqueeze(2)?.broadcast_mul(&freqs)?; // [N, 3, F]
+    let emb = Tensor::cat(&[x.sin()?, x.cos()?], 2)?.reshape((n, ndim * 2 * freq_dim))?;
+    let used = ndim * 2 * freq_dim;
+    if used < channels {
+        let pad = Tensor::zeros((n, channels - used), DType::F32, coords.device())?;
+        Tensor::cat(&[emb, pad], 1)
+    } else {
+        Ok(emb)
+    }
+}
+
+/// `MultiHeadRMSNorm`: L2-normalise each head vector, times gamma[h, :]·√d.
+#[derive(Debug, Clone)]
+pub struct MultiHeadRmsNorm {
+    pub(crate) gamma: Tensor, // [H, D]
+    scale: f64,
+}
+
+impl MultiHeadRmsNorm {
+    pub fn new(heads: usize, head_dim: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self { gamma: vb.get((heads, head_dim), "gamma")?, scale: (head_dim as f64).sqrt() })
+    }
+    /// `x`: `[B, L, H, D]`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dtype = x.dtype();
+        let x = x.to_dtype(DType::F32)?;
+        // F.normalize uses max(norm, 1e-12).
+        let norm = x.sqr()?.sum_keepdim(D::Minus1)?.sqrt()?.clamp(1e-12, f64::INFINITY)?;
+        (x.broadcast_div(&norm)?.broadcast_mul(&self.gamma)? * self.scale)?.to_dtype(dtype)
+    }
+}
+
+/// Softmax attention. `q`: `[B, H, Lq, D]`, `k`/`v`: `[B, H, Lk, D]` → `[B, H, Lq, D]`.
+/// Query rows are processed in chunks so the score matrix never exceeds
+/// about 32 M elements, whatever the sequence length.
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let (b, h, lq, d) = q.dims4()?;
+    let lk = k.dim(2)?;
+    let scale = 1.0 / (d as f64).sqrt();
+    let kt = k.transpose(2, 3)?.contiguous()?;
+    let v = v.contiguous()?;
+    let budget = 32usize << 20;
+    let chunk = (budget / (b * h * lk).max(1)).clamp(1, lq.max(1));
+    let mut outs = Vec::with_capacity(lq.div_ceil(chunk));
+    let mut start = 0;
+    while start < lq {
+        let len = chunk.min(lq - start);
+        let qc = (q.narrow(2, start, len)? * scale)?.contiguous()?;
+        let s = qc.matmul(&kt)?;
+        let p = softmax_last_dim(&s)?;
+        outs.push(p.matmul(&v)?);
+        start += len;
+    }
+    if outs.len() == 1 {
+        Ok(outs.pop().unwrap())
+    } else {
+        Tensor::cat(&outs, 2)
+    }
+}
+
+/// Softmax over the last dim with a backward pass. The forward is candle's
+/// `softmax_last_dim` kernel step for step (so inference results are
+/// bit-identical to it), but candle's op has no gradient, and every
+/// transformer here must stay trainable.
+pub fn softmax_last_dim(x: &Tensor) -> Result<Tensor> {
+    if x.device().is_cpu() && x.dtype() == DType::F32 {
+        x.contiguous()?.apply_op1(SoftmaxLastDim)
+    } else {
+        candle_nn::ops::softmax(x, D::Minus1)
+    }
+}
+
+struct SoftmaxLastDim;
+
+impl candle_core::CustomOp1 for SoftmaxLastDim {
+    fn name(&self) -> &'static str {
+        "recon-softmax-last-dim"
+    }
+
+    fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
+        use candle_core::cpu::kernels::VecOps;
+        use rayon::prelude::*;
+        let CpuStorage::F32(src) = storage else { candle_core::bail!("softmax: f32 only") };
+        let Some((o1, o2)) = layout.contiguous_offsets() else { candle_core::bail!("softmax: input must be contiguous") };
+        let src = &src[o1..o2];
+        let dims = layout.shape().dims();
+        let n = dims[dims.len() - 1];
+        let mut dst = vec![0f32; src.len()];
+        src.par_chunks(n).zip(dst.par_chunks_mut(n)).for_each(|(s, d)| {
+            let mut max = f32::NEG_INFINITY;
+            // SAFETY: both slices hold exactly `n` elements.
+            unsafe { f32::vec_reduce_max(s.as_ptr(), &mut max, n) };
+            for (a, b) in s.iter().zip(d.iter_mut()) {
+                *b = (*a - max).exp();
+            }
+            let mut sum = 0f32;
+            unsafe { f32::vec_reduce_sum(d.as_ptr(), &mut sum, n) };
+            for b in d.iter_mut() {
+                *b /= sum;
+            }
+        });
+        Ok((CpuStorage::F32(dst), Shape::from_dims(dims)))
+    }
+
+    /// dL/dx = y ⊙ (g − Σ g ⊙ y) along the last dim.
+    fn bwd(&self, _arg: &Tensor, res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
+        let dot = (grad_res * res)?.sum_keepdim(D::Minus1)?;
+        Ok(Some(res.mul(&grad_res.broadcast_sub(&dot)?)?))
+    }
+}
+
+/// TRELLIS `FeedForwardNet`: Linear → GELU(tanh) → Linear (`mlp.0`, `mlp.2`).
+#[derive(Debug, Clone)]
+pub struct FeedForward {
+    fc1: Linear,
+    fc2: Linear,
+}
+
+impl FeedForward {
+    pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder) -> Result<Self> {
+        let hidden = (channels as f64 * mlp_ratio) as usize;
+        Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"))?, fc2: linear(hidden, channels, vb.pp("mlp.2"))? })
+    }
+    /// GELU (tanh form) is fused into `fc1` on the fast path.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.fc2.forward(&self.fc1.forward_act(x, Activation::GeluTanh)?)
+    }
+}
+
+/// TRELLIS `MultiHeadAttention` (self: `to_qkv`; cross: `to_q` + `to_kv`; `to_out`),
+/// with optional QK RMS-norm.
+#[derive(Debug, Clone)]
+pub struct MultiHeadAttention {
+    pub heads: usize,
+    pub head_dim: usize,
+    to_qkv: Option<Linear>,
+    to_q: Option<Linear>,
+    to_kv: Option<Linear>,
+    q_norm: Option<MultiHeadRmsNorm>,
+    k_norm: Option<MultiHeadRmsNorm>,
+    to_out: Linear,
+    compute: Compute,
+}
+
+impl MultiHeadAttention {
+    /// `ctx_channels = None` builds self-attention.
+    pub fn new(channels: usize, heads: usize, ctx_channels: Option<usize>, qk_rms_norm: bool, vb: VarBuilder) -> Result<Self> {
+        let head_dim = channels / heads;
+        let (to_qkv, to_q, to_kv) = match ctx_channels {
+            None => (Some(linear(channels, 3 * channels, vb.pp("to_qkv"))?), None, None),
+            Some(c) => (None, Some(linear(channels, channels, vb.pp("to_q"))?), Some(linear(c, 2 * channels, vb.pp("to_kv"))?)),
+        };
+        let (q_norm, k_norm) = if qk_rms_norm {
+            (
+                Some(MultiHeadRmsNorm::new(heads, head_dim, vb.pp("q_rms_norm"))?),
+                Some(MultiHeadRmsNorm::new(heads, head_dim, vb.pp("k_rms_norm"))?),
+            )
+        } else {
+            (None, None)
+        };
+        Ok(Self {
+            heads,
+            head_dim,
+            to_qkv,
+            to_q,
+            to_kv,
+            q_norm,
+            k_norm,
+            to_out: linear(channels, channels, vb.pp("to_out"))?,
+            compute: fast::build_compute(),
+        })
+    }
+
+    /// Whether this layer runs the fast kernels.
+    pub fn is_fast(&self) -> bool {
+        self.compute.is_fast()
+    }
+
+    /// Project to per-head q, k, v, each `[B, L, H, D]` (qk-norm applied).
+    /// For cross-attention `ctx` supplies k and v.
+    pub fn qkv(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<(Tensor, Tensor, Tensor)> {
+        let (b, l, _) = x.dims3()?;
+        let (h, d) = (self.heads, self.head_dim);
+        let (q, k, v) = match (&self.to_qkv, ctx) {
+            (Some(to_qkv), None) => {
+                let qkv = to_qkv.forward(x)?.reshape((b, l, 3, h, d))?;
+                (qkv.narrow(2, 0, 1)?.squeeze(2)?, qkv.narrow(2, 1, 1)?.squeeze(2)?, qkv.narrow(2, 2, 1)?.squeeze(2)?)
+            }
+            (None, Some(ctx)) => {
+                let lc = ctx.dim(1)?;
+                let q = self.to_q.as_ref().unwrap().forward(x)?.reshape((b, l, h, d))?;
+                let kv = self.to_kv.as_ref().unwrap().forward(ctx)?.reshape((b, lc, 2, h, d))?;
+                (q, kv.narrow(2, 0, 1)?.squeeze(2)?, kv.narrow(2, 1, 1)?.squeeze(2)?)
+            }
+            _ => candle_core::bail!("attention: context given to self-attention or missing for cross-attention"),
+        };
+        let q = match &self.q_norm { Some(n) => n.forward(&q)?, None => q };
+        let k = match &self.k_norm { Some(n) => n.forward(&k)?, None => k };
+        Ok((q, k, v))
+    }
+
+    /// Output projection of `[B, L, H, D]` attention results.
+    pub fn out(&self, o: &Tensor) -> Result<Tensor> {
+        let (b, l, h, d) = o.dims4()?;
+        self.to_out.forward(&o.reshape((b, l, h * d))?)
+    }
+
+    /// Full attention: `x` `[B, L, C]`, optional context `[B or 1, Lc, Cc]`.
+    pub fn forward(&self, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        if self.is_fast() {
+            let (b, l, c) = x.dims3()?;
+            let (ctx_rows, lc, cb) = match ctx {
+                Some(cx) => {
+                    let (cb, lc, cc) = cx.dims3()?;
+                    (Some(cx.reshape((cb * lc, cc))?), lc, cb)
+                }
+                None => (None, l, b),
+            };
+            if cb != b && cb != 1 {
+                candle_core::bail!("attention: context batch {cb} for input batch {b}");
+            }
+            let segs: Vec<AttnSegment> = (0..b)
+                .map(|i| {
+                    let kv0 = if cb == 1 { 0 } else { i * lc };
+                    AttnSegment { q: i * l..(i + 1) * l, kv: kv0..kv0 + lc }
+                })
+                .collect();
+            let y = self.forward_rows(&x.reshape((b * l, c))?, ctx_rows.as_ref(), &segs)?;
+            return y.reshape((b, l, c));
+        }
+        let (q, k, v) = self.qkv(x, ctx)?;
+        let o = attention(&q.transpose(1, 2)?, &k.transpose(1, 2)?, &v.transpose(1, 2)?)?;
+        self.out(&o.transpose(1, 2)?)
+    }
+
+    /// Fast path on rows: `x` `[N, C]`, context rows `[Nc, Cc]` for
+    /// cross-attention; query rows of each segment attend to its key rows
+    /// (rows of `x` for self-attention). Returns `[N, C]`; rows outside every
+    /// segment get the output projection of zeros (its bias).
+    pub fn forward_rows(&self, x: &Tensor, ctx: Option<&Tensor>, segments: &[AttnSegment]) -> Result<Tensor> {
+        let Some((precision, isa)) = self.compute.fast_parts() else {
+            candle_core::bail!("attention: forward_rows needs a layer built with fast kernels");
+        };
+        let (n, _) = x.dims2()?;
+        let (h, d) = (self.heads, self.head_dim);
+        let c = h * d;
+        fn fl(l: &Linear) -> Result<&fast::FastLinear> {
+            l.fast().ok_or_else(|| candle_core::Error::Msg("attention: layer not packed".into()))
+        }
+        let gamma = |nrm: &Option<MultiHeadRmsNorm>| -> Result<Option<Vec<f32>>> {
+            nrm.as_ref().map(|m| m.gamma.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()).transpose()
+        };
+        let o = match (&self.to_qkv, ctx) {
+            (Some(to_qkv), None) => {
+                let mut qkv = fast::with_f32(x, |xs| fl(to_qkv)?.forward_slice(xs, n, Activation::None))?;
+                if let Some(g) = gamma(&self.q_norm)? {
+                    fast::rms_norm_heads(&mut qkv, n, 3 * c, 0, &g, h, d);
+                }
+                if let Some(g) = gamma(&self.k_norm)? {
+                    fast::rms_norm_heads(&mut qkv, n, 3 * c, c, &g, h, d);
+                }
+                let lay = |off| AttnLayout::new(3 * c, off);
+                fast::attention_rows(isa, precision, h, d, (&qkv, lay(0)), (&qkv, lay(c)), (&qkv, lay(2 * c)), n, segments)?
+            }
+            (None, Some(ctx)) => {
+                let (nc, _) = ctx.dims2()?;
+                let mut q = fast::with_f32(x, |xs| fl(self.to_q.as_ref().unwrap())?.forward_slice(xs, n, Activation::None))?;
+                let mut kv = fast::with_f32(ctx, |cs| fl(self.to_kv.as_ref().unwrap())?.forward_slice(cs, nc, Activation::None))?;
+                if let Some(g) = gamma(&self.q_norm)? {
+                    fast::rms_norm_heads(&mut q, n, c, 0, &g, h, d);
+                }
+                if let Some(g) = gamma(&self.k_norm)? {
+                    fast::rms_norm_heads(&mut kv, nc, 2 * c, 0, &g, h, d);
+                }
+                let (ql, kl, vl) = (AttnLayout::new(c, 0), AttnLayout::new(2 * c, 0), AttnLayout::new(2 * c, c));
+                fast::attention_rows(isa, precision, h, d, (&q, ql), (&kv, kl), (&kv, vl), n, segments)?
+            }
+            _ => candle_core::bail!("attention: context given to self-attention or missing for cross-attention"),
+        };
+        let y = fl(&self.to_out)?.forward_slice(&o, n, Activation::None)?;
+        Tensor::from_vec(y, (n, c), x.device())
+    }
+}
+
+/// TRELLIS `ModulatedTransformerCrossBlock`: adaLN-modulated self-attention,
+/// un-modulated cross-attention (affine norm2), modulated MLP.
+#[derive(Debug, Clone)]
+pub struct ModulatedTransformerCrossBlock {
+    pub self_attn: MultiHeadAttention,
+    pub cross_attn: MultiHeadAttention,
+    norm2: LayerNorm,
+    mlp: FeedForward,
+    ada_ln: Option<Linear>,
+    compute: Compute,
+}
+
+/// Hyper-parameters of a modulated cross block.
+#[derive(Debug, Clone, Copy)]
+pub struct CrossBlockConfig {
+    pub channels: usize,
+    pub ctx_channels: usize,
+    pub heads: usize,
+    pub mlp_ratio: f64,
+    pub share_mod: bool,
+    pub qk_rms_norm: bool,
+    pub qk_rms_norm_cross: bool,
+}
+
+impl ModulatedTransformerCrossBlock {
+    pub fn new(cfg: &CrossBlockConfig, vb: VarBuilder) -> Result<Self> {
+        let c = cfg.channels;
+        Ok(Self {
+            self_attn: MultiHeadAttention::new(c, cfg.heads, None, cfg.qk_rms_norm, vb.pp("self_attn"))?,
+            cross_attn: MultiHeadAttention::new(c, cfg.heads, Some(cfg.ctx_channels), cfg.qk_rms_norm_cross, vb.pp("cross_attn"))?,
+            norm2: LayerNorm::new(c, 1e-6, vb.pp("norm2"))?,
+            mlp: FeedForward::new(c, cfg.mlp_ratio, vb.pp("mlp"))?,
+            ada_ln: if cfg.share_mod { None } else { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) },
+            compute: fast::build_compute(),
+        })
+    }
+
+    /// `x` `[B, L, C]`; `emb` is the timestep embedding `[B, C]` or, with
+    /// `share_mod`, the shared modulation `[B, 6C]`; `cond` `[B, Lc, Cc]`.
+    pub fn forward(&self, x: &Tensor, emb: &Tensor, cond: &Tensor) -> Result<Tensor> {
+        let m = match &self.ada_ln {
+            Some(l) => l.forward(&emb.silu()?)?,
+            None => emb.clone(),
+        };
+        let ch = m.chunk(6, 1)?;
+        if let Some((_, isa)) = self.compute.fast_parts() {
+            // Fused kernels: LN + modulation, gated residuals (same math).
+            let h = fast::layer_norm(isa, x, 1e-6, Some(&(&ch[1] + 1.0)?), Some(&ch[0]))?;
+            let x = fast::gated_residual(x, &self.self_attn.forward(&h, None)?, Some(&ch[2]))?;
+            let x = fast::gated_residual(&x, &self.cross_attn.forward(&self.norm2.forward(&x)?, Some(cond))?, None)?;
+            let h = fast::layer_norm(isa, &x, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
+            return fast::gated_residual(&x, &self.mlp.forward(&h)?, Some(&ch[5]));
+        }
+        let (shift_msa, scale_msa, gate_msa) = (ch[0].unsqueeze(1)?, ch[1].unsqueeze(1)?, ch[2].unsqueeze(1)?);
+        let (shift_mlp, scale_mlp, gate_mlp) = (ch[3].unsqueeze(1)?, ch[4].unsqueeze(1)?, ch[5].unsqueeze(1)?);
+
+        let h = layer_norm_plain(x, 1e-6)?.broadcast_mul(&(scale_msa + 1.0)?)?.broadcast_add(&shift_msa)?;
+        let h = self.self_attn.forward(&h, None)?.broadcast_mul(&gate_msa)?;
+        let x = (x + h)?;
+
+        let h = self.cross_attn.forward(&self.norm2.forward(&x)?, Some(cond))?;
+        let x = (x + h)?;
+
+        let h = layer_norm_plain(&x, 1e-6)?.broadcast_mul(&(scale_mlp + 1.0)?)?.broadcast_add(&shift_mlp)?;
+        let h = self.mlp.forward(&h)?.broadcast_mul(&gate_mlp)?;
+        x + h
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    #[test]
+    fn chunked_attention_matches_unchunked() -> Result<()> {
+        let dev = Device::Cpu;
+        let q = Tensor::randn(0f32, 1.0, (1, 2, 37, 8), &dev)?;
+        let k = Tensor::randn(0f32, 1.0, (1, 2, 53, 8), &dev)?;
+        let v = Tensor::randn(0f32, 1.0, (1, 2, 53, 8), &dev)?;
+        let got = attention(&q, &k, &v)?;
+        let s = (q.matmul(&k.t()?)? / (8f64).sqrt())?;
+        let want = candle_nn::ops::softmax_last_dim(&s)?.matmul(&v)?;
+        let d = (got - want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-5, "diff {d}");
+        Ok(())
+    }
+
+    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
+    }
+
+    /// A modulated cross block built on the fast kernels matches the plain
+    /// (differentiable) one: f32 tightly, bf16/f16 within their rounding.
+    #[test]
+    fn fast_cross_block_matches_plain() -> crate::Result<()> {
+        use crate::model::nn::fast::{build_with, Compute, Precision};
+        use candle_nn::VarMap;
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let cfg = CrossBlockConfig { channels: 64, ctx_channels: 24, heads: 4, mlp_ratio: 4.0, share_mod: false, qk_rms_norm: true, qk_rms_norm_cross: true };
+        let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"))?;
+        // Non-trivial weights (VarMap init gives zero biases / unit norms).
+        let mut rng = crate::rng::SeededRng::new(3);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            var.set(&((rng.randn(var.dims(), &dev)? * 0.1)? + 0.05)?)?;
+        }
+        let x = rng.randn(&[2, 37, 64], &dev)?;
+        let emb = rng.randn(&[2, 64], &dev)?;
+        let cond = rng.randn(&[2, 29, 24], &dev)?;
+        let want = plain.forward(&x, &emb, &cond)?;
+        let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        for (p, tol) in [(Precision::F32, 1e-5f32), (Precision::F16, 2e-3), (Precision::Bf16, 3e-2)] {
+            let fast = build_with(Compute::fast(p), || ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk")))?;
+            assert!(fast.self_attn.is_fast() && fast.mlp.fc1.fast().is_some());
+            let got = fast.forward(&x, &emb, &cond)?;
+            let d = max_diff(&got, &want);
+            assert!(d <= tol * scale, "{p}: max diff {d} (output scale {scale})");
+        }
+        // Cross-attention to a batch-1 context is broadcast over the batch.
+        let fast = build_with(Compute::fast(Precision::F32), || MultiHeadAttention::new(64, 4, Some(24), true, vb.pp("blk.cross_attn")))?;
+        let c1 = cond.narrow(0, 0, 1)?;
+        let a = fast.forward(&x, Some(&c1))?;
+        let b = plain.cross_attn.forward(&x, Some(&c1.broadcast_as((2, 29, 24))?.contiguous()?))?;
+        assert!(max_diff(&a, &b) < 1e-4);
+        Ok(())
+    }
+
+    #[test]
+    fn softmax_matches_candle_kernel_and_has_gradient() -> Result<()> {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 3.0, (3, 5, 37), &dev)?;
+        let fast = candle_nn::ops::softmax_last_dim(&x)?;
+        let ours = softmax_last_dim(&x)?;
+        assert_eq!(fast.flatten_all()?.to_vec1::<f32>()?, ours.flatten_all()?.to_vec1::<f32>()?, "forward must be bit-identical");
+        // Gradient equals the one of the composed (differentiable) softmax.
+        let v = candle_core::Var::from_tensor(&x)?;
+        let w = Tensor::randn(0f32, 1.0, (3, 5, 37), &dev)?;
+        let g1 = (softmax_last_dim(v.as_tensor())? * &w)?.sum_all()?.backward()?;
+        let g2 = (candle_nn::ops::softmax(v.as_tensor(), D::Minus1)? * &w)?.sum_all()?.backward()?;
+        let d = (g1.get(v.as_tensor()).unwrap() - g2.get(v.as_tensor()).unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-6, "gradient diff {d}");
+        Ok(())
+    }
+
+    #[test]
+    fn position_embedding_pads_to_channels() -> Result<()> {
+        let c = Tensor::new(&[[0u32, 1, 2], [3, 4, 5]], &Device::Cpu)?;
+        let e = abs_position_embedding(&c, 64)?;
+        assert_eq!(e.dims(), &[2, 64]);
+        // freq_dim 10: channel 0 is sin(x·1), channel 10 is cos(x·1).
+        let v = e.to_vec2::<f32>()?;
+        assert!((v[1][0] - 3f32.sin()).abs() < 1e-6);
+        assert!((v[1][10] - 3f32.cos()).abs() < 1e-6);
+        assert_eq!(&v[1][60..], &[0.0; 4]);
+        Ok(())
+    }
+}

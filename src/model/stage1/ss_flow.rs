@@ -1,0 +1,564 @@
+//! Stage 1: the sparse-structure flow transformer (TRELLIS
+//! `SparseStructureFlowModel`) with RecGen's `SparseStructurePoseFlowModel`
+//! additions: pose tokens appended to the voxel tokens, and the pointmap /
+//! mask / frame-token conditioning embedders (spec §2, §9.1).
+//!
+//! Forward: patchify `[B, C, R, R, R]` → tokens `[B, (R/p)³, C·p³]` →
+//! `input_layer` + `pos_emb` → (append `input_layer_pose(pose)` +
+//! `pose_token_embedder`, no pos-emb) → N × modulated cross blocks → plain
+//! LayerNorm (eps 1e-5) → split → `out_layer` + unpatchify, `out_layer_pose`.
+
+use candle_core::{DType, Device, Module, Tensor};
+use crate::model::nn::common::Linear;
+use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
+
+use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
+use crate::model::stage1::embedders::{build_condition, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::rng::SeededRng;
+use crate::model::sampler::VelocityModel;
+use crate::{Error, Result};
+
+/// Constructor arguments, named as upstream (`args` of the checkpoint JSON).
+/// Pose tokens are built iff `pose_representation` is set (RecGen); without
+/// it this is the plain TRELLIS model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SsFlowConfig {
+    pub resolution: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    pub model_channels: usize,
+    pub cond_channels: usize,
+    pub num_blocks: usize,
+    #[serde(default)]
+    pub num_heads: Option<usize>,
+    #[serde(default = "default_head_channels")]
+    pub num_head_channels: usize,
+    #[serde(default = "default_mlp_ratio")]
+    pub mlp_ratio: f64,
+    #[serde(default = "default_patch_size")]
+    pub patch_size: usize,
+    #[serde(default = "default_pe_mode")]
+    pub pe_mode: String,
+    /// Upstream runs the torso in fp16; this port computes in f32 (ignored).
+    #[serde(default)]
+    pub use_fp16: bool,
+    /// Gradient checkpointing; no effect on values (ignored).
+    #[serde(default)]
+    pub use_checkpoint: bool,
+    #[serde(default)]
+    pub share_mod: bool,
+    #[serde(default)]
+    pub qk_rms_norm: bool,
+    #[serde(default)]
+    pub qk_rms_norm_cross: bool,
+    #[serde(default)]
+    pub use_point_embedder: bool,
+    #[serde(default = "default_embed_channels")]
+    pub point_embedder_out_channels: usize,
+    #[serde(default)]
+    pub use_mask_embedder: bool,
+    #[serde(default = "default_embed_channels")]
+    pub mask_embedder_out_channels: usize,
+    #[serde(default)]
+    pub use_frame_token_embedder: bool,
+    #[serde(default)]
+    pub use_asymmetric_mask: bool,
+    #[serde(default)]
+    pub pose_representation: Option<String>,
+    #[serde(default = "default_pose_tokens")]
+    pub num_pose_tokens: usize,
+}
+
+fn default_head_channels() -> usize {
+    64
+}
+fn default_mlp_ratio() -> f64 {
+    4.0
+}
+fn default_patch_size() -> usize {
+    2
+}
+fn default_pe_mode() -> String {
+    "ape".into()
+}
+fn default_embed_channels() -> usize {
+    1024
+}
+fn default_pose_tokens() -> usize {
+    1
+}
+
+/// Width of a pose vector for a RecGen pose representation name.
+pub fn pose_channels(representation: &str) -> Option<usize> {
+    match representation {
+        "quaternion_translation_scale" => Some(8),
+        "6d_translation_scale" => Some(10),
+        "9d_translation_scale" => Some(13),
+        _ => None,
+    }
+}
+
+impl SsFlowConfig {
+    /// Deserialise from an `args` object and check consistency; `file` names the source in errors.
+    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+        let cfg: Self = crate::util::json::from_value(v, file)?;
+        cfg.validate(file)?;
+        Ok(cfg)
+    }
+
+    pub fn heads(&self) -> usize {
+        self.num_heads.unwrap_or(self.model_channels / self.num_head_channels.max(1))
+    }
+
+    /// Pose vector width, or None for the plain TRELLIS model.
+    pub fn pose_channels(&self) -> Option<usize> {
+        self.pose_representation.as_deref().and_then(pose_channels)
+    }
+
+    /// Number of voxel tokens, `(R/p)³`.
+    pub fn num_tokens(&self) -> usize {
+        (self.resolution / self.patch_size).pow(3)
+    }
+
+    pub fn validate(&self, file: &str) -> Result<()> {
+        let err = |f: &str, m: String| Err(Error::config(file, f, m));
+        if self.patch_size == 0 || self.resolution == 0 || self.resolution % self.patch_size != 0 {
+            return err("patch_size", format!("resolution {} must be a positive multiple of patch_size {}", self.resolution, self.patch_size));
+        }
+        let h = self.heads();
+        if h == 0 || self.model_channels % h != 0 {
+            return err("num_heads", format!("model_channels {} not divisible by {h} heads", self.model_channels));
+        }
+        if self.pe_mode != "ape" {
+            return err("pe_mode", format!("`{}` not supported (only \"ape\" is used by TRELLIS/RecGen)", self.pe_mode));
+        }
+        if self.use_asymmetric_mask {
+            return err("use_asymmetric_mask", "not supported (false in the released RecGen config)".into());
+        }
+        if let Some(r) = &self.pose_representation {
+            if pose_channels(r).is_none() {
+                return err("pose_representation", format!("unknown representation `{r}`"));
+            }
+            if self.num_pose_tokens == 0 {
+                return err("num_pose_tokens", "must be ≥ 1".into());
+            }
+        }
+        if self.use_point_embedder && self.point_embedder_out_channels != self.cond_channels {
+            return err("point_embedder_out_channels", "must equal cond_channels (its tokens are added to the condition)".into());
+        }
+        if self.use_mask_embedder && self.mask_embedder_out_channels != self.cond_channels {
+            return err("mask_embedder_out_channels", "must equal cond_channels (its tokens are added to the condition)".into());
+        }
+        if self.mlp_ratio <= 0.0 || !self.mlp_ratio.is_finite() {
+            return err("mlp_ratio", "must be positive".into());
+        }
+        Ok(())
+    }
+
+    fn block_config(&self) -> CrossBlockConfig {
+        CrossBlockConfig {
+            channels: self.model_channels,
+            ctx_channels: self.cond_channels,
+            heads: self.heads(),
+            mlp_ratio: self.mlp_ratio,
+            share_mod: self.share_mod,
+            qk_rms_norm: self.qk_rms_norm,
+            qk_rms_norm_cross: self.qk_rms_norm_cross,
+        }
+    }
+}
+
+/// RecGen pose token I/O.
+#[derive(Debug, Clone)]
+struct PoseIo {
+    input_layer_pose: Linear,
+    out_layer_pose: Linear,
+    /// `[K, C]` view-id embedding, present when `num_pose_tokens > 1`.
+    pose_token_embedder: Option<Tensor>,
+}
+
+#[derive(Debug, Clone)]
+pub struct SparseStructureFlowModel {
+    pub cfg: SsFlowConfig,
+    input_layer: Linear,
+    pos_emb: Tensor,
+    t_embedder: TimestepEmbedder,
+    /// Model-level `adaLN_modulation.1` with `share_mod`.
+    share_mod: Option<Linear>,
+    blocks: Vec<ModulatedTransformerCrossBlock>,
+    out_layer: Linear,
+    pose: Option<PoseIo>,
+    pub point_embedder: Option<PointmapEmbedder>,
+    pub mask_embedder: Option<MaskEmbedder>,
+    pub frame_token_embedder: Option<FrameTokenEmbedder>,
+}
+
+impl SparseStructureFlowModel {
+    pub fn new(cfg: &SsFlowConfig, vb: VarBuilder) -> Result<Self> {
+        cfg.validate("ss_flow config")?;
+        let c = cfg.model_channels;
+        let p3 = cfg.patch_size.pow(3);
+        let n = cfg.num_tokens();
+        let pos_emb = if vb.contains_tensor("pos_emb") {
+            vb.get((n, c), "pos_emb")?
+        } else {
+            Self::grid_position_embedding(cfg.resolution / cfg.patch_size, c, vb.device())?
+        };
+        let pose = match cfg.pose_channels() {
+            Some(pc) => Some(PoseIo {
+                input_layer_pose: common::linear(pc, c, vb.pp("input_layer_pose"))?,
+                out_layer_pose: common::linear(c, pc, vb.pp("out_layer_pose"))?,
+                pose_token_embedder: if cfg.num_pose_tokens > 1 {
+                    Some(vb.get((cfg.num_pose_tokens, c), "pose_token_embedder")?)
+                } else {
+                    None
+                },
+            }),
+            None => None,
+        };
+        let bcfg = cfg.block_config();
+        let blocks = (0..cfg.num_blocks)
+            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}"))))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(Self {
+            cfg: cfg.clone(),
+            input_layer: common::linear(cfg.in_channels * p3, c, vb.pp("input_layer"))?,
+            pos_emb,
+            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"))?,
+            share_mod: if cfg.share_mod { Some(common::linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) } else { None },
+            blocks,
+            out_layer: common::linear(c, cfg.out_channels * p3, vb.pp("out_layer"))?,
+            pose,
+            point_embedder: if cfg.use_point_embedder {
+                Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
+            mask_embedder: if cfg.use_mask_embedder {
+                Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
+            frame_token_embedder: if cfg.use_frame_token_embedder {
+                Some(FrameTokenEmbedder::new(cfg.cond_channels, vb.clone())?)
+            } else {
+                None
+            },
+        })
+    }
+
+    /// APE of the `g³` token grid, coordinates in meshgrid-`ij` order (z fastest),
+    /// equal to the upstream `pos_emb` buffer.
+    pub fn grid_position_embedding(g: usize, channels: usize, device: &Device) -> Result<Tensor> {
+        let coords: Vec<u32> =
+            (0..g * g * g).flat_map(|i| [(i / (g * g)) as u32, ((i / g) % g) as u32, (i % g) as u32]).collect();
+        let coords = Tensor::from_vec(coords, (g * g * g, 3), device)?;
+        Ok(common::abs_position_embedding(&coords, channels)?)
+    }
+
+    /// `[B, C, R, R, R]` → `[B, (R/p)³, C·p³]`, channel index `c·p³ + (a·p² + b·p + c')`.
+    pub fn patchify(&self, x: &Tensor) -> Result<Tensor> {
+        let (b, c, d, h, w) = x.dims5()?;
+        let p = self.cfg.patch_size;
+        if p == 1 {
+            return Ok(x.reshape((b, c, d * h * w))?.transpose(1, 2)?.contiguous()?);
+        }
+        let (dp, hp, wp) = (d / p, h / p, w / p);
+        let y = x
+            .reshape(vec![b, c, dp, p, hp, p, wp, p])?
+            .permute(vec![0, 2, 4, 6, 1, 3, 5, 7])?
+            .contiguous()?;
+        Ok(y.reshape((b, dp * hp * wp, c * p * p * p))?)
+    }
+
+    /// Inverse of `patchify`: `[B, (R/p)³, C·p³]` → `[B, C, R, R, R]`.
+    pub fn unpatchify(&self, h: &Tensor, channels: usize) -> Result<Tensor> {
+        let (b, _, _) = h.dims3()?;
+        let p = self.cfg.patch_size;
+        let g = self.cfg.resolution / p;
+        let r = self.cfg.resolution;
+        if p == 1 {
+            return Ok(h.transpose(1, 2)?.contiguous()?.reshape((b, channels, r, r, r))?);
+        }
+        let y = h
+            .reshape(vec![b, g, g, g, channels, p, p, p])?
+            .permute(vec![0, 4, 1, 5, 2, 6, 3, 7])?
+            .contiguous()?;
+        Ok(y.reshape((b, channels, r, r, r))?)
+    }
+
+    /// `t_embedder(t)` for model-scale `t` `[B]` → `[B, C]`.
+    pub fn timestep_embedding(&self, t: &Tensor) -> Result<Tensor> {
+        Ok(self.t_embedder.forward(t)?)
+    }
+
+    /// What the blocks receive: `t_emb`, or with `share_mod` the shared
+    /// modulation `adaLN_modulation(t_emb)` `[B, 6C]`.
+    pub fn block_modulation(&self, t_emb: &Tensor) -> Result<Tensor> {
+        Ok(match &self.share_mod {
+            Some(l) => l.forward(&t_emb.silu()?)?,
+            None => t_emb.clone(),
+        })
+    }
+
+    /// Velocity for the voxel latent `x` `[B, Cin, R, R, R]` and, for RecGen,
+    /// the pose tokens `pose` `[B, K, P]` (or `[B, P]` for one token).
+    /// `t` `[B]` is on the model scale; `cond` `[B or 1, L, Cc]`.
+    /// Returns `(v [B, Cout, R, R, R], v_pose)` with `v_pose` shaped like
+    /// upstream: `[B, K, P]`, squeezed to `[B, P]` when K = 1.
+    pub fn forward(&self, x: &Tensor, pose: Option<&Tensor>, t: &Tensor, cond: &Tensor) -> Result<(Tensor, Option<Tensor>)> {
+        let cfg = &self.cfg;
+        let (b, c_in, d, hh, ww) = x.dims5()?;
+        let r = cfg.resolution;
+        if c_in != cfg.in_channels || d != r || hh != r || ww != r {
+            return Err(Error::msg(format!(
+                "ss_flow: input shape {:?}, expected [B, {}, {r}, {r}, {r}]",
+                x.dims(),
+                cfg.in_channels
+            )));
+        }
+        if t.dims() != [b] {
+            return Err(Error::msg(format!("ss_flow: t shape {:?}, expected [{b}]", t.dims())));
+        }
+        let cond = match cond.dims3()? {
+            (cb, _, cc) if cc != cfg.cond_channels || (cb != b && cb != 1) => {
+                return Err(Error::msg(format!("ss_flow: cond shape {:?}, expected [{b} or 1, L, {}]", cond.dims(), cfg.cond_channels)))
+            }
+            // The sampler repeats a batch-1 condition over the batch.
+            (1, l, cc) if b > 1 => cond.broadcast_as((b, l, cc))?.contiguous()?,
+            _ => cond.clone(),
+        };
+
+        let h = self.input_layer.forward(&self.patchify(x)?)?.broadcast_add(&self.pos_emb)?;
+        let emb = self.block_modulation(&self.timestep_embedding(t)?)?;
+
+        let (h, n_pose) = match pose {
+            None => (h, 0),
+            Some(pose) => {
+                let Some(io) = &self.pose else {
+                    return Err(Error::msg("ss_flow: pose given but the model has no pose tokens (pose_representation unset)"));
+                };
+                let pc = cfg.pose_channels().unwrap_or(0);
+                let pose3 = match pose.dims() {
+                    [pb, p] if *pb == b && *p == pc => pose.unsqueeze(1)?,
+                    [pb, _, p] if *pb == b && *p == pc => pose.clone(),
+                    _ => return Err(Error::msg(format!("ss_flow: pose shape {:?}, expected [{b}, K, {pc}]", pose.dims()))),
+                };
+                let k = pose3.dim(1)?;
+                let mut hp = io.input_layer_pose.forward(&pose3)?;
+                if let Some(e) = &io.pose_token_embedder {
+                    if k > e.dim(0)? {
+                        return Err(Error::msg(format!("ss_flow: {k} pose tokens but only {} pose_token_embedder rows", e.dim(0)?)));
+                    }
+                    hp = hp.broadcast_add(&e.narrow(0, 0, k)?.unsqueeze(0)?)?;
+                }
+                (Tensor::cat(&[h, hp], 1)?, k)
+            }
+        };
+
+        let mut h = h;
+        for block in &self.blocks {
+            h = block.forward(&h, &emb, &cond)?;
+        }
+        let h = common::layer_norm_plain(&h, 1e-5)?;
+        let n = cfg.num_tokens();
+        let v = self.unpatchify(&self.out_layer.forward(&h.narrow(1, 0, n)?)?, cfg.out_channels)?;
+        let vp = match (&self.pose, n_pose) {
+            (Some(io), k) if k > 0 => {
+                let vp = io.out_layer_pose.forward(&h.narrow(1, n, k)?)?;
+                Some(if k == 1 { vp.squeeze(1)? } else { vp })
+            }
+            _ => None,
+        };
+        Ok((v, vp))
+    }
+
+    /// `(cond, neg_cond)` from one or two views (RecGen `get_cond` /
+    /// `get_cond_multiview`), using this model's embedders.
+    pub fn condition(&self, views: &[ViewInputs]) -> Result<(Tensor, Tensor)> {
+        let emb = CondEmbedders {
+            point: self.point_embedder.as_ref(),
+            mask: self.mask_embedder.as_ref(),
+            frame: self.frame_token_embedder.as_ref(),
+        };
+        Ok(build_condition(views, emb)?)
+    }
+
+    /// Initial sampler state at t = 1: the latent noise `[B, Cin, R, R, R]`,
+    /// then (RecGen) pose noise `[B, K, P]` (`[B, P]` when K = 1), drawn in
+    /// that order from `rng`.
+    pub fn initial_state(&self, rng: &mut SeededRng, batch: usize, device: &Device) -> Result<Vec<Tensor>> {
+        let r = self.cfg.resolution;
+        let mut s = vec![rng.randn(&[batch, self.cfg.in_channels, r, r, r], device)?];
+        if let Some(pc) = self.cfg.pose_channels() {
+            let k = self.cfg.num_pose_tokens;
+            s.push(if k > 1 { rng.randn(&[batch, k, pc], device)? } else { rng.randn(&[batch, pc], device)? });
+        }
+        Ok(s)
+    }
+
+    fn run_state(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        let b = state[0].dim(0)?;
+        let t = Tensor::full(t_model, b, state[0].device())?.to_dtype(DType::F32)?;
+        let (v, vp) = self.forward(&state[0], state.get(1), &t, cond)?;
+        Ok(match vp {
+            Some(p) => vec![v, p],
+            None => vec![v],
+        })
+    }
+}
+
+impl VelocityModel for SparseStructureFlowModel {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        if state.is_empty() || state.len() > 2 {
+            return Err(Error::msg(format!("ss_flow: state must be [latent] or [latent, pose], got {} tensors", state.len())));
+        }
+        self.run_state(state, t_model, cond)
+    }
+
+    /// Conditional and unconditional passes batched into one forward (the
+    /// state is duplicated along the batch); per-sample results are the same
+    /// as two passes up to float rounding.
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        if state.is_empty() || state.len() > 2 {
+            return Err(Error::msg(format!("ss_flow: state must be [latent] or [latent, pose], got {} tensors", state.len())));
+        }
+        let b = state[0].dim(0)?;
+        let expand = |c: &Tensor| -> Result<Tensor> {
+            let (cb, l, cc) = c.dims3()?;
+            Ok(if cb == 1 && b > 1 { c.broadcast_as((b, l, cc))?.contiguous()? } else { c.clone() })
+        };
+        let (c, n) = (expand(cond)?, expand(neg)?);
+        if c.dims() != n.dims() {
+            return Err(Error::msg(format!("ss_flow: cond {:?} and neg_cond {:?} differ in shape", c.dims(), n.dims())));
+        }
+        let doubled: Vec<Tensor> = state.iter().map(|s| Tensor::cat(&[s, s], 0)).collect::<candle_core::Result<_>>()?;
+        let both = self.run_state(&doubled, t_model, &Tensor::cat(&[&c, &n], 0)?)?;
+        let split = |i: usize| -> Result<Vec<Tensor>> { Ok(both.iter().map(|v| v.narrow(0, i * b, b)).collect::<candle_core::Result<_>>()?) };
+        Ok((split(0)?, split(1)?))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_nn::VarMap;
+
+    fn tiny_cfg(p: usize, pose: bool) -> SsFlowConfig {
+        let mut v = serde_json::json!({
+            "resolution": 4, "in_channels": 2, "out_channels": 2, "model_channels": 24,
+            "cond_channels": 16, "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": p,
+            "qk_rms_norm": true, "use_point_embedder": true, "point_embedder_out_channels": 16,
+            "use_mask_embedder": true, "mask_embedder_out_channels": 16, "use_frame_token_embedder": true
+        });
+        if pose {
+            v["pose_representation"] = "6d_translation_scale".into();
+            v["num_pose_tokens"] = 2.into();
+        }
+        SsFlowConfig::from_value(&v, "test").unwrap()
+    }
+
+    fn random_model(cfg: &SsFlowConfig) -> Result<SparseStructureFlowModel> {
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        // Build once to create the variables, then fill them with seeded noise.
+        let m = SparseStructureFlowModel::new(cfg, vb.clone())?;
+        let mut rng = SeededRng::new(7);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            let t = (rng.randn(var.dims(), &Device::Cpu)? * 0.2)?;
+            var.set(&t)?;
+        }
+        let _ = m;
+        SparseStructureFlowModel::new(cfg, vb)
+    }
+
+    #[test]
+    fn patchify_roundtrip_and_channel_order() -> Result<()> {
+        let cfg = tiny_cfg(2, false);
+        let m = random_model(&cfg)?;
+        let x = SeededRng::new(1).randn(&[1, 2, 4, 4, 4], &Device::Cpu)?;
+        let tok = m.patchify(&x)?;
+        assert_eq!(tok.dims(), &[1, 8, 16]);
+        // token (1,0,1) = index 1·4 + 0·2 + 1 = 5; channel c·8 + (a·4 + b·2 + c') = x[c, 2+a, 0+b, 2+c'].
+        let xv = x.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+        let tv = tok.flatten_all()?.to_vec1::<f32>()?;
+        for (c, a, bb, cc) in [(1usize, 1usize, 0usize, 1usize), (0, 0, 1, 0)] {
+            let ch = c * 8 + a * 4 + bb * 2 + cc;
+            let want = xv[((c * 4 + 2 + a) * 4 + bb) * 4 + 2 + cc];
+            assert_eq!(tv[5 * 16 + ch], want);
+        }
+        let back = m.unpatchify(&tok, 2)?;
+        assert_eq!((back - &x)?.abs()?.sum_all()?.to_scalar::<f32>()?, 0.0);
+        Ok(())
+    }
+
+    #[test]
+    fn pose_forward_shapes_and_computed_pos_emb() -> Result<()> {
+        let cfg = tiny_cfg(1, true);
+        let m = random_model(&cfg)?;
+        let want = SparseStructureFlowModel::grid_position_embedding(4, 24, &Device::Cpu)?;
+        assert_eq!((&m.pos_emb - want)?.abs()?.sum_all()?.to_scalar::<f32>()?, 0.0);
+        let mut rng = SeededRng::new(3);
+        let state = m.initial_state(&mut rng, 2, &Device::Cpu)?;
+        assert_eq!(state[1].dims(), &[2, 2, 10]);
+        let cond = rng.randn(&[1, 5, 16], &Device::Cpu)?;
+        let t = Tensor::new(&[500f32, 100.0], &Device::Cpu)?;
+        let (v, vp) = m.forward(&state[0], Some(&state[1]), &t, &cond)?;
+        assert_eq!(v.dims(), &[2, 2, 4, 4, 4]);
+        assert_eq!(vp.unwrap().dims(), &[2, 2, 10]);
+        // Batched CFG equals two separate passes.
+        let neg = cond.zeros_like()?;
+        let (c2, u2) = m.velocity_cfg(&state, 300.0, &cond, &neg)?;
+        let c1 = m.velocity(&state, 300.0, &cond)?;
+        let u1 = m.velocity(&state, 300.0, &neg)?;
+        for (a, b) in c1.iter().chain(&u1).zip(c2.iter().chain(&u2)) {
+            let d = (a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(d < 1e-5, "batched CFG differs by {d}");
+        }
+        // Voxel velocity depends on the pose tokens (they share self-attention).
+        let (v2, _) = m.forward(&state[0], Some(&(&state[1] + 1.0)?), &t, &cond)?;
+        assert!((v - v2)?.abs()?.sum_all()?.to_scalar::<f32>()? > 0.0);
+        // Pose shape errors are reported, not panicked.
+        assert!(m.forward(&state[0], Some(&Tensor::zeros((2, 3), DType::F32, &Device::Cpu)?), &t, &cond).is_err());
+        Ok(())
+    }
+
+    /// The whole model built on the fast kernels agrees with the plain one
+    /// (same weights): f32 tightly, bf16 within its rounding.
+    #[test]
+    fn fast_model_matches_plain() -> Result<()> {
+        use crate::model::nn::fast::{build_with, Compute, Precision};
+        let cfg = tiny_cfg(1, true);
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let plain = SparseStructureFlowModel::new(&cfg, vb.clone())?;
+        let mut rng = SeededRng::new(7);
+        for (_, var) in vm.data().lock().unwrap().iter() {
+            var.set(&(rng.randn(var.dims(), &Device::Cpu)? * 0.2)?)?;
+        }
+        let state = plain.initial_state(&mut rng, 2, &Device::Cpu)?;
+        let cond = rng.randn(&[2, 5, 16], &Device::Cpu)?;
+        let t = Tensor::new(&[500f32, 100.0], &Device::Cpu)?;
+        let (v0, p0) = plain.forward(&state[0], Some(&state[1]), &t, &cond)?;
+        for (p, tol) in [(Precision::F32, 2e-5f32), (Precision::Bf16, 5e-2)] {
+            let fast = build_with(Compute::fast(p), || SparseStructureFlowModel::new(&cfg, vb.clone()))?;
+            let (v1, p1) = fast.forward(&state[0], Some(&state[1]), &t, &cond)?;
+            let scale = v0.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?.max(1.0);
+            let dv = (&v1 - &v0)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            let dp = (p1.unwrap() - p0.as_ref().unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(dv <= tol * scale && dp <= tol * scale, "{p}: v diff {dv}, pose diff {dp} (scale {scale})");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn config_validation() {
+        let mut v = serde_json::to_value(tiny_cfg(1, true)).unwrap();
+        v["pose_representation"] = "euler".into();
+        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+        let mut v = serde_json::to_value(tiny_cfg(1, false)).unwrap();
+        v["num_heads"] = 5.into();
+        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+    }
+}

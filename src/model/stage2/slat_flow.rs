@@ -1,0 +1,624 @@
+//! Stage 2: structured-latent flow transformer (TRELLIS `SLatFlowModel`,
+//! RecGen `SLatCondFlowModel`).
+//!
+//! Sparse voxels at full resolution go through sparse conv ResBlocks that
+//! downsample ×2 per io stage; the transformer runs on the coarse tokens
+//! (full attention within each batch item, cross-attention to the condition);
+//! out blocks upsample back and take the matching skip features.
+//!
+//! RecGen's additions are optional and enabled by config flags: a pose
+//! Linear(D→C) whose tokens are appended to the cross-attention context, and
+//! Conv2d(k14, s14) point-map / mask embedders added to the image patch tokens
+//! (see [`SLatFlowModel::build_cond`]).
+
+use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder};
+use crate::model::sparse::conv::neighbour_map;
+use crate::model::sparse::spatial::xyz_tensor;
+use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
+use crate::{Error, Result};
+use candle_core::{Module, Tensor, D};
+use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::model::nn::common::Linear;
+use candle_nn::VarBuilder;
+use serde::Deserialize;
+
+fn default_head_channels() -> usize {
+    64
+}
+fn default_mlp_ratio() -> f64 {
+    4.0
+}
+fn default_patch() -> usize {
+    2
+}
+fn default_io_blocks() -> usize {
+    2
+}
+fn default_ape() -> String {
+    "ape".into()
+}
+fn default_true() -> bool {
+    true
+}
+fn default_embed_channels() -> usize {
+    1024
+}
+fn default_pose_repr() -> String {
+    "quaternion_translation_scale".into()
+}
+
+/// Constructor args of `SLatFlowModel` / `SLatCondFlowModel` (checkpoint
+/// `args`). Unknown fields (`use_fp16`, `use_checkpoint`) are ignored.
+#[derive(Debug, Clone, Deserialize)]
+pub struct SLatFlowConfig {
+    pub resolution: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    pub model_channels: usize,
+    pub cond_channels: usize,
+    pub num_blocks: usize,
+    #[serde(default)]
+    pub num_heads: Option<usize>,
+    #[serde(default = "default_head_channels")]
+    pub num_head_channels: usize,
+    #[serde(default = "default_mlp_ratio")]
+    pub mlp_ratio: f64,
+    #[serde(default = "default_patch")]
+    pub patch_size: usize,
+    #[serde(default = "default_io_blocks")]
+    pub num_io_res_blocks: usize,
+    #[serde(default)]
+    pub io_block_channels: Option<Vec<usize>>,
+    #[serde(default = "default_ape")]
+    pub pe_mode: String,
+    #[serde(default = "default_true")]
+    pub use_skip_connection: bool,
+    #[serde(default)]
+    pub share_mod: bool,
+    #[serde(default)]
+    pub qk_rms_norm: bool,
+    #[serde(default)]
+    pub qk_rms_norm_cross: bool,
+    // RecGen `SLatCondFlowModel` extras.
+    #[serde(default)]
+    pub use_point_embedder: bool,
+    #[serde(default = "default_embed_channels")]
+    pub point_embedder_out_channels: usize,
+    #[serde(default)]
+    pub use_mask_embedder: bool,
+    #[serde(default = "default_embed_channels")]
+    pub mask_embedder_out_channels: usize,
+    #[serde(default)]
+    pub use_pose_embedder: bool,
+    #[serde(default = "default_embed_channels")]
+    pub pose_embedder_out_channels: usize,
+    #[serde(default = "default_pose_repr")]
+    pub pose_representation: String,
+}
+
+impl SLatFlowConfig {
+    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
+        serde_json::from_value(v.clone()).map_err(|e| Error::msg(format!("SLat flow args: {e}")))
+    }
+
+    pub fn heads(&self) -> usize {
+        self.num_heads.unwrap_or(self.model_channels / self.num_head_channels.max(1))
+    }
+
+    /// Input width of the pose embedder for the configured representation.
+    pub fn pose_dim(&self) -> Result<usize> {
+        match self.pose_representation.as_str() {
+            "quaternion_translation_scale" => Ok(8),
+            "6d_translation_scale" => Ok(10),
+            "9d_translation_scale" => Ok(13),
+            other => Err(Error::msg(format!("SLat flow: unknown pose_representation `{other}`"))),
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.pe_mode != "ape" {
+            return Err(Error::msg(format!("SLat flow: pe_mode `{}` is not supported (only `ape`)", self.pe_mode)));
+        }
+        if let Some(io) = &self.io_block_channels {
+            if !self.patch_size.is_power_of_two() || self.patch_size.trailing_zeros() as usize != io.len() {
+                return Err(Error::msg("SLat flow: log2(patch_size) must equal the number of io stages"));
+            }
+            if io.is_empty() || self.num_io_res_blocks == 0 {
+                return Err(Error::msg("SLat flow: io_block_channels and num_io_res_blocks must be non-empty"));
+            }
+        }
+        let heads = self.heads();
+        if heads == 0 || self.model_channels % heads != 0 {
+            return Err(Error::msg("SLat flow: model_channels must be divisible by num_heads"));
+        }
+        Ok(())
+    }
+}
+
+/// Which sparse conv implementation the ResBlocks use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConvPath {
+    /// Hand-written multi-threaded kernel (inference).
+    Fast,
+    /// Plain candle ops, differentiable.
+    Differentiable,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum UpDown {
+    None,
+    Down,
+    Up,
+}
+
+/// TRELLIS `SparseResBlock3d` (spec §3.2).
+#[derive(Debug, Clone)]
+pub struct SparseResBlock3d {
+    norm1: LayerNorm,
+    conv1: SparseConv3d,
+    conv2: SparseConv3d,
+    emb_layers: Linear,
+    skip: Option<Linear>,
+    updown: UpDown,
+}
+
+impl SparseResBlock3d {
+    fn new(channels: usize, emb: usize, out: usize, updown: UpDown, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            norm1: LayerNorm::new(channels, 1e-6, vb.pp("norm1"))?,
+            conv1: SparseConv3d::new(channels, out, 3, vb.pp("conv1"))?,
+            conv2: SparseConv3d::new(out, out, 3, vb.pp("conv2"))?,
+            emb_layers: linear(emb, 2 * out, vb.pp("emb_layers.1"))?,
+            skip: if channels != out { Some(linear(channels, out, vb.pp("skip_connection"))?) } else { None },
+            updown,
+        })
+    }
+
+    /// `caches` is the stack of downsample caches: a downsampling block
+    /// pushes, an upsampling block pops the most recent.
+    fn forward(&self, x: &SparseTensor, emb: &Tensor, caches: &mut Vec<DownsampleCache>, path: ConvPath) -> Result<SparseTensor> {
+        let e = self.emb_layers.forward(&emb.silu()?)?;
+        let ch = e.chunk(2, 1)?;
+        let (scale, shift) = (&ch[0], &ch[1]);
+        let x = match self.updown {
+            UpDown::None => x.clone(),
+            UpDown::Down => {
+                let (y, cache) = sparse_downsample(x, 2)?;
+                caches.push(cache);
+                y
+            }
+            UpDown::Up => {
+                let cache = caches.pop().ok_or_else(|| Error::msg("SLat flow: upsample without a matching downsample"))?;
+                sparse_upsample(x, &cache)?
+            }
+        };
+        let map = neighbour_map(&x, 3)?;
+        let conv = |c: &SparseConv3d, t: &SparseTensor| match path {
+            ConvPath::Fast => c.forward_with_map(t, &map),
+            ConvPath::Differentiable => c.forward_differentiable(t, &map),
+        };
+        let h = x.with_feats(self.norm1.forward(&x.feats)?.silu()?)?;
+        let h = conv(&self.conv1, &h)?;
+        let scale = x.batch_broadcast(&(scale + 1.0)?)?;
+        let shift = x.batch_broadcast(shift)?;
+        let hf = layer_norm_plain(&h.feats, 1e-6)?.mul(&scale)?.add(&shift)?.silu()?;
+        let h = conv(&self.conv2, &h.with_feats(hf)?)?;
+        let skip = match &self.skip {
+            Some(l) => l.forward(&x.feats)?,
+            None => x.feats.clone(),
+        };
+        x.with_feats((h.feats + skip)?)
+    }
+}
+
+/// Intermediate values recorded by [`SLatFlowModel::forward_with_taps`].
+#[derive(Debug, Clone, Default)]
+pub struct SLatFlowTaps {
+    pub t_emb: Option<Tensor>,
+    /// Output of each input block.
+    pub input_blocks: Vec<SparseTensor>,
+    /// Output feats of each transformer block (coarse tokens).
+    pub blocks: Vec<Tensor>,
+}
+
+#[derive(Debug, Clone)]
+pub struct SLatFlowModel {
+    pub cfg: SLatFlowConfig,
+    t_embedder: TimestepEmbedder,
+    ada_ln: Option<Linear>,
+    input_layer: Linear,
+    input_blocks: Vec<SparseResBlock3d>,
+    blocks: Vec<ModulatedTransformerCrossBlock>,
+    out_blocks: Vec<SparseResBlock3d>,
+    out_layer: Linear,
+    /// Shared Conv2d(k14, s14) patch embedders (`point_embedder.*`, `mask_embedder.*`).
+    pub point_embedder: Option<PointmapEmbedder>,
+    pub mask_embedder: Option<MaskEmbedder>,
+    pose_embedder: Option<Linear>,
+    conv_path: ConvPath,
+}
+
+impl SLatFlowModel {
+    pub fn new(cfg: &SLatFlowConfig, vb: VarBuilder) -> Result<Self> {
+        cfg.validate()?;
+        let c = cfg.model_channels;
+        let io = cfg.io_block_channels.clone().unwrap_or_default();
+        let first = io.first().copied().unwrap_or(c);
+
+        let mut input_blocks = Vec::new();
+        let mut idx = 0;
+        for (s, &chs) in io.iter().enumerate() {
+            let next = io.get(s + 1).copied().unwrap_or(c);
+            for _ in 0..cfg.num_io_res_blocks - 1 {
+                input_blocks.push(SparseResBlock3d::new(chs, c, chs, UpDown::None, vb.pp(format!("input_blocks.{idx}")))?);
+                idx += 1;
+            }
+            input_blocks.push(SparseResBlock3d::new(chs, c, next, UpDown::Down, vb.pp(format!("input_blocks.{idx}")))?);
+            idx += 1;
+        }
+
+        let bcfg = CrossBlockConfig {
+            channels: c,
+            ctx_channels: cfg.cond_channels,
+            heads: cfg.heads(),
+            mlp_ratio: cfg.mlp_ratio,
+            share_mod: cfg.share_mod,
+            qk_rms_norm: cfg.qk_rms_norm,
+            qk_rms_norm_cross: cfg.qk_rms_norm_cross,
+        };
+        let blocks = (0..cfg.num_blocks)
+            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}"))))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+
+        let mut out_blocks = Vec::new();
+        let mut idx = 0;
+        let skip_mul = if cfg.use_skip_connection { 2 } else { 1 };
+        for (s, &chs) in io.iter().enumerate().rev() {
+            let prev = io.get(s + 1).copied().unwrap_or(c);
+            out_blocks.push(SparseResBlock3d::new(prev * skip_mul, c, chs, UpDown::Up, vb.pp(format!("out_blocks.{idx}")))?);
+            idx += 1;
+            for _ in 0..cfg.num_io_res_blocks - 1 {
+                out_blocks.push(SparseResBlock3d::new(chs * skip_mul, c, chs, UpDown::None, vb.pp(format!("out_blocks.{idx}")))?);
+                idx += 1;
+            }
+        }
+
+        Ok(Self {
+            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"))?,
+            ada_ln: if cfg.share_mod { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) } else { None },
+            input_layer: linear(cfg.in_channels, first, vb.pp("input_layer"))?,
+            input_blocks,
+            blocks,
+            out_blocks,
+            out_layer: linear(first, cfg.out_channels, vb.pp("out_layer"))?,
+            point_embedder: if cfg.use_point_embedder {
+                Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
+            mask_embedder: if cfg.use_mask_embedder {
+                Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
+            pose_embedder: if cfg.use_pose_embedder {
+                Some(linear(cfg.pose_dim()?, cfg.pose_embedder_out_channels, vb.pp("pose_embedder"))?)
+            } else {
+                None
+            },
+            cfg: cfg.clone(),
+            conv_path: ConvPath::Fast,
+        })
+    }
+
+    /// Select the sparse conv implementation (default: fast kernel).
+    pub fn set_conv_path(&mut self, path: ConvPath) {
+        self.conv_path = path;
+    }
+
+    /// Velocity for noisy latents `x` (`[N, in_channels]` feats), model-scale
+    /// timesteps `t` `[B]` (1000·t) and condition tokens `cond` `[B, L, cond_channels]`.
+    pub fn forward(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor) -> Result<SparseTensor> {
+        self.forward_impl(x, t, cond, None)
+    }
+
+    /// As [`forward`](Self::forward), also recording intermediates.
+    pub fn forward_with_taps(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor) -> Result<(SparseTensor, SLatFlowTaps)> {
+        let mut taps = SLatFlowTaps::default();
+        let y = self.forward_impl(x, t, cond, Some(&mut taps))?;
+        Ok((y, taps))
+    }
+
+    fn forward_impl(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor, mut taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
+        let b = x.batch_size;
+        if t.dims() != [b] {
+            return Err(Error::msg(format!("SLat flow: t has shape {:?}, expected [{b}]", t.dims())));
+        }
+        let (cb, _, cc) = cond.dims3()?;
+        if cb != b || cc != self.cfg.cond_channels {
+            return Err(Error::msg(format!("SLat flow: cond has shape {:?}, expected [{b}, L, {}]", cond.dims(), self.cfg.cond_channels)));
+        }
+        if x.feats.dim(1)? != self.cfg.in_channels {
+            return Err(Error::msg(format!("SLat flow: input has {} channels, expected {}", x.feats.dim(1)?, self.cfg.in_channels)));
+        }
+
+        let mut h = x.with_feats(self.input_layer.forward(&x.feats)?)?;
+        let t_emb = self.t_embedder.forward(t)?;
+        if let Some(tp) = taps.as_deref_mut() {
+            tp.t_emb = Some(t_emb.clone());
+        }
+        let emb = match &self.ada_ln {
+            Some(l) => l.forward(&t_emb.silu()?)?,
+            None => t_emb.clone(),
+        };
+
+        let mut caches = Vec::new();
+        let mut skips = Vec::new();
+        for blk in &self.input_blocks {
+            h = blk.forward(&h, &t_emb, &mut caches, self.conv_path)?;
+            skips.push(h.feats.clone());
+            if let Some(tp) = taps.as_deref_mut() {
+                tp.input_blocks.push(h.clone());
+            }
+        }
+
+        let pe = abs_position_embedding(&xyz_tensor(&h)?, self.cfg.model_channels)?.to_dtype(h.feats.dtype())?;
+        let mut feats = (&h.feats + pe)?;
+        let ranges = h.batch_ranges();
+        for blk in &self.blocks {
+            // Full attention within each item = the dense block applied per item.
+            let mut parts = Vec::with_capacity(b);
+            for (i, r) in ranges.iter().enumerate() {
+                if r.is_empty() {
+                    continue;
+                }
+                let xi = feats.narrow(0, r.start, r.len())?.unsqueeze(0)?;
+                let yi = blk.forward(&xi, &emb.narrow(0, i, 1)?, &cond.narrow(0, i, 1)?)?;
+                parts.push(yi.squeeze(0)?);
+            }
+            feats = if parts.is_empty() { feats } else { Tensor::cat(&parts, 0)? };
+            if let Some(tp) = taps.as_deref_mut() {
+                tp.blocks.push(feats.clone());
+            }
+        }
+        h = h.with_feats(feats)?;
+
+        for blk in &self.out_blocks {
+            let skip = skips.pop().ok_or_else(|| Error::msg("SLat flow: more out blocks than skips"))?;
+            let inp = if self.cfg.use_skip_connection { h.with_feats(Tensor::cat(&[&h.feats, &skip], 1)?)? } else { h };
+            h = blk.forward(&inp, &t_emb, &mut caches, self.conv_path)?;
+        }
+
+        let out = self.out_layer.forward(&layer_norm_plain(&h.feats, 1e-5)?)?;
+        h.with_feats(out)
+    }
+
+    /// Build the cross-attention context (RecGen stage 2):
+    /// - `image_tokens` `[B, L, C]` (DINOv2 tokens; RecGen passes patch tokens only);
+    /// - `pointmap` `[B, 3, H, W]` and `mask` `[B, 1, H, W]`: embedded by the
+    ///   Conv2d(k14, s14) embedders to `P = (H/14)(W/14)` tokens and added to the
+    ///   last `P` image tokens (all of them when `P == L`, i.e. the patch tokens);
+    /// - `pose` `[B, D]` or `[B, K, D]`: embedded and appended as extra tokens.
+    ///
+    /// Passing an input whose embedder is not enabled is an error.
+    pub fn build_cond(&self, image_tokens: &Tensor, pointmap: Option<&Tensor>, mask: Option<&Tensor>, pose: Option<&Tensor>) -> Result<Tensor> {
+        let (_, l, _) = image_tokens.dims3()?;
+        let mut cond = image_tokens.clone();
+        let embedded: [(&str, Option<&Tensor>, Option<&crate::model::stage1::embedders::PatchEmbedder>); 2] = [
+            ("pointmap", pointmap, self.point_embedder.as_ref().map(|e| &e.0)),
+            ("mask", mask, self.mask_embedder.as_ref().map(|e| &e.0)),
+        ];
+        for (name, input, emb) in embedded {
+            let Some(input) = input else { continue };
+            let emb = emb.ok_or_else(|| Error::msg(format!("SLat flow: {name} given but its embedder is disabled")))?;
+            let f = emb.forward(input)?; // [B, P, C]
+            let p = f.dim(1)?;
+            if p > l {
+                return Err(Error::msg(format!("SLat flow: {name} gives {p} tokens but the image has only {l}")));
+            }
+            let tail = (cond.narrow(1, l - p, p)? + f)?;
+            cond = if p == l { tail } else { Tensor::cat(&[&cond.narrow(1, 0, l - p)?, &tail], 1)? };
+        }
+        if let Some(pose) = pose {
+            cond = Tensor::cat(&[&cond, &self.pose_tokens(pose)?], 1)?;
+        }
+        Ok(cond)
+    }
+
+    /// `pose_embedder(pose)` as context tokens: `[B, D]` → `[B, 1, C]`, `[B, K, D]` → `[B, K, C]`.
+    pub fn pose_tokens(&self, pose: &Tensor) -> Result<Tensor> {
+        let pe = self.pose_embedder.as_ref().ok_or_else(|| Error::msg("SLat flow: pose given but pose_embedder is disabled"))?;
+        let d = self.cfg.pose_dim()?;
+        if pose.dims().last() != Some(&d) || !(pose.rank() == 2 || pose.rank() == 3) {
+            return Err(Error::msg(format!("SLat flow: pose has shape {:?}, expected [B, {d}] or [B, K, {d}]", pose.dims())));
+        }
+        let p = pe.forward(pose)?;
+        Ok(if p.rank() == 2 { p.unsqueeze(1)? } else { p })
+    }
+
+    /// `(cond, neg_cond)` for one or more views, as RecGen's `get_cond` /
+    /// `get_cond_multiview` + `_add_pose_cond_to_slat` with this model's
+    /// embedders: views' patch tokens concatenated (no frame-token embedding
+    /// in stage 2), `neg_cond` = zeros taken before the pointmap / mask
+    /// features are added, then the pose tokens appended to `cond` and zeros
+    /// of the same shape appended to `neg_cond`.
+    pub fn condition(&self, views: &[ViewInputs], pose: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
+        let emb = CondEmbedders { point: self.point_embedder.as_ref(), mask: self.mask_embedder.as_ref(), frame: None };
+        let (mut cond, mut neg) = build_condition(views, emb)?;
+        if let Some(pose) = pose {
+            let p = self.pose_tokens(pose)?;
+            neg = Tensor::cat(&[&neg, &p.zeros_like()?], 1)?;
+            cond = Tensor::cat(&[&cond, &p], 1)?;
+        }
+        Ok((cond, neg))
+    }
+}
+
+/// Per-channel SLat normalisation (`slat_config … normalization`: mean/std).
+#[derive(Debug, Clone)]
+pub struct SLatNormalization {
+    pub mean: Vec<f32>,
+    pub std: Vec<f32>,
+}
+
+impl SLatNormalization {
+    /// From a JSON object `{"mean": [...], "std": [...]}`.
+    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
+        let get = |k: &str| -> Result<Vec<f32>> {
+            v.get(k)
+                .and_then(|a| a.as_array())
+                .ok_or_else(|| Error::msg(format!("SLat normalization: missing `{k}` array")))?
+                .iter()
+                .map(|x| x.as_f64().map(|f| f as f32).ok_or_else(|| Error::msg(format!("SLat normalization: `{k}` must hold numbers"))))
+                .collect()
+        };
+        let (mean, std) = (get("mean")?, get("std")?);
+        if mean.len() != std.len() || mean.is_empty() {
+            return Err(Error::msg("SLat normalization: mean and std must be non-empty and of equal length"));
+        }
+        Ok(Self { mean, std })
+    }
+
+    fn stats(&self, feats: &Tensor) -> Result<(Tensor, Tensor)> {
+        let c = feats.dim(D::Minus1)?;
+        if c != self.mean.len() {
+            return Err(Error::msg(format!("SLat normalization: {} channels, stats have {}", c, self.mean.len())));
+        }
+        let m = Tensor::from_slice(&self.mean, (1, c), feats.device())?.to_dtype(feats.dtype())?;
+        let s = Tensor::from_slice(&self.std, (1, c), feats.device())?.to_dtype(feats.dtype())?;
+        Ok((m, s))
+    }
+
+    /// `(x - mean) / std`.
+    pub fn normalize(&self, feats: &Tensor) -> Result<Tensor> {
+        let (m, s) = self.stats(feats)?;
+        Ok(feats.broadcast_sub(&m)?.broadcast_div(&s)?)
+    }
+
+    /// `x · std + mean` (applied to sampled latents before decoding).
+    pub fn denormalize(&self, feats: &Tensor) -> Result<Tensor> {
+        let (m, s) = self.stats(feats)?;
+        Ok(feats.broadcast_mul(&s)?.broadcast_add(&m)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{DType, Device};
+    use candle_nn::VarMap;
+
+    fn tiny_cfg() -> SLatFlowConfig {
+        SLatFlowConfig::from_json(&serde_json::json!({
+            "resolution": 8, "in_channels": 4, "out_channels": 4, "model_channels": 32, "cond_channels": 16,
+            "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": 2, "num_io_res_blocks": 2,
+            "io_block_channels": [8], "qk_rms_norm": true,
+            "use_point_embedder": true, "point_embedder_out_channels": 16,
+            "use_mask_embedder": true, "mask_embedder_out_channels": 16,
+            "use_pose_embedder": true, "pose_embedder_out_channels": 16, "pose_representation": "9d_translation_scale"
+        }))
+        .unwrap()
+    }
+
+    fn random_model(cfg: &SLatFlowConfig) -> SLatFlowModel {
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        SLatFlowModel::new(cfg, vb.clone()).unwrap();
+        // VarMap defaults many tensors to zero: randomise, then rebuild so the
+        // conv host copies see the new values.
+        for v in vm.all_vars() {
+            let r = Tensor::randn(0f32, 0.2, v.shape(), &Device::Cpu).unwrap();
+            v.set(&r).unwrap();
+        }
+        SLatFlowModel::new(cfg, vb).unwrap()
+    }
+
+    fn blob() -> SparseTensor {
+        let mut coords = Vec::new();
+        for b in 0..2 {
+            for x in 0..8 {
+                for y in 0..8 {
+                    for z in 0..8 {
+                        if (x - 4) * (x - 4) + (y - 3) * (y - 3) + (z - 4) * (z - 4) <= 6 + b {
+                            coords.push([b, x, y, z]);
+                        }
+                    }
+                }
+            }
+        }
+        let feats = Tensor::randn(0f32, 1.0, (coords.len(), 4), &Device::Cpu).unwrap();
+        SparseTensor::new(coords, feats, 2).unwrap()
+    }
+
+    #[test]
+    fn conv_paths_agree_and_shapes_hold() -> Result<()> {
+        let cfg = tiny_cfg();
+        let mut m = random_model(&cfg);
+        let x = blob();
+        let t = Tensor::new(&[100f32, 900.], &Device::Cpu)?;
+        let img = Tensor::randn(0f32, 1.0, (2, 5, 16), &Device::Cpu)?;
+        let pm = Tensor::randn(0f32, 1.0, (2, 3, 28, 28), &Device::Cpu)?;
+        let mask = Tensor::ones((2, 1, 28, 28), DType::F32, &Device::Cpu)?;
+        let pose = Tensor::randn(0f32, 1.0, (2, 13), &Device::Cpu)?;
+        let cond = m.build_cond(&img, Some(&pm), Some(&mask), Some(&pose))?;
+        assert_eq!(cond.dims(), &[2, 6, 16]);
+        // The first token (not a patch token) is untouched.
+        assert_eq!(crate::util::max_abs_diff(&cond.narrow(1, 0, 1)?, &img.narrow(1, 0, 1)?)?, 0.0);
+        let fast = m.forward(&x, &t, &cond)?;
+        m.set_conv_path(ConvPath::Differentiable);
+        let slow = m.forward(&x, &t, &cond)?;
+        assert_eq!(fast.coords, x.coords);
+        assert_eq!(fast.feats.dims(), &[x.len(), 4]);
+        let d = crate::util::max_abs_diff(&fast.feats, &slow.feats)?;
+        assert!(d < 1e-4, "fast vs differentiable: {d}");
+        Ok(())
+    }
+
+    #[test]
+    fn two_view_condition_with_pose_tokens() -> Result<()> {
+        let m = random_model(&tiny_cfg());
+        let dev = Device::Cpu;
+        let view = |seed: f64| -> Result<ViewInputs> {
+            Ok(ViewInputs {
+                patch_tokens: Tensor::randn(seed as f32, 1.0, (1, 4, 16), &dev)?,
+                pointmap: Some(Tensor::randn(0f32, 1.0, (1, 3, 28, 28), &dev)?),
+                mask: Some(Tensor::ones((1, 1, 28, 28), DType::F32, &dev)?),
+            })
+        };
+        let views = vec![view(0.0)?, view(1.0)?];
+        let pose = Tensor::randn(0f32, 1.0, (1, 2, 13), &dev)?;
+        let (cond, neg) = m.condition(&views, Some(&pose))?;
+        assert_eq!(cond.dims(), &[1, 10, 16]);
+        assert_eq!(neg.dims(), &[1, 10, 16]);
+        assert_eq!(neg.abs()?.sum_all()?.to_scalar::<f32>()?, 0.0);
+        // Each view's tokens are what the single-view builder gives; pose tokens last.
+        for (i, v) in views.iter().enumerate() {
+            let one = m.build_cond(&v.patch_tokens, v.pointmap.as_ref(), v.mask.as_ref(), None)?;
+            assert!(crate::util::max_abs_diff(&cond.narrow(1, 4 * i, 4)?, &one)? < 1e-6);
+        }
+        assert!(crate::util::max_abs_diff(&cond.narrow(1, 8, 2)?, &m.pose_tokens(&pose)?)? < 1e-6);
+        assert!(m.pose_tokens(&Tensor::zeros((1, 10), DType::F32, &dev)?).is_err());
+        Ok(())
+    }
+
+    #[test]
+    fn rejects_bad_inputs() -> Result<()> {
+        let cfg = tiny_cfg();
+        let m = random_model(&cfg);
+        let x = blob();
+        let t = Tensor::new(&[1f32], &Device::Cpu)?;
+        let cond = Tensor::zeros((2, 3, 16), DType::F32, &Device::Cpu)?;
+        assert!(m.forward(&x, &t, &cond).is_err());
+        Ok(())
+    }
+
+    #[test]
+    fn normalization_round_trips() -> Result<()> {
+        let n = SLatNormalization::from_json(&serde_json::json!({"mean": [1.0, -2.0], "std": [2.0, 0.5]}))?;
+        let x = Tensor::new(&[[3f32, -1.0]], &Device::Cpu)?;
+        let y = n.normalize(&x)?;
+        assert_eq!(y.to_vec2::<f32>()?, vec![vec![1.0, 2.0]]);
+        assert_eq!(n.denormalize(&y)?.to_vec2::<f32>()?, x.to_vec2::<f32>()?);
+        Ok(())
+    }
+}

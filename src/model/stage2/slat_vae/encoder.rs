@@ -1,0 +1,48 @@
+//! Structured-latent encoder (TRELLIS `SLatEncoder`): the sparse transformer
+//! trunk of the decoders on per-voxel input features, then a plain
+//! LayerNorm and a linear to the posterior's mean and log-variance.
+//!
+//! Upstream encodes DINOv2 features projected onto the voxels; recon's nano
+//! model is trained on synthetic objects whose geometry is known exactly, so
+//! its input features are local signed distances and surface colours
+//! (`train::slat`). Only training needs the encoder.
+
+use candle_core::{Module, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
+use crate::model::nn::common::{layer_norm_plain, linear, Linear};
+use crate::model::sparse::SparseTensor;
+use crate::{Error, Result};
+
+pub struct SLatEncoder {
+    pub trunk: SparseTransformerBase,
+    out_layer: Linear,
+    pub latent_channels: usize,
+}
+
+/// The posterior of each voxel's latent.
+pub struct SLatPosterior {
+    pub mean: Tensor,
+    pub logvar: Tensor,
+}
+
+impl SLatEncoder {
+    /// `args`: upstream's (`in_channels`, `model_channels`, `latent_channels`,
+    /// `num_blocks`, `num_heads`, `mlp_ratio`, `attn_mode`, `window_size`, `pe_mode`).
+    pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
+        let mut tcfg = TrunkConfig::from_args(args)?;
+        let latent_channels = tcfg.in_channels;
+        tcfg.in_channels = args.get("in_channels").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: in_channels missing"))? as usize;
+        let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
+        let out_layer = linear(tcfg.model_channels, 2 * latent_channels, vb.pp("out_layer"))?;
+        Ok(Self { trunk, out_layer, latent_channels })
+    }
+
+    pub fn forward(&self, x: &SparseTensor) -> Result<SLatPosterior> {
+        let h = layer_norm_plain(&self.trunk.forward(x)?, 1e-5)?;
+        let h = self.out_layer.forward(&h)?;
+        let c = self.latent_channels;
+        Ok(SLatPosterior { mean: h.narrow(1, 0, c)?, logvar: h.narrow(1, c, c)?.clamp(-30.0, 20.0)? })
+    }
+}

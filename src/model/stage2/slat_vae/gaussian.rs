@@ -1,0 +1,305 @@
+//! Structured-latent Gaussian decoder (TRELLIS `SLatGaussianDecoder`) and the
+//! 3D Gaussian representation it produces (`representations/gaussian`).
+//!
+//! Trunk → plain LayerNorm (eps 1e-5) → linear to `14·G` channels per voxel,
+//! split as `_xyz (G,3) | _features_dc (G,1,3) | _scaling (G,3) |
+//! _rotation (G,4) | _opacity (G,1)`. Positions are voxel centres plus a
+//! tanh-bounded offset (with a fixed quasi-random per-Gaussian perturbation).
+
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
+use crate::model::nn::common::{layer_norm_plain, linear};
+use crate::model::sparse::SparseTensor;
+use crate::{Error, Result};
+use candle_core::{DType, Device, Module, Tensor, D};
+use crate::model::nn::common::Linear;
+use candle_nn::VarBuilder;
+
+pub use crate::gaussians::SH_C0;
+
+#[derive(Debug, Clone)]
+pub struct GaussianConfig {
+    pub resolution: usize,
+    pub num_gaussians: usize,
+    pub voxel_size: f64,
+    pub perturb_offset: bool,
+    /// Per-field learning-rate multipliers, order: xyz, features_dc, scaling, rotation, opacity.
+    pub lr: [f64; 5],
+    /// `3d_filter_kernel_size` (minimum kernel size).
+    pub min_kernel_size: f64,
+    pub scaling_bias: f64,
+    pub opacity_bias: f64,
+    /// `softplus` (true) or `exp` (false) scaling activation.
+    pub softplus_scaling: bool,
+}
+
+impl GaussianConfig {
+    /// From the decoder args (`resolution`, `representation_config`).
+    pub fn from_args(args: &serde_json::Value) -> Result<Self> {
+        let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
+        let rc = args.get("representation_config").ok_or_else(|| Error::msg("args: representation_config missing"))?;
+        let f = |k: &str, d: f64| rc.get(k).and_then(|v| v.as_f64()).unwrap_or(d);
+        let lr = rc.get("lr");
+        let l = |k: &str| lr.and_then(|m| m.get(k)).and_then(|v| v.as_f64()).unwrap_or(1.0);
+        let softplus_scaling = match rc.get("scaling_activation").and_then(|v| v.as_str()).unwrap_or("exp") {
+            "softplus" => true,
+            "exp" => false,
+            m => return Err(Error::msg(format!("representation_config: scaling_activation `{m}` unknown"))),
+        };
+        Ok(Self {
+            resolution,
+            num_gaussians: rc.get("num_gaussians").and_then(|v| v.as_u64()).unwrap_or(32) as usize,
+            voxel_size: f("voxel_size", 1.5),
+            perturb_offset: rc.get("perturb_offset").and_then(|v| v.as_bool()).unwrap_or(false),
+            lr: [l("_xyz"), l("_features_dc"), l("_scaling"), l("_rotation"), l("_opacity")],
+            min_kernel_size: f("3d_filter_kernel_size", 0.0),
+            scaling_bias: f("scaling_bias", 0.01),
+            opacity_bias: f("opacity_bias", 0.1),
+            softplus_scaling,
+        })
+    }
+
+    /// Channels of the output layer: G·(3 + 3 + 3 + 4 + 1).
+    pub fn out_channels(&self) -> usize {
+        self.num_gaussians * 14
+    }
+}
+
+fn radical_inverse(base: u64, mut n: u64) -> f64 {
+    let inv = 1.0 / base as f64;
+    let (mut val, mut f) = (0.0, inv);
+    while n > 0 {
+        val += (n % base) as f64 * f;
+        n /= base;
+        f *= inv;
+    }
+    val
+}
+
+/// Upstream's deterministic offset perturbation `[G, 3]`: Hammersley points
+/// `(i/G, φ2(i), φ3(i))` mapped through `atanh((2h - 1)/voxel_size)`, so that
+/// `tanh(perturbation)·voxel_size/2` spreads the Gaussians over the voxel.
+pub fn offset_perturbation(num_gaussians: usize, voxel_size: f64, device: &Device) -> Result<Tensor> {
+    let mut v = Vec::with_capacity(num_gaussians * 3);
+    for i in 0..num_gaussians {
+        let h = [i as f64 / num_gaussians as f64, radical_inverse(2, i as u64), radical_inverse(3, i as u64)];
+        v.extend(h.iter().map(|&h| (((h * 2.0 - 1.0) / voxel_size).atanh()) as f32));
+    }
+    Ok(Tensor::from_vec(v, (num_gaussians, 3), device)?)
+}
+
+/// One batch item's Gaussians as stored upstream: raw (pre-activation)
+/// parameters, plus the activations of `Gaussian.get_*`.
+#[derive(Debug, Clone)]
+pub struct GaussianModel {
+    /// `[M, 3]` positions in the unit cube [0, 1]³ (aabb-normalised).
+    pub xyz: Tensor,
+    /// `[M, 1, 3]` SH degree-0 coefficients.
+    pub features_dc: Tensor,
+    /// `[M, 3]` raw scales.
+    pub scaling: Tensor,
+    /// `[M, 4]` raw quaternions (wxyz) before the identity bias.
+    pub rotation: Tensor,
+    /// `[M, 1]` raw opacity.
+    pub opacity: Tensor,
+    cfg: GaussianConfig,
+}
+
+impl GaussianModel {
+    /// World positions: aabb `[-0.5, -0.5, -0.5, 1, 1, 1]` → `xyz·1 - 0.5`.
+    pub fn get_xyz(&self) -> Result<Tensor> {
+        Ok((&self.xyz - 0.5)?)
+    }
+
+    pub fn get_scaling(&self) -> Result<Tensor> {
+        let c = &self.cfg;
+        let s = if c.softplus_scaling {
+            // inverse softplus of the bias: y + log(-expm1(-y))
+            let y = c.scaling_bias;
+            let bias = y + (-(-y).exp_m1()).ln();
+            softplus(&(&self.scaling + bias)?)?
+        } else {
+            (&self.scaling + c.scaling_bias.ln())?.exp()?
+        };
+        Ok((s.sqr()? + c.min_kernel_size * c.min_kernel_size)?.sqrt()?)
+    }
+
+    pub fn get_opacity(&self) -> Result<Tensor> {
+        let p = self.cfg.opacity_bias;
+        let bias = (p / (1.0 - p)).ln();
+        Ok(candle_nn::ops::sigmoid(&(&self.opacity + bias)?)?)
+    }
+
+    /// Unit quaternions (wxyz): normalize(raw + [1, 0, 0, 0]), norm clamped at 1e-12.
+    pub fn get_rotation(&self) -> Result<Tensor> {
+        let bias = Tensor::new(&[1f32, 0., 0., 0.], self.rotation.device())?.to_dtype(self.rotation.dtype())?;
+        let r = self.rotation.broadcast_add(&bias)?;
+        let n = r.sqr()?.sum_keepdim(D::Minus1)?.sqrt()?.clamp(1e-12, f64::INFINITY)?;
+        Ok(r.broadcast_div(&n)?)
+    }
+
+    /// Plain activated splats (positions in the decoder's object frame,
+    /// [-0.5, 0.5]³ z-up) for export and rendering.
+    pub fn to_gaussians(&self) -> Result<Gaussians> {
+        let rows3 = |t: Tensor| -> Result<Vec<[f32; 3]>> {
+            Ok(t.to_dtype(DType::F32)?.to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2]]).collect())
+        };
+        let m = self.xyz.dim(0)?;
+        Ok(Gaussians {
+            positions: rows3(self.get_xyz()?)?,
+            scales: rows3(self.get_scaling()?)?,
+            rotations: self.get_rotation()?.to_dtype(DType::F32)?.to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2], r[3]]).collect(),
+            opacities: self.get_opacity()?.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?,
+            dc: rows3(self.features_dc.reshape((m, 3))?)?,
+        })
+    }
+}
+
+/// softplus(x) = log(1 + eˣ), computed stably (torch uses x itself above 20).
+fn softplus(x: &Tensor) -> Result<Tensor> {
+    // max(x, 0) + log1p(exp(-|x|))
+    Ok((x.relu()? + ((x.abs()?.neg()?.exp()? + 1.0)?.log()?))?)
+}
+
+/// Base colour of an SH degree-0 coefficient: `C0·dc + 0.5`, clamped at 0
+/// like the rasteriser.
+pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
+    dc.map(|d| (SH_C0 * d + 0.5).max(0.0))
+}
+
+/// The activated Gaussians are the export type (one struct for decoder
+/// output, transforms and the splat PLY writer).
+pub use crate::gaussians::Gaussians;
+
+pub struct SLatGaussianDecoder {
+    pub trunk: SparseTransformerBase,
+    out_layer: Linear,
+    offset_perturbation: Tensor,
+    pub cfg: GaussianConfig,
+}
+
+impl SLatGaussianDecoder {
+    /// `args` are the upstream constructor args (trunk + `representation_config`).
+    pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
+        let tcfg = TrunkConfig::from_args(args)?;
+        let cfg = GaussianConfig::from_args(args)?;
+        let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
+        let out_layer = linear(tcfg.model_channels, cfg.out_channels(), vb.pp("out_layer"))?;
+        // The buffer ships in checkpoints; recompute it when absent.
+        let offset_perturbation = if vb.contains_tensor("offset_perturbation") {
+            vb.get((cfg.num_gaussians, 3), "offset_perturbation")?
+        } else {
+            offset_perturbation(cfg.num_gaussians, cfg.voxel_size, vb.device())?.to_dtype(vb.dtype())?
+        };
+        Ok(Self { trunk, out_layer, offset_perturbation, cfg })
+    }
+
+    /// Per-voxel output features `[N, 14·G]`; `tap` sees the trunk taps and `out_layer`.
+    pub fn forward_feats(&self, x: &SparseTensor, tap: &mut dyn FnMut(&str, &Tensor)) -> Result<Tensor> {
+        let h = self.trunk.forward_with(x, tap)?;
+        let h = layer_norm_plain(&h, 1e-5)?;
+        let h = self.out_layer.forward(&h)?;
+        tap("out_layer", &h);
+        Ok(h)
+    }
+
+    /// The output linear alone (after the trunk and its final LayerNorm).
+    pub fn out_layer_forward(&self, h: &Tensor) -> Result<Tensor> {
+        Ok(self.out_layer.forward(h)?)
+    }
+
+    /// Split network output into one Gaussian model per batch item.
+    pub fn to_representation(&self, x: &SparseTensor, feats: &Tensor) -> Result<Vec<GaussianModel>> {
+        let c = &self.cfg;
+        let g = c.num_gaussians;
+        let res = c.resolution as f64;
+        let mut reps = Vec::with_capacity(x.batch_size);
+        for range in x.batch_ranges() {
+            let n = range.len();
+            let f = feats.narrow(0, range.start, n)?;
+            let field = |start: usize, width: usize, lr: f64| -> Result<Tensor> {
+                Ok((f.narrow(1, start * g, width * g)?.reshape((n, g, width))? * lr)?)
+            };
+            let mut off = field(0, 3, c.lr[0])?;
+            if c.perturb_offset {
+                off = off.broadcast_add(&self.offset_perturbation.unsqueeze(0)?)?;
+            }
+            let off = (off.tanh()? * (0.5 * c.voxel_size / res))?;
+            let centres: Vec<f32> = x.coords[range.clone()]
+                .iter()
+                .flat_map(|cc| [1, 2, 3].map(|a| ((cc[a] as f64 + 0.5) / res) as f32))
+                .collect();
+            let centres = Tensor::from_vec(centres, (n, 1, 3), feats.device())?.to_dtype(feats.dtype())?;
+            let xyz = centres.broadcast_add(&off)?.reshape((n * g, 3))?;
+            reps.push(GaussianModel {
+                xyz,
+                features_dc: field(3, 3, c.lr[1])?.reshape((n * g, 1, 3))?,
+                scaling: field(6, 3, c.lr[2])?.reshape((n * g, 3))?,
+                rotation: field(9, 4, c.lr[3])?.reshape((n * g, 4))?,
+                opacity: field(13, 1, c.lr[4])?.reshape((n * g, 1))?,
+                cfg: c.clone(),
+            });
+        }
+        Ok(reps)
+    }
+
+    pub fn forward(&self, x: &SparseTensor) -> Result<Vec<GaussianModel>> {
+        let h = self.forward_feats(x, &mut |_, _| {})?;
+        self.to_representation(x, &h)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn decoded_splats_are_well_formed() -> Result<()> {
+        let args = serde_json::json!({
+            "resolution": 16, "model_channels": 32, "latent_channels": 8, "num_blocks": 2, "num_heads": 2,
+            "window_size": 4, "representation_config": {
+                "num_gaussians": 4, "perturb_offset": true, "voxel_size": 1.5, "lr": {"_rotation": 0.1},
+                "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
+            }
+        });
+        let vb = crate::model::stage2::slat_vae::mesh::random_var_builder(3, 0.1, |vb| SLatGaussianDecoder::new(&args, vb))?;
+        let dec = SLatGaussianDecoder::new(&args, vb)?;
+        let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
+        let x = SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
+        let reps = dec.forward(&x)?;
+        assert_eq!(reps.len(), 2);
+        let g = reps[0].to_gaussians()?;
+        g.validate()?;
+        assert_eq!(g.len(), 6 * 4);
+        for (i, p) in g.positions.iter().enumerate() {
+            // Within 0.75 voxel of its voxel centre (tanh bound · voxel_size / 2).
+            let c = coords[i / 4];
+            for a in 0..3 {
+                let centre = (c[a + 1] as f32 + 0.5) / 16.0 - 0.5;
+                assert!((p[a] - centre).abs() <= 0.75 / 16.0 + 1e-6);
+            }
+        }
+        assert!(g.rotations.iter().all(|q| (q.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5));
+        assert!(g.scales.iter().flatten().all(|&s| s >= 9e-4));
+        assert!(g.opacities.iter().all(|&o| o > 0.0 && o < 1.0));
+        assert_eq!(sh0_to_rgb([0.0, -10.0, 1.0]), [0.5, 0.0, SH_C0 + 0.5]);
+        Ok(())
+    }
+
+    #[test]
+    fn radical_inverse_values() {
+        assert_eq!(radical_inverse(2, 1), 0.5);
+        assert_eq!(radical_inverse(2, 6), 0.375); // 110b → 0.011b
+        assert!((radical_inverse(3, 5) - (2.0 / 3.0 + 1.0 / 9.0)).abs() < 1e-12); // 12₃ → 0.21₃
+    }
+
+    #[test]
+    fn softplus_matches_definition() -> Result<()> {
+        let x = Tensor::new(&[-30f32, -1.0, 0.0, 2.0, 40.0], &Device::Cpu)?;
+        let got = softplus(&x)?.to_vec1::<f32>()?;
+        for (g, &v) in got.iter().zip(&[-30f32, -1.0, 0.0, 2.0, 40.0]) {
+            let want = if v > 20.0 { v as f64 } else { (1.0 + (v as f64).exp()).ln() };
+            assert!((*g as f64 - want).abs() < 1e-6 * want.abs().max(1.0), "{v}: {g} vs {want}");
+        }
+        Ok(())
+    }
+}

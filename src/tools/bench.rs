@@ -1,0 +1,716 @@
+//! Benchmarks shared by `recon bench` and `benches/`: kernel throughput
+//! against the measured peak of each instruction set, per-module forward time
+//! and peak memory at full size on random weights, an end-to-end object, and
+//! the bf16/f16-versus-f32 error of each stage. Results are plain rows
+//! (serialisable to JSON); the CLI prints them as tables.
+//!
+//! Timings on a shared machine are noisy: every row records the 1-minute
+//! load average at the time it was taken.
+
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use serde::Serialize;
+
+use crate::model::config::RecGenConfig;
+use crate::model::nn::fast::{self, Compute, Precision};
+use crate::rng::SeededRng;
+use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use crate::model::sparse::SparseTensor;
+use crate::weights::registry::{self, ModuleConfig};
+use crate::util::memory::{peak_rss_mib, reset_peak_rss};
+use crate::Result;
+use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
+use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
+use recon_kernels::isa::Isa;
+use recon_kernels::peak::{measure_peak_gflops, PeakKind};
+use recon_kernels::vecmath::Activation;
+
+/// 1-minute load average (Linux), recorded with every measurement.
+pub fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg").ok()?.split_whitespace().next()?.parse().ok()
+}
+
+/// The machine a report was taken on.
+#[derive(Debug, Clone, Serialize)]
+pub struct MachineInfo {
+    pub cpu: String,
+    pub threads: usize,
+    pub best_isa: &'static str,
+    pub supported_isas: Vec<&'static str>,
+    pub load_average: Option<f64>,
+}
+
+impl MachineInfo {
+    pub fn detect() -> Self {
+        let cpu = std::fs::read_to_string("/proc/cpuinfo")
+            .ok()
+            .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|v| v.trim().to_string()))
+            .unwrap_or_else(|| "unknown".into());
+        Self {
+            cpu,
+            threads: rayon::current_num_threads(),
+            best_isa: Isa::best().name(),
+            supported_isas: Isa::all_supported().into_iter().map(|i| i.name()).collect(),
+            load_average: load_average(),
+        }
+    }
+}
+
+/// Measured multiply-accumulate peak of one instruction set.
+#[derive(Debug, Clone, Serialize)]
+pub struct PeakRow {
+    pub isa: &'static str,
+    pub kind: &'static str,
+    pub gflops: f64,
+    pub load_average: Option<f64>,
+}
+
+/// Every supported instruction set's f32 FMA peak, and the bf16 dot-product peak where available.
+pub fn measure_peaks() -> Vec<PeakRow> {
+    let mut rows = Vec::new();
+    for isa in Isa::all_supported() {
+        for (kind, name) in [(PeakKind::F32, "f32 fma"), (PeakKind::Bf16, "bf16 dot")] {
+            let iters = if isa == Isa::Portable { 200_000 } else { 4_000_000 };
+            if let Some(g) = measure_peak_gflops(isa, kind, iters, 3) {
+                rows.push(PeakRow { isa: isa.name(), kind: name, gflops: g, load_average: load_average() });
+            }
+        }
+    }
+    rows
+}
+
+/// The peak a GEMM in `format` on `isa` is measured against: the bf16 dot
+/// product for bf16 weights on AVX512-BF16, else the f32 FMA of that ISA.
+pub fn reference_peak(peaks: &[PeakRow], isa: Isa, format: WeightFormat) -> Option<f64> {
+    let kind = if format == WeightFormat::Bf16 && isa == Isa::Avx512Bf16 { "bf16 dot" } else { "f32 fma" };
+    peaks.iter().find(|p| p.isa == isa.name() && p.kind == kind).map(|p| p.gflops)
+}
+
+/// The reference peak re-measured right before and after `f` (mean of the
+/// two), so efficiency is judged against what the shared machine gave at
+/// that moment rather than at the start of the run.
+fn with_adjacent_peak<R>(isa: Isa, format: WeightFormat, f: impl FnOnce() -> R) -> (R, Option<f64>) {
+    let kind = if format == WeightFormat::Bf16 && isa == Isa::Avx512Bf16 { PeakKind::Bf16 } else { PeakKind::F32 };
+    let iters = if isa == Isa::Portable { 100_000 } else { 2_000_000 };
+    let before = measure_peak_gflops(isa, kind, iters, 2);
+    let r = f();
+    let after = measure_peak_gflops(isa, kind, iters, 2);
+    (r, before.zip(after).map(|(a, b)| 0.5 * (a + b)))
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct GemmRow {
+    pub what: String,
+    pub m: usize,
+    pub k: usize,
+    pub n: usize,
+    pub isa: &'static str,
+    pub format: &'static str,
+    pub seconds: f64,
+    pub gflops: f64,
+    /// Fraction of the peak of the instruction set measured around this row.
+    pub efficiency: Option<f64>,
+    /// That peak (GFLOP/s).
+    pub peak_gflops: Option<f64>,
+    pub load_average: Option<f64>,
+}
+
+fn best_of<F: FnMut()>(reps: usize, mut f: F) -> f64 {
+    f();
+    (0..reps.max(1))
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn lcg_vec(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed;
+    (0..n)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        })
+        .collect()
+}
+
+/// The model's linear shapes at the SS-flow guided step (M = 2 × 4098 tokens),
+/// plus the issue's 4096³ reference, for each format on the best ISA (and the
+/// portable path on one shape), and stock candle's f32 matmul at 4096³.
+pub fn bench_gemm(peaks: &[PeakRow], reps: usize, quick: bool) -> Result<Vec<GemmRow>> {
+    let isa = Isa::best();
+    let m = 2 * 4098;
+    let mut shapes: Vec<(&str, usize, usize, usize)> = vec![
+        ("qkv 1024→3072", m, 1024, 3072),
+        ("to_out/q 1024→1024", m, 1024, 1024),
+        ("mlp.0 1024→4096", m, 1024, 4096),
+        ("mlp.2 4096→1024", m, 4096, 1024),
+        ("4096³", 4096, 4096, 4096),
+    ];
+    if quick {
+        shapes.retain(|s| s.0.starts_with("qkv") || s.0.starts_with("mlp.2"));
+    }
+    let mut rows = Vec::new();
+    for &(what, m, k, n) in &shapes {
+        let a = lcg_vec(m * k, 1);
+        let w = lcg_vec(n * k, 2);
+        let mut c = vec![0f32; m * n];
+        for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+            let b = PackedMatrix::from_linear_weight(&w, n, k, format).map_err(crate::Error::msg)?;
+            let mut isas = vec![isa];
+            if what.starts_with("qkv") && isa != Isa::Portable && !quick {
+                isas.push(Isa::Portable);
+            }
+            for run_isa in isas {
+                let (s, peak) = with_adjacent_peak(run_isa, format, || {
+                    best_of(if run_isa == Isa::Portable { 0 } else { reps }, || {
+                        gemm(run_isa, &a, m, k, &b, None, Activation::None, &mut c, n).expect("gemm");
+                    })
+                });
+                let gflops = 2.0 * (m * n * k) as f64 / s / 1e9;
+                let peak = peak.or_else(|| reference_peak(peaks, run_isa, format));
+                let efficiency = peak.map(|p| gflops / p);
+                rows.push(GemmRow { what: what.into(), m, k, n, isa: run_isa.name(), format: format.name(), seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+            }
+        }
+    }
+    if !quick {
+        // Stock candle (gemm crate) for the issue's comparison row.
+        let (m, k, n) = (4096, 4096, 4096);
+        let a = Tensor::from_vec(lcg_vec(m * k, 1), (m, k), &Device::Cpu)?;
+        let b = Tensor::from_vec(lcg_vec(k * n, 2), (k, n), &Device::Cpu)?;
+        let (s, peak) = with_adjacent_peak(isa, WeightFormat::F32, || {
+            best_of(reps, || {
+                a.matmul(&b).expect("candle matmul");
+            })
+        });
+        let gflops = 2.0 * (m * n * k) as f64 / s / 1e9;
+        let peak = peak.or_else(|| reference_peak(peaks, isa, WeightFormat::F32));
+        let efficiency = peak.map(|p| gflops / p);
+        rows.push(GemmRow { what: "4096³ stock candle".into(), m, k, n, isa: "candle", format: "f32", seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+    }
+    Ok(rows)
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct AttentionRow {
+    pub what: String,
+    pub batch: usize,
+    pub heads: usize,
+    pub lq: usize,
+    pub lk: usize,
+    pub precision: &'static str,
+    pub isa: &'static str,
+    pub seconds: f64,
+    pub gflops: f64,
+    pub efficiency: Option<f64>,
+    pub peak_gflops: Option<f64>,
+    pub load_average: Option<f64>,
+}
+
+/// Fused attention at the SS-flow shapes: self-attention over 4098 tokens and
+/// cross-attention to 1374 condition tokens, batch 2, 16 heads of 64.
+pub fn bench_attention(peaks: &[PeakRow], reps: usize) -> Result<Vec<AttentionRow>> {
+    let isa = Isa::best();
+    let (b, h, d) = (2usize, 16usize, 64usize);
+    let c = h * d;
+    let mut rows = Vec::new();
+    for &(what, lq, lk) in &[("self 4098", 4098usize, 4098usize), ("cross 4098×1374", 4098, 1374)] {
+        let q = lcg_vec(b * lq * c, 3);
+        let kv = lcg_vec(b * lk * 2 * c, 4);
+        let segs: Vec<Segment> = (0..b).map(|i| Segment { q: i * lq..(i + 1) * lq, kv: i * lk..(i + 1) * lk }).collect();
+        let mut out = vec![0f32; b * lq * c];
+        for precision in [AttnPrecision::F32, AttnPrecision::Bf16] {
+            let spec = AttnSpec {
+                heads: h,
+                head_dim: d,
+                scale: 0.125,
+                q: HeadLayout::new(c, 0),
+                k: HeadLayout::new(2 * c, 0),
+                v: HeadLayout::new(2 * c, c),
+                out: HeadLayout::new(c, 0),
+                precision,
+            };
+            let format = if precision == AttnPrecision::Bf16 { WeightFormat::Bf16 } else { WeightFormat::F32 };
+            let (s, peak) = with_adjacent_peak(isa, format, || best_of(reps, || flash_attention(isa, &spec, &q, &kv, &kv, &segs, &mut out).expect("attention")));
+            let gflops = 4.0 * (b * h * lq * lk * d) as f64 / s / 1e9;
+            let peak = peak.or_else(|| reference_peak(peaks, isa, format));
+            let efficiency = peak.map(|p| gflops / p);
+            let pname = if precision == AttnPrecision::Bf16 { "bf16" } else { "f32" };
+            rows.push(AttentionRow { what: what.into(), batch: b, heads: h, lq, lk, precision: pname, isa: isa.name(), seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+        }
+    }
+    Ok(rows)
+}
+
+/// One module at full size: build (random weights, packed) and one forward.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModuleRow {
+    pub module: String,
+    pub input: String,
+    pub precision: String,
+    pub build_seconds: f64,
+    pub forward_seconds: f64,
+    /// VmHWM over build + forward, the high-water mark reset before the build.
+    pub peak_rss_mib: Option<f64>,
+    pub packed_weights_mib: Option<f64>,
+    pub load_average: Option<f64>,
+}
+
+/// A voxel shell of radius `r` (thickness 2) centred in a `res`³ grid, batch index `b`.
+pub fn shell_coords(res: i32, r: f64, b: i32) -> Vec<[i32; 4]> {
+    let c = res as f64 / 2.0;
+    let mut out = Vec::new();
+    for x in 0..res {
+        for y in 0..res {
+            for z in 0..res {
+                let d = ((x as f64 + 0.5 - c).powi(2) + (y as f64 + 0.5 - c).powi(2) + (z as f64 + 0.5 - c).powi(2)).sqrt();
+                if (d - r).abs() < 1.0 {
+                    out.push([b, x, y, z]);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// A synthetic view at DINO size `s`: smooth image, disc mask, sphere-cap pointmap.
+pub fn synthetic_view(s: usize, shift: f32) -> ViewInput {
+    disc_view(s, shift, |u, v, ch| ((3.0 * u + 2.0 * v + ch as f32).sin() * 0.4 + 0.5 - 0.45) / 0.225)
+}
+
+/// A view of side `s` whose normalised pixel (u, v, channel) is `colour(u, v, ch)`,
+/// with a disc mask (radius 0.35·s, centre moved by `shift`·s along x) and, inside
+/// it, the pointmap of a sphere of radius 0.5 centred 1.5 in front of the camera
+/// (zeros outside).
+pub fn disc_view(s: usize, shift: f32, colour: impl Fn(f32, f32, usize) -> f32) -> ViewInput {
+    let c = s as f32 * (0.5 + shift);
+    let r = s as f32 * 0.35;
+    let mut px = vec![0f32; 3 * s * s];
+    let mut pm = vec![0f32; 3 * s * s];
+    let mut mk = vec![0f32; s * s];
+    for y in 0..s {
+        for x in 0..s {
+            let (u, v) = (x as f32 / s as f32, y as f32 / s as f32);
+            for ch in 0..3 {
+                px[(ch * s + y) * s + x] = colour(u, v, ch);
+            }
+            let (dx, dy) = ((x as f32 + 0.5 - c) / r, (y as f32 + 0.5 - s as f32 * 0.5) / r);
+            let d2 = dx * dx + dy * dy;
+            if d2 <= 1.0 {
+                mk[y * s + x] = 1.0;
+                let p = [dx * 0.5, dy * 0.5, 1.5 - 0.5 * (1.0 - d2).sqrt()];
+                for ch in 0..3 {
+                    pm[(ch * s + y) * s + x] = p[ch];
+                }
+            }
+        }
+    }
+    let t = |v: Vec<f32>, c: usize| Tensor::from_vec(v, (1, c, s, s), &Device::Cpu).expect("view tensor");
+    ViewInput { pixels: t(px, 3), pointmap: t(pm, 3), mask: t(mk, 1) }
+}
+
+/// Which full-size modules [`bench_modules`] runs.
+pub const MODULES: [&str; 6] = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"];
+
+/// Deterministic inputs of one module's forward, as upstream's shapes: DINOv2
+/// one 518² view; SS flow batch 2 (a guided step) with 4096 + 2 pose tokens
+/// and 1374 condition tokens; SS decoder one latent; SLat flow batch 2 on a
+/// 64³ voxel shell (~14k voxels) with 1371 condition tokens; decoders on the
+/// same shell.
+pub struct ModuleInputs {
+    pub pixels: Tensor,
+    pub ss_state: Vec<Tensor>,
+    pub ss_t: Tensor,
+    pub ss_cond: Tensor,
+    pub ss_latent: Tensor,
+    pub slat_x: SparseTensor,
+    pub slat_t: Tensor,
+    pub slat_cond: Tensor,
+    pub slat: SparseTensor,
+}
+
+impl ModuleInputs {
+    pub fn new(arch: &RecGenConfig) -> Result<Self> {
+        let dev = Device::Cpu;
+        let mut rng = SeededRng::new(11);
+        let dino = registry::dinov2_config(&arch.image_cond_model.args, "bench")?;
+        let ss = arch.ss_flow_config()?;
+        let s = dino.img_size;
+        let pixels = rng.randn(&[1, 3, s, s], &dev)?;
+        let r = ss.resolution;
+        let pc = ss.pose_channels().unwrap_or(10);
+        let mut ss_state = vec![rng.randn(&[2, ss.in_channels, r, r, r], &dev)?];
+        if ss.pose_channels().is_some() {
+            ss_state.push(rng.randn(&[2, ss.num_pose_tokens, pc], &dev)?);
+        }
+        let ss_cond = (rng.randn(&[2, 1374, ss.cond_channels], &dev)? * 0.5)?;
+        let ss_latent = rng.randn(&[1, ss.in_channels, r, r, r], &dev)?;
+        let slat_cfg = crate::model::stage2::slat_flow::SLatFlowConfig::from_json(&arch.slat_flow.args)?;
+        let res = slat_cfg.resolution as i32;
+        let one = shell_coords(res, res as f64 * 0.375, 0);
+        let n = one.len();
+        let two: Vec<[i32; 4]> = one.iter().copied().chain(one.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+        let f = rng.randn(&[n, slat_cfg.in_channels], &dev)?;
+        let slat_x = SparseTensor::new(two, Tensor::cat(&[&f, &f], 0)?, 2)?;
+        let slat_cond = (rng.randn(&[2, 1371, slat_cfg.cond_channels], &dev)? * 0.5)?;
+        let slat = SparseTensor::new(one, rng.randn(&[n, slat_cfg.out_channels], &dev)?, 1)?;
+        Ok(Self {
+            pixels,
+            ss_state,
+            ss_t: Tensor::new(&[750f32, 750.0], &dev)?,
+            ss_cond,
+            ss_latent,
+            slat_x,
+            slat_t: Tensor::new(&[750f32, 750.0], &dev)?,
+            slat_cond,
+            slat,
+        })
+    }
+
+    fn describe(&self, key: &str) -> String {
+        match key {
+            "image_cond_model" => format!("1 view {:?}", self.pixels.dims()),
+            "ss_flow" => format!("batch 2 (guided step), {} + pose tokens, cond {:?}", self.ss_state[0].elem_count() / self.ss_state[0].dims()[0] / self.ss_state[0].dims()[1], self.ss_cond.dims()),
+            "ss_decoder" => format!("latent {:?}", self.ss_latent.dims()),
+            "slat_flow" => format!("batch 2 (guided step), {} voxels each, cond {:?}", self.slat.len(), self.slat_cond.dims()),
+            _ => format!("{} voxels", self.slat.len()),
+        }
+    }
+}
+
+/// Build module `key` of `arch` with random weights for `compute`.
+fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &ModuleInputs) -> Result<(f64, f64, Vec<Tensor>)> {
+    let spec = arch.modules().into_iter().find(|(k, _)| *k == key).map(|(_, s)| ModuleConfig { name: s.name.clone(), args: s.args.clone() });
+    let cfg = spec.ok_or_else(|| crate::Error::msg(format!("bench: no module `{key}`")))?;
+    let label = format!("{}: {key}", arch.name);
+    let seed = registry::module_seed(0, key);
+    let t = Instant::now();
+    let vb = registry::random_var_builder(&cfg, seed, &label)?;
+    macro_rules! build {
+        ($f:path) => {
+            fast::build_with(compute, || $f(&cfg, vb, &label))?
+        };
+    }
+    let (build_s, fwd_s, out) = match key {
+        "image_cond_model" => {
+            let m = build!(registry::build_dinov2);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let o = m.recgen_cond(&inputs.pixels)?;
+            (b, t.elapsed().as_secs_f64(), vec![o])
+        }
+        "ss_flow" => {
+            let m = build!(registry::build_ss_flow);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let (v, vp) = m.forward(&inputs.ss_state[0], inputs.ss_state.get(1), &inputs.ss_t, &inputs.ss_cond)?;
+            (b, t.elapsed().as_secs_f64(), std::iter::once(v).chain(vp).collect())
+        }
+        "ss_decoder" => {
+            let m = build!(registry::build_ss_decoder);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let o = m.forward(&inputs.ss_latent)?;
+            (b, t.elapsed().as_secs_f64(), vec![o])
+        }
+        "slat_flow" => {
+            let m = build!(registry::build_slat_flow);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let o = m.forward(&inputs.slat_x, &inputs.slat_t, &inputs.slat_cond)?;
+            (b, t.elapsed().as_secs_f64(), vec![o.feats])
+        }
+        "slat_dec_mesh" => {
+            let m = build!(registry::build_mesh_decoder);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let o = m.forward_feats_fused(&inputs.slat)?;
+            (b, t.elapsed().as_secs_f64(), vec![o.feats])
+        }
+        "slat_dec_gs" => {
+            let m = build!(registry::build_gaussian_decoder);
+            let b = t.elapsed().as_secs_f64();
+            let t = Instant::now();
+            let o = m.forward_feats(&inputs.slat, &mut |_, _| {})?;
+            (b, t.elapsed().as_secs_f64(), vec![o])
+        }
+        other => return Err(crate::Error::msg(format!("bench: unknown module `{other}`"))),
+    };
+    Ok((build_s, fwd_s, out))
+}
+
+/// Build and run each of `modules` once per compute; peak RSS per row.
+pub fn bench_modules(arch_path: &Path, modules: &[&str], computes: &[Compute], mut on_row: impl FnMut(&ModuleRow)) -> Result<Vec<ModuleRow>> {
+    let arch = RecGenConfig::load(arch_path)?;
+    let inputs = ModuleInputs::new(&arch)?;
+    let mut rows = Vec::new();
+    for key in modules {
+        for &compute in computes {
+            reset_peak_rss();
+            let base = peak_rss_mib();
+            let (build_seconds, forward_seconds, out) = build_and_run(&arch, key, compute, &inputs)?;
+            for o in &out {
+                let finite = o.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?.iter().all(|v| v.is_finite());
+                if !finite {
+                    return Err(crate::Error::msg(format!("bench: {key} produced non-finite values ({})", compute.describe())));
+                }
+            }
+            let row = ModuleRow {
+                module: key.to_string(),
+                input: inputs.describe(key),
+                precision: compute.describe(),
+                build_seconds,
+                forward_seconds,
+                peak_rss_mib: peak_rss_mib(),
+                packed_weights_mib: None,
+                load_average: load_average(),
+            };
+            let _ = base;
+            on_row(&row);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// Error of one stage's output in a precision against the f32 fast path
+/// (same weights, same input): `max_rel = max|a−b| / max|b|`,
+/// `mean_rel = mean|a−b| / mean|b|`.
+#[derive(Debug, Clone, Serialize)]
+pub struct PrecisionRow {
+    pub module: String,
+    pub precision: String,
+    pub reference: String,
+    pub max_rel: f64,
+    pub mean_rel: f64,
+    /// SS decoder only: fraction of voxels whose occupancy (logit > 0) differs.
+    pub occupancy_flip_fraction: Option<f64>,
+    pub occupied_reference: Option<usize>,
+}
+
+fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
+    let a = a.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    let b = b.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    if a.len() != b.len() {
+        return Err(crate::Error::msg("bench: outputs of different sizes"));
+    }
+    let (mut maxd, mut maxb, mut sumd, mut sumb) = (0f64, 0f64, 0f64, 0f64);
+    for (&x, &y) in a.iter().zip(&b) {
+        let d = (x as f64 - y as f64).abs();
+        maxd = maxd.max(d);
+        maxb = maxb.max((y as f64).abs());
+        sumd += d;
+        sumb += (y as f64).abs();
+    }
+    Ok((maxd / maxb.max(1e-30), sumd / sumb.max(1e-30)))
+}
+
+/// Each module's output in `precisions` against fast f32, full size.
+pub fn compare_precisions(arch_path: &Path, modules: &[&str], precisions: &[Precision], mut on_row: impl FnMut(&PrecisionRow)) -> Result<Vec<PrecisionRow>> {
+    let arch = RecGenConfig::load(arch_path)?;
+    let inputs = ModuleInputs::new(&arch)?;
+    let mut rows = Vec::new();
+    for key in modules {
+        let (_, _, reference) = build_and_run(&arch, key, Compute::fast(Precision::F32), &inputs)?;
+        for &p in precisions {
+            if p == Precision::F32 {
+                continue;
+            }
+            let (_, _, out) = build_and_run(&arch, key, Compute::fast(p), &inputs)?;
+            let (max_rel, mean_rel) = rel_errors(&out[0], &reference[0])?;
+            let (flips, occ) = if *key == "ss_decoder" {
+                let a = out[0].flatten_all()?.to_vec1::<f32>()?;
+                let b = reference[0].flatten_all()?.to_vec1::<f32>()?;
+                let flips = a.iter().zip(&b).filter(|(x, y)| (**x > 0.0) != (**y > 0.0)).count();
+                (Some(flips as f64 / a.len() as f64), Some(b.iter().filter(|v| **v > 0.0).count()))
+            } else {
+                (None, None)
+            };
+            let row = PrecisionRow {
+                module: key.to_string(),
+                precision: p.name().into(),
+                reference: "fast f32".into(),
+                max_rel,
+                mean_rel,
+                occupancy_flip_fraction: flips,
+                occupied_reference: occ,
+            };
+            on_row(&row);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
+/// Effect of a precision on stage 1's result: occupancy and pose from the
+/// whole stage-1 chain (encoder, `steps` sampler steps, decoder) against f32.
+#[derive(Debug, Clone, Serialize)]
+pub struct OccupancyRow {
+    pub precision: String,
+    pub steps: usize,
+    pub grid_voxels: usize,
+    pub occupied_f32: usize,
+    pub occupied: usize,
+    /// Voxels occupied in exactly one of the two runs.
+    pub flipped: usize,
+    /// `flipped / grid_voxels`.
+    pub flip_fraction_of_grid: f64,
+    /// `flipped / occupied_f32`.
+    pub flip_fraction_of_occupied: f64,
+    /// Max |Δ| of the sampled (normalised) pose tokens.
+    pub pose_token_max_abs_diff: f64,
+}
+
+/// Stage 1 end to end in f32 and in `precision` (same seed and inputs).
+pub fn compare_occupancy(arch_path: &Path, precision: Precision, steps: usize, seed: u64) -> Result<OccupancyRow> {
+    let run = |p: Precision| -> Result<crate::engine::pipeline::ObjectReconstruction> {
+        let opts = crate::engine::pipeline::LoadOptions { compute: Compute::fast(p), per_stage: true };
+        let pl = Pipeline::random_with(arch_path, seed, Stages::SparseStructure, &opts)?;
+        let inputs = ObjectInputs { views: vec![synthetic_view(pl.image_size(), 0.0)] };
+        pl.run(&inputs, &RunOptions { seed, ss_steps: Some(steps), stage1_only: true, ..Default::default() })
+    };
+    let a = run(Precision::F32)?;
+    let b = run(precision)?;
+    let sa: std::collections::HashSet<[i32; 3]> = a.coords.iter().copied().collect();
+    let sb: std::collections::HashSet<[i32; 3]> = b.coords.iter().copied().collect();
+    let flipped = sa.symmetric_difference(&sb).count();
+    let grid = a.ss_resolution.pow(3);
+    let pose = a.pose.tokens_10d.iter().flatten().zip(b.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs() as f64).fold(0.0, f64::max);
+    Ok(OccupancyRow {
+        precision: precision.name().into(),
+        steps,
+        grid_voxels: grid,
+        occupied_f32: sa.len(),
+        occupied: sb.len(),
+        flipped,
+        flip_fraction_of_grid: flipped as f64 / grid as f64,
+        flip_fraction_of_occupied: flipped as f64 / sa.len().max(1) as f64,
+        pose_token_max_abs_diff: pose,
+    })
+}
+
+/// One object end to end.
+#[derive(Debug, Clone, Serialize)]
+pub struct EndToEndRow {
+    pub precision: String,
+    pub per_stage: bool,
+    pub ss_steps: usize,
+    pub slat_steps: usize,
+    pub occupied_voxels: usize,
+    pub faces: Option<usize>,
+    pub gaussians: Option<usize>,
+    pub timings: crate::engine::pipeline::StageTimings,
+    pub memory: Option<crate::engine::pipeline::StageMemory>,
+    pub load_average: Option<f64>,
+}
+
+/// An object end to end on random weights (synthetic single view), every
+/// module built for its stage and freed after it.
+pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: usize, seed: u64) -> Result<EndToEndRow> {
+    let opts = crate::engine::pipeline::LoadOptions { compute, per_stage: true };
+    let p = Pipeline::random_with(arch_path, seed, Stages::All, &opts)?;
+    let inputs = ObjectInputs { views: vec![synthetic_view(p.image_size(), 0.0)] };
+    let run = RunOptions { seed, ss_steps: Some(steps), slat_steps: Some(steps), measure_memory: true, ..Default::default() };
+    let out = p.run(&inputs, &run)?;
+    Ok(EndToEndRow {
+        precision: compute.describe(),
+        per_stage: true,
+        ss_steps: out.metadata.ss_sampler.steps,
+        slat_steps: out.metadata.slat_sampler.as_ref().map(|s| s.steps).unwrap_or(0),
+        occupied_voxels: out.coords.len(),
+        faces: out.mesh.as_ref().map(|m| m.faces.len()),
+        gaussians: out.gaussians.as_ref().map(|g| g.len()),
+        timings: out.timings,
+        memory: out.memory,
+        load_average: load_average(),
+    })
+}
+
+/// The upstream PyTorch figures of issue 8 (Intel Xeon, 2 cores, AVX-512 +
+/// AMX), for ratios: GEMM GFLOP/s, and seconds / peak GB per module.
+pub mod upstream {
+    pub const GEMM_4096_F32_GFLOPS: f64 = 320.0;
+    pub const GEMM_4096_BF16_GFLOPS: f64 = 1774.0;
+    pub const CANDLE_4096_F32_GFLOPS: f64 = 201.0;
+    pub const CANDLE_4096_BF16_GFLOPS: f64 = 162.0;
+    pub const SS_FLOW_F32_S: f64 = 47.1;
+    pub const SS_FLOW_F32_GB: f64 = 3.1;
+    pub const SS_FLOW_BF16_S: f64 = 17.0;
+    pub const SS_FLOW_BF16_GB: f64 = 3.2;
+    pub const SS_DECODER_F32_S: f64 = 3.8;
+    pub const SS_DECODER_F32_GB: f64 = 1.0;
+}
+
+/// Everything one `recon bench` invocation measured.
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct BenchReport {
+    pub machine: Option<MachineInfo>,
+    pub peaks: Vec<PeakRow>,
+    pub gemm: Vec<GemmRow>,
+    pub attention: Vec<AttentionRow>,
+    pub modules: Vec<ModuleRow>,
+    pub precision: Vec<PrecisionRow>,
+    pub occupancy: Vec<OccupancyRow>,
+    pub end_to_end: Vec<EndToEndRow>,
+    pub notes: Vec<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// After freeing a large buffer, the reset mark no longer includes it.
+    #[test]
+    fn reset_peak_rss_forgets_freed_memory() {
+        let Some(_) = peak_rss_mib() else { return };
+        let v: Vec<Vec<u8>> = (0..64).map(|i| vec![i as u8 | 1; 4 << 20]).collect(); // 256 MiB in 4 MiB blocks
+        let with = peak_rss_mib().unwrap();
+        drop(v);
+        reset_peak_rss();
+        let after = peak_rss_mib().unwrap();
+        assert!(after < with - 128.0, "peak {with:.0} MiB before, {after:.0} MiB after the reset");
+    }
+
+    #[test]
+    fn shell_and_view_shapes() {
+        let s = shell_coords(16, 6.0, 1);
+        assert!(!s.is_empty() && s.iter().all(|c| c[0] == 1 && c[1..].iter().all(|&v| (0..16).contains(&v))));
+        let v = synthetic_view(28, 0.0);
+        assert_eq!(v.pixels.dims(), &[1, 3, 28, 28]);
+        assert!(v.mask.sum_all().unwrap().to_scalar::<f32>().unwrap() > 0.0);
+    }
+
+    #[test]
+    fn relative_errors_and_reference_peak() {
+        let a = Tensor::new(&[1.0f32, 2.0, -3.0], &Device::Cpu).unwrap();
+        let b = Tensor::new(&[1.0f32, 2.5, -3.0], &Device::Cpu).unwrap();
+        let (mx, mean) = rel_errors(&a, &b).unwrap();
+        assert!((mx - 0.5 / 3.0).abs() < 1e-9 && (mean - 0.5 / 6.5).abs() < 1e-9);
+        let peaks = vec![
+            PeakRow { isa: "avx512bf16", kind: "f32 fma", gflops: 100.0, load_average: None },
+            PeakRow { isa: "avx512bf16", kind: "bf16 dot", gflops: 200.0, load_average: None },
+        ];
+        assert_eq!(reference_peak(&peaks, Isa::Avx512Bf16, WeightFormat::Bf16), Some(200.0));
+        assert_eq!(reference_peak(&peaks, Isa::Avx512Bf16, WeightFormat::F16), Some(100.0));
+        assert_eq!(reference_peak(&peaks, Isa::Avx512, WeightFormat::F32), None);
+    }
+
+    /// The module bench runs every module of the tiny architecture on both paths.
+    #[test]
+    fn module_bench_runs_tiny_modules() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
+        let rows = bench_modules(&path, &["image_cond_model", "ss_flow", "slat_dec_gs"], &[Compute::fast(Precision::Bf16)], |_| {}).unwrap();
+        assert_eq!(rows.len(), 3);
+        assert!(rows.iter().all(|r| r.forward_seconds > 0.0));
+        let cmp = compare_precisions(&path, &["ss_flow"], &[Precision::Bf16], |_| {}).unwrap();
+        assert_eq!(cmp.len(), 1);
+        assert!(cmp[0].max_rel > 0.0 && cmp[0].max_rel < 0.5, "bf16 vs f32 {}", cmp[0].max_rel);
+        let occ = compare_occupancy(&path, Precision::Bf16, 2, 0).unwrap();
+        assert!(occ.occupied_f32 > 0 && (0.0..=1.0).contains(&occ.flip_fraction_of_grid));
+    }
+}

@@ -1,0 +1,36 @@
+//! Small shared helpers: JSON files with errors that name them ([`json`]),
+//! peak memory ([`memory`]), and the statistics several layers use.
+
+pub mod json;
+pub mod memory;
+
+pub use json::{from_value, read_json};
+
+use crate::{Error, Result};
+use candle_core::{DType, Tensor};
+
+/// Mean of the values after dropping the largest `trim` fraction
+/// (`floor(n·trim)` values). NaN for an empty input.
+pub fn trimmed_mean(d: &[f64], trim: f64) -> f64 {
+    let n = d.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let drop = ((n as f64 * trim.clamp(0.0, 1.0)).floor() as usize).min(n - 1);
+    let keep = n - drop;
+    let mut v = d.to_vec();
+    if drop > 0 {
+        v.select_nth_unstable_by(keep - 1, |a, b| a.total_cmp(b));
+    }
+    v[..keep].iter().sum::<f64>() / keep as f64
+}
+
+/// Max absolute difference; shapes must agree (error names both shapes).
+pub fn max_abs_diff(got: &Tensor, want: &Tensor) -> Result<f64> {
+    if got.dims() != want.dims() {
+        return Err(Error::msg(format!("shape mismatch: got {:?}, expected {:?}", got.dims(), want.dims())));
+    }
+    let d = (got.to_dtype(DType::F64)? - want.to_dtype(DType::F64)?)?.abs()?;
+    let m = d.flatten_all()?.max(0)?.to_scalar::<f64>()?;
+    Ok(m)
+}
