@@ -6,7 +6,7 @@ use recon::eval::baseline::{observe_dataset, ObservedOptions};
 use recon::dataset::bop::load_dataset;
 use recon::math::Similarity;
 use recon::eval::report::{evaluate, read_predictions, EvalOptions};
-use recon::eval::visibility::{surface_patches, visible_fraction};
+use recon::dataset::visibility::{surface_patches, visible_fraction};
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions};
 use std::path::{Path, PathBuf};

@@ -32,7 +32,7 @@ pub struct GtInstance {
     /// Metres.
     pub t: P3,
     /// Fraction of the object's projected silhouette that is visible, if the dataset says
-    /// (or, with `visib_estimated`, as estimated by [`crate::eval::visibility`]).
+    /// (or, with `visib_estimated`, as estimated by [`crate::dataset::visibility`]).
     pub visib_fract: Option<f64>,
     /// `visib_fract` is our estimate, not the dataset's annotation (YCB-Video).
     pub visib_estimated: bool,
@@ -309,7 +309,7 @@ pub fn read_xyz(path: &Path) -> Result<Vec<P3>> {
 /// `<root>/models_points_xyz/<class name>/points.xyz` (metres, point clouds; diameters are
 /// computed exactly from them). There is no visibility annotation: `visib_fract` is
 /// estimated from the model, the GT pose and the `-label.png` map
-/// ([`crate::eval::visibility`], `visib_estimated = true`), and left `None` without a label map.
+/// ([`crate::dataset::visibility`], `visib_estimated = true`), and left `None` without a label map.
 pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     let mut metas: Vec<(String, u32, PathBuf)> = Vec::new();
     let mut seqs: Vec<PathBuf> = std::fs::read_dir(root).map_err(|e| Error::io(root, e))?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
@@ -377,9 +377,9 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
 }
 
 /// Fills `visib_fract` of every GT instance that has a label map (module docs of
-/// [`crate::eval::visibility`]).
+/// [`crate::dataset::visibility`]).
 fn estimate_visibility(ds: &mut Dataset) -> Result<()> {
-    use crate::eval::visibility::{surface_patches, visible_fraction};
+    use crate::dataset::visibility::{surface_patches, visible_fraction};
     use crate::dataset::masks::InstanceMap;
     let patches: BTreeMap<u32, _> = ds.models.iter().map(|(id, m)| (*id, surface_patches(&m.mesh.used_vertices(), 10))).collect();
     let mut frames = std::mem::take(&mut ds.frames);

@@ -8,6 +8,7 @@ pub mod frame;
 pub mod masks;
 pub mod ply;
 pub mod bop;
+pub mod visibility;
 
 /// The shared real-data folder (`realdata/` beside the repository, as on the
 /// development machines), for tests and examples that use the real frames:

@@ -101,6 +101,7 @@ use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDeco
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::model::sparse::SparseTensor;
 use crate::weights::load::Checkpoint;
+use crate::weights::WeightFiles;
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
@@ -212,19 +213,6 @@ impl Stage {
     }
 }
 
-/// Where each module's checkpoint is, for layouts other than
-/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
-/// weights manifest).
-#[derive(Debug, Clone, Default)]
-pub struct WeightFiles {
-    /// Reported as the weights' origin.
-    pub dir: PathBuf,
-    /// Module key ([`RecGenConfig::modules`]) → checkpoint file.
-    pub modules: HashMap<String, PathBuf>,
-    /// Pose statistics to use instead of the files the architecture names.
-    pub ss_stats: Option<PathBuf>,
-    pub slat_stats: Option<PathBuf>,
-}
 
 /// The stage-1 pose prediction.
 #[derive(Debug, Clone, PartialEq)]
@@ -818,5 +806,43 @@ impl VelocityModel for SlatVelocity<'_> {
         let t = Tensor::full(t_model, 2, x.device())?;
         let v = self.model.forward(&xs, &t, &Tensor::cat(&[cond, neg], 0)?)?.feats;
         Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fake Hugging Face cache for a custom manifest: tiny random weights at
+    /// the manifest's paths resolve to a loadable pipeline; an empty cache is
+    /// a clear error naming the missing files and the fetch command.
+    #[test]
+    fn manifest_files_resolve_from_a_cache() {
+        use crate::model::config::RecGenConfig;
+        let root = std::env::temp_dir().join(format!("recon-manifest-resolve-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let cfg_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
+        let cfg = RecGenConfig::load(&cfg_path).unwrap();
+        let files: Vec<serde_json::Value> = cfg
+            .modules()
+            .iter()
+            .map(|(k, spec)| serde_json::json!({"path": format!("sub/{k}.safetensors"), "kind": "safetensors", "module": spec.name}))
+            .collect();
+        let manifest = serde_json::json!({"name": "tiny-test", "source": "huggingface", "repo": "recon-test/tiny", "revision": "abc", "files": files});
+        let mpath = root.join("tiny-test.json");
+        std::fs::create_dir_all(&root).unwrap();
+        std::fs::write(&mpath, manifest.to_string()).unwrap();
+        let cache = root.join("hub");
+        std::fs::create_dir_all(&cache).unwrap();
+        let e = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap_err().to_string();
+        assert!(e.contains("recon weights fetch --manifest tiny-test") && e.contains("ss_flow.safetensors"), "{e}");
+        let snap = cache.join("models--recon-test--tiny/snapshots/abc/sub");
+        crate::weights::init::write_random_architecture(&cfg_path, &snap, 3).unwrap();
+        let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
+        assert_eq!(wf.modules.len(), 6);
+        assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
+        let p = Pipeline::load_files(&cfg_path, &wf, Stages::All).unwrap();
+        assert!(p.weights().is_random());
+        let _ = std::fs::remove_dir_all(&root);
     }
 }

@@ -35,7 +35,7 @@
 
 use crate::dataset::bop::{Dataset, Frame, MaskSource};
 use crate::spatial::{KdTree, P3};
-use crate::mesh::primitives::box_mesh;
+use crate::mesh::primitives::cuboid;
 use crate::mesh::trimesh::TriMesh;
 use crate::eval::report::{Prediction, PredictionsFile};
 use crate::geometry::pointmap::masked_points;
@@ -372,7 +372,7 @@ pub fn observe_points(raw: &[P3], o: &ObservedOptions) -> std::result::Result<Ob
     let obb = fit_obb_with_hull(&pts, hull.as_ref()).ok_or("no points")?;
     let (mesh, shape) = match (o.shape, hull) {
         (Shape::Hull, Some(h)) => (TriMesh { vertices: h.vertices.iter().map(|p| obb.to_local(p)).collect(), faces: h.faces }, Shape::Hull),
-        _ => (box_mesh(obb.half), Shape::Box),
+        _ => (cuboid(obb.half), Shape::Box),
     };
     Ok(Observed { obb, mesh, shape, n_raw: raw.len(), n_clean: pts.len() })
 }
@@ -533,7 +533,7 @@ mod tests {
     use crate::rng::SeededRng;
 
     fn rotated_box_points(h: P3, rot: [[f64; 3]; 3], t: P3, n: usize, seed: u64) -> Vec<P3> {
-        box_mesh(h).transformed(&Similarity::rigid(rot, t)).sample_surface(n, seed)
+        cuboid(h).transformed(&Similarity::rigid(rot, t)).sample_surface(n, seed)
     }
 
     fn col(b: &Obb, j: usize) -> [f64; 3] {

@@ -14,6 +14,5 @@ pub mod metrics;
 pub mod report;
 pub mod baseline;
 pub mod recgen;
-pub mod visibility;
 
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

@@ -611,7 +611,7 @@ mod tests {
         std::fs::create_dir_all(&scene).unwrap();
         std::fs::create_dir_all(dir.join("models")).unwrap();
         std::fs::write(dir.join("models/obj_000001.ply"), ascii_ply(&crate::eval::metrics::tests::cylinder(40.0, 100.0, 256))).unwrap();
-        std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::mesh::primitives::box_mesh([20.0, 10.0, 5.0]))).unwrap();
+        std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::mesh::primitives::cuboid([20.0, 10.0, 5.0]))).unwrap();
         std::fs::write(scene.join("scene_camera.json"), r#"{"1": {"cam_K": [600, 0, 320, 0, 600, 240, 0, 0, 1], "depth_scale": 1.0}}"#).unwrap();
         let poses = [
             (axis_angle([0.2, 1.0, 0.1], 0.5), [0.0, 0.0, 700.0], 1),

@@ -2,7 +2,7 @@
 //! u32 indices, one primitive, one node), or a scene of named meshes and
 //! coloured point clouds.
 
-use crate::export::{write_file, Axes};
+use super::axes::{write_file, Axes};
 use crate::mesh::Mesh;
 use crate::{Error, Result};
 use serde_json::json;

@@ -1,6 +1,6 @@
 //! Wavefront OBJ writer (vertex colours as the common `v x y z r g b` extension).
 
-use crate::export::{write_file, Axes};
+use super::axes::{write_file, Axes};
 use crate::mesh::Mesh;
 use crate::Result;
 use std::fmt::Write as _;

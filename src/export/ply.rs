@@ -1,6 +1,7 @@
 //! Binary little-endian PLY mesh writer (optional normals and RGB colours).
 
-use crate::export::{write_file, Axes};
+use super::axes::{write_file, Axes};
+use crate::mesh::post::to_u8;
 use crate::mesh::Mesh;
 use crate::Result;
 use std::path::Path;
@@ -57,11 +58,6 @@ pub fn mesh_ply_bytes(mesh: &Mesh, opts: &PlyOptions) -> Result<Vec<u8>> {
 
 pub fn save_mesh_ply(mesh: &Mesh, path: &Path, opts: &PlyOptions) -> Result<()> {
     write_file(path, &mesh_ply_bytes(mesh, opts)?)
-}
-
-/// [0, 1] → 0..=255 with rounding and clamping.
-pub fn to_u8(x: f32) -> u8 {
-    (x.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
 /// Split a PLY image into its header lines and binary body.

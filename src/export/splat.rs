@@ -4,7 +4,7 @@
 
 use crate::gaussians::Gaussians;
 use crate::math::{normalize_quat, Similarity32};
-use crate::export::{write_file, Axes};
+use super::axes::{write_file, Axes};
 use crate::Result;
 use std::path::Path;
 

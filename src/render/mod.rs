@@ -606,7 +606,7 @@ fn mat_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
 mod tests {
     use super::*;
     use crate::math::axis_angle;
-    use crate::synth::objects::{box_mesh, sphere_mesh};
+    use crate::mesh::primitives::{box_mesh, sphere_mesh};
 
     fn cam(w: usize, h: usize, f: f64) -> Camera {
         Camera::new(w, h, Intrinsics { fx: f, fy: f, cx: (w as f64 - 1.0) / 2.0, cy: (h as f64 - 1.0) / 2.0 })

@@ -11,7 +11,7 @@
 use crate::math::matrix_to_quat;
 use crate::sim::urdf::xml_escape;
 use crate::sim::collision::{Part, Primitive};
-use crate::sim::{hull_file, SimScene};
+use crate::sim::scene::{hull_file, SimScene};
 use std::fmt::Write as _;
 
 fn quat(r: &[[f32; 3]; 3]) -> String {

@@ -5,7 +5,7 @@
 //! plane and holds every object by a floating joint at its settled pose.
 
 use crate::sim::collision::{Part, Primitive};
-use crate::sim::{hull_file, SimObject, SimScene};
+use crate::sim::scene::{hull_file, SimObject, SimScene};
 use std::fmt::Write as _;
 
 /// Roll, pitch, yaw (URDF: `R = Rz(yaw)·Ry(pitch)·Rx(roll)`) of a rotation.

@@ -11,7 +11,7 @@
 use crate::mesh::Mesh;
 use crate::math::matrix_to_quat;
 use crate::sim::collision::{Part, Primitive};
-use crate::sim::SimScene;
+use crate::sim::scene::SimScene;
 use std::fmt::Write as _;
 
 fn mesh_body(s: &mut String, m: &Mesh, indent: &str) {

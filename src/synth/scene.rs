@@ -9,7 +9,9 @@
 //! (low-resolution render) whose occlusion is closest to the goal. The other distractors
 //! stand away from the camera–target line. Further views circle the target at random.
 
-use crate::synth::objects::{box_mesh, Kind, Object};
+use crate::synth::objects::{Kind, Object};
+
+use crate::mesh::primitives::{box_mesh};
 use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
 use crate::mesh::Mesh;
 use crate::math::{axis_angle, Similarity};

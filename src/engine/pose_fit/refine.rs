@@ -172,7 +172,7 @@ mod tests {
     use crate::dataset::frame::Intrinsics;
     use crate::engine::pose_fit::free_space::{free_space, DepthView};
     use crate::spatial::P3;
-    use crate::mesh::primitives::box_mesh;
+    use crate::mesh::primitives::cuboid;
     use crate::math::axis_angle;
     use crate::engine::pose_fit::score::view_score;
 
@@ -212,7 +212,7 @@ mod tests {
         let h = [0.5, 0.3, 0.2];
         let (depth, pts) = render(h, truth, 1.2);
         let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: DepthView::new(&depth, W, H, K) };
-        (Surface::new(box_mesh(h), 20_000, 4).unwrap(), view)
+        (Surface::new(cuboid(h), 20_000, 4).unwrap(), view)
     }
 
     fn truth() -> Similarity {
@@ -284,7 +284,7 @@ mod tests {
         let (depth, pts) = render(h, &t, 1.2);
         let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: DepthView::new(&depth, W, H, K) };
         let wrong = [0.5 * 1.3, 0.3, 0.2 * 0.8];
-        let surface = Surface::new(box_mesh(wrong), 20_000, 4).unwrap();
+        let surface = Surface::new(cuboid(wrong), 20_000, 4).unwrap();
         let uniform = AlignOptions { free_space_weight: 1.0, ..AlignOptions::default() };
         let stretch = AlignOptions { refine_stretch: true, refine_evals: 320, ..uniform };
         let ru = refine_pose(&surface, &t, std::slice::from_ref(&view), &uniform);

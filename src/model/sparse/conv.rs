@@ -9,7 +9,7 @@
 //! - [`SparseConv3d::forward_differentiable`]: candle ops (index_select gather,
 //!   matmul, index_add scatter), so gradients flow to feats and weights.
 
-use crate::model::sparse::SparseTensor;
+use super::tensor::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;

@@ -8,7 +8,7 @@
 //! We reproduce that (the released weights were trained with it). The cache
 //! lets the paired upsample (nearest) restore exactly the fine rows/order.
 
-use crate::model::sparse::SparseTensor;
+use super::tensor::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 

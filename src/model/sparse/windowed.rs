@@ -7,7 +7,7 @@
 //! Attention is permutation-invariant inside a window, so the order of rows
 //! within a window does not matter; we use a stable sort for determinism.
 
-use crate::model::sparse::SparseTensor;
+use super::tensor::SparseTensor;
 use crate::model::nn::common::{attention, MultiHeadAttention};
 use crate::{Error, Result};
 use candle_core::Tensor;

@@ -2,7 +2,7 @@
 //! (`hub.` prefix in the fixture), plus the TRELLIS conditioning and the
 //! image normalisation constants.
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::dataset::image::normalize_01;
 use crate::model::stage1::dinov2::{trellis_cond, Dinov2, Dinov2Config};
 use crate::Result;

@@ -6,7 +6,7 @@
 //! comparison (vertices matched to their nearest upstream vertex, faces as
 //! rotation-normalised triangles) is reported in the note to help debugging.
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::model::stage2::slat_vae::flexicubes::{flexicubes, SparseFeatures2Mesh, SparseGrid};
 use crate::mesh::Mesh;
 use crate::Result;

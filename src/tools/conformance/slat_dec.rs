@@ -1,6 +1,6 @@
 //! Conformance runners for the structured-latent decoders.
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, SLatGaussianDecoder};
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::model::sparse::SparseTensor;

@@ -1,6 +1,6 @@
 //! Conformance runner for TRELLIS `SLatFlowModel` (stage-2 flow transformer).
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use crate::model::sparse::SparseTensor;
 use crate::Result;

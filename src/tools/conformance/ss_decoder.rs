@@ -1,6 +1,6 @@
 //! Runner for the `ss_decoder` fixture (`SparseStructureDecoder`).
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder, SparseStructureDecoderConfig};
 use crate::Result;
 

@@ -1,7 +1,7 @@
 //! Runners for the sparse-structure flow fixtures (`ss_flow_*`) and the
 //! guidance-interval sampler fixtures (`ss_sampler_*`).
 
-use crate::tools::conformance::{Check, Fixture};
+use super::fixture::{Check, Fixture};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::{Error, Result};

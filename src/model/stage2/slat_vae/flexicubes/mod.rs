@@ -657,3 +657,166 @@ mod tests {
         assert!(!mesh.faces.is_empty());
     }
 }
+
+#[cfg(test)]
+mod post_tests {
+    //! Mesh post-processing on FlexiCubes output.
+    use super::tables::CUBE_CORNERS;
+    use super::{SparseFeatures2Mesh, SDF, WEIGHTS};
+    use crate::mesh::post::*;
+    use crate::mesh::Mesh;
+
+    fn sphere_mesh(res: usize, radius: f32, center: [f32; 3]) -> Mesh {
+        let r = res as f32;
+        let mut coords = Vec::new();
+        let mut feats = Vec::new();
+        for x in 0..res as i32 {
+            for y in 0..res as i32 {
+                for z in 0..res as i32 {
+                    let s = CUBE_CORNERS.map(|o| {
+                        let p = [x + o[0] as i32, y + o[1] as i32, z + o[2] as i32].map(|v| v as f32 / r - 0.5);
+                        let d = [0, 1, 2].map(|k| p[k] - center[k]);
+                        ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() - radius) * r
+                    });
+                    if s.iter().cloned().fold(f32::INFINITY, f32::min) < 1.5 {
+                        coords.push([x, y, z]);
+                        let mut row = vec![0f32; WEIGHTS.end];
+                        row[SDF].copy_from_slice(&s);
+                        feats.extend(row);
+                    }
+                }
+            }
+        }
+        SparseFeatures2Mesh::new(res, false).extract(&coords, &feats).unwrap()
+    }
+
+    fn merge(a: &Mesh, b: &Mesh) -> Mesh {
+        let off = a.vertices.len() as u32;
+        let mut m = a.clone();
+        m.vertices.extend_from_slice(&b.vertices);
+        m.faces.extend(b.faces.iter().map(|f| f.map(|i| i + off)));
+        m
+    }
+
+    #[test]
+    fn floaters_are_removed() {
+        let big = sphere_mesh(32, 0.3, [0.0; 3]);
+        let small = sphere_mesh(32, 0.06, [0.3, 0.3, 0.3]);
+        let both = merge(&big, &small);
+        assert_eq!(both.topology().components, 2);
+        let kept = remove_small_components(&both, 10, 0.1);
+        let t = kept.topology();
+        assert_eq!(t.components, 1);
+        assert_eq!(t.faces, big.faces.len());
+        assert_eq!(kept.vertices.len(), t.vertices);
+        assert!(kept.vertices.iter().all(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() < 0.34));
+        let largest = keep_largest_component(&both);
+        assert_eq!(largest.faces.len(), big.faces.len());
+        // Face-count criterion alone.
+        let by_count = remove_small_components(&both, small.faces.len() + 1, 0.0);
+        assert_eq!(by_count.faces.len(), big.faces.len());
+    }
+
+    /// A flat square of side `s` at `x` (two triangles), appended to `m`.
+    fn square(m: &mut Mesh, x: f32, s: f32) {
+        let b = m.vertices.len() as u32;
+        m.vertices.extend([[x, 0.0, 0.0], [x + s, 0.0, 0.0], [x + s, s, 0.0], [x, s, 0.0]]);
+        m.faces.extend([[b, b + 1, b + 2], [b, b + 2, b + 3]]);
+    }
+
+    #[test]
+    fn floaters_are_dropped_and_the_largest_component_kept() {
+        let mut m = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        square(&mut m, 0.0, 1.0);
+        square(&mut m, 5.0, 0.1); // 1 % of the area
+        square(&mut m, 9.0, 0.5); // 20 %
+        let d = drop_floaters(m.clone(), 0.02);
+        assert_eq!(d.faces.len(), 4);
+        assert!(d.vertices.iter().all(|v| v[0] < 5.0 || v[0] >= 9.0));
+        assert_eq!(drop_floaters(m, 0.0).faces.len(), 6);
+        // Every component under the threshold: the largest survives.
+        let mut many = Mesh { vertices: Vec::new(), faces: Vec::new(), vertex_attrs: None };
+        for i in 0..60 {
+            square(&mut many, 2.0 * i as f32, if i == 7 { 1.1 } else { 1.0 });
+        }
+        let d = drop_floaters(many, 0.02);
+        assert_eq!(d.faces.len(), 2);
+        assert!((d.vertices[0][0] - 14.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn decimated_sphere_stays_a_closed_manifold() {
+        let mut sphere = sphere_mesh(48, 0.3, [0.0; 3]);
+        sphere = remove_unreferenced_vertices(&sphere);
+        sphere.vertex_attrs = Some(sphere.vertices.iter().map(|v| [v[0] + 0.5, 0.2, 0.3, 0.5, 0.5, 0.5]).collect());
+        let n0 = sphere.faces.len();
+        let target = n0 / 10;
+        let dec = decimate(&sphere, target);
+        dec.validate().unwrap();
+        let t = dec.topology();
+        assert!(t.is_closed_oriented_manifold(), "{t:?}");
+        assert_eq!(t.euler(), 2);
+        assert_eq!(t.components, 1);
+        assert!(dec.faces.len() <= target + target / 10, "{} faces for target {target} (from {n0})", dec.faces.len());
+        for v in &dec.vertices {
+            let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            assert!((r - 0.3).abs() < 0.02, "radius {r}");
+        }
+        for (f, n) in dec.faces.iter().zip(dec.face_normals()) {
+            let c = [0, 1, 2].map(|k| f.iter().map(|&i| dec.vertices[i as usize][k]).sum::<f32>() / 3.0);
+            assert!(n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0.0);
+        }
+        // Colours were interpolated along collapsed edges: still a function of x.
+        let attrs = dec.vertex_attrs.as_ref().unwrap();
+        for (v, a) in dec.vertices.iter().zip(attrs) {
+            assert!((a[0] - (v[0] + 0.5)).abs() < 0.05, "{a:?} at {v:?}");
+        }
+    }
+
+    #[test]
+    fn flat_grid_decimates_and_keeps_its_boundary() {
+        let n = 20u32;
+        let mut mesh = Mesh::default();
+        for y in 0..=n {
+            for x in 0..=n {
+                mesh.vertices.push([x as f32 / n as f32, y as f32 / n as f32, 0.0]);
+            }
+        }
+        let id = |x: u32, y: u32| y * (n + 1) + x;
+        for y in 0..n {
+            for x in 0..n {
+                mesh.faces.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
+                mesh.faces.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
+            }
+        }
+        let before = mesh.topology();
+        let dec = decimate(&mesh, 100);
+        let t = dec.topology();
+        assert!(dec.faces.len() < mesh.faces.len() / 2, "{}", dec.faces.len());
+        assert_eq!(t.nonmanifold_edges, 0);
+        assert_eq!(t.misoriented_edges, 0);
+        assert_eq!(t.boundary_edges, before.boundary_edges);
+        assert_eq!(t.euler(), 1);
+        assert!(dec.vertices.iter().all(|v| v[2] == 0.0));
+        assert!((dec.area() - 1.0).abs() < 1e-4);
+        assert!(dec.face_normals().iter().all(|n| n[2] > 0.99));
+    }
+
+    #[test]
+    fn colours_from_points_and_bytes() {
+        let mut m = sphere_mesh(16, 0.3, [0.0; 3]);
+        assert!(vertex_colors_u8(&m).is_none());
+        // Red points on +x, blue on -x.
+        let pts = vec![[0.4, 0.0, 0.0], [-0.4, 0.0, 0.0]];
+        let rgb = vec![[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]];
+        transfer_colors(&mut m, &pts, &rgb, 1);
+        let c = vertex_colors_u8(&m).unwrap();
+        for (v, c) in m.vertices.iter().zip(&c) {
+            if v[0] > 0.01 {
+                assert_eq!(*c, [255, 0, 0]);
+            } else if v[0] < -0.01 {
+                assert_eq!(*c, [0, 0, 255]);
+            }
+        }
+    }
+}

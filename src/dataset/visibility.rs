@@ -86,12 +86,7 @@ pub fn visible_fraction(s: &SurfacePatches, pose: &Similarity, k: &[[f64; 3]; 3]
 mod tests {
     use super::*;
     use crate::math::axis_angle;
-    use crate::mesh::trimesh::TriMesh;
-
-    /// Unit-ish box mesh `[-h, h]`.
-    fn box_mesh(h: P3) -> TriMesh {
-        crate::mesh::primitives::box_mesh(h)
-    }
+    use crate::mesh::primitives::cuboid;
 
     #[test]
     fn matches_the_rasterised_ratio_for_a_half_hidden_box() {
@@ -101,11 +96,11 @@ mod tests {
         let (w, h) = (320usize, 240usize);
         let k = [[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]];
         let pose = Similarity::rigid(axis_angle([0.4, 1.0, 0.2], 0.7), [0.01, -0.01, 0.6]);
-        let pts = box_mesh([0.06, 0.04, 0.03]).sample_surface(40_000, 1);
+        let pts = cuboid([0.06, 0.04, 0.03]).sample_surface(40_000, 1);
         let s = surface_patches(&pts, 10);
         // Silhouette: pixels hit by any posed sample (dense enough to be hole-free here).
         let mut sil = vec![false; w * h];
-        for p in box_mesh([0.06, 0.04, 0.03]).sample_surface(400_000, 2) {
+        for p in cuboid([0.06, 0.04, 0.03]).sample_surface(400_000, 2) {
             let q = pose.apply(&p);
             let (u, v) = ((k[0][0] * q[0] / q[2] + k[0][2]).round() as usize, (k[1][1] * q[1] / q[2] + k[1][2]).round() as usize);
             sil[v * w + u] = true;

@@ -1,0 +1,97 @@
+//! The scene's output folder: meshes, collision hulls, URDF, MJCF, USD and GLB,
+//! written through a staging folder with the index last.
+
+use crate::mesh::Mesh;
+use crate::{Error, Result};
+use serde::Serialize;
+use std::path::Path;
+use crate::sim::scene::*;
+
+/// Index file written last into every `recon scene` output folder; its
+/// presence marks a complete output.
+pub const MARKER: &str = "recon-scene.json";
+
+/// Paths of what [`write_outputs`] wrote, relative to the output folder.
+#[derive(Debug, Clone, Serialize)]
+pub struct Written {
+    pub scene_json: &'static str,
+    pub urdf_scene: &'static str,
+    pub urdf_objects: Vec<String>,
+    pub mjcf: &'static str,
+    pub usd: &'static str,
+    pub glb: &'static str,
+    pub timings: &'static str,
+}
+
+/// Write the settled scene (scene.json, meshes, URDF, MJCF, USD, GLB and the
+/// report) to a staging folder, then move it to `out`. An existing `out` is
+/// replaced only when it is an earlier `recon scene` output.
+pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
+    let t0 = std::time::Instant::now();
+    let staging = crate::engine::output::begin_output_marked(out, MARKER)?;
+    let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
+    let write = |p: &Path, bytes: &[u8]| std::fs::write(p, bytes).map_err(|e| Error::io(p, e));
+    mkdir(&staging.join("urdf"))?;
+    for o in &scene.objects {
+        let dir = staging.join("meshes").join(&o.id);
+        mkdir(&dir)?;
+        crate::export::obj::save_obj(&o.visual, &dir.join("visual.obj"), crate::export::Axes::ZUp, false)?;
+        crate::export::ply::save_mesh_ply(&o.visual, &dir.join("visual.ply"), &crate::export::ply::PlyOptions::default())?;
+        for (k, part) in o.collision.parts.iter().enumerate() {
+            if let crate::sim::collision::Part::Hull(m) = part {
+                crate::export::obj::save_obj(m, &dir.join(hull_file(k)), crate::export::Axes::ZUp, false)?;
+            }
+        }
+    }
+    let mut urdf_objects = Vec::new();
+    for o in &scene.objects {
+        let name = format!("urdf/{}.urdf", o.id);
+        write(&staging.join(&name), crate::sim::urdf::object_urdf(o, "../meshes").as_bytes())?;
+        urdf_objects.push(name);
+    }
+    write(&staging.join("urdf/scene.urdf"), crate::sim::urdf::scene_urdf(scene, "../meshes").as_bytes())?;
+    write(&staging.join("scene.xml"), crate::sim::mjcf::scene_mjcf(scene, "meshes").as_bytes())?;
+    write(&staging.join("scene.usda"), crate::sim::usd::scene_usda(scene).as_bytes())?;
+    let mut world = Mesh::default();
+    for o in &scene.objects {
+        let m = o.end.apply_mesh(&o.visual);
+        let base = world.vertices.len() as u32;
+        world.vertices.extend_from_slice(&m.vertices);
+        world.faces.extend(m.faces.iter().map(|f| f.map(|i| i + base)));
+    }
+    // glTF is y-up; the world is z-up.
+    crate::export::glb::save_glb(&world, &staging.join("scene.glb"), &crate::export::GlbOptions { axes: crate::export::Axes::YUp, vertex_colors: false })?;
+    let settled = scene.settled_scene_file();
+    write(&staging.join("scene.json"), settled.to_json()?.as_bytes())?;
+    let input_path = staging.join("scene.input.json");
+    write(&input_path, scene.input.to_json()?.as_bytes())?;
+    let written = Written {
+        scene_json: "scene.json",
+        urdf_scene: "urdf/scene.urdf",
+        urdf_objects,
+        mjcf: "scene.xml",
+        usd: "scene.usda",
+        glb: "scene.glb",
+        timings: "timings.json",
+    };
+    scene.timings.export_s = t0.elapsed().as_secs_f64();
+    let timings = serde_json::to_string_pretty(&scene.timings).map_err(|e| Error::msg(e.to_string()))?;
+    write(&staging.join("timings.json"), timings.as_bytes())?;
+    let report = serde_json::json!({
+        "version": 1,
+        "world": "metres; gravity along -z; support plane z = 0",
+        "support_plane": { "material": scene.plane, "fit": scene.input.support_plane.fit },
+        "settle": {
+            "options": scene.options.settle,
+            "simulated_s": scene.settle.simulated_s,
+            "depenetration_s": scene.settle.depenetration_s,
+            "steps": scene.settle.steps,
+            "at_rest": scene.settle.at_rest,
+        },
+        "collision_method": scene.options.collision,
+        "objects": scene.summaries(),
+        "files": written,
+    });
+    crate::engine::output::finish_output_marked(&staging, out, MARKER, &report)?;
+    Ok(written)
+}
