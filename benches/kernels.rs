@@ -15,11 +15,17 @@ fn main() -> recon::Result<()> {
     }
     for r in recon::tools::bench::bench_gemm(&peaks, reps, false)? {
         let eff = r.efficiency.map(|e| format!("{:.0}%", e * 100.0)).unwrap_or_default();
-        println!("gemm {:<22} {:<11} {:<5} {:8.3} s {:8.1} GFLOP/s {eff:>5} load {:?}", r.what, r.isa, r.format, r.seconds, r.gflops, r.load_average);
+        println!(
+            "gemm {:<22} {:<11} {:<5} {:8.3} s {:8.1} GFLOP/s {eff:>5} load {:?}",
+            r.what, r.isa, r.format, r.seconds, r.gflops, r.load_average
+        );
     }
     for r in recon::tools::bench::bench_attention(&peaks, reps)? {
         let eff = r.efficiency.map(|e| format!("{:.0}%", e * 100.0)).unwrap_or_default();
-        println!("attention {:<16} {:<5} {:8.3} s {:8.1} GFLOP/s {eff:>5} load {:?}", r.what, r.precision, r.seconds, r.gflops, r.load_average);
+        println!(
+            "attention {:<16} {:<5} {:8.3} s {:8.1} GFLOP/s {eff:>5} load {:?}",
+            r.what, r.precision, r.seconds, r.gflops, r.load_average
+        );
     }
     Ok(())
 }

@@ -6,9 +6,9 @@
 //! image, a disc mask and a sphere-cap pointmap at the DINO input size.
 //! Prints the per-stage seconds, sizes and peak RSS.
 
-use recon::tools::bench::synthetic_view as view;
-use recon::model::nn::fast::Precision;
 use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages};
+use recon::model::nn::fast::Precision;
+use recon::tools::bench::synthetic_view as view;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -23,9 +23,7 @@ fn main() -> recon::Result<()> {
     let mut views = 1;
     let mut load = LoadOptions::default();
     while let Some(a) = args.next() {
-        let mut num = |name: &str| -> usize {
-            args.next().and_then(|v| v.parse().ok()).unwrap_or_else(|| panic!("{name} needs a number"))
-        };
+        let mut num = |name: &str| -> usize { args.next().and_then(|v| v.parse().ok()).unwrap_or_else(|| panic!("{name} needs a number")) };
         match a.as_str() {
             "--stage1" => opts.stage1_only = true,
             "--ss-steps" => opts.ss_steps = Some(num("--ss-steps")),

@@ -11,9 +11,9 @@
 //! through `/proc/self/clear_refs`, so it includes the weights.
 
 use candle_core::{Module, Tensor};
+use recon::model::sparse::SparseTensor;
 use recon::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
 use recon::model::stage2::slat_vae::mesh::{random_var_builder, SLatMeshDecoder};
-use recon::model::sparse::SparseTensor;
 use std::time::Instant;
 
 const FULL_BLOCKS: usize = 12;
@@ -45,7 +45,11 @@ fn shell_with(n: usize) -> Vec<[i32; 4]> {
     let (mut lo, mut hi) = (2.0, 30.0);
     for _ in 0..30 {
         let mid = 0.5 * (lo + hi);
-        if shell(mid, t).len() < n { lo = mid } else { hi = mid }
+        if shell(mid, t).len() < n {
+            lo = mid
+        } else {
+            hi = mid
+        }
     }
     shell(hi, t)
 }
@@ -77,7 +81,10 @@ fn args(blocks: usize, mesh: bool) -> serde_json::Value {
 }
 
 /// Seconds of the trunk's input layer and of each block (from tap timestamps).
-fn trunk_times(trunk: &recon::model::stage2::slat_vae::trunk::SparseTransformerBase, x: &SparseTensor) -> recon::Result<(Tensor, f64, Vec<f64>)> {
+fn trunk_times(
+    trunk: &recon::model::stage2::slat_vae::trunk::SparseTransformerBase,
+    x: &SparseTensor,
+) -> recon::Result<(Tensor, f64, Vec<f64>)> {
     let t0 = Instant::now();
     let mut stamps = Vec::new();
     let h = trunk.forward_with(x, &mut |_, _| stamps.push(t0.elapsed().as_secs_f64()))?;
@@ -95,7 +102,10 @@ fn main() -> recon::Result<()> {
         .split(',')
         .filter_map(|s| s.trim().parse().ok())
         .collect();
-    println!("slat_decoders: 768 ch, 12 heads, swin 8, res 64; running {blocks} of {FULL_BLOCKS} blocks; threads {}", rayon::current_num_threads());
+    println!(
+        "slat_decoders: 768 ch, 12 heads, swin 8, res 64; running {blocks} of {FULL_BLOCKS} blocks; threads {}",
+        rayon::current_num_threads()
+    );
     for &target in &sizes {
         let coords = shell_with(target);
         let n = coords.len();

@@ -12,8 +12,8 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use recon::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use recon::model::sparse::SparseTensor;
+use recon::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -91,7 +91,10 @@ fn main() -> candle_core::Result<()> {
         .ok()
         .map(|v| v.split(',').filter_map(|s| s.trim().parse().ok()).collect())
         .unwrap_or_else(|| vec![5000, 10000, 20000]);
-    println!("SLat flow bench: C=1024, io [128], 16 heads, {blocks} block(s), cond 1371×1024, batch 1, {} rayon threads", rayon::current_num_threads());
+    println!(
+        "SLat flow bench: C=1024, io [128], 16 heads, {blocks} block(s), cond 1371×1024, batch 1, {} rayon threads",
+        rayon::current_num_threads()
+    );
     let cond = Tensor::randn(0f32, 1.0, (1, 1371, 1024), &Device::Cpu)?;
 
     let base = if blocks < 24 {

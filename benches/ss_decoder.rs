@@ -57,7 +57,12 @@ fn main() -> recon::Result<()> {
     let vb = VarBuilder::from_backend(Box::new(RandomWeights), DType::F32, Device::Cpu);
     let t0 = Instant::now();
     let dec = SparseStructureDecoder::new(&cfg, vb)?;
-    println!("ss_decoder bench: channels {:?}, {} rayon threads; weights built in {:.2} s", cfg.channels, rayon::current_num_threads(), t0.elapsed().as_secs_f64());
+    println!(
+        "ss_decoder bench: channels {:?}, {} rayon threads; weights built in {:.2} s",
+        cfg.channels,
+        rayon::current_num_threads(),
+        t0.elapsed().as_secs_f64()
+    );
     let x = Tensor::from_vec(xorshift_fill(8 * 16 * 16 * 16, 42, 1.0, 0.0), (1, 8, 16, 16, 16), &Device::Cpu)?;
     let mut times = Vec::new();
     let mut cpus = Vec::new();
@@ -75,7 +80,10 @@ fn main() -> recon::Result<()> {
     let best = times.iter().cloned().fold(f64::INFINITY, f64::min);
     let mean = times.iter().sum::<f64>() / times.len() as f64;
     let cpu_mean = cpus.iter().sum::<f64>() / cpus.len() as f64;
-    println!("seconds per forward: best {best:.3}  mean {mean:.3}  ({} runs); CPU-seconds per forward {cpu_mean:.2}; occupied voxels {occupied}", times.len());
+    println!(
+        "seconds per forward: best {best:.3}  mean {mean:.3}  ({} runs); CPU-seconds per forward {cpu_mean:.2}; occupied voxels {occupied}",
+        times.len()
+    );
     // On a shared machine wall time overstates the cost; CPU-s / threads is the
     // wall time this would take with the cores to itself.
     match vm_hwm_mib() {

@@ -24,8 +24,8 @@ use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
 use recon::model::config::RecGenConfig;
-use recon::rng::SeededRng;
 use recon::model::stage1::ss_flow::SparseStructureFlowModel;
+use recon::rng::SeededRng;
 
 /// Deterministic uniform weights (std 0.02; norm scales 1 ± small). Nothing
 /// is "contained", so the position embedding is computed.
@@ -43,7 +43,11 @@ impl SimpleBackend for RandomWeights {
                 x ^= x >> 7;
                 x ^= x << 17;
                 let u = (x >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0;
-                if is_scale { 1.0 + 0.1 * u } else { a * u }
+                if is_scale {
+                    1.0 + 0.1 * u
+                } else {
+                    a * u
+                }
             })
             .collect();
         Tensor::from_vec(v, s, dev)?.to_dtype(dtype)

@@ -16,8 +16,8 @@ use candle_nn::ParamsAdamW;
 use recon::geometry::pose::PoseStats;
 use recon::geometry::voxelize::Fill;
 use recon::model::config::RecGenConfig;
-use recon::rng::SeededRng;
 use recon::model::stage1::ss_vae::encoder::ReconLoss;
+use recon::rng::SeededRng;
 use recon::train::data::{pose_stats_json, scan};
 use recon::train::flow::FlowMatching;
 use recon::train::objective::{FlowObjective, Objective, VaeObjective};
@@ -31,7 +31,8 @@ fn cfg(s: &recon::model::config::ModuleSpec) -> ModuleConfig {
 }
 
 fn time_steps(obj: &dyn Objective, batch: usize, steps: usize) -> (f64, f64, f64) {
-    let vars: Vec<_> = obj.trainable().iter().flat_map(|m| m.vars.iter().map(move |(n, v)| (format!("{}/{n}", m.key), v.clone()))).collect();
+    let vars: Vec<_> =
+        obj.trainable().iter().flat_map(|m| m.vars.iter().map(move |(n, v)| (format!("{}/{n}", m.key), v.clone()))).collect();
     let mut opt = AdamW::new(&vars, ParamsAdamW { lr: 1e-4, weight_decay: 0.0, ..Default::default() }).unwrap();
     let mut rng = SeededRng::new(1);
     let (mut f, mut b, mut u) = (0.0, 0.0, 0.0);
@@ -65,7 +66,12 @@ fn main() {
     let steps: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
     let only = args.get(3).map(String::as_str);
     let arch = RecGenConfig::load(&config).unwrap();
-    println!("architecture {} ({}), batch {batch}, {steps} timed steps after one warm-up, {} threads", arch.name, config.display(), rayon::current_num_threads());
+    println!(
+        "architecture {} ({}), batch {batch}, {steps} timed steps after one warm-up, {} threads",
+        arch.name,
+        config.display(),
+        rayon::current_num_threads()
+    );
     println!("{:<18} {:>12} {:>10}", "module", "parameters", "MB (f32)");
     let mut shipped = 0usize;
     let mut modules: Vec<(&str, ModuleConfig)> = arch.modules().into_iter().map(|(k, s)| (k, cfg(s))).collect();
@@ -84,17 +90,22 @@ fn main() {
     if only == Some("none") {
         return;
     }
-    let src = ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true }).unwrap();
+    let src =
+        ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true }).unwrap();
     let enc_cfg = cfg(arch.ss_encoder.as_ref().expect("the architecture needs an ss_encoder section"));
     if only != Some("flow") {
-    recon::util::memory::reset_peak_rss();
-    let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
-    let dec = ModuleParams::init("ss_decoder", &cfg(&arch.ss_decoder), 2).unwrap();
-    let f = recon::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
-    let res = arch.ss_flow_config().unwrap().resolution * f;
-    let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3).unwrap();
-    let (tf, tb, tu) = time_steps(&vae, batch, steps);
-    println!("ss-vae  ({res}³): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN));
+        recon::util::memory::reset_peak_rss();
+        let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
+        let dec = ModuleParams::init("ss_decoder", &cfg(&arch.ss_decoder), 2).unwrap();
+        let f = recon::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
+        let res = arch.ss_flow_config().unwrap().resolution * f;
+        let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3).unwrap();
+        let (tf, tb, tu) = time_steps(&vae, batch, steps);
+        println!(
+            "ss-vae  ({res}³): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB",
+            tf + tb + tu,
+            recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+        );
     }
     if only == Some("vae") {
         return;
@@ -111,6 +122,10 @@ fn main() {
     for (label, p) in [("1 view", 0.0), ("2 views", 1.0)] {
         obj.p_two_view = p;
         let (tf, tb, tu) = time_steps(&obj, batch, steps);
-        println!("ss-flow ({label}): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB", tf + tb + tu, recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN));
+        println!(
+            "ss-flow ({label}): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB",
+            tf + tb + tu,
+            recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+        );
     }
 }

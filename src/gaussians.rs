@@ -122,7 +122,13 @@ mod tests {
     #[test]
     fn stretched_gaussians_have_the_stretched_covariance() {
         let q = normalize_quat([0.9, 0.2, -0.3, 0.25]);
-        let g = Gaussians { positions: vec![[0.1, -0.2, 0.3]], scales: vec![[0.03, 0.01, 0.02]], rotations: vec![q], opacities: vec![0.5], dc: vec![[0.0; 3]] };
+        let g = Gaussians {
+            positions: vec![[0.1, -0.2, 0.3]],
+            scales: vec![[0.03, 0.01, 0.02]],
+            rotations: vec![q],
+            opacities: vec![0.5],
+            dc: vec![[0.0; 3]],
+        };
         let k = [1.6, 0.7, 1.1];
         let cov = |s: [f32; 3], q: [f32; 4]| -> [[f64; 3]; 3] {
             let r = quat_to_matrix(q);

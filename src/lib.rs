@@ -15,26 +15,26 @@
 //! - applications: [`eval`], [`synth`], [`sim`], [`audit`], [`train`],
 //!   [`tools`] (bench, conformance).
 
-pub mod error;
-pub mod math;
-pub mod rng;
-pub mod util;
-pub mod spatial;
-pub mod mesh;
-pub mod gaussians;
-pub mod dataset;
-pub mod sensor;
-pub mod render;
-pub mod export;
-pub mod geometry;
-pub mod model;
-pub mod weights;
-pub mod engine;
-pub mod eval;
-pub mod synth;
-pub mod sim;
 pub mod audit;
-pub mod train;
+pub mod dataset;
+pub mod engine;
+pub mod error;
+pub mod eval;
+pub mod export;
+pub mod gaussians;
+pub mod geometry;
+pub mod math;
+pub mod mesh;
+pub mod model;
+pub mod render;
+pub mod rng;
+pub mod sensor;
+pub mod sim;
+pub mod spatial;
+pub mod synth;
 pub mod tools;
+pub mod train;
+pub mod util;
+pub mod weights;
 
 pub use error::{Error, Result};

@@ -66,9 +66,22 @@ fn plant(target: Target, seed: u64, group: bool) -> Planted {
             };
             values.insert(id.to_string(), v);
         }
-        return Planted { effect: Effect { target, covariate: Covariate::Object, form: Form::Group { values }, by: None, cause: None }, dropout_shift: 0.0, amplitude };
+        return Planted {
+            effect: Effect { target, covariate: Covariate::Object, form: Form::Group { values }, by: None, cause: None },
+            dropout_shift: 0.0,
+            amplitude,
+        };
     }
-    let numeric = [Covariate::Depth, Covariate::Radius, Covariate::Incidence, Covariate::EdgeDistance, Covariate::Intensity, Covariate::U, Covariate::V, Covariate::Frame];
+    let numeric = [
+        Covariate::Depth,
+        Covariate::Radius,
+        Covariate::Incidence,
+        Covariate::EdgeDistance,
+        Covariate::Intensity,
+        Covariate::U,
+        Covariate::V,
+        Covariate::Frame,
+    ];
     let cov = numeric[((u() * numeric.len() as f64) as usize).min(numeric.len() - 1)];
     let (lo, hi) = typical(cov);
     let kind = ((u() * 3.0) as usize).min(2);
@@ -148,7 +161,13 @@ fn check(p: &Planted, a: &Audit, table: &recon::audit::table::ResidualTable) -> 
     let f = r.findings.first().ok_or_else(|| format!("no finding; rounds {:?}", r.rounds.first().map(|x| &x["top"])))?;
     let want = (p.effect.target.name(), p.effect.covariate.name(), p.effect.form.name());
     if (f.target.as_str(), f.covariate.as_str(), f.form.as_str()) != want {
-        return Err(format!("first finding {} ~ {}({}), planted {want:?}; findings {:?}", f.target, f.form, f.covariate, r.findings.iter().map(|x| format!("{}~{}({})", x.target, x.form, x.covariate)).collect::<Vec<_>>()));
+        return Err(format!(
+            "first finding {} ~ {}({}), planted {want:?}; findings {:?}",
+            f.target,
+            f.form,
+            f.covariate,
+            r.findings.iter().map(|x| format!("{}~{}({})", x.target, x.form, x.covariate)).collect::<Vec<_>>()
+        ));
     }
     if !(f.heldout_gain > 0.0 && f.p_value < 0.01) {
         return Err(format!("held-out gain {} p {}", f.heldout_gain, f.p_value));
@@ -190,7 +209,12 @@ fn check(p: &Planted, a: &Audit, table: &recon::audit::table::ResidualTable) -> 
     for &x in &points {
         let (got, want) = (total(ext, x), total(&truth, x));
         if (got - want).abs() > tol {
-            return Err(format!("{} at {x}: fitted {got:.5} vs planted {want:.5} (tol {tol:.5}); fitted {:?}, planted {:?}", p.effect.covariate.name(), fitted.form, p.effect.form));
+            return Err(format!(
+                "{} at {x}: fitted {got:.5} vs planted {want:.5} (tol {tol:.5}); fitted {:?}, planted {:?}",
+                p.effect.covariate.name(),
+                fitted.form,
+                p.effect.form
+            ));
         }
     }
     if let (Form::Step { threshold: a, .. }, Form::Step { threshold: b, .. }) = (&fitted.form, &p.effect.form) {
@@ -259,7 +283,11 @@ fn null_dataset_gives_no_finding() {
     let m = audited_model();
     let (a, _, dir) = audit(&m, &m, 77, "null");
     eprint!("{}", a.report.summary());
-    assert!(a.report.findings.is_empty(), "spurious: {:?}", a.report.findings.iter().map(|f| (&f.target, &f.covariate, &f.form, f.p_value)).collect::<Vec<_>>());
+    assert!(
+        a.report.findings.is_empty(),
+        "spurious: {:?}",
+        a.report.findings.iter().map(|f| (&f.target, &f.covariate, &f.form, f.p_value)).collect::<Vec<_>>()
+    );
     // Nothing to add: the extended model has no effects and its globals match the truth.
     let ext = a.extended.unwrap();
     assert!(ext.effects.is_empty());
@@ -276,7 +304,14 @@ fn sweep() {
     let mut fails = vec![];
     let mut n = 0;
     for seed in a..b {
-        for (target, group) in [(Target::Bias, false), (Target::Noise, false), (Target::Dropout, false), (Target::Bias, true), (Target::Noise, true), (Target::Dropout, true)] {
+        for (target, group) in [
+            (Target::Bias, false),
+            (Target::Noise, false),
+            (Target::Dropout, false),
+            (Target::Bias, true),
+            (Target::Noise, true),
+            (Target::Dropout, true),
+        ] {
             let p = plant(target, seed, group);
             let (au, table, dir) = audit(&truth_with(&p), &audited_model(), 1000 + seed, &format!("sweep-{seed}"));
             n += 1;
@@ -295,7 +330,14 @@ fn sweep() {
         if au.report.findings.is_empty() {
             eprintln!("ok   seed {seed} null");
         } else {
-            eprintln!("FAIL seed {seed} null: {:?}", au.report.findings.iter().map(|f| format!("{}~{}({}) p={:.2e}", f.target, f.form, f.covariate, f.p_value)).collect::<Vec<_>>());
+            eprintln!(
+                "FAIL seed {seed} null: {:?}",
+                au.report
+                    .findings
+                    .iter()
+                    .map(|f| format!("{}~{}({}) p={:.2e}", f.target, f.form, f.covariate, f.p_value))
+                    .collect::<Vec<_>>()
+            );
             fails.push(seed);
         }
         let _ = std::fs::remove_dir_all(&dir);
@@ -310,13 +352,19 @@ fn covariate_ranges() {
     let m = audited_model();
     let dir = tmp("ranges");
     let data = dir.join("data");
-    generate(&data, &SynthOptions { scenes: SCENES, views: VIEWS, seed: 1001, width: W, height: H, parts: false, sensor: m.clone() }, &|| {}).unwrap();
+    generate(
+        &data,
+        &SynthOptions { scenes: SCENES, views: VIEWS, seed: 1001, width: W, height: H, parts: false, sensor: m.clone() },
+        &|| {},
+    )
+    .unwrap();
     let col = collect(&data, &m, &DepthOptions { max_pixels_per_frame: 1500, seed: 0, max_frames: None }).unwrap();
     let t = residual_table(&m, &col.pixels, "ranges");
     for c in &t.columns {
         let mut v = c.values.clone();
         v.sort_by(|a, b| a.total_cmp(b));
-        let q: Vec<String> = [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0].iter().map(|&q| format!("{:.3}", v[((v.len() - 1) as f64 * q) as usize])).collect();
+        let q: Vec<String> =
+            [0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0].iter().map(|&q| format!("{:.3}", v[((v.len() - 1) as f64 * q) as usize])).collect();
         eprintln!("{:>14}: {}", c.name, q.join(" "));
     }
     let _ = std::fs::remove_dir_all(&dir);

@@ -5,11 +5,11 @@
 //! `BOP_TOOLKIT_PATH` may name a folder to put on PYTHONPATH (a checkout or a
 //! `pip install --target` folder); .ci/run installs the toolkit.
 
-use recon::spatial::P3;
+use recon::eval::metrics::{add, add_s};
 use recon::math::{axis_angle, Similarity};
 use recon::mesh::trimesh::TriMesh;
-use recon::eval::metrics::{add, add_s};
 use recon::rng::SeededRng;
+use recon::spatial::P3;
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -29,7 +29,9 @@ fn python() -> Command {
 fn toolkit_missing() -> Option<String> {
     match python().args(["-c", "from bop_toolkit_lib import pose_error"]).output() {
         Err(e) => Some(format!("python3 not runnable ({e})")),
-        Ok(o) if !o.status.success() => Some(format!("bop_toolkit_lib not importable: {}", String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or(""))),
+        Ok(o) if !o.status.success() => {
+            Some(format!("bop_toolkit_lib not importable: {}", String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("")))
+        }
         Ok(_) => None,
     }
 }
@@ -74,8 +76,16 @@ fn cases() -> Vec<Case> {
     // Symmetric object: a cylinder (mm) spun 90° about its axis, and shifted by exactly 7 mm.
     let cyl = cylinder(40.0, 100.0, 128).sample_surface(3000, 11);
     let gt = Similarity::rigid(random_rot(&mut rng), [10.0, -20.0, 650.0]);
-    out.push(Case { pts: cyl.clone(), gt, est: gt.compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3])) });
-    out.push(Case { pts: cyl.clone(), gt, est: Similarity::rigid(gt.rotation, [gt.translation[0] + 7.0, gt.translation[1], gt.translation[2]]) });
+    out.push(Case {
+        pts: cyl.clone(),
+        gt,
+        est: gt.compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3])),
+    });
+    out.push(Case {
+        pts: cyl.clone(),
+        gt,
+        est: Similarity::rigid(gt.rotation, [gt.translation[0] + 7.0, gt.translation[1], gt.translation[2]]),
+    });
     out.push(Case { pts: cyl, gt, est: gt });
     out
 }

@@ -77,10 +77,25 @@ fn assert_fixture_bf16(name: &str) {
     let mut checked = 0;
     for c in &checks {
         let Ok(want) = fx.tensor(&c.output) else { continue };
-        let scale = want.to_dtype(candle_core::DType::F32).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap() as f64;
+        let scale = want
+            .to_dtype(candle_core::DType::F32)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap() as f64;
         let rel = c.max_abs / scale.max(1e-12);
         eprintln!("{name} bf16: {} max_abs {:.3e} (max |ref| {scale:.3e}, rel {rel:.2e})", c.output, c.max_abs);
-        assert!(rel <= 0.01 || c.max_abs <= c.tol, "{name} bf16: {} max_abs {:.3e} is {rel:.2e} of max |ref| {scale:.3e}", c.output, c.max_abs);
+        assert!(
+            rel <= 0.01 || c.max_abs <= c.tol,
+            "{name} bf16: {} max_abs {:.3e} is {rel:.2e} of max |ref| {scale:.3e}",
+            c.output,
+            c.max_abs
+        );
         checked += 1;
     }
     assert!(checked > 0, "{name}: no outputs checked");

@@ -56,7 +56,18 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     // The predictions file written by the baseline re-scores to the same numbers.
     let pf = out.join("predictions.json");
     let out2 = dir.join("rescored");
-    let run2 = recon(&["eval", "--dataset", r, "--predictions", pf.to_str().unwrap(), "--samples", "3000", "--out", out2.to_str().unwrap(), "--json"]);
+    let run2 = recon(&[
+        "eval",
+        "--dataset",
+        r,
+        "--predictions",
+        pf.to_str().unwrap(),
+        "--samples",
+        "3000",
+        "--out",
+        out2.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(run2.status.success(), "{}", String::from_utf8_lossy(&run2.stderr));
     let rep2: serde_json::Value = serde_json::from_slice(&run2.stdout).unwrap();
     assert_eq!(rep2["overall"], rep["overall"]);
@@ -102,13 +113,15 @@ fn bad_input_gives_clear_errors() {
     std::fs::create_dir_all(&scene).unwrap();
     std::fs::create_dir_all(dir.join("models")).unwrap();
     std::fs::write(dir.join("models/models_info.json"), "{}").unwrap();
-    std::fs::write(scene.join("scene_camera.json"), r#"{"0": {"cam_K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "depth_scale": 1.0}}"#).unwrap();
+    std::fs::write(scene.join("scene_camera.json"), r#"{"0": {"cam_K": [500, 0, 320, 0, 500, 240, 0, 0, 1], "depth_scale": 1.0}}"#)
+        .unwrap();
     std::fs::write(scene.join("scene_gt.json"), r#"{"0": [{"cam_R_m2c": [1, 0, 0], "cam_t_m2c": [0, 0, 500], "obj_id": 1}]}"#).unwrap();
     let run = recon(&["eval", "--dataset", d, "--method", "observed"]);
     let e = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success() && e.contains("scene_gt.json") && e.contains("0[0].cam_R_m2c"), "{e}");
     // Unknown scene name.
-    std::fs::write(scene.join("scene_gt.json"), r#"{"0": [{"cam_R_m2c": [1,0,0, 0,1,0, 0,0,1], "cam_t_m2c": [0, 0, 500], "obj_id": 1}]}"#).unwrap();
+    std::fs::write(scene.join("scene_gt.json"), r#"{"0": [{"cam_R_m2c": [1,0,0, 0,1,0, 0,0,1], "cam_t_m2c": [0, 0, 500], "obj_id": 1}]}"#)
+        .unwrap();
     std::fs::write(dir.join("models/obj_000001.ply"), "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n10 0 0\n0 10 0\n3 0 1 2\n").unwrap();
     let run = recon(&["eval", "--dataset", d, "--method", "observed", "--scenes", "7"]);
     let e = String::from_utf8_lossy(&run.stderr);

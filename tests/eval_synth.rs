@@ -2,11 +2,11 @@
 //! write, re-read, score. Also checks the visibility estimator of YCB-Video against the
 //! exact `visib_fract` the synthesiser writes.
 
-use recon::eval::baseline::{observe_dataset, ObservedOptions};
 use recon::dataset::bop::load_dataset;
-use recon::math::Similarity;
-use recon::eval::report::{evaluate, read_predictions, EvalOptions};
 use recon::dataset::visibility::{surface_patches, visible_fraction};
+use recon::eval::baseline::{observe_dataset, ObservedOptions};
+use recon::eval::report::{evaluate, read_predictions, EvalOptions};
+use recon::math::Similarity;
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions};
 use std::path::{Path, PathBuf};
@@ -48,12 +48,23 @@ fn observed_baseline_on_two_tiny_synthetic_scenes() {
             assert!(m.add.is_none());
             // A hull of seen points lies on/inside the object: its distance to the GT
             // surface is a fraction of the object's size, never more than its diameter.
-            assert!(m.add_sb_norm.is_finite() && m.add_sb_norm > 0.0 && m.add_sb_norm < 0.5, "{name} {}: ADD-SB/d {}", o.model, m.add_sb_norm);
+            assert!(
+                m.add_sb_norm.is_finite() && m.add_sb_norm > 0.0 && m.add_sb_norm < 0.5,
+                "{name} {}: ADD-SB/d {}",
+                o.model,
+                m.add_sb_norm
+            );
             assert!(m.cd_norm.is_finite() && m.cd_norm < 0.5, "{name} {}: CD_norm {}", o.model, m.cd_norm);
             assert!(m.dre.is_finite() && m.dre < 1.0 && m.pred_diameter < 1.2 * o.gt_diameter, "{name} {}: DRE {}", o.model, m.dre);
         }
         // Mostly visible objects are where the floor is highest.
-        let vis: Vec<f64> = r.objects.iter().filter(|o| o.visib_fract.is_some_and(|v| v > 0.9)).filter_map(|o| o.metrics.as_ref()).map(|m| m.add_sb_norm).collect();
+        let vis: Vec<f64> = r
+            .objects
+            .iter()
+            .filter(|o| o.visib_fract.is_some_and(|v| v > 0.9))
+            .filter_map(|o| o.metrics.as_ref())
+            .map(|m| m.add_sb_norm)
+            .collect();
         assert!(!vis.is_empty());
         let mean = vis.iter().sum::<f64>() / vis.len() as f64;
         assert!(mean < 0.2, "{name}: mean ADD-SB/d of visible objects {mean}");
@@ -72,17 +83,24 @@ fn visibility_estimate_agrees_with_synthetic_visib_fract() {
     let mut errs = Vec::new();
     for f in &ds.frames {
         for (gi, g) in f.gt.iter().enumerate() {
-            let mask = image::open(ds.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{gi:06}.png", f.frame))).unwrap().to_luma8();
+            let mask =
+                image::open(ds.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{gi:06}.png", f.frame))).unwrap().to_luma8();
             let (w, h) = (mask.width() as usize, mask.height() as usize);
             let m: Vec<bool> = mask.into_raw().into_iter().map(|v| v > 0).collect();
             let s = surface_patches(&ds.models[&g.obj_id].mesh.sample_surface(6000, 1), 10);
-            let (Some(est), Some(truth)) = (visible_fraction(&s, &Similarity::rigid(g.r, g.t), &f.k, &m, w, h), g.visib_fract) else { continue };
+            let (Some(est), Some(truth)) = (visible_fraction(&s, &Similarity::rigid(g.r, g.t), &f.k, &m, w, h), g.visib_fract) else {
+                continue;
+            };
             errs.push((est - truth).abs());
         }
     }
     errs.sort_by(f64::total_cmp);
     let med = errs[errs.len() / 2];
-    eprintln!("visibility estimate vs synth visib_fract over {} instances: median |err| {med:.3}, max {:.3}", errs.len(), errs[errs.len() - 1]);
+    eprintln!(
+        "visibility estimate vs synth visib_fract over {} instances: median |err| {med:.3}, max {:.3}",
+        errs.len(),
+        errs[errs.len() - 1]
+    );
     // Open shells (bowls, mugs) and low resolution keep it approximate; typical error small.
     assert!(errs.len() >= 16 && med < 0.05, "median error {med}");
     let _ = std::fs::remove_dir_all(&dir);

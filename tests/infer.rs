@@ -1,9 +1,9 @@
 //! `recon infer` library path on the shipped YCB-Video sample: real frame,
 //! real masks, random tiny weights.
-use recon::engine::infer::{Engine, InferOptions};
-use recon::engine::output::{write_outputs, MARKER};
 use recon::dataset::frame::{FrameOptions, RgbdFrame};
 use recon::dataset::masks::{InstanceMap, SkipReason};
+use recon::engine::infer::{Engine, InferOptions};
+use recon::engine::output::{write_outputs, MARKER};
 use std::path::PathBuf;
 
 fn root() -> PathBuf {
@@ -89,10 +89,10 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
 /// to keep the test fast: the Gaussian centres are scored instead.
 #[test]
 fn two_views_and_samples_select_consistently() {
-    use recon::math::axis_angle;
+    use recon::engine::infer::{RigidTransform, SecondView};
     use recon::engine::pose_fit::{pose_spread, select_best, SelectMethod};
     use recon::geometry::pose::pose_to_similarity;
-    use recon::engine::infer::{RigidTransform, SecondView};
+    use recon::math::axis_angle;
     let (frame, map, engine, opts) = one_step_sample_setup(2);
     let t = RigidTransform { rotation: axis_angle([0.0, 1.0, 0.0], 0.3), translation: [0.1, 0.0, 0.05], scale: 1.0 };
     let run = |opts: &InferOptions| {
@@ -108,7 +108,10 @@ fn two_views_and_samples_select_consistently() {
     assert!(o.mesh_camera.is_none() && o.gaussians_camera.as_ref().is_some_and(|g| !g.is_empty()));
     let close = |a: &recon::geometry::pose::Pose, b: &recon::geometry::pose::Pose| {
         let d = (0..3).map(|i| (a.translation[i] - b.translation[i]).abs()).fold(0f32, f32::max)
-            + (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).map(|(i, j)| (a.rotation[i][j] - b.rotation[i][j]).abs()).fold(0f32, f32::max)
+            + (0..3)
+                .flat_map(|i| (0..3).map(move |j| (i, j)))
+                .map(|(i, j)| (a.rotation[i][j] - b.rotation[i][j]).abs())
+                .fold(0f32, f32::max)
             + (a.scale - b.scale).abs();
         assert!(d < 1e-5, "{a:?} vs {b:?}");
     };
@@ -175,8 +178,8 @@ fn depth_pose_fit_refines_scale_and_position_only() {
 
 #[test]
 fn objects_of_two_views_pair_by_id_or_order() {
-    use recon::engine::infer::match_views;
     use recon::dataset::masks::ObjectMask;
+    use recon::engine::infer::match_views;
     let m = |id: Option<u32>, label: &str| ObjectMask { id, label: label.into(), width: 1, height: 1, mask: vec![true] };
     let (pairs, notes) = match_views(vec![m(Some(3), "a"), m(Some(5), "b")], vec![m(Some(5), "c"), m(Some(9), "d")]).unwrap();
     assert_eq!(pairs.len(), 2);
@@ -219,7 +222,14 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--rel-pose"), "{}", String::from_utf8_lossy(&o.stderr));
     // A rel pose that is not a rigid transform.
-    let o = with(&["--view2", "data/sample/000001-color.png", "--masks2", "data/sample/000001-label.png", "--rel-pose", "1,0,0,0,0,1,0,0,0,0,1,0"]);
+    let o = with(&[
+        "--view2",
+        "data/sample/000001-color.png",
+        "--masks2",
+        "data/sample/000001-label.png",
+        "--rel-pose",
+        "1,0,0,0,0,1,0,0,0,0,1,0",
+    ]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--rel-pose") && err.contains("16"), "{err}");

@@ -10,8 +10,27 @@ use std::path::{Path, PathBuf};
 
 /// Top-level modules of the library, bottom first (the order of `docs/ARCHITECTURE.md`).
 const LAYERS: &[&str] = &[
-    "error", "math", "rng", "util", "spatial", "mesh", "gaussians", "dataset", "sensor", "render", "export", "geometry", "model",
-    "weights", "engine", "eval", "synth", "sim", "audit", "train", "tools",
+    "error",
+    "math",
+    "rng",
+    "util",
+    "spatial",
+    "mesh",
+    "gaussians",
+    "dataset",
+    "sensor",
+    "render",
+    "export",
+    "geometry",
+    "model",
+    "weights",
+    "engine",
+    "eval",
+    "synth",
+    "sim",
+    "audit",
+    "train",
+    "tools",
 ];
 
 /// A source file of the library: its module path and its code, with comments
@@ -289,7 +308,8 @@ fn files_import_each_other_without_circles() {
                 0 => visit(m, edges, state, stack, circles),
                 1 => {
                     let at = stack.iter().position(|s| s == m).unwrap();
-                    let names: Vec<String> = stack[at..].iter().chain([m]).map(|s| if s.is_empty() { "lib".into() } else { s.join("::") }).collect();
+                    let names: Vec<String> =
+                        stack[at..].iter().chain([m]).map(|s| if s.is_empty() { "lib".into() } else { s.join("::") }).collect();
                     circles.push(names.join(" -> "));
                 }
                 _ => {}

@@ -4,9 +4,9 @@
 //! determinism; two-view conditioning; loading the same weights from files.
 
 use candle_core::{Device, Tensor};
+use recon::engine::pipeline::{ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, WeightsSource};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
-use recon::engine::pipeline::{ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, WeightsSource};
 use std::path::{Path, PathBuf};
 
 fn root() -> PathBuf {
@@ -29,10 +29,12 @@ fn tmp(name: &str) -> PathBuf {
 /// cap seen head-on inside the disc (zeros outside). `shift` moves the disc.
 fn view(s: usize, seed: u64, shift: f32) -> ViewInput {
     let mut rng = SeededRng::new(seed);
-    let waves: Vec<[f32; 4]> = (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
+    let waves: Vec<[f32; 4]> =
+        (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
     let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);
     recon::tools::bench::disc_view(s, shift, |u, v, ch| {
-        let val: f32 = waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
+        let val: f32 =
+            waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
         (val.clamp(0.0, 1.0) - mean[ch]) / std[ch]
     })
 }
@@ -173,8 +175,10 @@ fn load_from_initialised_files() {
     let dir = tmp("load");
     // `recon weights init --config <architecture>` goes through write_random_init.
     assert_eq!(recon::weights::init::write_random_init(&tiny(), &dir, 5).unwrap(), dir);
-    let files: Vec<PathBuf> =
-        ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"].iter().map(|k| dir.join(format!("{k}.safetensors"))).collect();
+    let files: Vec<PathBuf> = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"]
+        .iter()
+        .map(|k| dir.join(format!("{k}.safetensors")))
+        .collect();
     assert!(dir.join("stereo_pose_stats.example.json").exists() && dir.join("slat_pose_stats.example.json").exists());
     for f in &files {
         assert!(recon::weights::init::is_random_init(f).unwrap());
@@ -208,8 +212,8 @@ fn load_from_initialised_files() {
 /// peak memory of each stage is reported.
 #[test]
 fn load_options_precision_and_per_stage() {
-    use recon::model::nn::fast::{Compute, Precision};
     use recon::engine::pipeline::LoadOptions;
+    use recon::model::nn::fast::{Compute, Precision};
     let staged_opts = LoadOptions { per_stage: true, ..Default::default() };
     let resident = Pipeline::random_with(&tiny(), 2, Stages::All, &LoadOptions::default()).unwrap();
     let staged = Pipeline::random_with(&tiny(), 2, Stages::All, &staged_opts).unwrap();
@@ -221,7 +225,13 @@ fn load_options_precision_and_per_stage() {
     assert!(b.timings.loading > 0.0 && a.timings.loading == 0.0);
     if std::path::Path::new("/proc/self/status").exists() {
         let m = b.memory.as_ref().unwrap();
-        for (name, v) in [("encoder", m.image_encoder), ("ss flow", m.ss_flow), ("ss dec", m.ss_decoder), ("slat flow", m.slat_flow), ("mesh", m.mesh_decoder)] {
+        for (name, v) in [
+            ("encoder", m.image_encoder),
+            ("ss flow", m.ss_flow),
+            ("ss dec", m.ss_decoder),
+            ("slat flow", m.slat_flow),
+            ("mesh", m.mesh_decoder),
+        ] {
             assert!(v.is_some_and(|x| x > 0.0), "{name}: no peak RSS");
         }
     }
@@ -229,7 +239,8 @@ fn load_options_precision_and_per_stage() {
 
     // Plain candle path vs fast f32 kernels: same occupancy and pose up to float rounding.
     let s1 = RunOptions { seed: 3, ss_steps: Some(3), stage1_only: true, ..Default::default() };
-    let plain = Pipeline::random_with(&tiny(), 2, Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false }).unwrap();
+    let plain =
+        Pipeline::random_with(&tiny(), 2, Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false }).unwrap();
     let p = plain.run(&one, &s1).unwrap();
     let f = resident.run(&one, &s1).unwrap();
     let d = p.pose.tokens_10d.iter().flatten().zip(f.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);

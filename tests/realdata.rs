@@ -9,13 +9,13 @@
 
 use std::path::{Path, PathBuf};
 
-use recon::math::Similarity32;
-use recon::geometry::camera_pose::{canonical_to_camera, pose_to_camera, pose_to_normalised};
-use recon::geometry::pointmap::{object_points, prepare_object, Normaliser};
-use recon::geometry::pose::{Pose, PoseStats};
 use recon::dataset::frame::{FrameOptions, RgbdFrame};
 use recon::dataset::masks::{validate_objects, InstanceMap, MaskOptions};
 use recon::dataset::matv5::MatFile;
+use recon::geometry::camera_pose::{canonical_to_camera, pose_to_camera, pose_to_normalised};
+use recon::geometry::pointmap::{object_points, prepare_object, Normaliser};
+use recon::geometry::pose::{Pose, PoseStats};
+use recon::math::Similarity32;
 
 fn realdata() -> Option<PathBuf> {
     let p = recon::dataset::shared_realdata();
@@ -41,7 +41,8 @@ fn check_ycb_frame(color: &Path) {
     // over all valid pixels of sequence 0001 is 1.225 m, hence the margin.
     assert!((0.55..=1.3).contains(&med), "median depth {med} m");
     assert!(f.intrinsics_source.ends_with("-meta.mat"), "{}", f.intrinsics_source);
-    let meta = MatFile::open(&color.with_file_name(color.file_name().unwrap().to_str().unwrap().replace("-color.png", "-meta.mat"))).unwrap();
+    let meta =
+        MatFile::open(&color.with_file_name(color.file_name().unwrap().to_str().unwrap().replace("-color.png", "-meta.mat"))).unwrap();
     let cls = meta.get("cls_indexes").unwrap();
     let poses = meta.get("poses").unwrap();
     assert_eq!(poses.dims[..2], [3, 4]);
@@ -98,10 +99,27 @@ fn realsense_frames_load() {
 }
 
 const YCB_NAMES: [&str; 21] = [
-    "002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can", "006_mustard_bottle",
-    "007_tuna_fish_can", "008_pudding_box", "009_gelatin_box", "010_potted_meat_can", "011_banana",
-    "019_pitcher_base", "021_bleach_cleanser", "024_bowl", "025_mug", "035_power_drill", "036_wood_block",
-    "037_scissors", "040_large_marker", "051_large_clamp", "052_extra_large_clamp", "061_foam_brick",
+    "002_master_chef_can",
+    "003_cracker_box",
+    "004_sugar_box",
+    "005_tomato_soup_can",
+    "006_mustard_bottle",
+    "007_tuna_fish_can",
+    "008_pudding_box",
+    "009_gelatin_box",
+    "010_potted_meat_can",
+    "011_banana",
+    "019_pitcher_base",
+    "021_bleach_cleanser",
+    "024_bowl",
+    "025_mug",
+    "035_power_drill",
+    "036_wood_block",
+    "037_scissors",
+    "040_large_marker",
+    "051_large_clamp",
+    "052_extra_large_clamp",
+    "061_foam_brick",
 ];
 
 fn read_xyz(p: &Path) -> Vec<[f64; 3]> {
@@ -328,10 +346,7 @@ fn sample_frame_objects_prepare_with_recgen_invariants() {
         assert_eq!(v.mask.dims(), &[1, 1, s, s]);
         let (pts, _) = object_points(&frame, &p.object.mask, Some(Default::default())).unwrap();
         let q: Vec<[f64; 3]> = pts.iter().map(|&x| v.normaliser.to_normalised(x)).collect();
-        let mut norms: Vec<f64> = q
-            .iter()
-            .map(|x| ((x[0] - 0.5).powi(2) + (x[1] - 0.5).powi(2) + (x[2] - 0.5).powi(2)).sqrt())
-            .collect();
+        let mut norms: Vec<f64> = q.iter().map(|x| ((x[0] - 0.5).powi(2) + (x[1] - 0.5).powi(2) + (x[2] - 0.5).powi(2)).sqrt()).collect();
         norms.sort_by(|a, b| a.total_cmp(b));
         let qt = |f: f64| {
             let pos = f * (norms.len() - 1) as f64;
@@ -354,7 +369,11 @@ fn sample_frame_objects_prepare_with_recgen_invariants() {
         assert!(px.iter().all(|x| x.is_finite() && x.abs() < 3.0));
         println!(
             "{}: {} points, centre {:?} m, diameter {:.4} m, crop {:?}",
-            p.object.label, v.num_points, v.normaliser.centre.map(|c| (c * 1e4).round() / 1e4), v.normaliser.diameter, v.crop
+            p.object.label,
+            v.num_points,
+            v.normaliser.centre.map(|c| (c * 1e4).round() / 1e4),
+            v.normaliser.diameter,
+            v.crop
         );
     }
 }
@@ -419,7 +438,9 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
         assert!(t.len() == 3 && t.iter().all(|x| x.is_finite()));
         assert!(pose["scale_m"].as_f64().unwrap() > 0.0);
         assert!(pose["frame"].as_str().unwrap().contains("camera"));
-        assert!(pose["run"]["seed"].as_u64().is_some() && pose["run"]["ss_sampler"]["steps"] == 1 && pose["run"]["slat_sampler"]["steps"] == 1);
+        assert!(
+            pose["run"]["seed"].as_u64().is_some() && pose["run"]["ss_sampler"]["steps"] == 1 && pose["run"]["slat_sampler"]["steps"] == 1
+        );
         assert_eq!(pose["run"]["random_weights"], true);
         assert!(pose["selection"]["method"].is_string() && pose["selection"]["score_m"].as_f64().unwrap().is_finite());
         let pv = pose["views"].as_array().unwrap();
@@ -431,7 +452,10 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
         let c: Vec<f64> = serde_json::from_value(pv[0]["normaliser_centre_m"].clone()).unwrap();
         let tok: Vec<f64> = serde_json::from_value(pv[0]["pose_own_token"]["translation"].clone()).unwrap();
         let dist = |a: &[f64], b: &[f64]| ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
-        assert!(dist(&tok, &c) < 0.5 * pv[0]["normaliser_diameter_m"].as_f64().unwrap() + 0.05, "token translation {tok:?} vs observed centre {c:?}");
+        assert!(
+            dist(&tok, &c) < 0.5 * pv[0]["normaliser_diameter_m"].as_f64().unwrap() + 0.05,
+            "token translation {tok:?} vs observed centre {c:?}"
+        );
         if views == 1 {
             let s_tok = pv[0]["pose_own_token"]["scale"].as_f64().unwrap();
             assert!(dist(&t, &tok) <= 3f64.sqrt() * s_tok * 1.0001 + 1e-6, "refined {t:?} vs token {tok:?} (scale {s_tok})");
@@ -472,11 +496,16 @@ fn infer_cli_ycb_video() {
     let tmp = tmp_dir("ycb");
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     let summary = run_infer(&[
-        "--rgbd".into(), s(d.join("000001-color.png")),
-        "--masks".into(), s(d.join("000001-label.png")),
-        "--objects".into(), "21".into(),
-        "--max-faces".into(), "600000".into(),
-        "--out".into(), s(tmp.join("out")),
+        "--rgbd".into(),
+        s(d.join("000001-color.png")),
+        "--masks".into(),
+        s(d.join("000001-label.png")),
+        "--objects".into(),
+        "21".into(),
+        "--max-faces".into(),
+        "600000".into(),
+        "--out".into(),
+        s(tmp.join("out")),
     ]);
     check_infer_outputs(&summary, 1);
     let o = &summary["objects"][0];
@@ -514,10 +543,14 @@ fn infer_cli_linemod_with_depth_mask() {
     mask.save(tmp.join("can-mask.png")).unwrap();
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     let summary = run_infer(&[
-        "--rgbd".into(), s(d.join("rgb.png")),
-        "--masks".into(), s(tmp.join("can-mask.png")),
-        "--max-faces".into(), "0".into(),
-        "--out".into(), s(tmp.join("out")),
+        "--rgbd".into(),
+        s(d.join("rgb.png")),
+        "--masks".into(),
+        s(tmp.join("can-mask.png")),
+        "--max-faces".into(),
+        "0".into(),
+        "--out".into(),
+        s(tmp.join("out")),
     ]);
     check_infer_outputs(&summary, 1);
     let _ = std::fs::remove_dir_all(&tmp);
@@ -542,11 +575,16 @@ fn infer_cli_realsense_with_posecnn_labels() {
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     // Class 5 = mustard bottle (README).
     let summary = run_infer(&[
-        "--rgbd".into(), s(d.join("000000-color.png")),
-        "--masks".into(), s(tmp.join("labels.png")),
-        "--objects".into(), "5".into(),
-        "--max-faces".into(), "0".into(),
-        "--out".into(), s(tmp.join("out")),
+        "--rgbd".into(),
+        s(d.join("000000-color.png")),
+        "--masks".into(),
+        s(tmp.join("labels.png")),
+        "--objects".into(),
+        "5".into(),
+        "--max-faces".into(),
+        "0".into(),
+        "--out".into(),
+        s(tmp.join("out")),
     ]);
     check_infer_outputs(&summary, 1);
     let _ = std::fs::remove_dir_all(&tmp);
@@ -599,15 +637,24 @@ fn infer_cli_two_view_ycb_video() {
     std::fs::write(tmp.join("rel.json"), serde_json::json!({ "T_c1_c2": rel }).to_string()).unwrap();
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     let summary = run_infer(&[
-        "--rgbd".into(), s(d.join("000001-color.png")),
-        "--masks".into(), s(d.join("000001-label.png")),
-        "--view2".into(), s(d.join("000005-color.png")),
-        "--masks2".into(), s(d.join("000005-label.png")),
-        "--rel-pose".into(), s(tmp.join("rel.json")),
-        "--objects".into(), "8".into(),
-        "--select".into(), "cross".into(),
-        "--max-faces".into(), "0".into(),
-        "--out".into(), s(tmp.join("out")),
+        "--rgbd".into(),
+        s(d.join("000001-color.png")),
+        "--masks".into(),
+        s(d.join("000001-label.png")),
+        "--view2".into(),
+        s(d.join("000005-color.png")),
+        "--masks2".into(),
+        s(d.join("000005-label.png")),
+        "--rel-pose".into(),
+        s(tmp.join("rel.json")),
+        "--objects".into(),
+        "8".into(),
+        "--select".into(),
+        "cross".into(),
+        "--max-faces".into(),
+        "0".into(),
+        "--out".into(),
+        s(tmp.join("out")),
     ]);
     check_infer_outputs(&summary, 2);
     let o = &summary["objects"][0];
@@ -621,8 +668,7 @@ fn infer_cli_two_view_ycb_video() {
         let mapped = (0..3).map(|b| rel[a][b] * t2[b]).sum::<f64>() + rel[a][3];
         assert!((mapped - t1[a]).abs() < 1e-5, "{mapped} vs {}", t1[a]);
     }
-    let pose: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(o["files"]["pose"].as_str().unwrap()).unwrap()).unwrap();
+    let pose: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(o["files"]["pose"].as_str().unwrap()).unwrap()).unwrap();
     assert_eq!(pose["candidates"].as_array().unwrap().len(), 2);
     assert_eq!(pose["run"]["num_views"], 2);
     let _ = std::fs::remove_dir_all(&tmp);
@@ -635,10 +681,10 @@ fn infer_cli_two_view_ycb_video() {
 /// the GT relative pose); a pose 1 cm / 5° off must score clearly worse.
 #[test]
 fn alignment_scores_gt_meshes_on_real_depth() {
-    use recon::math::{axis_angle, Similarity as Sim64};
     use recon::dataset::ply::read_ply;
     use recon::engine::pose_fit::{score_candidate, AlignOptions, Surface, ViewPoints};
     use recon::geometry::pose::pose_to_similarity;
+    use recon::math::{axis_angle, Similarity as Sim64};
     let Some(root) = realdata() else { return };
     let ycb = root.join("ycbv_video_oprb");
     let seq = ycb.join("0001");
@@ -674,8 +720,13 @@ fn alignment_scores_gt_meshes_on_real_depth() {
         let nz = Normaliser::fit(&p1, 0.05).unwrap();
         let placed = pose_to_similarity(&pose_to_camera(&pose_to_normalised(&gt, &nz), &nz));
         let rel = ycb_rel_pose(&seq, 1, 5, k);
-        let to1 = Sim64 { rotation: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])), translation: [rel[0][3], rel[1][3], rel[2][3]], scale: 1.0 };
-        let views = [ViewPoints { points: p1, to_anchor: Sim64::identity(), depth: None }, ViewPoints { points: p5, to_anchor: to1, depth: None }];
+        let to1 = Sim64 {
+            rotation: std::array::from_fn(|a| std::array::from_fn(|b| rel[a][b])),
+            translation: [rel[0][3], rel[1][3], rel[2][3]],
+            scale: 1.0,
+        };
+        let views =
+            [ViewPoints { points: p1, to_anchor: Sim64::identity(), depth: None }, ViewPoints { points: p5, to_anchor: to1, depth: None }];
         let good = score_candidate(&surface, &placed, 0, &views, &opts);
         let off_pose = Sim64 { translation: [placed.translation[0] + 0.01, placed.translation[1], placed.translation[2]], ..placed }
             .compose(&Sim64 { rotation: axis_angle([0.0, 0.0, 1.0], 5f64.to_radians()), translation: [0.0; 3], scale: 1.0 });

@@ -5,8 +5,8 @@
 //! Python-backed checks skip with a printed reason when python3 or the
 //! package is missing, unless RECON_REQUIRE_PYTHON_TESTS=1 (CI), where they fail.
 
-use recon::mesh::Mesh;
 use recon::export::ply::{save_mesh_ply, PlyOptions};
+use recon::mesh::Mesh;
 use recon::sim::materials::MaterialTable;
 use recon::sim::scene_file::SceneFile;
 use recon::sim::{build_scene, write_outputs, SceneOptions, MARKER};
@@ -24,7 +24,20 @@ fn box_mesh(h: [f32; 3]) -> Mesh {
     let vertices = (0..8)
         .map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }])
         .collect();
-    let faces = vec![[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+    let faces = vec![
+        [0, 2, 1],
+        [1, 2, 3],
+        [4, 5, 6],
+        [5, 7, 6],
+        [0, 1, 4],
+        [1, 5, 4],
+        [2, 6, 3],
+        [3, 6, 7],
+        [0, 4, 2],
+        [2, 4, 6],
+        [1, 3, 5],
+        [3, 7, 5],
+    ];
     Mesh { vertices, faces, vertex_attrs: None }
 }
 
@@ -141,7 +154,17 @@ fn resting_scene_stays_put_and_exports_load_in_consumers() {
     let out = dir.join("out");
     let exe = env!("CARGO_BIN_EXE_recon");
     let o = Command::new(exe)
-        .args(["scene", "--input", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "convex", "--vhacd-resolution", "32"])
+        .args([
+            "scene",
+            "--input",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--collision",
+            "convex",
+            "--vhacd-resolution",
+            "32",
+        ])
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
@@ -162,7 +185,17 @@ fn resting_scene_stays_put_and_exports_load_in_consumers() {
     // 0.06 × 0.04 × 0.03 m at the food_box density.
     assert!((objs[0]["physics"]["mass_kg"].as_f64().unwrap() - 72e-6 * 250.0).abs() < 1e-6);
     assert_eq!(objs[1]["physics"]["mass_kg"].as_f64().unwrap(), 0.35);
-    for f in ["scene.json", "scene.input.json", "scene.xml", "scene.usda", "scene.glb", "urdf/scene.urdf", "urdf/cup.urdf", "meshes/cup/visual.obj", "timings.json"] {
+    for f in [
+        "scene.json",
+        "scene.input.json",
+        "scene.xml",
+        "scene.usda",
+        "scene.glb",
+        "urdf/scene.urdf",
+        "urdf/cup.urdf",
+        "meshes/cup/visual.obj",
+        "timings.json",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
     // The settled scene file is itself a valid input.
@@ -226,7 +259,11 @@ fn overlapping_objects_depenetrate_and_output_is_deterministic() {
     assert_eq!(fa, fb);
     assert!(fa.len() > 10);
     for f in &fa {
-        assert!(std::fs::read(dir.join("a").join(f)).unwrap() == std::fs::read(dir.join("b").join(f)).unwrap(), "{} differs between runs", f.display());
+        assert!(
+            std::fs::read(dir.join("a").join(f)).unwrap() == std::fs::read(dir.join("b").join(f)).unwrap(),
+            "{} differs between runs",
+            f.display()
+        );
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -301,7 +338,8 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
         std::fs::create_dir_all(infer.join(label)).unwrap();
         write_ply(&placed, &infer.join(label).join("mesh.ply"));
         // pose.json records the frame recon infer read; recon scene finds the depth through it.
-        std::fs::write(infer.join(label).join("pose.json"), serde_json::json!({"views": [{"view": 1, "frame": color}]}).to_string()).unwrap();
+        std::fs::write(infer.join(label).join("pose.json"), serde_json::json!({"views": [{"view": 1, "frame": color}]}).to_string())
+            .unwrap();
         // Paths as recon infer writes them (relative to wherever it ran).
         entries.push(serde_json::json!({"object": label, "pose": format!("elsewhere/{label}/pose.json"), "mesh_ply": format!("elsewhere/{label}/mesh.ply")}));
     }

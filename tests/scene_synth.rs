@@ -82,8 +82,7 @@ fn synth_scene_settles_at_gt_and_depenetrates_when_perturbed() {
     // 2. Perturbed: every object 3 mm into the table, and the closest pair
     // pushed 5 mm into each other (measured on their collision geometry).
     let table = MaterialTable::builtin();
-    let (mut scene, _) =
-        recon::sim::inputs::scene_from_bop(&scene_dir, None, &table, &PlaneFitOptions::default()).unwrap();
+    let (mut scene, _) = recon::sim::inputs::scene_from_bop(&scene_dir, None, &table, &PlaneFitOptions::default()).unwrap();
     let mut opts = SceneOptions::default();
     opts.collision_opts.vhacd.resolution = 32;
     opts.collision_opts.vhacd.max_convex_hulls = 8;
@@ -129,7 +128,14 @@ fn synth_scene_settles_at_gt_and_depenetrates_when_perturbed() {
         moved.pose.translation[a] += push * dir_ij[a];
     }
     let depth = -body_distance(&bodies[i], &moved).unwrap();
-    println!("perturbation: all objects 3 mm down; {} pushed {:.1} mm towards {} (gap was {:.2} mm): overlap {:.2} mm", bodies[j].name, push * 1e3, bodies[i].name, gap * 1e3, depth * 1e3);
+    println!(
+        "perturbation: all objects 3 mm down; {} pushed {:.1} mm towards {} (gap was {:.2} mm): overlap {:.2} mm",
+        bodies[j].name,
+        push * 1e3,
+        bodies[i].name,
+        gap * 1e3,
+        depth * 1e3
+    );
     assert!(depth > 0.003, "the pair must interpenetrate by several mm, got {depth}");
     let perturbed = dir.join("perturbed.json");
     std::fs::write(&perturbed, scene.to_json().unwrap()).unwrap();

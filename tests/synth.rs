@@ -2,10 +2,10 @@
 //! the BOP round trip through the evaluator's reader, geometric consistency of depth,
 //! masks, intrinsics and GT poses, parts mode, and the CLI.
 
-use recon::dataset::bop::load_dataset;
 use parry3d::math::Vector;
 use parry3d::query::PointQuery;
 use parry3d::shape::TriMesh as ParryMesh;
+use recon::dataset::bop::load_dataset;
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions, MARKER};
 use serde_json::Value;
@@ -53,7 +53,17 @@ fn same_bytes_for_a_seed_whatever_the_thread_count() {
     let fa = files(&a);
     assert_eq!(fa, files(&b), "1 thread vs the default pool");
     // Expected layout (2 scenes × 2 views).
-    for f in ["camera.json", MARKER, "models/models_info.json", "test/000000/scene_gt.json", "test/000001/rgb/000001.png", "test/000001/depth/000001.png", "test/000000/mask/000001_000000.png", "test/000000/mask_visib/000000_000000.png", "test/000000/scene_meta.json"] {
+    for f in [
+        "camera.json",
+        MARKER,
+        "models/models_info.json",
+        "test/000000/scene_gt.json",
+        "test/000001/rgb/000001.png",
+        "test/000001/depth/000001.png",
+        "test/000000/mask/000001_000000.png",
+        "test/000000/mask_visib/000000_000000.png",
+        "test/000000/scene_meta.json",
+    ] {
         assert!(fa.contains_key(f), "missing {f}");
     }
     // A different seed gives a different dataset.
@@ -160,7 +170,8 @@ fn parts_mode_writes_each_part_with_its_pose() {
                 let b = inst.iter().position(|j| j["object_index"] == i["object_index"] && j["part"] == "body").unwrap();
                 let rel = |x: &Value| -> ([[f64; 3]; 3], [f64; 3]) {
                     let r: Vec<f64> = x["part_pose_in_object"]["R"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
-                    let t: Vec<f64> = x["part_pose_in_object"]["t_mm"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() / 1000.0).collect();
+                    let t: Vec<f64> =
+                        x["part_pose_in_object"]["t_mm"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() / 1000.0).collect();
                     ([[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]], [t[0], t[1], t[2]])
                 };
                 // Parts are translated copies in the object frame, so in the camera
@@ -226,8 +237,12 @@ fn cli_writes_a_dataset_and_reports_bad_sensor_files() {
     let marker = json(&out.join(MARKER));
     assert_eq!(marker["sensor_model"]["name"], "gaussian");
     let bad = tmp("badsensor.json");
-    std::fs::write(&bad, r#"{"version": 1, "base": {"kind": "stereo", "focal_px": 0, "baseline_m": 0.05, "disparity_sigma_px": 0.1}}"#).unwrap();
-    let o = std::process::Command::new(exe).args(["synth", "--out", tmp("cli2").to_str().unwrap(), "--sensor", bad.to_str().unwrap()]).output().unwrap();
+    std::fs::write(&bad, r#"{"version": 1, "base": {"kind": "stereo", "focal_px": 0, "baseline_m": 0.05, "disparity_sigma_px": 0.1}}"#)
+        .unwrap();
+    let o = std::process::Command::new(exe)
+        .args(["synth", "--out", tmp("cli2").to_str().unwrap(), "--sensor", bad.to_str().unwrap()])
+        .output()
+        .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(err.contains("badsensor.json") && err.contains("base"), "{err}");
@@ -240,9 +255,9 @@ fn cli_writes_a_dataset_and_reports_bad_sensor_files() {
 #[test]
 fn renders_real_ycbv_objects_where_the_camera_saw_them() {
     use recon::dataset::bop::load_ycbv;
-    use recon::math::Similarity;
-    use recon::dataset::ply::read_ply;
     use recon::dataset::frame::Intrinsics;
+    use recon::dataset::ply::read_ply;
+    use recon::math::Similarity;
     use recon::render::render;
     use recon::synth::{Camera, Instance, RenderMesh, RenderOptions};
     let Some(root) = recon::dataset::shared_dataset("ycbv_video_oprb") else {
@@ -266,11 +281,12 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
         .collect();
     let mut checked = 0;
     for f in ds.frames.iter().filter(|f| f.scene == "0001") {
-        let insts: Vec<Instance> = f
-            .gt
-            .iter()
-            .filter_map(|g| meshes.iter().find(|(c, _)| *c == g.obj_id).map(|(c, m)| Instance::new(m, Similarity::rigid(g.r, g.t), *c as i64)))
-            .collect();
+        let insts: Vec<Instance> =
+            f.gt.iter()
+                .filter_map(|g| {
+                    meshes.iter().find(|(c, _)| *c == g.obj_id).map(|(c, m)| Instance::new(m, Similarity::rigid(g.r, g.t), *c as i64))
+                })
+                .collect();
         assert_eq!(insts.len(), 2);
         let k = Intrinsics { fx: f.k[0][0], fy: f.k[1][1], cx: f.k[0][2], cy: f.k[1][2] };
         let r = render(&insts, &Camera::new(640, 480, k), &RenderOptions::default()).unwrap();
@@ -289,7 +305,14 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
                 .collect();
             res.sort_by(|a, b| a.partial_cmp(b).unwrap());
             let median = res[res.len() / 2];
-            eprintln!("frame {} class {cls}: {:.3} of {} labelled px covered, median residual {:.4} m over {} px", f.frame, covered, labelled.len(), median, res.len());
+            eprintln!(
+                "frame {} class {cls}: {:.3} of {} labelled px covered, median residual {:.4} m over {} px",
+                f.frame,
+                covered,
+                labelled.len(),
+                median,
+                res.len()
+            );
             assert!(covered > 0.9, "class {cls}: only {covered} of the labelled pixels are rendered");
             assert!(median.abs() < 0.01, "class {cls}: median depth residual {median} m");
             checked += 1;

@@ -122,7 +122,9 @@ fn slat_autoencoder_smoke_training_reduces_loss() {
         assert!(log.contains(term), "{term} missing from the log");
     }
     let arch = recon::model::config::RecGenConfig::load(&dir.join("recgen-micro.json")).unwrap();
-    for (key, spec) in [("slat_dec_mesh", &arch.slat_dec_mesh), ("slat_dec_gs", &arch.slat_dec_gs), ("slat_encoder", arch.slat_encoder.as_ref().unwrap())] {
+    for (key, spec) in
+        [("slat_dec_mesh", &arch.slat_dec_mesh), ("slat_dec_gs", &arch.slat_dec_gs), ("slat_encoder", arch.slat_encoder.as_ref().unwrap())]
+    {
         let t = tensors(&dir.join(format!("slat/{key}.safetensors")));
         let cfg = recon::weights::registry::ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
         let want = recon::weights::registry::expected_tensors(&cfg, key).unwrap();
@@ -284,7 +286,10 @@ fn write_toy_bop(src: &ToySource, root: &Path) -> PathBuf {
             let m: Vec<u8> = v.mask.iter().map(|&b| if b { 255 } else { 0 }).collect();
             image::GrayImage::from_raw(w, h, m).unwrap().save(scene.join(format!("mask_visib/{fi:06}_000000.png"))).unwrap();
             let k = f.intrinsics;
-            cams.insert(fi.to_string(), serde_json::json!({"cam_K": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0], "depth_scale": 0.1}));
+            cams.insert(
+                fi.to_string(),
+                serde_json::json!({"cam_K": [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0], "depth_scale": 0.1}),
+            );
             let r: Vec<f64> = v.r.iter().flatten().copied().collect();
             gts.insert(fi.to_string(), serde_json::json!([{"cam_R_m2c": r, "cam_t_m2c": v.t.map(|x| x * 1000.0), "obj_id": s.model + 1}]));
             infos.insert(fi.to_string(), serde_json::json!([{"visib_fract": 0.9, "bbox_visib": [0, 0, 10, 10]}]));
@@ -299,7 +304,8 @@ fn write_toy_bop(src: &ToySource, root: &Path) -> PathBuf {
 #[test]
 fn bop_source_reads_a_bop_folder() {
     let dir = workdir("bop");
-    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
+    let src =
+        ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
     let models = write_toy_bop(&src, &dir.join("data"));
     let bop = BopSource::open(&dir.join("data/train"), &models, &BopOptions::default()).unwrap();
     assert_eq!(bop.num_samples(), 4, "{}", bop.describe());
@@ -336,7 +342,8 @@ fn bop_source_reads_a_bop_folder() {
 #[test]
 fn cli_bare_resume_means_latest_checkpoint() {
     let dir = workdir("cli-resume");
-    let src = ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
+    let src =
+        ToySource::new(ToyConfig { models: 2, samples: 2, width: 96, height: 72, seed: 3, occluders: false, second_view: true }).unwrap();
     write_toy_bop(&src, &dir.join("data"));
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["train", "ss-vae", "--data"])

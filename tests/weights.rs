@@ -197,7 +197,10 @@ fn verify_table_on_a_directory() {
         licence: None,
         notes: vec![],
         files: vec![
-            serde_json::from_value(serde_json::json!({"path": p.file_name().unwrap().to_str().unwrap(), "kind": "safetensors", "tensors": specs})).unwrap(),
+            serde_json::from_value(
+                serde_json::json!({"path": p.file_name().unwrap().to_str().unwrap(), "kind": "safetensors", "tensors": specs}),
+            )
+            .unwrap(),
             serde_json::from_value(serde_json::json!({"path": "dinov2_tiny.json", "kind": "json"})).unwrap(),
             serde_json::from_value(serde_json::json!({"path": "absent.safetensors", "kind": "safetensors", "tensors_note": "x"})).unwrap(),
         ],

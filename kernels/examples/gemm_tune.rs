@@ -30,7 +30,12 @@ fn main() {
                 dt = dt.min(t.elapsed().as_secs_f64());
             }
             let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
-            println!("{} K {k} N {n} mc {mc:4} kc {kc:4}: {:6.1} GFLOP/s  load {}", fmt.name(), 2.0 * (m * n * k) as f64 / dt / 1e9, load.split_whitespace().next().unwrap_or(""));
+            println!(
+                "{} K {k} N {n} mc {mc:4} kc {kc:4}: {:6.1} GFLOP/s  load {}",
+                fmt.name(),
+                2.0 * (m * n * k) as f64 / dt / 1e9,
+                load.split_whitespace().next().unwrap_or("")
+            );
         }
     }
 }

@@ -95,7 +95,15 @@ fn rows_needed(l: &HeadLayout, rows: usize, heads: usize, d: usize) -> usize {
 /// `out[q rows] = softmax(scale·Q·Kᵀ)·V` per head and segment. Rows of `out`
 /// outside every segment are left untouched; a segment with no keys writes
 /// zeros. Segments must not share query rows.
-pub fn flash_attention(isa: Isa, spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], segments: &[Segment], out: &mut [f32]) -> Result<(), String> {
+pub fn flash_attention(
+    isa: Isa,
+    spec: &AttnSpec,
+    q: &[f32],
+    k: &[f32],
+    v: &[f32],
+    segments: &[Segment],
+    out: &mut [f32],
+) -> Result<(), String> {
     let (h, d) = (spec.heads, spec.head_dim);
     if !isa.supported() {
         return Err(format!("attention: instruction set {} is not supported by this CPU", isa.name()));
@@ -227,7 +235,17 @@ fn buf<T: Copy>(slot: &mut Option<AlignedBuf<T>>, len: usize) -> &mut AlignedBuf
 /// `out` must be valid for the rows and head written, with no other writer;
 /// `pack` is this (segment, head)'s output of [`pack_kv`].
 #[allow(clippy::too_many_arguments)]
-unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], pack: &[u32], qr: Range<usize>, lk: usize, hh: usize, out: SendPtr, scr: &mut Scratch) {
+unsafe fn attend(
+    isa: Isa,
+    spec: &AttnSpec,
+    q: &[f32],
+    pack: &[u32],
+    qr: Range<usize>,
+    lk: usize,
+    hh: usize,
+    out: SendPtr,
+    scr: &mut Scratch,
+) {
     let d = spec.head_dim;
     let fmt = spec.precision.format();
     let afmt = a_format(isa, fmt);
@@ -267,7 +285,18 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], pack: &[u32], qr: Range<u
             for t in 0..nk.div_ceil(MR) {
                 let tile = bi * (BC / MR) + t;
                 let rows = MR.min(nk - t * MR);
-                microkernel(isa, fmt, dp, kpack.as_ptr().add(tile * kw), qpanel.as_ptr() as *const u8, sbuf.as_mut_ptr().add(t * MR * NR), NR, rows, NR, false);
+                microkernel(
+                    isa,
+                    fmt,
+                    dp,
+                    kpack.as_ptr().add(tile * kw),
+                    qpanel.as_ptr() as *const u8,
+                    sbuf.as_mut_ptr().add(t * MR * NR),
+                    NR,
+                    rows,
+                    NR,
+                    false,
+                );
             }
             softmax_block(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha);
             // Rescale the running output by exp(m_old − m_new) per query
@@ -287,7 +316,18 @@ unsafe fn attend(isa: Isa, spec: &AttnSpec, q: &[f32], pack: &[u32], qr: Range<u
             };
             for et in 0..etiles {
                 let rows = MR.min(d - et * MR);
-                microkernel(isa, fmt, nkp, vpack.as_ptr().add((bi * etiles + et) * vw), bptr, obuf.as_mut_ptr().add(et * MR * NR), NR, rows, NR, true);
+                microkernel(
+                    isa,
+                    fmt,
+                    nkp,
+                    vpack.as_ptr().add((bi * etiles + et) * vw),
+                    bptr,
+                    obuf.as_mut_ptr().add(et * MR * NR),
+                    NR,
+                    rows,
+                    NR,
+                    true,
+                );
             }
         }
         for j in 0..nq {
@@ -411,11 +451,7 @@ pub fn attention_reference(spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], seg
                     continue;
                 }
                 let qv: Vec<f64> = (0..d).map(|e| r(q[spec.q.at(qi, hh, d) + e] * spec.scale) as f64).collect();
-                let scores: Vec<f64> = s
-                    .kv
-                    .clone()
-                    .map(|ki| (0..d).map(|e| qv[e] * r(k[spec.k.at(ki, hh, d) + e]) as f64).sum())
-                    .collect();
+                let scores: Vec<f64> = s.kv.clone().map(|ki| (0..d).map(|e| qv[e] * r(k[spec.k.at(ki, hh, d) + e]) as f64).sum()).collect();
                 let mx = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
                 let p: Vec<f64> = scores.iter().map(|x| (x - mx).exp()).collect();
                 let sum: f64 = p.iter().sum();

@@ -107,7 +107,14 @@ pub fn conv3d(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, 
 }
 
 /// im2col + GEMM over bounded chunks of output rows; any `k`/`pad`. Same contract as [`conv3d`].
-pub fn conv3d_im2col(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+pub fn conv3d_im2col(
+    x: &[f32],
+    s: &Conv3dShape,
+    weight: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    accumulate: bool,
+) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
     let (od, oh, ow) = s.out_dims().expect("checked");
     let kk = s.cin * s.k * s.k * s.k;
@@ -242,7 +249,14 @@ const WINO_BUDGET: usize = 8 << 20;
 /// GEMMs. Weights are transformed once per call (a transient `64·Cout·Cin`
 /// buffer); tiles are processed in chunks bounded by `WINO_BUDGET`. Same contract as
 /// [`conv3d`], restricted to `k = 3, pad = 1`.
-pub fn conv3d_winograd(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+pub fn conv3d_winograd(
+    x: &[f32],
+    s: &Conv3dShape,
+    weight: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    accumulate: bool,
+) -> Result<(), String> {
     let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 1024);
     winograd_chunked(x, s, weight, bias, out, accumulate, tiles_per_chunk)
 }
@@ -626,7 +640,9 @@ mod tests {
     #[test]
     fn winograd_matches_reference() {
         // (batch, cin, cout, d, h, w): odd sizes exercise the cropped edge tiles.
-        for (i, &(batch, cin, cout, d, h, w)) in [(1, 3, 2, 4, 4, 4), (2, 5, 7, 3, 5, 6), (1, 70, 66, 5, 3, 7), (1, 4, 3, 1, 2, 1)].iter().enumerate() {
+        for (i, &(batch, cin, cout, d, h, w)) in
+            [(1, 3, 2, 4, 4, 4), (2, 5, 7, 3, 5, 6), (1, 70, 66, 5, 3, 7), (1, 4, 3, 1, 2, 1)].iter().enumerate()
+        {
             let s = Conv3dShape { batch, cin, cout, d, h, w, k: 3, pad: 1 };
             let x = rand_vec(s.input_len(), 300 + i as u64);
             let wt = rand_vec(s.weight_len(), 400 + i as u64);

@@ -365,7 +365,17 @@ pub(crate) unsafe fn microkernel(
 }
 
 #[allow(clippy::too_many_arguments)]
-unsafe fn portable_kernel(format: WeightFormat, kc: usize, a: *const f32, b: *const u8, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+unsafe fn portable_kernel(
+    format: WeightFormat,
+    kc: usize,
+    a: *const f32,
+    b: *const u8,
+    c: *mut f32,
+    ldc: usize,
+    rows: usize,
+    cols: usize,
+    load: bool,
+) {
     let mut acc = [[0f32; NR]; MR];
     let mut brow = [0f32; NR];
     for k in 0..kc {
@@ -710,7 +720,18 @@ mod tests {
 
     #[test]
     fn every_isa_and_format_matches_reference_on_awkward_shapes() {
-        let shapes = [(1, 1, 1), (1, 7, 1), (3, 1, 5), (14, 32, 32), (15, 33, 33), (29, 64, 65), (13, 257, 31), (337, 70, 40), (2, 1030, 70), (50, 3, 97)];
+        let shapes = [
+            (1, 1, 1),
+            (1, 7, 1),
+            (3, 1, 5),
+            (14, 32, 32),
+            (15, 33, 33),
+            (29, 64, 65),
+            (13, 257, 31),
+            (337, 70, 40),
+            (2, 1030, 70),
+            (50, 3, 97),
+        ];
         for isa in Isa::all_supported() {
             for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
                 for (s, &(m, k, n)) in shapes.iter().enumerate() {

@@ -245,7 +245,8 @@ mod tests {
                             for i in 0..k {
                                 for j in 0..k {
                                     for l in 0..k {
-                                        let (px, py, pz) = (xx as isize + i as isize - r, yy as isize + j as isize - r, zz as isize + l as isize - r);
+                                        let (px, py, pz) =
+                                            (xx as isize + i as isize - r, yy as isize + j as isize - r, zz as isize + l as isize - r);
                                         if px < 0 || py < 0 || pz < 0 || px >= s as isize || py >= s as isize || pz >= s as isize {
                                             continue;
                                         }

@@ -30,22 +30,53 @@ fn what(target: Target) -> &'static str {
 
 /// One sentence: what changes, by how much, along what, and the likely physical cause.
 /// `range` is the covariate's observed [lo, hi]; `unit` the residual's unit ("m" for depth).
-pub fn describe(target: Target, covariate: &str, form: &Form, by: Option<&str>, range: (f64, f64), unit: &str, depth_sensor: bool) -> String {
+pub fn describe(
+    target: Target,
+    covariate: &str,
+    form: &Form,
+    by: Option<&str>,
+    range: (f64, f64),
+    unit: &str,
+    depth_sensor: bool,
+) -> String {
     let (lo, hi) = range;
     let shape = match form {
-        Form::Step { threshold, delta } => format!("{} changes by {} where {covariate} > {}", what(target), amount(target, *delta, unit), fmt_num(*threshold)),
+        Form::Step { threshold, delta } => {
+            format!("{} changes by {} where {covariate} > {}", what(target), amount(target, *delta, unit), fmt_num(*threshold))
+        }
         Form::Group { values } => {
             let (mut mn, mut mx) = (0.0f64, 0.0f64);
             for v in values.values() {
                 mn = mn.min(*v);
                 mx = mx.max(*v);
             }
-            format!("{} differs between {covariate} values (spread {} across {} groups)", what(target), amount(target, mx - mn, unit).trim_start_matches('+'), values.len() + 1)
+            format!(
+                "{} differs between {covariate} values (spread {} across {} groups)",
+                what(target),
+                amount(target, mx - mn, unit).trim_start_matches('+'),
+                values.len() + 1
+            )
         }
         _ => {
             let (d, mono) = span(form, lo, hi);
-            let kind = if matches!(form, Form::Quadratic { .. }) { if mono { "curving" } else { "non-monotone (quadratic)" } } else { "linearly" };
-            format!("{} {} {} with {covariate}: {} from {covariate} = {} to {}", what(target), if d >= 0.0 { "grows" } else { "falls" }, kind, amount(target, d, unit), fmt_num(lo), fmt_num(hi))
+            let kind = if matches!(form, Form::Quadratic { .. }) {
+                if mono {
+                    "curving"
+                } else {
+                    "non-monotone (quadratic)"
+                }
+            } else {
+                "linearly"
+            };
+            format!(
+                "{} {} {} with {covariate}: {} from {covariate} = {} to {}",
+                what(target),
+                if d >= 0.0 { "grows" } else { "falls" },
+                kind,
+                amount(target, d, unit),
+                fmt_num(lo),
+                fmt_num(hi)
+            )
         }
     };
     let shape = match by {

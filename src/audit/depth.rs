@@ -103,14 +103,21 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
     if !ycbv {
         for (id, m) in &ds.models {
             if m.mesh.faces.is_empty() {
-                return Err(Error::input(m.path.display().to_string(), format!("model {id} has no faces: the depth audit renders triangle meshes")));
+                return Err(Error::input(
+                    m.path.display().to_string(),
+                    format!("model {id} has no faces: the depth audit renders triangle meshes"),
+                ));
             }
             meshes.insert(*id, crate::synth::RenderMesh::from_trimesh(&m.mesh, &m.path.display().to_string())?);
         }
     }
     let n = opts.max_frames.unwrap_or(usize::MAX).min(ds.frames.len());
     let mut out = Collected { pixels: vec![], frames: n, object_pixels: 0, simulation: String::new(), frame_names: vec![] };
-    out.simulation = if ycbv { "YCB-Video GT rendering (vertmap of -meta.mat) posed by the GT; normals from neighbouring pixels".into() } else { "GT meshes ray-cast at the GT poses (synth renderer)".into() };
+    out.simulation = if ycbv {
+        "YCB-Video GT rendering (vertmap of -meta.mat) posed by the GT; normals from neighbouring pixels".into()
+    } else {
+        "GT meshes ray-cast at the GT poses (synth renderer)".into()
+    };
     for (fi, f) in ds.frames.iter().take(n).enumerate() {
         let (rgb_path, depth_path) = if ycbv {
             let d = ds.root.join(&f.scene);
@@ -131,11 +138,10 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
             let meta = ds.root.join(&f.scene).join(format!("{:06}-meta.mat", f.frame));
             ycbv_rendering(&meta, f, k, w, h, &rgb)?
         } else {
-            let insts: Vec<crate::synth::Instance> = f
-                .gt
-                .iter()
-                .map(|g| crate::synth::Instance::new(&meshes[&g.obj_id], crate::math::Similarity::rigid(g.r, g.t), g.obj_id as i64))
-                .collect();
+            let insts: Vec<crate::synth::Instance> =
+                f.gt.iter()
+                    .map(|g| crate::synth::Instance::new(&meshes[&g.obj_id], crate::math::Similarity::rigid(g.r, g.t), g.obj_id as i64))
+                    .collect();
             crate::render::render(&insts, &crate::synth::Camera::new(w, h, k), &Default::default())?
         };
         let covs = model.fattened(&rendered.covariates_full(fi as i64, Some(&rgb), None), w, h);
@@ -165,7 +171,14 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
 
 /// A `Rendered` view of a YCB-Video frame from its `vertmap` (model-frame coordinates of
 /// every object pixel, rendered by the dataset authors from the GT) and `label` map.
-fn ycbv_rendering(meta: &std::path::Path, f: &crate::dataset::bop::Frame, k: crate::dataset::frame::Intrinsics, w: usize, h: usize, rgb: &[u8]) -> crate::Result<crate::synth::Rendered> {
+fn ycbv_rendering(
+    meta: &std::path::Path,
+    f: &crate::dataset::bop::Frame,
+    k: crate::dataset::frame::Intrinsics,
+    w: usize,
+    h: usize,
+    rgb: &[u8],
+) -> crate::Result<crate::synth::Rendered> {
     use crate::Error;
     let file = meta.display().to_string();
     let mat = crate::dataset::matv5::MatFile::open(meta)?;
@@ -174,9 +187,14 @@ fn ycbv_rendering(meta: &std::path::Path, f: &crate::dataset::bop::Frame, k: cra
         return Err(Error::config(&file, "vertmap", format!("dims {:?}, expected [{h}, {w}, 3]", vm.dims)));
     }
     let label_path = meta.with_file_name(meta.file_name().and_then(|s| s.to_str()).unwrap_or("").replace("-meta.mat", "-label.png"));
-    let label = image::open(&label_path).map_err(|e| Error::input(label_path.display().to_string(), format!("cannot read label image: {e}")))?.to_luma8();
+    let label = image::open(&label_path)
+        .map_err(|e| Error::input(label_path.display().to_string(), format!("cannot read label image: {e}")))?
+        .to_luma8();
     if (label.width() as usize, label.height() as usize) != (w, h) {
-        return Err(Error::input(label_path.display().to_string(), format!("label is {}×{}, expected {w}×{h}", label.width(), label.height())));
+        return Err(Error::input(
+            label_path.display().to_string(),
+            format!("label is {}×{}, expected {w}×{h}", label.width(), label.height()),
+        ));
     }
     let n = w * h;
     let mut pts = vec![[0.0f64; 3]; n];

@@ -620,7 +620,8 @@ pub fn fit_gauss(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
     // One pass: log-likelihood, the scoring system and the EM outlier update.
     let eval = |tb: &[f64], ts: &[f64], pi: f64| -> GaussPass {
         let mix = Mix::new(ctx, pi);
-        let mut ps = GaussPass { ll: 0.0, ab: vec![0.0; kb * kb], bb: vec![0.0; kb], as_: vec![0.0; ks * ks], bs: vec![0.0; ks], outl: 0.0 };
+        let mut ps =
+            GaussPass { ll: 0.0, ab: vec![0.0; kb * kb], bb: vec![0.0; kb], as_: vec![0.0; ks * ks], bs: vec![0.0; ks], outl: 0.0 };
         let mut jac = vec![0.0; ks];
         for (j, &i) in rows.iter().enumerate() {
             let xbr = &xb[j * kb..(j + 1) * kb];

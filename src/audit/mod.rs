@@ -70,7 +70,10 @@ fn run(table: &ResidualTable, opts: &SearchOptions, kind: &str, model: Option<&S
         .map(|(i, f)| {
             let col = table.column(&f.covariate).expect("finding column exists");
             let by = f.by.as_ref().map(|b| format!("_x_{b}")).unwrap_or_default();
-            (format!("finding{}_{}_{}_{}{by}.svg", i + 1, f.target, f.form, safe(&f.covariate)), report::finding_svg(&ctx, f, col, &built.before, &built.after, mm))
+            (
+                format!("finding{}_{}_{}_{}{by}.svg", i + 1, f.target, f.form, safe(&f.covariate)),
+                report::finding_svg(&ctx, f, col, &built.before, &built.after, mm),
+            )
         })
         .collect();
     Ok(Audit { report: built.report, extended, plots })
@@ -91,7 +94,10 @@ pub fn write_outputs(audit: &mut Audit, out: &Path, json: Option<&Path>) -> Resu
     if out.exists() {
         let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
         if !empty && !out.join(MARKER).exists() {
-            return Err(Error::input(out.display().to_string(), format!("output folder exists and is not a recon audit output (no {MARKER}); remove it or choose another --out")));
+            return Err(Error::input(
+                out.display().to_string(),
+                format!("output folder exists and is not a recon audit output (no {MARKER}); remove it or choose another --out"),
+            ));
         }
     }
     let staging = out.with_extension("partial");

@@ -228,8 +228,12 @@ fn params_json(form: &Form, se: &BTreeMap<String, f64>, ctx: &Ctx, col: usize) -
     let se_of = |k: &str| num(se.get(k).copied().unwrap_or(f64::NAN));
     match form {
         Form::Linear { slope } => (json!({"slope": slope}), json!({"slope": se_of("slope")})),
-        Form::Quadratic { linear, quadratic } => (json!({"linear": linear, "quadratic": quadratic}), json!({"linear": se_of("linear"), "quadratic": se_of("quadratic")})),
-        Form::Step { threshold, delta } => (json!({"threshold": threshold, "delta": delta}), json!({"threshold": se_of("threshold"), "delta": se_of("delta")})),
+        Form::Quadratic { linear, quadratic } => {
+            (json!({"linear": linear, "quadratic": quadratic}), json!({"linear": se_of("linear"), "quadratic": se_of("quadratic")}))
+        }
+        Form::Step { threshold, delta } => {
+            (json!({"threshold": threshold, "delta": delta}), json!({"threshold": se_of("threshold"), "delta": se_of("delta")}))
+        }
         Form::Group { values } => {
             let c = &ctx.table.columns[col];
             let label = |k: &String| k.parse::<i64>().map(|code| c.label(code)).unwrap_or_else(|_| k.clone());
@@ -288,7 +292,15 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         let (params, ses) = params_json(&form, se, ctx, ft.term.col);
         let cov = t.columns[ft.term.col].name.clone();
         let by = ft.term.by.map(|b| t.columns[b].name.clone());
-        let cause = crate::audit::cause::describe(ft.term.target, &cov, &form, by.as_deref(), col_range(ctx, ft.term.col), &t.value_unit, depth_sensor);
+        let cause = crate::audit::cause::describe(
+            ft.term.target,
+            &cov,
+            &form,
+            by.as_deref(),
+            col_range(ctx, ft.term.col),
+            &t.value_unit,
+            depth_sensor,
+        );
         let ev = &s.evidence;
         findings.push(Finding {
             target: ft.term.target.name().into(),
@@ -320,7 +332,11 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         "noise_error": num(base_m.noise_error.zip(after_m.noise_error).map(|(a, b)| a - b)),
         "missing_rate_error": num(base_m.missing_rate_error.zip(after_m.missing_rate_error).map(|(a, b)| a - b)),
     });
-    let split = if res.folds.k == t.n_units() { format!("leave-one-unit-out over {} units", res.folds.k) } else { format!("{} folds of shuffled units (seed {})", res.folds.k, opts.seed) };
+    let split = if res.folds.k == t.n_units() {
+        format!("leave-one-unit-out over {} units", res.folds.k)
+    } else {
+        format!("{} folds of shuffled units (seed {})", res.folds.k, opts.seed)
+    };
     let data = json!({
         "source": t.source, "rows": nrows, "valid": nvalid, "missing": nrows - nvalid,
         "units": t.n_units(), "unit_names": t.unit_names,
@@ -335,7 +351,9 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         "uncertainty": format!("bootstrap over units (frames): {} resamples of the units with replacement, every parameter refitted (step thresholds re-chosen)", opts.bootstrap),
         "max_findings": opts.max_findings, "interactions": opts.interactions,
     });
-    let gjson = |m: &BTreeMap<String, f64>| -> Value { m.iter().map(|(k, v)| (k.clone(), num(Some(*v)))).collect::<serde_json::Map<_, _>>().into() };
+    let gjson = |m: &BTreeMap<String, f64>| -> Value {
+        m.iter().map(|(k, v)| (k.clone(), num(Some(*v)))).collect::<serde_json::Map<_, _>>().into()
+    };
     let baseline = json!({
         "parameters": gjson(&globals(ctx, res.baseline.full())),
         "standard_errors": gjson(&unc_base.globals),
@@ -363,7 +381,18 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
         })
         .collect();
     Built {
-        report: Report { version: REPORT_VERSION, kind: kind.into(), data, method, input: input_m, baseline, findings, extended_model: None, after: after_v, rounds },
+        report: Report {
+            version: REPORT_VERSION,
+            kind: kind.into(),
+            data,
+            method,
+            input: input_m,
+            baseline,
+            findings,
+            extended_model: None,
+            after: after_v,
+            rounds,
+        },
         before,
         after,
     }
@@ -423,7 +452,13 @@ impl Report {
         let b = &self.baseline["heldout"];
         let a = &self.after["heldout"];
         let f = |x: &Value| x.as_f64().unwrap_or(f64::NAN);
-        s += &format!("held out, before → after: rmse {} → {}; robust sd {} → {}\n", v(f(&b["rmse"])), v(f(&a["rmse"])), v(f(&b["robust_sd"])), v(f(&a["robust_sd"])));
+        s += &format!(
+            "held out, before → after: rmse {} → {}; robust sd {} → {}\n",
+            v(f(&b["rmse"])),
+            v(f(&a["rmse"])),
+            v(f(&b["robust_sd"])),
+            v(f(&a["robust_sd"]))
+        );
         s += &format!(
             "  log-likelihood/row {:.4} → {:.4}; calibration errors: bias {} → {}, noise {} → {}, missing rate {:.4} → {:.4}\n",
             f(&b["loglik_per_row"]),
@@ -460,7 +495,13 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
     let nb = if ctx.table.columns[col].kind == ColumnKind::Categorical { 64 } else { 20 };
     let b = binned(ctx, col, &rows, before, target, nb);
     let a = binned(ctx, col, &rows, after, target, nb);
-    let scale = if mm && target != Target::Dropout { 1000.0 } else if target == Target::Dropout { 100.0 } else { 1.0 };
+    let scale = if mm && target != Target::Dropout {
+        1000.0
+    } else if target == Target::Dropout {
+        100.0
+    } else {
+        1.0
+    };
     let ylab = match target {
         Target::Bias => format!("median residual ({})", if mm { "mm" } else { "units" }),
         Target::Noise => format!("residual spread, robust sd ({})", if mm { "mm" } else { "units" }),
@@ -476,7 +517,8 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
             scatter.push((ctx.table.columns[col].values[i], y * scale));
         }
     }
-    let mut ys: Vec<f64> = b.iter().flat_map(|x| [x.1, x.2]).chain(a.iter().map(|x| x.2)).map(|y| y * scale).filter(|y| y.is_finite()).collect();
+    let mut ys: Vec<f64> =
+        b.iter().flat_map(|x| [x.1, x.2]).chain(a.iter().map(|x| x.2)).map(|y| y * scale).filter(|y| y.is_finite()).collect();
     let mut sc: Vec<f64> = scatter.iter().map(|p| p.1).collect();
     sc.sort_by(|x, y| x.total_cmp(y));
     if !sc.is_empty() {
@@ -492,7 +534,8 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
     let (y0, y1) = (y0 - pad, y1 + pad);
     let xs: Vec<f64> = b.iter().map(|x| x.0).collect();
     let (r0, r1) = col_range(ctx, col);
-    let (mut x0, mut x1) = (r0.min(xs.iter().cloned().fold(f64::INFINITY, f64::min)), r1.max(xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max)));
+    let (mut x0, mut x1) =
+        (r0.min(xs.iter().cloned().fold(f64::INFINITY, f64::min)), r1.max(xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max)));
     if !(x1 > x0) {
         x0 -= 1.0;
         x1 += 1.0;
@@ -512,7 +555,12 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
         s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>\n", ml - 5.0, sy(y) + 4.0, tick(y));
     }
     s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{}</text>\n", ml + pw / 2.0, h - 12.0, esc(&f.covariate));
-    s += &format!("<text x=\"16\" y=\"{}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {})\">{}</text>\n", mt + ph / 2.0, mt + ph / 2.0, esc(&ylab));
+    s += &format!(
+        "<text x=\"16\" y=\"{}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {})\">{}</text>\n",
+        mt + ph / 2.0,
+        mt + ph / 2.0,
+        esc(&ylab)
+    );
     for (x, y) in &scatter {
         if *x >= x0 && *x <= x1 && *y >= y0 && *y <= y1 {
             s += &format!("<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"1.2\" fill=\"#1f77b4\" fill-opacity=\"0.15\"/>\n", sx(*x), sy(*y));

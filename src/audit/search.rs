@@ -122,7 +122,14 @@ impl Folds {
             }
             max_folds
         };
-        let mut f = Folds { k, unit_fold, train_valid: vec![vec![]; k + 1], train_all: vec![vec![]; k + 1], test_valid: vec![vec![]; k], test_all: vec![vec![]; k] };
+        let mut f = Folds {
+            k,
+            unit_fold,
+            train_valid: vec![vec![]; k + 1],
+            train_all: vec![vec![]; k + 1],
+            test_valid: vec![vec![]; k],
+            test_all: vec![vec![]; k],
+        };
         for i in 0..t.len() {
             let fold = f.unit_fold[t.unit[i]];
             let valid = !t.missing(i);
@@ -367,7 +374,13 @@ fn flipped_t(g: &[f64], sumsq: f64, m: u64) -> f64 {
     }
     let var = (sumsq - k * mean * mean) / (k - 1.0);
     if var <= 1e-12 * sumsq.max(1e-300) {
-        return if mean > 0.0 { f64::INFINITY } else if mean < 0.0 { f64::NEG_INFINITY } else { 0.0 };
+        return if mean > 0.0 {
+            f64::INFINITY
+        } else if mean < 0.0 {
+            f64::NEG_INFINITY
+        } else {
+            0.0
+        };
     }
     mean / (var / k).sqrt()
 }
@@ -411,7 +424,8 @@ fn randomisation_test(results: &mut [(Evidence, Option<Cv>)], patterns: &[u64]) 
             (g, q)
         })
         .collect();
-    let maxes: Vec<f64> = patterns.par_iter().map(|&m| gains.iter().map(|(g, q)| flipped_t(g, *q, m)).fold(f64::NEG_INFINITY, f64::max)).collect();
+    let maxes: Vec<f64> =
+        patterns.par_iter().map(|&m| gains.iter().map(|(g, q)| flipped_t(g, *q, m)).fold(f64::NEG_INFINITY, f64::max)).collect();
     for (&i, (g, q)) in fitted.iter().zip(&gains) {
         let obs = results[i].0.gain_total;
         let p = flip_p(&results[i].0.gains, obs, patterns);
@@ -426,7 +440,8 @@ fn randomisation_test(results: &mut [(Evidence, Option<Cv>)], patterns: &[u64]) 
 fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &SearchOptions, round: usize) -> (Round, Option<(Selected, Cv)>) {
     let full = parent.full();
     let screened: Vec<(Term, f64)> = cands.par_iter().map(|&t| (t, screen(ctx, full, folds, t))).collect();
-    let mut results: Vec<(Evidence, Option<Cv>)> = screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
+    let mut results: Vec<(Evidence, Option<Cv>)> =
+        screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
     let patterns = sign_patterns(folds.k, opts.seed);
     randomisation_test(&mut results, &patterns);
     let m = cands.len();
@@ -434,7 +449,16 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
     if std::env::var("AUDIT_DEBUG").is_ok() {
         for (e, cv) in &results {
             if cv.is_some() {
-                eprintln!("DBG round {round} {:?} {} col{} total {:.1} p {:.4} padj {:.4} gains {:?}", e.term.target, e.term.form.name(), e.term.col, e.gain_total, e.p, e.p_adjusted, e.gains.iter().map(|g| (g * 10.0).round() / 10.0).collect::<Vec<_>>());
+                eprintln!(
+                    "DBG round {round} {:?} {} col{} total {:.1} p {:.4} padj {:.4} gains {:?}",
+                    e.term.target,
+                    e.term.form.name(),
+                    e.term.col,
+                    e.gain_total,
+                    e.p,
+                    e.p_adjusted,
+                    e.gains.iter().map(|g| (g * 10.0).round() / 10.0).collect::<Vec<_>>()
+                );
             }
         }
     }
@@ -578,7 +602,8 @@ pub fn bootstrap(ctx: &Ctx, full: &Model, b: usize, seed: u64) -> Uncertainty {
                     let mut parent = m.clone();
                     parent.terms.remove(j);
                     let rows = if is_gauss(term.target) { &valid } else { &all };
-                    if let Some((thr, _)) = crate::audit::fit::best_step(ctx, &working(ctx, &parent, term.target, rows), term.col, term.by) {
+                    if let Some((thr, _)) = crate::audit::fit::best_step(ctx, &working(ctx, &parent, term.target, rows), term.col, term.by)
+                    {
                         m.terms[j].threshold = thr;
                     }
                 }
@@ -592,8 +617,13 @@ pub fn bootstrap(ctx: &Ctx, full: &Model, b: usize, seed: u64) -> Uncertainty {
                     let rows = if is_gauss(ft.term.target) { &valid } else { &all };
                     let mut p = ft.params(ctx);
                     if ft.term.form == FormKind::Group {
-                        let present: std::collections::BTreeSet<i64> = rows.iter().map(|&i| ctx.value(ft.term.col, i).round() as i64).collect();
-                        p.retain(|k, _| k.strip_prefix("values.").and_then(|c| c.parse::<i64>().ok()).is_none_or(|c| present.contains(&c) && present.contains(&ft.reference)));
+                        let present: std::collections::BTreeSet<i64> =
+                            rows.iter().map(|&i| ctx.value(ft.term.col, i).round() as i64).collect();
+                        p.retain(|k, _| {
+                            k.strip_prefix("values.")
+                                .and_then(|c| c.parse::<i64>().ok())
+                                .is_none_or(|c| present.contains(&c) && present.contains(&ft.reference))
+                        });
                     }
                     p
                 })
@@ -609,12 +639,15 @@ pub fn bootstrap(ctx: &Ctx, full: &Model, b: usize, seed: u64) -> Uncertainty {
         let m = xs.iter().sum::<f64>() / n;
         (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
     };
-    let globals_se = globals(ctx, full).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.0.get(k).copied()).collect()))).collect();
+    let globals_se =
+        globals(ctx, full).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.0.get(k).copied()).collect()))).collect();
     let terms = full
         .terms
         .iter()
         .enumerate()
-        .map(|(j, ft)| ft.params(ctx).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.1[j].get(k).copied()).collect()))).collect())
+        .map(|(j, ft)| {
+            ft.params(ctx).keys().map(|k| (k.clone(), sd(samples.iter().filter_map(|s| s.1[j].get(k).copied()).collect()))).collect()
+        })
         .collect();
     Uncertainty { resamples: b, globals: globals_se, terms }
 }
@@ -668,19 +701,34 @@ pub(crate) mod tests {
         let m = SensorModel::stereo_default();
         let (r, _) = run(&m, &m, 11);
         let names: Vec<_> = r.selected.iter().map(|s| s.evidence.term).collect();
-        assert!(r.selected.is_empty(), "spurious findings {names:?}; rounds {:?}", r.rounds.iter().map(|x| x.top.first().map(|e| (e.term, e.p))).collect::<Vec<_>>());
+        assert!(
+            r.selected.is_empty(),
+            "spurious findings {names:?}; rounds {:?}",
+            r.rounds.iter().map(|x| x.top.first().map(|e| (e.term, e.p))).collect::<Vec<_>>()
+        );
     }
 
     #[test]
     fn finds_planted_quadratic_depth_bias() {
         let audited = SensorModel::stereo_default();
         let mut truth = audited.clone();
-        truth.effects.push(Effect { target: Target::Bias, covariate: Covariate::Depth, form: Form::Quadratic { linear: 0.0, quadratic: 0.004 }, by: None, cause: None });
+        truth.effects.push(Effect {
+            target: Target::Bias,
+            covariate: Covariate::Depth,
+            form: Form::Quadratic { linear: 0.0, quadratic: 0.004 },
+            by: None,
+            cause: None,
+        });
         let (r, t) = run(&audited, &truth, 12);
         let ctx = Ctx::new(&t, true);
         assert!(!r.selected.is_empty());
         let s = &r.selected[0].evidence.term;
-        assert_eq!((s.target, t.columns[s.col].name.as_str(), s.form), (Target::Bias, "depth", FormKind::Quadratic), "{:?}", r.rounds[0].top);
+        assert_eq!(
+            (s.target, t.columns[s.col].name.as_str(), s.form),
+            (Target::Bias, "depth", FormKind::Quadratic),
+            "{:?}",
+            r.rounds[0].top
+        );
         let f = r.final_cv.full().terms[0].form(&ctx);
         let full = r.final_cv.full();
         for z in [0.7, 1.0, 1.3, 1.6] {
@@ -721,7 +769,8 @@ pub(crate) mod tests {
         }
         let p = dir.join("masses.csv");
         std::fs::write(&p, csv).unwrap();
-        let (t, skipped) = crate::audit::table::ResidualTable::from_csv(&p, "weighed_kg", "annotated_kg", None, &[], &["id".to_string()]).unwrap();
+        let (t, skipped) =
+            crate::audit::table::ResidualTable::from_csv(&p, "weighed_kg", "annotated_kg", None, &[], &["id".to_string()]).unwrap();
         assert_eq!((skipped, t.n_units()), (0, 400));
         let a = crate::audit::audit_table(&t, &SearchOptions { bootstrap: 20, ..Default::default() }).unwrap();
         let r = &a.report;

@@ -86,7 +86,13 @@ impl ResidualTable {
     pub fn validate(&self) -> Result<()> {
         let n = self.len();
         let bad = |msg: String| Err(Error::input(self.source.clone(), msg));
-        for (name, len) in [("simulated", self.simulated.len()), ("sd_floor", self.sd_floor.len()), ("sd_offset", self.sd_offset.len()), ("p_offset", self.p_offset.len()), ("unit", self.unit.len())] {
+        for (name, len) in [
+            ("simulated", self.simulated.len()),
+            ("sd_floor", self.sd_floor.len()),
+            ("sd_offset", self.sd_offset.len()),
+            ("p_offset", self.p_offset.len()),
+            ("unit", self.unit.len()),
+        ] {
             if len != n {
                 return bad(format!("column `{name}` has {len} rows, expected {n}"));
             }
@@ -121,14 +127,24 @@ impl ResidualTable {
     /// return value). Text columns, and those named in `categorical`, are
     /// categorical; the others numeric. `unit` names the column whose values group
     /// rows into split units (default: `frame` if present, else each row is a unit).
-    pub fn from_csv(path: &Path, measured: &str, simulated: &str, unit: Option<&str>, categorical: &[String], ignore: &[String]) -> Result<(Self, usize)> {
+    pub fn from_csv(
+        path: &Path,
+        measured: &str,
+        simulated: &str,
+        unit: Option<&str>,
+        categorical: &[String],
+        ignore: &[String],
+    ) -> Result<(Self, usize)> {
         let file = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
         let (_, header) = lines.next().ok_or_else(|| Error::input(&file, "empty file: expected a header row"))?;
         let names: Vec<String> = split_csv_line(header).into_iter().map(|s| s.trim().to_string()).collect();
         let find = |col: &str, what: &str| {
-            names.iter().position(|n| n == col).ok_or_else(|| Error::input(&file, format!("{what} column `{col}` not in the header (columns: {})", names.join(", "))))
+            names
+                .iter()
+                .position(|n| n == col)
+                .ok_or_else(|| Error::input(&file, format!("{what} column `{col}` not in the header (columns: {})", names.join(", "))))
         };
         let im = find(measured, "--measured")?;
         let is = find(simulated, "--simulated")?;
@@ -154,13 +170,21 @@ impl ResidualTable {
         let cov_idx: Vec<usize> = (0..names.len()).filter(|&j| j != im && j != is && !ignore.contains(&names[j])).collect();
         // A covariate is numeric when every non-empty cell parses.
         let numeric: Vec<bool> = (0..names.len())
-            .map(|j| !categorical.contains(&names[j]) && cells.iter().all(|r| is_na(&r[j]) || r[j].parse::<f64>().map(|v| v.is_finite()).unwrap_or(false)))
+            .map(|j| {
+                !categorical.contains(&names[j])
+                    && cells.iter().all(|r| is_na(&r[j]) || r[j].parse::<f64>().map(|v| v.is_finite()).unwrap_or(false))
+            })
             .collect();
         if !numeric[is] {
             return Err(Error::input(&file, format!("--simulated column `{simulated}` holds non-numeric values")));
         }
-        if let Some((ln, _)) = cells.iter().enumerate().find(|(_, r)| !is_na(&r[im]) && r[im].parse::<f64>().map(|v| !v.is_finite()).unwrap_or(true)) {
-            return Err(Error::input(&file, format!("data row {}: --measured `{measured}` value `{}` is not a number (empty/NA = missing)", ln + 1, cells[ln][im])));
+        if let Some((ln, _)) =
+            cells.iter().enumerate().find(|(_, r)| !is_na(&r[im]) && r[im].parse::<f64>().map(|v| !v.is_finite()).unwrap_or(true))
+        {
+            return Err(Error::input(
+                &file,
+                format!("data row {}: --measured `{measured}` value `{}` is not a number (empty/NA = missing)", ln + 1, cells[ln][im]),
+            ));
         }
         let mut keep = Vec::new();
         let mut skipped = 0;
@@ -265,7 +289,11 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("recon-audit-csv-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("t.csv");
-        std::fs::write(&p, "frame,measured,sim,material,temp\n0,1.0,1.1,\"wood, oak\",20\n0,NA,2.0,steel,21\n1,3.0,2.9,wood,\n2,4.5,4.0,steel,22\n").unwrap();
+        std::fs::write(
+            &p,
+            "frame,measured,sim,material,temp\n0,1.0,1.1,\"wood, oak\",20\n0,NA,2.0,steel,21\n1,3.0,2.9,wood,\n2,4.5,4.0,steel,22\n",
+        )
+        .unwrap();
         let (t, skipped) = ResidualTable::from_csv(&p, "measured", "sim", None, &[], &[]).unwrap();
         assert_eq!(skipped, 1, "row with an empty covariate is skipped");
         assert_eq!(t.len(), 3);

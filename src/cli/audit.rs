@@ -51,7 +51,15 @@ impl SearchArgs {
         if !(3..=64).contains(&self.max_folds) {
             anyhow::bail!("--max-folds must be in 3..=64, got {}", self.max_folds);
         }
-        Ok(SearchOptions { alpha: self.alpha, max_findings: self.max_findings, robust: !self.no_robust, interactions: !self.no_interactions, max_folds: self.max_folds, seed: self.seed, ..Default::default() })
+        Ok(SearchOptions {
+            alpha: self.alpha,
+            max_findings: self.max_findings,
+            robust: !self.no_robust,
+            interactions: !self.no_interactions,
+            max_folds: self.max_folds,
+            seed: self.seed,
+            ..Default::default()
+        })
     }
 }
 
@@ -113,7 +121,12 @@ fn finish(mut audit: Audit, args: &SearchArgs, input: &Path) -> anyhow::Result<b
     let out = args.out.clone().unwrap_or_else(|| default_out(input));
     let files = write_outputs(&mut audit, &out, args.json.as_deref())?;
     print!("{}", audit.report.summary());
-    println!("wrote {} files under {}{}", files.len(), out.display(), args.json.as_ref().map(|j| format!(" and {}", j.display())).unwrap_or_default());
+    println!(
+        "wrote {} files under {}{}",
+        files.len(),
+        out.display(),
+        args.json.as_ref().map(|j| format!(" and {}", j.display())).unwrap_or_default()
+    );
     Ok(true)
 }
 
@@ -139,7 +152,11 @@ fn depth(a: DepthArgs) -> anyhow::Result<bool> {
     );
     let mut table = residual_table(&model, &col.pixels, &a.dataset.display().to_string());
     // Units are frame indices; show them as scene/frame.
-    table.unit_names = table.unit_names.iter().map(|s| s.parse::<usize>().ok().and_then(|i| col.frame_names.get(i).cloned()).unwrap_or_else(|| s.clone())).collect();
+    table.unit_names = table
+        .unit_names
+        .iter()
+        .map(|s| s.parse::<usize>().ok().and_then(|i| col.frame_names.get(i).cloned()).unwrap_or_else(|| s.clone()))
+        .collect();
     let t1 = std::time::Instant::now();
     let audit = audit_depth(&table, &opts, &model)?;
     eprintln!("search: {:.1} s", t1.elapsed().as_secs_f64());

@@ -4,8 +4,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use recon::tools::bench::{self, upstream, BenchReport};
 use recon::model::nn::fast::{Compute, Precision};
+use recon::tools::bench::{self, upstream, BenchReport};
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
@@ -68,7 +68,14 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     let has = |s: &str| a.sections.iter().any(|x| x == s);
     let mut report = BenchReport { machine: Some(bench::MachineInfo::detect()), ..Default::default() };
     let m = report.machine.as_ref().unwrap();
-    println!("machine: {} | {} threads | ISAs {:?} (using {}) | load {}", m.cpu, m.threads, m.supported_isas, m.best_isa, opt(m.load_average, |v| format!("{v:.2}")));
+    println!(
+        "machine: {} | {} threads | ISAs {:?} (using {}) | load {}",
+        m.cpu,
+        m.threads,
+        m.supported_isas,
+        m.best_isa,
+        opt(m.load_average, |v| format!("{v:.2}"))
+    );
     report.notes.push(
         "upstream figures (issue 8) were measured on a 2-core Intel Xeon with AVX-512, AVX512-BF16 and AMX-BF16; \
          ratios against them compare different machines unless this report comes from that machine type"
@@ -85,11 +92,21 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         }
         eprintln!("GEMM…");
         report.gemm = bench::bench_gemm(&report.peaks, a.reps, a.quick)?;
-        println!("\n{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8} {:>9} {:>7} {:>6} {:>6}", "GEMM", "M", "K", "N", "isa", "w", "s", "GFLOP/s", "peak", "peak%", "load");
+        println!(
+            "\n{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8} {:>9} {:>7} {:>6} {:>6}",
+            "GEMM", "M", "K", "N", "isa", "w", "s", "GFLOP/s", "peak", "peak%", "load"
+        );
         for r in &report.gemm {
             println!(
                 "{:<22} {:>5} {:>5} {:>5} {:<11} {:<5} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
-                r.what, r.m, r.k, r.n, r.isa, r.format, r.seconds, r.gflops,
+                r.what,
+                r.m,
+                r.k,
+                r.n,
+                r.isa,
+                r.format,
+                r.seconds,
+                r.gflops,
                 opt(r.peak_gflops, |p| format!("{p:.1}")),
                 opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
                 opt(r.load_average, |v| format!("{v:.1}"))
@@ -97,11 +114,22 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         }
         eprintln!("attention…");
         report.attention = bench::bench_attention(&report.peaks, a.reps)?;
-        println!("\n{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8} {:>9} {:>7} {:>6} {:>6}", "attention", "B", "H", "Lq", "Lk", "prec", "isa", "s", "GFLOP/s", "peak", "peak%", "load");
+        println!(
+            "\n{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8} {:>9} {:>7} {:>6} {:>6}",
+            "attention", "B", "H", "Lq", "Lk", "prec", "isa", "s", "GFLOP/s", "peak", "peak%", "load"
+        );
         for r in &report.attention {
             println!(
                 "{:<16} {:>3} {:>3} {:>5} {:>5} {:<5} {:<11} {:>8.3} {:>9.1} {:>7} {:>6} {:>6}",
-                r.what, r.batch, r.heads, r.lq, r.lk, r.precision, r.isa, r.seconds, r.gflops,
+                r.what,
+                r.batch,
+                r.heads,
+                r.lq,
+                r.lk,
+                r.precision,
+                r.isa,
+                r.seconds,
+                r.gflops,
                 opt(r.peak_gflops, |p| format!("{p:.1}")),
                 opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
                 opt(r.load_average, |v| format!("{v:.1}"))
@@ -118,7 +146,10 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         report.modules = bench::bench_modules(&a.config, &modules, &computes, |r| {
             println!(
                 "{:<17} {:<28} {:>8.2} {:>9.2} {:>9} {:>6}  {}",
-                r.module, r.precision, r.build_seconds, r.forward_seconds,
+                r.module,
+                r.precision,
+                r.build_seconds,
+                r.forward_seconds,
                 opt(r.peak_rss_mib, |v| format!("{v:.0}")),
                 opt(r.load_average, |v| format!("{v:.1}")),
                 r.input
@@ -136,12 +167,23 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     }
 
     if has("occupancy") {
-        println!("\n{:<6} {:>5} {:>8} {:>9} {:>9} {:>8} {:>10} {:>10} {:>10}", "dtype", "steps", "grid", "occ f32", "occupied", "flipped", "of grid", "of occ", "pose Δ");
+        println!(
+            "\n{:<6} {:>5} {:>8} {:>9} {:>9} {:>8} {:>10} {:>10} {:>10}",
+            "dtype", "steps", "grid", "occ f32", "occupied", "flipped", "of grid", "of occ", "pose Δ"
+        );
         for &p in a.dtype.iter().filter(|p| **p != Precision::F32) {
             let r = bench::compare_occupancy(&a.config, p, a.occupancy_steps, 0)?;
             println!(
                 "{:<6} {:>5} {:>8} {:>9} {:>9} {:>8} {:>10.2e} {:>10.2e} {:>10.2e}",
-                r.precision, r.steps, r.grid_voxels, r.occupied_f32, r.occupied, r.flipped, r.flip_fraction_of_grid, r.flip_fraction_of_occupied, r.pose_token_max_abs_diff
+                r.precision,
+                r.steps,
+                r.grid_voxels,
+                r.occupied_f32,
+                r.occupied,
+                r.flipped,
+                r.flip_fraction_of_grid,
+                r.flip_fraction_of_occupied,
+                r.pose_token_max_abs_diff
             );
             report.occupancy.push(r);
         }
@@ -162,7 +204,12 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
                 let f = |v: Option<f64>| opt(v, |x| format!("{x:.0}"));
                 println!(
                     "    peak RSS MiB per stage: encoder {}, ss flow {}, ss dec {}, slat flow {}, mesh {}, gs {}",
-                    f(m.image_encoder), f(m.ss_flow), f(m.ss_decoder), f(m.slat_flow), f(m.mesh_decoder), f(m.gaussian_decoder)
+                    f(m.image_encoder),
+                    f(m.ss_flow),
+                    f(m.ss_decoder),
+                    f(m.slat_flow),
+                    f(m.mesh_decoder),
+                    f(m.gaussian_decoder)
                 );
             }
             report.end_to_end.push(r);
@@ -194,10 +241,22 @@ fn print_ratios(r: &BenchReport) {
     let mut lines = Vec::new();
     let gemm = |fmt: &str| r.gemm.iter().find(|g| g.what == "4096³" && g.format == fmt).map(|g| g.gflops);
     if let Some(g) = gemm("f32") {
-        lines.push(format!("GEMM 4096³ f32: {g:.0} GFLOP/s = {:.2}× upstream MKL ({}), {:.2}× stock candle there ({})", g / upstream::GEMM_4096_F32_GFLOPS, upstream::GEMM_4096_F32_GFLOPS, g / upstream::CANDLE_4096_F32_GFLOPS, upstream::CANDLE_4096_F32_GFLOPS));
+        lines.push(format!(
+            "GEMM 4096³ f32: {g:.0} GFLOP/s = {:.2}× upstream MKL ({}), {:.2}× stock candle there ({})",
+            g / upstream::GEMM_4096_F32_GFLOPS,
+            upstream::GEMM_4096_F32_GFLOPS,
+            g / upstream::CANDLE_4096_F32_GFLOPS,
+            upstream::CANDLE_4096_F32_GFLOPS
+        ));
     }
     if let Some(g) = gemm("bf16") {
-        lines.push(format!("GEMM 4096³ bf16: {g:.0} GFLOP/s = {:.2}× upstream oneDNN AMX ({}), {:.2}× stock candle there ({})", g / upstream::GEMM_4096_BF16_GFLOPS, upstream::GEMM_4096_BF16_GFLOPS, g / upstream::CANDLE_4096_BF16_GFLOPS, upstream::CANDLE_4096_BF16_GFLOPS));
+        lines.push(format!(
+            "GEMM 4096³ bf16: {g:.0} GFLOP/s = {:.2}× upstream oneDNN AMX ({}), {:.2}× stock candle there ({})",
+            g / upstream::GEMM_4096_BF16_GFLOPS,
+            upstream::GEMM_4096_BF16_GFLOPS,
+            g / upstream::CANDLE_4096_BF16_GFLOPS,
+            upstream::CANDLE_4096_BF16_GFLOPS
+        ));
     }
     if let Some(c) = r.gemm.iter().find(|g| g.isa == "candle") {
         if let Some(g) = gemm("f32") {

@@ -132,7 +132,11 @@ fn parse_occlusion(v: &str) -> Result<[f64; 2], String> {
 
 /// `<dataset folder name>-<method>-eval` in the current folder.
 fn default_out(dataset: &std::path::Path, method: &str) -> PathBuf {
-    let name = dataset.canonicalize().ok().and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned())).unwrap_or_else(|| "dataset".into());
+    let name = dataset
+        .canonicalize()
+        .ok()
+        .and_then(|p| p.file_name().map(|s| s.to_string_lossy().into_owned()))
+        .unwrap_or_else(|| "dataset".into());
     PathBuf::from(format!("{name}-{method}-eval"))
 }
 
@@ -149,10 +153,10 @@ impl Drop for Staging {
 
 pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     use anyhow::{bail, Context};
-    use recon::eval::baseline::{observe_dataset, ObservedOptions, Shape};
     use recon::dataset::bop::load_dataset;
-    use recon::eval::report::{evaluate, read_predictions, EvalOptions};
     use recon::engine::output::{begin_output, finish_output};
+    use recon::eval::baseline::{observe_dataset, ObservedOptions, Shape};
+    use recon::eval::report::{evaluate, read_predictions, EvalOptions};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -166,7 +170,14 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     if let Some(s) = &a.scenes {
         ds.retain_scenes(s)?;
     }
-    let opts = EvalOptions { n_samples: a.samples, seed: a.seed, f1_tau_rel: a.f1_tau, all_frames: a.all_frames || a.method.is_some(), occlusion: a.occlusion, ..Default::default() };
+    let opts = EvalOptions {
+        n_samples: a.samples,
+        seed: a.seed,
+        f1_tau_rel: a.f1_tau,
+        all_frames: a.all_frames || a.method.is_some(),
+        occlusion: a.occlusion,
+        ..Default::default()
+    };
     if a.two_view && !matches!(a.method, Some(Method::Recgen)) {
         bail!("--two-view applies to --method recgen only");
     }
@@ -212,7 +223,8 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
                 Some(c) => c.clone(),
                 None => find_architecture(w)?,
             };
-            let engine = recon::engine::infer::Engine::load(&config, w).with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
+            let engine = recon::engine::infer::Engine::load(&config, w)
+                .with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
             if a.seeds == 0 {
                 bail!("--seeds must be at least 1");
             }

@@ -105,7 +105,12 @@ pub struct InferArgs {
     preview: bool,
 }
 
-fn frame_options(depth: &Option<PathBuf>, intrinsics: &Option<String>, scale: Option<f64>, flag: &str) -> anyhow::Result<recon::dataset::frame::FrameOptions> {
+fn frame_options(
+    depth: &Option<PathBuf>,
+    intrinsics: &Option<String>,
+    scale: Option<f64>,
+    flag: &str,
+) -> anyhow::Result<recon::dataset::frame::FrameOptions> {
     use recon::dataset::frame::{FrameOptions, Intrinsics};
     let mut fo = FrameOptions { depth: depth.clone(), depth_scale: scale, ..Default::default() };
     if let Some(k) = intrinsics {
@@ -187,7 +192,8 @@ fn embedded_model_in(root: &Path) -> anyhow::Result<PathBuf> {
         return Ok(dir);
     }
     let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {} to unpack the embedded recgen-nano (set RECON_CACHE to a writable folder)", tmp.display()))?;
+    std::fs::create_dir_all(&tmp)
+        .with_context(|| format!("creating {} to unpack the embedded recgen-nano (set RECON_CACHE to a writable folder)", tmp.display()))?;
     for (name, bytes) in EMBEDDED_NANO {
         std::fs::write(tmp.join(name), bytes).with_context(|| format!("writing {}", tmp.join(name).display()))?;
     }
@@ -327,12 +333,12 @@ impl Bar {
 
 pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
+    use recon::dataset::frame::RgbdFrame;
+    use recon::engine::infer::{Engine, InferOptions, SecondView};
+    use recon::engine::output::write_outputs;
     use recon::engine::pose_fit::SelectMethod;
     use recon::geometry::camera_pose::parse_rel_pose;
-    use recon::engine::infer::{Engine, InferOptions, SecondView};
-use recon::engine::output::{write_outputs};
     use recon::model::nn::fast::Precision;
-    use recon::dataset::frame::RgbdFrame;
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -379,7 +385,14 @@ use recon::engine::output::{write_outputs};
         );
     }
     let align = recon::engine::pose_fit::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
-    let mut opts = InferOptions { samples: a.samples, select, align, max_faces: (a.max_faces > 0).then_some(a.max_faces), floater_area_fraction: a.min_component_area, ..Default::default() };
+    let mut opts = InferOptions {
+        samples: a.samples,
+        select,
+        align,
+        max_faces: (a.max_faces > 0).then_some(a.max_faces),
+        floater_area_fraction: a.min_component_area,
+        ..Default::default()
+    };
     if !(0.0..1.0).contains(&a.min_component_area) {
         anyhow::bail!("--min-component-area must be in [0, 1), got {}", a.min_component_area);
     }

@@ -128,8 +128,12 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         CollisionArg::Hull => CollisionMethod::Hull,
         CollisionArg::Primitive => CollisionMethod::Primitive,
     };
-    opts.collision_opts.vhacd =
-        VhacdOptions { resolution: a.vhacd_resolution, concavity: a.vhacd_concavity, max_convex_hulls: a.vhacd_max_hulls, ..Default::default() };
+    opts.collision_opts.vhacd = VhacdOptions {
+        resolution: a.vhacd_resolution,
+        concavity: a.vhacd_concavity,
+        max_convex_hulls: a.vhacd_max_hulls,
+        ..Default::default()
+    };
     opts.collision_opts.primitive.volume_tolerance = a.primitive_volume_tolerance;
     opts.collision_opts.seed = a.seed;
     opts.settle.max_time_s = a.settle_time;

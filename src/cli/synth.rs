@@ -51,7 +51,10 @@ pub fn run(a: SynthArgs) -> anyhow::Result<bool> {
         Some(2 * a.scenes as u64),
         if std::io::stderr().is_terminal() { ProgressDrawTarget::stderr() } else { ProgressDrawTarget::hidden() },
     );
-    bar.set_style(ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} scene steps (generate + render) {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} scene steps (generate + render) {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
     let t0 = std::time::Instant::now();
     let summary = generate(&a.out, &opts, &|| bar.inc(1)).with_context(|| format!("recon synth --out {}", a.out.display()))?;
     bar.finish_and_clear();
@@ -69,7 +72,10 @@ pub fn run(a: SynthArgs) -> anyhow::Result<bool> {
             summary.models,
             secs
         );
-        println!("objects per scene: min {} mean {:.1} max {}", summary.objects_per_scene[0], summary.objects_per_scene[1], summary.objects_per_scene[2]);
+        println!(
+            "objects per scene: min {} mean {:.1} max {}",
+            summary.objects_per_scene[0], summary.objects_per_scene[1], summary.objects_per_scene[2]
+        );
         let kinds: Vec<String> = summary.objects_by_kind.iter().map(|(k, n)| format!("{k} {n}")).collect();
         println!("objects by kind: {}", kinds.join(", "));
         println!("target occlusion (images): 0-3% {} | 3-20% {} | 20-40% {} | 40-70% {} | >70% {}", b[0], b[1], b[2], b[3], b[4]);

@@ -3,10 +3,10 @@
 //! Everything is converted to **metres** on load (BOP stores mm). Poses map model to
 //! camera: `X_cam = R · X_model + t`.
 
-use crate::spatial::P3;
 use crate::dataset::matv5::MatFile;
-use crate::mesh::trimesh::{diameter, DiameterMethod, TriMesh};
 use crate::dataset::ply::read_ply;
+use crate::mesh::trimesh::{diameter, DiameterMethod, TriMesh};
+use crate::spatial::P3;
 use crate::{Error, Result};
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -119,7 +119,9 @@ impl Dataset {
     /// (`NNNNNN-label.png`, visible pixels hold the class index = `obj_id`).
     pub fn visible_mask_source(&self, f: &Frame, gt_index: usize) -> MaskSource {
         match self.layout {
-            Layout::Bop => MaskSource::Binary(self.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{gt_index:06}.png", f.frame))),
+            Layout::Bop => {
+                MaskSource::Binary(self.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{gt_index:06}.png", f.frame)))
+            }
             Layout::Ycbv => MaskSource::Label(self.root.join(&f.scene).join(format!("{:06}-label.png", f.frame)), f.gt[gt_index].obj_id),
         }
     }
@@ -161,7 +163,9 @@ fn mat3(a: [f64; 9]) -> [[f64; 3]; 3] {
 fn frame_map<'a>(v: &'a Value, file: &Path) -> Result<Vec<(u32, &'a Value)>> {
     let obj = v.as_object().ok_or_else(|| Error::config(file.display().to_string(), "<root>", "expected an object keyed by image id"))?;
     obj.iter()
-        .map(|(k, v)| k.parse::<u32>().map(|id| (id, v)).map_err(|_| Error::config(file.display().to_string(), k.as_str(), "key is not an image id")))
+        .map(|(k, v)| {
+            k.parse::<u32>().map(|id| (id, v)).map_err(|_| Error::config(file.display().to_string(), k.as_str(), "key is not an image id"))
+        })
         .collect()
 }
 
@@ -192,10 +196,14 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
         frames.sort_by_key(|f| f.0);
         for (im, anns) in frames {
             let key = im.to_string();
-            let c = cam.get(&key).ok_or_else(|| Error::config(cam_path.display().to_string(), key.as_str(), "image in scene_gt.json has no camera"))?;
+            let c = cam
+                .get(&key)
+                .ok_or_else(|| Error::config(cam_path.display().to_string(), key.as_str(), "image in scene_gt.json has no camera"))?;
             let k = mat3(nums::<9>(field(c, "cam_K", &cam_path, &key)?, &cam_path, &format!("{key}.cam_K"))?);
             let depth_scale_mm = match c.get("depth_scale") {
-                Some(v) => v.as_f64().ok_or_else(|| Error::config(cam_path.display().to_string(), format!("{key}.depth_scale"), "not a number"))?,
+                Some(v) => {
+                    v.as_f64().ok_or_else(|| Error::config(cam_path.display().to_string(), format!("{key}.depth_scale"), "not a number"))?
+                }
                 None => 1.0,
             };
             let cam_w2c = match (c.get("cam_R_w2c"), c.get("cam_t_w2c")) {
@@ -219,7 +227,9 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                     .ok_or_else(|| Error::config(gt_path.display().to_string(), format!("{ctx}.obj_id"), "not a non-negative integer"))?;
                 let inf = infos.and_then(|v| v.get(i));
                 let visib_fract = match inf.and_then(|x| x.get("visib_fract")) {
-                    Some(v) => Some(v.as_f64().filter(|f| (0.0..=1.0).contains(f)).ok_or_else(|| Error::config(info_path.display().to_string(), format!("{ctx}.visib_fract"), "not a number in [0, 1]"))?),
+                    Some(v) => Some(v.as_f64().filter(|f| (0.0..=1.0).contains(f)).ok_or_else(|| {
+                        Error::config(info_path.display().to_string(), format!("{ctx}.visib_fract"), "not a number in [0, 1]")
+                    })?),
                     None => None,
                 };
                 let bbox_visib = match inf.and_then(|x| x.get("bbox_visib")) {
@@ -227,7 +237,14 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                     None => None,
                 };
                 used.insert(obj_id);
-                gts.push(GtInstance { obj_id, r, t: [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0], visib_fract, visib_estimated: false, bbox_visib });
+                gts.push(GtInstance {
+                    obj_id,
+                    r,
+                    t: [t[0] / 1000.0, t[1] / 1000.0, t[2] / 1000.0],
+                    visib_fract,
+                    visib_estimated: false,
+                    bbox_visib,
+                });
             }
             ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_mm, gt: gts, cam_w2c });
         }
@@ -243,7 +260,10 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
         let from_info = info.as_ref().and_then(|i| i.get(id.to_string())).and_then(|m| m.get("diameter"));
         let (diameter, diameter_source) = match from_info {
             Some(d) => (
-                d.as_f64().filter(|x| *x > 0.0).ok_or_else(|| Error::config(info_path.display().to_string(), format!("{id}.diameter"), "not a positive number"))? / 1000.0,
+                d.as_f64()
+                    .filter(|x| *x > 0.0)
+                    .ok_or_else(|| Error::config(info_path.display().to_string(), format!("{id}.diameter"), "not a positive number"))?
+                    / 1000.0,
                 "models_info.json".to_string(),
             ),
             None => diameter_of(&mesh),
@@ -312,7 +332,8 @@ pub fn read_xyz(path: &Path) -> Result<Vec<P3>> {
 /// ([`crate::dataset::visibility`], `visib_estimated = true`), and left `None` without a label map.
 pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     let mut metas: Vec<(String, u32, PathBuf)> = Vec::new();
-    let mut seqs: Vec<PathBuf> = std::fs::read_dir(root).map_err(|e| Error::io(root, e))?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
+    let mut seqs: Vec<PathBuf> =
+        std::fs::read_dir(root).map_err(|e| Error::io(root, e))?.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
     seqs.sort();
     for sd in seqs {
         let scene = sd.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
@@ -343,7 +364,12 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
                 *x = km.data[i + 3 * j];
             }
         }
-        let fd = get("factor_depth")?.data.first().copied().filter(|x| *x > 0.0).ok_or_else(|| Error::config(file.clone(), "factor_depth", "not a positive number"))?;
+        let fd = get("factor_depth")?
+            .data
+            .first()
+            .copied()
+            .filter(|x| *x > 0.0)
+            .ok_or_else(|| Error::config(file.clone(), "factor_depth", "not a positive number"))?;
         let cls = &get("cls_indexes")?.data;
         let poses = get("poses")?;
         let n = cls.len();
@@ -379,8 +405,8 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
 /// Fills `visib_fract` of every GT instance that has a label map (module docs of
 /// [`crate::dataset::visibility`]).
 fn estimate_visibility(ds: &mut Dataset) -> Result<()> {
-    use crate::dataset::visibility::{surface_patches, visible_fraction};
     use crate::dataset::masks::InstanceMap;
+    use crate::dataset::visibility::{surface_patches, visible_fraction};
     let patches: BTreeMap<u32, _> = ds.models.iter().map(|(id, m)| (*id, surface_patches(&m.mesh.used_vertices(), 10))).collect();
     let mut frames = std::mem::take(&mut ds.frames);
     for f in frames.iter_mut() {
@@ -411,20 +437,32 @@ pub fn load_dataset(path: &Path) -> Result<Dataset> {
     if path.join("models_points_xyz").is_dir() {
         return load_ycbv(path);
     }
-    let has_scenes = |p: &Path| std::fs::read_dir(p).map(|rd| rd.filter_map(|e| e.ok()).any(|e| e.path().join("scene_gt.json").is_file())).unwrap_or(false);
+    let has_scenes = |p: &Path| {
+        std::fs::read_dir(p).map(|rd| rd.filter_map(|e| e.ok()).any(|e| e.path().join("scene_gt.json").is_file())).unwrap_or(false)
+    };
     let split = if has_scenes(path) {
         path.to_path_buf()
     } else if has_scenes(&path.join("test")) {
         path.join("test")
     } else {
-        return Err(Error::input(path.display().to_string(), "neither a YCB-Video folder (models_points_xyz/) nor a BOP split (scene folders with scene_gt.json)"));
+        return Err(Error::input(
+            path.display().to_string(),
+            "neither a YCB-Video folder (models_points_xyz/) nor a BOP split (scene folders with scene_gt.json)",
+        ));
     };
     let parent = split.parent().map(Path::to_path_buf).unwrap_or_default();
     let candidates = [split.join("models"), parent.join("models"), parent.join("models_eval"), path.join("models")];
     let models = candidates
         .iter()
-        .find(|d| d.join("models_info.json").is_file() || std::fs::read_dir(d).map(|rd| rd.filter_map(|e| e.ok()).any(|e| e.path().extension().is_some_and(|x| x == "ply"))).unwrap_or(false))
-        .ok_or_else(|| Error::input(path.display().to_string(), "BOP models folder not found (tried models/, ../models/, ../models_eval/)"))?;
+        .find(|d| {
+            d.join("models_info.json").is_file()
+                || std::fs::read_dir(d)
+                    .map(|rd| rd.filter_map(|e| e.ok()).any(|e| e.path().extension().is_some_and(|x| x == "ply")))
+                    .unwrap_or(false)
+        })
+        .ok_or_else(|| {
+            Error::input(path.display().to_string(), "BOP models folder not found (tried models/, ../models/, ../models_eval/)")
+        })?;
     load_bop(&split, models)
 }
 
@@ -440,8 +478,23 @@ pub(crate) mod tests {
         let scene = dir.join("test").join("000048");
         std::fs::create_dir_all(&models).unwrap();
         std::fs::create_dir_all(&scene).unwrap();
-        let bx: Vec<[f32; 3]> = (0..8).map(|i| [if i & 1 == 1 { 20.0 } else { -20.0 }, if i & 2 == 2 { 10.0 } else { -10.0 }, if i & 4 == 4 { 5.0 } else { -5.0 }]).collect();
-        let faces: [[i32; 3]; 12] = [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+        let bx: Vec<[f32; 3]> = (0..8)
+            .map(|i| [if i & 1 == 1 { 20.0 } else { -20.0 }, if i & 2 == 2 { 10.0 } else { -10.0 }, if i & 4 == 4 { 5.0 } else { -5.0 }])
+            .collect();
+        let faces: [[i32; 3]; 12] = [
+            [0, 2, 1],
+            [1, 2, 3],
+            [4, 5, 6],
+            [5, 7, 6],
+            [0, 1, 4],
+            [1, 5, 4],
+            [2, 6, 3],
+            [3, 6, 7],
+            [0, 4, 2],
+            [2, 4, 6],
+            [1, 3, 5],
+            [3, 7, 5],
+        ];
         let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 8\nproperty float x\nproperty float y\nproperty float z\nelement face 12\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
         for v in &bx {
             for c in v {

@@ -272,7 +272,11 @@ fn candidates(rgb: &Path) -> Vec<Candidate> {
                 intr.push(IntrSource::BopScene(scene.join("scene_camera.json"), id));
             }
             intr.push(IntrSource::Json(scene.join("camera.json")));
-            out.push(Candidate { convention: "BOP (rgb/NNNNNN.png)", depth: scene.join("depth").join(format!("{stem}.png")), intrinsics: intr });
+            out.push(Candidate {
+                convention: "BOP (rgb/NNNNNN.png)",
+                depth: scene.join("depth").join(format!("{stem}.png")),
+                intrinsics: intr,
+            });
         }
     }
     if stem == "rgb" {
@@ -304,10 +308,7 @@ pub fn load_depth_u16(path: &Path) -> Result<(Vec<u16>, usize, usize)> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     match img {
         image::DynamicImage::ImageLuma16(b) => Ok((b.into_raw(), w, h)),
-        other => Err(Error::input(
-            &file,
-            format!("depth must be a 16-bit single-channel PNG (uint16 units), found {:?}", other.color()),
-        )),
+        other => Err(Error::input(&file, format!("depth must be a 16-bit single-channel PNG (uint16 units), found {:?}", other.color()))),
     }
 }
 
@@ -332,8 +333,7 @@ impl RgbdFrame {
                     (chosen.depth, chosen.intrinsics)
                 }
                 None => {
-                    let looked: Vec<String> =
-                        cands.iter().map(|c| format!("  {} [{}]", c.depth.display(), c.convention)).collect();
+                    let looked: Vec<String> = cands.iter().map(|c| format!("  {} [{}]", c.depth.display(), c.convention)).collect();
                     return Err(Error::input(
                         rgb_path.display().to_string(),
                         format!("no depth image found; looked for:\n{}\n(give one explicitly with a depth path)", looked.join("\n")),
@@ -362,7 +362,10 @@ impl RgbdFrame {
                     let looked: Vec<String> = intr_sources.iter().map(|s| format!("  {}", s.describe())).collect();
                     return Err(Error::input(
                         rgb_path.display().to_string(),
-                        format!("no camera intrinsics found; looked for:\n{}\n(give fx, fy, cx, cy or an intrinsics file explicitly)", looked.join("\n")),
+                        format!(
+                            "no camera intrinsics found; looked for:\n{}\n(give fx, fy, cx, cy or an intrinsics file explicitly)",
+                            looked.join("\n")
+                        ),
                     ));
                 }
             }
@@ -376,7 +379,10 @@ impl RgbdFrame {
         if (dw, dh) != (width, height) {
             return Err(Error::input(
                 depth_path.display().to_string(),
-                format!("depth is {dw}×{dh} but the colour image {} is {width}×{height}; depth must be registered to colour", rgb_path.display()),
+                format!(
+                    "depth is {dw}×{dh} but the colour image {} is {width}×{height}; depth must be registered to colour",
+                    rgb_path.display()
+                ),
             ));
         }
         let depth_m = raw.iter().map(|&v| (v as f64 * depth_scale) as f32).collect();
@@ -461,11 +467,7 @@ mod tests {
         std::fs::create_dir_all(d.join("depth")).unwrap();
         write_rgb(&d.join("rgb/000007.png"), 4, 4);
         write_depth(&d.join("depth/000007.png"), 4, 4, 1000);
-        std::fs::write(
-            d.join("scene_camera.json"),
-            r#"{"7": {"cam_K": [600, 0, 2, 0, 610, 1.5, 0, 0, 1], "depth_scale": 0.1}}"#,
-        )
-        .unwrap();
+        std::fs::write(d.join("scene_camera.json"), r#"{"7": {"cam_K": [600, 0, 2, 0, 610, 1.5, 0, 0, 1], "depth_scale": 0.1}}"#).unwrap();
         let f = RgbdFrame::open(&d.join("rgb/000007.png"), &FrameOptions::default()).unwrap();
         assert_eq!(f.intrinsics, Intrinsics { fx: 600.0, fy: 610.0, cx: 2.0, cy: 1.5 });
         // 1000 units × 0.1 mm = 0.1 m.
@@ -486,7 +488,11 @@ mod tests {
         write_rgb(&d.join("000001-color.png"), 4, 4);
         write_depth(&d.join("000001-depth.png"), 4, 4, 10000);
         let k = vec![1066.778, 0.0, 0.0, 0.0, 1067.487, 0.0, 312.9869, 241.3109, 1.0];
-        let bytes = crate::dataset::matv5::tests::write_mat(&[("intrinsic_matrix", vec![3, 3], k), ("factor_depth", vec![1, 1], vec![10000.0])], true, false);
+        let bytes = crate::dataset::matv5::tests::write_mat(
+            &[("intrinsic_matrix", vec![3, 3], k), ("factor_depth", vec![1, 1], vec![10000.0])],
+            true,
+            false,
+        );
         std::fs::write(d.join("000001-meta.mat"), bytes).unwrap();
         let f = RgbdFrame::open(&d.join("000001-color.png"), &FrameOptions::default()).unwrap();
         assert_eq!(f.intrinsics, Intrinsics { fx: 1066.778, fy: 1067.487, cx: 312.9869, cy: 241.3109 });

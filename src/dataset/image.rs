@@ -310,8 +310,7 @@ pub fn crop<T: Copy + Default>(px: &[T], w: usize, h: usize, channels: usize, b:
 pub fn trellis_preprocess_rgba(rgba: &[u8], w: usize, h: usize, size: usize) -> Result<Vec<u8>> {
     check_len("rgba", rgba.len(), w, h, 4)?;
     let alpha: Vec<u8> = rgba.chunks_exact(4).map(|p| p[3]).collect();
-    let b = square_crop_box(&alpha, w, h)?
-        .ok_or_else(|| Error::input("rgba", "alpha mask is empty (no pixel above 0.8·255)"))?;
+    let b = square_crop_box(&alpha, w, h)?.ok_or_else(|| Error::input("rgba", "alpha mask is empty (no pixel above 0.8·255)"))?;
     let (c, cw, ch) = crop(rgba, w, h, 4, b)?;
     let pre: Vec<u8> = c
         .chunks_exact(4)
@@ -348,8 +347,8 @@ mod tests {
         // Expected bytes from Pillow 13 `Image.resize(..., LANCZOS)` of this 6×4 RGB image.
         let src: Vec<u8> = (0..6 * 4 * 3).map(|i| ((i * 37 + 11) % 256) as u8).collect();
         let down = [
-            57, 111, 142, 170, 72, 123, 159, 131, 95, 118, 179, 77, 109, 146, 193, 82, 126, 168, 188, 78, 134, 173, 159, 107, 150, 185, 108,
-            109, 155, 84, 115, 135, 143, 86, 84, 144,
+            57, 111, 142, 170, 72, 123, 159, 131, 95, 118, 179, 77, 109, 146, 193, 82, 126, 168, 188, 78, 134, 173, 159, 107, 150, 185,
+            108, 109, 155, 84, 115, 135, 143, 86, 84, 144,
         ];
         assert_eq!(resize_lanczos_u8(&src, 6, 4, 3, 4, 3).unwrap(), down);
         let up = resize_lanczos_u8(&src, 6, 4, 3, 9, 7).unwrap();

@@ -167,7 +167,11 @@ fn parse_matrix(payload: &[u8], big_endian: bool, file: &str) -> Result<Option<(
     }
     let f0 = {
         let a: [u8; 4] = flags[..4].try_into().unwrap();
-        if big_endian { u32::from_be_bytes(a) } else { u32::from_le_bytes(a) }
+        if big_endian {
+            u32::from_be_bytes(a)
+        } else {
+            u32::from_le_bytes(a)
+        }
     };
     let class = (f0 & 0xff) as u8;
     let (dty, dims_raw) = r.next(true)?.ok_or_else(|| r.err("matrix without dimensions"))?;
@@ -310,7 +314,8 @@ pub(crate) mod tests {
     fn reads_plain_and_compressed_doubles() {
         let k = vec![1066.778, 0.0, 0.0, 0.0, 1067.487, 0.0, 312.9869, 241.3109, 1.0]; // column-major
         for (compress, as_u8) in [(false, false), (true, false)] {
-            let bytes = write_mat(&[("intrinsic_matrix", vec![3, 3], k.clone()), ("factor_depth", vec![1, 1], vec![10000.0])], compress, as_u8);
+            let bytes =
+                write_mat(&[("intrinsic_matrix", vec![3, 3], k.clone()), ("factor_depth", vec![1, 1], vec![10000.0])], compress, as_u8);
             let m = MatFile::parse(&bytes, "t.mat").unwrap();
             let a = m.require("intrinsic_matrix", "t.mat").unwrap();
             assert_eq!(a.dims, vec![3, 3]);

@@ -2,12 +2,12 @@
 //! images (with the DINOv2 preprocessing), MAT v5 (YCB-Video meta), PLY, and
 //! BOP / YCB-Video datasets.
 
-pub mod image;
-pub mod matv5;
-pub mod frame;
-pub mod masks;
-pub mod ply;
 pub mod bop;
+pub mod frame;
+pub mod image;
+pub mod masks;
+pub mod matv5;
+pub mod ply;
 pub mod visibility;
 
 /// The shared real-data folder (`realdata/` beside the repository, as on the

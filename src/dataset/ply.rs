@@ -44,7 +44,11 @@ impl Ty {
         macro_rules! rd {
             ($t:ty, $n:expr) => {{
                 let a: [u8; $n] = b[..$n].try_into().unwrap_or([0; $n]);
-                if le { <$t>::from_le_bytes(a) as f64 } else { <$t>::from_be_bytes(a) as f64 }
+                if le {
+                    <$t>::from_le_bytes(a) as f64
+                } else {
+                    <$t>::from_be_bytes(a) as f64
+                }
             }};
         }
         match self {
@@ -151,7 +155,9 @@ pub fn parse_ply_with_colors(bytes: &[u8], file: &str) -> Result<(TriMesh, Optio
     let data = &bytes[body.min(bytes.len())..];
     let mut mesh = TriMesh::default();
     let mut reader: Box<dyn ValueReader + '_> = match format {
-        Format::Ascii => Box::new(AsciiReader { toks: std::str::from_utf8(data).map_err(|_| err("ASCII PLY body is not UTF-8".into()))?.split_ascii_whitespace() }),
+        Format::Ascii => Box::new(AsciiReader {
+            toks: std::str::from_utf8(data).map_err(|_| err("ASCII PLY body is not UTF-8".into()))?.split_ascii_whitespace(),
+        }),
         Format::Binary { le } => Box::new(BinReader { data, pos: 0, le }),
     };
     let n_vertices = elems.iter().find(|e| e.name == "vertex").map_or(0, |e| e.count);
@@ -159,11 +165,13 @@ pub fn parse_ply_with_colors(bytes: &[u8], file: &str) -> Result<(TriMesh, Optio
     for e in &elems {
         let is_vertex = e.name == "vertex";
         let is_face = e.name == "face";
-        let xyz: Vec<Option<usize>> = ["x", "y", "z"].iter().map(|n| e.props.iter().position(|p| p.name == *n && p.list.is_none())).collect();
+        let xyz: Vec<Option<usize>> =
+            ["x", "y", "z"].iter().map(|n| e.props.iter().position(|p| p.name == *n && p.list.is_none())).collect();
         if is_vertex && xyz.iter().any(Option::is_none) {
             return Err(err("element `vertex` lacks one of the properties x, y, z".into()));
         }
-        let rgb: Vec<Option<usize>> = ["red", "green", "blue"].iter().map(|n| e.props.iter().position(|p| p.name == *n && p.list.is_none())).collect();
+        let rgb: Vec<Option<usize>> =
+            ["red", "green", "blue"].iter().map(|n| e.props.iter().position(|p| p.name == *n && p.list.is_none())).collect();
         let has_rgb = is_vertex && rgb.iter().all(Option::is_some);
         // uchar colours are 0..255; float colours are taken as 0..1.
         let rgb_scale = if has_rgb && e.props[rgb[0].unwrap_or(0)].ty == Ty::U8 { 1.0 / 255.0 } else { 1.0 };

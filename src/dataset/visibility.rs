@@ -13,8 +13,8 @@
 //! BOP, which renders the silhouette beyond the image). Errors: mask boundary noise and
 //! non-convex parts (a mug's handle) bias it by a few per cent.
 
-use crate::spatial::{KdTree, P3};
 use crate::math::Similarity;
+use crate::spatial::{KdTree, P3};
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 /// Model points with outward normals and relative patch areas.

@@ -31,24 +31,24 @@
 //! pose, mesh and Gaussians, and the spread of the per-sample winners is the
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
-use crate::mesh::post::{decimate, drop_floaters};
-use crate::mesh::Mesh;
-use crate::gaussians::Gaussians;
-use crate::engine::pose_fit::ViewPoints;
-use crate::engine::pose_fit::AlignOptions;
-use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
-use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
-use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
-use crate::geometry::camera_pose::pose_to_camera;
-use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
-use crate::geometry::pose::Pose;
-use crate::gaussians::stretch_gaussians;
-use crate::mesh::stretch_mesh;
-use crate::engine::pose_fit::DepthView;
-use crate::engine::pose_fit::refine_pose;
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput};
+use crate::engine::pose_fit::refine_pose;
+use crate::engine::pose_fit::AlignOptions;
+use crate::engine::pose_fit::DepthView;
+use crate::engine::pose_fit::ViewPoints;
+use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
+use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
+use crate::gaussians::stretch_gaussians;
+use crate::gaussians::Gaussians;
+use crate::geometry::camera_pose::pose_to_camera;
+use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
+use crate::geometry::pose::Pose;
+use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
+use crate::mesh::post::{decimate, drop_floaters};
+use crate::mesh::stretch_mesh;
+use crate::mesh::Mesh;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};
 use candle_core::Device;
@@ -113,14 +113,25 @@ pub struct SecondView<'a> {
 /// What the engine is doing, for progress displays.
 #[derive(Debug, Clone, Copy)]
 pub enum Progress<'a> {
-    Object { index: usize, total: usize, label: &'a str },
-    Sample { index: usize, total: usize, seed: u64 },
+    Object {
+        index: usize,
+        total: usize,
+        label: &'a str,
+    },
+    Sample {
+        index: usize,
+        total: usize,
+        seed: u64,
+    },
     Stage(Stage),
     /// Applying the face budget.
     Decimating,
     /// Scoring the candidate poses.
     Selecting,
-    ObjectDone { label: &'a str, seconds: f64 },
+    ObjectDone {
+        label: &'a str,
+        seconds: f64,
+    },
 }
 
 /// A loaded model, reused across objects and frames.
@@ -272,7 +283,13 @@ struct ObjView<'a> {
 }
 
 /// `depth`: the frame's free-space depth view, shared by all its objects.
-fn object_view<'a>(frame: &'a RgbdFrame, label: String, prepared: PreparedView, to_anchor: RigidTransform, depth: Option<Arc<DepthView>>) -> Result<ObjView<'a>> {
+fn object_view<'a>(
+    frame: &'a RgbdFrame,
+    label: String,
+    prepared: PreparedView,
+    to_anchor: RigidTransform,
+    depth: Option<Arc<DepthView>>,
+) -> Result<ObjView<'a>> {
     let (points, _) = object_points(frame, &prepared.mask_full, None)?;
     Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
 }
@@ -344,7 +361,13 @@ impl Engine {
     }
 
     /// Reconstruct every object seen in two views (RecGen two-view conditioning).
-    pub fn reconstruct_two_view(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, second: SecondView, opts: &InferOptions) -> Result<FrameResult> {
+    pub fn reconstruct_two_view(
+        &self,
+        frame: &RgbdFrame,
+        objects: Vec<ObjectMask>,
+        second: SecondView,
+        opts: &InferOptions,
+    ) -> Result<FrameResult> {
         self.reconstruct_with(frame, objects, Some(second), opts, &|_| {})
     }
 
@@ -432,7 +455,11 @@ impl Engine {
         let inputs = ObjectInputs {
             views: views
                 .iter()
-                .map(|v| ViewInput { pixels: v.prepared.pixel_values.clone(), pointmap: v.prepared.pointmap.clone(), mask: v.prepared.mask.clone() })
+                .map(|v| ViewInput {
+                    pixels: v.prepared.pixel_values.clone(),
+                    pointmap: v.prepared.pointmap.clone(),
+                    mask: v.prepared.mask.clone(),
+                })
                 .collect(),
         };
         let view_points: Vec<ViewPoints> = views.iter().map(|v| v.points.clone()).collect();

@@ -2,17 +2,17 @@
 //! Gaussians, the placed scene, and the index file written last, through a
 //! staging folder so that an interrupted run never looks complete.
 
-use crate::mesh::Mesh;
+use crate::engine::infer::*;
+use crate::engine::pipeline::{RunMetadata, StageTimings};
+use crate::engine::pose_fit::PoseSpread;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
 use crate::export::ply::{save_mesh_ply, PlyOptions};
 use crate::export::splat::save_splat_ply;
 use crate::export::Axes;
-use crate::engine::pose_fit::PoseSpread;
-use crate::engine::pipeline::{RunMetadata, StageTimings};
+use crate::mesh::Mesh;
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use crate::engine::infer::*;
 
 /// The pose file written per object.
 #[derive(Debug, Serialize)]
@@ -43,7 +43,6 @@ pub struct PoseRecord<'a> {
     pub run: &'a RunMetadata,
     pub notes: &'a [String],
 }
-
 
 /// Paths written for one object.
 #[derive(Debug, Clone, Serialize)]
@@ -117,7 +116,13 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
         let pose_path = dir.join("pose.json");
         let text = serde_json::to_string_pretty(&rec).map_err(|e| Error::msg(e.to_string()))?;
         std::fs::write(&pose_path, text).map_err(|e| Error::io(&pose_path, e))?;
-        let mut w = WrittenObject { object: o.label.clone(), pose: out.join(&name).join("pose.json"), mesh_glb: None, mesh_ply: None, gaussians_ply: None };
+        let mut w = WrittenObject {
+            object: o.label.clone(),
+            pose: out.join(&name).join("pose.json"),
+            mesh_glb: None,
+            mesh_ply: None,
+            gaussians_ply: None,
+        };
         if let Some(m) = o.mesh_camera.as_ref().filter(|m| !m.faces.is_empty()) {
             save_glb(m, &dir.join("mesh.glb"), &glb)?;
             save_mesh_ply(m, &dir.join("mesh.ply"), &ply)?;

@@ -85,24 +85,24 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::Serialize;
 
-use crate::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
-use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
-use crate::mesh::Mesh;
 use crate::gaussians::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
+use crate::mesh::Mesh;
 use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
-use crate::model::stage1::embedders::ViewInputs;
 use crate::model::nn::fast::{self, Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, VelocityModel};
-use crate::rng::SeededRng;
-use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel, SLatNormalization};
-use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder};
-use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::model::sparse::SparseTensor;
+use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
+use crate::model::stage1::embedders::ViewInputs;
+use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder};
+use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel, SLatNormalization};
+use crate::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
+use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
+use crate::rng::SeededRng;
 use crate::weights::load::Checkpoint;
-use crate::weights::WeightFiles;
 use crate::weights::registry::{self, ModuleConfig};
+use crate::weights::WeightFiles;
 use crate::{Error, Result};
 
 /// One view of the object (see the module docs for shapes and ranges).
@@ -212,7 +212,6 @@ impl Stage {
         }
     }
 }
-
 
 /// The stage-1 pose prediction.
 #[derive(Debug, Clone, PartialEq)]
@@ -479,19 +478,33 @@ impl Pipeline {
         Self::build(config, sources, WeightsSource::Random { seed }, stages, *options)
     }
 
-    fn build(config: RecGenConfig, sources: HashMap<&'static str, Source>, weights: WeightsSource, stages: Stages, options: LoadOptions) -> Result<Self> {
+    fn build(
+        config: RecGenConfig,
+        sources: HashMap<&'static str, Source>,
+        weights: WeightsSource,
+        stages: Stages,
+        options: LoadOptions,
+    ) -> Result<Self> {
         let label = |key: &str| format!("{}: {key}", config.name);
         let dino_cfg = registry::dinov2_config(&config.image_cond_model.args, &label("image_cond_model"))?;
         let ss_cfg = SsFlowConfig::from_value(&config.ss_flow.args, &label("ss_flow"))?;
         if ss_cfg.pose_channels() != Some(10) {
-            return Err(Error::config(&config.name, "ss_flow.args.pose_representation", "the pipeline needs RecGen pose tokens (6d_translation_scale)"));
+            return Err(Error::config(
+                &config.name,
+                "ss_flow.args.pose_representation",
+                "the pipeline needs RecGen pose tokens (6d_translation_scale)",
+            ));
         }
         let slat_cfg = match stages {
             Stages::SparseStructure => None,
             Stages::All => {
                 let c = SLatFlowConfig::from_json(&config.slat_flow.args)?;
                 if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim()? != 13 {
-                    return Err(Error::config(&config.name, "slat_flow.args", "needs cond_channels equal to the SS flow's and a 9d_translation_scale pose embedder"));
+                    return Err(Error::config(
+                        &config.name,
+                        "slat_flow.args",
+                        "needs cond_channels equal to the SS flow's and a 9d_translation_scale pose embedder",
+                    ));
                 }
                 if config.slat_normalization.mean.len() != c.out_channels {
                     return Err(Error::config(&config.name, "slat_normalization", "length must equal slat_flow out_channels"));
@@ -547,7 +560,13 @@ impl Pipeline {
     }
 
     /// The resident module, or one built now (counted in `loading`).
-    fn hold<'a, T>(&'a self, resident: &'a Option<T>, key: &str, f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>, loading: &mut f64) -> Result<Held<'a, T>> {
+    fn hold<'a, T>(
+        &'a self,
+        resident: &'a Option<T>,
+        key: &str,
+        f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>,
+        loading: &mut f64,
+    ) -> Result<Held<'a, T>> {
         match resident {
             Some(m) => Ok(Held::Resident(m)),
             None => {
@@ -600,14 +619,20 @@ impl Pipeline {
         for (i, v) in inputs.views.iter().enumerate() {
             for (name, t, c) in [("pixels", &v.pixels, 3), ("pointmap", &v.pointmap, 3), ("mask", &v.mask, 1)] {
                 if t.dims() != [1, c, s, s] {
-                    return Err(Error::input("pipeline inputs", format!("view {i}: {name} has shape {:?}, expected [1, {c}, {s}, {s}]", t.dims())));
+                    return Err(Error::input(
+                        "pipeline inputs",
+                        format!("view {i}: {name} has shape {:?}, expected [1, {c}, {s}, {s}]", t.dims()),
+                    ));
                 }
                 if t.dtype() != DType::F32 {
                     return Err(Error::input("pipeline inputs", format!("view {i}: {name} must be f32, got {:?}", t.dtype())));
                 }
                 let finite = t.flatten_all()?.to_vec1::<f32>()?.iter().all(|x| x.is_finite());
                 if !finite {
-                    return Err(Error::input("pipeline inputs", format!("view {i}: {name} has non-finite values (preprocessing must fill invalid points)")));
+                    return Err(Error::input(
+                        "pipeline inputs",
+                        format!("view {i}: {name} has non-finite values (preprocessing must fill invalid points)"),
+                    ));
                 }
             }
         }
@@ -726,7 +751,11 @@ impl Pipeline {
             let slat_cfg = self.slat_cfg.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
             let res = slat_cfg.resolution;
             if ss_resolution != res {
-                return Err(Error::config(&self.config.name, "slat_flow.args.resolution", format!("{res} differs from the SS decoder's output grid {ss_resolution}")));
+                return Err(Error::config(
+                    &self.config.name,
+                    "slat_flow.args.resolution",
+                    format!("{res} differs from the SS decoder's output grid {ss_resolution}"),
+                ));
             }
             // 6. Stage-2 condition.
             on_stage(Stage::SlatSampling);
@@ -828,7 +857,8 @@ mod tests {
             .iter()
             .map(|(k, spec)| serde_json::json!({"path": format!("sub/{k}.safetensors"), "kind": "safetensors", "module": spec.name}))
             .collect();
-        let manifest = serde_json::json!({"name": "tiny-test", "source": "huggingface", "repo": "recon-test/tiny", "revision": "abc", "files": files});
+        let manifest =
+            serde_json::json!({"name": "tiny-test", "source": "huggingface", "repo": "recon-test/tiny", "revision": "abc", "files": files});
         let mpath = root.join("tiny-test.json");
         std::fs::create_dir_all(&root).unwrap();
         std::fs::write(&mpath, manifest.to_string()).unwrap();

@@ -34,13 +34,13 @@
 //! occlusion shortens it.
 
 use crate::dataset::bop::{Dataset, Frame, MaskSource};
-use crate::spatial::{KdTree, P3};
-use crate::mesh::primitives::cuboid;
-use crate::mesh::trimesh::TriMesh;
-use crate::eval::report::{Prediction, PredictionsFile};
-use crate::geometry::pointmap::masked_points;
 use crate::dataset::frame::{load_depth_u16, Intrinsics};
 use crate::dataset::masks::{erode, load_binary_mask, Erosion, InstanceMap};
+use crate::eval::report::{Prediction, PredictionsFile};
+use crate::geometry::pointmap::masked_points;
+use crate::mesh::primitives::cuboid;
+use crate::mesh::trimesh::TriMesh;
+use crate::spatial::{KdTree, P3};
 use crate::{Error, Result};
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
@@ -333,7 +333,6 @@ fn canonical(pts: &[P3], b: Obb) -> Obb {
     fit_to_axes(pts, [x, y, x.cross(&y)])
 }
 
-
 /// Convex hull of points (parry3d's quickhull, in f32 about the points' mean so that
 /// camera-frame coordinates keep sub-micrometre precision); `None` when it fails
 /// (fewer than 4 points, collinear points). Coplanar points give a flat, two-sided hull.
@@ -342,7 +341,8 @@ pub fn convex_hull(pts: &[P3]) -> Option<TriMesh> {
         return None;
     }
     let c = pts.iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]).map(|x| x / pts.len() as f64);
-    let p: Vec<parry3d::math::Vector3> = pts.iter().map(|q| parry3d::math::Vector3::new((q[0] - c[0]) as f32, (q[1] - c[1]) as f32, (q[2] - c[2]) as f32)).collect();
+    let p: Vec<parry3d::math::Vector3> =
+        pts.iter().map(|q| parry3d::math::Vector3::new((q[0] - c[0]) as f32, (q[1] - c[1]) as f32, (q[2] - c[2]) as f32)).collect();
     let (v, f) = parry3d::transformation::try_convex_hull(&p).ok()?;
     if f.len() < 2 || v.len() < 3 {
         return None;
@@ -408,7 +408,12 @@ pub(crate) fn mesh_name(scene: &str, frame: u32, gi: usize, obj_id: u32) -> Stri
 
 /// Visible mask of GT instance `gi` of frame `f` as `(width, height, mask, file)`;
 /// `label` caches the frame's label map (YCB-Video) across instances.
-pub(crate) fn visible_mask(ds: &Dataset, f: &Frame, gi: usize, label: &mut Option<InstanceMap>) -> Result<(usize, usize, Vec<bool>, PathBuf)> {
+pub(crate) fn visible_mask(
+    ds: &Dataset,
+    f: &Frame,
+    gi: usize,
+    label: &mut Option<InstanceMap>,
+) -> Result<(usize, usize, Vec<bool>, PathBuf)> {
     Ok(match ds.visible_mask_source(f, gi) {
         MaskSource::Binary(p) => {
             let m = load_binary_mask(&p)?;
@@ -426,7 +431,10 @@ pub(crate) fn visible_mask(ds: &Dataset, f: &Frame, gi: usize, label: &mut Optio
 
 /// Writes `dir/predictions.json` and each prediction's mesh (binary PLY, metres, in the
 /// prediction's frame, no colours) at its relative `mesh` path; returns the predictions file's path.
-pub(crate) fn write_predictions<'a>(dir: &Path, items: impl Iterator<Item = (&'a Prediction, std::borrow::Cow<'a, crate::mesh::Mesh>)>) -> Result<PathBuf> {
+pub(crate) fn write_predictions<'a>(
+    dir: &Path,
+    items: impl Iterator<Item = (&'a Prediction, std::borrow::Cow<'a, crate::mesh::Mesh>)>,
+) -> Result<PathBuf> {
     use crate::export::ply::{save_mesh_ply, PlyOptions};
     use crate::export::Axes;
     let meshes = dir.join("meshes");
@@ -439,7 +447,8 @@ pub(crate) fn write_predictions<'a>(dir: &Path, items: impl Iterator<Item = (&'a
         preds.push(p.clone());
     }
     let path = dir.join("predictions.json");
-    let text = serde_json::to_string_pretty(&PredictionsFile { predictions: preds }).map_err(|e| Error::msg(format!("serialising predictions: {e}")))?;
+    let text = serde_json::to_string_pretty(&PredictionsFile { predictions: preds })
+        .map_err(|e| Error::msg(format!("serialising predictions: {e}")))?;
     std::fs::write(&path, text).map_err(|e| Error::io(&path, e))?;
     Ok(path)
 }
@@ -463,7 +472,10 @@ pub fn observe_frame(ds: &Dataset, f: &Frame, o: &ObservedOptions) -> Result<(Ve
         let skip = |reason: String| ObservedSkip { scene: f.scene.clone(), frame: f.frame, gt_index: gi, obj_id: g.obj_id, reason };
         let (mw, mh, mask, file) = visible_mask(ds, f, gi, &mut label)?;
         if (mw, mh) != (w, h) {
-            return Err(Error::input(file.display().to_string(), format!("mask is {mw}×{mh} but the depth image {} is {w}×{h}", ds.depth_path(f).display())));
+            return Err(Error::input(
+                file.display().to_string(),
+                format!("mask is {mw}×{mh} but the depth image {} is {w}×{h}", ds.depth_path(f).display()),
+            ));
         }
         let mut raw = Vec::new();
         if let Some(e) = o.erosion {
@@ -521,7 +533,11 @@ impl ObservedRun {
     /// frame), so the run can be re-scored with `recon eval --predictions`. Returns the
     /// predictions file's path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
-        let mesh = |m: &TriMesh| crate::mesh::Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None };
+        let mesh = |m: &TriMesh| crate::mesh::Mesh {
+            vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(),
+            faces: m.faces.clone(),
+            vertex_attrs: None,
+        };
         write_predictions(dir, self.predictions.iter().map(|p| (&p.prediction, std::borrow::Cow::Owned(mesh(&p.observed.mesh)))))
     }
 }
@@ -561,7 +577,8 @@ mod tests {
             // Canonical frame: extents descending, right-handed rotation.
             assert!(b.half[0] >= b.half[1] && b.half[1] >= b.half[2]);
             let r = b.axes;
-            let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0]) + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+            let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+                + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
             assert!((det - 1.0).abs() < 1e-9, "{det}");
             // Local frame round trip.
             let l = b.to_local(&pts[0]);

@@ -1,8 +1,8 @@
 //! Point-to-point ICP (Besl & McKay) with the closed-form Umeyama step, rigid or with a
 //! uniform scale.
 
-use crate::spatial::{KdTree, P3};
 use crate::math::Similarity;
+use crate::spatial::{KdTree, P3};
 use nalgebra::{Matrix3, Vector3};
 
 #[derive(Debug, Clone, Copy)]

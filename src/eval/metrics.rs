@@ -17,8 +17,8 @@
 //! - **Occlusion** = `1 − visib_fract`, binned by [`occlusion_bin`].
 
 use crate::eval::icp::{icp, IcpOptions, IcpResult};
-use crate::spatial::{KdTree, P3};
 use crate::math::Similarity;
+use crate::spatial::{KdTree, P3};
 use serde::Serialize;
 
 fn mean(v: &[f64]) -> f64 {
@@ -186,7 +186,10 @@ pub(crate) mod tests {
         let d = 0.013;
         let dir = [2.0f64, -1.0, 0.5];
         let n = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-        let est = Similarity::rigid(gt.rotation, [gt.translation[0] + d * dir[0] / n, gt.translation[1] + d * dir[1] / n, gt.translation[2] + d * dir[2] / n]);
+        let est = Similarity::rigid(
+            gt.rotation,
+            [gt.translation[0] + d * dir[0] / n, gt.translation[1] + d * dir[1] / n, gt.translation[2] + d * dir[2] / n],
+        );
         let a = add(&pts, &gt, &est);
         assert!((a - d).abs() < 1e-12, "ADD {a} vs {d}");
         let s = add_s(&pts, &gt, &est);

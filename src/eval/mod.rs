@@ -11,8 +11,8 @@
 pub mod icp;
 pub mod metrics;
 
-pub mod report;
 pub mod baseline;
 pub mod recgen;
+pub mod report;
 
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

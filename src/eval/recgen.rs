@@ -14,16 +14,16 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::eval::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
 use crate::dataset::bop::{Dataset, Frame};
-use crate::eval::report::Prediction;
-use crate::eval::report::in_occlusion;
-use crate::mesh::Mesh;
-use crate::math::Similarity;
-use crate::geometry::pose::Pose;
-use crate::engine::infer::{Engine, InferOptions, SecondView};
 use crate::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
 use crate::dataset::masks::{InstanceMap, ObjectMask};
+use crate::engine::infer::{Engine, InferOptions, SecondView};
+use crate::eval::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use crate::eval::report::in_occlusion;
+use crate::eval::report::Prediction;
+use crate::geometry::pose::Pose;
+use crate::math::Similarity;
+use crate::mesh::Mesh;
 use crate::{Error, Result};
 
 pub struct RecgenPrediction {
@@ -77,7 +77,12 @@ pub struct RecgenRun {
 fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
     let at = || format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame);
     let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2]).map_err(|e| Error::input(at(), e.to_string()))?;
-    let fo = FrameOptions { depth: Some(ds.depth_path(f)), intrinsics: Some(k), intrinsics_file: None, depth_scale: Some(f.depth_scale_mm * 1e-3) };
+    let fo = FrameOptions {
+        depth: Some(ds.depth_path(f)),
+        intrinsics: Some(k),
+        intrinsics_file: None,
+        depth_scale: Some(f.depth_scale_mm * 1e-3),
+    };
     RgbdFrame::open(&ds.rgb_path(f), &fo)
 }
 
@@ -85,7 +90,14 @@ fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
 /// visible there (matched by `obj_id`) are reconstructed from both frames.
 /// With `occlusion`, only GT instances in that occlusion range (percent,
 /// [`in_occlusion`]) are reconstructed.
-pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &Engine, opts: &InferOptions, occlusion: Option<[f64; 2]>) -> Result<RecgenRun> {
+pub fn recgen_frame(
+    ds: &Dataset,
+    f: &Frame,
+    second: Option<&Frame>,
+    engine: &Engine,
+    opts: &InferOptions,
+    occlusion: Option<[f64; 2]>,
+) -> Result<RecgenRun> {
     let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
     let mut run = RecgenRun::default();
     if !(0..f.gt.len()).any(keep) {
@@ -100,7 +112,12 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
     }
     let second = match second {
         Some(f2) => {
-            let rel = relative_pose(f, f2).ok_or_else(|| Error::input(ds.root.display().to_string(), format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for two views", f.scene, f.frame, f2.frame)))?;
+            let rel = relative_pose(f, f2).ok_or_else(|| {
+                Error::input(
+                    ds.root.display().to_string(),
+                    format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for two views", f.scene, f.frame, f2.frame),
+                )
+            })?;
             let frame2 = open_frame(ds, f2)?;
             let mut label2: Option<InstanceMap> = None;
             let mut masks2 = Vec::new();
@@ -118,7 +135,9 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
     };
     let t0 = std::time::Instant::now();
     let r = match second {
-        Some((frame2, masks2, rel)) => engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?,
+        Some((frame2, masks2, rel)) => {
+            engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?
+        }
         None => engine.reconstruct(&frame, masks, opts)?,
     };
     run.seconds_model = t0.elapsed().as_secs_f64();
@@ -131,7 +150,13 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
         let gi = o.id.ok_or_else(|| Error::msg("recgen eval: object without id"))? as usize;
         let obj_id = f.gt[gi].obj_id;
         let Some(mesh) = o.mesh_camera else {
-            run.skipped.push(ObservedSkip { scene: f.scene.clone(), frame: f.frame, gt_index: gi, obj_id, reason: "no mesh decoded".into() });
+            run.skipped.push(ObservedSkip {
+                scene: f.scene.clone(),
+                frame: f.frame,
+                gt_index: gi,
+                obj_id,
+                reason: "no mesh decoded".into(),
+            });
             continue;
         };
         if mesh.faces.is_empty() {
@@ -156,7 +181,14 @@ pub fn recgen_frame(ds: &Dataset, f: &Frame, second: Option<&Frame>, engine: &En
 
 /// Every frame of `ds`, in order (with `two_view`, each with its [`partner`];
 /// frames without one are reconstructed from one view); `progress(done, total)` after each frame.
-pub fn recgen_dataset(ds: &Dataset, engine: &Engine, opts: &InferOptions, two_view: bool, occlusion: Option<[f64; 2]>, progress: &dyn Fn(usize, usize)) -> Result<RecgenRun> {
+pub fn recgen_dataset(
+    ds: &Dataset,
+    engine: &Engine,
+    opts: &InferOptions,
+    two_view: bool,
+    occlusion: Option<[f64; 2]>,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RecgenRun> {
     let mut all = RecgenRun::default();
     for (i, f) in ds.frames.iter().enumerate() {
         let second = if two_view { partner(ds, i).map(|j| &ds.frames[j]) } else { None };
@@ -193,7 +225,14 @@ mod tests {
     }
 
     fn frame(scene: &str, id: u32, w2c: Option<([[f64; 3]; 3], [f64; 3])>) -> Frame {
-        Frame { scene: scene.into(), frame: id, k: [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], depth_scale_mm: 1.0, gt: Vec::new(), cam_w2c: w2c }
+        Frame {
+            scene: scene.into(),
+            frame: id,
+            k: [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]],
+            depth_scale_mm: 1.0,
+            gt: Vec::new(),
+            cam_w2c: w2c,
+        }
     }
 
     fn apply(r: &[[f64; 3]; 3], t: &[f64; 3], x: &[f64; 3]) -> [f64; 3] {
@@ -219,7 +258,10 @@ mod tests {
     #[test]
     fn partner_is_the_next_frame_of_the_same_scene() {
         let p = Some((rot(2, 0.0), [0.0; 3]));
-        let ds = Dataset { frames: vec![frame("a", 0, p), frame("a", 3, p), frame("a", 5, p), frame("b", 0, p), frame("c", 0, p), frame("c", 1, None)], ..Default::default() };
+        let ds = Dataset {
+            frames: vec![frame("a", 0, p), frame("a", 3, p), frame("a", 5, p), frame("b", 0, p), frame("c", 0, p), frame("c", 1, None)],
+            ..Default::default()
+        };
         assert_eq!((0..6).map(|i| partner(&ds, i)).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
     }
 }

@@ -27,12 +27,12 @@
 //! the means.
 
 use crate::dataset::bop::{load_dataset, Dataset, GtInstance, Model};
-use crate::eval::icp::IcpOptions;
-use crate::spatial::P3;
-use crate::mesh::trimesh::{diameter, TriMesh};
-use crate::math::Similarity;
-use crate::eval::metrics::{self, occlusion_bin, occlusion_bin_label, F1Score, OCCLUSION_BINS};
 use crate::dataset::ply::read_ply;
+use crate::eval::icp::IcpOptions;
+use crate::eval::metrics::{self, occlusion_bin, occlusion_bin_label, F1Score, OCCLUSION_BINS};
+use crate::math::Similarity;
+use crate::mesh::trimesh::{diameter, TriMesh};
+use crate::spatial::P3;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
@@ -92,7 +92,8 @@ pub fn read_predictions(path: &Path) -> Result<PredictionsFile> {
                 worst = worst.max((d - if a == b { 1.0 } else { 0.0 }).abs());
             }
         }
-        let det = rr[0][0] * (rr[1][1] * rr[2][2] - rr[1][2] * rr[2][1]) - rr[0][1] * (rr[1][0] * rr[2][2] - rr[1][2] * rr[2][0]) + rr[0][2] * (rr[1][0] * rr[2][1] - rr[1][1] * rr[2][0]);
+        let det = rr[0][0] * (rr[1][1] * rr[2][2] - rr[1][2] * rr[2][1]) - rr[0][1] * (rr[1][0] * rr[2][2] - rr[1][2] * rr[2][0])
+            + rr[0][2] * (rr[1][0] * rr[2][1] - rr[1][1] * rr[2][0]);
         if worst > 1e-3 || det < 0.0 {
             return Err(Error::config(&file, f("R"), format!("not a rotation (|R Rᵀ − I| = {worst:.2e}, det = {det:.4})")));
         }
@@ -205,8 +206,15 @@ impl Summary {
     fn of(label: String, objs: &[&ObjectResult]) -> Summary {
         let ms: Vec<&ObjectMetrics> = objs.iter().filter_map(|o| o.metrics.as_ref()).collect();
         let n = objs.len();
-        let mean = |f: &dyn Fn(&ObjectMetrics) -> f64| if ms.is_empty() { f64::NAN } else { ms.iter().map(|m| f(m)).sum::<f64>() / ms.len() as f64 };
-        let rate = |f: &dyn Fn(&ObjectMetrics) -> bool| if n == 0 { f64::NAN } else { ms.iter().filter(|m| f(m)).count() as f64 / n as f64 };
+        let mean = |f: &dyn Fn(&ObjectMetrics) -> f64| {
+            if ms.is_empty() {
+                f64::NAN
+            } else {
+                ms.iter().map(|m| f(m)).sum::<f64>() / ms.len() as f64
+            }
+        };
+        let rate =
+            |f: &dyn Fn(&ObjectMetrics) -> bool| if n == 0 { f64::NAN } else { ms.iter().filter(|m| f(m)).count() as f64 / n as f64 };
         // ADD needs model-frame predictions; a method that never gives one has no ADD
         // rate at all (its misses must not turn into a 0 %).
         let with_add = ms.iter().filter(|m| m.add.is_some()).count();
@@ -307,11 +315,17 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
     }
     for (i, p) in preds.predictions.iter().enumerate() {
         let field = |n: &str| format!("predictions[{i}].{n}");
-        let fr = ds.frame(&p.scene, p.frame).ok_or_else(|| Error::config(&file, field("frame"), format!("scene `{}` frame {} is not in the dataset", p.scene, p.frame)))?;
+        let fr = ds
+            .frame(&p.scene, p.frame)
+            .ok_or_else(|| Error::config(&file, field("frame"), format!("scene `{}` frame {} is not in the dataset", p.scene, p.frame)))?;
         let gi = match p.gt_index {
             Some(k) => {
                 if fr.gt.get(k).map(|g| g.obj_id) != Some(p.obj_id) {
-                    return Err(Error::config(&file, field("gt_index"), format!("GT instance {k} of that frame is not obj_id {}", p.obj_id)));
+                    return Err(Error::config(
+                        &file,
+                        field("gt_index"),
+                        format!("GT instance {k} of that frame is not obj_id {}", p.obj_id),
+                    ));
                 }
                 k
             }
@@ -319,8 +333,20 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
                 let c: Vec<usize> = fr.gt.iter().enumerate().filter(|(_, g)| g.obj_id == p.obj_id).map(|(k, _)| k).collect();
                 match c.as_slice() {
                     [k] => *k,
-                    [] => return Err(Error::config(&file, field("obj_id"), format!("obj_id {} is not annotated in scene `{}` frame {}", p.obj_id, p.scene, p.frame))),
-                    _ => return Err(Error::config(&file, field("gt_index"), format!("obj_id {} occurs {} times in that frame; give gt_index", p.obj_id, c.len()))),
+                    [] => {
+                        return Err(Error::config(
+                            &file,
+                            field("obj_id"),
+                            format!("obj_id {} is not annotated in scene `{}` frame {}", p.obj_id, p.scene, p.frame),
+                        ))
+                    }
+                    _ => {
+                        return Err(Error::config(
+                            &file,
+                            field("gt_index"),
+                            format!("obj_id {} occurs {} times in that frame; give gt_index", p.obj_id, c.len()),
+                        ))
+                    }
                 }
             }
         };
@@ -337,7 +363,10 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
             if !in_occlusion(g, opts.occlusion) {
                 continue;
             }
-            let model = ds.models.get(&g.obj_id).ok_or_else(|| Error::input(ds.root.display().to_string(), format!("no model for obj_id {}", g.obj_id)))?;
+            let model = ds
+                .models
+                .get(&g.obj_id)
+                .ok_or_else(|| Error::input(ds.root.display().to_string(), format!("no model for obj_id {}", g.obj_id)))?;
             let metrics = match m.get(&gi) {
                 None => None,
                 Some(&pi) => {
@@ -347,7 +376,8 @@ pub fn evaluate(ds: &Dataset, preds: &PredictionsFile, pred_file: &Path, opts: &
                         Some(rel) => {
                             let path = if rel.is_absolute() { rel.clone() } else { base.join(rel) };
                             if !mesh_cache.contains_key(&path) {
-                                let mesh = read_ply(&path).map_err(|e| Error::config(&file, format!("predictions[{pi}].mesh"), e.to_string()))?;
+                                let mesh =
+                                    read_ply(&path).map_err(|e| Error::config(&file, format!("predictions[{pi}].mesh"), e.to_string()))?;
                                 mesh_cache.insert(path.clone(), mesh);
                             }
                             &mesh_cache[&path]
@@ -432,7 +462,21 @@ impl Report {
 
     /// Human-readable table: overall row, then one row per occlusion bin. Rates in %.
     pub fn text_table(&self) -> String {
-        let head = ["occlusion", "N", "missed", "ADD-SB/d", "ADD-SB@10%", "ADD-SB@5%", "CD_norm", "DRE", "DRE@5%", "F1 posed", "F1 aligned", "ADD@10%", "ADD-S@10%"];
+        let head = [
+            "occlusion",
+            "N",
+            "missed",
+            "ADD-SB/d",
+            "ADD-SB@10%",
+            "ADD-SB@5%",
+            "CD_norm",
+            "DRE",
+            "DRE@5%",
+            "F1 posed",
+            "F1 aligned",
+            "ADD@10%",
+            "ADD-S@10%",
+        ];
         let mut rows = vec![head.iter().map(|s| s.to_string()).collect::<Vec<_>>()];
         for s in std::iter::once(&self.overall).chain(&self.by_occlusion) {
             rows.push(vec![
@@ -454,7 +498,11 @@ impl Report {
         let w: Vec<usize> = (0..head.len()).map(|c| rows.iter().map(|r| r[c].chars().count()).max().unwrap_or(0)).collect();
         let mut out = String::new();
         for (i, r) in rows.iter().enumerate() {
-            let line: Vec<String> = r.iter().enumerate().map(|(c, x)| if c == 0 { format!("{x:<w$}", w = w[c]) } else { format!("{x:>w$}", w = w[c]) }).collect();
+            let line: Vec<String> = r
+                .iter()
+                .enumerate()
+                .map(|(c, x)| if c == 0 { format!("{x:<w$}", w = w[c]) } else { format!("{x:>w$}", w = w[c]) })
+                .collect();
             out.push_str(&line.join("  "));
             out.push('\n');
             if i == 0 {
@@ -501,7 +549,11 @@ impl Report {
             s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{title}</text>\n", x0 + pw / 2.0, mt - 10.0);
             s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">occlusion (%)</text>\n", x0 + pw / 2.0, mt + ph + 35.0);
             for &(lo, _) in OCCLUSION_BINS.iter().skip(1).chain(std::iter::once(&(70.0, 0.0))) {
-                s += &format!("<line x1=\"{0}\" y1=\"{mt}\" x2=\"{0}\" y2=\"{1}\" stroke=\"#999\" stroke-dasharray=\"4 3\"/>\n", sx(lo), mt + ph);
+                s += &format!(
+                    "<line x1=\"{0}\" y1=\"{mt}\" x2=\"{0}\" y2=\"{1}\" stroke=\"#999\" stroke-dasharray=\"4 3\"/>\n",
+                    sx(lo),
+                    mt + ph
+                );
             }
             for t in [0.0, 25.0, 50.0, 75.0, 100.0] {
                 s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{t:.0}</text>\n", sx(t), mt + ph + 16.0);
@@ -511,7 +563,11 @@ impl Report {
                 s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"end\">{v:.3}</text>\n", x0 - 5.0, sy(v) + 4.0);
             }
             for (p, y) in pts.iter().zip(&ys) {
-                s += &format!("<circle cx=\"{:.2}\" cy=\"{:.2}\" r=\"3\" fill=\"{color}\" fill-opacity=\"0.7\"/>\n", sx(p.0.clamp(0.0, 100.0)), sy(*y));
+                s += &format!(
+                    "<circle cx=\"{:.2}\" cy=\"{:.2}\" r=\"3\" fill=\"{color}\" fill-opacity=\"0.7\"/>\n",
+                    sx(p.0.clamp(0.0, 100.0)),
+                    sy(*y)
+                );
             }
         }
         s += "</svg>\n";
@@ -569,18 +625,37 @@ mod tests {
 
         // Only one of the two GT instances of frame 1 predicted: the other is missed.
         let p2 = dir.join("p2.json");
-        std::fs::write(&p2, r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 2, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#).unwrap();
+        std::fs::write(
+            &p2,
+            r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 2, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#,
+        )
+        .unwrap();
         let r2 = run_eval(&dir, &p2, &opts).unwrap();
         assert_eq!((r2.overall.n_gt, r2.overall.n_missed), (2, 1));
         assert!(r2.overall.add_sb_10 <= 0.5);
 
         // Validation errors name the file and the field.
         let cases = [
-            (r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,2,0],[0,0,1]], "t": [0,0,1]}]}"#, "predictions[0].R"),
-            (r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1], "scale": -1}]}"#, "predictions[0].scale"),
-            (r#"{"predictions": [{"scene": "000048", "frame": 7, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#, "predictions[0].frame"),
-            (r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 5, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#, "predictions[0].obj_id"),
-            (r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1], "mesh": "nope.ply"}]}"#, "predictions[0].mesh"),
+            (
+                r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,2,0],[0,0,1]], "t": [0,0,1]}]}"#,
+                "predictions[0].R",
+            ),
+            (
+                r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1], "scale": -1}]}"#,
+                "predictions[0].scale",
+            ),
+            (
+                r#"{"predictions": [{"scene": "000048", "frame": 7, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#,
+                "predictions[0].frame",
+            ),
+            (
+                r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 5, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1]}]}"#,
+                "predictions[0].obj_id",
+            ),
+            (
+                r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,1], "mesh": "nope.ply"}]}"#,
+                "predictions[0].mesh",
+            ),
             (r#"{"predictions": [{"scene": "000048", "frame": 1, "obj_id": 1, "R": [[1,0,0],[0,1,0]], "t": [0,0,1]}]}"#, "bad.json"),
         ];
         for (text, want) in cases {
@@ -612,14 +687,16 @@ mod tests {
         std::fs::create_dir_all(dir.join("models")).unwrap();
         std::fs::write(dir.join("models/obj_000001.ply"), ascii_ply(&crate::eval::metrics::tests::cylinder(40.0, 100.0, 256))).unwrap();
         std::fs::write(dir.join("models/obj_000002.ply"), ascii_ply(&crate::mesh::primitives::cuboid([20.0, 10.0, 5.0]))).unwrap();
-        std::fs::write(scene.join("scene_camera.json"), r#"{"1": {"cam_K": [600, 0, 320, 0, 600, 240, 0, 0, 1], "depth_scale": 1.0}}"#).unwrap();
+        std::fs::write(scene.join("scene_camera.json"), r#"{"1": {"cam_K": [600, 0, 320, 0, 600, 240, 0, 0, 1], "depth_scale": 1.0}}"#)
+            .unwrap();
         let poses = [
             (axis_angle([0.2, 1.0, 0.1], 0.5), [0.0, 0.0, 700.0], 1),
             (axis_angle([1.0, 0.0, 0.3], 1.2), [100.0, 20.0, 800.0], 1),
             (axis_angle([0.0, 1.0, 1.0], 0.8), [-80.0, 10.0, 650.0], 2),
             (axis_angle([1.0, 1.0, 0.0], 2.0), [50.0, -60.0, 900.0], 2),
         ];
-        let gt: Vec<serde_json::Value> = poses.iter().map(|(r, t, id)| serde_json::json!({"cam_R_m2c": r.concat(), "cam_t_m2c": t, "obj_id": id})).collect();
+        let gt: Vec<serde_json::Value> =
+            poses.iter().map(|(r, t, id)| serde_json::json!({"cam_R_m2c": r.concat(), "cam_t_m2c": t, "obj_id": id})).collect();
         std::fs::write(scene.join("scene_gt.json"), serde_json::json!({"1": gt}).to_string()).unwrap();
         let info: Vec<serde_json::Value> = [1.0, 0.9, 0.7, 0.5].iter().map(|v| serde_json::json!({"visib_fract": v})).collect();
         std::fs::write(scene.join("scene_gt_info.json"), serde_json::json!({"1": info}).to_string()).unwrap();
@@ -634,7 +711,8 @@ mod tests {
         let dir = tmpdir("sym");
         let (gt, d_cyl, d_box) = symmetric_dataset(&dir);
         assert!((d_cyl - (0.08f64 * 0.08 + 0.01).sqrt()).abs() < 1e-9 && (d_box - 0.0021f64.sqrt()).abs() < 1e-9);
-        let spun = Similarity::rigid(gt[1].r, gt[1].t).compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3]));
+        let spun = Similarity::rigid(gt[1].r, gt[1].t)
+            .compose(&Similarity::rigid(axis_angle([0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2), [0.0; 3]));
         let box_ply = dir.join("models/obj_000002.ply");
         let preds = serde_json::json!({"predictions": [
             // 0: identical to the GT (pose only: the GT model is used).
@@ -655,7 +733,14 @@ mod tests {
         assert!(m[0].cd_norm < 1e-12 && m[0].f1_posed.f1 == 1.0 && m[0].f1_aligned.f1 == 1.0);
         let b0 = &r.by_occlusion[0];
         assert_eq!((b0.label.as_str(), b0.n_gt), ("0-3%", 1));
-        for (name, v) in [("ADD-SB@10", b0.add_sb_10), ("ADD-SB@5", b0.add_sb_05), ("DRE@5", b0.dre_05), ("ADD@10", b0.add_10), ("ADD-S@10", b0.add_s_10), ("F1", b0.f1_posed_mean)] {
+        for (name, v) in [
+            ("ADD-SB@10", b0.add_sb_10),
+            ("ADD-SB@5", b0.add_sb_05),
+            ("DRE@5", b0.dre_05),
+            ("ADD@10", b0.add_10),
+            ("ADD-S@10", b0.add_s_10),
+            ("F1", b0.f1_posed_mean),
+        ] {
             assert_eq!(v, 1.0, "{name}");
         }
         assert!(b0.add_sb_norm_mean == 0.0 && b0.cd_norm_mean < 1e-12 && b0.dre_mean == 0.0, "{b0:?}");
@@ -703,7 +788,11 @@ mod tests {
         let dir = tmpdir("allframes");
         write_bop(&dir);
         let pf = dir.join("p.json");
-        std::fs::write(&pf, r#"{"predictions": [{"scene": "000048", "frame": 2, "obj_id": 1, "R": [[1,0,0],[0,0,-1],[0,1,0]], "t": [0, 0, 0.6]}]}"#).unwrap();
+        std::fs::write(
+            &pf,
+            r#"{"predictions": [{"scene": "000048", "frame": 2, "obj_id": 1, "R": [[1,0,0],[0,0,-1],[0,1,0]], "t": [0, 0, 0.6]}]}"#,
+        )
+        .unwrap();
         let only = run_eval(&dir, &pf, &EvalOptions { n_samples: 2000, ..Default::default() }).unwrap();
         assert_eq!((only.overall.n_gt, only.overall.n_missed, only.overall.add_sb_10), (1, 0, 1.0));
         let all = run_eval(&dir, &pf, &EvalOptions { n_samples: 2000, all_frames: true, ..Default::default() }).unwrap();

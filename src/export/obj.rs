@@ -28,11 +28,7 @@ pub fn mesh_obj_string(mesh: &Mesh, axes: Axes, vertex_colors: bool, normals: bo
     }
     for f in &mesh.faces {
         let [a, b, c] = f.map(|i| i + 1);
-        let _ = if normals {
-            writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}")
-        } else {
-            writeln!(s, "f {a} {b} {c}")
-        };
+        let _ = if normals { writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}") } else { writeln!(s, "f {a} {b} {c}") };
     }
     Ok(s)
 }
@@ -49,17 +45,11 @@ mod tests {
     #[test]
     fn obj_is_one_based_and_parses_back() {
         let s = mesh_obj_string(&tetrahedron(), Axes::ZUp, true, false).unwrap();
-        let v: Vec<Vec<f32>> = s
-            .lines()
-            .filter(|l| l.starts_with("v "))
-            .map(|l| l[2..].split(' ').map(|x| x.parse().unwrap()).collect())
-            .collect();
+        let v: Vec<Vec<f32>> =
+            s.lines().filter(|l| l.starts_with("v ")).map(|l| l[2..].split(' ').map(|x| x.parse().unwrap()).collect()).collect();
         assert_eq!(v, tetrahedron().vertices.iter().map(|p| p.to_vec()).collect::<Vec<_>>());
-        let f: Vec<Vec<u32>> = s
-            .lines()
-            .filter(|l| l.starts_with("f "))
-            .map(|l| l[2..].split(' ').map(|x| x.parse().unwrap()).collect())
-            .collect();
+        let f: Vec<Vec<u32>> =
+            s.lines().filter(|l| l.starts_with("f ")).map(|l| l[2..].split(' ').map(|x| x.parse().unwrap()).collect()).collect();
         assert_eq!(f[0], vec![1, 3, 2]);
         assert_eq!(f.len(), 4);
     }

@@ -2,16 +2,16 @@
 //! common splat viewers: x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3,
 //! all float, with opacity as a logit, log scales and rotation (w, x, y, z).
 
+use super::axes::{write_file, Axes};
 use crate::gaussians::Gaussians;
 use crate::math::{normalize_quat, Similarity32};
-use super::axes::{write_file, Axes};
 use crate::Result;
 use std::path::Path;
 
 /// The 17 per-splat properties, in file order.
 pub const SPLAT_PROPERTIES: [&str; 17] = [
-    "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0",
-    "rot_1", "rot_2", "rot_3",
+    "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
+    "rot_3",
 ];
 
 fn logit(p: f32) -> f32 {

@@ -60,7 +60,8 @@ pub fn parse_rel_pose(arg: &str) -> Result<Similarity> {
     let (nums, file): (Vec<f64>, String) = if path.is_file() {
         let file = path.display().to_string();
         let v: serde_json::Value = crate::util::json::read_json(path)?;
-        let m = v.get("T_c1_c2").ok_or_else(|| Error::config(&file, "T_c1_c2", "missing: expected the 4×4 camera-2-to-camera-1 transform"))?;
+        let m =
+            v.get("T_c1_c2").ok_or_else(|| Error::config(&file, "T_c1_c2", "missing: expected the 4×4 camera-2-to-camera-1 transform"))?;
         let mut flat = Vec::new();
         fn walk(v: &serde_json::Value, out: &mut Vec<f64>) -> bool {
             match v {

@@ -118,10 +118,8 @@ impl Normaliser {
             return Err(Error::msg(format!("point normalisation: quantile drop {quantile_drop} must be in [0, 0.5)")));
         }
         let centre: [f64; 3] = std::array::from_fn(|a| median(points.iter().map(|p| p[a]).collect()));
-        let mut norms: Vec<f64> = points
-            .iter()
-            .map(|p| ((p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2) + (p[2] - centre[2]).powi(2)).sqrt())
-            .collect();
+        let mut norms: Vec<f64> =
+            points.iter().map(|p| ((p[0] - centre[0]).powi(2) + (p[1] - centre[1]).powi(2) + (p[2] - centre[2]).powi(2)).sqrt()).collect();
         norms.sort_by(|a, b| a.total_cmp(b));
         let diameter = 2.0 * (quantile_sorted(&norms, 1.0 - quantile_drop) - quantile_sorted(&norms, quantile_drop));
         let diameter = if diameter == 0.0 { 1.0 } else { diameter };
@@ -203,7 +201,12 @@ pub fn object_crop_box(mask: &[bool], w: usize, h: usize, context: f64, min_half
     }
     let (cx, cy) = ((x0 + x1) as f64 / 2.0, (y0 + y1) as f64 / 2.0);
     let half = ((x1 - x0).max(y1 - y0) as f64 / 2.0 * context).max(min_half_side);
-    CropBox { x0: (cx - half).trunc() as i64, y0: (cy - half).trunc() as i64, x1: (cx + half).trunc() as i64, y1: (cy + half).trunc() as i64 }
+    CropBox {
+        x0: (cx - half).trunc() as i64,
+        y0: (cy - half).trunc() as i64,
+        x1: (cx + half).trunc() as i64,
+        y1: (cy + half).trunc() as i64,
+    }
 }
 
 /// `torch.nn.functional.interpolate(mode="nearest")` of an interleaved
@@ -289,7 +292,10 @@ pub fn object_points(frame: &RgbdFrame, mask: &[bool], erosion: Option<Erosion>)
 /// row-major pixel order. For callers that hold a depth image but no colour.
 pub fn masked_points(depth_m: &[f32], w: usize, h: usize, k: &Intrinsics, mask: &[bool]) -> Result<Vec<[f64; 3]>> {
     if depth_m.len() != w * h || mask.len() != w * h {
-        return Err(Error::input("depth/mask", format!("expected {w}×{h} = {} values, got depth {} and mask {}", w * h, depth_m.len(), mask.len())));
+        return Err(Error::input(
+            "depth/mask",
+            format!("expected {w}×{h} = {} values, got depth {} and mask {}", w * h, depth_m.len(), mask.len()),
+        ));
     }
     let mut pts = Vec::new();
     for v in 0..h {
@@ -485,9 +491,17 @@ mod tests {
         // Longer side 59 → half 29.5·1.2 = 35.4 < 86.33 → half = 86.33.
         let b = object_crop_box(&m, w, h, 1.2, 518.0 / 6.0);
         let half = 518.0 / 6.0;
-        assert_eq!(b, CropBox { x0: (129.5f64 - half) as i64, y0: (69.5f64 - half).trunc() as i64, x1: (129.5f64 + half) as i64, y1: (69.5f64 + half) as i64 });
+        assert_eq!(
+            b,
+            CropBox {
+                x0: (129.5f64 - half) as i64,
+                y0: (69.5f64 - half).trunc() as i64,
+                x1: (129.5f64 + half) as i64,
+                y1: (69.5f64 + half) as i64
+            }
+        );
         assert_eq!((b.x0, b.y0, b.x1, b.y1), (43, -16, 215, 155)); // −16.83 truncates toward zero
-        // A big object: the context factor rules.
+                                                                   // A big object: the context factor rules.
         let mut m = vec![false; w * h];
         for y in 0..300 {
             for x in 200..401 {
@@ -513,7 +527,15 @@ mod tests {
     fn prepared_view_tensors_and_invariants() {
         // A fronto-parallel plate at 1 m with a hole, seen by a 64×48 camera.
         let k = Intrinsics { fx: 60.0, fy: 60.0, cx: 31.5, cy: 23.5 };
-        let f = frame(64, 48, k, |x, y| if x == 30 && y == 20 { f32::NAN } else if x == 31 && y == 20 { 0.0 } else { 1.0 });
+        let f = frame(64, 48, k, |x, y| {
+            if x == 30 && y == 20 {
+                f32::NAN
+            } else if x == 31 && y == 20 {
+                0.0
+            } else {
+                1.0
+            }
+        });
         let mut m = vec![false; 64 * 48];
         for y in 10..40 {
             for x in 16..50 {

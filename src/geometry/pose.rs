@@ -221,8 +221,7 @@ impl PoseStats {
 
     pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
         let g = v.get("global_statistics").unwrap_or(v);
-        let stats: GlobalStats =
-            serde_json::from_value(g.clone()).map_err(|e| Error::config(file, "global_statistics", e.to_string()))?;
+        let stats: GlobalStats = serde_json::from_value(g.clone()).map_err(|e| Error::config(file, "global_statistics", e.to_string()))?;
         let mut stds: Vec<f64> = stats.rot6d.std.to_vec();
         stds.extend(stats.translation.std);
         stds.push(stats.scale.std);

@@ -220,7 +220,11 @@ impl Similarity32 {
 /// A mesh stretched along the axes of its own frame, `x ↦ diag(k)·x`.
 pub fn stretch_mesh(mesh: &Mesh, k: [f64; 3]) -> Mesh {
     let k = k.map(|x| x as f32);
-    Mesh { vertices: mesh.vertices.iter().map(|v| [v[0] * k[0], v[1] * k[1], v[2] * k[2]]).collect(), faces: mesh.faces.clone(), vertex_attrs: mesh.vertex_attrs.clone() }
+    Mesh {
+        vertices: mesh.vertices.iter().map(|v| [v[0] * k[0], v[1] * k[1], v[2] * k[2]]).collect(),
+        faces: mesh.faces.clone(),
+        vertex_attrs: mesh.vertex_attrs.clone(),
+    }
 }
 
 #[cfg(test)]

@@ -208,7 +208,12 @@ impl Quadric {
     fn eval(&self, p: [f64; 3]) -> f64 {
         let q = &self.0;
         let [x, y, z] = p;
-        q[0] * x * x + 2.0 * q[1] * x * y + 2.0 * q[2] * x * z + 2.0 * q[3] * x + q[4] * y * y + 2.0 * q[5] * y * z
+        q[0] * x * x
+            + 2.0 * q[1] * x * y
+            + 2.0 * q[2] * x * z
+            + 2.0 * q[3] * x
+            + q[4] * y * y
+            + 2.0 * q[5] * y * z
             + 2.0 * q[6] * y
             + q[7] * z * z
             + 2.0 * q[8] * z
@@ -369,11 +374,7 @@ impl Decimator {
                 cands.insert(0, p);
             }
         }
-        cands
-            .into_iter()
-            .map(|p| (p, q.eval(p).max(0.0)))
-            .min_by(|x, y| x.1.total_cmp(&y.1))
-            .unwrap_or((mid, 0.0))
+        cands.into_iter().map(|p| (p, q.eval(p).max(0.0))).min_by(|x, y| x.1.total_cmp(&y.1)).unwrap_or((mid, 0.0))
     }
 
     fn push(&self, heap: &mut BinaryHeap<Candidate>, u: u32, v: u32) {
@@ -490,8 +491,7 @@ pub fn decimate(mesh: &Mesh, target_faces: usize) -> Mesh {
     while d.alive_faces > target {
         let Some(c) = heap.pop() else { break };
         let (u, v) = (c.u, c.v);
-        if !d.alive[u as usize] || !d.alive[v as usize] || d.version[u as usize] != c.ver_u || d.version[v as usize] != c.ver_v
-        {
+        if !d.alive[u as usize] || !d.alive[v as usize] || d.version[u as usize] != c.ver_u || d.version[v as usize] != c.ver_v {
             continue;
         }
         let (p, _) = d.plan(u, v);

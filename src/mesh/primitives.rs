@@ -4,9 +4,9 @@
 
 use crate::math::cross;
 use crate::mesh::trimesh::TriMesh;
-use std::f64::consts::{FRAC_PI_2, PI, TAU};
 use crate::mesh::Mesh;
 use crate::spatial::P3;
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 /// A closed, outward-oriented tetrahedron.
 pub fn tetrahedron() -> Mesh {
@@ -19,8 +19,23 @@ pub fn tetrahedron() -> Mesh {
 
 /// A closed box mesh `[-h, h]`, outward-facing triangles.
 pub fn cuboid(h: P3) -> TriMesh {
-    let vertices = (0..8).map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }]).collect();
-    let faces = vec![[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+    let vertices = (0..8)
+        .map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }])
+        .collect();
+    let faces = vec![
+        [0, 2, 1],
+        [1, 2, 3],
+        [4, 5, 6],
+        [5, 7, 6],
+        [0, 1, 4],
+        [1, 5, 4],
+        [2, 6, 3],
+        [3, 6, 7],
+        [0, 4, 2],
+        [2, 4, 6],
+        [1, 3, 5],
+        [3, 7, 5],
+    ];
     TriMesh { vertices, faces }
 }
 
@@ -155,10 +170,12 @@ pub fn sphere_mesh(r: f64) -> Mesh {
 
 pub fn torus_mesh(big: f64, small: f64) -> Mesh {
     let m = 16;
-    let p: Vec<[f64; 2]> = (0..m).map(|i| {
-        let b = TAU * i as f64 / m as f64;
-        [big + small * b.cos(), small * b.sin()]
-    }).collect();
+    let p: Vec<[f64; 2]> = (0..m)
+        .map(|i| {
+            let b = TAU * i as f64 / m as f64;
+            [big + small * b.cos(), small * b.sin()]
+        })
+        .collect();
     centred(revolve(&p, true, SEGMENTS))
 }
 

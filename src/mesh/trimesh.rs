@@ -1,9 +1,9 @@
 //! Triangle meshes (or bare point clouds) for evaluation, surface sampling and diameters.
 //! Everything is `f64`; units are whatever the caller loaded (the evaluator uses metres).
 
-use crate::spatial::{dist2, P3};
 use crate::math::Similarity;
 use crate::rng::SeededRng;
+use crate::spatial::{dist2, P3};
 use rayon::prelude::*;
 
 /// A triangle mesh. `faces` may be empty: the model is then a point cloud and its
@@ -92,11 +92,7 @@ impl TriMesh {
                 // Square-root trick: uniform density over the triangle.
                 let (r1, r2) = (rng.uniform().sqrt(), rng.uniform());
                 let (wa, wb, wc) = (1.0 - r1, r1 * (1.0 - r2), r1 * r2);
-                let p = [
-                    wa * a[0] + wb * b[0] + wc * c[0],
-                    wa * a[1] + wb * b[1] + wc * c[1],
-                    wa * a[2] + wb * b[2] + wc * c[2],
-                ];
+                let p = [wa * a[0] + wb * b[0] + wc * c[0], wa * a[1] + wb * b[1] + wc * c[1], wa * a[2] + wb * b[2] + wc * c[2]];
                 (p, k as u32)
             })
             .unzip()

@@ -7,9 +7,9 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::pose::{NineDLayout, PoseStats};
 use crate::model::sampler::SamplerSettings;
 use crate::model::stage1::ss_flow::SsFlowConfig;
-use crate::geometry::pose::{NineDLayout, PoseStats};
 use crate::{Error, Result};
 
 /// One module: upstream class name plus constructor args.
@@ -148,7 +148,11 @@ impl RecGenConfig {
             }
             let dec_up = self.ss_decoder.args.get("channels").and_then(|v| v.as_array()).map(|a| a.len());
             if dec_up != Some(e.channels.len()) {
-                return Err(Error::config(file, "ss_encoder.args.channels", "needs as many levels as ss_decoder.args.channels (the encoder must downsample as much as the decoder upsamples)"));
+                return Err(Error::config(
+                    file,
+                    "ss_encoder.args.channels",
+                    "needs as many levels as ss_decoder.args.channels (the encoder must downsample as much as the decoder upsamples)",
+                ));
             }
         }
         let dino = self.image_cond_model.args.get("hidden_size").and_then(|v| v.as_u64());

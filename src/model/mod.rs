@@ -11,9 +11,9 @@
 //!   and Gaussian decoders, FlexiCubes);
 //! - [`config`]: the architecture file that names every module.
 
+pub mod config;
 pub mod nn;
-pub mod sparse;
 pub mod sampler;
+pub mod sparse;
 pub mod stage1;
 pub mod stage2;
-pub mod config;

@@ -134,13 +134,7 @@ pub trait VelocityModel {
 
     /// Conditional and unconditional velocities. The default runs two passes
     /// (as upstream does); models may batch them.
-    fn velocity_cfg(
-        &self,
-        state: &[Tensor],
-        t_model: f32,
-        cond: &Tensor,
-        neg_cond: &Tensor,
-    ) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg_cond: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
         Ok((self.velocity(state, t_model, cond)?, self.velocity(state, t_model, neg_cond)?))
     }
 }
@@ -186,13 +180,7 @@ impl FlowEulerGuidanceIntervalSampler {
 
     /// Run all steps from `noise` (state at t = 1). `neg_cond = None` disables
     /// guidance. Returns the final state.
-    pub fn sample(
-        &self,
-        model: &dyn VelocityModel,
-        noise: Vec<Tensor>,
-        cond: &Tensor,
-        neg_cond: Option<&Tensor>,
-    ) -> Result<Vec<Tensor>> {
+    pub fn sample(&self, model: &dyn VelocityModel, noise: Vec<Tensor>, cond: &Tensor, neg_cond: Option<&Tensor>) -> Result<Vec<Tensor>> {
         self.sample_traced(model, noise, cond, neg_cond, |_| Ok(()))
     }
 
@@ -225,11 +213,7 @@ impl FlowEulerGuidanceIntervalSampler {
                 _ => (model.velocity(&x, model_t, cond)?, None),
             };
             if v_cond.len() != x.len() || v_uncond.as_ref().is_some_and(|u| u.len() != x.len()) {
-                return Err(Error::msg(format!(
-                    "sampler: model returned {} velocities for a state of {} tensors",
-                    v_cond.len(),
-                    x.len()
-                )));
+                return Err(Error::msg(format!("sampler: model returned {} velocities for a state of {} tensors", v_cond.len(), x.len())));
             }
             let v: Vec<Tensor> = match &v_uncond {
                 Some(u) => v_cond
@@ -245,8 +229,7 @@ impl FlowEulerGuidanceIntervalSampler {
                 .map(|(xi, vi)| (xi * (1.0 - sigma))? - (vi * (sigma + (1.0 - sigma) * t))?)
                 .collect::<candle_core::Result<_>>()?;
             let dt = t - t_prev;
-            let x_prev: Vec<Tensor> =
-                x.iter().zip(&v).map(|(xi, vi)| xi - (vi * dt)?).collect::<candle_core::Result<_>>()?;
+            let x_prev: Vec<Tensor> = x.iter().zip(&v).map(|(xi, vi)| xi - (vi * dt)?).collect::<candle_core::Result<_>>()?;
             on_step(&StepRecord {
                 step,
                 t,

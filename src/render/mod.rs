@@ -22,10 +22,10 @@
 
 pub mod preview;
 
-use crate::mesh::Mesh;
+use crate::dataset::frame::Intrinsics;
 use crate::math::Similarity;
 use crate::mesh::trimesh::TriMesh;
-use crate::dataset::frame::Intrinsics;
+use crate::mesh::Mesh;
 use crate::sensor::PixelCovariates;
 use crate::{Error, Result};
 use parry3d::math::Vector;
@@ -109,9 +109,14 @@ impl RenderMesh {
 pub enum Pattern {
     Solid,
     /// 3D checkerboard of cubes with side `cell` (mesh units).
-    Checker { cell: f64 },
+    Checker {
+        cell: f64,
+    },
     /// Slabs of width `period / 2` across mesh axis `axis` (0 = x, 1 = y, 2 = z).
-    Stripes { axis: usize, period: f64 },
+    Stripes {
+        axis: usize,
+        period: f64,
+    },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -300,7 +305,12 @@ fn prepare(inst: &Instance, cam: &Camera) -> Prepared {
         None
     } else {
         let cl = |x: f64, n: usize| x.clamp(0.0, (n - 1) as f64) as usize;
-        Some((cl(r[0].floor() - 1.0, cam.width), cl(r[1].floor() - 1.0, cam.height), cl(r[2].ceil() + 1.0, cam.width), cl(r[3].ceil() + 1.0, cam.height)))
+        Some((
+            cl(r[0].floor() - 1.0, cam.width),
+            cl(r[1].floor() - 1.0, cam.height),
+            cl(r[2].ceil() + 1.0, cam.width),
+            cl(r[3].ceil() + 1.0, cam.height),
+        ))
     };
     Prepared { m, o, r_cam: m2c.rotation, rect }
 }
@@ -355,7 +365,10 @@ pub fn render(instances: &[Instance], camera: &Camera, opts: &RenderOptions) -> 
                         continue;
                     }
                     let dir = mat_vec(&p.m, d);
-                    let ray = Ray::new(Vector::new(p.o[0] as f32, p.o[1] as f32, p.o[2] as f32), Vector::new(dir[0] as f32, dir[1] as f32, dir[2] as f32));
+                    let ray = Ray::new(
+                        Vector::new(p.o[0] as f32, p.o[1] as f32, p.o[2] as f32),
+                        Vector::new(dir[0] as f32, dir[1] as f32, dir[2] as f32),
+                    );
                     if let Some(hit) = instances[i].mesh.bvh.cast_local_ray_and_get_normal(&ray, f32::MAX, false) {
                         let t = hit.time_of_impact;
                         if !(t > 0.0) {
@@ -434,7 +447,12 @@ impl Rendered {
     fn depth_of(&self, include: Option<&[bool]>) -> Vec<f32> {
         match include {
             None => self.depth.clone(),
-            Some(inc) => self.depth.iter().zip(&self.index).map(|(&z, &i)| if i >= 0 && inc.get(i as usize).copied().unwrap_or(false) { z } else { 0.0 }).collect(),
+            Some(inc) => self
+                .depth
+                .iter()
+                .zip(&self.index)
+                .map(|(&z, &i)| if i >= 0 && inc.get(i as usize).copied().unwrap_or(false) { z } else { 0.0 })
+                .collect(),
         }
     }
 
@@ -693,7 +711,11 @@ mod tests {
         let d = distance_transform_sq(&f, w, h);
         for v in 0..h {
             for u in 0..w {
-                let want = [(2, 3), (10, 7), (6, 0)].iter().map(|&(a, b): &(i64, i64)| (u as i64 - a).pow(2) + (v as i64 - b).pow(2)).min().unwrap();
+                let want = [(2, 3), (10, 7), (6, 0)]
+                    .iter()
+                    .map(|&(a, b): &(i64, i64)| (u as i64 - a).pow(2) + (v as i64 - b).pow(2))
+                    .min()
+                    .unwrap();
                 assert_eq!(d[v * w + u], want as f64, "({u}, {v})");
             }
         }
@@ -705,7 +727,12 @@ mod tests {
         let c = cam(40, 30, 40.0);
         let mut inst = Instance::new(&b, Similarity::rigid(Similarity::identity().rotation, [0.0, 0.0, 1.0]), 5);
         inst.material = Material { color: [1.0, 0.0, 0.0], ..Material::default() };
-        let r = render(&[inst], &c, &RenderOptions { light: Light { direction_cam: [0.0, 0.0, -1.0], ambient: 0.0, diffuse: 1.0 }, ..Default::default() }).unwrap();
+        let r = render(
+            &[inst],
+            &c,
+            &RenderOptions { light: Light { direction_cam: [0.0, 0.0, -1.0], ambient: 0.0, diffuse: 1.0 }, ..Default::default() },
+        )
+        .unwrap();
         let cov = r.covariates(3);
         assert_eq!(cov.len(), 40 * 30);
         let centre = &cov[15 * 40 + 20];
@@ -734,7 +761,15 @@ mod tests {
         let wall = quad(10.0);
         let c = cam(40, 30, 40.0);
         let id = Similarity::identity().rotation;
-        let r = render(&[Instance::new(&wall, Similarity::rigid(id, [0.0, 0.0, 0.91]), 0), Instance::new(&b, Similarity::rigid(id, [0.0, 0.0, 1.0]), 1)], &c, &RenderOptions::default()).unwrap();
+        let r = render(
+            &[
+                Instance::new(&wall, Similarity::rigid(id, [0.0, 0.0, 0.91]), 0),
+                Instance::new(&b, Similarity::rigid(id, [0.0, 0.0, 1.0]), 1),
+            ],
+            &c,
+            &RenderOptions::default(),
+        )
+        .unwrap();
         let all = r.edge_distance(None);
         assert!(all.iter().all(|&d| d == 70.0), "no discontinuity anywhere: capped at w + h");
         let boxed = r.edge_distance(Some(&[false, true]));

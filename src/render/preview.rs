@@ -2,24 +2,33 @@
 //! left; on the right the posed meshes ray-cast from the input camera
 //! (shaded, one colour per object) over the dimmed input.
 
-use crate::mesh::Mesh;
-use crate::math::Similarity;
 use crate::dataset::frame::RgbdFrame;
+use crate::math::Similarity;
+use crate::mesh::Mesh;
 use crate::render::{render, Camera, Instance, Material, RenderMesh, RenderOptions};
 use crate::Result;
 
-const PALETTE: [[f32; 3]; 6] = [[0.95, 0.55, 0.2], [0.3, 0.7, 0.95], [0.5, 0.9, 0.4], [0.95, 0.4, 0.6], [0.85, 0.85, 0.3], [0.6, 0.5, 0.95]];
+const PALETTE: [[f32; 3]; 6] =
+    [[0.95, 0.55, 0.2], [0.3, 0.7, 0.95], [0.5, 0.9, 0.4], [0.95, 0.4, 0.6], [0.85, 0.85, 0.3], [0.6, 0.5, 0.95]];
 
 /// `2W × H` RGB bytes of the preview of `meshes` (camera frame, metres) over `frame`.
 pub fn preview_rgb(frame: &RgbdFrame, meshes: &[&Mesh]) -> Result<(Vec<u8>, usize, usize)> {
     let (w, h) = (frame.width, frame.height);
-    let rms: Vec<RenderMesh> = meshes.iter().enumerate().filter(|(_, m)| !m.faces.is_empty()).map(|(i, m)| RenderMesh::from_mesh(m, &format!("object {i}"))).collect::<Result<_>>()?;
+    let rms: Vec<RenderMesh> = meshes
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| !m.faces.is_empty())
+        .map(|(i, m)| RenderMesh::from_mesh(m, &format!("object {i}")))
+        .collect::<Result<_>>()?;
     let instances: Vec<Instance> = rms
         .iter()
         .enumerate()
         .map(|(i, m)| {
             let c = PALETTE[i % PALETTE.len()];
-            Instance { material: Material { color: c, color2: c, ..Material::default() }, ..Instance::new(m, Similarity::identity(), i as i64) }
+            Instance {
+                material: Material { color: c, color2: c, ..Material::default() },
+                ..Instance::new(m, Similarity::identity(), i as i64)
+            }
         })
         .collect();
     let r = render(&instances, &Camera::new(w, h, frame.intrinsics), &RenderOptions::default())?;
@@ -72,8 +81,23 @@ mod tests {
             depth_scale: 1.0,
         };
         let s = 0.05f32;
-        let v: Vec<[f32; 3]> = (0..8).map(|i| [if i & 1 == 0 { -s } else { s }, if i & 2 == 0 { -s } else { s }, 0.5 + if i & 4 == 0 { -s } else { s }]).collect();
-        let f = vec![[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+        let v: Vec<[f32; 3]> = (0..8)
+            .map(|i| [if i & 1 == 0 { -s } else { s }, if i & 2 == 0 { -s } else { s }, 0.5 + if i & 4 == 0 { -s } else { s }])
+            .collect();
+        let f = vec![
+            [0, 2, 1],
+            [1, 2, 3],
+            [4, 5, 6],
+            [5, 7, 6],
+            [0, 1, 4],
+            [1, 5, 4],
+            [2, 6, 3],
+            [3, 6, 7],
+            [0, 4, 2],
+            [2, 4, 6],
+            [1, 3, 5],
+            [3, 7, 5],
+        ];
         let mesh = Mesh { vertices: v, faces: f, vertex_attrs: None };
         let (rgb, pw, ph) = preview_rgb(&frame, &[&mesh])?;
         assert_eq!((pw, ph), (2 * w, h));

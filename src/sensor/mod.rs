@@ -305,7 +305,12 @@ impl SensorModel {
         if !self.bias_m.is_finite() {
             return bad("bias_m", "expected a finite number".into());
         }
-        for (f, v) in [("noise_m", self.noise_m), ("edge_fattening_px", self.edge_fattening_px), ("min_depth_m", self.min_depth_m), ("max_depth_m", self.max_depth_m)] {
+        for (f, v) in [
+            ("noise_m", self.noise_m),
+            ("edge_fattening_px", self.edge_fattening_px),
+            ("min_depth_m", self.min_depth_m),
+            ("max_depth_m", self.max_depth_m),
+        ] {
             if !finite_nonneg(v) {
                 return bad(f, format!("expected a finite number ≥ 0, got {v}"));
             }
@@ -342,7 +347,11 @@ impl SensorModel {
             if e.covariate.is_categorical() != matches!(e.form, Form::Group { .. }) {
                 return bad(
                     &format!("effects[{i}]"),
-                    format!("covariate {} takes {} form", e.covariate.name(), if e.covariate.is_categorical() { "the group" } else { "a numeric (linear/quadratic/step)" }),
+                    format!(
+                        "covariate {} takes {} form",
+                        e.covariate.name(),
+                        if e.covariate.is_categorical() { "the group" } else { "a numeric (linear/quadratic/step)" }
+                    ),
                 );
             }
         }
@@ -484,7 +493,13 @@ mod tests {
     #[test]
     fn json_round_trip_and_validation() {
         let mut m = SensorModel::stereo_default();
-        m.effects.push(Effect { target: Target::Dropout, covariate: Covariate::Incidence, form: Form::Step { threshold: 70.0, delta: 0.8 }, by: None, cause: None });
+        m.effects.push(Effect {
+            target: Target::Dropout,
+            covariate: Covariate::Incidence,
+            form: Form::Step { threshold: 70.0, delta: 0.8 },
+            by: None,
+            cause: None,
+        });
         m.effects.push(Effect {
             target: Target::Bias,
             covariate: Covariate::Object,
@@ -526,8 +541,20 @@ mod tests {
     #[test]
     fn effects_change_bias_and_dropout() {
         let mut m = SensorModel::ideal();
-        m.effects.push(Effect { target: Target::Bias, covariate: Covariate::Radius, form: Form::Quadratic { linear: 0.0, quadratic: 0.01 }, by: None, cause: None });
-        m.effects.push(Effect { target: Target::Dropout, covariate: Covariate::Incidence, form: Form::Step { threshold: 60.0, delta: 1.0 }, by: None, cause: None });
+        m.effects.push(Effect {
+            target: Target::Bias,
+            covariate: Covariate::Radius,
+            form: Form::Quadratic { linear: 0.0, quadratic: 0.01 },
+            by: None,
+            cause: None,
+        });
+        m.effects.push(Effect {
+            target: Target::Dropout,
+            covariate: Covariate::Incidence,
+            form: Form::Step { threshold: 60.0, delta: 1.0 },
+            by: None,
+            cause: None,
+        });
         let mut rng = SeededRng::new(0);
         let c = PixelCovariates { depth: 1.0, radius: 0.5, incidence: 30.0, ..Default::default() };
         assert!((m.sample(&c, &mut rng) - 1.0025).abs() < 1e-12);

@@ -11,8 +11,8 @@
 //! the primitive's surface. Of the accepted ones the tightest (smallest
 //! volume) wins; with none accepted the decomposition is used instead.
 
-use crate::mesh::Mesh;
 use crate::mesh::trimesh::TriMesh;
+use crate::mesh::Mesh;
 use crate::rng::SeededRng;
 use crate::sim::physics::{bbox, bbox_diagonal};
 use crate::{Error, Result};
@@ -62,7 +62,15 @@ pub struct VhacdOptions {
 
 impl Default for VhacdOptions {
     fn default() -> Self {
-        Self { resolution: 64, concavity: 0.01, max_convex_hulls: 16, plane_downsampling: 4, convex_hull_downsampling: 4, alpha: 0.05, beta: 0.05 }
+        Self {
+            resolution: 64,
+            concavity: 0.01,
+            max_convex_hulls: 16,
+            plane_downsampling: 4,
+            convex_hull_downsampling: 4,
+            alpha: 0.05,
+            beta: 0.05,
+        }
     }
 }
 
@@ -267,7 +275,13 @@ pub struct Collision {
 
 /// Build the collision geometry of `mesh` (body frame, checked by
 /// `physics::check_mesh`); `closed_volume` is its enclosed volume when closed.
-pub fn build_collision(mesh: &Mesh, closed_volume: Option<f64>, method: CollisionMethod, opts: &CollisionOptions, file: &str) -> Result<Collision> {
+pub fn build_collision(
+    mesh: &Mesh,
+    closed_volume: Option<f64>,
+    method: CollisionMethod,
+    opts: &CollisionOptions,
+    file: &str,
+) -> Result<Collision> {
     let samples = surface_samples(mesh, opts.error_samples.max(100), opts.seed);
     let mut notes = Vec::new();
     let mut fit_report = None;
@@ -504,9 +518,8 @@ fn volume_report(mesh: &Mesh, closed_volume: Option<f64>, parts: &[Part], cells:
     let ext = [0, 1, 2].map(|k| (hi[k] - lo[k]).max(1e-9));
     let h = ext.iter().cloned().fold(0.0, f64::max) / cells as f64;
     let n = ext.map(|e| ((e / h).ceil() as usize).max(1));
-    let tri = closed_volume.and_then(|_| {
-        ParryTriMesh::with_flags(to_parry(&mesh.vertices), mesh.faces.clone(), TriMeshFlags::ORIENTED).ok()
-    });
+    let tri =
+        closed_volume.and_then(|_| ParryTriMesh::with_flags(to_parry(&mesh.vertices), mesh.faces.clone(), TriMeshFlags::ORIENTED).ok());
     let (mut in_mesh, mut in_coll, mut in_one) = (0usize, 0usize, 0usize);
     for i in 0..n[0] {
         for j in 0..n[1] {
@@ -690,18 +703,15 @@ fn fit_primitive(
                 let center = [0, 1, 2].map(|i| (0..3).map(|j| r[i][j] * local[j]).sum::<f64>() as f32);
                 // Columns (u, v, w) so the local z is the axis, right-handed.
                 let axes: Mat3 = std::array::from_fn(|i| [r[i][u], r[i][v], r[i][w]]);
-                best_cyl = Some((vol, Primitive::Cylinder { center, rotation: frame_f32(&axes), radius: rad as f32, half_height: hh as f32 }));
+                best_cyl =
+                    Some((vol, Primitive::Cylinder { center, rotation: frame_f32(&axes), radius: rad as f32, half_height: hh as f32 }));
             }
         }
     }
     // Sphere: centred on the box, through the furthest hull vertex.
     let sphere = {
         let Primitive::Box { center, .. } = boxp else { unreachable!() };
-        let r = hull
-            .vertices
-            .iter()
-            .map(|v| ((0..3).map(|k| ((v[k] - center[k]) as f64).powi(2)).sum::<f64>()).sqrt())
-            .fold(0.0, f64::max);
+        let r = hull.vertices.iter().map(|v| ((0..3).map(|k| ((v[k] - center[k]) as f64).powi(2)).sum::<f64>()).sqrt()).fold(0.0, f64::max);
         Primitive::Sphere { center, radius: r as f32 }
     };
     let diag = bbox_diagonal(&mesh.vertices);

@@ -1,11 +1,13 @@
 //! Where scenes come from besides a hand-written scene file: the support
 //! plane of an RGB-D frame, and a `recon infer` output folder.
 
-use crate::math::Similarity32;
 use crate::dataset::frame::RgbdFrame;
+use crate::math::Similarity32;
 use crate::sim::materials::MaterialTable;
 use crate::sim::plane::{fit_plane, world_from_camera, PlaneFit, PlaneFitOptions};
-use crate::sim::scene_file::{CameraSpec, IntrinsicsSpec, ObjectSpec, PhysicsOverrides, PlaneRecord, PoseSpec, SceneFile, SupportPlaneSpec, VERSION};
+use crate::sim::scene_file::{
+    CameraSpec, IntrinsicsSpec, ObjectSpec, PhysicsOverrides, PlaneRecord, PoseSpec, SceneFile, SupportPlaneSpec, VERSION,
+};
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -34,13 +36,7 @@ pub fn camera_spec(frame: &RgbdFrame, world_from_camera: &Similarity32) -> Camer
 /// contained in the label (`"025_mug"` → `mug`), else `"object"`.
 pub fn guess_category(label: &str, table: &MaterialTable) -> String {
     let l = label.to_ascii_lowercase();
-    table
-        .categories
-        .keys()
-        .filter(|c| l.contains(c.as_str()))
-        .max_by_key(|c| c.len())
-        .cloned()
-        .unwrap_or_else(|| "object".into())
+    table.categories.keys().filter(|c| l.contains(c.as_str())).max_by_key(|c| c.len()).cloned().unwrap_or_else(|| "object".into())
 }
 
 /// The colour image `recon infer` read for `dir` (its first object's
@@ -61,7 +57,12 @@ pub fn infer_frame(dir: &Path) -> Option<PathBuf> {
 /// mesh (`<object>/mesh.ply`, metres) placed in the world frame of the
 /// support plane seen in `frame` (the colour image given to `recon infer`).
 /// Objects without a mesh are left out, listed in the returned notes.
-pub fn scene_from_infer_output(dir: &Path, frame: &RgbdFrame, table: &MaterialTable, plane: &PlaneFitOptions) -> Result<(SceneFile, Vec<String>)> {
+pub fn scene_from_infer_output(
+    dir: &Path,
+    frame: &RgbdFrame,
+    table: &MaterialTable,
+    plane: &PlaneFitOptions,
+) -> Result<(SceneFile, Vec<String>)> {
     let index = dir.join(crate::engine::output::MARKER);
     let file = index.display().to_string();
     let v: serde_json::Value = crate::util::json::read_json(&index)?;
@@ -130,7 +131,12 @@ pub struct PlaneCheck {
 /// `<root>/models/obj_NNNNNN.ply`, millimetres): every GT object at its GT
 /// pose, placed in the world frame of the support plane fitted to the view's
 /// depth. `view` defaults to the first image id.
-pub fn scene_from_bop(scene_dir: &Path, view: Option<u32>, table: &MaterialTable, plane: &PlaneFitOptions) -> Result<(SceneFile, Option<PlaneCheck>)> {
+pub fn scene_from_bop(
+    scene_dir: &Path,
+    view: Option<u32>,
+    table: &MaterialTable,
+    plane: &PlaneFitOptions,
+) -> Result<(SceneFile, Option<PlaneCheck>)> {
     let gt_path = scene_dir.join("scene_gt.json");
     let cam_path = scene_dir.join("scene_camera.json");
     let gt_file = gt_path.display().to_string();

@@ -87,7 +87,11 @@ impl MaterialTable {
         }
         for (cat, name) in &self.categories {
             if !self.materials.contains_key(name) {
-                return Err(Error::config(file, format!("categories.{cat}"), format!("unknown material `{name}` (known: {})", self.known())));
+                return Err(Error::config(
+                    file,
+                    format!("categories.{cat}"),
+                    format!("unknown material `{name}` (known: {})", self.known()),
+                ));
             }
         }
         Ok(())

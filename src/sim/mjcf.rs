@@ -9,9 +9,9 @@
 //! solver's `solref`), so restitution is recorded in a comment only.
 
 use crate::math::matrix_to_quat;
-use crate::sim::urdf::xml_escape;
 use crate::sim::collision::{Part, Primitive};
 use crate::sim::scene::{hull_file, SimScene};
+use crate::sim::urdf::xml_escape;
 use std::fmt::Write as _;
 
 fn quat(r: &[[f32; 3]; 3]) -> String {
@@ -45,11 +45,8 @@ pub fn scene_mjcf(scene: &SimScene, mesh_dir: &str) -> String {
         }
     }
     s += "  </asset>\n  <worldbody>\n";
-    let _ = writeln!(
-        s,
-        "    <geom name=\"support_plane\" type=\"plane\" size=\"0 0 0.05\" friction=\"{}\"/>",
-        friction(scene.plane.friction)
-    );
+    let _ =
+        writeln!(s, "    <geom name=\"support_plane\" type=\"plane\" size=\"0 0 0.05\" friction=\"{}\"/>", friction(scene.plane.friction));
     s += "    <light name=\"top\" pos=\"0 0 2\" dir=\"0 0 -1\"/>\n";
     for o in &scene.objects {
         let t = o.end.translation;
@@ -70,7 +67,11 @@ pub fn scene_mjcf(scene: &SimScene, mesh_dir: &str) -> String {
             "      <inertial pos=\"0 0 0\" mass=\"{}\" fullinertia=\"{} {} {} {} {} {}\"/>",
             o.inertial.mass_kg, i[0][0], i[1][1], i[2][2], i[0][1], i[0][2], i[1][2]
         );
-        let _ = writeln!(s, "      <geom name=\"{}_visual\" type=\"mesh\" mesh=\"{}_visual\" contype=\"0\" conaffinity=\"0\" group=\"1\"/>", o.id, o.id);
+        let _ = writeln!(
+            s,
+            "      <geom name=\"{}_visual\" type=\"mesh\" mesh=\"{}_visual\" contype=\"0\" conaffinity=\"0\" group=\"1\"/>",
+            o.id, o.id
+        );
         let f = friction(o.friction);
         for (k, p) in o.collision.parts.iter().enumerate() {
             let name = format!("{}_part{k:02}", o.id);

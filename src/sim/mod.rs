@@ -16,14 +16,14 @@
 pub mod collision;
 pub mod inputs;
 pub mod materials;
+pub mod mjcf;
 pub mod physics;
 pub mod plane;
+mod scene;
 pub mod scene_file;
 pub mod settle;
-pub mod mjcf;
 pub mod urdf;
 pub mod usd;
-mod scene;
 mod write;
 
 pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};

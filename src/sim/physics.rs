@@ -7,9 +7,9 @@
 //! mass = area × thickness × density and the thin-lamina inertia integrated
 //! over the triangles (parry has no 3D shell mass properties).
 
-use crate::mesh::{face_area, Topology};
 use crate::mesh::post::remove_unreferenced_vertices;
 use crate::mesh::Mesh;
+use crate::mesh::{face_area, Topology};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, HashSet};
@@ -223,7 +223,10 @@ pub fn annotate(
         (TreatmentChoice::Solid, false) => {
             return Err(Error::input(
                 file,
-                format!("treatment \"solid\" requested but the mesh is open ({} boundary edges): it has no volume; use \"shell\" or \"auto\"", report.boundary_edges),
+                format!(
+                    "treatment \"solid\" requested but the mesh is open ({} boundary edges): it has no volume; use \"shell\" or \"auto\"",
+                    report.boundary_edges
+                ),
             ))
         }
         (TreatmentChoice::Shell, _) => (Treatment::Shell, "requested".to_string()),
@@ -311,12 +314,18 @@ pub(crate) mod tests {
             vertices.push([c[0] + s[0] * half[0], c[1] + s[1] * half[1], c[2] + s[2] * half[2]]);
         }
         let faces = vec![
-            [0, 2, 1], [1, 2, 3], // z-
-            [4, 5, 6], [5, 7, 6], // z+
-            [0, 1, 4], [1, 5, 4], // y-
-            [2, 6, 3], [3, 6, 7], // y+
-            [0, 4, 2], [2, 4, 6], // x-
-            [1, 3, 5], [3, 7, 5], // x+
+            [0, 2, 1],
+            [1, 2, 3], // z-
+            [4, 5, 6],
+            [5, 7, 6], // z+
+            [0, 1, 4],
+            [1, 5, 4], // y-
+            [2, 6, 3],
+            [3, 6, 7], // y+
+            [0, 4, 2],
+            [2, 4, 6], // x-
+            [1, 3, 5],
+            [3, 7, 5], // x+
         ];
         Mesh { vertices, faces, vertex_attrs: None }
     }

@@ -70,8 +70,7 @@ pub struct PlaneFit {
 /// Fit the dominant plane of `points` (non-finite and all-zero points, i.e.
 /// invalid depth, are ignored). Deterministic for a given seed.
 pub fn fit_plane(points: &[[f64; 3]], opts: &PlaneFitOptions) -> Result<PlaneFit> {
-    let pts: Vec<[f64; 3]> =
-        points.iter().copied().filter(|p| p.iter().all(|x| x.is_finite()) && p.iter().any(|&x| x != 0.0)).collect();
+    let pts: Vec<[f64; 3]> = points.iter().copied().filter(|p| p.iter().all(|x| x.is_finite()) && p.iter().any(|&x| x != 0.0)).collect();
     if pts.len() < 3 {
         return Err(Error::input("support plane", format!("need at least 3 valid points, got {}", pts.len())));
     }

@@ -1,16 +1,16 @@
 //! A settled, annotated scene: objects with physics and collision, built from a scene file.
 
-use crate::mesh::Mesh;
-use crate::mesh::trimesh::TriMesh;
 use crate::math::Similarity32;
-use crate::{Error, Result};
+use crate::mesh::trimesh::TriMesh;
+use crate::mesh::Mesh;
 use crate::sim::collision::{build_collision, Collision, CollisionMethod, CollisionOptions};
 use crate::sim::materials::{MaterialSource, MaterialTable};
 use crate::sim::physics::{annotate, check_mesh, Inertial, MeshReport, TreatmentChoice};
-use rayon::prelude::*;
 use crate::sim::scene_file::{safe_name, ObjectSpec, PoseSpec, SceneFile};
-use serde::Serialize;
 use crate::sim::settle::{settle, Body, BodySettle, SettleOptions, SettleResult};
+use crate::{Error, Result};
+use rayon::prelude::*;
+use serde::Serialize;
 use std::path::PathBuf;
 
 /// Everything `recon scene` can be told.
@@ -112,9 +112,7 @@ pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions
     let annotate_s = t0.elapsed().as_secs_f64();
 
     let pm_name = scene.support_plane.material.clone().unwrap_or_else(|| table.support_plane_material.clone());
-    let pm = table
-        .get(&pm_name)
-        .ok_or_else(|| Error::config(file, "support_plane.material", format!("unknown material `{pm_name}`")))?;
+    let pm = table.get(&pm_name).ok_or_else(|| Error::config(file, "support_plane.material", format!("unknown material `{pm_name}`")))?;
     let plane = PlaneMaterial {
         friction: scene.support_plane.friction.unwrap_or(pm.friction),
         restitution: scene.support_plane.restitution.unwrap_or(pm.restitution),
@@ -195,7 +193,8 @@ fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneO
     let s = o.scale;
     let raw = Mesh { vertices: tm.vertices.iter().map(|v| v.map(|x| (x * s) as f32)).collect(), faces: tm.faces, vertex_attrs: None };
     let (mesh, mesh_report) = check_mesh(&raw, &mesh_file)?;
-    let (material, material_source) = table.resolve(o.physics.material.as_deref(), &o.category, file, &format!("{field}.physics.material"))?;
+    let (material, material_source) =
+        table.resolve(o.physics.material.as_deref(), &o.category, file, &format!("{field}.physics.material"))?;
     let mat = table.get(&material).copied().ok_or_else(|| Error::msg(format!("material {material} vanished")))?;
     let inertial = annotate(
         &mesh,

@@ -44,11 +44,7 @@ pub struct PoseSpec {
 
 impl PoseSpec {
     pub fn from_similarity(s: &Similarity32) -> Self {
-        PoseSpec {
-            rotation: None,
-            quaternion_wxyz: Some(s.quaternion().map(|x| x as f64)),
-            translation_m: s.translation.map(|x| x as f64),
-        }
+        PoseSpec { rotation: None, quaternion_wxyz: Some(s.quaternion().map(|x| x as f64)), translation_m: s.translation.map(|x| x as f64) }
     }
 
     /// The rigid transform (scale 1); errors name `file` and `field`.
@@ -58,7 +54,11 @@ impl PoseSpec {
             (None, Some(q)) => {
                 let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
                 if !(n.is_finite() && (n - 1.0).abs() < 1e-3) {
-                    return Err(Error::config(file, format!("{field}.quaternion_wxyz"), format!("expected a unit quaternion (w, x, y, z), norm is {n}")));
+                    return Err(Error::config(
+                        file,
+                        format!("{field}.quaternion_wxyz"),
+                        format!("expected a unit quaternion (w, x, y, z), norm is {n}"),
+                    ));
                 }
                 crate::math::quat_to_matrix(q.map(|x| x as f32))
             }
@@ -240,7 +240,9 @@ impl SceneFile {
         match root.get("version").map(|x| x.as_u64()) {
             None => return Err(Error::config(file, "version", format!("missing; this build reads \"version\": {VERSION}"))),
             Some(Some(n)) if n == VERSION as u64 => {}
-            Some(_) => return Err(Error::config(file, "version", format!("unsupported {}; this build reads version {VERSION}", root["version"]))),
+            Some(_) => {
+                return Err(Error::config(file, "version", format!("unsupported {}; this build reads version {VERSION}", root["version"])))
+            }
         }
         const KNOWN: [&str; 5] = ["version", "source", "camera", "support_plane", "objects"];
         if let Some(k) = root.keys().find(|k| !KNOWN.contains(&k.as_str())) {
@@ -285,7 +287,11 @@ impl SceneFile {
                 ));
             }
             if !(o.scale.is_finite() && o.scale > 0.0) {
-                return Err(Error::config(file, format!("{f}.scale"), format!("expected a positive number (mesh units → metres), got {}", o.scale)));
+                return Err(Error::config(
+                    file,
+                    format!("{f}.scale"),
+                    format!("expected a positive number (mesh units → metres), got {}", o.scale),
+                ));
             }
             o.pose.to_similarity(file, &format!("{f}.pose"))?;
             let p = &o.physics;
@@ -308,7 +314,11 @@ impl SceneFile {
             if let Some(k) = &c.intrinsics {
                 let ok = [k.fx, k.fy, k.cx, k.cy].iter().all(|x| x.is_finite()) && k.fx > 0.0 && k.fy > 0.0 && k.width > 0 && k.height > 0;
                 if !ok {
-                    return Err(Error::config(file, "camera.intrinsics", "expected finite fx, fy > 0, cx, cy and a positive width and height"));
+                    return Err(Error::config(
+                        file,
+                        "camera.intrinsics",
+                        "expected finite fx, fy > 0, cx, cy and a positive width and height",
+                    ));
                 }
             }
         }
@@ -396,7 +406,8 @@ mod tests {
         assert!(err("[1, 2]").contains("expected a JSON object"));
         assert!(err("{\"version\": 1, \"objects\": []}").contains("no objects"));
         // Both rotation forms, or neither.
-        let both = GOOD.replace("\"quaternion_wxyz\": [1, 0, 0, 0]", "\"quaternion_wxyz\": [1, 0, 0, 0], \"rotation\": [[1,0,0],[0,1,0],[0,0,1]]");
+        let both =
+            GOOD.replace("\"quaternion_wxyz\": [1, 0, 0, 0]", "\"quaternion_wxyz\": [1, 0, 0, 0], \"rotation\": [[1,0,0],[0,1,0],[0,0,1]]");
         assert!(err(&both).contains("exactly one"));
     }
 

@@ -153,12 +153,19 @@ fn groups(member: Group, filter: Group) -> InteractionGroups {
 
 fn to_pose(s: &Similarity32) -> Pose {
     let q = matrix_to_quat(&s.rotation);
-    Pose::from_parts(Vector::new(s.translation[0], s.translation[1], s.translation[2]), Rotation::from_xyzw(q[1], q[2], q[3], q[0]).normalize())
+    Pose::from_parts(
+        Vector::new(s.translation[0], s.translation[1], s.translation[2]),
+        Rotation::from_xyzw(q[1], q[2], q[3], q[0]).normalize(),
+    )
 }
 
 fn from_pose(p: &Pose) -> Similarity32 {
     let q = p.rotation;
-    Similarity32 { rotation: quat_to_matrix([q.w, q.x, q.y, q.z]), translation: [p.translation.x, p.translation.y, p.translation.z], scale: 1.0 }
+    Similarity32 {
+        rotation: quat_to_matrix([q.w, q.x, q.y, q.z]),
+        translation: [p.translation.x, p.translation.y, p.translation.z],
+        scale: 1.0,
+    }
 }
 
 fn mat_pose(r: &[[f32; 3]; 3], t: [f32; 3]) -> Pose {
@@ -172,7 +179,9 @@ fn part_shape(p: &Part) -> Option<(Pose, SharedShape)> {
             let pts: Vec<Vector> = m.vertices.iter().map(|v| Vector::new(v[0], v[1], v[2])).collect();
             (Pose::IDENTITY, SharedShape::convex_hull(&pts)?)
         }
-        Part::Primitive(Primitive::Box { center, rotation, half_extents: h }) => (mat_pose(rotation, *center), SharedShape::cuboid(h[0], h[1], h[2])),
+        Part::Primitive(Primitive::Box { center, rotation, half_extents: h }) => {
+            (mat_pose(rotation, *center), SharedShape::cuboid(h[0], h[1], h[2]))
+        }
         Part::Primitive(Primitive::Cylinder { center, rotation, radius, half_height }) => {
             // rapier's cylinder axis is y; ours is the local z: rotate y onto z.
             let y_to_z = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]];
@@ -206,7 +215,10 @@ pub fn body_distance(a: &Body, b: &Body) -> Result<f64> {
         for (pb, gb) in &sb {
             let d = match parry3d::query::contact(pa, &**ga, pb, &**gb, 0.0) {
                 Ok(Some(c)) => c.dist as f64,
-                _ => parry3d::query::distance(pa, &**ga, pb, &**gb).map_err(|e| Error::msg(format!("distance query: {e:?}")))?.distance as f64,
+                _ => {
+                    parry3d::query::distance(pa, &**ga, pb, &**gb).map_err(|e| Error::msg(format!("distance query: {e:?}")))?.distance
+                        as f64
+                }
             };
             best = best.min(d);
         }
@@ -228,12 +240,8 @@ fn penetrations(
         .zip(handles)
         .map(|(b, h)| {
             let pose = from_pose(world.bodies[*h].position());
-            let low = b
-                .parts
-                .iter()
-                .flat_map(|p| p.surface_mesh().vertices)
-                .map(|v| pose.apply(&v)[2] as f64)
-                .fold(f64::INFINITY, f64::min);
+            let low =
+                b.parts.iter().flat_map(|p| p.surface_mesh().vertices).map(|v| pose.apply(&v)[2] as f64).fold(f64::INFINITY, f64::min);
             if low < 0.0 {
                 (-low, Some(PLANE.to_string()))
             } else {
@@ -310,7 +318,13 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             [i[0][2], i[1][2], i[2][2]],
         ]);
         let mp = MassProperties::with_inertia_matrix(Vector::ZERO, b.mass_kg as f32, inertia);
-        let h = world.insert_body(RigidBodyBuilder::dynamic().pose(to_pose(&b.pose)).additional_mass_properties(mp).angular_damping(opts.angular_damping as f32).can_sleep(false));
+        let h = world.insert_body(
+            RigidBodyBuilder::dynamic()
+                .pose(to_pose(&b.pose))
+                .additional_mass_properties(mp)
+                .angular_damping(opts.angular_damping as f32)
+                .can_sleep(false),
+        );
         for p in &b.parts {
             let degenerate = || Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name));
             let mut builders = vec![];
@@ -321,7 +335,9 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
                     let foot = ColliderBuilder::trimesh(v, m.faces.clone()).map_err(|_| degenerate())?;
                     builders.push(foot.collision_groups(groups(FOOT, GROUND)));
                 }
-                Part::Primitive(_) => builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT.union(GROUND)))),
+                Part::Primitive(_) => {
+                    builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT.union(GROUND))))
+                }
             }
             for c in builders {
                 let ch = world.insert_collider(c.density(0.0).friction(b.friction as f32).restitution(b.restitution as f32), Some(h));
@@ -355,7 +371,9 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
                     b.set_angvel(Vector::ZERO, true);
                 }
             }
-            if depen_steps % check_every == 0 && penetrations(&world, &owner, bodies, &handles).iter().all(|(p, _)| *p <= opts.depenetrated_m) {
+            if depen_steps % check_every == 0
+                && penetrations(&world, &owner, bodies, &handles).iter().all(|(p, _)| *p <= opts.depenetrated_m)
+            {
                 break;
             }
         }

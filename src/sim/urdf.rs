@@ -41,7 +41,12 @@ fn link(o: &SimObject, mesh_dir: &str) -> String {
         i[0][0], i[0][1], i[0][2], i[1][1], i[1][2], i[2][2]
     );
     let _ = writeln!(s, "    </inertial>");
-    let _ = writeln!(s, "    <visual>\n      {}\n      <geometry><mesh filename=\"{mesh_dir}/{}/visual.obj\"/></geometry>\n    </visual>", origin([0.0; 3], &IDENTITY), o.id);
+    let _ = writeln!(
+        s,
+        "    <visual>\n      {}\n      <geometry><mesh filename=\"{mesh_dir}/{}/visual.obj\"/></geometry>\n    </visual>",
+        origin([0.0; 3], &IDENTITY),
+        o.id
+    );
     for (k, p) in o.collision.parts.iter().enumerate() {
         let (org, geom) = match p {
             Part::Hull(_) => (origin([0.0; 3], &IDENTITY), format!("<mesh filename=\"{mesh_dir}/{}/{}\"/>", o.id, hull_file(k))),
@@ -53,7 +58,8 @@ fn link(o: &SimObject, mesh_dir: &str) -> String {
             }
             Part::Primitive(Primitive::Sphere { center, radius }) => (origin(*center, &IDENTITY), format!("<sphere radius=\"{radius}\"/>")),
         };
-        let _ = writeln!(s, "    <collision name=\"{}_part{k:02}\">\n      {org}\n      <geometry>{geom}</geometry>\n    </collision>", o.id);
+        let _ =
+            writeln!(s, "    <collision name=\"{}_part{k:02}\">\n      {org}\n      <geometry>{geom}</geometry>\n    </collision>", o.id);
     }
     // pybullet reads friction/restitution from <contact>; other consumers ignore it.
     let _ = writeln!(
@@ -85,7 +91,9 @@ pub fn object_urdf(o: &SimObject, mesh_dir: &str) -> String {
 /// The whole scene: `world` link with the support plane (a 2 m slab whose
 /// top face is z = 0), every object on a floating joint at its settled pose.
 pub fn scene_urdf(scene: &SimScene, mesh_dir: &str) -> String {
-    let mut s = String::from("<?xml version=\"1.0\"?>\n<!-- recon scene: settled; world frame z up, support plane z = 0 -->\n<robot name=\"scene\">\n");
+    let mut s = String::from(
+        "<?xml version=\"1.0\"?>\n<!-- recon scene: settled; world frame z up, support plane z = 0 -->\n<robot name=\"scene\">\n",
+    );
     let _ = writeln!(
         s,
         "  <link name=\"world\">\n    <collision name=\"support_plane\">\n      <origin xyz=\"0 0 -0.01\" rpy=\"0 0 0\"/>\n      <geometry><box size=\"2 2 0.02\"/></geometry>\n    </collision>\n    <contact>\n      <lateral_friction value=\"{}\"/>\n      <restitution value=\"{}\"/>\n    </contact>\n  </link>",
@@ -116,7 +124,9 @@ mod tests {
 
     #[test]
     fn rpy_reconstructs_the_rotation() {
-        for (axis, angle) in [([0.3, -0.5, 0.8], 0.7), ([1.0, 0.0, 0.0], 2.0), ([0.0, 1.0, 0.0], std::f64::consts::FRAC_PI_2), ([0.2, 0.9, -0.1], -2.5)] {
+        for (axis, angle) in
+            [([0.3, -0.5, 0.8], 0.7), ([1.0, 0.0, 0.0], 2.0), ([0.0, 1.0, 0.0], std::f64::consts::FRAC_PI_2), ([0.2, 0.9, -0.1], -2.5)]
+        {
             let r = axis_angle(axis, angle).map(|row| row.map(|x| x as f32));
             let [ro, pi, ya] = rpy(&r);
             let rx = axis_angle([1.0, 0.0, 0.0], ro);

@@ -8,8 +8,8 @@
 //! to a per-object `PhysicsMaterialAPI` material. The support plane is a
 //! static 2 m slab whose top face is z = 0. Stage: z up, metres, kilograms.
 
-use crate::mesh::Mesh;
 use crate::math::matrix_to_quat;
+use crate::mesh::Mesh;
 use crate::sim::collision::{Part, Primitive};
 use crate::sim::scene::SimScene;
 use std::fmt::Write as _;
@@ -50,7 +50,10 @@ pub fn scene_usda(scene: &SimScene) -> String {
     s += "    def PhysicsScene \"PhysicsScene\"\n    {\n        vector3f physics:gravityDirection = (0, 0, -1)\n        float physics:gravityMagnitude = 9.81\n    }\n\n";
     s += "    def Scope \"PhysicsMaterials\"\n    {\n";
     let material = |s: &mut String, name: &str, friction: f64, restitution: f64, density: Option<f64>| {
-        let _ = writeln!(s, "        def Material \"{name}\" (\n            prepend apiSchemas = [\"PhysicsMaterialAPI\"]\n        )\n        {{");
+        let _ = writeln!(
+            s,
+            "        def Material \"{name}\" (\n            prepend apiSchemas = [\"PhysicsMaterialAPI\"]\n        )\n        {{"
+        );
         if let Some(d) = density {
             let _ = writeln!(s, "            float physics:density = {d}");
         }
@@ -87,7 +90,10 @@ pub fn scene_usda(scene: &SimScene) -> String {
         mesh_body(&mut s, &o.visual, "            ");
         s += "        }\n";
         for (k, p) in o.collision.parts.iter().enumerate() {
-            let bind = format!("            rel material:binding:physics = </World/PhysicsMaterials/{}>\n            uniform token purpose = \"guide\"\n", o.id);
+            let bind = format!(
+                "            rel material:binding:physics = </World/PhysicsMaterials/{}>\n            uniform token purpose = \"guide\"\n",
+                o.id
+            );
             match p {
                 Part::Hull(m) => {
                     let _ = writeln!(
@@ -116,7 +122,11 @@ pub fn scene_usda(scene: &SimScene) -> String {
                             xform(&mut s, center, &rotation, Some(half_extents), ind);
                         }
                         Primitive::Cylinder { center, rotation, radius, half_height } => {
-                            let _ = writeln!(s, "{ind}uniform token axis = \"Z\"\n{ind}double height = {}\n{ind}double radius = {radius}", 2.0 * half_height);
+                            let _ = writeln!(
+                                s,
+                                "{ind}uniform token axis = \"Z\"\n{ind}double height = {}\n{ind}double radius = {radius}",
+                                2.0 * half_height
+                            );
                             xform(&mut s, center, &rotation, None, ind);
                         }
                         Primitive::Sphere { center, radius } => {

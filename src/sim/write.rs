@@ -2,10 +2,10 @@
 //! written through a staging folder with the index last.
 
 use crate::mesh::Mesh;
+use crate::sim::scene::*;
 use crate::{Error, Result};
 use serde::Serialize;
 use std::path::Path;
-use crate::sim::scene::*;
 
 /// Index file written last into every `recon scene` output folder; its
 /// presence marks a complete output.
@@ -60,7 +60,11 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         world.faces.extend(m.faces.iter().map(|f| f.map(|i| i + base)));
     }
     // glTF is y-up; the world is z-up.
-    crate::export::glb::save_glb(&world, &staging.join("scene.glb"), &crate::export::GlbOptions { axes: crate::export::Axes::YUp, vertex_colors: false })?;
+    crate::export::glb::save_glb(
+        &world,
+        &staging.join("scene.glb"),
+        &crate::export::GlbOptions { axes: crate::export::Axes::YUp, vertex_colors: false },
+    )?;
     let settled = scene.settled_scene_file();
     write(&staging.join("scene.json"), settled.to_json()?.as_bytes())?;
     let input_path = staging.join("scene.input.json");

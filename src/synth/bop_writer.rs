@@ -5,13 +5,13 @@
 //! recon's own per-instance facts (kind, part, target flag, materials, lights) go in an
 //! extra `scene_meta.json` beside them, which BOP tools ignore.
 
-use crate::synth::objects::Symmetry;
-use crate::render::Rendered;
-use crate::mesh::Mesh;
-use crate::mesh::trimesh::diameter;
-use crate::math::Similarity;
 use crate::export::ply::{mesh_ply_bytes, PlyOptions};
 use crate::export::Axes;
+use crate::math::Similarity;
+use crate::mesh::trimesh::diameter;
+use crate::mesh::Mesh;
+use crate::render::Rendered;
+use crate::synth::objects::Symmetry;
 use crate::{Error, Result};
 use image::codecs::png::PngEncoder;
 use image::{ExtendedColorType, ImageEncoder};
@@ -37,7 +37,9 @@ pub fn mkdir(path: &Path) -> Result<()> {
 
 fn png(path: &Path, data: &[u8], w: usize, h: usize, ty: ExtendedColorType) -> Result<()> {
     let mut buf = Vec::new();
-    PngEncoder::new(&mut buf).write_image(data, w as u32, h as u32, ty).map_err(|e| Error::msg(format!("{}: PNG encoding failed: {e}", path.display())))?;
+    PngEncoder::new(&mut buf)
+        .write_image(data, w as u32, h as u32, ty)
+        .map_err(|e| Error::msg(format!("{}: PNG encoding failed: {e}", path.display())))?;
     write_bytes(path, &buf)
 }
 
@@ -176,7 +178,9 @@ pub fn model_info(mesh_m: &Mesh, sym: &Symmetry) -> Value {
         v["symmetries_discrete"] = sym
             .discrete
             .iter()
-            .map(|r| json!([r[0][0], r[0][1], r[0][2], 0.0, r[1][0], r[1][1], r[1][2], 0.0, r[2][0], r[2][1], r[2][2], 0.0, 0.0, 0.0, 0.0, 1.0]))
+            .map(|r| {
+                json!([r[0][0], r[0][1], r[0][2], 0.0, r[1][0], r[1][1], r[1][2], 0.0, r[2][0], r[2][1], r[2][2], 0.0, 0.0, 0.0, 0.0, 1.0])
+            })
             .collect();
     }
     v

@@ -18,7 +18,10 @@ pub use scene::{Scene, SceneConfig};
 use crate::rng::SeededRng;
 use crate::sensor::SensorModel;
 use crate::{Error, Result};
-use bop_writer::{camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask, write_normals, write_rgb, DEPTH_SCALE_MM};
+use bop_writer::{
+    camera_entry, gt_entry, gt_info_entry, mkdir, model_info, model_ply_bytes, write_bytes, write_depth, write_json, write_mask,
+    write_normals, write_rgb, DEPTH_SCALE_MM,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{json, Value};
@@ -113,7 +116,10 @@ pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -
     if out.exists() {
         let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
         if !empty && !out.join(MARKER).exists() {
-            return Err(Error::input(out.display().to_string(), format!("output folder exists and is not a recon synth dataset (no {MARKER}); remove it or choose another --out")));
+            return Err(Error::input(
+                out.display().to_string(),
+                format!("output folder exists and is not a recon synth dataset (no {MARKER}); remove it or choose another --out"),
+            ));
         }
     }
     let staging = out.with_extension("partial");
@@ -261,7 +267,10 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
         let vis = r.index.iter().filter(|&&i| i >= 0 && target_units.contains(&(i as usize))).count();
         let occ = if all > 0 { 1.0 - vis as f64 / all as f64 } else { 1.0 };
         target_occlusion.push(occ);
-        images.insert(v.to_string(), json!({"frame_index": frame, "light": s.views[v].light, "target_visib_fract": 1.0 - occ, "target_px_count_all": all}));
+        images.insert(
+            v.to_string(),
+            json!({"frame_index": frame, "light": s.views[v].light, "target_visib_fract": 1.0 - occ, "target_px_count_all": all}),
+        );
         gts.insert(v.to_string(), Value::Array(gt));
         infos.insert(v.to_string(), Value::Array(info));
     }

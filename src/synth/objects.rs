@@ -9,9 +9,12 @@
 //! parts (where parts touch, e.g. the mug handle sunk into the wall, the hidden internal
 //! faces are kept).
 
-use crate::mesh::primitives::{SEGMENTS, bounds, bowl_mesh, box_mesh, centre_of, centred, cup_mesh, cylinder_mesh, l_shape_mesh, revolve, sphere_mesh, torus_mesh, tube_mesh};
-use crate::mesh::Mesh;
 use crate::math::{axis_angle, Similarity};
+use crate::mesh::primitives::{
+    bounds, bowl_mesh, box_mesh, centre_of, centred, cup_mesh, cylinder_mesh, l_shape_mesh, revolve, sphere_mesh, torus_mesh, tube_mesh,
+    SEGMENTS,
+};
+use crate::mesh::Mesh;
 use crate::rng::SeededRng;
 use serde::Serialize;
 use std::f64::consts::{FRAC_PI_2, PI};
@@ -133,7 +136,13 @@ impl Object {
                 let (a, b) = (u(0.08, 0.20), u(0.06, 0.16));
                 let (ta, tb) = (u(0.02, 0.05), u(0.02, 0.05));
                 let h = u(0.03, 0.12);
-                single(kind, Shell::Solid, l_shape_mesh(a, b, ta, tb, h), Symmetry::default(), vec![("leg_x", a), ("leg_y", b), ("width_x_leg", tb), ("width_y_leg", ta), ("height", h)])
+                single(
+                    kind,
+                    Shell::Solid,
+                    l_shape_mesh(a, b, ta, tb, h),
+                    Symmetry::default(),
+                    vec![("leg_x", a), ("leg_y", b), ("width_x_leg", tb), ("width_y_leg", ta), ("height", h)],
+                )
             }
             Kind::Bowl => {
                 let r = u(0.06, 0.11);
@@ -141,7 +150,13 @@ impl Object {
                 let foot = u(0.45, 0.65) * r;
                 let t = u(0.004, 0.008);
                 let sym = Symmetry { continuous_axes: vec![Z], discrete: vec![] };
-                single(kind, Shell::Walled { wall_thickness_m: t }, bowl_mesh(r, h, foot, t), sym, vec![("rim_radius", r), ("height", h), ("foot_radius", foot), ("wall", t)])
+                single(
+                    kind,
+                    Shell::Walled { wall_thickness_m: t },
+                    bowl_mesh(r, h, foot, t),
+                    sym,
+                    vec![("rim_radius", r), ("height", h), ("foot_radius", foot), ("wall", t)],
+                )
             }
             Kind::Mug => {
                 let (r, h, t) = (u(0.035, 0.05), u(0.08, 0.12), u(0.004, 0.007));
@@ -171,12 +186,24 @@ fn box_symmetry() -> Symmetry {
 
 fn single(kind: Kind, shell: Shell, mesh: Mesh, symmetry: Symmetry, dims: Vec<(&'static str, f64)>) -> Object {
     let mesh = centred(mesh);
-    Object { kind, shell, parts: vec![Part { name: "body", mesh, pose: Similarity::identity(), symmetry: symmetry.clone() }], symmetry, dims }
+    Object {
+        kind,
+        shell,
+        parts: vec![Part { name: "body", mesh, pose: Similarity::identity(), symmetry: symmetry.clone() }],
+        symmetry,
+        dims,
+    }
 }
 
 /// Build a composite from parts given in a common frame: each part is re-centred in its
 /// own frame (pose = translation to where it was), then the whole object is centred.
-fn composite(kind: Kind, shell: Shell, parts: Vec<(&'static str, Mesh, Symmetry)>, symmetry: Symmetry, dims: Vec<(&'static str, f64)>) -> Object {
+fn composite(
+    kind: Kind,
+    shell: Shell,
+    parts: Vec<(&'static str, Mesh, Symmetry)>,
+    symmetry: Symmetry,
+    dims: Vec<(&'static str, f64)>,
+) -> Object {
     let mut all = Mesh::default();
     for (_, m, _) in &parts {
         let base = all.vertices.len() as u32;

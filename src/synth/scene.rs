@@ -11,11 +11,11 @@
 
 use crate::synth::objects::{Kind, Object};
 
-use crate::mesh::primitives::{box_mesh};
-use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
-use crate::mesh::Mesh;
-use crate::math::{axis_angle, Similarity};
 use crate::dataset::frame::Intrinsics;
+use crate::math::{axis_angle, Similarity};
+use crate::mesh::primitives::box_mesh;
+use crate::mesh::Mesh;
+use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
 use crate::rng::SeededRng;
 use crate::Result;
 use std::f64::consts::{PI, TAU};
@@ -149,7 +149,8 @@ fn view_camera(rng: &mut SeededRng, cfg: &SceneConfig, k: Intrinsics, target: [f
     let dist = 0.55 + 0.55 * rng.uniform();
     let elev = (20.0 + 35.0 * rng.uniform()).to_radians();
     let eye = [target[0] + dist * elev.cos() * azimuth.cos(), target[1] + dist * elev.cos() * azimuth.sin(), target[2] + dist * elev.sin()];
-    let aim = [target[0] + 0.04 * (rng.uniform() - 0.5), target[1] + 0.04 * (rng.uniform() - 0.5), target[2] + 0.03 * (rng.uniform() - 0.5)];
+    let aim =
+        [target[0] + 0.04 * (rng.uniform() - 0.5), target[1] + 0.04 * (rng.uniform() - 0.5), target[2] + 0.03 * (rng.uniform() - 0.5)];
     Camera { width: cfg.width, height: cfg.height, k, world_to_cam: Camera::look_at(eye, aim, [0.0, 0.0, 1.0]) }
 }
 
@@ -201,7 +202,14 @@ impl Scene {
         let edges = [0.0, 0.03, 0.2, 0.4, cfg.max_occlusion.max(0.4)];
         let bin = (rng.next_u64() % 4) as usize;
         let goal = (edges[bin] + (edges[bin + 1] - edges[bin]) * rng.uniform()).min(cfg.max_occlusion);
-        let n_front = if goal < 0.03 { 0 } else if goal > 0.35 { 2 } else { 1 }.min(n_distract);
+        let n_front = if goal < 0.03 {
+            0
+        } else if goal > 0.35 {
+            2
+        } else {
+            1
+        }
+        .min(n_distract);
 
         // Ground direction from the target towards camera 0, and its left normal.
         let eye = cam0.eye();
@@ -228,10 +236,16 @@ impl Scene {
 
         // Front distractors: trial placements scored by a low-resolution render.
         let lowres = SceneConfig { width: (cfg.width / 4).max(16), height: (cfg.height / 4).max(12), ..cfg.clone() };
-        let lk = Intrinsics { fx: k.fx * lowres.width as f64 / cfg.width as f64, fy: k.fy * lowres.height as f64 / cfg.height as f64, cx: (k.cx + 0.5) * lowres.width as f64 / cfg.width as f64 - 0.5, cy: (k.cy + 0.5) * lowres.height as f64 / cfg.height as f64 - 0.5 };
+        let lk = Intrinsics {
+            fx: k.fx * lowres.width as f64 / cfg.width as f64,
+            fy: k.fy * lowres.height as f64 / cfg.height as f64,
+            cx: (k.cx + 0.5) * lowres.width as f64 / cfg.width as f64 - 0.5,
+            cy: (k.cy + 0.5) * lowres.height as f64 / cfg.height as f64 - 0.5,
+        };
         let lcam = Camera { width: lowres.width, height: lowres.height, k: lk, world_to_cam: cam0.world_to_cam };
         let target_mesh = RenderMesh::from_mesh(&objects[0].object.mesh(), "target")?;
-        let front_meshes: Vec<RenderMesh> = distractors[..n_front].iter().map(|(o, _, _)| RenderMesh::from_mesh(&o.mesh(), "distractor")).collect::<Result<_>>()?;
+        let front_meshes: Vec<RenderMesh> =
+            distractors[..n_front].iter().map(|(o, _, _)| RenderMesh::from_mesh(&o.mesh(), "distractor")).collect::<Result<_>>()?;
         let mut best: Option<(f64, Vec<Similarity>)> = None;
         let mut achieved = 0.0;
         if n_front > 0 {
@@ -250,7 +264,7 @@ impl Scene {
                             break;
                         }
                     }
-                let Some((p, r)) = placed else { break };
+                    let Some((p, r)) = placed else { break };
                     spots.push((p, r));
                     poses.push(stand(o, p[0], p[1], TAU * rng.uniform()));
                 }
@@ -310,7 +324,11 @@ impl Scene {
             let h = rng.uniform();
             let color = hsv(h, 0.1 + 0.3 * rng.uniform(), 0.35 + 0.5 * rng.uniform());
             let color2 = hsv(h, 0.1 + 0.3 * rng.uniform(), 0.35 + 0.5 * rng.uniform());
-            let pattern = if rng.uniform() < 0.5 { Pattern::Checker { cell: 0.05 + 0.1 * rng.uniform() } } else { Pattern::Stripes { axis: (rng.next_u64() % 2) as usize, period: 0.04 + 0.1 * rng.uniform() } };
+            let pattern = if rng.uniform() < 0.5 {
+                Pattern::Checker { cell: 0.05 + 0.1 * rng.uniform() }
+            } else {
+                Pattern::Stripes { axis: (rng.next_u64() % 2) as usize, period: 0.04 + 0.1 * rng.uniform() }
+            };
             Material { color, color2, pattern }
         };
         Ok(Scene {
@@ -328,14 +346,32 @@ impl Scene {
     /// Ray-casting units: the support first, then every object (or every part of every
     /// object in parts mode), in object order.
     pub fn units(&self, parts: bool) -> Result<Vec<Unit>> {
-        let mut out = vec![Unit { mesh: RenderMesh::from_mesh(&self.support, "support")?, pose: self.support_pose, material: self.support_material, object: None, part: None }];
+        let mut out = vec![Unit {
+            mesh: RenderMesh::from_mesh(&self.support, "support")?,
+            pose: self.support_pose,
+            material: self.support_material,
+            object: None,
+            part: None,
+        }];
         for (i, p) in self.objects.iter().enumerate() {
             if parts {
                 for (j, part) in p.object.parts.iter().enumerate() {
-                    out.push(Unit { mesh: RenderMesh::from_mesh(&part.mesh, part.name)?, pose: p.pose.compose(&part.pose), material: p.material, object: Some(i), part: Some(j) });
+                    out.push(Unit {
+                        mesh: RenderMesh::from_mesh(&part.mesh, part.name)?,
+                        pose: p.pose.compose(&part.pose),
+                        material: p.material,
+                        object: Some(i),
+                        part: Some(j),
+                    });
                 }
             } else {
-                out.push(Unit { mesh: RenderMesh::from_mesh(&p.object.mesh(), p.object.kind.name())?, pose: p.pose, material: p.material, object: Some(i), part: None });
+                out.push(Unit {
+                    mesh: RenderMesh::from_mesh(&p.object.mesh(), p.object.kind.name())?,
+                    pose: p.pose,
+                    material: p.material,
+                    object: Some(i),
+                    part: None,
+                });
             }
         }
         Ok(out)
@@ -344,7 +380,8 @@ impl Scene {
     /// Render view `v` of the units; `ids[i]` is the id reported for unit i.
     pub fn render_view(&self, units: &[Unit], ids: &[i64], v: usize) -> Result<Rendered> {
         let view = &self.views[v];
-        let insts: Vec<Instance> = units.iter().zip(ids).map(|(u, &id)| Instance { mesh: &u.mesh, pose: u.pose, id, material: u.material }).collect();
+        let insts: Vec<Instance> =
+            units.iter().zip(ids).map(|(u, &id)| Instance { mesh: &u.mesh, pose: u.pose, id, material: u.material }).collect();
         render(&insts, &view.camera, &RenderOptions { light: view.light, ..Default::default() })
     }
 }
@@ -372,7 +409,9 @@ mod tests {
                 let zmin = m.vertices.iter().map(|v| p.pose.apply(&v.map(|x| x as f64))[2]).fold(f64::INFINITY, f64::min);
                 assert!(zmin.abs() < 1e-6, "object {i} bottom at {zmin}");
                 for q in &a.objects[i + 1..] {
-                    let d = ((p.pose.translation[0] - q.pose.translation[0]).powi(2) + (p.pose.translation[1] - q.pose.translation[1]).powi(2)).sqrt();
+                    let d = ((p.pose.translation[0] - q.pose.translation[0]).powi(2)
+                        + (p.pose.translation[1] - q.pose.translation[1]).powi(2))
+                    .sqrt();
                     assert!(d > footprint(&p.object) + footprint(&q.object), "overlap in scene {seed}");
                 }
             }

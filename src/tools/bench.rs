@@ -13,13 +13,13 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use serde::Serialize;
 
+use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
 use crate::model::config::RecGenConfig;
 use crate::model::nn::fast::{self, Compute, Precision};
-use crate::rng::SeededRng;
-use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
 use crate::model::sparse::SparseTensor;
-use crate::weights::registry::{self, ModuleConfig};
+use crate::rng::SeededRng;
 use crate::util::memory::{peak_rss_mib, reset_peak_rss};
+use crate::weights::registry::{self, ModuleConfig};
 use crate::Result;
 use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
@@ -174,7 +174,19 @@ pub fn bench_gemm(peaks: &[PeakRow], reps: usize, quick: bool) -> Result<Vec<Gem
                 let gflops = 2.0 * (m * n * k) as f64 / s / 1e9;
                 let peak = peak.or_else(|| reference_peak(peaks, run_isa, format));
                 let efficiency = peak.map(|p| gflops / p);
-                rows.push(GemmRow { what: what.into(), m, k, n, isa: run_isa.name(), format: format.name(), seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+                rows.push(GemmRow {
+                    what: what.into(),
+                    m,
+                    k,
+                    n,
+                    isa: run_isa.name(),
+                    format: format.name(),
+                    seconds: s,
+                    gflops,
+                    efficiency,
+                    peak_gflops: peak,
+                    load_average: load_average(),
+                });
             }
         }
     }
@@ -191,7 +203,19 @@ pub fn bench_gemm(peaks: &[PeakRow], reps: usize, quick: bool) -> Result<Vec<Gem
         let gflops = 2.0 * (m * n * k) as f64 / s / 1e9;
         let peak = peak.or_else(|| reference_peak(peaks, isa, WeightFormat::F32));
         let efficiency = peak.map(|p| gflops / p);
-        rows.push(GemmRow { what: "4096³ stock candle".into(), m, k, n, isa: "candle", format: "f32", seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+        rows.push(GemmRow {
+            what: "4096³ stock candle".into(),
+            m,
+            k,
+            n,
+            isa: "candle",
+            format: "f32",
+            seconds: s,
+            gflops,
+            efficiency,
+            peak_gflops: peak,
+            load_average: load_average(),
+        });
     }
     Ok(rows)
 }
@@ -236,12 +260,27 @@ pub fn bench_attention(peaks: &[PeakRow], reps: usize) -> Result<Vec<AttentionRo
                 precision,
             };
             let format = if precision == AttnPrecision::Bf16 { WeightFormat::Bf16 } else { WeightFormat::F32 };
-            let (s, peak) = with_adjacent_peak(isa, format, || best_of(reps, || flash_attention(isa, &spec, &q, &kv, &kv, &segs, &mut out).expect("attention")));
+            let (s, peak) = with_adjacent_peak(isa, format, || {
+                best_of(reps, || flash_attention(isa, &spec, &q, &kv, &kv, &segs, &mut out).expect("attention"))
+            });
             let gflops = 4.0 * (b * h * lq * lk * d) as f64 / s / 1e9;
             let peak = peak.or_else(|| reference_peak(peaks, isa, format));
             let efficiency = peak.map(|p| gflops / p);
             let pname = if precision == AttnPrecision::Bf16 { "bf16" } else { "f32" };
-            rows.push(AttentionRow { what: what.into(), batch: b, heads: h, lq, lk, precision: pname, isa: isa.name(), seconds: s, gflops, efficiency, peak_gflops: peak, load_average: load_average() });
+            rows.push(AttentionRow {
+                what: what.into(),
+                batch: b,
+                heads: h,
+                lq,
+                lk,
+                precision: pname,
+                isa: isa.name(),
+                seconds: s,
+                gflops,
+                efficiency,
+                peak_gflops: peak,
+                load_average: load_average(),
+            });
         }
     }
     Ok(rows)
@@ -375,7 +414,11 @@ impl ModuleInputs {
     fn describe(&self, key: &str) -> String {
         match key {
             "image_cond_model" => format!("1 view {:?}", self.pixels.dims()),
-            "ss_flow" => format!("batch 2 (guided step), {} + pose tokens, cond {:?}", self.ss_state[0].elem_count() / self.ss_state[0].dims()[0] / self.ss_state[0].dims()[1], self.ss_cond.dims()),
+            "ss_flow" => format!(
+                "batch 2 (guided step), {} + pose tokens, cond {:?}",
+                self.ss_state[0].elem_count() / self.ss_state[0].dims()[0] / self.ss_state[0].dims()[1],
+                self.ss_cond.dims()
+            ),
             "ss_decoder" => format!("latent {:?}", self.ss_latent.dims()),
             "slat_flow" => format!("batch 2 (guided step), {} voxels each, cond {:?}", self.slat.len(), self.slat_cond.dims()),
             _ => format!("{} voxels", self.slat.len()),
@@ -385,7 +428,8 @@ impl ModuleInputs {
 
 /// Build module `key` of `arch` with random weights for `compute`.
 fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &ModuleInputs) -> Result<(f64, f64, Vec<Tensor>)> {
-    let spec = arch.modules().into_iter().find(|(k, _)| *k == key).map(|(_, s)| ModuleConfig { name: s.name.clone(), args: s.args.clone() });
+    let spec =
+        arch.modules().into_iter().find(|(k, _)| *k == key).map(|(_, s)| ModuleConfig { name: s.name.clone(), args: s.args.clone() });
     let cfg = spec.ok_or_else(|| crate::Error::msg(format!("bench: no module `{key}`")))?;
     let label = format!("{}: {key}", arch.name);
     let seed = registry::module_seed(0, key);
@@ -445,7 +489,12 @@ fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &Modu
 }
 
 /// Build and run each of `modules` once per compute; peak RSS per row.
-pub fn bench_modules(arch_path: &Path, modules: &[&str], computes: &[Compute], mut on_row: impl FnMut(&ModuleRow)) -> Result<Vec<ModuleRow>> {
+pub fn bench_modules(
+    arch_path: &Path,
+    modules: &[&str],
+    computes: &[Compute],
+    mut on_row: impl FnMut(&ModuleRow),
+) -> Result<Vec<ModuleRow>> {
     let arch = RecGenConfig::load(arch_path)?;
     let inputs = ModuleInputs::new(&arch)?;
     let mut rows = Vec::new();
@@ -511,7 +560,12 @@ fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
 }
 
 /// Each module's output in `precisions` against fast f32, full size.
-pub fn compare_precisions(arch_path: &Path, modules: &[&str], precisions: &[Precision], mut on_row: impl FnMut(&PrecisionRow)) -> Result<Vec<PrecisionRow>> {
+pub fn compare_precisions(
+    arch_path: &Path,
+    modules: &[&str],
+    precisions: &[Precision],
+    mut on_row: impl FnMut(&PrecisionRow),
+) -> Result<Vec<PrecisionRow>> {
     let arch = RecGenConfig::load(arch_path)?;
     let inputs = ModuleInputs::new(&arch)?;
     let mut rows = Vec::new();
@@ -580,7 +634,8 @@ pub fn compare_occupancy(arch_path: &Path, precision: Precision, steps: usize, s
     let sb: std::collections::HashSet<[i32; 3]> = b.coords.iter().copied().collect();
     let flipped = sa.symmetric_difference(&sb).count();
     let grid = a.ss_resolution.pow(3);
-    let pose = a.pose.tokens_10d.iter().flatten().zip(b.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs() as f64).fold(0.0, f64::max);
+    let pose =
+        a.pose.tokens_10d.iter().flatten().zip(b.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs() as f64).fold(0.0, f64::max);
     Ok(OccupancyRow {
         precision: precision.name().into(),
         steps,
@@ -704,7 +759,8 @@ mod tests {
     #[test]
     fn module_bench_runs_tiny_modules() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
-        let rows = bench_modules(&path, &["image_cond_model", "ss_flow", "slat_dec_gs"], &[Compute::fast(Precision::Bf16)], |_| {}).unwrap();
+        let rows =
+            bench_modules(&path, &["image_cond_model", "ss_flow", "slat_dec_gs"], &[Compute::fast(Precision::Bf16)], |_| {}).unwrap();
         assert_eq!(rows.len(), 3);
         assert!(rows.iter().all(|r| r.forward_seconds > 0.0));
         let cmp = compare_precisions(&path, &["ss_flow"], &[Precision::Bf16], |_| {}).unwrap();

@@ -15,10 +15,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
 use crate::dataset::bop::{load_bop, Dataset};
 use crate::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
 use crate::dataset::masks::load_binary_mask;
+use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
 use crate::{Error, Result};
 
 #[derive(Debug, Clone)]
@@ -70,7 +70,8 @@ impl BopSource {
                     let frames = &by_scene[f.scene.as_str()];
                     let pos = frames.iter().position(|&x| x == fi).unwrap_or(0);
                     (1..frames.len()).map(|d| frames[(pos + d) % frames.len()]).find_map(|other| {
-                        let hits: Vec<usize> = ds.frames[other].gt.iter().enumerate().filter(|(_, h)| h.obj_id == g.obj_id).map(|(i, _)| i).collect();
+                        let hits: Vec<usize> =
+                            ds.frames[other].gt.iter().enumerate().filter(|(_, h)| h.obj_id == g.obj_id).map(|(i, _)| i).collect();
                         let visible = |i: usize| ds.frames[other].gt[i].visib_fract.is_none_or(|v| v >= opts.min_visib_fract);
                         (hits.len() == 1 && visible(hits[0])).then(|| InstanceRef { frame: other, gt: hits[0] })
                     })
@@ -81,7 +82,10 @@ impl BopSource {
             }
         }
         if samples.is_empty() {
-            return Err(Error::input(split_dir.display().to_string(), format!("no annotated instance with visib_fract ≥ {}", opts.min_visib_fract)));
+            return Err(Error::input(
+                split_dir.display().to_string(),
+                format!("no annotated instance with visib_fract ≥ {}", opts.min_visib_fract),
+            ));
         }
         let meshes = model_ids.iter().map(|id| Arc::new(ds.models[id].mesh.clone())).collect();
         // Vertex colours (stage-2 supervision); models without them stay uncoloured.
@@ -100,9 +104,11 @@ impl BopSource {
         let f = &self.ds.frames[r.frame];
         let scene = self.root.join(&f.scene);
         let name = format!("{:06}", f.frame);
-        let rgb = ["png", "jpg"].iter().map(|e| scene.join("rgb").join(format!("{name}.{e}"))).find(|p| p.is_file()).ok_or_else(|| {
-            Error::input(scene.join("rgb").display().to_string(), format!("no {name}.png or {name}.jpg"))
-        })?;
+        let rgb = ["png", "jpg"]
+            .iter()
+            .map(|e| scene.join("rgb").join(format!("{name}.{e}")))
+            .find(|p| p.is_file())
+            .ok_or_else(|| Error::input(scene.join("rgb").display().to_string(), format!("no {name}.png or {name}.jpg")))?;
         let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2])?;
         let opts = FrameOptions {
             depth: Some(scene.join("depth").join(format!("{name}.png"))),
@@ -114,7 +120,10 @@ impl BopSource {
         let mp = scene.join("mask_visib").join(format!("{name}_{:06}.png", r.gt));
         let m = load_binary_mask(&mp)?;
         if (m.width, m.height) != (frame.width, frame.height) {
-            return Err(Error::input(mp.display().to_string(), format!("mask is {}×{}, the frame {}×{}", m.width, m.height, frame.width, frame.height)));
+            return Err(Error::input(
+                mp.display().to_string(),
+                format!("mask is {}×{}, the frame {}×{}", m.width, m.height, frame.width, frame.height),
+            ));
         }
         let g = &f.gt[r.gt];
         Ok(ObjectView { frame: Arc::new(frame), mask: m.mask, r: g.r, t: g.t })
@@ -123,7 +132,13 @@ impl BopSource {
 
 impl TrainingSource for BopSource {
     fn describe(&self) -> String {
-        format!("BOP {} ({} frames, {} models, {} instances)", self.root.display(), self.ds.frames.len(), self.model_ids.len(), self.samples.len())
+        format!(
+            "BOP {} ({} frames, {} models, {} instances)",
+            self.root.display(),
+            self.ds.frames.len(),
+            self.model_ids.len(),
+            self.samples.len()
+        )
     }
     fn num_models(&self) -> usize {
         self.model_ids.len()

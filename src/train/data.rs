@@ -23,12 +23,12 @@ use std::sync::Arc;
 
 use candle_core::{Device, Tensor};
 
-use crate::mesh::trimesh::TriMesh;
+use crate::dataset::frame::RgbdFrame;
 use crate::geometry::camera_pose::pose_to_normalised;
 use crate::geometry::pointmap::{object_points, prepare_object_with, Normaliser, PrepareOptions};
 use crate::geometry::pose::{rotation_to_9d, Mat3, NineDLayout, Pose, PoseStats};
 use crate::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
-use crate::dataset::frame::RgbdFrame;
+use crate::mesh::trimesh::TriMesh;
 use crate::rng::SeededRng;
 use crate::{Error, Result};
 
@@ -137,9 +137,8 @@ fn mean_std(rows: &[Vec<f64>], file: &str) -> Result<(Vec<f64>, Vec<f64>)> {
     let d = rows[0].len();
     let mean: Vec<f64> = (0..d).map(|k| rows.iter().map(|r| r[k]).sum::<f64>() / n as f64).collect();
     // A constant component (e.g. one sample) gets a floor so z-scoring stays finite.
-    let std: Vec<f64> = (0..d)
-        .map(|k| (rows.iter().map(|r| (r[k] - mean[k]).powi(2)).sum::<f64>() / n as f64).sqrt().max(MIN_POSE_STD))
-        .collect();
+    let std: Vec<f64> =
+        (0..d).map(|k| (rows.iter().map(|r| (r[k] - mean[k]).powi(2)).sum::<f64>() / n as f64).sqrt().max(MIN_POSE_STD)).collect();
     Ok((mean, std))
 }
 
@@ -196,11 +195,19 @@ pub fn scan(source: &dyn TrainingSource) -> Result<Scan> {
         .into_par_iter()
         .map(|i| {
             let s = source.sample(i)?;
-            let c = canon.get(s.model).ok_or_else(|| Error::input(source.describe(), format!("sample {i} names model {} of {}", s.model, canon.len())))?;
+            let c = canon
+                .get(s.model)
+                .ok_or_else(|| Error::input(source.describe(), format!("sample {i} names model {} of {}", s.model, canon.len())))?;
             Ok((s.model, s.views.iter().map(|v| view_normaliser(v).ok().map(|n| pose_to_normalised(&camera_pose(v, c), &n))).collect()))
         })
         .collect::<Result<_>>()?;
-    let mut out = Scan { models: per.iter().map(|(m, _)| *m).collect(), usable: Vec::new(), two_view: Vec::new(), poses: Vec::new(), skipped_views: 0 };
+    let mut out = Scan {
+        models: per.iter().map(|(m, _)| *m).collect(),
+        usable: Vec::new(),
+        two_view: Vec::new(),
+        poses: Vec::new(),
+        skipped_views: 0,
+    };
     for (i, (_, views)) in per.iter().enumerate() {
         out.skipped_views += views.iter().filter(|v| v.is_none()).count();
         if views.first().is_some_and(|v| v.is_some()) {

@@ -165,7 +165,8 @@ mod tests {
         let b1 = init(&mut rng, &[32], 0.0)?;
         let w2 = init(&mut rng, &[32, 4], 0.0)?;
         let b2 = init(&mut rng, &[4], 0.0)?;
-        let vars: Vec<(String, Var)> = [("w1", &w1), ("b1", &b1), ("w2", &w2), ("b2", &b2)].iter().map(|(n, v)| (n.to_string(), (*v).clone())).collect();
+        let vars: Vec<(String, Var)> =
+            [("w1", &w1), ("b1", &b1), ("w2", &w2), ("b2", &b2)].iter().map(|(n, v)| (n.to_string(), (*v).clone())).collect();
         let model = |x: &Tensor, t_model: &Tensor| -> Result<Tensor> {
             let t = (t_model / 1000.0)?;
             let feats = crate::model::nn::common::TimestepEmbedder::sinusoidal(&(t * 10.0)?, 16)?;
@@ -186,7 +187,8 @@ mod tests {
             let loss = (model(&xt, &(&t * 1000.0)?)? - fm.target(&x0, &eps)?)?.sqr()?.mean_all()?;
             opt.step(&loss.backward()?)?;
         }
-        let sampler = FlowEulerGuidanceIntervalSampler::new(SamplerSettings { steps: 50, rescale_t: 1.0, cfg_strength: 0.0, ..Default::default() });
+        let sampler =
+            FlowEulerGuidanceIntervalSampler::new(SamplerSettings { steps: 50, rescale_t: 1.0, cfg_strength: 0.0, ..Default::default() });
         let vm = FnVelocity(|s: &[Tensor], t_model: f32, _c: &Tensor| -> Result<Vec<Tensor>> {
             let t = Tensor::full(t_model, s[0].dim(0)?, &dev)?;
             Ok(vec![model(&s[0], &t)?])

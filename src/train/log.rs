@@ -120,13 +120,19 @@ pub fn loss_svg(records: &[LogRecord], title: &str) -> String {
     };
     let palette = ["#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2"];
     for (i, name) in term_names.iter().enumerate() {
-        let tp: Vec<(f64, f64)> = records.iter().filter_map(|r| r.terms.get(*name).filter(|v| v.is_finite() && **v > 0.0).map(|v| (r.step as f64, *v))).collect();
+        let tp: Vec<(f64, f64)> =
+            records.iter().filter_map(|r| r.terms.get(*name).filter(|v| v.is_finite() && **v > 0.0).map(|v| (r.step as f64, *v))).collect();
         let sm = smooth(&tp.iter().map(|p| p.1).collect::<Vec<_>>(), 50);
         let tp: Vec<(f64, f64)> = tp.iter().zip(sm).map(|(p, v)| (p.0, v)).collect();
         if tp.len() >= 2 {
             let c = palette[i % palette.len()];
             s += &poly(&tp, &format!("stroke=\"{c}\" stroke-width=\"1\""));
-            s += &format!("<text x=\"{}\" y=\"{}\" fill=\"{c}\">{} (mean of 50)</text>\n", w - mr - 150.0, mt + 16.0 * (i + 2) as f64, xml_escape(name));
+            s += &format!(
+                "<text x=\"{}\" y=\"{}\" fill=\"{c}\">{} (mean of 50)</text>\n",
+                w - mr - 150.0,
+                mt + 16.0 * (i + 2) as f64,
+                xml_escape(name)
+            );
         }
     }
     s += &poly(&pts, "stroke=\"#1f77b4\" stroke-opacity=\"0.3\" stroke-width=\"1\"");
@@ -153,7 +159,15 @@ mod tests {
         let p = dir.join("loss.jsonl");
         let _ = std::fs::remove_file(&p);
         for step in 1..=5 {
-            let r = LogRecord { step, loss: 1.0 / step as f64, terms: [("mse".to_string(), 0.5 / step as f64)].into(), info: Default::default(), grad_norm: 1.0, lr: 1e-3, seconds: 0.1 };
+            let r = LogRecord {
+                step,
+                loss: 1.0 / step as f64,
+                terms: [("mse".to_string(), 0.5 / step as f64)].into(),
+                info: Default::default(),
+                grad_norm: 1.0,
+                lr: 1e-3,
+                seconds: 0.1,
+            };
             append_log(&p, &r)?;
         }
         assert_eq!(read_log(&p)?.len(), 5);

@@ -38,4 +38,3 @@ pub mod slat;
 pub mod slat_flow;
 pub mod toy;
 pub mod trainer;
-

@@ -8,17 +8,17 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
-use crate::train::data::{canonical_frame, occupancy, Scan, TrainingSource};
-use crate::train::flow::{drop_condition, masked_pose_mse, FlowMatching};
-use crate::train::params::ModuleParams;
 use crate::geometry::pose::PoseStats;
 use crate::geometry::voxelize::{CanonicalFrame, Fill};
 use crate::model::stage1::dinov2::Dinov2;
 use crate::model::stage1::embedders::ViewInputs;
-use crate::rng::SeededRng;
+use crate::model::stage1::ss_flow::SparseStructureFlowModel;
 use crate::model::stage1::ss_vae::decoder::SparseStructureDecoder;
 use crate::model::stage1::ss_vae::encoder::{vae_loss, ReconLoss, SparseStructureEncoder};
-use crate::model::stage1::ss_flow::SparseStructureFlowModel;
+use crate::rng::SeededRng;
+use crate::train::data::{canonical_frame, occupancy, Scan, TrainingSource};
+use crate::train::flow::{drop_condition, masked_pose_mse, FlowMatching};
+use crate::train::params::ModuleParams;
 use crate::weights::registry;
 use crate::{Error, Result};
 
@@ -79,17 +79,32 @@ pub struct VaeObjective {
 impl VaeObjective {
     /// `encoder` and `decoder` hold `ss_encoder` / `ss_decoder` params;
     /// every model of `source` is voxelised at `resolution` up front.
-    pub fn new(source: &dyn TrainingSource, encoder: ModuleParams, decoder: ModuleParams, resolution: usize, fill: Fill, recon: ReconLoss, lambda_kl: f64) -> Result<Self> {
+    pub fn new(
+        source: &dyn TrainingSource,
+        encoder: ModuleParams,
+        decoder: ModuleParams,
+        resolution: usize,
+        fill: Fill,
+        recon: ReconLoss,
+        lambda_kl: f64,
+    ) -> Result<Self> {
         let enc = registry::build_ss_encoder(&encoder.config, encoder.var_builder(), "ss_encoder")?;
         let dec = registry::build_ss_decoder(&decoder.config, decoder.var_builder(), "ss_decoder")?;
         let f = enc.config().downsample_factor();
         if resolution % f != 0 {
-            return Err(Error::config("ss_encoder", "channels", format!("occupancy resolution {resolution} is not a multiple of the encoder's downsampling {f}")));
+            return Err(Error::config(
+                "ss_encoder",
+                "channels",
+                format!("occupancy resolution {resolution} is not a multiple of the encoder's downsampling {f}"),
+            ));
         }
         if source.num_models() == 0 {
             return Err(Error::input(source.describe(), "no object models"));
         }
-        let occupancy = (0..source.num_models()).into_par_iter().map(|i| occupancy(&source.model(i)?.mesh, resolution, fill)).collect::<Result<Vec<_>>>()?;
+        let occupancy = (0..source.num_models())
+            .into_par_iter()
+            .map(|i| occupancy(&source.model(i)?.mesh, resolution, fill))
+            .collect::<Result<Vec<_>>>()?;
         Ok(Self { params: vec![encoder, decoder], encoder: enc, decoder: dec, occupancy, recon, lambda_kl })
     }
 }
@@ -156,25 +171,47 @@ impl<'a> FlowObjective<'a> {
             return Err(Error::config("ss_flow", "pose_representation", "training needs RecGen pose tokens (6d_translation_scale)"));
         }
         if encoder.config().latent_channels != f.cfg.in_channels {
-            return Err(Error::config("ss_encoder", "latent_channels", format!("{} differs from ss_flow in_channels {}", encoder.config().latent_channels, f.cfg.in_channels)));
+            return Err(Error::config(
+                "ss_encoder",
+                "latent_channels",
+                format!("{} differs from ss_flow in_channels {}", encoder.config().latent_channels, f.cfg.in_channels),
+            ));
         }
         let res = f.cfg.resolution * encoder.config().downsample_factor();
         let canon = (0..source.num_models()).map(|i| canonical_frame(&source.model(i)?.mesh)).collect::<Result<Vec<_>>>()?;
         // Latents of every model: the encoder's posterior mean (TRELLIS encodes
         // its training latents with `sample_posterior=False`).
-        let occ = (0..source.num_models()).into_par_iter().map(|i| occupancy(&source.model(i)?.mesh, res, fill)).collect::<Result<Vec<_>>>()?;
+        let occ =
+            (0..source.num_models()).into_par_iter().map(|i| occupancy(&source.model(i)?.mesh, res, fill)).collect::<Result<Vec<_>>>()?;
         let mut latents = Vec::with_capacity(occ.len());
         for chunk in occ.chunks(8) {
             let m = encoder.forward(&Tensor::stack(chunk, 0)?)?.mean.detach();
             if m.dims()[2..] != [f.cfg.resolution; 3] {
-                return Err(Error::config("ss_flow", "resolution", format!("encoder latents are {:?}, the flow expects {}³", &m.dims()[2..], f.cfg.resolution)));
+                return Err(Error::config(
+                    "ss_flow",
+                    "resolution",
+                    format!("encoder latents are {:?}, the flow expects {}³", &m.dims()[2..], f.cfg.resolution),
+                ));
             }
             for i in 0..m.dim(0)? {
                 latents.push(m.get(i)?);
             }
         }
         let image_size = d.cfg.img_size;
-        Ok(Self { params: vec![dino, flow], dino: d, flow: f, source, scan, canon, latents, stats, fm, context: [1.2, 2.0], p_two_view: 0.5, image_size })
+        Ok(Self {
+            params: vec![dino, flow],
+            dino: d,
+            flow: f,
+            source,
+            scan,
+            canon,
+            latents,
+            stats,
+            fm,
+            context: [1.2, 2.0],
+            p_two_view: 0.5,
+            image_size,
+        })
     }
 
     /// Latent statistics (mean, std over every value), for the run record.
@@ -218,9 +255,15 @@ impl Objective for FlowObjective<'_> {
         // Condition: image tokens (trained jointly), + point-map and mask embeddings.
         let mut views = Vec::with_capacity(n_views);
         for vi in 0..n_views {
-            let cat = |f: fn(&crate::train::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(&v[vi])).collect::<Vec<_>>(), 0);
+            let cat = |f: fn(&crate::train::data::TrainView) -> &Tensor| {
+                Tensor::cat(&prepared.iter().map(|(_, v)| f(&v[vi])).collect::<Vec<_>>(), 0)
+            };
             let pixels = cat(|v| &v.pixels)?;
-            views.push(ViewInputs { patch_tokens: self.dino.recgen_cond(&pixels)?, pointmap: Some(cat(|v| &v.pointmap)?), mask: Some(cat(|v| &v.mask)?) });
+            views.push(ViewInputs {
+                patch_tokens: self.dino.recgen_cond(&pixels)?,
+                pointmap: Some(cat(|v| &v.pointmap)?),
+                mask: Some(cat(|v| &v.mask)?),
+            });
         }
         let (cond, _neg) = self.flow.condition(&views)?;
         let drop = self.fm.drop_mask(rng, b);
@@ -238,7 +281,8 @@ impl Objective for FlowObjective<'_> {
         let mse_pose = masked_pose_mse(&vp, &self.fm.target(&pose0, &eps_pose)?, &pose_mask)?;
         let total = (&mse + (&mse_pose * self.fm.pose_alpha)?)?;
         let terms: Terms = [("mse".to_string(), scalar(&mse)?), ("mse_pose".to_string(), scalar(&mse_pose)?)].into();
-        let info: Terms = [("views".to_string(), n_views as f64), ("dropped".to_string(), drop.iter().filter(|&&d| d).count() as f64)].into();
+        let info: Terms =
+            [("views".to_string(), n_views as f64), ("dropped".to_string(), drop.iter().filter(|&&d| d).count() as f64)].into();
         Ok(BatchLoss { total, terms, info })
     }
 }
@@ -291,7 +335,8 @@ mod tests {
         let mut obj = FlowObjective::new(&src, scan, stats, dino, flow, &encoder, Fill::Solid, fm)?;
         for p_two in [0.0, 1.0] {
             obj.p_two_view = p_two;
-            let vars: Vec<_> = obj.trainable().iter().flat_map(|m| m.vars.iter().map(move |(n, v)| (format!("{}/{n}", m.key), v.clone()))).collect();
+            let vars: Vec<_> =
+                obj.trainable().iter().flat_map(|m| m.vars.iter().map(move |(n, v)| (format!("{}/{n}", m.key), v.clone()))).collect();
             let loss = || -> Result<Tensor> { Ok(obj.loss(&mut SeededRng::new(4), 2)?.total) };
             // A single view has no frame-token embedding (as at inference).
             let mut unused = vec!["image_cond_model/mask_token", "image_cond_model/norm.weight", "image_cond_model/norm.bias"];

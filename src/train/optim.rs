@@ -25,7 +25,9 @@ impl AdamW {
     pub fn new(vars: &[(String, Var)], params: ParamsAdamW) -> Result<Self> {
         let vars = vars
             .iter()
-            .map(|(n, v)| Ok((n.clone(), v.clone(), Var::zeros(v.shape(), v.dtype(), v.device())?, Var::zeros(v.shape(), v.dtype(), v.device())?)))
+            .map(|(n, v)| {
+                Ok((n.clone(), v.clone(), Var::zeros(v.shape(), v.dtype(), v.device())?, Var::zeros(v.shape(), v.dtype(), v.device())?))
+            })
             .collect::<Result<Vec<_>>>()?;
         Ok(Self { params, step_t: 0, vars })
     }
@@ -71,9 +73,18 @@ impl AdamW {
         for (n, theta, m, v) in &self.vars {
             for (suffix, var) in [("m", m), ("v", v)] {
                 let key = format!("{n}.{suffix}");
-                let t = state.get(&key).ok_or_else(|| Error::MissingTensor { file: file.into(), name: key.clone(), expected: theta.dims().to_vec() })?;
+                let t = state.get(&key).ok_or_else(|| Error::MissingTensor {
+                    file: file.into(),
+                    name: key.clone(),
+                    expected: theta.dims().to_vec(),
+                })?;
                 if t.dims() != theta.dims() {
-                    return Err(Error::ShapeMismatch { file: file.into(), name: key, found: t.dims().to_vec(), expected: theta.dims().to_vec() });
+                    return Err(Error::ShapeMismatch {
+                        file: file.into(),
+                        name: key,
+                        found: t.dims().to_vec(),
+                        expected: theta.dims().to_vec(),
+                    });
                 }
                 var.set(t)?;
             }
@@ -156,7 +167,8 @@ mod tests {
             a.step(&loss(&va, &x)?.backward()?)?;
         }
         // Copy parameters and optimizer state into a fresh optimizer.
-        let vb: Vec<(String, Var)> = va.iter().map(|(n, v)| Ok((n.clone(), Var::from_tensor(&v.as_tensor().copy()?)?))).collect::<Result<_>>()?;
+        let vb: Vec<(String, Var)> =
+            va.iter().map(|(n, v)| Ok((n.clone(), Var::from_tensor(&v.as_tensor().copy()?)?))).collect::<Result<_>>()?;
         let mut b = AdamW::new(&vb, params)?;
         b.load_state(&a.state_tensors()?, a.step_t, "mem")?;
         for _ in 0..3 {

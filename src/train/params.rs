@@ -13,8 +13,8 @@ use std::collections::BTreeMap;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 
-use crate::rng::SeededRng;
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::rng::SeededRng;
 use crate::weights::registry::{self, ModuleConfig, ModuleKind};
 use crate::{Error, Result};
 
@@ -38,8 +38,7 @@ pub struct ModuleParams {
 impl ModuleParams {
     /// Fresh parameters for `config` (module kind from its class name).
     pub fn init(key: &str, config: &ModuleConfig, seed: u64) -> Result<Self> {
-        let kind = ModuleKind::of(&config.name)
-            .ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
+        let kind = ModuleKind::of(&config.name).ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
         let specs = registry::expected_tensors(config, key)?;
         let varmap = VarMap::new();
         {
@@ -67,8 +66,7 @@ impl ModuleParams {
     /// Parameters from stored tensors (a checkpoint); buffers are ignored,
     /// every trainable tensor the config implies must be present.
     pub fn from_tensors(key: &str, config: &ModuleConfig, tensors: &BTreeMap<String, Tensor>, file: &str) -> Result<Self> {
-        let kind = ModuleKind::of(&config.name)
-            .ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
+        let kind = ModuleKind::of(&config.name).ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
         let varmap = VarMap::new();
         {
             let mut data = varmap.data().lock().map_err(|_| Error::msg("varmap poisoned"))?;
@@ -82,7 +80,12 @@ impl ModuleParams {
                     expected: s.shape.clone(),
                 })?;
                 if t.dims() != s.shape.as_slice() {
-                    return Err(Error::ShapeMismatch { file: file.to_string(), name: s.name.clone(), found: t.dims().to_vec(), expected: s.shape.clone() });
+                    return Err(Error::ShapeMismatch {
+                        file: file.to_string(),
+                        name: s.name.clone(),
+                        found: t.dims().to_vec(),
+                        expected: s.shape.clone(),
+                    });
                 }
                 data.insert(s.name.clone(), Var::from_tensor(&t.to_dtype(DType::F32)?.to_device(&Device::Cpu)?)?);
             }
@@ -213,7 +216,9 @@ mod tests {
         let a = ModuleParams::init("ss_flow", &cfg, 3)?;
         let b = ModuleParams::init("ss_flow", &cfg, 3)?;
         let c = ModuleParams::init("ss_flow", &cfg, 4)?;
-        let get = |p: &ModuleParams, n: &str| p.vars.iter().find(|(k, _)| k == n).unwrap().1.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let get = |p: &ModuleParams, n: &str| {
+            p.vars.iter().find(|(k, _)| k == n).unwrap().1.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        };
         let w = "blocks.0.self_attn.to_qkv.weight";
         assert_eq!(get(&a, w), get(&b, w));
         assert_ne!(get(&a, w), get(&c, w));

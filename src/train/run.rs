@@ -17,15 +17,15 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
+use crate::geometry::pose::PoseStats;
+use crate::geometry::voxelize::Fill;
+use crate::model::config::{ModuleSpec, RecGenConfig};
+use crate::model::stage1::ss_vae::encoder::ReconLoss;
 use crate::train::data::{pose_stats_json, scan, TrainingSource};
 use crate::train::flow::FlowMatching;
 use crate::train::objective::{fixed_eval, frozen_var_builder, FlowObjective, Objective, VaeObjective};
 use crate::train::params::ModuleParams;
 use crate::train::trainer::{latest_checkpoint, train, write_weights, LoopSettings, RunSummary};
-use crate::geometry::pose::PoseStats;
-use crate::geometry::voxelize::Fill;
-use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::stage1::ss_vae::encoder::ReconLoss;
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
@@ -156,10 +156,16 @@ fn check_out(out: &Path, resume: bool) -> Result<()> {
         return Ok(());
     }
     if !out.join(MARKER).is_file() {
-        return Err(Error::input(out.display().to_string(), format!("folder exists and is not a recon train output (no {MARKER}); choose an empty or new --out")));
+        return Err(Error::input(
+            out.display().to_string(),
+            format!("folder exists and is not a recon train output (no {MARKER}); choose an empty or new --out"),
+        ));
     }
     if !resume {
-        return Err(Error::input(out.display().to_string(), "already holds a training run; pass --resume to continue it or choose another --out"));
+        return Err(Error::input(
+            out.display().to_string(),
+            "already holds a training run; pass --resume to continue it or choose another --out",
+        ));
     }
     Ok(())
 }
@@ -174,16 +180,21 @@ fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
 fn load_module(dir: &Path, key: &str) -> Result<BTreeMap<String, candle_core::Tensor>> {
     let p = dir.join(format!("{key}.safetensors"));
     if !p.is_file() {
-        return Err(Error::input(dir.display().to_string(), format!("no {key}.safetensors (give the output folder of the `recon train` stage that writes it)")));
+        return Err(Error::input(
+            dir.display().to_string(),
+            format!("no {key}.safetensors (give the output folder of the `recon train` stage that writes it)"),
+        ));
     }
-    let m = candle_core::safetensors::load(&p, &candle_core::Device::Cpu).map_err(|e| Error::input(p.display().to_string(), format!("cannot read: {e}")))?;
+    let m = candle_core::safetensors::load(&p, &candle_core::Device::Cpu)
+        .map_err(|e| Error::input(p.display().to_string(), format!("cannot read: {e}")))?;
     Ok(m.into_iter().collect())
 }
 
 /// Write `tensors` as `<out>/<key>.safetensors`, labelled trained and copied from `from`
 /// (the modules a run's folder carries beside its own, so the folder runs a pipeline).
 fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &Path, out: &Path, key: &str) -> Result<PathBuf> {
-    let meta: BTreeMap<String, String> = [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), from.display().to_string())].into();
+    let meta: BTreeMap<String, String> =
+        [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), from.display().to_string())].into();
     let path = out.join(format!("{key}.safetensors"));
     crate::weights::init::write_safetensors(tensors, &meta, &path)?;
     Ok(path)
@@ -213,12 +224,18 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     let resume_dir = match &opts.resume {
         None => None,
         Some(Resume::Dir(d)) => Some(d.clone()),
-        Some(Resume::Latest) => Some(latest_checkpoint(&opts.out)?.ok_or_else(|| Error::input(opts.out.display().to_string(), "--resume: no checkpoint in <out>/checkpoints"))?),
+        Some(Resume::Latest) => Some(
+            latest_checkpoint(&opts.out)?
+                .ok_or_else(|| Error::input(opts.out.display().to_string(), "--resume: no checkpoint in <out>/checkpoints"))?,
+        ),
     };
     let seed = opts.settings.seed;
     let mut notes = Vec::new();
     let ss_encoder_cfg = || -> Result<ModuleConfig> {
-        let spec = arch.ss_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
+        let spec = arch
+            .ss_encoder
+            .as_ref()
+            .ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
         Ok(spec_cfg(spec))
     };
     // A trained module: random for the seed, or the --init folder's weights.
@@ -260,12 +277,19 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
         }
         Stage::SsFlow => {
             let enc_cfg = ss_encoder_cfg()?;
-            let vae = opts.vae.as_ref().ok_or_else(|| Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)"))?;
+            let vae = opts.vae.as_ref().ok_or_else(|| {
+                Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)")
+            })?;
             let enc_t = load_module(vae, "ss_encoder")?;
             let dec_t = load_module(vae, "ss_decoder")?;
             let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder")?;
             let scan = scan(source)?;
-            notes.push(format!("{} usable samples ({} with two views), {} views without depth skipped", scan.usable.len(), scan.two_view.len(), scan.skipped_views));
+            notes.push(format!(
+                "{} usable samples ({} with two views), {} views without depth skipped",
+                scan.usable.len(),
+                scan.two_view.len(),
+                scan.skipped_views
+            ));
             let stats_json = pose_stats_json(&scan.poses, arch.nine_d_layout()?, &source.describe())?;
             let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
             write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
@@ -285,8 +309,15 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             obj = Box::new(fo);
         }
         Stage::SlatAe => {
-            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
-            let cfgs = [("slat_encoder", spec_cfg(enc_spec)), ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)), ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs))];
+            let enc_spec = arch
+                .slat_encoder
+                .as_ref()
+                .ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
+            let cfgs = [
+                ("slat_encoder", spec_cfg(enc_spec)),
+                ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)),
+                ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs)),
+            ];
             settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
             let [e, m, g] = cfgs.map(|(k, c)| module(k, &c));
             let mut so = crate::train::slat::SlatAeObjective::new(source, e?, m?, g?)?;
@@ -297,19 +328,45 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             obj = Box::new(so);
         }
         Stage::SlatFlow => {
-            let s1 = opts.stage1.as_ref().ok_or_else(|| Error::config("recon train slat-flow", "--stage1", "the ss-flow output folder is required (frozen image encoder, pose statistics)"))?;
-            let ae = opts.slat_ae.as_ref().ok_or_else(|| Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)"))?;
-            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents"))?;
-            let encoder = registry::build_slat_encoder(&spec_cfg(enc_spec), frozen_var_builder(load_module(ae, "slat_encoder")?), "slat_encoder")?;
-            let dino = registry::build_dinov2(&spec_cfg(&arch.image_cond_model), frozen_var_builder(load_module(s1, "image_cond_model")?), "image_cond_model")?;
+            let s1 = opts.stage1.as_ref().ok_or_else(|| {
+                Error::config(
+                    "recon train slat-flow",
+                    "--stage1",
+                    "the ss-flow output folder is required (frozen image encoder, pose statistics)",
+                )
+            })?;
+            let ae = opts.slat_ae.as_ref().ok_or_else(|| {
+                Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)")
+            })?;
+            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
+                Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
+            })?;
+            let encoder =
+                registry::build_slat_encoder(&spec_cfg(enc_spec), frozen_var_builder(load_module(ae, "slat_encoder")?), "slat_encoder")?;
+            let dino = registry::build_dinov2(
+                &spec_cfg(&arch.image_cond_model),
+                frozen_var_builder(load_module(s1, "image_cond_model")?),
+                "image_cond_model",
+            )?;
             let stats_path = s1.join("pose_stats.json");
             let stats = PoseStats::from_json_file(&stats_path)?;
             let scan = scan(source)?;
             let flow_cfg = spec_cfg(&arch.slat_flow);
             settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
-            settings["slat_flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
+            settings["slat_flow"] =
+                serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
             let flow = module("slat_flow", &flow_cfg)?;
-            let mut fo = crate::train::slat_flow::SlatFlowObjective::new(source, scan, stats, arch.nine_d_layout()?, dino, flow, &encoder, opts.max_models, opts.flow.clone())?;
+            let mut fo = crate::train::slat_flow::SlatFlowObjective::new(
+                source,
+                scan,
+                stats,
+                arch.nine_d_layout()?,
+                dino,
+                flow,
+                &encoder,
+                opts.max_models,
+                opts.flow.clone(),
+            )?;
             fo.context = opts.context;
             let (models, pool, usable) = fo.counts();
             notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));

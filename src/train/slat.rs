@@ -37,18 +37,18 @@ use parry3d::query::PointQuery;
 use parry3d::shape::{TriMesh as PMesh, TriMeshFlags};
 use rayon::prelude::*;
 
-use crate::train::data::TrainingSource;
-use crate::train::objective::{BatchLoss, Objective, Terms};
-use crate::train::params::ModuleParams;
+use crate::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
+use crate::mesh::trimesh::TriMesh;
+use crate::model::sparse::SparseTensor;
+use crate::model::stage2::slat_vae::encoder::SLatEncoder;
 use crate::model::stage2::slat_vae::flexicubes::{COLOR, CUBE_CORNERS, DEFORM, SDF, WEIGHTS};
 use crate::model::stage2::slat_vae::gaussian::{SLatGaussianDecoder, SH_C0};
 use crate::model::stage2::slat_vae::mesh::{subdivide_coords, SLatMeshDecoder};
-use crate::spatial::KdTree;
-use crate::mesh::trimesh::TriMesh;
-use crate::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
 use crate::rng::SeededRng;
-use crate::model::stage2::slat_vae::encoder::SLatEncoder;
-use crate::model::sparse::SparseTensor;
+use crate::spatial::KdTree;
+use crate::train::data::TrainingSource;
+use crate::train::objective::{BatchLoss, Objective, Terms};
+use crate::train::params::ModuleParams;
 use crate::weights::registry;
 use crate::{Error, Result};
 
@@ -84,8 +84,15 @@ impl SlatGeometry {
         let v: Vec<[f64; 3]> = mesh.vertices.iter().map(|p| canon.to_canonical(*p)).collect();
         let occ = voxelize(&v, &mesh.faces, res, Fill::Surface)?;
         let r = res as i32;
-        let voxels: Vec<[i32; 3]> =
-            occ.iter().enumerate().filter(|(_, &o)| o).map(|(i, _)| { let i = i as i32; [i / (r * r), (i / r) % r, i % r] }).collect();
+        let voxels: Vec<[i32; 3]> = occ
+            .iter()
+            .enumerate()
+            .filter(|(_, &o)| o)
+            .map(|(i, _)| {
+                let i = i as i32;
+                [i / (r * r), (i / r) % r, i % r]
+            })
+            .collect();
         if voxels.is_empty() {
             return Err(Error::msg("slat geometry: the mesh has no surface voxels"));
         }
@@ -97,7 +104,9 @@ impl SlatGeometry {
         let colours: Vec<[f32; 3]> = faces
             .iter()
             .map(|&f| match (colors, mesh.faces.get(f as usize)) {
-                (Some(c), Some(t)) => std::array::from_fn(|k| t.iter().map(|&i| c.get(i as usize).map_or(0.5, |c| c[k])).sum::<f32>() / 3.0),
+                (Some(c), Some(t)) => {
+                    std::array::from_fn(|k| t.iter().map(|&i| c.get(i as usize).map_or(0.5, |c| c[k])).sum::<f32>() / 3.0)
+                }
                 _ => [0.5; 3],
             })
             .collect();
@@ -291,10 +300,24 @@ impl<'a> SlatAeObjective<'a> {
             }
         }
         if g.cfg.resolution != m.resolution {
-            return Err(Error::config("slat_dec_gs", "resolution", format!("{} differs from the mesh decoder's {}", g.cfg.resolution, m.resolution)));
+            return Err(Error::config(
+                "slat_dec_gs",
+                "resolution",
+                format!("{} differs from the mesh decoder's {}", g.cfg.resolution, m.resolution),
+            ));
         }
         let res = m.resolution;
-        Ok(Self { params: vec![enc, mesh_dec, gs_dec], enc: e, mesh_dec: m, gs_dec: g, source, res, crop: 10, max_voxels: 400, weights: SlatAeWeights::default() })
+        Ok(Self {
+            params: vec![enc, mesh_dec, gs_dec],
+            enc: e,
+            mesh_dec: m,
+            gs_dec: g,
+            source,
+            res,
+            crop: 10,
+            max_voxels: 400,
+            weights: SlatAeWeights::default(),
+        })
     }
 
     /// The geometry of model `i` (built on demand: a few tens of ms).
@@ -317,7 +340,8 @@ impl Objective for SlatAeObjective<'_> {
     }
     fn loss(&self, rng: &mut SeededRng, batch: usize) -> Result<BatchLoss> {
         let dev = Device::Cpu;
-        let picks: Vec<(usize, u64)> = (0..batch).map(|_| ((rng.next_u64() % self.source.num_models() as u64) as usize, rng.next_u64())).collect();
+        let picks: Vec<(usize, u64)> =
+            (0..batch).map(|_| ((rng.next_u64() % self.source.num_models() as u64) as usize, rng.next_u64())).collect();
         let crops: Vec<CropTargets> = picks
             .par_iter()
             .map(|&(i, seed)| {
@@ -353,14 +377,18 @@ impl Objective for SlatAeObjective<'_> {
         let pos = t.ge(tau * (1.0 - 1e-6))?.to_dtype(DType::F32)?;
         let neg = t.le(-tau * (1.0 - 1e-6))?.to_dtype(DType::F32)?;
         let diff = (&p - &t)?;
-        let l_sdf = ((inband.mul(&diff.abs()?)? + pos.mul(&diff.neg()?.relu()?)?)? + neg.mul(&diff.relu()?)?)?.mean_all()?.affine(1.0 / fine, 0.0)?;
+        let l_sdf = ((inband.mul(&diff.abs()?)? + pos.mul(&diff.neg()?.relu()?)?)? + neg.mul(&diff.relu()?)?)?
+            .mean_all()?
+            .affine(1.0 / fine, 0.0)?;
         let near_n = crate::train::objective::scalar_of(&inband.sum_all()?)?;
         let col = candle_nn::ops::sigmoid(&out.narrow(1, COLOR.start, 48)?.reshape((m, 8, 6))?.narrow(2, 0, 3)?)?;
         let col_t = Tensor::from_vec(cat(&|c| &c.cube_col), (m, 8, 3), &dev)?;
         let l_col = ((col - col_t)?.sqr()?.broadcast_mul(&inband.unsqueeze(2)?)?.sum_all()? / (3.0 * near_n.max(1.0)))?;
-        let reg = (out.narrow(1, DEFORM.start, DEFORM.len())?.sqr()?.mean_all()? + out.narrow(1, WEIGHTS.start, WEIGHTS.len())?.sqr()?.mean_all()?)?;
+        let reg = (out.narrow(1, DEFORM.start, DEFORM.len())?.sqr()?.mean_all()?
+            + out.narrow(1, WEIGHTS.start, WEIGHTS.len())?.sqr()?.mean_all()?)?;
         // Sign accuracy at near-surface corners (logged).
-        let sign_ok = crate::train::objective::scalar_of(&p.ge(0.0)?.eq(&t.ge(0.0)?)?.to_dtype(DType::F32)?.mul(&inband)?.sum_all()?)? / near_n.max(1.0);
+        let sign_ok = crate::train::objective::scalar_of(&p.ge(0.0)?.eq(&t.ge(0.0)?)?.to_dtype(DType::F32)?.mul(&inband)?.sum_all()?)?
+            / near_n.max(1.0);
 
         // Gaussian decoder: per voxel, its Gaussians against its surface samples.
         let h = self.gs_dec.forward_feats(&zx, &mut |_, _| {})?;

@@ -11,19 +11,19 @@
 use candle_core::{Device, Tensor};
 use rayon::prelude::*;
 
+use crate::geometry::pose::{NineDLayout, PoseStats};
+use crate::geometry::voxelize::CanonicalFrame;
+use crate::model::sparse::SparseTensor;
+use crate::model::stage1::dinov2::Dinov2;
+use crate::model::stage1::embedders::ViewInputs;
+use crate::model::stage2::slat_flow::{ConvPath, SLatFlowModel};
+use crate::model::stage2::slat_vae::encoder::SLatEncoder;
+use crate::rng::SeededRng;
 use crate::train::data::{canonical_frame, prepare_picks, Scan, TrainingSource};
 use crate::train::flow::{drop_condition, FlowMatching};
 use crate::train::objective::{scalar_of, BatchLoss, Objective, Terms};
 use crate::train::params::ModuleParams;
 use crate::train::slat::{in_channels, SlatGeometry};
-use crate::geometry::pose::{NineDLayout, PoseStats};
-use crate::geometry::voxelize::CanonicalFrame;
-use crate::model::stage1::dinov2::Dinov2;
-use crate::model::stage1::embedders::ViewInputs;
-use crate::rng::SeededRng;
-use crate::model::stage2::slat_vae::encoder::SLatEncoder;
-use crate::model::stage2::slat_flow::{ConvPath, SLatFlowModel};
-use crate::model::sparse::SparseTensor;
 use crate::weights::registry;
 use crate::{Error, Result};
 
@@ -72,10 +72,18 @@ impl<'a> SlatFlowObjective<'a> {
         let mut f = registry::build_slat_flow(&flow.config, flow.var_builder(), "slat_flow")?;
         f.set_conv_path(ConvPath::Differentiable);
         if f.cfg.pose_dim().ok() != Some(13) {
-            return Err(Error::config("slat_flow", "pose_representation", "training needs RecGen pose conditioning (9d_translation_scale)"));
+            return Err(Error::config(
+                "slat_flow",
+                "pose_representation",
+                "training needs RecGen pose conditioning (9d_translation_scale)",
+            ));
         }
         if f.cfg.in_channels != encoder.latent_channels {
-            return Err(Error::config("slat_flow", "in_channels", format!("{} differs from the SLat encoder's latent_channels {}", f.cfg.in_channels, encoder.latent_channels)));
+            return Err(Error::config(
+                "slat_flow",
+                "in_channels",
+                format!("{} differs from the SLat encoder's latent_channels {}", f.cfg.in_channels, encoder.latent_channels),
+            ));
         }
         let res = f.cfg.resolution;
         let canon = (0..source.num_models()).map(|i| canonical_frame(&source.model(i)?.mesh)).collect::<Result<Vec<_>>>()?;
@@ -101,7 +109,11 @@ impl<'a> SlatFlowObjective<'a> {
         let mut raw: Vec<(usize, Vec<[i32; 3]>, Tensor)> = Vec::with_capacity(feats.len());
         for (m, coords, f) in feats {
             let n = coords.len();
-            let x = SparseTensor::new(coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect(), Tensor::from_vec(f, (n, in_channels()), &Device::Cpu)?, 1)?;
+            let x = SparseTensor::new(
+                coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect(),
+                Tensor::from_vec(f, (n, in_channels()), &Device::Cpu)?,
+                1,
+            )?;
             raw.push((m, coords, encoder.forward(&x)?.mean.detach()));
         }
         if raw.is_empty() {
@@ -150,11 +162,13 @@ impl Objective for SlatFlowObjective<'_> {
     }
     fn loss(&self, rng: &mut SeededRng, batch: usize) -> Result<BatchLoss> {
         let dev = Device::Cpu;
-        let picks: Vec<(usize, u64)> = (0..batch).map(|_| (self.pool[(rng.next_u64() % self.pool.len() as u64) as usize], rng.next_u64())).collect();
-        let prepared: Vec<(usize, crate::train::data::TrainView)> = prepare_picks(self.source, &self.canon, &picks, 1, self.image_size, self.context)?
-            .into_iter()
-            .map(|(m, mut v)| (m, v.swap_remove(0)))
-            .collect();
+        let picks: Vec<(usize, u64)> =
+            (0..batch).map(|_| (self.pool[(rng.next_u64() % self.pool.len() as u64) as usize], rng.next_u64())).collect();
+        let prepared: Vec<(usize, crate::train::data::TrainView)> =
+            prepare_picks(self.source, &self.canon, &picks, 1, self.image_size, self.context)?
+                .into_iter()
+                .map(|(m, mut v)| (m, v.swap_remove(0)))
+                .collect();
         let b = prepared.len();
         let mut coords = Vec::new();
         let mut x0 = Vec::with_capacity(b);
@@ -167,7 +181,8 @@ impl Objective for SlatFlowObjective<'_> {
         }
         let x0 = Tensor::cat(&x0, 0)?;
         let pose = Tensor::from_vec(pose, (b, 1, 13), &dev)?;
-        let cat = |f: fn(&crate::train::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(v)).collect::<Vec<_>>(), 0);
+        let cat =
+            |f: fn(&crate::train::data::TrainView) -> &Tensor| Tensor::cat(&prepared.iter().map(|(_, v)| f(v)).collect::<Vec<_>>(), 0);
         let tokens = self.dino.recgen_cond(&cat(|v| &v.pixels)?)?.detach();
         let views = [ViewInputs { patch_tokens: tokens, pointmap: Some(cat(|v| &v.pointmap)?), mask: Some(cat(|v| &v.mask)?) }];
         let (cond, _neg) = self.flow.condition(&views, Some(&pose))?;
@@ -181,7 +196,8 @@ impl Objective for SlatFlowObjective<'_> {
         let v = self.flow.forward(&xt, &(&t * 1000.0)?, &cond)?;
         let mse = (v.feats - self.fm.target(&x0, &eps)?)?.sqr()?.mean_all()?;
         let terms: Terms = [("mse".to_string(), scalar_of(&mse)?)].into();
-        let info: Terms = [("voxels".to_string(), x0.dim(0)? as f64), ("dropped".to_string(), drop.iter().filter(|&&d| d).count() as f64)].into();
+        let info: Terms =
+            [("voxels".to_string(), x0.dim(0)? as f64), ("dropped".to_string(), drop.iter().filter(|&&d| d).count() as f64)].into();
         Ok(BatchLoss { total: mse, terms, info })
     }
 }

@@ -13,11 +13,11 @@
 
 use std::sync::Arc;
 
-use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
+use crate::dataset::frame::{Intrinsics, RgbdFrame};
 use crate::math::axis_angle;
 use crate::mesh::trimesh::TriMesh;
-use crate::dataset::frame::{Intrinsics, RgbdFrame};
 use crate::rng::SeededRng;
+use crate::train::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
 use crate::Result;
 
 /// What to generate.
@@ -45,8 +45,25 @@ pub fn primitive(kind: usize, dims: [f64; 3], offset: [f64; 3]) -> TriMesh {
     let (mut v, f): (Vec<[f64; 3]>, Vec<[u32; 3]>) = match kind % 4 {
         0 => {
             let h = dims.map(|d| d / 2.0);
-            let v = (0..8).map(|i| [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }]).collect();
-            let f = vec![[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+            let v = (0..8)
+                .map(|i| {
+                    [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }]
+                })
+                .collect();
+            let f = vec![
+                [0, 2, 1],
+                [1, 2, 3],
+                [4, 5, 6],
+                [5, 7, 6],
+                [0, 1, 4],
+                [1, 5, 4],
+                [2, 6, 3],
+                [3, 6, 7],
+                [0, 4, 2],
+                [2, 4, 6],
+                [1, 3, 5],
+                [3, 7, 5],
+            ];
             (v, f)
         }
         k @ (1 | 3) => {
@@ -198,7 +215,12 @@ impl ToySource {
             })
             .collect();
         let colours: Vec<[f32; 3]> = models.iter().map(|_| std::array::from_fn(|_| 0.2 + 0.8 * rng.uniform() as f32)).collect();
-        let k = Intrinsics { fx: 0.9 * config.width as f64, fy: 0.9 * config.width as f64, cx: config.width as f64 / 2.0, cy: config.height as f64 / 2.0 };
+        let k = Intrinsics {
+            fx: 0.9 * config.width as f64,
+            fy: 0.9 * config.width as f64,
+            cx: config.width as f64 / 2.0,
+            cy: config.height as f64 / 2.0,
+        };
         let mut src = Self { config: config.clone(), models, colours, samples: Vec::new() };
         let mut attempts = 0;
         while src.samples.len() < config.samples {
@@ -245,7 +267,8 @@ impl ToySource {
         if mask.iter().filter(|&&m| m).count() < 150 {
             return Ok(None);
         }
-        let depth_m: Vec<f32> = img.depth.iter().map(|&d| if d > 0.0 { d + (0.002 * (d as f64).powi(2) * rng.normal()) as f32 } else { 0.0 }).collect();
+        let depth_m: Vec<f32> =
+            img.depth.iter().map(|&d| if d > 0.0 { d + (0.002 * (d as f64).powi(2) * rng.normal()) as f32 } else { 0.0 }).collect();
         let frame = RgbdFrame {
             width: w,
             height: h,
@@ -335,7 +358,17 @@ pub fn micro_architecture(arch: &serde_json::Value) -> serde_json::Value {
     d["num_attention_heads"] = 2.into();
     d["image_size"] = 28.into();
     let f = &mut v["ss_flow"]["args"];
-    for (k, x) in [("resolution", 4), ("in_channels", 4), ("out_channels", 4), ("model_channels", 32), ("cond_channels", 32), ("num_blocks", 1), ("num_heads", 2), ("point_embedder_out_channels", 32), ("mask_embedder_out_channels", 32)] {
+    for (k, x) in [
+        ("resolution", 4),
+        ("in_channels", 4),
+        ("out_channels", 4),
+        ("model_channels", 32),
+        ("cond_channels", 32),
+        ("num_blocks", 1),
+        ("num_heads", 2),
+        ("point_embedder_out_channels", 32),
+        ("mask_embedder_out_channels", 32),
+    ] {
         f[k] = x.into();
     }
     v["ss_decoder"]["args"]["latent_channels"] = 4.into();
@@ -353,7 +386,15 @@ pub fn micro_architecture(arch: &serde_json::Value) -> serde_json::Value {
         v[key]["args"]["num_heads"] = 2.into();
     }
     let f = &mut v["slat_flow"]["args"];
-    for (k, x) in [("model_channels", 32), ("cond_channels", 32), ("num_heads", 2), ("num_io_res_blocks", 1), ("point_embedder_out_channels", 32), ("mask_embedder_out_channels", 32), ("pose_embedder_out_channels", 32)] {
+    for (k, x) in [
+        ("model_channels", 32),
+        ("cond_channels", 32),
+        ("num_heads", 2),
+        ("num_io_res_blocks", 1),
+        ("point_embedder_out_channels", 32),
+        ("mask_embedder_out_channels", 32),
+        ("pose_embedder_out_channels", 32),
+    ] {
         f[k] = x.into();
     }
     f["io_block_channels"] = serde_json::json!([16]);

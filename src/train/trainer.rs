@@ -24,10 +24,10 @@ use candle_core::{Device, Tensor, Var};
 use candle_nn::ParamsAdamW;
 use serde::{Deserialize, Serialize};
 
+use crate::rng::SeededRng;
 use crate::train::log::{append_log, loss_svg, read_log, truncate_log, LogRecord};
 use crate::train::objective::Objective;
 use crate::train::optim::{clip_grad_norm, AdamW};
-use crate::rng::SeededRng;
 use crate::weights::init::write_safetensors;
 use crate::{Error, Result};
 
@@ -47,7 +47,16 @@ pub struct LoopSettings {
 
 impl Default for LoopSettings {
     fn default() -> Self {
-        Self { steps: 1000, batch: 8, lr: 2e-4, weight_decay: 0.0, grad_clip: Some(1.0), seed: 0, checkpoint_every: 500, keep_checkpoints: 2 }
+        Self {
+            steps: 1000,
+            batch: 8,
+            lr: 2e-4,
+            weight_decay: 0.0,
+            grad_clip: Some(1.0),
+            seed: 0,
+            checkpoint_every: 500,
+            keep_checkpoints: 2,
+        }
     }
 }
 
@@ -124,7 +133,13 @@ fn write_checkpoint(out: &Path, obj: &dyn Objective, opt: &AdamW, state: &Checkp
     let mut steps: Vec<(usize, PathBuf)> = std::fs::read_dir(&parent)
         .map_err(|e| Error::io(&parent, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter_map(|p| p.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_prefix("step-")).and_then(|s| s.parse().ok()).map(|s| (s, p.clone())))
+        .filter_map(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .and_then(|n| n.strip_prefix("step-"))
+                .and_then(|s| s.parse().ok())
+                .map(|s| (s, p.clone()))
+        })
         .collect();
     steps.sort();
     let n = steps.len();
@@ -135,7 +150,8 @@ fn write_checkpoint(out: &Path, obj: &dyn Objective, opt: &AdamW, state: &Checkp
 }
 
 fn load_tensors(path: &Path) -> Result<BTreeMap<String, Tensor>> {
-    let m = candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| Error::input(path.display().to_string(), format!("cannot read safetensors: {e}")))?;
+    let m = candle_core::safetensors::load(path, &Device::Cpu)
+        .map_err(|e| Error::input(path.display().to_string(), format!("cannot read safetensors: {e}")))?;
     Ok(m.into_iter().collect())
 }
 
@@ -145,7 +161,11 @@ fn load_checkpoint(dir: &Path, obj: &dyn Objective, opt: &mut AdamW, settings: &
     let state: CheckpointState = crate::util::json::read_json(&sp)?;
     let file = sp.display().to_string();
     if state.objective != obj.name() {
-        return Err(Error::config(&file, "objective", format!("checkpoint is for `{}`, this run trains `{}`", state.objective, obj.name())));
+        return Err(Error::config(
+            &file,
+            "objective",
+            format!("checkpoint is for `{}`, this run trains `{}`", state.objective, obj.name()),
+        ));
     }
     // Everything but the step count must match, or the continuation is not the same run.
     let strip = |v: &serde_json::Value| {
@@ -161,15 +181,28 @@ fn load_checkpoint(dir: &Path, obj: &dyn Objective, opt: &mut AdamW, settings: &
             (Some(x), Some(y)) => x.keys().chain(y.keys()).filter(|k| x.get(*k) != y.get(*k)).map(|k| k.to_string()).collect(),
             _ => vec!["<all>".into()],
         };
-        return Err(Error::config(&file, "settings", format!("differ from this run's in {diff:?}; resume with the same options (only --steps may change)")));
+        return Err(Error::config(
+            &file,
+            "settings",
+            format!("differ from this run's in {diff:?}; resume with the same options (only --steps may change)"),
+        ));
     }
     for m in obj.trainable() {
         let p = dir.join(format!("{}.safetensors", m.key));
         let t = load_tensors(&p)?;
         for (name, var) in &m.vars {
-            let v = t.get(name).ok_or_else(|| Error::MissingTensor { file: p.display().to_string(), name: name.clone(), expected: var.dims().to_vec() })?;
+            let v = t.get(name).ok_or_else(|| Error::MissingTensor {
+                file: p.display().to_string(),
+                name: name.clone(),
+                expected: var.dims().to_vec(),
+            })?;
             if v.dims() != var.dims() {
-                return Err(Error::ShapeMismatch { file: p.display().to_string(), name: name.clone(), found: v.dims().to_vec(), expected: var.dims().to_vec() });
+                return Err(Error::ShapeMismatch {
+                    file: p.display().to_string(),
+                    name: name.clone(),
+                    found: v.dims().to_vec(),
+                    expected: var.dims().to_vec(),
+                });
             }
             var.set(v)?;
         }
@@ -182,7 +215,14 @@ fn load_checkpoint(dir: &Path, obj: &dyn Objective, opt: &mut AdamW, settings: &
 /// Train `obj` for `settings.steps` steps (from a checkpoint when `resume`
 /// is given), logging to `<out>/loss.jsonl` and `<out>/loss.svg`.
 /// `run_settings` is the full settings record stored in checkpoints.
-pub fn train(obj: &dyn Objective, settings: &LoopSettings, run_settings: &serde_json::Value, out: &Path, resume: Option<&Path>, progress: bool) -> Result<RunSummary> {
+pub fn train(
+    obj: &dyn Objective,
+    settings: &LoopSettings,
+    run_settings: &serde_json::Value,
+    out: &Path,
+    resume: Option<&Path>,
+    progress: bool,
+) -> Result<RunSummary> {
     if settings.batch == 0 || settings.steps == 0 {
         return Err(Error::config("train settings", "steps/batch", "must be positive"));
     }
@@ -198,7 +238,11 @@ pub fn train(obj: &dyn Objective, settings: &LoopSettings, run_settings: &serde_
         Some(dir) => {
             let st = load_checkpoint(dir, obj, &mut opt, run_settings)?;
             if st.step >= settings.steps {
-                return Err(Error::config(dir.display().to_string(), "step", format!("checkpoint is at step {} already; ask for more --steps", st.step)));
+                return Err(Error::config(
+                    dir.display().to_string(),
+                    "step",
+                    format!("checkpoint is at step {} already; ask for more --steps", st.step),
+                ));
             }
             truncate_log(&log_path, st.step)?;
             (SeededRng::from_state(st.rng, st.rng_spare_bits), st.step + 1)
@@ -259,7 +303,13 @@ pub fn train(obj: &dyn Objective, settings: &LoopSettings, run_settings: &serde_
     }
     bar.finish_and_clear();
     let n = settings.steps + 1 - first;
-    Ok(RunSummary { first_step: first, last_step: settings.steps, final_loss: last_loss, mean_step_seconds: step_secs / n.max(1) as f64, seconds: t_run.elapsed().as_secs_f64() })
+    Ok(RunSummary {
+        first_step: first,
+        last_step: settings.steps,
+        final_loss: last_loss,
+        mean_step_seconds: step_secs / n.max(1) as f64,
+        seconds: t_run.elapsed().as_secs_f64(),
+    })
 }
 
 /// `<out>/loss.svg` from `<out>/loss.jsonl`.

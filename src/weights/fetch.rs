@@ -45,7 +45,12 @@ pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<
                 let dest = base.join(&f.path);
                 if !dest.exists() {
                     download_url(url, &dest).map_err(|e| {
-                        Error::msg(format!("manifest `{}`: cannot download `{}`: {e}. Check network access, or place the file at {}", m.name, f.path, dest.display()))
+                        Error::msg(format!(
+                            "manifest `{}`: cannot download `{}`: {e}. Check network access, or place the file at {}",
+                            m.name,
+                            f.path,
+                            dest.display()
+                        ))
                     })?;
                 }
                 out.push(dest);

@@ -55,7 +55,8 @@ impl Checkpoint {
                 // SAFETY: the file is mapped read-only; like every mmap user we
                 // assume it is not truncated while the checkpoint is alive.
                 let st = unsafe { MmapedSafetensors::new(path) }.map_err(|e| load_err(path, e))?;
-                let mut c = Checkpoint { path: path.to_path_buf(), inner: Inner::Safetensors(st), stripped_prefix: String::new(), pt_key: None };
+                let mut c =
+                    Checkpoint { path: path.to_path_buf(), inner: Inner::Safetensors(st), stripped_prefix: String::new(), pt_key: None };
                 c.detect_prefix();
                 Ok(c)
             }
@@ -171,10 +172,7 @@ fn open_pth(path: &Path, key: Option<&str>) -> Result<(PthTensors, Option<String
             }
         }
     }
-    Err(Error::input(
-        path.display().to_string(),
-        format!("no tensors found at the top level or under any of the keys {PT_WRAPPER_KEYS:?}"),
-    ))
+    Err(Error::input(path.display().to_string(), format!("no tensors found at the top level or under any of the keys {PT_WRAPPER_KEYS:?}")))
 }
 
 /// Open several memory-mapped safetensors files as one VarBuilder (candle's

@@ -135,10 +135,7 @@ pub fn resolve_module_files(
     let primary = Manifest::load(name_or_path)?;
     let others: Vec<Manifest> = Manifest::all()?.into_iter().filter(|m| m.name != primary.name).collect();
     let lists = |m: &Manifest, kind: ModuleKind| -> Option<ManifestFile> {
-        m.files
-            .iter()
-            .find(|f| is_weights_file(f) && !f.optional && f.module.as_deref().and_then(ModuleKind::of) == Some(kind))
-            .cloned()
+        m.files.iter().find(|f| is_weights_file(f) && !f.optional && f.module.as_deref().and_then(ModuleKind::of) == Some(kind)).cloned()
     };
     let mut out = crate::weights::WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
     let mut missing = Vec::new();
@@ -148,9 +145,7 @@ pub fn resolve_module_files(
             missing.push(format!("{key}: module class `{}` is unknown", spec.name));
             continue;
         };
-        let found = lists(&primary, kind)
-            .map(|f| (&primary, f))
-            .or_else(|| others.iter().find_map(|m| lists(m, kind).map(|f| (m, f))));
+        let found = lists(&primary, kind).map(|f| (&primary, f)).or_else(|| others.iter().find_map(|m| lists(m, kind).map(|f| (m, f))));
         let Some((m, f)) = found else {
             missing.push(format!("{key}: no manifest lists a {} checkpoint", spec.name));
             continue;

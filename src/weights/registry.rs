@@ -11,14 +11,14 @@
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
-use crate::weights::record::{RandomInit, RandomStream, Recorder, TensorSpec};
-use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
-use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
-use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::model::stage1::ss_vae::decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
 use crate::model::stage1::ss_vae::encoder::{SparseStructureEncoder, SparseStructureEncoderConfig};
-use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
+use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
+use crate::weights::record::{RandomInit, RandomStream, Recorder, TensorSpec};
 use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -238,7 +238,8 @@ pub fn random_var_builder(cfg: &ModuleConfig, seed: u64, file: &str) -> Result<V
 /// Per-module seed derived from a run seed and the module's key, so modules
 /// with equal parameter names (`blocks.0.*`) do not get equal values.
 pub fn module_seed(seed: u64, key: &str) -> u64 {
-    key.bytes().fold(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
+    key.bytes()
+        .fold(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
 }
 
 #[cfg(test)]

@@ -28,7 +28,14 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
     for f in &m.files {
         let p = root.join(&f.path);
         let meta = std::fs::metadata(&p).ok();
-        let mut row = VerifyRow { file: f.path.clone(), present: meta.is_some(), bytes: meta.map(|m| m.len()).unwrap_or(0), tensors: None, ok: false, detail: String::new() };
+        let mut row = VerifyRow {
+            file: f.path.clone(),
+            present: meta.is_some(),
+            bytes: meta.map(|m| m.len()).unwrap_or(0),
+            tensors: None,
+            ok: false,
+            detail: String::new(),
+        };
         if !row.present {
             row.ok = f.optional;
             row.detail = if f.optional { "absent (optional)".into() } else { "MISSING".into() };
@@ -64,7 +71,11 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
                     row.ok = r.is_ok();
                     row.detail = if r.is_ok() {
                         let extra = found.len().saturating_sub(r.matched);
-                        if extra > 0 { format!("ok ({extra} extra tensors tolerated)") } else { "ok".into() }
+                        if extra > 0 {
+                            format!("ok ({extra} extra tensors tolerated)")
+                        } else {
+                            "ok".into()
+                        }
                     } else {
                         let mut parts = Vec::new();
                         if let Some(s) = r.missing.first() {

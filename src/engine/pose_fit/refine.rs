@@ -35,7 +35,6 @@
 //! is fitted per axis of the object frame (the mesh's proportions), which
 //! the depth constrains across the rays but not along them.
 
-
 use crate::engine::pose_fit::free_space::ViewPoints;
 use crate::engine::pose_fit::options::AlignOptions;
 use crate::engine::pose_fit::score::Surface;
@@ -43,7 +42,13 @@ use crate::math::Similarity;
 
 /// Nelder–Mead minimisation of `f` from `x0` with initial steps `step`
 /// (deterministic; at most `max_evals` evaluations). Returns the best point and value.
-pub fn nelder_mead<const N: usize>(f: &dyn Fn(&[f64; N]) -> f64, x0: [f64; N], step: [f64; N], max_evals: usize, tol: f64) -> ([f64; N], f64) {
+pub fn nelder_mead<const N: usize>(
+    f: &dyn Fn(&[f64; N]) -> f64,
+    x0: [f64; N],
+    step: [f64; N],
+    max_evals: usize,
+    tol: f64,
+) -> ([f64; N], f64) {
     let mut simplex: Vec<([f64; N], f64)> = Vec::with_capacity(N + 1);
     simplex.push((x0, f(&x0)));
     for i in 0..N {
@@ -140,7 +145,8 @@ pub fn refine_pose(surface: &Surface, pose: &Similarity, views: &[ViewPoints], o
         }
         let (m, a) = split(x);
         let p = adjust(pose, m, [x[3], x[4], x[5]]);
-        let per: Vec<f64> = views.iter().map(|v| crate::engine::pose_fit::score::view_score_stretched(surface, &samples, &p, a, v, &sub)).collect();
+        let per: Vec<f64> =
+            views.iter().map(|v| crate::engine::pose_fit::score::view_score_stretched(surface, &samples, &p, a, v, &sub)).collect();
         let prior = opts.refine_prior * pose.scale * x[..n].iter().map(|v| v * v).sum::<f64>();
         per.iter().sum::<f64>() / per.len().max(1) as f64 + prior
     };
@@ -171,10 +177,10 @@ mod tests {
     use super::*;
     use crate::dataset::frame::Intrinsics;
     use crate::engine::pose_fit::free_space::{free_space, DepthView};
-    use crate::spatial::P3;
-    use crate::mesh::primitives::cuboid;
-    use crate::math::axis_angle;
     use crate::engine::pose_fit::score::view_score;
+    use crate::math::axis_angle;
+    use crate::mesh::primitives::cuboid;
+    use crate::spatial::P3;
 
     const K: Intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 160.0, cy: 120.0 };
     const W: usize = 320;
@@ -294,7 +300,13 @@ mod tests {
         let ext = |r: &Refined| -> [f64; 3] { std::array::from_fn(|i| wrong[i] * r.stretch[i] * r.pose.scale / t.scale) };
         let err = |e: [f64; 3]| (0..3).map(|i| (e[i] / h[i] - 1.0).abs()).fold(0.0, f64::max);
         let (eu, es) = (ext(&ru), ext(&rs));
-        println!("uniform {eu:.3?} ({:.3}), stretch {es:.3?} ({:.3}); objective {:.2} / {:.2} mm", err(eu), err(es), ru.after_m * 1e3, rs.after_m * 1e3);
+        println!(
+            "uniform {eu:.3?} ({:.3}), stretch {es:.3?} ({:.3}); objective {:.2} / {:.2} mm",
+            err(eu),
+            err(es),
+            ru.after_m * 1e3,
+            rs.after_m * 1e3
+        );
         assert!(rs.after_m < ru.after_m, "the stretch fit ends no better than the uniform one");
         assert!(err(es) < 0.1 && err(es) < 0.5 * err(eu), "proportions: uniform {eu:?}, stretch {es:?}");
     }

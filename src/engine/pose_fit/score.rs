@@ -19,10 +19,10 @@
 //!
 use crate::engine::pose_fit::free_space::{free_space, ViewPoints};
 use crate::engine::pose_fit::options::{AlignOptions, FREE_SPACE_SAMPLES};
-use crate::spatial::{dist2, KdTree, P3};
-use crate::util::trimmed_mean;
 use crate::math::Similarity;
 use crate::mesh::trimesh::TriMesh;
+use crate::spatial::{dist2, KdTree, P3};
+use crate::util::trimmed_mean;
 use crate::{Error, Result};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -172,7 +172,14 @@ pub fn view_score_with(surface: &Surface, samples: &[P3], pose: &Similarity, vie
 /// frame) before `pose`. Point-to-surface distances are measured in the
 /// unstretched frame and rescaled by the geometric-mean stretch (exact for a
 /// uniform stretch, close for the mild ones the refinement allows).
-pub fn view_score_stretched(surface: &Surface, samples: &[P3], pose: &Similarity, a: [f64; 3], view: &ViewPoints, opts: &AlignOptions) -> f64 {
+pub fn view_score_stretched(
+    surface: &Surface,
+    samples: &[P3],
+    pose: &Similarity,
+    a: [f64; 3],
+    view: &ViewPoints,
+    opts: &AlignOptions,
+) -> f64 {
     let stretched = a != [0.0; 3];
     let k = a.map(f64::exp);
     let gm = if stretched { ((a[0] + a[1] + a[2]) / 3.0).exp() } else { 1.0 };
@@ -222,7 +229,9 @@ mod tests {
 
     /// Axis-aligned box with half extents `h`, centred at the origin, 12 triangles.
     fn cuboid(h: [f64; 3]) -> TriMesh {
-        let v: Vec<P3> = (0..8).map(|i| [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }]).collect();
+        let v: Vec<P3> = (0..8)
+            .map(|i| [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }])
+            .collect();
         let q = [[0, 2, 6, 4], [1, 5, 7, 3], [0, 4, 5, 1], [2, 3, 7, 6], [0, 1, 3, 2], [4, 6, 7, 5]];
         let faces = q.iter().flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]]).collect();
         TriMesh { vertices: v, faces }
@@ -250,7 +259,7 @@ mod tests {
         near(closest_point_on_triangle(&[2.0, -0.1, 0.0], &a, &b, &c), b);
         near(closest_point_on_triangle(&[0.5, -2.0, 0.0], &a, &b, &c), [0.5, 0.0, 0.0]); // edge ab
         near(closest_point_on_triangle(&[1.0, 1.0, 0.0], &a, &b, &c), [0.5, 0.5, 0.0]); // edge bc
-        // Brute force over a fine barycentric grid agrees.
+                                                                                        // Brute force over a fine barycentric grid agrees.
         let mut rng = SeededRng::new(5);
         for _ in 0..200 {
             let q = [rng.normal(), rng.normal(), rng.normal()];
@@ -308,7 +317,11 @@ mod tests {
         let on_surface = truth.apply_all(&mesh.sample_surface(3000, 2));
         let mut pts = noisy(&on_surface, 0.001, &mut rng);
         for _ in 0..150 {
-            pts.push([truth.translation[0] + 0.3 * (rng.uniform() - 0.5), truth.translation[1] + 0.3 * (rng.uniform() - 0.5), truth.translation[2] + 0.3 * (rng.uniform() - 0.5)]);
+            pts.push([
+                truth.translation[0] + 0.3 * (rng.uniform() - 0.5),
+                truth.translation[1] + 0.3 * (rng.uniform() - 0.5),
+                truth.translation[2] + 0.3 * (rng.uniform() - 0.5),
+            ]);
         }
         let view = ViewPoints { points: pts, to_anchor: Similarity::identity(), depth: None };
         let surface = Surface::new(mesh, 20_000, 3).unwrap();
@@ -319,12 +332,19 @@ mod tests {
         let untrimmed = view_score(&surface, &truth, &view, &AlignOptions { trim: 0.0, ..opts });
         assert!(untrimmed > 2.0 * good, "outliers must matter without trimming: {untrimmed} vs {good}");
         // 10° about the box's own vertical axis (through its centre).
-        let rot_about_centre = truth.compose(&Similarity { rotation: axis_angle([0.0, 0.0, 1.0], 10f64.to_radians()), translation: [0.0; 3], scale: 1.0 });
+        let rot_about_centre =
+            truth.compose(&Similarity { rotation: axis_angle([0.0, 0.0, 1.0], 10f64.to_radians()), translation: [0.0; 3], scale: 1.0 });
         let shifted = Similarity { translation: [truth.translation[0] + 0.01, truth.translation[1], truth.translation[2]], ..truth };
         let bigger = Similarity { scale: truth.scale * 1.15, ..truth };
         let cands = [shifted, truth, rot_about_centre, bigger];
-        let scores: Vec<CandidateScore> = cands.iter().map(|c| score_candidate(&surface, c, 0, std::slice::from_ref(&view), &opts)).collect();
-        println!("true {:.3} mm (untrimmed {:.3} mm); shifted 1 cm, rotated 10°, scaled 1.15: {:?} mm", good * 1e3, untrimmed * 1e3, [0, 2, 3].map(|i| (scores[i].single() * 1e4).round() / 10.0));
+        let scores: Vec<CandidateScore> =
+            cands.iter().map(|c| score_candidate(&surface, c, 0, std::slice::from_ref(&view), &opts)).collect();
+        println!(
+            "true {:.3} mm (untrimmed {:.3} mm); shifted 1 cm, rotated 10°, scaled 1.15: {:?} mm",
+            good * 1e3,
+            untrimmed * 1e3,
+            [0, 2, 3].map(|i| (scores[i].single() * 1e4).round() / 10.0)
+        );
         for (i, s) in scores.iter().enumerate() {
             if i != 1 {
                 assert!(s.single() > good + 0.001, "candidate {i}: {} vs true {good}", s.single());
@@ -365,7 +385,8 @@ mod tests {
             ViewPoints { points: noisy(&top, 0.0005, &mut rng), to_anchor: t_c1_c2, depth: None },
         ];
         // A: rotate 180° about the canonical x axis through (0, 0, h_z): (x, y, z) ↦ (x, −y, 2h_z − z).
-        let flip = Similarity { rotation: axis_angle([1.0, 0.0, 0.0], std::f64::consts::PI), translation: [0.0, 0.0, 2.0 * h[2]], scale: 1.0 };
+        let flip =
+            Similarity { rotation: axis_angle([1.0, 0.0, 0.0], std::f64::consts::PI), translation: [0.0, 0.0, 2.0 * h[2]], scale: 1.0 };
         let a = truth.compose(&flip);
         let b = Similarity { translation: [truth.translation[0] + 0.002, truth.translation[1], truth.translation[2]], ..truth };
         let surface = Surface::new(mesh, 20_000, 1).unwrap();
@@ -388,7 +409,10 @@ mod tests {
     fn spread_of_known_poses() {
         let z5 = axis_angle([0.0, 0.0, 1.0], 5f64.to_radians());
         let zm5 = axis_angle([0.0, 0.0, 1.0], -5f64.to_radians());
-        let poses = [Similarity { rotation: z5, translation: [0.01, 0.0, 1.0], scale: 0.9 }, Similarity { rotation: zm5, translation: [-0.01, 0.0, 1.0], scale: 1.1 }];
+        let poses = [
+            Similarity { rotation: z5, translation: [0.01, 0.0, 1.0], scale: 0.9 },
+            Similarity { rotation: zm5, translation: [-0.01, 0.0, 1.0], scale: 1.1 },
+        ];
         let s = pose_spread(&poses).unwrap();
         // Two values ±a about the mean: sqrt(2a²/1) = a·√2.
         assert!((s.translation_sd_mm - 10.0 * 2f64.sqrt()).abs() < 1e-9, "{s:?}");
@@ -406,7 +430,13 @@ mod tests {
         assert_eq!(t.translation, [0.1, 0.2, 0.3]);
         assert_eq!(t.apply(&[1.0, 0.0, 0.0]), [0.1, 1.2, 0.3]);
         assert!(parse_rel_pose("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1").is_ok());
-        for bad in ["1,2,3", "2,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1", "1,0,0,0, 0,1,0,0, 0,0,-1,0, 0,0,0,1", "1,0,0,0, 0,1,0,0, 0,0,1,0, 1,0,0,1", "a b"] {
+        for bad in [
+            "1,2,3",
+            "2,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1",
+            "1,0,0,0, 0,1,0,0, 0,0,-1,0, 0,0,0,1",
+            "1,0,0,0, 0,1,0,0, 0,0,1,0, 1,0,0,1",
+            "a b",
+        ] {
             let e = parse_rel_pose(bad).unwrap_err().to_string();
             assert!(e.contains("rel-pose") || e.contains("T_c1_c2"), "{bad}: {e}");
         }

@@ -8,8 +8,8 @@
 use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
 use candle_nn::VarBuilder;
 
-use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
 pub use crate::model::nn::fast::Linear;
+use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
 
 /// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
 /// `{prefix}.bias`), for the current build setting ([`fast::build_compute`]).
@@ -73,8 +73,7 @@ impl TimestepEmbedder {
 
     pub fn sinusoidal(t: &Tensor, dim: usize) -> Result<Tensor> {
         let half = dim / 2;
-        let freqs: Vec<f32> =
-            (0..half).map(|k| (-(10000f64.ln()) * k as f64 / half as f64).exp() as f32).collect();
+        let freqs: Vec<f32> = (0..half).map(|k| (-(10000f64.ln()) * k as f64 / half as f64).exp() as f32).collect();
         let freqs = Tensor::from_vec(freqs, (1, half), t.device())?;
         let args = t.to_dtype(DType::F32)?.unsqueeze(1)?.broadcast_mul(&freqs)?;
         Tensor::cat(&[args.cos()?, args.sin()?], 1)
@@ -292,8 +291,14 @@ impl MultiHeadAttention {
             }
             _ => candle_core::bail!("attention: context given to self-attention or missing for cross-attention"),
         };
-        let q = match &self.q_norm { Some(n) => n.forward(&q)?, None => q };
-        let k = match &self.k_norm { Some(n) => n.forward(&k)?, None => k };
+        let q = match &self.q_norm {
+            Some(n) => n.forward(&q)?,
+            None => q,
+        };
+        let k = match &self.k_norm {
+            Some(n) => n.forward(&k)?,
+            None => k,
+        };
         Ok((q, k, v))
     }
 
@@ -481,7 +486,15 @@ mod tests {
         let dev = Device::Cpu;
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
-        let cfg = CrossBlockConfig { channels: 64, ctx_channels: 24, heads: 4, mlp_ratio: 4.0, share_mod: false, qk_rms_norm: true, qk_rms_norm_cross: true };
+        let cfg = CrossBlockConfig {
+            channels: 64,
+            ctx_channels: 24,
+            heads: 4,
+            mlp_ratio: 4.0,
+            share_mod: false,
+            qk_rms_norm: true,
+            qk_rms_norm_cross: true,
+        };
         let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"))?;
         // Non-trivial weights (VarMap init gives zero biases / unit norms).
         let mut rng = crate::rng::SeededRng::new(3);

@@ -107,7 +107,14 @@ struct Conv3dOp {
     pad: usize,
 }
 
-fn conv3d_raw(x: &[f32], xd: &[usize], w: &[f32], wd: &[usize], bias: Option<&[f32]>, pad: usize) -> candle_core::Result<(Vec<f32>, [usize; 5])> {
+fn conv3d_raw(
+    x: &[f32],
+    xd: &[usize],
+    w: &[f32],
+    wd: &[usize],
+    bias: Option<&[f32]>,
+    pad: usize,
+) -> candle_core::Result<(Vec<f32>, [usize; 5])> {
     let s = k::Conv3dShape { batch: xd[0], cin: xd[1], cout: wd[0], d: xd[2], h: xd[3], w: xd[4], k: wd[2], pad };
     let (od, oh, ow) = s.out_dims().ok_or_else(|| candle_core::Error::Msg(format!("conv3d: kernel does not fit input {xd:?}")))?;
     let mut out = vec![0f32; s.output_len()];
@@ -131,7 +138,15 @@ impl candle_core::CustomOp3 for Conv3dOp {
         "recon-conv3d"
     }
 
-    fn cpu_fwd(&self, s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout, s3: &CpuStorage, l3: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
         let bias = f32_contiguous(s3, l3)?;
         let (out, dims) = conv3d_raw(f32_contiguous(s1, l1)?, l1.dims(), f32_contiguous(s2, l2)?, l2.dims(), Some(bias), self.pad)?;
         Ok((CpuStorage::F32(out), Shape::from_dims(&dims)))
@@ -139,7 +154,14 @@ impl candle_core::CustomOp3 for Conv3dOp {
 
     /// `dx = conv3d(g, flip(w)ᵀ, k−1−pad)` (fast kernel); `dw[:, :, tap] =
     /// g · shift_tap(x_pad)ᵀ`, one GEMM per tap; `db = Σ g`.
-    fn bwd(&self, x: &Tensor, w: &Tensor, _b: &Tensor, _res: &Tensor, g: &Tensor) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _b: &Tensor,
+        _res: &Tensor,
+        g: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         use rayon::prelude::*;
         let (cout, cin, kk, ..) = w.dims5()?;
         let (bsz, _, d, h, wd) = x.dims5()?;
@@ -334,13 +356,22 @@ impl candle_core::CustomOp3 for ChannelLnOp {
         "recon-channel-layer-norm"
     }
 
-    fn cpu_fwd(&self, s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout, s3: &CpuStorage, l3: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
         let dims = l1.dims();
         let (b, c) = (dims[0], dims[1]);
         let n: usize = dims[2..].iter().product();
         let x = f32_contiguous(s1, l1)?;
         let mut out = vec![0f32; x.len()];
-        k::channel_layer_norm(x, (b, c, n), f32_contiguous(s2, l2)?, f32_contiguous(s3, l3)?, self.eps, false, &mut out).map_err(candle_core::Error::Msg)?;
+        k::channel_layer_norm(x, (b, c, n), f32_contiguous(s2, l2)?, f32_contiguous(s3, l3)?, self.eps, false, &mut out)
+            .map_err(candle_core::Error::Msg)?;
         Ok((CpuStorage::F32(out), Shape::from_dims(dims)))
     }
 
@@ -348,7 +379,14 @@ impl candle_core::CustomOp3 for ChannelLnOp {
     /// `dx = r·(u − mean_c u − x̂·mean_c(u·x̂))`, `dγ = Σ g·x̂`, `dβ = Σ g`
     /// (sums over batch and positions, accumulated per block in a fixed
     /// order, so the result does not depend on thread scheduling).
-    fn bwd(&self, x: &Tensor, gamma: &Tensor, _beta: &Tensor, _res: &Tensor, g: &Tensor) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    fn bwd(
+        &self,
+        x: &Tensor,
+        gamma: &Tensor,
+        _beta: &Tensor,
+        _res: &Tensor,
+        g: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         use rayon::prelude::*;
         let dims = x.dims().to_vec();
         let (bsz, c) = (dims[0], dims[1]);
@@ -508,7 +546,9 @@ mod tests {
     /// both gradients (Winograd and im2col widths, k = 3 and k = 1).
     #[test]
     fn trainable_conv3d_matches_plain_ops_values_and_gradients() {
-        for (i, &(bsz, cin, cout, d, h, w, kk, pad)) in [(2, 3, 5, 4, 5, 3, 3, 1), (1, 16, 16, 4, 4, 4, 3, 1), (2, 4, 3, 3, 2, 4, 1, 0), (1, 2, 2, 4, 4, 4, 3, 0)].iter().enumerate() {
+        for (i, &(bsz, cin, cout, d, h, w, kk, pad)) in
+            [(2, 3, 5, 4, 5, 3, 3, 1), (1, 16, 16, 4, 4, 4, 3, 1), (2, 4, 3, 3, 2, 4, 1, 0), (1, 2, 2, 4, 4, 4, 3, 0)].iter().enumerate()
+        {
             let x = candle_core::Var::from_tensor(&rand(&[bsz, cin, d, h, w], 40 + i as u64)).unwrap();
             let wt = candle_core::Var::from_tensor(&rand(&[cout, cin, kk, kk, kk], 50 + i as u64)).unwrap();
             let probe = rand(&[bsz, cout, d + 2 * pad + 1 - kk, h + 2 * pad + 1 - kk, w + 2 * pad + 1 - kk], 60 + i as u64);
@@ -575,7 +615,8 @@ mod tests {
         assert_eq!(y.dims(), &[b, c, 2 * d, 2 * h, 2 * w]);
         // Output voxel (z, y, x) = (2d+a, 2h+b, 2w+e) reads channel c*8 + a*4 + b*2 + e.
         let v = y.get(1).unwrap().get(1).unwrap().get(3).unwrap().get(2).unwrap().get(1).unwrap().to_scalar::<f32>().unwrap();
-        let want = x.get(1).unwrap().get(8 + 4 + 0 + 1).unwrap().get(1).unwrap().get(1).unwrap().get(0).unwrap().to_scalar::<f32>().unwrap();
+        let want =
+            x.get(1).unwrap().get(8 + 4 + 0 + 1).unwrap().get(1).unwrap().get(1).unwrap().get(0).unwrap().to_scalar::<f32>().unwrap();
         assert_eq!(v, want);
         let fast = pixel_shuffle_3d_fast(&Volume::from_tensor(&x).unwrap()).unwrap().to_tensor().unwrap();
         assert_eq!(max_abs_diff(&y, &fast).unwrap(), 0.0);

@@ -30,8 +30,8 @@ use rayon::prelude::*;
 use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
 pub use recon_kernels::isa::Isa;
-pub use recon_kernels::vecmath::Activation;
 use recon_kernels::vecmath;
+pub use recon_kernels::vecmath::Activation;
 
 /// Storage/arithmetic precision of the fast path (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
@@ -455,7 +455,8 @@ mod tests {
         let scale = Tensor::randn(0f32, 0.3, (2, 48), &dev)?;
         let shift = Tensor::randn(0f32, 0.3, (2, 48), &dev)?;
         let mul = (&scale + 1.0)?;
-        let want = crate::model::nn::common::layer_norm_plain(&x, 1e-6)?.broadcast_mul(&mul.unsqueeze(1)?)?.broadcast_add(&shift.unsqueeze(1)?)?;
+        let want =
+            crate::model::nn::common::layer_norm_plain(&x, 1e-6)?.broadcast_mul(&mul.unsqueeze(1)?)?.broadcast_add(&shift.unsqueeze(1)?)?;
         for isa in Isa::all_supported() {
             let got = layer_norm(isa, &x, 1e-6, Some(&mul), Some(&shift))?;
             let d = (got - &want)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;

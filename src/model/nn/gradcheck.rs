@@ -18,10 +18,17 @@ pub fn sorted_vars(vm: &candle_nn::VarMap) -> Vec<(String, Var)> {
 /// `(loss(θ + h·u) − loss(θ − h·u)) / 2h` within `rel_tol`. Also fails when
 /// a variable not named in `unused` gets no gradient at all (a layer that
 /// is not trainable). Returns (analytic, numeric).
-pub fn directional_check(vars: &[(String, Var)], unused: &[&str], loss: impl Fn() -> Result<Tensor>, seed: u64, rel_tol: f64) -> Result<(f64, f64)> {
+pub fn directional_check(
+    vars: &[(String, Var)],
+    unused: &[&str],
+    loss: impl Fn() -> Result<Tensor>,
+    seed: u64,
+    rel_tol: f64,
+) -> Result<(f64, f64)> {
     let l0 = loss()?;
     let grads = l0.backward()?;
-    let missing: Vec<&str> = vars.iter().filter(|(n, v)| grads.get(v).is_none() && !unused.contains(&n.as_str())).map(|(n, _)| n.as_str()).collect();
+    let missing: Vec<&str> =
+        vars.iter().filter(|(n, v)| grads.get(v).is_none() && !unused.contains(&n.as_str())).map(|(n, _)| n.as_str()).collect();
     if !missing.is_empty() {
         return Err(Error::msg(format!("no gradient reaches {missing:?}")));
     }

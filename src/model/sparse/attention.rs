@@ -10,7 +10,14 @@ use std::ops::Range;
 
 /// [`varlen_attention`] with the fused flash-attention kernel when `compute`
 /// is fast (inference only), the plain candle path otherwise.
-pub fn varlen_attention_with(q: &Tensor, k: &Tensor, v: &Tensor, q_ranges: &[Range<usize>], kv_ranges: &[Range<usize>], compute: Compute) -> Result<Tensor> {
+pub fn varlen_attention_with(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    q_ranges: &[Range<usize>],
+    kv_ranges: &[Range<usize>],
+    compute: Compute,
+) -> Result<Tensor> {
     let Some((precision, isa)) = compute.fast_parts() else {
         return varlen_attention(q, k, v, q_ranges, kv_ranges);
     };
@@ -28,7 +35,9 @@ pub fn varlen_attention_with(q: &Tensor, k: &Tensor, v: &Tensor, q_ranges: &[Ran
     let segs: Vec<AttnSegment> = q_ranges.iter().zip(kv_ranges).map(|(a, b)| AttnSegment { q: a.clone(), kv: b.clone() }).collect();
     let lay = AttnLayout::new(h * d, 0);
     let o = fast::with_f32(q, |qs| {
-        fast::with_f32(k, |ks| fast::with_f32(v, |vs| fast::attention_rows(isa, precision, h, d, (qs, lay), (ks, lay), (vs, lay), nq, &segs)))
+        fast::with_f32(k, |ks| {
+            fast::with_f32(v, |vs| fast::attention_rows(isa, precision, h, d, (qs, lay), (ks, lay), (vs, lay), nq, &segs))
+        })
     })?;
     // Rows outside every range are zero, as in the plain path's output.
     Ok(Tensor::from_vec(o, (nq, h, d), q.device())?)
@@ -51,7 +60,8 @@ pub fn varlen_attention(q: &Tensor, k: &Tensor, v: &Tensor, q_ranges: &[Range<us
             continue;
         }
         // [L, H, D] → [1, H, L, D]
-        let per = |t: &Tensor, r: &Range<usize>| -> candle_core::Result<Tensor> { t.narrow(0, r.start, r.len())?.transpose(0, 1)?.unsqueeze(0) };
+        let per =
+            |t: &Tensor, r: &Range<usize>| -> candle_core::Result<Tensor> { t.narrow(0, r.start, r.len())?.transpose(0, 1)?.unsqueeze(0) };
         let o = attention(&per(q, qr)?, &per(k, kr)?, &per(v, kr)?)?;
         outs.push(o.squeeze(0)?.transpose(0, 1)?);
     }

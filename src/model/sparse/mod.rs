@@ -7,7 +7,7 @@ pub mod spatial;
 mod tensor;
 pub mod windowed;
 
-pub use tensor::SparseTensor;
 pub use attention::{varlen_attention, varlen_attention_with};
 pub use conv::{neighbour_map, SparseConv3d};
 pub use spatial::{sparse_downsample, sparse_upsample, DownsampleCache};
+pub use tensor::SparseTensor;

@@ -29,13 +29,16 @@ pub fn sparse_downsample(x: &SparseTensor, factor: usize) -> Result<(SparseTenso
         return Err(Error::msg("sparse downsample: factor must be ≥ 1"));
     }
     let f = factor as i32;
-    let coarse: Vec<[i32; 4]> =
-        x.coords.iter().map(|c| [c[0], c[1].div_euclid(f), c[2].div_euclid(f), c[3].div_euclid(f)]).collect();
+    let coarse: Vec<[i32; 4]> = x.coords.iter().map(|c| [c[0], c[1].div_euclid(f), c[2].div_euclid(f), c[3].div_euclid(f)]).collect();
     let mut unique = coarse.clone();
     unique.sort_unstable();
     unique.dedup();
     // [i32; 4] orders lexicographically: batch first, then x, y, z.
-    let inverse: Vec<u32> = coarse.iter().map(|c| unique.binary_search(c).map(|i| i as u32)).collect::<std::result::Result<_, _>>().map_err(|_| Error::msg("sparse downsample: internal lookup failed"))?;
+    let inverse: Vec<u32> = coarse
+        .iter()
+        .map(|c| unique.binary_search(c).map(|i| i as u32))
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| Error::msg("sparse downsample: internal lookup failed"))?;
     let dev = x.feats.device();
     let n = unique.len();
     let c = x.feats.dim(1)?;

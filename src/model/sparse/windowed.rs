@@ -67,10 +67,7 @@ impl WindowPartition {
     /// One window holding each batch item's rows (full attention per item).
     pub fn per_batch(x: &SparseTensor) -> Self {
         let ranges = x.batch_ranges();
-        Self {
-            order: (0..x.len()).collect(),
-            seq_lens: ranges.iter().map(|r| r.len()).filter(|&l| l > 0).collect(),
-        }
+        Self { order: (0..x.len()).collect(), seq_lens: ranges.iter().map(|r| r.len()).filter(|&l| l > 0).collect() }
     }
 
     /// Windows grouped by length, as lists of row-index lists (in `order`).
@@ -104,9 +101,8 @@ pub fn windowed_attention(q: &Tensor, k: &Tensor, v: &Tensor, part: &WindowParti
             placed.extend_from_slice(&idx);
             let nw = chunk.len();
             let idx = Tensor::from_vec(idx, nw * len, dev)?;
-            let gather = |t: &Tensor| -> Result<Tensor> {
-                Ok(t.index_select(&idx, 0)?.reshape((nw, len, h, d))?.transpose(1, 2)?.contiguous()?)
-            };
+            let gather =
+                |t: &Tensor| -> Result<Tensor> { Ok(t.index_select(&idx, 0)?.reshape((nw, len, h, d))?.transpose(1, 2)?.contiguous()?) };
             let o = attention(&gather(q)?, &gather(k)?, &gather(v)?)?; // [nw, H, L, D]
             outs.push(o.transpose(1, 2)?.reshape((nw * len, h, d))?);
         }

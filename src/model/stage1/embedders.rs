@@ -35,11 +35,7 @@ impl PatchEmbedder {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (_, c, h, w) = x.dims4()?;
         if c != self.in_channels || h % PATCH != 0 || w % PATCH != 0 {
-            candle_core::bail!(
-                "patch embedder: expected [B, {}, 14·h, 14·w], got {:?}",
-                self.in_channels,
-                x.dims()
-            );
+            candle_core::bail!("patch embedder: expected [B, {}, 14·h, 14·w], got {:?}", self.in_channels, x.dims());
         }
         let f = self.conv.forward(x)?; // [B, C, h, w]
         f.flatten_from(2)?.transpose(1, 2)?.contiguous()
@@ -149,8 +145,7 @@ pub fn build_condition(views: &[ViewInputs], emb: CondEmbedders) -> Result<(Tens
         if n_pm != views.len() {
             candle_core::bail!("pointmap given for {n_pm} of {} views; give all or none", views.len());
         }
-        let feats: Vec<Tensor> =
-            views.iter().map(|v| pe.forward(v.pointmap.as_ref().unwrap())).collect::<Result<_>>()?;
+        let feats: Vec<Tensor> = views.iter().map(|v| pe.forward(v.pointmap.as_ref().unwrap())).collect::<Result<_>>()?;
         cond = cond.add(&Tensor::cat(&feats, 1)?)?;
     }
     let n_m = views.iter().filter(|v| v.mask.is_some()).count();
@@ -231,10 +226,8 @@ mod tests {
         let fe = FrameTokenEmbedder::new(c, vb_with(vec![("frame_token_embedder", frame)]))?;
         let v0 = Tensor::zeros((1, 3, c), DType::F32, &dev)?;
         let v1 = Tensor::ones((1, 3, c), DType::F32, &dev)?;
-        let views = vec![
-            ViewInputs { patch_tokens: v0, pointmap: None, mask: None },
-            ViewInputs { patch_tokens: v1, pointmap: None, mask: None },
-        ];
+        let views =
+            vec![ViewInputs { patch_tokens: v0, pointmap: None, mask: None }, ViewInputs { patch_tokens: v1, pointmap: None, mask: None }];
         let (cond, neg) = build_condition(&views, CondEmbedders { frame: Some(&fe), ..Default::default() })?;
         assert_eq!(cond.dims(), &[1, 6, c]);
         let v = cond.squeeze(0)?.to_vec2::<f32>()?;

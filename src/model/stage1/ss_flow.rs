@@ -8,15 +8,15 @@
 //! `pose_token_embedder`, no pos-emb) → N × modulated cross blocks → plain
 //! LayerNorm (eps 1e-5) → split → `out_layer` + unpatchify, `out_layer_pose`.
 
-use candle_core::{DType, Device, Module, Tensor};
 use crate::model::nn::common::Linear;
+use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
+use crate::model::sampler::VelocityModel;
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::rng::SeededRng;
-use crate::model::sampler::VelocityModel;
 use crate::{Error, Result};
 
 /// Constructor arguments, named as upstream (`args` of the checkpoint JSON).
@@ -124,7 +124,10 @@ impl SsFlowConfig {
     pub fn validate(&self, file: &str) -> Result<()> {
         let err = |f: &str, m: String| Err(Error::config(file, f, m));
         if self.patch_size == 0 || self.resolution == 0 || self.resolution % self.patch_size != 0 {
-            return err("patch_size", format!("resolution {} must be a positive multiple of patch_size {}", self.resolution, self.patch_size));
+            return err(
+                "patch_size",
+                format!("resolution {} must be a positive multiple of patch_size {}", self.resolution, self.patch_size),
+            );
         }
         let h = self.heads();
         if h == 0 || self.model_channels % h != 0 {
@@ -235,11 +238,7 @@ impl SparseStructureFlowModel {
             } else {
                 None
             },
-            mask_embedder: if cfg.use_mask_embedder {
-                Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?)
-            } else {
-                None
-            },
+            mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
             frame_token_embedder: if cfg.use_frame_token_embedder {
                 Some(FrameTokenEmbedder::new(cfg.cond_channels, vb.clone())?)
             } else {
@@ -251,8 +250,7 @@ impl SparseStructureFlowModel {
     /// APE of the `g³` token grid, coordinates in meshgrid-`ij` order (z fastest),
     /// equal to the upstream `pos_emb` buffer.
     pub fn grid_position_embedding(g: usize, channels: usize, device: &Device) -> Result<Tensor> {
-        let coords: Vec<u32> =
-            (0..g * g * g).flat_map(|i| [(i / (g * g)) as u32, ((i / g) % g) as u32, (i % g) as u32]).collect();
+        let coords: Vec<u32> = (0..g * g * g).flat_map(|i| [(i / (g * g)) as u32, ((i / g) % g) as u32, (i % g) as u32]).collect();
         let coords = Tensor::from_vec(coords, (g * g * g, 3), device)?;
         Ok(common::abs_position_embedding(&coords, channels)?)
     }
@@ -265,10 +263,7 @@ impl SparseStructureFlowModel {
             return Ok(x.reshape((b, c, d * h * w))?.transpose(1, 2)?.contiguous()?);
         }
         let (dp, hp, wp) = (d / p, h / p, w / p);
-        let y = x
-            .reshape(vec![b, c, dp, p, hp, p, wp, p])?
-            .permute(vec![0, 2, 4, 6, 1, 3, 5, 7])?
-            .contiguous()?;
+        let y = x.reshape(vec![b, c, dp, p, hp, p, wp, p])?.permute(vec![0, 2, 4, 6, 1, 3, 5, 7])?.contiguous()?;
         Ok(y.reshape((b, dp * hp * wp, c * p * p * p))?)
     }
 
@@ -281,10 +276,7 @@ impl SparseStructureFlowModel {
         if p == 1 {
             return Ok(h.transpose(1, 2)?.contiguous()?.reshape((b, channels, r, r, r))?);
         }
-        let y = h
-            .reshape(vec![b, g, g, g, channels, p, p, p])?
-            .permute(vec![0, 4, 1, 5, 2, 6, 3, 7])?
-            .contiguous()?;
+        let y = h.reshape(vec![b, g, g, g, channels, p, p, p])?.permute(vec![0, 4, 1, 5, 2, 6, 3, 7])?.contiguous()?;
         Ok(y.reshape((b, channels, r, r, r))?)
     }
 
@@ -312,11 +304,7 @@ impl SparseStructureFlowModel {
         let (b, c_in, d, hh, ww) = x.dims5()?;
         let r = cfg.resolution;
         if c_in != cfg.in_channels || d != r || hh != r || ww != r {
-            return Err(Error::msg(format!(
-                "ss_flow: input shape {:?}, expected [B, {}, {r}, {r}, {r}]",
-                x.dims(),
-                cfg.in_channels
-            )));
+            return Err(Error::msg(format!("ss_flow: input shape {:?}, expected [B, {}, {r}, {r}, {r}]", x.dims(), cfg.in_channels)));
         }
         if t.dims() != [b] {
             return Err(Error::msg(format!("ss_flow: t shape {:?}, expected [{b}]", t.dims())));
@@ -435,7 +423,8 @@ impl VelocityModel for SparseStructureFlowModel {
         }
         let doubled: Vec<Tensor> = state.iter().map(|s| Tensor::cat(&[s, s], 0)).collect::<candle_core::Result<_>>()?;
         let both = self.run_state(&doubled, t_model, &Tensor::cat(&[&c, &n], 0)?)?;
-        let split = |i: usize| -> Result<Vec<Tensor>> { Ok(both.iter().map(|v| v.narrow(0, i * b, b)).collect::<candle_core::Result<_>>()?) };
+        let split =
+            |i: usize| -> Result<Vec<Tensor>> { Ok(both.iter().map(|v| v.narrow(0, i * b, b)).collect::<candle_core::Result<_>>()?) };
         Ok((split(0)?, split(1)?))
     }
 }

@@ -11,14 +11,16 @@
 //! Conv2d(k14, s14) point-map / mask embedders added to the image patch tokens
 //! (see [`SLatFlowModel::build_cond`]).
 
-use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder};
+use crate::model::nn::common::Linear;
+use crate::model::nn::common::{
+    abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder,
+};
 use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
+use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
-use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
-use crate::model::nn::common::Linear;
 use candle_nn::VarBuilder;
 use serde::Deserialize;
 
@@ -296,11 +298,7 @@ impl SLatFlowModel {
             } else {
                 None
             },
-            mask_embedder: if cfg.use_mask_embedder {
-                Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?)
-            } else {
-                None
-            },
+            mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
             pose_embedder: if cfg.use_pose_embedder {
                 Some(linear(cfg.pose_dim()?, cfg.pose_embedder_out_channels, vb.pp("pose_embedder"))?)
             } else {
@@ -401,13 +399,17 @@ impl SLatFlowModel {
     /// - `pose` `[B, D]` or `[B, K, D]`: embedded and appended as extra tokens.
     ///
     /// Passing an input whose embedder is not enabled is an error.
-    pub fn build_cond(&self, image_tokens: &Tensor, pointmap: Option<&Tensor>, mask: Option<&Tensor>, pose: Option<&Tensor>) -> Result<Tensor> {
+    pub fn build_cond(
+        &self,
+        image_tokens: &Tensor,
+        pointmap: Option<&Tensor>,
+        mask: Option<&Tensor>,
+        pose: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let (_, l, _) = image_tokens.dims3()?;
         let mut cond = image_tokens.clone();
-        let embedded: [(&str, Option<&Tensor>, Option<&crate::model::stage1::embedders::PatchEmbedder>); 2] = [
-            ("pointmap", pointmap, self.point_embedder.as_ref().map(|e| &e.0)),
-            ("mask", mask, self.mask_embedder.as_ref().map(|e| &e.0)),
-        ];
+        let embedded: [(&str, Option<&Tensor>, Option<&crate::model::stage1::embedders::PatchEmbedder>); 2] =
+            [("pointmap", pointmap, self.point_embedder.as_ref().map(|e| &e.0)), ("mask", mask, self.mask_embedder.as_ref().map(|e| &e.0))];
         for (name, input, emb) in embedded {
             let Some(input) = input else { continue };
             let emb = emb.ok_or_else(|| Error::msg(format!("SLat flow: {name} given but its embedder is disabled")))?;

@@ -69,9 +69,9 @@ impl Fixture {
 
     /// A tensor by its full key (`input.x`, `output.v`, ...).
     pub fn tensor(&self, key: &str) -> Result<&Tensor> {
-        self.tensors.get(key).ok_or_else(|| {
-            Error::input(self.dir.join("data.safetensors").display().to_string(), format!("missing tensor `{key}`"))
-        })
+        self.tensors
+            .get(key)
+            .ok_or_else(|| Error::input(self.dir.join("data.safetensors").display().to_string(), format!("missing tensor `{key}`")))
     }
 
     /// The weights (every key without an `input.`/`output.`/`intermediate.`/`time.` prefix),
@@ -92,12 +92,8 @@ impl Fixture {
     /// The suggested absolute tolerance: the first number after "abs" in
     /// `observed_tolerance.suggested_port_tolerance`, else `default`.
     pub fn abs_tolerance(&self, default: f64) -> f64 {
-        let s = self
-            .config
-            .get("observed_tolerance")
-            .and_then(|t| t.get("suggested_port_tolerance"))
-            .and_then(|v| v.as_str())
-            .unwrap_or("");
+        let s =
+            self.config.get("observed_tolerance").and_then(|t| t.get("suggested_port_tolerance")).and_then(|v| v.as_str()).unwrap_or("");
         parse_abs_tol(s).unwrap_or(default)
     }
 

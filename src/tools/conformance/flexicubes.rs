@@ -7,8 +7,8 @@
 //! rotation-normalised triangles) is reported in the note to help debugging.
 
 use super::fixture::{Check, Fixture};
-use crate::model::stage2::slat_vae::flexicubes::{flexicubes, SparseFeatures2Mesh, SparseGrid};
 use crate::mesh::Mesh;
+use crate::model::stage2::slat_vae::flexicubes::{flexicubes, SparseFeatures2Mesh, SparseGrid};
 use crate::Result;
 use candle_core::{DType, Device, Tensor};
 use std::collections::HashSet;
@@ -18,10 +18,7 @@ const MAX_DENSE_VERTICES: usize = 1 << 22;
 
 pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
     let args = fx.field("args")?;
-    let res = args
-        .get("res")
-        .and_then(|v| v.as_u64())
-        .ok_or_else(|| fx.config_err("args.res", "missing or not an integer"))? as usize;
+    let res = args.get("res").and_then(|v| v.as_u64()).ok_or_else(|| fx.config_err("args.res", "missing or not an integer"))? as usize;
     let use_color = args.get("use_color").and_then(|v| v.as_bool()).unwrap_or(false);
     let model = SparseFeatures2Mesh::new(res, use_color);
 
@@ -49,16 +46,16 @@ pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
         Check::exact("num_vertices", mesh.vertices.len().abs_diff(nv_want))
             .with_note(format!("got {} want {nv_want}", mesh.vertices.len())),
     );
-    checks.push(
-        Check::exact("num_faces", mesh.faces.len().abs_diff(nf_want))
-            .with_note(format!("got {} want {nf_want}; extraction {:.1} ms", mesh.faces.len(), elapsed.as_secs_f64() * 1e3)),
-    );
+    checks.push(Check::exact("num_faces", mesh.faces.len().abs_diff(nf_want)).with_note(format!(
+        "got {} want {nf_want}; extraction {:.1} ms",
+        mesh.faces.len(),
+        elapsed.as_secs_f64() * 1e3
+    )));
 
     let got_v = rows_tensor(&mesh.vertices)?;
     checks.push(compare(fx, "output.vertices", &got_v, tol)?);
 
-    let want_faces: Vec<[i64; 3]> =
-        want_f.to_dtype(DType::I64)?.to_vec2::<i64>()?.iter().map(|r| [r[0], r[1], r[2]]).collect();
+    let want_faces: Vec<[i64; 3]> = want_f.to_dtype(DType::I64)?.to_vec2::<i64>()?.iter().map(|r| [r[0], r[1], r[2]]).collect();
     let got_faces: Vec<[i64; 3]> = mesh.faces.iter().map(|f| f.map(|i| i as i64)).collect();
     let mismatches = if got_faces.len() == want_faces.len() {
         got_faces.iter().zip(&want_faces).filter(|(a, b)| a != b).count()
@@ -67,8 +64,7 @@ pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
     };
     let mut face_check = Check::exact("output.faces", mismatches);
     if mismatches > 0 {
-        let want_verts: Vec<[f32; 3]> =
-            want_v.to_dtype(DType::F32)?.to_vec2::<f32>()?.iter().map(|r| [r[0], r[1], r[2]]).collect();
+        let want_verts: Vec<[f32; 3]> = want_v.to_dtype(DType::F32)?.to_vec2::<f32>()?.iter().map(|r| [r[0], r[1], r[2]]).collect();
         let set_diff = face_set_mismatches(&mesh, &want_verts, &want_faces);
         face_check = face_check.with_note(format!("order differs; as sets: {set_diff} unmatched faces"));
     }
@@ -91,10 +87,8 @@ pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
 /// Dense upstream intermediates rebuilt from the sparse grid.
 fn dense_intermediates(fx: &Fixture, grid: &SparseGrid, tol: f64, checks: &mut Vec<Check>) -> Result<()> {
     let r = grid.res as u32;
-    let lattice: Vec<[u32; 3]> =
-        (0..=r).flat_map(|x| (0..=r).flat_map(move |y| (0..=r).map(move |z| [x, y, z]))).collect();
-    let cubes: Vec<[u32; 3]> =
-        (0..r).flat_map(|x| (0..r).flat_map(move |y| (0..r).map(move |z| [x, y, z]))).collect();
+    let lattice: Vec<[u32; 3]> = (0..=r).flat_map(|x| (0..=r).flat_map(move |y| (0..=r).map(move |z| [x, y, z]))).collect();
+    let cubes: Vec<[u32; 3]> = (0..r).flat_map(|x| (0..r).flat_map(move |y| (0..r).map(move |z| [x, y, z]))).collect();
     let dev = Device::Cpu;
     let f = &grid.field;
     let mut add = |key: &str, t: Tensor| -> Result<()> {

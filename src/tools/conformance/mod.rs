@@ -7,8 +7,8 @@
 //! from its `args`, and compares every output. The test suite and the
 //! `recon conformance` command share this code.
 
-mod fixture;
 mod dinov2;
+mod fixture;
 mod flexicubes;
 mod slat_dec;
 mod slat_flow;

@@ -1,9 +1,9 @@
 //! Conformance runners for the structured-latent decoders.
 
 use super::fixture::{Check, Fixture};
+use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, SLatGaussianDecoder};
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
-use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{Device, Tensor};
 use std::collections::HashMap;

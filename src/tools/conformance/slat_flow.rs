@@ -1,8 +1,8 @@
 //! Conformance runner for TRELLIS `SLatFlowModel` (stage-2 flow transformer).
 
 use super::fixture::{Check, Fixture};
-use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use crate::model::sparse::SparseTensor;
+use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 use crate::Result;
 
 /// Count of differing coordinate entries (`None` when the row counts differ).

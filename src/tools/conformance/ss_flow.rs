@@ -40,11 +40,7 @@ pub fn run_model(fx: &Fixture) -> Result<Vec<Check>> {
 }
 
 fn exact_check<T: PartialEq + Copy>(key: &str, got: &[T], want: &[T]) -> Check {
-    let mismatches = if got.len() != want.len() {
-        got.len().max(want.len())
-    } else {
-        got.iter().zip(want).filter(|(a, b)| a != b).count()
-    };
+    let mismatches = if got.len() != want.len() { got.len().max(want.len()) } else { got.iter().zip(want).filter(|(a, b)| a != b).count() };
     Check::exact(key, mismatches)
 }
 

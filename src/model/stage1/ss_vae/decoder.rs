@@ -50,8 +50,8 @@ impl SparseStructureDecoderConfig {
     }
 
     pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self = serde_json::from_value(args.clone())
-            .map_err(|e| Error::config("SparseStructureDecoder args", "args", e.to_string()))?;
+        let cfg: Self =
+            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureDecoder args", "args", e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -174,7 +174,8 @@ impl SparseStructureDecoder {
     }
 
     fn check_input(&self, x: &Tensor) -> Result<()> {
-        let (_, c, _, _, _) = x.dims5().map_err(|_| Error::msg(format!("ss decoder: input must be [B, C, D, H, W], got {:?}", x.dims())))?;
+        let (_, c, _, _, _) =
+            x.dims5().map_err(|_| Error::msg(format!("ss decoder: input must be [B, C, D, H, W], got {:?}", x.dims())))?;
         if c != self.cfg.latent_channels {
             return Err(Error::msg(format!("ss decoder: input has {c} channels, expected {}", self.cfg.latent_channels)));
         }
@@ -313,7 +314,16 @@ mod tests {
         let probe = candle_nn::VarMap::new();
         SparseStructureDecoder::new(&cfg, VarBuilder::from_varmap(&probe, DType::F32, &Device::Cpu)).unwrap();
         let data = probe.data().lock().unwrap();
-        for name in ["input_layer.weight", "middle_block.1.conv2.bias", "blocks.1.norm1.weight", "blocks.2.conv.weight", "blocks.5.conv.bias", "blocks.7.conv1.weight", "out_layer.0.weight", "out_layer.2.bias"] {
+        for name in [
+            "input_layer.weight",
+            "middle_block.1.conv2.bias",
+            "blocks.1.norm1.weight",
+            "blocks.2.conv.weight",
+            "blocks.5.conv.bias",
+            "blocks.7.conv1.weight",
+            "out_layer.0.weight",
+            "out_layer.2.bias",
+        ] {
             assert!(data.contains_key(name), "missing {name}");
         }
         assert!(!data.contains_key("blocks.8.conv1.weight"));
@@ -322,7 +332,8 @@ mod tests {
 
     #[test]
     fn rejects_unsupported_norm_type() {
-        let args = serde_json::json!({"out_channels": 1, "latent_channels": 8, "num_res_blocks": 2, "channels": [32], "norm_type": "group"});
+        let args =
+            serde_json::json!({"out_channels": 1, "latent_channels": 8, "num_res_blocks": 2, "channels": [32], "norm_type": "group"});
         let e = SparseStructureDecoderConfig::from_json(&args).unwrap_err().to_string();
         assert!(e.contains("norm_type"), "{e}");
     }

@@ -60,8 +60,8 @@ impl SparseStructureEncoderConfig {
     }
 
     pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self = serde_json::from_value(args.clone())
-            .map_err(|e| Error::config("SparseStructureEncoder args", "args", e.to_string()))?;
+        let cfg: Self =
+            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureEncoder args", "args", e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -269,8 +269,8 @@ pub fn bce_with_logits(x: &Tensor, y: &Tensor) -> Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rng::SeededRng;
     use crate::model::stage1::ss_vae::decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
+    use crate::rng::SeededRng;
     use candle_core::Device;
     use candle_nn::VarMap;
 
@@ -376,7 +376,10 @@ mod tests {
         assert!(crate::util::max_abs_diff(&z1, &want)? < 1e-6);
         // Grids that do not divide into latent cells are refused.
         assert!(enc.forward(&Tensor::zeros((1, 1, 5, 8, 8), DType::F32, &dev)?).is_err());
-        assert!(SparseStructureEncoderConfig::from_json(&serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []})).is_err());
+        assert!(SparseStructureEncoderConfig::from_json(
+            &serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []})
+        )
+        .is_err());
         Ok(())
     }
 

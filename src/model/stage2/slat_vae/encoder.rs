@@ -10,9 +10,9 @@
 use candle_core::{Module, Tensor};
 use candle_nn::VarBuilder;
 
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::model::nn::common::{layer_norm_plain, linear, Linear};
 use crate::model::sparse::SparseTensor;
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::{Error, Result};
 
 pub struct SLatEncoder {
@@ -33,7 +33,8 @@ impl SLatEncoder {
     pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
         let mut tcfg = TrunkConfig::from_args(args)?;
         let latent_channels = tcfg.in_channels;
-        tcfg.in_channels = args.get("in_channels").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: in_channels missing"))? as usize;
+        tcfg.in_channels =
+            args.get("in_channels").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: in_channels missing"))? as usize;
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
         let out_layer = linear(tcfg.model_channels, 2 * latent_channels, vb.pp("out_layer"))?;
         Ok(Self { trunk, out_layer, latent_channels })

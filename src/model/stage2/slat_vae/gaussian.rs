@@ -6,12 +6,12 @@
 //! _rotation (G,4) | _opacity (G,1)`. Positions are voxel centres plus a
 //! tanh-bounded offset (with a fixed quasi-random per-Gaussian perturbation).
 
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
+use crate::model::nn::common::Linear;
 use crate::model::nn::common::{layer_norm_plain, linear};
 use crate::model::sparse::SparseTensor;
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Device, Module, Tensor, D};
-use crate::model::nn::common::Linear;
 use candle_nn::VarBuilder;
 
 pub use crate::gaussians::SH_C0;
@@ -224,10 +224,8 @@ impl SLatGaussianDecoder {
                 off = off.broadcast_add(&self.offset_perturbation.unsqueeze(0)?)?;
             }
             let off = (off.tanh()? * (0.5 * c.voxel_size / res))?;
-            let centres: Vec<f32> = x.coords[range.clone()]
-                .iter()
-                .flat_map(|cc| [1, 2, 3].map(|a| ((cc[a] as f64 + 0.5) / res) as f32))
-                .collect();
+            let centres: Vec<f32> =
+                x.coords[range.clone()].iter().flat_map(|cc| [1, 2, 3].map(|a| ((cc[a] as f64 + 0.5) / res) as f32)).collect();
             let centres = Tensor::from_vec(centres, (n, 1, 3), feats.device())?.to_dtype(feats.dtype())?;
             let xyz = centres.broadcast_add(&off)?.reshape((n * g, 3))?;
             reps.push(GaussianModel {
@@ -289,7 +287,8 @@ mod tests {
     fn radical_inverse_values() {
         assert_eq!(radical_inverse(2, 1), 0.5);
         assert_eq!(radical_inverse(2, 6), 0.375); // 110b → 0.011b
-        assert!((radical_inverse(3, 5) - (2.0 / 3.0 + 1.0 / 9.0)).abs() < 1e-12); // 12₃ → 0.21₃
+        assert!((radical_inverse(3, 5) - (2.0 / 3.0 + 1.0 / 9.0)).abs() < 1e-12);
+        // 12₃ → 0.21₃
     }
 
     #[test]

@@ -9,14 +9,14 @@
 //! every conv works on fixed-size chunks of output rows (im2col per chunk).
 //! The full-size tensors that remain are the block outputs themselves.
 
-use crate::model::stage2::slat_vae::flexicubes::SparseFeatures2Mesh;
 use crate::mesh::Mesh;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::model::nn::common::linear;
+use crate::model::nn::common::Linear;
 use crate::model::sparse::SparseTensor;
+use crate::model::stage2::slat_vae::flexicubes::SparseFeatures2Mesh;
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Module, Tensor};
-use crate::model::nn::common::Linear;
 use candle_nn::VarBuilder;
 use recon_kernels::sparse::CoordHash;
 use std::ops::Range;
@@ -262,11 +262,8 @@ pub struct SparseSubdivideBlock3d {
 
 impl SparseSubdivideBlock3d {
     pub fn new(channels: usize, out_channels: usize, vb: VarBuilder) -> Result<Self> {
-        let skip = if out_channels != channels {
-            Some(ConvParams::new(channels, out_channels, 1, vb.pp("skip_connection"))?)
-        } else {
-            None
-        };
+        let skip =
+            if out_channels != channels { Some(ConvParams::new(channels, out_channels, 1, vb.pp("skip_connection"))?) } else { None };
         Ok(Self {
             act_norm: SparseGroupNorm::new(32, channels, vb.pp("act_layers.0"))?,
             conv0: ConvParams::new(channels, out_channels, 3, vb.pp("out_layers.0"))?,
@@ -329,11 +326,7 @@ impl SLatMeshDecoder {
     pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
         let tcfg = TrunkConfig::from_args(args)?;
         let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
-        let use_color = args
-            .get("representation_config")
-            .and_then(|r| r.get("use_color"))
-            .and_then(|v| v.as_bool())
-            .unwrap_or(false);
+        let use_color = args.get("representation_config").and_then(|r| r.get("use_color")).and_then(|v| v.as_bool()).unwrap_or(false);
         let c = tcfg.model_channels;
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
         let upsample = vec![
@@ -386,11 +379,7 @@ impl SLatMeshDecoder {
 
 /// Random-weight VarBuilder for a model built by `build` (every parameter
 /// ~ N(0, std²), norm weights 1 + N(0, std²)); for tests and benchmarks.
-pub fn random_var_builder<T>(
-    seed: u64,
-    std: f64,
-    build: impl Fn(VarBuilder<'static>) -> Result<T>,
-) -> Result<VarBuilder<'static>> {
+pub fn random_var_builder<T>(seed: u64, std: f64, build: impl Fn(VarBuilder<'static>) -> Result<T>) -> Result<VarBuilder<'static>> {
     let vm = candle_nn::VarMap::new();
     let dev = candle_core::Device::Cpu;
     build(VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
@@ -407,9 +396,8 @@ pub fn random_var_builder<T>(
     names.sort_by(|a, b| a.0.cmp(&b.0)); // fixed order: deterministic draws
     for (name, var) in names {
         // Box–Muller normals from the seeded generator (candle's CPU RNG cannot be seeded).
-        let v: Vec<f32> = (0..var.elem_count())
-            .map(|_| ((-2.0 * next().ln()).sqrt() * (std::f64::consts::TAU * next()).cos() * std) as f32)
-            .collect();
+        let v: Vec<f32> =
+            (0..var.elem_count()).map(|_| ((-2.0 * next().ln()).sqrt() * (std::f64::consts::TAU * next()).cos() * std) as f32).collect();
         let t = Tensor::from_vec(v, var.shape(), &dev)?;
         let is_norm_weight = name.ends_with(".weight") && var.rank() == 1;
         weights.insert(name, if is_norm_weight { (t + 1.0)? } else { t });
@@ -498,8 +486,7 @@ mod tests {
 
     #[test]
     fn subdivided_conv_matches_explicit_subdivision() -> Result<()> {
-        let parents: Vec<[i32; 4]> =
-            vec![[0, 0, 0, 0], [0, 1, 0, 0], [0, 1, 1, 0], [0, 3, 2, 1], [0, 2, 2, 1], [1, 0, 0, 0], [1, 0, 0, 1]];
+        let parents: Vec<[i32; 4]> = vec![[0, 0, 0, 0], [0, 1, 0, 0], [0, 1, 1, 0], [0, 3, 2, 1], [0, 2, 2, 1], [1, 0, 0, 0], [1, 0, 0, 1]];
         let (c_in, c_out) = (3, 2);
         let dev = Device::Cpu;
         let xp = Tensor::randn(0f32, 1.0, (parents.len(), c_in), &dev)?;

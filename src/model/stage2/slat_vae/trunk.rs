@@ -3,12 +3,12 @@
 //! model resolution, then pre-norm transformer blocks with swin (shifted
 //! window) or full self-attention over sparse voxels.
 
+use crate::model::nn::common::Linear;
 use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention};
 use crate::model::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor};
-use crate::model::nn::common::Linear;
 use candle_nn::VarBuilder;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

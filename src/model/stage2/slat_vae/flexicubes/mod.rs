@@ -23,8 +23,8 @@ use candle_core::DType;
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
-use tables::{CHECK_TABLE, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
 pub use tables::CUBE_CORNERS;
+use tables::{CHECK_TABLE, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
 
 /// Channel ranges of the per-cube feature vector (dict order of upstream `_calc_layout`).
 pub const SDF: std::ops::Range<usize> = 0..8;
@@ -165,11 +165,7 @@ impl SparseFeatures2Mesh {
             return Err(Error::msg(format!("flexicubes: resolution {res} out of range")));
         }
         if feats.len() != coords.len() * ch {
-            return Err(Error::msg(format!(
-                "flexicubes: {} feature values for {} cubes x {ch} channels",
-                feats.len(),
-                coords.len()
-            )));
+            return Err(Error::msg(format!("flexicubes: {} feature values for {} cubes x {ch} channels", feats.len(), coords.len())));
         }
         if let Some(c) = coords.iter().find(|c| c.iter().any(|&v| v < 0 || v as usize >= res)) {
             return Err(Error::msg(format!("flexicubes: cube {c:?} outside [0, {res})^3")));
