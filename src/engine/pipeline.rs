@@ -96,7 +96,7 @@ use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
 use crate::model::stage1::embedders::ViewInputs;
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder};
-use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel, SLatNormalization};
+use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel, SLatNormalization, SlatVelocity};
 use crate::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::rng::SeededRng;
@@ -804,37 +804,6 @@ impl Pipeline {
         tm.total = secs(t_all);
         let memory = opts.measure_memory.then_some(mem);
         Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, memory, metadata })
-    }
-}
-
-/// The stage-2 flow as a sampler model: the state is the `[N, C]` feature
-/// tensor of a batch-1 sparse tensor on fixed coordinates.
-struct SlatVelocity<'a> {
-    model: &'a SLatFlowModel,
-    coords: &'a [[i32; 4]],
-}
-
-impl VelocityModel for SlatVelocity<'_> {
-    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
-        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
-        let x = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
-        let t = Tensor::full(t_model, 1, x.feats.device())?;
-        Ok(vec![self.model.forward(&x, &t, cond)?.feats])
-    }
-
-    /// Conditional and unconditional passes as one batch of two items on
-    /// the same coordinates.
-    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
-        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
-        if cond.dims() != neg.dims() {
-            return Err(Error::msg(format!("SLat sampler: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
-        }
-        let n = self.coords.len();
-        let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
-        let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
-        let t = Tensor::full(t_model, 2, x.device())?;
-        let v = self.model.forward(&xs, &t, &Tensor::cat(&[cond, neg], 0)?)?.feats;
-        Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
     }
 }
 

@@ -19,6 +19,7 @@ use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::model::sampler::VelocityModel;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use candle_nn::VarBuilder;
@@ -501,6 +502,37 @@ impl SLatNormalization {
     pub fn denormalize(&self, feats: &Tensor) -> Result<Tensor> {
         let (m, s) = self.stats(feats)?;
         Ok(feats.broadcast_mul(&s)?.broadcast_add(&m)?)
+    }
+}
+
+/// The stage-2 flow as a sampler model: the state is the `[N, C]` feature
+/// tensor of a batch-1 sparse tensor on fixed coordinates.
+pub struct SlatVelocity<'a> {
+    pub model: &'a SLatFlowModel,
+    pub coords: &'a [[i32; 4]],
+}
+
+impl VelocityModel for SlatVelocity<'_> {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
+        let x = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
+        let t = Tensor::full(t_model, 1, x.feats.device())?;
+        Ok(vec![self.model.forward(&x, &t, cond)?.feats])
+    }
+
+    /// Conditional and unconditional passes as one batch of two items on
+    /// the same coordinates.
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
+        if cond.dims() != neg.dims() {
+            return Err(Error::msg(format!("SLat sampler: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
+        }
+        let n = self.coords.len();
+        let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+        let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
+        let t = Tensor::full(t_model, 2, x.device())?;
+        let v = self.model.forward(&xs, &t, &Tensor::cat(&[cond, neg], 0)?)?.feats;
+        Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
     }
 }
 
