@@ -6,7 +6,7 @@
 //! image, a disc mask and a sphere-cap pointmap at the DINO input size.
 //! Prints the per-stage seconds, sizes and peak RSS.
 
-use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages};
+use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, Weights};
 use recon::model::nn::fast::Precision;
 use recon::tools::bench::synthetic_view as view;
 use std::path::PathBuf;
@@ -41,7 +41,7 @@ fn main() -> recon::Result<()> {
     let stages = if opts.stage1_only { Stages::SparseStructure } else { Stages::All };
     let t = Instant::now();
     opts.measure_memory = true;
-    let p = Pipeline::random_with(&config, 0, stages, &load)?;
+    let p = Pipeline::load(&config, Weights::Random(0), stages, &load)?;
     println!("{}: RANDOM weights built in {:.2} s ({})", p.config.name, t.elapsed().as_secs_f64(), load.compute.describe());
     let s = p.image_size();
     let inputs = ObjectInputs { views: (0..views).map(|i| view(s, 0.05 * i as f32)).collect() };

@@ -115,7 +115,7 @@ fn main() {
     let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
     let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder").unwrap();
     let sc = scan(&src).unwrap();
-    let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.nine_d_layout().unwrap(), "toy").unwrap(), "toy").unwrap();
+    let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy").unwrap(), "toy").unwrap();
     let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 3).unwrap();
     let flow = ModuleParams::init("ss_flow", &cfg(&arch.ss_flow), 4).unwrap();
     let mut obj = FlowObjective::new(&src, sc, stats, dino, flow, &encoder, Fill::Solid, FlowMatching::default()).unwrap();

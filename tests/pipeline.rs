@@ -4,7 +4,7 @@
 //! determinism; two-view conditioning; loading the same weights from files.
 
 use candle_core::{Device, Tensor};
-use recon::engine::pipeline::{ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, WeightsSource};
+use recon::engine::pipeline::{LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
 use std::path::{Path, PathBuf};
@@ -118,7 +118,7 @@ fn check_splat_ply(path: &Path, n: usize) {
 
 #[test]
 fn tiny_pipeline_end_to_end() {
-    let p = Pipeline::random(&tiny(), 0).unwrap();
+    let p = Pipeline::load(&tiny(), Weights::Random(0), Stages::All, &LoadOptions::default()).unwrap();
     assert!(matches!(p.weights(), WeightsSource::Random { seed: 0 }));
     let s = p.image_size();
     let one = ObjectInputs { views: vec![view(s, 1, 0.0)] };
@@ -185,9 +185,9 @@ fn load_from_initialised_files() {
     }
     let cfg = dir.join("recgen-tiny.json");
     // Stage 1 only keeps this test short; stage 2 loads through the same code.
-    let loaded = Pipeline::load_stages(&cfg, &dir, Stages::SparseStructure).unwrap();
+    let loaded = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     assert!(loaded.weights().is_random());
-    let random = Pipeline::random_stages(&tiny(), 5, Stages::SparseStructure).unwrap();
+    let random = Pipeline::load(&tiny(), Weights::Random(5), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     let one = ObjectInputs { views: vec![view(loaded.image_size(), 3, 0.0)] };
     let opts = RunOptions { seed: 1, stage1_only: true, ..Default::default() };
     let a = loaded.run(&one, &opts).unwrap();
@@ -195,14 +195,14 @@ fn load_from_initialised_files() {
     assert!(!a.coords.is_empty() && a.mesh.is_none());
     assert_eq!(a.coords, b.coords);
     assert_eq!(a.pose, b.pose);
-    assert!(Pipeline::load(&cfg, &dir).is_ok());
+    assert!(Pipeline::load(&cfg, Weights::Dir(&dir), Stages::All, &LoadOptions::default()).is_ok());
 
     // A wrong checkpoint fails before building, naming the tensor.
     std::fs::copy(dir.join("ss_decoder.safetensors"), dir.join("ss_flow.safetensors")).unwrap();
-    let err = Pipeline::load_stages(&cfg, &dir, Stages::SparseStructure).err().expect("wrong checkpoint accepted").to_string();
+    let err = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::SparseStructure, &LoadOptions::default()).err().expect("wrong checkpoint accepted").to_string();
     assert!(err.contains("ss_flow.safetensors") && err.contains("blocks.0"), "{err}");
     std::fs::remove_file(dir.join("ss_flow.safetensors")).unwrap();
-    let err = Pipeline::load(&cfg, &dir).err().expect("missing file accepted").to_string();
+    let err = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::All, &LoadOptions::default()).err().expect("missing file accepted").to_string();
     assert!(err.contains("ss_flow.safetensors"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -215,8 +215,8 @@ fn load_options_precision_and_per_stage() {
     use recon::engine::pipeline::LoadOptions;
     use recon::model::nn::fast::{Compute, Precision};
     let staged_opts = LoadOptions { per_stage: true, ..Default::default() };
-    let resident = Pipeline::random_with(&tiny(), 2, Stages::All, &LoadOptions::default()).unwrap();
-    let staged = Pipeline::random_with(&tiny(), 2, Stages::All, &staged_opts).unwrap();
+    let resident = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &LoadOptions::default()).unwrap();
+    let staged = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &staged_opts).unwrap();
     let one = ObjectInputs { views: vec![view(resident.image_size(), 1, 0.0)] };
     let opts = RunOptions { seed: 3, ss_steps: Some(3), slat_steps: Some(2), measure_memory: true, ..Default::default() };
     let a = resident.run(&one, &opts).unwrap();
@@ -240,14 +240,14 @@ fn load_options_precision_and_per_stage() {
     // Plain candle path vs fast f32 kernels: same occupancy and pose up to float rounding.
     let s1 = RunOptions { seed: 3, ss_steps: Some(3), stage1_only: true, ..Default::default() };
     let plain =
-        Pipeline::random_with(&tiny(), 2, Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false }).unwrap();
+        Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false }).unwrap();
     let p = plain.run(&one, &s1).unwrap();
     let f = resident.run(&one, &s1).unwrap();
     let d = p.pose.tokens_10d.iter().flatten().zip(f.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
     assert!(d < 1e-3, "plain vs fast pose tokens differ by {d}");
     assert_eq!(p.coords, f.coords);
     for precision in [Precision::Bf16, Precision::F16] {
-        let q = Pipeline::random_with(&tiny(), 2, Stages::SparseStructure, &LoadOptions::precision(precision)).unwrap();
+        let q = Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions::precision(precision)).unwrap();
         assert_eq!(q.load_options().compute.fast_parts().unwrap().0, precision);
         let r = q.run(&one, &s1).unwrap();
         assert!(r.pose.tokens_10d.iter().flatten().all(|v| v.is_finite()) && !r.coords.is_empty());

@@ -8,7 +8,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use recon::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use recon::engine::source::ModelSource;
+use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
 use recon::train::bop::{BopOptions, BopSource};
 use recon::train::data::{canonical_frame, prepare_train_view, TrainingSource};
 use recon::train::run::{run, Resume, Stage, TrainOptions};
@@ -87,7 +88,7 @@ fn smoke_training_reduces_loss_and_output_runs_stage1() {
     for key in ["image_cond_model", "ss_flow", "ss_decoder"] {
         assert!(!recon::weights::init::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap());
     }
-    let p = Pipeline::load_stages(&out.join("recgen-micro.json"), &out, Stages::SparseStructure).unwrap();
+    let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     assert!(!p.weights().is_random());
     let s = src.sample(0).unwrap();
     let canon = canonical_frame(&src.model(s.model).unwrap().mesh).unwrap();
@@ -166,13 +167,13 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
         assert!(!recon::weights::init::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap(), "{key}");
     }
-    let p = Pipeline::load(&out.join("recgen-micro.json"), &out).unwrap();
+    let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::All, &LoadOptions::default()).unwrap();
     assert!(!p.weights().is_random());
     // `recon eval --method recgen`'s predictor runs the folder on a BOP dataset: every GT
     // instance is either predicted (a camera-frame mesh) or skipped with a reason.
     write_toy_bop(&src, &dir.join("data"));
     let ds = recon::dataset::bop::load_dataset(&dir.join("data/train")).unwrap();
-    let engine = recon::engine::infer::Engine::load(&out.join("recgen-micro.json"), &out).unwrap();
+    let engine = recon::engine::infer::Engine::load(&ModelSource::Dir { dir: out.clone(), config: Some(out.join("recgen-micro.json")) }, &LoadOptions::default()).unwrap();
     let mut io = recon::engine::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);

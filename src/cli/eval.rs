@@ -1,5 +1,6 @@
 //! `recon eval`: score predictions (or a built-in baseline) against a BOP-format or
 //! YCB-Video dataset; prints the occlusion-binned table, writes report JSON + SVG plot.
+use crate::cli::model_args::ModelArgs;
 use std::path::PathBuf;
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -53,70 +54,25 @@ pub struct EvalArgs {
     occlusion: Option<[f64; 2]>,
     /// Surface samples per mesh.
     #[arg(long, default_value_t = 10_000)]
-    samples: usize,
+    surface_samples: usize,
     /// Surface-sampling seed.
     #[arg(long, default_value_t = 0)]
-    seed: u64,
+    surface_seed: u64,
     /// Score every frame of the dataset, also frames without any prediction (always on
     /// with --method).
     #[arg(long)]
     all_frames: bool,
-    /// --method recgen: trained model folder (its architecture file is the one JSON in it
-    /// holding an `ss_flow` section, unless --config names one).
-    #[arg(long)]
-    weights: Option<PathBuf>,
-    /// --method recgen: architecture file (default: found in --weights).
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// --method recgen: samples (seeds) per object; the pose is chosen by point-map alignment.
-    #[arg(long, default_value_t = 1)]
-    seeds: usize,
-    /// --method recgen: first seed.
-    #[arg(long, default_value_t = 0)]
-    model_seed: u64,
-    /// --method recgen: sampler steps for both stages (default: the config's).
-    #[arg(long)]
-    steps: Option<usize>,
-    /// --method recgen: classifier-free guidance strength for both stages (default: the config's).
-    #[arg(long)]
-    cfg: Option<f64>,
-    /// --method recgen: how the predicted pose is checked against the depth: `depth` (refine
-    /// scale and translation, score with the free-space term), `depth-stretch` (also a
-    /// per-axis stretch of the object frame) or `recgen` (the paper's one-sided
-    /// point-to-mesh score, no refinement).
-    #[arg(long, default_value = recon::engine::pose_fit::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
-    pose_fit: String,
+    /// --method recgen: the model and its settings (the same flags and defaults as
+    /// `recon infer`).
+    #[command(flatten)]
+    model: ModelArgs,
     /// --method recgen: two-view conditioning: each frame with the next frame of its scene
     /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
     #[arg(long)]
     two_view: bool,
-    /// --method recgen: meshes with more faces are decimated to about this many.
-    #[arg(long, default_value_t = 20_000)]
-    max_faces: usize,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-}
-
-/// The architecture file of a trained folder: the JSON holding an `ss_flow` section.
-pub fn find_architecture(dir: &std::path::Path) -> anyhow::Result<PathBuf> {
-    use anyhow::Context;
-    let mut found = Vec::new();
-    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
-        let p = e?.path();
-        if p.extension().is_some_and(|x| x == "json") {
-            let v: Option<serde_json::Value> = std::fs::read_to_string(&p).ok().and_then(|s| serde_json::from_str(&s).ok());
-            if v.is_some_and(|v| v.get("ss_flow").is_some()) {
-                found.push(p);
-            }
-        }
-    }
-    found.sort();
-    match found.len() {
-        1 => Ok(found.remove(0)),
-        0 => anyhow::bail!("{}: no architecture file (a JSON with an `ss_flow` section); pass --config", dir.display()),
-        _ => anyhow::bail!("{}: several architecture files ({found:?}); pass --config", dir.display()),
-    }
 }
 
 /// `LO-HI` in percent, 0 ≤ LO < HI ≤ 100.
@@ -163,16 +119,16 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     if !(a.f1_tau > 0.0 && a.f1_tau <= 1.0) {
         bail!("--f1-tau {} must be a fraction of the diameter in (0, 1]", a.f1_tau);
     }
-    if a.samples == 0 {
-        bail!("--samples must be positive");
+    if a.surface_samples == 0 {
+        bail!("--surface-samples must be positive");
     }
     let mut ds = load_dataset(&a.dataset).with_context(|| format!("loading dataset {}", a.dataset.display()))?;
     if let Some(s) = &a.scenes {
         ds.retain_scenes(s)?;
     }
     let opts = EvalOptions {
-        n_samples: a.samples,
-        seed: a.seed,
+        n_samples: a.surface_samples,
+        seed: a.surface_seed,
         f1_tau_rel: a.f1_tau,
         all_frames: a.all_frames || a.method.is_some(),
         occlusion: a.occlusion,
@@ -218,20 +174,10 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             (report, Some(out), staging, index)
         }
         (Some(Method::Recgen), _) => {
-            let w = a.weights.as_ref().context("--method recgen needs --weights DIR (a trained model folder)")?;
-            let config = match &a.config {
-                Some(c) => c.clone(),
-                None => find_architecture(w)?,
-            };
-            let engine = recon::engine::infer::Engine::load(&config, w)
-                .with_context(|| format!("loading {} with {}", w.display(), config.display()))?;
-            if a.seeds == 0 {
-                bail!("--seeds must be at least 1");
-            }
-            let align = recon::engine::pose_fit::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
-            let mut io = recon::engine::infer::InferOptions { samples: a.seeds, max_faces: Some(a.max_faces), align, ..Default::default() };
-            io.run.seed = a.model_seed;
-            (io.run.ss_steps, io.run.slat_steps, io.run.ss_cfg_strength, io.run.slat_cfg_strength) = (a.steps, a.steps, a.cfg, a.cfg);
+            let source = a.model.source()?;
+            let engine = recon::engine::infer::Engine::load(&source, &a.model.load_options())
+                .with_context(|| format!("loading the model ({source:?})"))?;
+            let io = a.model.infer_options()?;
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
@@ -256,8 +202,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({
-                "kind": "recon eval --method recgen", "weights": w, "config": config, "seeds": a.seeds,
-                "model_seed": a.model_seed, "pose_fit": a.pose_fit, "steps": a.steps, "cfg": a.cfg, "max_faces": a.max_faces, "two_view": a.two_view, "skipped": run.skipped,
+                "kind": "recon eval --method recgen", "model": a.model, "config": source.architecture()?, "two_view": a.two_view, "skipped": run.skipped,
                 "seconds_model": run.seconds_model,
                 "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
             });

@@ -1,4 +1,5 @@
 //! `recon infer`: RGB-D frame(s) + masks → posed meshes, Gaussians and poses.
+use crate::cli::model_args::ModelArgs;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
@@ -44,53 +45,8 @@ pub struct InferArgs {
     /// 16 numbers of the 4×4 matrix, row-major, or a JSON file with "T_c1_c2" (4×4 rows).
     #[arg(long, requires = "view2", allow_hyphen_values = true)]
     rel_pose: Option<String>,
-    /// Pose selection among views and samples: `single` (each pose scored in its own view),
-    /// `cross` (scored in every view), `first` (view 1's pose). Score: trimmed mean (top 10 %
-    /// dropped) of observed-point-to-mesh distances, metres.
-    #[arg(long, default_value = "cross", value_parser = ["single", "cross", "first"])]
-    select: String,
-    /// How each predicted pose is checked against the depth: `depth` refines its scale and
-    /// translation and adds a free-space term to the score (mesh surface in front of the
-    /// measured depth, which an oversized mesh cannot avoid); `depth-stretch` also fits a
-    /// per-axis stretch of the object frame (proportions; can flatten along the rays);
-    /// `recgen` is the paper's one-sided score without refinement.
-    #[arg(long, default_value = recon::engine::pose_fit::DEFAULT_POSE_FIT, value_parser = ["depth", "depth-stretch", "recgen"])]
-    pose_fit: String,
-    /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
-    /// the per-sample poses reported as uncertainty.
-    #[arg(long, default_value_t = 1)]
-    samples: usize,
-    /// Architecture file (default: the one in a --weights folder when it holds one,
-    /// else models/recgen-tiny.json; models/recgen-large.json with a manifest name).
-    #[arg(long)]
-    config: Option<PathBuf>,
-    /// Weights: a directory (`<module>.safetensors` per module), a manifest name
-    /// (e.g. `recgen`, or a manifest .json) resolved in the Hugging Face cache after
-    /// `recon weights fetch`, or `random` (recgen-tiny with RANDOM weights: plumbing
-    /// only). Default: the trained recgen-nano: models/recgen-nano/ in the working
-    /// folder when present, else the copy embedded in the binary (unpacked once under
-    /// $RECON_CACHE, $XDG_CACHE_HOME/recon or ~/.cache/recon).
-    #[arg(long)]
-    weights: Option<String>,
-    /// Model precision of the inference kernels: f32, bf16 (bf16 weights and products,
-    /// f32 accumulation; vdpbf16ps on AVX512-BF16 CPUs) or f16 (f16 weights, f32 arithmetic).
-    #[arg(long, default_value = "f32", value_parser = ["f32", "bf16", "f16"])]
-    dtype: String,
-    #[arg(long, default_value_t = 42)]
-    seed: u64,
-    /// Sampler steps for both stages (default: the config's).
-    #[arg(long)]
-    steps: Option<usize>,
-    /// Classifier-free guidance strength for both stages (default: the config's).
-    #[arg(long)]
-    cfg: Option<f64>,
-    /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
-    #[arg(long, default_value_t = recon::engine::infer::DEFAULT_MAX_FACES)]
-    max_faces: usize,
-    /// Floater removal: mesh components with less than this fraction of the total area are
-    /// dropped (the largest is always kept); 0 keeps every component.
-    #[arg(long, default_value_t = 0.02)]
-    min_component_area: f64,
+    #[command(flatten)]
+    model: ModelArgs,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -140,99 +96,6 @@ fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
         }
         Ok(load_binary_masks(files))
     }
-}
-
-enum Weights {
-    Random,
-    Dir(PathBuf),
-    Manifest(String),
-}
-
-/// The trained recgen-nano, compiled into the binary so `recon infer` has its trained
-/// default wherever the binary runs (the files of models/recgen-nano/ at build time).
-const EMBEDDED_NANO: [(&str, &[u8]); 8] = [
-    ("recgen-nano.json", include_bytes!("../../models/recgen-nano/recgen-nano.json")),
-    ("pose_stats.json", include_bytes!("../../models/recgen-nano/pose_stats.json")),
-    ("image_cond_model.safetensors", include_bytes!("../../models/recgen-nano/image_cond_model.safetensors")),
-    ("ss_flow.safetensors", include_bytes!("../../models/recgen-nano/ss_flow.safetensors")),
-    ("ss_decoder.safetensors", include_bytes!("../../models/recgen-nano/ss_decoder.safetensors")),
-    ("slat_flow.safetensors", include_bytes!("../../models/recgen-nano/slat_flow.safetensors")),
-    ("slat_dec_mesh.safetensors", include_bytes!("../../models/recgen-nano/slat_dec_mesh.safetensors")),
-    ("slat_dec_gs.safetensors", include_bytes!("../../models/recgen-nano/slat_dec_gs.safetensors")),
-];
-
-/// Where the embedded model is unpacked: `$RECON_CACHE`, else `$XDG_CACHE_HOME/recon`,
-/// else `~/.cache/recon`, else the temporary folder.
-fn cache_root() -> PathBuf {
-    let env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
-    env("RECON_CACHE")
-        .or_else(|| env("XDG_CACHE_HOME").map(|p| p.join("recon")))
-        .or_else(|| env("HOME").map(|p| p.join(".cache/recon")))
-        .unwrap_or_else(|| std::env::temp_dir().join("recon"))
-}
-
-/// The embedded recgen-nano as a folder: unpacked once per content (the folder name
-/// carries a hash of every file), written beside and renamed into place so a
-/// half-written copy is never used.
-pub fn embedded_model() -> anyhow::Result<PathBuf> {
-    embedded_model_in(&cache_root())
-}
-
-fn embedded_model_in(root: &Path) -> anyhow::Result<PathBuf> {
-    use anyhow::Context;
-    // FNV-1a over names and contents: a changed model gets a new folder.
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for (name, bytes) in EMBEDDED_NANO {
-        for &b in name.as_bytes().iter().chain(bytes.iter()) {
-            h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
-        }
-    }
-    let dir = root.join(format!("recgen-nano-{h:016x}"));
-    if dir.join("recgen-nano.json").is_file() {
-        return Ok(dir);
-    }
-    let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp)
-        .with_context(|| format!("creating {} to unpack the embedded recgen-nano (set RECON_CACHE to a writable folder)", tmp.display()))?;
-    for (name, bytes) in EMBEDDED_NANO {
-        std::fs::write(tmp.join(name), bytes).with_context(|| format!("writing {}", tmp.join(name).display()))?;
-    }
-    match std::fs::rename(&tmp, &dir) {
-        Ok(()) => Ok(dir),
-        // Another process unpacked it first.
-        Err(_) if dir.join("recgen-nano.json").is_file() => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            Ok(dir)
-        }
-        Err(e) => Err(e).with_context(|| format!("moving {} to {}", tmp.display(), dir.display())),
-    }
-}
-
-/// The default weights: models/recgen-nano/ in the working folder when it holds a
-/// complete model (a checkout, possibly retrained), else the copy embedded in the binary.
-pub fn shipped_model() -> anyhow::Result<PathBuf> {
-    let local = Path::new("models/recgen-nano");
-    if local.join("slat_flow.safetensors").is_file() && local.join("recgen-nano.json").is_file() {
-        return Ok(local.to_path_buf());
-    }
-    embedded_model()
-}
-
-fn classify_weights(w: &Option<String>) -> anyhow::Result<Weights> {
-    use recon::weights::manifest::{Manifest, EMBEDDED};
-    let Some(w) = w else { return Ok(Weights::Dir(shipped_model()?)) };
-    if w == "random" {
-        return Ok(Weights::Random);
-    }
-    let p = Path::new(w);
-    if p.is_dir() {
-        return Ok(Weights::Dir(p.to_path_buf()));
-    }
-    if EMBEDDED.iter().any(|(n, _)| n == w) || (p.is_file() && Manifest::load(w).is_ok()) {
-        return Ok(Weights::Manifest(w.clone()));
-    }
-    let known: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
-    anyhow::bail!("--weights `{w}`: not a directory, and not a manifest name ({}) or manifest file", known.join(", "))
 }
 
 /// Per-stage seconds of one object (model stages summed over samples).
@@ -334,20 +197,13 @@ impl Bar {
 pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
     use recon::dataset::frame::RgbdFrame;
-    use recon::engine::infer::{Engine, InferOptions, SecondView};
+    use recon::engine::infer::{Engine, SecondView};
     use recon::engine::output::write_outputs;
-    use recon::engine::pose_fit::SelectMethod;
     use recon::geometry::camera_pose::parse_rel_pose;
-    use recon::model::nn::fast::Precision;
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
-    if a.samples == 0 {
-        anyhow::bail!("--samples must be at least 1");
-    }
-    let select: SelectMethod = a.select.parse().map_err(|e: String| anyhow::anyhow!("--select {e}"))?;
-    let dtype: Precision = a.dtype.parse().map_err(|e: String| anyhow::anyhow!("--dtype: {e}"))?;
-    let load = recon::engine::pipeline::LoadOptions::precision(dtype);
+    let opts = a.model.infer_options()?;
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
     let (objects, mut skipped) = load_masks(&a.masks, a.objects.as_deref())?;
     let second = match &a.view2 {
@@ -364,45 +220,19 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         None => None,
     };
 
-    let weights = classify_weights(&a.weights)?;
-    let config = a.config.clone().unwrap_or_else(|| match &weights {
-        Weights::Manifest(_) => PathBuf::from("models/recgen-large.json"),
-        // A trained folder carries its architecture file (`recon train slat-flow`).
-        Weights::Dir(d) => crate::cli::eval::find_architecture(d).unwrap_or_else(|_| PathBuf::from("models/recgen-tiny.json")),
-        Weights::Random => PathBuf::from("models/recgen-tiny.json"),
-    });
-    let engine = match &weights {
-        Weights::Random => Engine::random_with(&config, a.seed, &load)?,
-        Weights::Dir(d) => Engine::load_with(&config, d, &load)?,
-        Weights::Manifest(m) => Engine::load_manifest_with(&config, m, &recon::weights::fetch::default_hf_cache(), &load)?,
-    };
+    let source = a.model.source()?;
+    let engine = Engine::load(&source, &a.model.load_options())?;
+    let config = source.architecture()?;
     let random = engine.pipeline.weights().is_random();
     if random {
         eprintln!(
             "NOTE: running {} with RANDOM weights (seed {}). The plumbing is real; the shapes and poses are not meaningful.",
             config.display(),
-            a.seed
+            a.model.seed
         );
     }
-    let align = recon::engine::pose_fit::AlignOptions::by_name(&a.pose_fit).map_err(|e| anyhow::anyhow!("--pose-fit {e}"))?;
-    let mut opts = InferOptions {
-        samples: a.samples,
-        select,
-        align,
-        max_faces: (a.max_faces > 0).then_some(a.max_faces),
-        floater_area_fraction: a.min_component_area,
-        ..Default::default()
-    };
-    if !(0.0..1.0).contains(&a.min_component_area) {
-        anyhow::bail!("--min-component-area must be in [0, 1), got {}", a.min_component_area);
-    }
-    opts.run.seed = a.seed;
-    opts.run.ss_steps = a.steps;
-    opts.run.slat_steps = a.steps;
-    opts.run.ss_cfg_strength = a.cfg;
-    opts.run.slat_cfg_strength = a.cfg;
 
-    let bar = Bar::new((objects.len() * a.samples) as u64);
+    let bar = Bar::new((objects.len() * opts.samples) as u64);
     let progress = |e: recon::engine::infer::Progress<'_>| bar.event(e);
     let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
     let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
@@ -445,8 +275,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         let skips: Vec<serde_json::Value> =
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
-            "out": out, "random_weights": random, "config": config, "dtype": dtype.name(),
-            "views": if second.is_some() { 2 } else { 1 }, "samples": a.samples, "select": select, "pose_fit": a.pose_fit, "seed": a.seed,
+            "out": out, "random_weights": random, "config": config, "dtype": a.model.dtype.name(),
+            "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.pose_fit, "seed": a.model.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
             "objects": objs, "skipped": skips, "notes": result.notes,
@@ -509,25 +339,4 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         println!("wrote {}{}", out.display(), if random { " (RANDOM weights)" } else { "" });
     }
     Ok(!result.objects.is_empty())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn embedded_model_unpacks_the_shipped_files_once() {
-        let root = std::env::temp_dir().join(format!("recon-embedded-test-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&root);
-        let dir = embedded_model_in(&root).unwrap();
-        let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-nano");
-        for (name, _) in EMBEDDED_NANO {
-            assert_eq!(std::fs::read(dir.join(name)).unwrap(), std::fs::read(shipped.join(name)).unwrap(), "{name}");
-        }
-        // Reused, and nothing half-written is left beside it.
-        assert_eq!(embedded_model_in(&root).unwrap(), dir);
-        let entries: Vec<_> = std::fs::read_dir(&root).unwrap().map(|e| e.unwrap().file_name()).collect();
-        assert_eq!(entries.len(), 1, "{entries:?}");
-        let _ = std::fs::remove_dir_all(&root);
-    }
 }

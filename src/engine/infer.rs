@@ -50,10 +50,12 @@ use crate::mesh::post::{decimate, drop_floaters};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
 use crate::weights::WeightFiles;
+use crate::engine::pipeline::Weights;
+use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::{Error, Result};
 use candle_core::Device;
 use serde::Serialize;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -322,37 +324,24 @@ struct Kept {
 }
 
 impl Engine {
-    /// Trained (or `recon weights init`) weights from `weights_dir`.
-    pub fn load(config: &Path, weights_dir: &Path) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::load(config, weights_dir)? })
-    }
-
-    /// Weights named by a manifest (`recgen`, or a manifest file), from the
-    /// Hugging Face cache `cache` ([`crate::weights::manifest::resolve_module_files`]).
-    pub fn load_manifest(config: &Path, manifest: &str, cache: &Path) -> Result<Self> {
-        Self::load_manifest_with(config, manifest, cache, &LoadOptions::default())
-    }
-
-    /// [`Engine::load_manifest`] with explicit kernels/precision and residency.
-    pub fn load_manifest_with(config: &Path, manifest: &str, cache: &Path, options: &LoadOptions) -> Result<Self> {
-        let cfg = crate::model::config::RecGenConfig::load(config)?;
-        let files: WeightFiles = crate::weights::manifest::resolve_module_files(manifest, &cfg, cache)?;
-        Ok(Self { pipeline: Pipeline::load_files_with(config, &files, Stages::All, options)? })
-    }
-
-    /// In-memory random weights: NOT a trained model (results say so).
-    pub fn random(config: &Path, seed: u64) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::random(config, seed)? })
-    }
-
-    /// [`Engine::load`] with explicit kernels/precision (`--dtype`) and residency.
-    pub fn load_with(config: &Path, weights_dir: &Path, options: &LoadOptions) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::load_with(config, weights_dir, Stages::All, options)? })
-    }
-
-    /// [`Engine::random`] with explicit kernels/precision and residency.
-    pub fn random_with(config: &Path, seed: u64, options: &LoadOptions) -> Result<Self> {
-        Ok(Self { pipeline: Pipeline::random_with(config, seed, Stages::All, options)? })
+    /// Load a model (see [`ModelSource`]): the one constructor.
+    pub fn load(source: &ModelSource, options: &LoadOptions) -> Result<Self> {
+        let all = Stages::All;
+        let pipeline = match source {
+            ModelSource::Default => {
+                let dir = default_model_dir()?;
+                Pipeline::load(&find_architecture(&dir)?, Weights::Dir(&dir), all, options)?
+            }
+            ModelSource::Dir { dir, .. } => Pipeline::load(&source.architecture()?, Weights::Dir(dir), all, options)?,
+            ModelSource::Manifest { name, cache, .. } => {
+                let config = source.architecture()?;
+                let cfg = crate::model::config::RecGenConfig::load(&config)?;
+                let files: WeightFiles = crate::weights::manifest::resolve_module_files(name, &cfg, cache)?;
+                Pipeline::load(&config, Weights::Files(&files), all, options)?
+            }
+            ModelSource::Random { seed, .. } => Pipeline::load(&source.architecture()?, Weights::Random(*seed), all, options)?,
+        };
+        Ok(Self { pipeline })
     }
 
     /// Reconstruct every object of a frame (single view).

@@ -6,9 +6,9 @@
 //! use recon::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, ViewInput};
 //! # fn main() -> recon::Result<()> {
 //! // Trained (or `recon weights init`) weights: `<dir>/<key>.safetensors` per module.
-//! let p = Pipeline::load("models/recgen-large.json".as_ref(), "weights/".as_ref())?;
+//! let p = Pipeline::load("models/recgen-large.json".as_ref(), Weights::Dir("weights/".as_ref()), Stages::All, &LoadOptions::default())?;
 //! // Or in-memory random weights (labelled as such in the output metadata):
-//! let p = Pipeline::random("models/recgen-tiny.json".as_ref(), 0)?;
+//! let p = Pipeline::load("models/recgen-tiny.json".as_ref(), Weights::Random(0), Stages::All, &LoadOptions::default())?;
 //! let s = p.image_size(); // DINO input side
 //! let zeros = |c: usize| candle_core::Tensor::zeros((1, c, s, s), candle_core::DType::F32, &candle_core::Device::Cpu);
 //! let (pixels, pointmap, mask) = (zeros(3)?, zeros(3)?, zeros(1)?); // real inputs come from preprocessing
@@ -90,7 +90,7 @@ use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
 use crate::model::config::{ModuleSpec, RecGenConfig};
 use crate::model::nn::fast::{self, Compute, Precision};
-use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, VelocityModel};
+use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
 use crate::model::stage1::embedders::ViewInputs;
@@ -349,6 +349,17 @@ impl<T> std::ops::Deref for Held<'_, T> {
     }
 }
 
+/// Where a pipeline's weights come from.
+#[derive(Debug, Clone, Copy)]
+pub enum Weights<'a> {
+    /// `<dir>/<key>.safetensors` (or `.pt`/`.pth`) per module key.
+    Dir(&'a Path),
+    /// Explicit checkpoint files, e.g. resolved through a weights manifest.
+    Files(&'a WeightFiles),
+    /// In-memory random weights from this seed: NOT a trained model.
+    Random(u64),
+}
+
 /// All modules of one architecture file with their weights.
 pub struct Pipeline {
     pub config: RecGenConfig,
@@ -381,27 +392,18 @@ fn secs(t: Instant) -> f64 {
 }
 
 impl Pipeline {
-    /// Build every module from `<weights_dir>/<key>.safetensors` (see module docs).
-    pub fn load(config_path: &Path, weights_dir: &Path) -> Result<Self> {
-        Self::load_with(config_path, weights_dir, Stages::All, &LoadOptions::default())
+    /// Build the modules of `stages` from `weights`: the one constructor.
+    /// Checkpoints are validated against the architecture here, also when the
+    /// modules are built later (`options.per_stage`).
+    pub fn load(config_path: &Path, weights: Weights<'_>, stages: Stages, options: &LoadOptions) -> Result<Self> {
+        match weights {
+            Weights::Dir(dir) => Self::from_dir(config_path, dir, stages, options),
+            Weights::Files(files) => Self::from_files(config_path, files, stages, options),
+            Weights::Random(seed) => Self::from_random(config_path, seed, stages, options),
+        }
     }
 
-    /// In-memory random weights, identical to what
-    /// `recon weights init --config <config> --seed <seed>` writes.
-    pub fn random(config_path: &Path, seed: u64) -> Result<Self> {
-        Self::random_with(config_path, seed, Stages::All, &LoadOptions::default())
-    }
-
-    pub fn load_stages(config_path: &Path, weights_dir: &Path, stages: Stages) -> Result<Self> {
-        Self::load_with(config_path, weights_dir, stages, &LoadOptions::default())
-    }
-
-    pub fn random_stages(config_path: &Path, seed: u64, stages: Stages) -> Result<Self> {
-        Self::random_with(config_path, seed, stages, &LoadOptions::default())
-    }
-
-    /// [`Pipeline::load_stages`] with explicit kernels/precision and residency.
-    pub fn load_with(config_path: &Path, weights_dir: &Path, stages: Stages, options: &LoadOptions) -> Result<Self> {
+    fn from_dir(config_path: &Path, weights_dir: &Path, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
@@ -420,18 +422,10 @@ impl Pipeline {
                 })?;
             files.modules.insert(key.to_string(), path);
         }
-        Self::load_files_with(config_path, &files, stages, options)
+        Self::from_files(config_path, &files, stages, options)
     }
 
-    /// Build from explicit checkpoint files (one per module key).
-    pub fn load_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages) -> Result<Self> {
-        Self::load_files_with(config_path, weight_files, stages, &LoadOptions::default())
-    }
-
-    /// [`Pipeline::load_files`] with explicit kernels/precision and residency.
-    /// Every checkpoint is validated against its config here, also when the
-    /// modules are built later (`per_stage`).
-    pub fn load_files_with(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
+    fn from_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut sources = HashMap::new();
         let mut files = Vec::new();
@@ -464,9 +458,9 @@ impl Pipeline {
         Ok(p)
     }
 
-    /// [`Pipeline::random_stages`] with explicit kernels/precision and residency.
-    /// Random tensors are generated one at a time while a module is built.
-    pub fn random_with(config_path: &Path, seed: u64, stages: Stages, options: &LoadOptions) -> Result<Self> {
+    /// Random tensors are generated one at a time while a module is built,
+    /// identical to what `recon weights init --config <config> --seed <seed>` writes.
+    fn from_random(config_path: &Path, seed: u64, stages: Stages, options: &LoadOptions) -> Result<Self> {
         let config = RecGenConfig::load(config_path)?;
         let mut sources = HashMap::new();
         for (key, _) in config.modules() {
@@ -499,7 +493,7 @@ impl Pipeline {
             Stages::SparseStructure => None,
             Stages::All => {
                 let c = SLatFlowConfig::from_json(&config.slat_flow.args)?;
-                if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim()? != 13 {
+                if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim() != 13 {
                     return Err(Error::config(
                         &config.name,
                         "slat_flow.args",
@@ -516,7 +510,7 @@ impl Pipeline {
         let mut p = Self {
             ss_stats: config.ss_pose_stats()?,
             slat_stats: config.slat_pose_stats()?,
-            layout: config.nine_d_layout()?,
+            layout: config.pose.nine_d_layout,
             slat_norm,
             options,
             stages,
@@ -840,7 +834,7 @@ mod tests {
         let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
         assert_eq!(wf.modules.len(), 6);
         assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
-        let p = Pipeline::load_files(&cfg_path, &wf, Stages::All).unwrap();
+        let p = Pipeline::load(&cfg_path, Weights::Files(&wf), Stages::All, &LoadOptions::default()).unwrap();
         assert!(p.weights().is_random());
         let _ = std::fs::remove_dir_all(&root);
     }

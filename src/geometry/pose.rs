@@ -42,12 +42,36 @@ pub struct Pose {
 }
 
 /// How a rotation is flattened into 9 numbers.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum NineDLayout {
     /// `[b1, b2, b3]` columns concatenated, as the released inference pipeline does.
     PipelineColumns,
     /// R row-major, as the training data and `parse_pose_output` do.
     RowMajor,
+}
+
+/// The layout of a pose vector (RecGen `pose_representation`): rotation, then
+/// translation (3) and scale (1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, Deserialize)]
+pub enum PoseRepresentation {
+    #[serde(rename = "quaternion_translation_scale")]
+    QuaternionTranslationScale,
+    #[serde(rename = "6d_translation_scale")]
+    SixDTranslationScale,
+    #[serde(rename = "9d_translation_scale")]
+    NineDTranslationScale,
+}
+
+impl PoseRepresentation {
+    /// Width of a pose vector.
+    pub fn channels(self) -> usize {
+        match self {
+            PoseRepresentation::QuaternionTranslationScale => 8,
+            PoseRepresentation::SixDTranslationScale => 10,
+            PoseRepresentation::NineDTranslationScale => 13,
+        }
+    }
 }
 
 // Upstream F.normalize clamps the norm at 1e-12.

@@ -7,9 +7,10 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::pose::{NineDLayout, PoseStats};
+use crate::geometry::pose::{NineDLayout, PoseRepresentation, PoseStats};
 use crate::model::sampler::SamplerSettings;
 use crate::model::stage1::ss_flow::SsFlowConfig;
+use crate::model::stage2::slat_flow::SLatFlowConfig;
 use crate::{Error, Result};
 
 /// One module: upstream class name plus constructor args.
@@ -34,14 +35,14 @@ pub struct SlatNormalization {
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PoseSpec {
-    pub ss_representation: String,
-    pub slat_representation: String,
+    pub ss_representation: PoseRepresentation,
+    pub slat_representation: PoseRepresentation,
     /// Stage-1 z-score stats file, relative to the config file's folder.
     pub ss_stats: String,
     /// Stage-2 z-score stats file, relative to the config file's folder.
     pub slat_stats: String,
     /// `pipeline_columns` (released pipeline) or `row_major` (training data).
-    pub nine_d_layout: String,
+    pub nine_d_layout: NineDLayout,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -95,14 +96,6 @@ impl RecGenConfig {
         SsFlowConfig::from_value(&self.ss_flow.args, "ss_flow.args")
     }
 
-    pub fn nine_d_layout(&self) -> Result<NineDLayout> {
-        match self.pose.nine_d_layout.as_str() {
-            "pipeline_columns" => Ok(NineDLayout::PipelineColumns),
-            "row_major" => Ok(NineDLayout::RowMajor),
-            other => Err(Error::config("model config", "pose.nine_d_layout", format!("`{other}`: expected pipeline_columns or row_major"))),
-        }
-    }
-
     pub fn ss_pose_stats(&self) -> Result<PoseStats> {
         PoseStats::from_json_file(&self.base_dir.join(&self.pose.ss_stats))
     }
@@ -113,11 +106,11 @@ impl RecGenConfig {
 
     fn validate(&self, file: &str) -> Result<()> {
         let ss = SsFlowConfig::from_value(&self.ss_flow.args, file)?;
-        if ss.pose_representation.as_deref() != Some(self.pose.ss_representation.as_str()) {
+        if ss.pose_representation != Some(self.pose.ss_representation) {
             return Err(Error::config(file, "pose.ss_representation", "must match ss_flow.args.pose_representation"));
         }
-        let slat_repr = self.slat_flow.args.get("pose_representation").and_then(|v| v.as_str());
-        if slat_repr != Some(self.pose.slat_representation.as_str()) {
+        let slat = SLatFlowConfig::from_json(&self.slat_flow.args)?;
+        if slat.pose_representation != self.pose.slat_representation {
             return Err(Error::config(file, "pose.slat_representation", "must match slat_flow.args.pose_representation"));
         }
         self.samplers.sparse_structure.validate(file)?;
@@ -159,7 +152,6 @@ impl RecGenConfig {
         if dino != Some(ss.cond_channels as u64) {
             return Err(Error::config(file, "image_cond_model.args.hidden_size", "must equal ss_flow cond_channels"));
         }
-        self.nine_d_layout()?;
         Ok(())
     }
 }
@@ -182,7 +174,7 @@ mod tests {
             assert_eq!(ss.pose_channels(), Some(10));
             assert!(ss.use_point_embedder && ss.use_mask_embedder && ss.use_frame_token_embedder);
             assert_eq!(cfg.slat_normalization.mean.len(), 8);
-            assert_eq!(cfg.nine_d_layout()?, NineDLayout::PipelineColumns);
+            assert_eq!(cfg.pose.nine_d_layout, NineDLayout::PipelineColumns);
             cfg.ss_pose_stats()?;
             cfg.slat_pose_stats()?;
             // Module sections keep the upstream arg names.

@@ -13,7 +13,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use serde::Serialize;
 
-use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use crate::engine::pipeline::{Weights, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
 use crate::model::config::RecGenConfig;
 use crate::model::nn::fast::{self, Compute, Precision};
 use crate::model::sparse::SparseTensor;
@@ -624,7 +624,7 @@ pub struct OccupancyRow {
 pub fn compare_occupancy(arch_path: &Path, precision: Precision, steps: usize, seed: u64) -> Result<OccupancyRow> {
     let run = |p: Precision| -> Result<crate::engine::pipeline::ObjectReconstruction> {
         let opts = crate::engine::pipeline::LoadOptions { compute: Compute::fast(p), per_stage: true };
-        let pl = Pipeline::random_with(arch_path, seed, Stages::SparseStructure, &opts)?;
+        let pl = Pipeline::load(arch_path, Weights::Random(seed), Stages::SparseStructure, &opts)?;
         let inputs = ObjectInputs { views: vec![synthetic_view(pl.image_size(), 0.0)] };
         pl.run(&inputs, &RunOptions { seed, ss_steps: Some(steps), stage1_only: true, ..Default::default() })
     };
@@ -668,7 +668,7 @@ pub struct EndToEndRow {
 /// module built for its stage and freed after it.
 pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: usize, seed: u64) -> Result<EndToEndRow> {
     let opts = crate::engine::pipeline::LoadOptions { compute, per_stage: true };
-    let p = Pipeline::random_with(arch_path, seed, Stages::All, &opts)?;
+    let p = Pipeline::load(arch_path, Weights::Random(seed), Stages::All, &opts)?;
     let inputs = ObjectInputs { views: vec![synthetic_view(p.image_size(), 0.0)] };
     let run = RunOptions { seed, ss_steps: Some(steps), slat_steps: Some(steps), measure_memory: true, ..Default::default() };
     let out = p.run(&inputs, &run)?;

@@ -321,7 +321,7 @@ mod tests {
         let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
         let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "enc")?;
         let scan = crate::train::data::scan(&src)?;
-        let stats = PoseStats::from_value(&crate::train::data::pose_stats_json(&scan.poses, arch.nine_d_layout()?, "toy")?, "toy")?;
+        let stats = PoseStats::from_value(&crate::train::data::pose_stats_json(&scan.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
         let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 2)?;
         let flow = ModuleParams::init("ss_flow", &cfg(&arch.ss_flow), 3)?;
         // Zero-initialised output layers would hide every upstream gradient: perturb them.

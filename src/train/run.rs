@@ -290,7 +290,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
                 scan.two_view.len(),
                 scan.skipped_views
             ));
-            let stats_json = pose_stats_json(&scan.poses, arch.nine_d_layout()?, &source.describe())?;
+            let stats_json = pose_stats_json(&scan.poses, arch.pose.nine_d_layout, &source.describe())?;
             let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
             write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
             let dino_cfg = spec_cfg(&arch.image_cond_model);
@@ -360,7 +360,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
                 source,
                 scan,
                 stats,
-                arch.nine_d_layout()?,
+                arch.pose.nine_d_layout,
                 dino,
                 flow,
                 &encoder,

@@ -71,7 +71,7 @@ impl<'a> SlatFlowObjective<'a> {
     ) -> Result<Self> {
         let mut f = registry::build_slat_flow(&flow.config, flow.var_builder(), "slat_flow")?;
         f.set_conv_path(ConvPath::Differentiable);
-        if f.cfg.pose_dim().ok() != Some(13) {
+        if f.cfg.pose_dim() != 13 {
             return Err(Error::config(
                 "slat_flow",
                 "pose_representation",

@@ -10,7 +10,12 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
     serde_json::from_str(&text).map_err(|e| Error::Json { path: path.to_path_buf(), source: e })
 }
 
-/// Parse a JSON value into a typed config; `file` names the source in errors.
+/// Parse a JSON value into a typed config; errors name `file` and the field
+/// (its path in `v`) that did not parse.
 pub fn from_value<T: DeserializeOwned>(v: &serde_json::Value, file: &str) -> Result<T> {
-    serde_json::from_value(v.clone()).map_err(|e| Error::config(file, "args", e.to_string()))
+    serde_path_to_error::deserialize(v.clone()).map_err(|e| {
+        let path = e.path().to_string();
+        let field = if path == "." { "args".to_string() } else { path };
+        Error::config(file, field, e.into_inner().to_string())
+    })
 }

@@ -6,7 +6,7 @@
 //! `ss_flow` section) instead of a module config, every module is written as
 //! `<out>/<key>.safetensors` (keys: [`crate::model::config::RecGenConfig::modules`]),
 //! with a copy of the architecture file and its pose-stat files, so that
-//! `Pipeline::load(<out>/<arch file>, <out>)` runs it.
+//! `Pipeline::load(<out>/<arch file>, Weights::Dir(<out>), Stages::All, &LoadOptions::default())` runs it.
 
 use crate::weights::registry::{random_weights, ModuleConfig};
 use crate::{Error, Result};

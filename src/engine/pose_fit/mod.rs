@@ -10,7 +10,7 @@ pub mod score;
 pub mod select;
 
 pub use free_space::{free_space, DepthView, ViewPoints};
-pub use options::{AlignOptions, DEFAULT_POSE_FIT, FREE_SPACE_SAMPLES};
+pub use options::{AlignOptions, PoseFit, FREE_SPACE_SAMPLES};
 pub use refine::{refine_pose, Refined};
 pub use score::{score_candidate, view_score, CandidateScore, Surface};
 pub use select::{geodesic_angle, mean_rotation, pose_spread, select_best, PoseSpread, SelectMethod};

@@ -69,17 +69,27 @@ impl AlignOptions {
         // the growth behind occluders without holding back fits the depth does constrain.
         AlignOptions { free_space_weight: 1.0, refine: true, refine_prior: 0.03, ..Self::default() }
     }
+}
 
-    /// By `--pose-fit` name: `recgen` or `depth`.
-    pub fn by_name(name: &str) -> std::result::Result<Self, String> {
-        match name {
-            "recgen" => Ok(Self::recgen()),
-            "depth" => Ok(Self::depth()),
-            "depth-stretch" => Ok(AlignOptions { refine_stretch: true, refine_evals: 320, refine_prior: 0.1, ..Self::depth() }),
-            _ => Err(format!("`{name}`: expected recgen, depth or depth-stretch")),
+/// How each predicted pose is checked against the measured depth (`--pose-fit`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PoseFit {
+    /// Refine scale and translation against the depth and add the free-space term to the score.
+    #[default]
+    Depth,
+    /// `depth`, plus a per-axis stretch of the object frame (proportions; can flatten along the rays).
+    DepthStretch,
+    /// The paper's one-sided point-to-mesh score, no refinement.
+    Recgen,
+}
+
+impl PoseFit {
+    pub fn options(self) -> AlignOptions {
+        match self {
+            PoseFit::Recgen => AlignOptions::recgen(),
+            PoseFit::Depth => AlignOptions::depth(),
+            PoseFit::DepthStretch => AlignOptions { refine_stretch: true, refine_evals: 320, refine_prior: 0.1, ..AlignOptions::depth() },
         }
     }
 }
-
-/// `--pose-fit` of `recon infer` and `recon eval` when not given.
-pub const DEFAULT_POSE_FIT: &str = "depth";

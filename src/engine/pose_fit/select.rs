@@ -19,11 +19,12 @@ use crate::spatial::{dist2, P3};
 use serde::Serialize;
 
 /// Which candidates compete and how they are scored (module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum SelectMethod {
     First,
     Single,
+    #[default]
     Cross,
 }
 
@@ -43,18 +44,6 @@ impl SelectMethod {
             SelectMethod::First => (s.own_view == 0).then(|| s.single()),
             SelectMethod::Single => Some(s.single()),
             SelectMethod::Cross => Some(s.cross()),
-        }
-    }
-}
-
-impl std::str::FromStr for SelectMethod {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "first" => Ok(SelectMethod::First),
-            "single" => Ok(SelectMethod::Single),
-            "cross" => Ok(SelectMethod::Cross),
-            _ => Err(format!("`{s}`: expected single, cross or first")),
         }
     }
 }

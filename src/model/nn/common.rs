@@ -13,6 +13,16 @@ use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute}
 
 /// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
 /// `{prefix}.bias`), for the current build setting ([`fast::build_compute`]).
+/// Position embedding of the transformers (`pe_mode`): TRELLIS offers
+/// absolute (`ape`) and rotary (`rope`); RecGen uses `ape`, the only one here.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PeMode {
+    #[default]
+    Ape,
+    Rope,
+}
+
 pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
     Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, fast::build_compute())
 }

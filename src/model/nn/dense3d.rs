@@ -16,6 +16,17 @@
 //! of the two agree.
 
 use crate::{Error, Result};
+
+/// Normalisation of the 3D-conv VAE blocks (`norm_type`): TRELLIS offers
+/// `layer` (ChannelLayerNorm32) and `group`; the released models use `layer`,
+/// the only one here.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NormType {
+    #[default]
+    Layer,
+    Group,
+}
 use candle_core::{CpuStorage, DType, Device, Layout, Shape, Storage, Tensor};
 use candle_nn::VarBuilder;
 use recon_kernels::conv3d as k;

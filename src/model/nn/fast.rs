@@ -34,7 +34,7 @@ use recon_kernels::vecmath;
 pub use recon_kernels::vecmath::Activation;
 
 /// Storage/arithmetic precision of the fast path (see the module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
     #[default]

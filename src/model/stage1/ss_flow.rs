@@ -17,6 +17,8 @@ use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCross
 use crate::model::sampler::VelocityModel;
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::rng::SeededRng;
+use crate::geometry::pose::PoseRepresentation;
+use crate::model::nn::common::PeMode;
 use crate::{Error, Result};
 
 /// Constructor arguments, named as upstream (`args` of the checkpoint JSON).
@@ -38,8 +40,8 @@ pub struct SsFlowConfig {
     pub mlp_ratio: f64,
     #[serde(default = "default_patch_size")]
     pub patch_size: usize,
-    #[serde(default = "default_pe_mode")]
-    pub pe_mode: String,
+    #[serde(default)]
+    pub pe_mode: PeMode,
     /// Upstream runs the torso in fp16; this port computes in f32 (ignored).
     #[serde(default)]
     pub use_fp16: bool,
@@ -65,7 +67,7 @@ pub struct SsFlowConfig {
     #[serde(default)]
     pub use_asymmetric_mask: bool,
     #[serde(default)]
-    pub pose_representation: Option<String>,
+    pub pose_representation: Option<PoseRepresentation>,
     #[serde(default = "default_pose_tokens")]
     pub num_pose_tokens: usize,
 }
@@ -79,24 +81,11 @@ fn default_mlp_ratio() -> f64 {
 fn default_patch_size() -> usize {
     2
 }
-fn default_pe_mode() -> String {
-    "ape".into()
-}
 fn default_embed_channels() -> usize {
     1024
 }
 fn default_pose_tokens() -> usize {
     1
-}
-
-/// Width of a pose vector for a RecGen pose representation name.
-pub fn pose_channels(representation: &str) -> Option<usize> {
-    match representation {
-        "quaternion_translation_scale" => Some(8),
-        "6d_translation_scale" => Some(10),
-        "9d_translation_scale" => Some(13),
-        _ => None,
-    }
 }
 
 impl SsFlowConfig {
@@ -113,7 +102,7 @@ impl SsFlowConfig {
 
     /// Pose vector width, or None for the plain TRELLIS model.
     pub fn pose_channels(&self) -> Option<usize> {
-        self.pose_representation.as_deref().and_then(pose_channels)
+        self.pose_representation.map(PoseRepresentation::channels)
     }
 
     /// Number of voxel tokens, `(R/p)³`.
@@ -133,16 +122,13 @@ impl SsFlowConfig {
         if h == 0 || self.model_channels % h != 0 {
             return err("num_heads", format!("model_channels {} not divisible by {h} heads", self.model_channels));
         }
-        if self.pe_mode != "ape" {
-            return err("pe_mode", format!("`{}` not supported (only \"ape\" is used by TRELLIS/RecGen)", self.pe_mode));
+        if self.pe_mode != PeMode::Ape {
+            return err("pe_mode", "`rope` not supported (only \"ape\" is used by TRELLIS/RecGen)".into());
         }
         if self.use_asymmetric_mask {
             return err("use_asymmetric_mask", "not supported (false in the released RecGen config)".into());
         }
-        if let Some(r) = &self.pose_representation {
-            if pose_channels(r).is_none() {
-                return err("pose_representation", format!("unknown representation `{r}`"));
-            }
+        if self.pose_representation.is_some() {
             if self.num_pose_tokens == 0 {
                 return err("num_pose_tokens", "must be ≥ 1".into());
             }

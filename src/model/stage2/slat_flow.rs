@@ -20,6 +20,8 @@ use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::model::sampler::VelocityModel;
+use crate::geometry::pose::PoseRepresentation;
+use crate::model::nn::common::PeMode;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use candle_nn::VarBuilder;
@@ -37,17 +39,14 @@ fn default_patch() -> usize {
 fn default_io_blocks() -> usize {
     2
 }
-fn default_ape() -> String {
-    "ape".into()
-}
 fn default_true() -> bool {
     true
 }
 fn default_embed_channels() -> usize {
     1024
 }
-fn default_pose_repr() -> String {
-    "quaternion_translation_scale".into()
+fn default_pose_repr() -> PoseRepresentation {
+    PoseRepresentation::QuaternionTranslationScale
 }
 
 /// Constructor args of `SLatFlowModel` / `SLatCondFlowModel` (checkpoint
@@ -72,8 +71,8 @@ pub struct SLatFlowConfig {
     pub num_io_res_blocks: usize,
     #[serde(default)]
     pub io_block_channels: Option<Vec<usize>>,
-    #[serde(default = "default_ape")]
-    pub pe_mode: String,
+    #[serde(default)]
+    pub pe_mode: PeMode,
     #[serde(default = "default_true")]
     pub use_skip_connection: bool,
     #[serde(default)]
@@ -96,7 +95,7 @@ pub struct SLatFlowConfig {
     #[serde(default = "default_embed_channels")]
     pub pose_embedder_out_channels: usize,
     #[serde(default = "default_pose_repr")]
-    pub pose_representation: String,
+    pub pose_representation: PoseRepresentation,
 }
 
 impl SLatFlowConfig {
@@ -109,18 +108,13 @@ impl SLatFlowConfig {
     }
 
     /// Input width of the pose embedder for the configured representation.
-    pub fn pose_dim(&self) -> Result<usize> {
-        match self.pose_representation.as_str() {
-            "quaternion_translation_scale" => Ok(8),
-            "6d_translation_scale" => Ok(10),
-            "9d_translation_scale" => Ok(13),
-            other => Err(Error::msg(format!("SLat flow: unknown pose_representation `{other}`"))),
-        }
+    pub fn pose_dim(&self) -> usize {
+        self.pose_representation.channels()
     }
 
     fn validate(&self) -> Result<()> {
-        if self.pe_mode != "ape" {
-            return Err(Error::msg(format!("SLat flow: pe_mode `{}` is not supported (only `ape`)", self.pe_mode)));
+        if self.pe_mode != PeMode::Ape {
+            return Err(Error::msg("SLat flow: pe_mode `rope` is not supported (only `ape`)"));
         }
         if let Some(io) = &self.io_block_channels {
             if !self.patch_size.is_power_of_two() || self.patch_size.trailing_zeros() as usize != io.len() {
@@ -301,7 +295,7 @@ impl SLatFlowModel {
             },
             mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
             pose_embedder: if cfg.use_pose_embedder {
-                Some(linear(cfg.pose_dim()?, cfg.pose_embedder_out_channels, vb.pp("pose_embedder"))?)
+                Some(linear(cfg.pose_dim(), cfg.pose_embedder_out_channels, vb.pp("pose_embedder"))?)
             } else {
                 None
             },
@@ -431,7 +425,7 @@ impl SLatFlowModel {
     /// `pose_embedder(pose)` as context tokens: `[B, D]` → `[B, 1, C]`, `[B, K, D]` → `[B, K, C]`.
     pub fn pose_tokens(&self, pose: &Tensor) -> Result<Tensor> {
         let pe = self.pose_embedder.as_ref().ok_or_else(|| Error::msg("SLat flow: pose given but pose_embedder is disabled"))?;
-        let d = self.cfg.pose_dim()?;
+        let d = self.cfg.pose_dim();
         if pose.dims().last() != Some(&d) || !(pose.rank() == 2 || pose.rank() == 3) {
             return Err(Error::msg(format!("SLat flow: pose has shape {:?}, expected [B, {d}] or [B, K, {d}]", pose.dims())));
         }

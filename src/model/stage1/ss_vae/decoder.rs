@@ -7,6 +7,7 @@
 //! `out_layer.0` norm, SiLU, `out_layer.2` conv.
 
 use crate::model::nn::dense3d::{pixel_shuffle_3d, pixel_shuffle_3d_fast, ChannelLayerNorm, Conv3d, Volume};
+use crate::model::nn::dense3d::NormType;
 use crate::{Error, Result};
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
@@ -21,8 +22,8 @@ pub struct SparseStructureDecoderConfig {
     pub channels: Vec<usize>,
     #[serde(default = "default_middle")]
     pub num_res_blocks_middle: usize,
-    #[serde(default = "default_norm")]
-    pub norm_type: String,
+    #[serde(default)]
+    pub norm_type: NormType,
     /// Upstream runs the torso in fp16; this port computes in f32 throughout.
     #[serde(default)]
     pub use_fp16: bool,
@@ -30,9 +31,6 @@ pub struct SparseStructureDecoderConfig {
 
 fn default_middle() -> usize {
     2
-}
-fn default_norm() -> String {
-    "layer".into()
 }
 
 impl SparseStructureDecoderConfig {
@@ -44,7 +42,7 @@ impl SparseStructureDecoderConfig {
             num_res_blocks: 2,
             channels: vec![512, 128, 32],
             num_res_blocks_middle: 2,
-            norm_type: "layer".into(),
+            norm_type: NormType::Layer,
             use_fp16: true,
         }
     }
@@ -58,8 +56,8 @@ impl SparseStructureDecoderConfig {
 
     pub fn validate(&self) -> Result<()> {
         let err = |field: &str, msg: String| Err(Error::config("SparseStructureDecoder args", field, msg));
-        if self.norm_type != "layer" {
-            return err("norm_type", format!("`{}` is not supported (only \"layer\", ChannelLayerNorm32, is implemented)", self.norm_type));
+        if self.norm_type != NormType::Layer {
+            return err("norm_type", "`group` is not supported (only \"layer\", ChannelLayerNorm32, is implemented)".into());
         }
         if self.channels.is_empty() || self.channels.contains(&0) {
             return err("channels", format!("{:?} must be a non-empty list of positive sizes", self.channels));
@@ -266,7 +264,7 @@ mod tests {
             num_res_blocks: 1,
             channels: vec![6, 5],
             num_res_blocks_middle: 1,
-            norm_type: "layer".into(),
+            norm_type: NormType::Layer,
             use_fp16: false,
         }
     }

@@ -17,6 +17,7 @@
 
 use crate::model::nn::dense3d::{ChannelLayerNorm, Conv3d};
 use crate::model::stage1::ss_vae::decoder::ResBlock3d;
+use crate::model::nn::dense3d::NormType;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
@@ -31,8 +32,8 @@ pub struct SparseStructureEncoderConfig {
     pub channels: Vec<usize>,
     #[serde(default = "default_middle")]
     pub num_res_blocks_middle: usize,
-    #[serde(default = "default_norm")]
-    pub norm_type: String,
+    #[serde(default)]
+    pub norm_type: NormType,
     /// Upstream runs the torso in fp16; this port computes in f32 throughout.
     #[serde(default)]
     pub use_fp16: bool,
@@ -40,9 +41,6 @@ pub struct SparseStructureEncoderConfig {
 
 fn default_middle() -> usize {
     2
-}
-fn default_norm() -> String {
-    "layer".into()
 }
 
 impl SparseStructureEncoderConfig {
@@ -54,7 +52,7 @@ impl SparseStructureEncoderConfig {
             num_res_blocks: 2,
             channels: vec![32, 128, 512],
             num_res_blocks_middle: 2,
-            norm_type: "layer".into(),
+            norm_type: NormType::Layer,
             use_fp16: true,
         }
     }
@@ -68,8 +66,8 @@ impl SparseStructureEncoderConfig {
 
     pub fn validate(&self) -> Result<()> {
         let err = |field: &str, msg: String| Err(Error::config("SparseStructureEncoder args", field, msg));
-        if self.norm_type != "layer" {
-            return err("norm_type", format!("`{}` is not supported (only \"layer\", ChannelLayerNorm32, is implemented)", self.norm_type));
+        if self.norm_type != NormType::Layer {
+            return err("norm_type", "`group` is not supported (only \"layer\", ChannelLayerNorm32, is implemented)".into());
         }
         if self.channels.is_empty() || self.channels.contains(&0) {
             return err("channels", format!("{:?} must be a non-empty list of positive sizes", self.channels));
@@ -281,7 +279,7 @@ mod tests {
             num_res_blocks: 1,
             channels: vec![4, 6],
             num_res_blocks_middle: 1,
-            norm_type: "layer".into(),
+            norm_type: NormType::Layer,
             use_fp16: false,
         }
     }
@@ -431,7 +429,7 @@ mod tests {
             num_res_blocks: 1,
             channels: vec![6, 4],
             num_res_blocks_middle: 1,
-            norm_type: "layer".into(),
+            norm_type: NormType::Layer,
             use_fp16: false,
         };
         let dec = SparseStructureDecoder::new(&dcfg, vb.pp("decoder"))?;
