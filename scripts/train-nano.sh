@@ -67,20 +67,20 @@ fi
 [ -d "$W/heldout" ] || "$RECON" synth --out "$W/heldout" --scenes 45 --views 1 --seed 90000 --sensor models/sensors/stereo.json
 [ -d "$W/heldout2" ] || "$RECON" synth --out "$W/heldout2" --scenes 24 --views 2 --seed 91000 --sensor models/sensors/stereo.json
 "$RECON" eval --dataset "$W/heldout2/test" --method observed --out "$W/eval2-observed" | tee "$W/eval2-observed.txt"
-"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --out "$W/eval2-recgen" | tee "$W/eval2-recgen.txt"
+"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --seed 0 --max-faces 20000 --out "$W/eval2-recgen" | tee "$W/eval2-recgen.txt"
 # Two views: scenes 0–11 (half the frames; two views cost more than one), next to one view on them.
 S12=0,1,2,3,4,5,6,7,8,9,10,11
-"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --two-view --scenes $S12 --out "$W/eval2-recgen-2view" | tee "$W/eval2-recgen-2view.txt"
+"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --seed 0 --max-faces 20000 --two-view --scenes $S12 --out "$W/eval2-recgen-2view" | tee "$W/eval2-recgen-2view.txt"
 "$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-recgen/predictions.json" --scenes $S12 --all-frames --out "$W/eval2-recgen-s12" | tee "$W/eval2-recgen-s12.txt"
 "$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-observed/predictions.json" --scenes $S12 --all-frames --out "$W/eval2-observed-s12" | tee "$W/eval2-observed-s12.txt"
 # Best of 3 seeds costs 3× the time: scenes 0–1 only, next to the single-seed predictions re-scored on them.
 S4=0,1
-"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --seeds 3 --scenes $S4 --out "$W/eval2-recgen-best3" | tee "$W/eval2-recgen-best3.txt"
+"$RECON" eval --dataset "$W/heldout2/test" --method recgen --weights "$W/model3" --seed 0 --max-faces 20000 --samples 3 --scenes $S4 --out "$W/eval2-recgen-best3" | tee "$W/eval2-recgen-best3.txt"
 "$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-recgen/predictions.json" --scenes $S4 --all-frames --out "$W/eval2-recgen-s4" | tee "$W/eval2-recgen-s4.txt"
 "$RECON" eval --dataset "$W/heldout2/test" --predictions "$W/eval2-observed/predictions.json" --scenes $S4 --all-frames --out "$W/eval2-observed-s4" | tee "$W/eval2-observed-s4.txt"
 # Real frames (YCB-Video, shipped with the data in ../shared/realdata when present).
 YCB=${YCB:-../shared/realdata/ycbv_video_oprb}
 if [ -d "$YCB" ]; then
   "$RECON" eval --dataset "$YCB" --method observed --out "$W/eval-ycb-observed" | tee "$W/eval-ycb-observed.txt"
-  "$RECON" eval --dataset "$YCB" --method recgen --weights "$W/model3" --out "$W/eval-ycb-recgen" | tee "$W/eval-ycb-recgen.txt"
+  "$RECON" eval --dataset "$YCB" --method recgen --weights "$W/model3" --seed 0 --max-faces 20000 --out "$W/eval-ycb-recgen" | tee "$W/eval-ycb-recgen.txt"
 fi

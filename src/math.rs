@@ -137,6 +137,22 @@ pub fn dot<T: Real>(a: [T; 3], b: [T; 3]) -> T {
 }
 
 #[inline]
+pub fn norm<T: Real>(a: [T; 3]) -> T {
+    dot(a, a).sqrt()
+}
+
+/// `v / |v|`; the zero vector is returned as it is.
+#[inline]
+pub fn normalize<T: Real>(v: [T; 3]) -> [T; 3] {
+    let n = norm(v);
+    if n > T::zero() {
+        [v[0] / n, v[1] / n, v[2] / n]
+    } else {
+        v
+    }
+}
+
+#[inline]
 pub fn cross<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }

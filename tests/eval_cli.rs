@@ -73,7 +73,18 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     assert_eq!(rep2["overall"], rep["overall"]);
     assert_eq!(json(&out2.join("report.json"))["overall"], rep["overall"]);
     // --occlusion keeps only the instances of that range, with the same per-object scores.
-    let run4 = recon(&["eval", "--dataset", r, "--predictions", pf.to_str().unwrap(), "--surface-samples", "3000", "--occlusion", "0-3", "--json"]);
+    let run4 = recon(&[
+        "eval",
+        "--dataset",
+        r,
+        "--predictions",
+        pf.to_str().unwrap(),
+        "--surface-samples",
+        "3000",
+        "--occlusion",
+        "0-3",
+        "--json",
+    ]);
     assert!(run4.status.success(), "{}", String::from_utf8_lossy(&run4.stderr));
     let rep4: serde_json::Value = serde_json::from_slice(&run4.stdout).unwrap();
     let want: Vec<&serde_json::Value> = objs.iter().filter(|o| o["occlusion_pct"].as_f64().is_some_and(|x| x < 3.0)).collect();

@@ -1,11 +1,11 @@
 //! `recon infer` library path on the shipped YCB-Video sample: real frame,
 //! real masks, random tiny weights.
-use recon::engine::pipeline::LoadOptions;
-use recon::engine::source::ModelSource;
 use recon::dataset::frame::{FrameOptions, RgbdFrame};
 use recon::dataset::masks::{InstanceMap, SkipReason};
 use recon::engine::infer::{Engine, InferOptions};
 use recon::engine::output::{write_outputs, MARKER};
+use recon::engine::pipeline::LoadOptions;
+use recon::engine::source::ModelSource;
 use std::path::PathBuf;
 
 fn root() -> PathBuf {
@@ -21,7 +21,9 @@ fn sample_frame_reconstructs_in_camera_frame() {
     assert_eq!(objects.len(), 1);
     assert!(skipped.iter().any(|s| s.reason == SkipReason::IdAbsent));
 
-    let engine = Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default()).unwrap();
+    let engine =
+        Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
+            .unwrap();
     let mut opts = InferOptions::default();
     opts.run.ss_steps = Some(2);
     opts.run.slat_steps = Some(2);
@@ -75,7 +77,9 @@ fn sample_frame_reconstructs_in_camera_frame() {
 fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, InferOptions) {
     let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
     let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
-    let engine = Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default()).unwrap();
+    let engine =
+        Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
+            .unwrap();
     let mut opts = InferOptions { samples, select: recon::engine::pose_fit::SelectMethod::Cross, ..Default::default() };
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
@@ -267,6 +271,7 @@ fn shipped_recgen_nano_is_trained_and_loads() {
     assert_eq!(arch["pose"]["ss_stats"], "pose_stats.json");
     let tiny: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("models/recgen-nano.json")).unwrap()).unwrap();
     assert_ne!(arch["slat_normalization"], tiny["slat_normalization"], "the trained folder carries its own latent normalisation");
-    let engine = Engine::load(&ModelSource::Dir { dir: dir.clone(), config: Some(dir.join("recgen-nano.json")) }, &LoadOptions::default()).unwrap();
+    let engine =
+        Engine::load(&ModelSource::Dir { dir: dir.clone(), config: Some(dir.join("recgen-nano.json")) }, &LoadOptions::default()).unwrap();
     assert!(!engine.pipeline.weights().is_random());
 }

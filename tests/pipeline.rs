@@ -4,7 +4,9 @@
 //! determinism; two-view conditioning; loading the same weights from files.
 
 use candle_core::{Device, Tensor};
-use recon::engine::pipeline::{LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource};
+use recon::engine::pipeline::{
+    LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource,
+};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
 use std::path::{Path, PathBuf};
@@ -199,10 +201,14 @@ fn load_from_initialised_files() {
 
     // A wrong checkpoint fails before building, naming the tensor.
     std::fs::copy(dir.join("ss_decoder.safetensors"), dir.join("ss_flow.safetensors")).unwrap();
-    let err = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::SparseStructure, &LoadOptions::default()).err().expect("wrong checkpoint accepted").to_string();
+    let err = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::SparseStructure, &LoadOptions::default())
+        .err()
+        .expect("wrong checkpoint accepted")
+        .to_string();
     assert!(err.contains("ss_flow.safetensors") && err.contains("blocks.0"), "{err}");
     std::fs::remove_file(dir.join("ss_flow.safetensors")).unwrap();
-    let err = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::All, &LoadOptions::default()).err().expect("missing file accepted").to_string();
+    let err =
+        Pipeline::load(&cfg, Weights::Dir(&dir), Stages::All, &LoadOptions::default()).err().expect("missing file accepted").to_string();
     assert!(err.contains("ss_flow.safetensors"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -240,7 +246,8 @@ fn load_options_precision_and_per_stage() {
     // Plain candle path vs fast f32 kernels: same occupancy and pose up to float rounding.
     let s1 = RunOptions { seed: 3, ss_steps: Some(3), stage1_only: true, ..Default::default() };
     let plain =
-        Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false }).unwrap();
+        Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false })
+            .unwrap();
     let p = plain.run(&one, &s1).unwrap();
     let f = resident.run(&one, &s1).unwrap();
     let d = p.pose.tokens_10d.iter().flatten().zip(f.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);

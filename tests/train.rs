@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use recon::engine::source::ModelSource;
 use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
+use recon::engine::source::ModelSource;
 use recon::train::bop::{BopOptions, BopSource};
 use recon::train::data::{canonical_frame, prepare_train_view, TrainingSource};
 use recon::train::run::{run, Resume, Stage, TrainOptions};
@@ -173,7 +173,11 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     // instance is either predicted (a camera-frame mesh) or skipped with a reason.
     write_toy_bop(&src, &dir.join("data"));
     let ds = recon::dataset::bop::load_dataset(&dir.join("data/train")).unwrap();
-    let engine = recon::engine::infer::Engine::load(&ModelSource::Dir { dir: out.clone(), config: Some(out.join("recgen-micro.json")) }, &LoadOptions::default()).unwrap();
+    let engine = recon::engine::infer::Engine::load(
+        &ModelSource::Dir { dir: out.clone(), config: Some(out.join("recgen-micro.json")) },
+        &LoadOptions::default(),
+    )
+    .unwrap();
     let mut io = recon::engine::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);

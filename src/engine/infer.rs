@@ -33,6 +33,7 @@
 
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
+use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput};
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;
@@ -40,6 +41,7 @@ use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
+use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
 use crate::geometry::camera_pose::pose_to_camera;
@@ -50,8 +52,6 @@ use crate::mesh::post::{decimate, drop_floaters};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
 use crate::weights::WeightFiles;
-use crate::engine::pipeline::Weights;
-use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::{Error, Result};
 use candle_core::Device;
 use serde::Serialize;

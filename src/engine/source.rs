@@ -142,7 +142,10 @@ pub fn embedded_model_in(root: &Path) -> Result<PathBuf> {
     }
     let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| {
-        Error::input(tmp.display().to_string(), format!("cannot unpack the embedded recgen-nano here ({e}); set RECON_CACHE to a writable folder"))
+        Error::input(
+            tmp.display().to_string(),
+            format!("cannot unpack the embedded recgen-nano here ({e}); set RECON_CACHE to a writable folder"),
+        )
     })?;
     for (name, bytes) in EMBEDDED_NANO {
         std::fs::write(tmp.join(name), bytes).map_err(|e| Error::io(tmp.join(name), e))?;

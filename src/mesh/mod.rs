@@ -5,7 +5,7 @@ pub mod post;
 pub mod primitives;
 pub mod trimesh;
 
-use crate::math::Similarity32;
+use crate::math::{cross, sub, Similarity32};
 use crate::{Error, Result};
 
 /// Indexed triangle mesh. Coordinates are in the decoder's object frame
@@ -82,14 +82,6 @@ impl Mesh {
     pub fn area(&self) -> f64 {
         self.faces.iter().map(|f| face_area(&self.vertices, f)).sum()
     }
-}
-
-pub(crate) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 pub(crate) fn face_area(v: &[[f32; 3]], f: &[u32; 3]) -> f64 {

@@ -5,6 +5,7 @@
 //! floaters by rasterised visibility; this is the CPU-only substitute the
 //! spec's §5.3 "cheapest acceptable path" allows.
 
+use crate::math::{cross, dot, sub};
 use crate::mesh::{face_area, Mesh, UnionFind};
 use std::cmp::Ordering;
 use std::collections::{BinaryHeap, HashSet};
@@ -268,18 +269,6 @@ impl PartialOrd for Candidate {
     }
 }
 
-fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-fn dot64(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
 struct Decimator {
     pos: Vec<[f64; 3]>,
     attrs: Option<Vec<[f32; 6]>>,
@@ -307,8 +296,8 @@ impl Decimator {
                 continue;
             }
             let [a, b, c] = f.map(|i| pos[i as usize]);
-            let nrm = cross64(sub64(b, a), sub64(c, a));
-            let len = dot64(nrm, nrm).sqrt();
+            let nrm = cross(sub(b, a), sub(c, a));
+            let len = dot(nrm, nrm).sqrt();
             for k in 0..3 {
                 vfaces[f[k] as usize].push(fi as u32);
                 let (x, y) = (f[k], f[(k + 1) % 3]);
@@ -317,7 +306,7 @@ impl Decimator {
             if len > 0.0 {
                 let n3 = nrm.map(|x| x / len);
                 // Area-weighted plane quadric.
-                let q = Quadric::plane(n3, -dot64(n3, a), 0.5 * len);
+                let q = Quadric::plane(n3, -dot(n3, a), 0.5 * len);
                 for &i in f {
                     quadric[i as usize].add(&q);
                 }
@@ -369,8 +358,8 @@ impl Decimator {
         let mut cands = vec![a, b, mid];
         if let Some(p) = q.optimum() {
             // Ignore optima far off the edge (nearly flat regions).
-            let l2 = dot64(sub64(a, b), sub64(a, b));
-            if dot64(sub64(p, mid), sub64(p, mid)) <= 4.0 * l2 {
+            let l2 = dot(sub(a, b), sub(a, b));
+            if dot(sub(p, mid), sub(p, mid)) <= 4.0 * l2 {
                 cands.insert(0, p);
             }
         }
@@ -417,10 +406,10 @@ impl Decimator {
                 }
                 let before = face.map(|i| self.pos[i as usize]);
                 let after = face.map(|i| if i == u || i == v { p } else { self.pos[i as usize] });
-                let n0 = cross64(sub64(before[1], before[0]), sub64(before[2], before[0]));
-                let n1 = cross64(sub64(after[1], after[0]), sub64(after[2], after[0]));
-                let (l0, l1) = (dot64(n0, n0).sqrt(), dot64(n1, n1).sqrt());
-                if l1 <= 1e-12 * (1.0 + l0) || dot64(n0, n1) < 0.2 * l0 * l1 {
+                let n0 = cross(sub(before[1], before[0]), sub(before[2], before[0]));
+                let n1 = cross(sub(after[1], after[0]), sub(after[2], after[0]));
+                let (l0, l1) = (dot(n0, n0).sqrt(), dot(n1, n1).sqrt());
+                if l1 <= 1e-12 * (1.0 + l0) || dot(n0, n1) < 0.2 * l0 * l1 {
                     return false;
                 }
             }
@@ -433,8 +422,8 @@ impl Decimator {
         if let Some(attrs) = &mut self.attrs {
             // Attributes follow the position's projection onto the edge.
             let (a, b) = (self.pos[ui], self.pos[vi]);
-            let e = sub64(b, a);
-            let t = (dot64(sub64(p, a), e) / dot64(e, e).max(1e-300)).clamp(0.0, 1.0) as f32;
+            let e = sub(b, a);
+            let t = (dot(sub(p, a), e) / dot(e, e).max(1e-300)).clamp(0.0, 1.0) as f32;
             let (ca, cb) = (attrs[ui], attrs[vi]);
             attrs[ui] = std::array::from_fn(|k| (1.0 - t) * ca[k] + t * cb[k]);
         }

@@ -2,7 +2,7 @@
 //! surfaces of revolution (cylinders, spheres, cups, bowls, tori), extrusions
 //! and swept tubes, closed and outward-oriented.
 
-use crate::math::cross;
+use crate::math::{cross, normalize};
 use crate::mesh::trimesh::TriMesh;
 use crate::mesh::Mesh;
 use crate::spatial::P3;
@@ -242,11 +242,6 @@ pub fn tube_mesh(path: &[[f64; 3]], rho: f64, n: usize) -> Mesh {
     } else {
         mesh
     }
-}
-
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-300);
-    [v[0] / n, v[1] / n, v[2] / n]
 }
 
 /// Signed enclosed volume (positive for outward-oriented closed meshes).

@@ -23,7 +23,7 @@
 pub mod preview;
 
 use crate::dataset::frame::Intrinsics;
-use crate::math::Similarity;
+use crate::math::{cross, dot, normalize, sub, Similarity};
 use crate::mesh::trimesh::TriMesh;
 use crate::mesh::Mesh;
 use crate::sensor::PixelCovariates;
@@ -599,23 +599,6 @@ fn dt_1d(f: &[f64], d: &mut [f64]) {
     }
 }
 
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let n = dot(v, v).sqrt();
-    if n > 0.0 {
-        [v[0] / n, v[1] / n, v[2] / n]
-    } else {
-        v
-    }
-}
 fn mat_vec(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
     [dot(m[0], v), dot(m[1], v), dot(m[2], v)]
 }
@@ -663,7 +646,7 @@ mod tests {
             }
         }
         // Incidence: angle between the ray and the plane normal (0, −0.5, 1)/|·| ... at the centre column.
-        let n = normalize([0.0, 0.5, -1.0]);
+        let n = normalize([0.0f64, 0.5, -1.0]);
         let d = normalize([(0.0 - 3.5) / 10.0, (0.0 - 2.5) / 10.0, 1.0]);
         let want = dot(n, d).abs().acos().to_degrees();
         assert!((r.incidence[0] as f64 - want).abs() < 1e-3, "{} vs {want}", r.incidence[0]);

@@ -11,6 +11,7 @@
 //! the primitive's surface. Of the accepted ones the tightest (smallest
 //! volume) wins; with none accepted the decomposition is used instead.
 
+use crate::math::{cross, dot, norm, sub};
 use crate::mesh::trimesh::TriMesh;
 use crate::mesh::Mesh;
 use crate::rng::SeededRng;
@@ -359,7 +360,7 @@ fn orient_outward(mut m: Mesh) -> Mesh {
     let c = [0, 1, 2].map(|k| m.vertices.iter().map(|v| v[k]).sum::<f32>() / n);
     for f in &mut m.faces {
         let [a, b, d] = f.map(|i| m.vertices[i as usize]);
-        let nrm = crate::mesh::cross(crate::mesh::sub(b, a), crate::mesh::sub(d, a));
+        let nrm = cross(sub(b, a), sub(d, a));
         let fc = [0, 1, 2].map(|k| (a[k] + b[k] + d[k]) / 3.0 - c[k]);
         if nrm[0] * fc[0] + nrm[1] * fc[1] + nrm[2] * fc[2] < 0.0 {
             f.swap(1, 2);
@@ -433,11 +434,11 @@ fn hull_planes(m: &Mesh) -> Vec<([f64; 3], f64)> {
         .iter()
         .filter_map(|f| {
             let [a, b, c] = f.map(|i| m.vertices[i as usize].map(|x| x as f64));
-            let n = crate::sim::plane::cross(&crate::sim::plane::sub(&b, &a), &crate::sim::plane::sub(&c, &a));
-            let l = crate::sim::plane::norm(&n);
+            let n = cross(sub(b, a), sub(c, a));
+            let l = norm(n);
             (l > 0.0).then(|| {
                 let n = n.map(|x| x / l);
-                (n, crate::sim::plane::dot(&n, &a))
+                (n, dot(n, a))
             })
         })
         .collect()
@@ -473,7 +474,7 @@ impl PartQuery {
     /// Inside part `i` by at least `-tol` (tol > 0 widens the part).
     fn inside(&self, i: usize, p: [f64; 3], tol: f64) -> bool {
         if let Some(pl) = &self.planes[i] {
-            return pl.iter().all(|(n, d)| crate::sim::plane::dot(n, &p) <= d + tol);
+            return pl.iter().all(|(n, d)| dot(*n, p) <= d + tol);
         }
         self.prims[i].is_some_and(|pr| pr.sdf(p) <= tol)
     }
@@ -609,15 +610,15 @@ fn candidate_frames(hull: &Mesh, samples: &[[f64; 3]]) -> Vec<Mat3> {
         .iter()
         .filter_map(|f| {
             let [a, b, d] = f.map(|i| hull.vertices[i as usize].map(|x| x as f64));
-            let nrm = crate::sim::plane::cross(&crate::sim::plane::sub(&b, &a), &crate::sim::plane::sub(&d, &a));
-            let l = crate::sim::plane::norm(&nrm);
+            let nrm = cross(sub(b, a), sub(d, a));
+            let l = norm(nrm);
             (l > 0.0).then(|| (l, nrm.map(|x| x / l)))
         })
         .collect();
     faces.sort_by(|a, b| b.0.total_cmp(&a.0));
     let mut normals: Vec<[f64; 3]> = Vec::new();
     for (_, nrm) in faces {
-        if normals.iter().all(|m| crate::sim::plane::dot(m, &nrm).abs() < 0.999) {
+        if normals.iter().all(|m| dot(*m, nrm).abs() < 0.999) {
             normals.push(nrm);
         }
         if normals.len() == 12 {
@@ -626,14 +627,14 @@ fn candidate_frames(hull: &Mesh, samples: &[[f64; 3]]) -> Vec<Mat3> {
     }
     for a in &normals {
         for b in &normals {
-            let d = crate::sim::plane::dot(a, b);
+            let d = dot(*a, *b);
             if d.abs() > 0.3 {
                 continue;
             }
-            let b2 = crate::sim::plane::sub(b, &a.map(|x| x * d));
-            let l = crate::sim::plane::norm(&b2);
+            let b2 = sub(*b, a.map(|x| x * d));
+            let l = norm(b2);
             let b2 = b2.map(|x| x / l);
-            let c3 = crate::sim::plane::cross(a, &b2);
+            let c3 = cross(*a, b2);
             frames.push(std::array::from_fn(|i| [a[i], b2[i], c3[i]]));
         }
     }

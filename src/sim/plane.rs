@@ -4,6 +4,7 @@
 //! defines (gravity −z, plane at z = 0).
 
 use crate::math::Similarity32;
+use crate::math::{cross, dot, norm, sub};
 use crate::rng::SeededRng;
 use crate::{Error, Result};
 use serde::Serialize;
@@ -17,7 +18,7 @@ pub struct Plane {
 
 impl Plane {
     pub fn signed_distance(&self, p: &[f64; 3]) -> f64 {
-        dot(&self.normal, p) + self.offset
+        dot(self.normal, *p) + self.offset
     }
 
     /// The same plane with the normal pointing to the side of `viewpoint`.
@@ -149,14 +150,14 @@ pub fn fit_plane(points: &[[f64; 3]], opts: &PlaneFitOptions) -> Result<PlaneFit
 }
 
 fn plane_through(p: &[[f64; 3]; 3]) -> Option<Plane> {
-    let n = cross(&sub(&p[1], &p[0]), &sub(&p[2], &p[0]));
-    let len = norm(&n);
-    let scale = norm(&sub(&p[1], &p[0])).max(norm(&sub(&p[2], &p[0])));
+    let n = cross(sub(p[1], p[0]), sub(p[2], p[0]));
+    let len = norm(n);
+    let scale = norm(sub(p[1], p[0])).max(norm(sub(p[2], p[0])));
     if !(len > 1e-9 * scale * scale) {
         return None;
     }
     let n = n.map(|x| x / len);
-    Some(Plane { normal: n, offset: -dot(&n, &p[0]) })
+    Some(Plane { normal: n, offset: -dot(n, p[0]) })
 }
 
 /// Total-least-squares plane: through the centroid, normal = eigenvector of
@@ -176,12 +177,12 @@ pub fn least_squares_plane(pts: &[[f64; 3]]) -> Option<Plane> {
     let (i, _) = e.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
     let v = e.eigenvectors.column(i);
     let normal = [v[0], v[1], v[2]];
-    let len = norm(&normal);
+    let len = norm(normal);
     if !(len > 0.0) {
         return None;
     }
     let normal = normal.map(|x| x / len);
-    Some(Plane { normal, offset: -dot(&normal, &c) })
+    Some(Plane { normal, offset: -dot(normal, c) })
 }
 
 /// `T_world←camera` for a support plane given in the camera frame: world z
@@ -198,30 +199,17 @@ pub fn world_from_camera(plane_camera: &Plane) -> Result<Similarity32> {
     // Optical axis t·(0,0,1) meets the plane at t = −offset/n_z when it hits it in front.
     let origin = if n[2] < -0.1 { [0.0, 0.0, -pl.offset / n[2]] } else { n.map(|x| -pl.offset * x) };
     let mut x = [1.0, 0.0, 0.0];
-    let mut xp = sub(&x, &n.map(|v| v * dot(&x, &n)));
-    if norm(&xp) < 0.1 {
+    let mut xp = sub(x, n.map(|v| v * dot(x, n)));
+    if norm(xp) < 0.1 {
         x = [0.0, 0.0, 1.0];
-        xp = sub(&x, &n.map(|v| v * dot(&x, &n)));
+        xp = sub(x, n.map(|v| v * dot(x, n)));
     }
-    let xw = xp.map(|v| v / norm(&xp));
-    let yw = cross(&n, &xw);
+    let xw = xp.map(|v| v / norm(xp));
+    let yw = cross(n, xw);
     // Rows are the world axes in camera coordinates: p_w = R (p_c − origin).
     let r = [xw, yw, n];
-    let t = [0, 1, 2].map(|i| -dot(&r[i], &origin));
+    let t = [0, 1, 2].map(|i| -dot(r[i], origin));
     Similarity32::new(r.map(|row| row.map(|v| v as f32)), t.map(|v| v as f32), 1.0)
-}
-
-pub(crate) fn dot(a: &[f64; 3], b: &[f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-pub(crate) fn sub(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-pub(crate) fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-pub(crate) fn norm(a: &[f64; 3]) -> f64 {
-    dot(a, a).sqrt()
 }
 
 #[cfg(test)]
@@ -234,15 +222,15 @@ mod tests {
         let mut rng = SeededRng::new(seed);
         let n = {
             let v = [0.05, -0.8, -0.6];
-            let l = norm(&v);
+            let l = norm(v);
             v.map(|x| x / l)
         };
         let plane = Plane { normal: n, offset: 0.9 }; // camera 0.9 m above
         let u = {
-            let a = cross(&n, &[1.0, 0.0, 0.0]);
-            a.map(|x| x / norm(&a))
+            let a = cross(n, [1.0, 0.0, 0.0]);
+            a.map(|x| x / norm(a))
         };
-        let w = cross(&n, &u);
+        let w = cross(n, u);
         let foot = n.map(|x| -0.9 * x);
         let at = |a: f64, b: f64, h: f64| [0, 1, 2].map(|k| foot[k] + a * u[k] + b * w[k] + h * n[k]);
         let mut pts = Vec::new();
@@ -273,7 +261,7 @@ mod tests {
         let (truth, pts) = planted(7, 0.002);
         let fit = fit_plane(&pts, &PlaneFitOptions::default()).unwrap();
         let pl = fit.plane.facing(&[0.0; 3]);
-        let angle = dot(&pl.normal, &truth.normal).clamp(-1.0, 1.0).acos().to_degrees();
+        let angle = dot(pl.normal, truth.normal).clamp(-1.0, 1.0).acos().to_degrees();
         assert!(angle < 0.3, "normal off by {angle}°");
         assert!((pl.offset - truth.offset).abs() < 1e-3, "offset {} vs {}", pl.offset, truth.offset);
         // Residual is the noise level (σ = 2 mm; the 1 cm threshold truncates little).

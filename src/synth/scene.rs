@@ -12,7 +12,7 @@
 use crate::synth::objects::{Kind, Object};
 
 use crate::dataset::frame::Intrinsics;
-use crate::math::{axis_angle, Similarity};
+use crate::math::{axis_angle, normalize, Similarity};
 use crate::mesh::primitives::box_mesh;
 use crate::mesh::Mesh;
 use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
@@ -136,11 +136,6 @@ fn random_material(rng: &mut SeededRng) -> Material {
 
 fn random_kind(rng: &mut SeededRng) -> Kind {
     Kind::ALL[(rng.next_u64() % Kind::ALL.len() as u64) as usize]
-}
-
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    [v[0] / n, v[1] / n, v[2] / n]
 }
 
 /// A camera on a sphere around `target` (distance, elevation, azimuth), aimed at the

@@ -13,7 +13,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use serde::Serialize;
 
-use crate::engine::pipeline::{Weights, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput};
+use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
 use crate::model::config::RecGenConfig;
 use crate::model::nn::fast::{self, Compute, Precision};
 use crate::model::sparse::SparseTensor;

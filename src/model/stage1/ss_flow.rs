@@ -13,12 +13,12 @@ use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::pose::PoseRepresentation;
+use crate::model::nn::common::PeMode;
 use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
 use crate::model::sampler::VelocityModel;
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::rng::SeededRng;
-use crate::geometry::pose::PoseRepresentation;
-use crate::model::nn::common::PeMode;
 use crate::{Error, Result};
 
 /// Constructor arguments, named as upstream (`args` of the checkpoint JSON).

@@ -11,17 +11,17 @@
 //! Conv2d(k14, s14) point-map / mask embedders added to the image patch tokens
 //! (see [`SLatFlowModel::build_cond`]).
 
+use crate::geometry::pose::PoseRepresentation;
 use crate::model::nn::common::Linear;
+use crate::model::nn::common::PeMode;
 use crate::model::nn::common::{
     abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder,
 };
+use crate::model::sampler::VelocityModel;
 use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
 use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
-use crate::model::sampler::VelocityModel;
-use crate::geometry::pose::PoseRepresentation;
-use crate::model::nn::common::PeMode;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use candle_nn::VarBuilder;

@@ -6,8 +6,8 @@
 //! ResBlock3d, `blocks.{i}` ResBlock3d / UpsampleBlock3d (`.conv`), then
 //! `out_layer.0` norm, SiLU, `out_layer.2` conv.
 
-use crate::model::nn::dense3d::{pixel_shuffle_3d, pixel_shuffle_3d_fast, ChannelLayerNorm, Conv3d, Volume};
 use crate::model::nn::dense3d::NormType;
+use crate::model::nn::dense3d::{pixel_shuffle_3d, pixel_shuffle_3d_fast, ChannelLayerNorm, Conv3d, Volume};
 use crate::{Error, Result};
 use candle_core::Tensor;
 use candle_nn::VarBuilder;

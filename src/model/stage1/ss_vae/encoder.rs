@@ -15,9 +15,9 @@
 //! encoder is needed for training and for encoding training targets, never
 //! at inference.
 
+use crate::model::nn::dense3d::NormType;
 use crate::model::nn::dense3d::{ChannelLayerNorm, Conv3d};
 use crate::model::stage1::ss_vae::decoder::ResBlock3d;
-use crate::model::nn::dense3d::NormType;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
