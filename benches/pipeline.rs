@@ -6,14 +6,14 @@
 //! image, a disc mask and a sphere-cap pointmap at the DINO input size.
 //! Prints the per-stage seconds, sizes and peak RSS.
 
-use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, Weights};
-use recon::model::nn::fast::Precision;
-use recon::tools::bench::synthetic_view as view;
+use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, Weights};
+use recon::model::Precision;
+use recon::tools::synthetic_view as view;
 use std::path::PathBuf;
 use std::time::Instant;
 
 fn peak_rss_gb() -> f64 {
-    recon::util::memory::peak_rss_mib().map(|m| m / 1024.0).unwrap_or(0.0)
+    recon::util::peak_rss_mib().map(|m| m / 1024.0).unwrap_or(0.0)
 }
 
 fn main() -> recon::Result<()> {

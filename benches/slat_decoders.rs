@@ -11,9 +11,9 @@
 //! through `/proc/self/clear_refs`, so it includes the weights.
 
 use candle_core::{Module, Tensor};
-use recon::model::sparse::SparseTensor;
-use recon::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
-use recon::model::stage2::slat_vae::mesh::{random_var_builder, SLatMeshDecoder};
+use recon::model::SLatGaussianDecoder;
+use recon::model::SparseTensor;
+use recon::model::{random_var_builder, SLatMeshDecoder};
 use std::time::Instant;
 
 const FULL_BLOCKS: usize = 12;
@@ -55,11 +55,11 @@ fn shell_with(n: usize) -> Vec<[i32; 4]> {
 }
 
 fn reset_peak() {
-    recon::util::memory::reset_peak_rss();
+    recon::util::reset_peak_rss();
 }
 
 fn peak_mib() -> f64 {
-    recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+    recon::util::peak_rss_mib().unwrap_or(f64::NAN)
 }
 
 fn args(blocks: usize, mesh: bool) -> serde_json::Value {
@@ -81,10 +81,7 @@ fn args(blocks: usize, mesh: bool) -> serde_json::Value {
 }
 
 /// Seconds of the trunk's input layer and of each block (from tap timestamps).
-fn trunk_times(
-    trunk: &recon::model::stage2::slat_vae::trunk::SparseTransformerBase,
-    x: &SparseTensor,
-) -> recon::Result<(Tensor, f64, Vec<f64>)> {
+fn trunk_times(trunk: &recon::model::SparseTransformerBase, x: &SparseTensor) -> recon::Result<(Tensor, f64, Vec<f64>)> {
     let t0 = Instant::now();
     let mut stamps = Vec::new();
     let h = trunk.forward_with(x, &mut |_, _| stamps.push(t0.elapsed().as_secs_f64()))?;
@@ -126,7 +123,7 @@ fn main() -> recon::Result<()> {
             let t0 = Instant::now();
             let (h, t_in, tb) = trunk_times(&dec.trunk, &x)?;
             let t1 = Instant::now();
-            let h = recon::model::nn::common::layer_norm_plain(&h, 1e-5)?;
+            let h = recon::model::layer_norm_plain(&h, 1e-5)?;
             let feats = dec.out_layer_forward(&h)?;
             let reps = dec.to_representation(&x, &feats)?;
             let g = reps[0].to_gaussians()?;

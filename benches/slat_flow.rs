@@ -12,8 +12,8 @@
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use recon::model::sparse::SparseTensor;
-use recon::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use recon::model::SparseTensor;
+use recon::model::{SLatFlowConfig, SLatFlowModel};
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -64,17 +64,17 @@ fn ball(target: usize) -> Vec<[i32; 4]> {
 }
 
 fn vm_hwm_mib() -> f64 {
-    recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+    recon::util::peak_rss_mib().unwrap_or(f64::NAN)
 }
 
 fn reset_hwm() {
-    recon::util::memory::reset_peak_rss();
+    recon::util::reset_peak_rss();
 }
 
 fn time_forward(model: &SLatFlowModel, coords: &[[i32; 4]], cond: &Tensor) -> candle_core::Result<(f64, usize, f64)> {
     let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
     let x = SparseTensor::new(coords.to_vec(), feats, 1).map_err(candle_core::Error::wrap)?;
-    let tokens = recon::model::sparse::sparse_downsample(&x, 2).map_err(candle_core::Error::wrap)?.0.len();
+    let tokens = recon::model::sparse_downsample(&x, 2).map_err(candle_core::Error::wrap)?.0.len();
     let t = Tensor::new(&[500f32], &Device::Cpu)?;
     reset_hwm();
     let start = Instant::now();

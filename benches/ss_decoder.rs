@@ -5,7 +5,7 @@
 use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
-use recon::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder, SparseStructureDecoderConfig};
+use recon::model::{occupied_coords, SparseStructureDecoder, SparseStructureDecoderConfig};
 use std::time::Instant;
 
 /// Hands out deterministic random tensors of whatever shape is asked for, so
@@ -48,7 +48,7 @@ impl SimpleBackend for RandomWeights {
 }
 
 fn vm_hwm_mib() -> Option<f64> {
-    recon::util::memory::peak_rss_mib()
+    recon::util::peak_rss_mib()
 }
 
 fn main() -> recon::Result<()> {

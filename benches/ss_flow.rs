@@ -23,8 +23,8 @@ use std::time::Instant;
 use candle_core::{DType, Device, Shape, Tensor};
 use candle_nn::var_builder::SimpleBackend;
 use candle_nn::VarBuilder;
-use recon::model::config::RecGenConfig;
-use recon::model::stage1::ss_flow::SparseStructureFlowModel;
+use recon::model::RecGenConfig;
+use recon::model::SparseStructureFlowModel;
 use recon::rng::SeededRng;
 
 /// Deterministic uniform weights (std 0.02; norm scales 1 ± small). Nothing
@@ -61,7 +61,7 @@ impl SimpleBackend for RandomWeights {
 }
 
 fn vm_hwm_kib() -> Option<u64> {
-    recon::util::memory::peak_rss_mib().map(|m| (m * 1024.0) as u64)
+    recon::util::peak_rss_mib().map(|m| (m * 1024.0) as u64)
 }
 
 fn main() -> recon::Result<()> {
@@ -75,11 +75,11 @@ fn main() -> recon::Result<()> {
     let t0 = Instant::now();
     let vb = VarBuilder::from_backend(Box::new(RandomWeights), DType::F32, dev.clone());
     let compute = match std::env::var("BENCH_DTYPE") {
-        Ok(v) => recon::model::nn::fast::Compute::fast(v.parse().map_err(recon::Error::msg)?),
-        Err(_) => recon::model::nn::fast::Compute::Plain,
+        Ok(v) => recon::model::Compute::fast(v.parse().map_err(recon::Error::msg)?),
+        Err(_) => recon::model::Compute::Plain,
     };
     println!("compute: {}", compute.describe());
-    let model = recon::model::nn::fast::build_with(compute, || SparseStructureFlowModel::new(&cfg, vb))?;
+    let model = recon::model::build_with(compute, || SparseStructureFlowModel::new(&cfg, vb))?;
     let build_s = t0.elapsed().as_secs_f64();
     let hwm_weights = vm_hwm_kib().unwrap_or(0);
 

@@ -31,7 +31,7 @@ fn main() -> recon::Result<()> {
     }
     let per = t0.elapsed().as_secs_f64() / reps as f64;
     println!("render: {per:.3} s per 640×480 view ({} units), {:.2} Mpixel/s", units.len(), 640.0 * 480.0 / per / 1e6);
-    if let Some(m) = recon::util::memory::peak_rss_mib() {
+    if let Some(m) = recon::util::peak_rss_mib() {
         println!("peak RSS {m:.0} MiB");
     }
     Ok(())

@@ -13,20 +13,20 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use candle_nn::ParamsAdamW;
-use recon::geometry::pose::PoseStats;
-use recon::geometry::voxelize::Fill;
-use recon::model::config::RecGenConfig;
-use recon::model::stage1::ss_vae::encoder::ReconLoss;
+use recon::geometry::Fill;
+use recon::geometry::PoseStats;
+use recon::model::RecGenConfig;
+use recon::model::ReconLoss;
 use recon::rng::SeededRng;
-use recon::train::data::{pose_stats_json, scan};
-use recon::train::flow::FlowMatching;
-use recon::train::objective::{FlowObjective, Objective, VaeObjective};
-use recon::train::optim::{clip_grad_norm, AdamW};
-use recon::train::params::ModuleParams;
-use recon::train::toy::{ToyConfig, ToySource};
-use recon::weights::registry::{self, ModuleConfig};
+use recon::train::FlowMatching;
+use recon::train::ModuleParams;
+use recon::train::{clip_grad_norm, AdamW};
+use recon::train::{pose_stats_json, scan};
+use recon::train::{FlowObjective, Objective, VaeObjective};
+use recon::train::{ToyConfig, ToySource};
+use recon::weights::ModuleConfig;
 
-fn cfg(s: &recon::model::config::ModuleSpec) -> ModuleConfig {
+fn cfg(s: &recon::model::ModuleSpec) -> ModuleConfig {
     ModuleConfig { name: s.name.clone(), args: s.args.clone() }
 }
 
@@ -79,7 +79,7 @@ fn main() {
         modules.push(("ss_encoder (train)", cfg(e)));
     }
     for (key, c) in &modules {
-        let n: usize = registry::expected_tensors(c, key).unwrap().iter().map(|s| s.shape.iter().product::<usize>()).sum();
+        let n: usize = recon::weights::expected_tensors(c, key).unwrap().iter().map(|s| s.shape.iter().product::<usize>()).sum();
         if !key.contains("train") {
             shipped += n;
         }
@@ -94,26 +94,26 @@ fn main() {
         ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true }).unwrap();
     let enc_cfg = cfg(arch.ss_encoder.as_ref().expect("the architecture needs an ss_encoder section"));
     if only != Some("flow") {
-        recon::util::memory::reset_peak_rss();
+        recon::util::reset_peak_rss();
         let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
         let dec = ModuleParams::init("ss_decoder", &cfg(&arch.ss_decoder), 2).unwrap();
-        let f = recon::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
+        let f = recon::model::SparseStructureEncoderConfig::from_json(&enc_cfg.args).unwrap().downsample_factor();
         let res = arch.ss_flow_config().unwrap().resolution * f;
         let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3).unwrap();
         let (tf, tb, tu) = time_steps(&vae, batch, steps);
         println!(
             "ss-vae  ({res}³): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB",
             tf + tb + tu,
-            recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+            recon::util::peak_rss_mib().unwrap_or(f64::NAN)
         );
     }
     if only == Some("vae") {
         return;
     }
 
-    recon::util::memory::reset_peak_rss();
+    recon::util::reset_peak_rss();
     let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
-    let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder").unwrap();
+    let encoder = recon::weights::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder").unwrap();
     let sc = scan(&src).unwrap();
     let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy").unwrap(), "toy").unwrap();
     let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 3).unwrap();
@@ -125,7 +125,7 @@ fn main() {
         println!(
             "ss-flow ({label}): data+forward {tf:.3} s, backward {tb:.3} s, update {tu:.3} s → {:.3} s/step; peak RSS {:.0} MiB",
             tf + tb + tu,
-            recon::util::memory::peak_rss_mib().unwrap_or(f64::NAN)
+            recon::util::peak_rss_mib().unwrap_or(f64::NAN)
         );
     }
 }

@@ -2,8 +2,8 @@
 //! 518×518 image: `cargo run --release --example dinov2_bench [-- N]`.
 
 use candle_core::{Device, Tensor};
-use recon::model::stage1::dinov2::{recgen_cond, Dinov2, Dinov2Config};
-use recon::weights::record::RandomInit;
+use recon::model::{recgen_cond, Dinov2, Dinov2Config};
+use recon::weights::RandomInit;
 
 fn main() -> anyhow::Result<()> {
     let runs: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(2);

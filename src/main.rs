@@ -45,7 +45,7 @@ enum Cmd {
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     let ok = match cli.cmd {
-        Cmd::Conformance { dirs } => recon::tools::conformance::run_dirs(&dirs, &mut std::io::stdout())?,
+        Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Eval(a) => cli::eval::run(a)?,
         Cmd::Infer(a) => cli::infer::run(a)?,

@@ -6,9 +6,9 @@
 //!
 //! `AUDIT_PLANTED_SEEDS=a..b cargo test --release --test audit_planted -- --ignored sweep`
 //! runs the same checks over a range of seeds and prints the success rate.
-use recon::audit::depth::{collect, residual_table, DepthOptions};
-use recon::audit::search::SearchOptions;
+use recon::audit::SearchOptions;
 use recon::audit::{audit_depth, write_outputs, Audit};
+use recon::audit::{collect, residual_table, DepthOptions};
 use recon::rng::SeededRng;
 use recon::sensor::{Covariate, Effect, Form, SensorModel, Target};
 use recon::synth::{generate, SynthOptions};
@@ -133,7 +133,7 @@ fn tmp(tag: &str) -> PathBuf {
 }
 
 /// Generates the dataset through `truth`, audits it against `audited`.
-fn audit(truth: &SensorModel, audited: &SensorModel, seed: u64, tag: &str) -> (Audit, recon::audit::table::ResidualTable, PathBuf) {
+fn audit(truth: &SensorModel, audited: &SensorModel, seed: u64, tag: &str) -> (Audit, recon::audit::ResidualTable, PathBuf) {
     let dir = tmp(tag);
     let data = dir.join("data");
     let opts = SynthOptions { scenes: SCENES, views: VIEWS, seed, width: W, height: H, parts: false, sensor: truth.clone() };
@@ -156,7 +156,7 @@ fn truth_with(p: &Planted) -> SensorModel {
 }
 
 /// Checks one planted effect; returns Err(reason) instead of panicking (for the sweep).
-fn check(p: &Planted, a: &Audit, table: &recon::audit::table::ResidualTable) -> Result<(), String> {
+fn check(p: &Planted, a: &Audit, table: &recon::audit::ResidualTable) -> Result<(), String> {
     let r = &a.report;
     let f = r.findings.first().ok_or_else(|| format!("no finding; rounds {:?}", r.rounds.first().map(|x| &x["top"])))?;
     let want = (p.effect.target.name(), p.effect.covariate.name(), p.effect.form.name());

@@ -6,9 +6,9 @@
 //! `BOP_TOOLKIT_PATH` may name a folder to put on PYTHONPATH (a checkout or a
 //! `pip install --target` folder); .ci/run installs the toolkit.
 
-use recon::eval::metrics::{add, add_s};
+use recon::eval::{add, add_s};
 use recon::math::{axis_angle, Similarity};
-use recon::mesh::trimesh::TriMesh;
+use recon::mesh::TriMesh;
 use recon::rng::SeededRng;
 use recon::spatial::P3;
 use std::path::PathBuf;

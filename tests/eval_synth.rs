@@ -2,10 +2,10 @@
 //! write, re-read, score. Also checks the visibility estimator of YCB-Video against the
 //! exact `visib_fract` the synthesiser writes.
 
-use recon::dataset::bop::load_dataset;
-use recon::dataset::visibility::{surface_patches, visible_fraction};
-use recon::eval::baseline::{observe_dataset, ObservedOptions};
-use recon::eval::report::{evaluate, read_predictions, EvalOptions};
+use recon::dataset::load_dataset;
+use recon::dataset::{surface_patches, visible_fraction};
+use recon::eval::{evaluate, read_predictions, EvalOptions};
+use recon::eval::{observe_dataset, ObservedOptions};
 use recon::math::Similarity;
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions};

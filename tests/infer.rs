@@ -1,11 +1,11 @@
 //! `recon infer` library path on the shipped YCB-Video sample: real frame,
 //! real masks, random tiny weights.
-use recon::dataset::frame::{FrameOptions, RgbdFrame};
-use recon::dataset::masks::{InstanceMap, SkipReason};
-use recon::engine::infer::{Engine, InferOptions};
-use recon::engine::output::{write_outputs, MARKER};
-use recon::engine::pipeline::LoadOptions;
-use recon::engine::source::ModelSource;
+use recon::dataset::{FrameOptions, RgbdFrame};
+use recon::dataset::{InstanceMap, SkipReason};
+use recon::engine::LoadOptions;
+use recon::engine::ModelSource;
+use recon::engine::{write_outputs, MARKER};
+use recon::engine::{Engine, InferOptions};
 use std::path::PathBuf;
 
 fn root() -> PathBuf {
@@ -80,7 +80,7 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
     let engine =
         Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
-    let mut opts = InferOptions { samples, select: recon::engine::pose_fit::SelectMethod::Cross, ..Default::default() };
+    let mut opts = InferOptions { samples, select: recon::engine::SelectMethod::Cross, ..Default::default() };
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
     opts.run.decode_mesh = false;
@@ -95,9 +95,9 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
 /// to keep the test fast: the Gaussian centres are scored instead.
 #[test]
 fn two_views_and_samples_select_consistently() {
-    use recon::engine::infer::{RigidTransform, SecondView};
-    use recon::engine::pose_fit::{pose_spread, select_best, SelectMethod};
-    use recon::geometry::pose::pose_to_similarity;
+    use recon::engine::{pose_spread, select_best, SelectMethod};
+    use recon::engine::{RigidTransform, SecondView};
+    use recon::geometry::pose_to_similarity;
     use recon::math::axis_angle;
     let (frame, map, engine, opts) = one_step_sample_setup(2);
     let t = RigidTransform { rotation: axis_angle([0.0, 1.0, 0.0], 0.3), translation: [0.1, 0.0, 0.05], scale: 1.0 };
@@ -112,7 +112,7 @@ fn two_views_and_samples_select_consistently() {
     let o = &r.objects[0];
     assert_eq!((o.views.len(), o.candidates.len(), o.samples), (2, 4, 2));
     assert!(o.mesh_camera.is_none() && o.gaussians_camera.as_ref().is_some_and(|g| !g.is_empty()));
-    let close = |a: &recon::geometry::pose::Pose, b: &recon::geometry::pose::Pose| {
+    let close = |a: &recon::geometry::Pose, b: &recon::geometry::Pose| {
         let d = (0..3).map(|i| (a.translation[i] - b.translation[i]).abs()).fold(0f32, f32::max)
             + (0..3)
                 .flat_map(|i| (0..3).map(move |j| (i, j)))
@@ -130,11 +130,11 @@ fn two_views_and_samples_select_consistently() {
     close(&o.pose_camera, &best.pose_camera);
     // Per-view poses: view 1 is the anchor; view 2 sees the pose through T⁻¹.
     close(&o.views[0].pose_selected, &o.pose_camera);
-    let in2 = recon::geometry::pose::similarity_to_pose(&t.inverse().compose(&pose_to_similarity(&o.pose_camera)));
+    let in2 = recon::geometry::similarity_to_pose(&t.inverse().compose(&pose_to_similarity(&o.pose_camera)));
     close(&o.views[1].pose_selected, &in2);
     // The selected sample's view-2 token, mapped with T, is its view-2 candidate.
     let c2 = o.candidates.iter().find(|c| c.seed == o.selection.seed && c.view == 2).unwrap();
-    close(&recon::geometry::pose::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token))), &c2.pose_camera);
+    close(&recon::geometry::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token))), &c2.pose_camera);
     // Both views' observed points are in the anchor frame.
     assert_eq!(o.observed_points.len(), o.views[0].observed_points + o.views[1].observed_points);
     assert_eq!(o.observed_colors.len(), o.observed_points.len());
@@ -167,7 +167,7 @@ fn two_views_and_samples_select_consistently() {
 /// deterministic, and the reported score includes the free-space term.
 #[test]
 fn depth_pose_fit_refines_scale_and_position_only() {
-    use recon::engine::pose_fit::AlignOptions;
+    use recon::engine::AlignOptions;
     let (frame, map, engine, opts) = one_step_sample_setup(1);
     let run = |align: AlignOptions| {
         let (o1, _) = map.objects(Some(&[8]));
@@ -184,8 +184,8 @@ fn depth_pose_fit_refines_scale_and_position_only() {
 
 #[test]
 fn objects_of_two_views_pair_by_id_or_order() {
-    use recon::dataset::masks::ObjectMask;
-    use recon::engine::infer::match_views;
+    use recon::dataset::ObjectMask;
+    use recon::engine::match_views;
     let m = |id: Option<u32>, label: &str| ObjectMask { id, label: label.into(), width: 1, height: 1, mask: vec![true] };
     let (pairs, notes) = match_views(vec![m(Some(3), "a"), m(Some(5), "b")], vec![m(Some(5), "c"), m(Some(9), "d")]).unwrap();
     assert_eq!(pairs.len(), 2);
@@ -263,7 +263,7 @@ fn shipped_recgen_nano_is_trained_and_loads() {
     let mut bytes = 0u64;
     for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
         let p = dir.join(format!("{key}.safetensors"));
-        assert!(!recon::weights::init::is_random_init(&p).unwrap(), "{key} is labelled random");
+        assert!(!recon::weights::is_random_init(&p).unwrap(), "{key} is labelled random");
         bytes += std::fs::metadata(&p).unwrap().len();
     }
     assert!(bytes <= 30 << 20, "{bytes} bytes of weights");

@@ -4,9 +4,7 @@
 //! determinism; two-view conditioning; loading the same weights from files.
 
 use candle_core::{Device, Tensor};
-use recon::engine::pipeline::{
-    LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource,
-};
+use recon::engine::{LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
 use std::path::{Path, PathBuf};
@@ -34,7 +32,7 @@ fn view(s: usize, seed: u64, shift: f32) -> ViewInput {
     let waves: Vec<[f32; 4]> =
         (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
     let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);
-    recon::tools::bench::disc_view(s, shift, |u, v, ch| {
+    recon::tools::disc_view(s, shift, |u, v, ch| {
         let val: f32 =
             waves.iter().enumerate().map(|(i, w)| 0.25 * (w[0] * u + w[1] * v + w[2] + (i + ch) as f32).sin() * w[3]).sum::<f32>() + 0.5;
         (val.clamp(0.0, 1.0) - mean[ch]) / std[ch]
@@ -143,7 +141,7 @@ fn tiny_pipeline_end_to_end() {
     save_glb(mesh, &glb, &GlbOptions::default()).unwrap();
     check_glb(&glb, mesh.vertices.len(), mesh.faces.len());
     let ply = dir.join("object_splat.ply");
-    recon::export::splat::save_splat_ply(out.gaussians.as_ref().unwrap(), &ply, Axes::YUp).unwrap();
+    recon::export::save_splat_ply(out.gaussians.as_ref().unwrap(), &ply, Axes::YUp).unwrap();
     check_splat_ply(&ply, out.gaussians.as_ref().unwrap().len());
     let _ = std::fs::remove_dir_all(&dir);
 
@@ -176,14 +174,14 @@ fn tiny_pipeline_end_to_end() {
 fn load_from_initialised_files() {
     let dir = tmp("load");
     // `recon weights init --config <architecture>` goes through write_random_init.
-    assert_eq!(recon::weights::init::write_random_init(&tiny(), &dir, 5).unwrap(), dir);
+    assert_eq!(recon::weights::write_random_init(&tiny(), &dir, 5).unwrap(), dir);
     let files: Vec<PathBuf> = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"]
         .iter()
         .map(|k| dir.join(format!("{k}.safetensors")))
         .collect();
     assert!(dir.join("stereo_pose_stats.example.json").exists() && dir.join("slat_pose_stats.example.json").exists());
     for f in &files {
-        assert!(recon::weights::init::is_random_init(f).unwrap());
+        assert!(recon::weights::is_random_init(f).unwrap());
     }
     let cfg = dir.join("recgen-tiny.json");
     // Stage 1 only keeps this test short; stage 2 loads through the same code.
@@ -218,8 +216,8 @@ fn load_from_initialised_files() {
 /// peak memory of each stage is reported.
 #[test]
 fn load_options_precision_and_per_stage() {
-    use recon::engine::pipeline::LoadOptions;
-    use recon::model::nn::fast::{Compute, Precision};
+    use recon::engine::LoadOptions;
+    use recon::model::{Compute, Precision};
     let staged_opts = LoadOptions { per_stage: true, ..Default::default() };
     let resident = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &LoadOptions::default()).unwrap();
     let staged = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &staged_opts).unwrap();

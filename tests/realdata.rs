@@ -9,12 +9,12 @@
 
 use std::path::{Path, PathBuf};
 
-use recon::dataset::frame::{FrameOptions, RgbdFrame};
-use recon::dataset::masks::{validate_objects, InstanceMap, MaskOptions};
-use recon::dataset::matv5::MatFile;
-use recon::geometry::camera_pose::{canonical_to_camera, pose_to_camera, pose_to_normalised};
-use recon::geometry::pointmap::{object_points, prepare_object, Normaliser};
-use recon::geometry::pose::{Pose, PoseStats};
+use recon::dataset::MatFile;
+use recon::dataset::{validate_objects, InstanceMap, MaskOptions};
+use recon::dataset::{FrameOptions, RgbdFrame};
+use recon::geometry::{canonical_to_camera, pose_to_camera, pose_to_normalised};
+use recon::geometry::{object_points, prepare_object, Normaliser};
+use recon::geometry::{Pose, PoseStats};
 use recon::math::Similarity32;
 
 fn realdata() -> Option<PathBuf> {
@@ -329,7 +329,7 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
 /// object of the label map is prepared.
 #[test]
 fn sample_frame_objects_prepare_with_recgen_invariants() {
-    use recon::geometry::pointmap::{prepare_frame_objects, PrepareOptions};
+    use recon::geometry::{prepare_frame_objects, PrepareOptions};
     let dir = repo().join("data/sample");
     let frame = RgbdFrame::open(&dir.join("000001-color.png"), &FrameOptions::default()).unwrap();
     let (objs, skips) = InstanceMap::open(&dir.join("000001-label.png")).unwrap().objects(None);
@@ -681,9 +681,9 @@ fn infer_cli_two_view_ycb_video() {
 /// the GT relative pose); a pose 1 cm / 5° off must score clearly worse.
 #[test]
 fn alignment_scores_gt_meshes_on_real_depth() {
-    use recon::dataset::ply::read_ply;
-    use recon::engine::pose_fit::{score_candidate, AlignOptions, Surface, ViewPoints};
-    use recon::geometry::pose::pose_to_similarity;
+    use recon::dataset::read_ply;
+    use recon::engine::{score_candidate, AlignOptions, Surface, ViewPoints};
+    use recon::geometry::pose_to_similarity;
     use recon::math::{axis_angle, Similarity as Sim64};
     let Some(root) = realdata() else { return };
     let ycb = root.join("ycbv_video_oprb");

@@ -5,10 +5,10 @@
 //! Python-backed checks skip with a printed reason when python3 or the
 //! package is missing, unless RECON_REQUIRE_PYTHON_TESTS=1 (CI), where they fail.
 
-use recon::export::ply::{save_mesh_ply, PlyOptions};
+use recon::export::{save_mesh_ply, PlyOptions};
 use recon::mesh::Mesh;
-use recon::sim::materials::MaterialTable;
-use recon::sim::scene_file::SceneFile;
+use recon::sim::MaterialTable;
+use recon::sim::SceneFile;
 use recon::sim::{build_scene, write_outputs, SceneOptions, MARKER};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -215,7 +215,7 @@ fn overlapping_objects_depenetrate_and_output_is_deterministic() {
     let table = MaterialTable::builtin();
     let s = SceneFile::load(&scene).unwrap();
     let mut opts = SceneOptions::default();
-    opts.collision = recon::sim::collision::CollisionMethod::Primitive;
+    opts.collision = recon::sim::CollisionMethod::Primitive;
     let run = |out: &Path| {
         let mut sim = build_scene(&s, &table, &opts, "scene.json").unwrap();
         write_outputs(&mut sim, out).unwrap();
@@ -300,7 +300,7 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
     // A recon infer folder without --frame says what is missing.
     let infer = dir.join("infer");
     std::fs::create_dir_all(&infer).unwrap();
-    std::fs::write(infer.join(recon::engine::output::MARKER), "{\"objects\": []}").unwrap();
+    std::fs::write(infer.join(recon::engine::MARKER), "{\"objects\": []}").unwrap();
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["scene", "--input", infer.to_str().unwrap(), "--out", dir.join("o2").to_str().unwrap()])
         .output()
@@ -312,11 +312,11 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
 
 #[test]
 fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
-    use recon::dataset::frame::{FrameOptions, RgbdFrame};
-    use recon::sim::plane::PlaneFitOptions;
+    use recon::dataset::{FrameOptions, RgbdFrame};
+    use recon::sim::PlaneFitOptions;
     let color = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sample/000001-color.png");
     let frame = RgbdFrame::open(&color, &FrameOptions::default()).unwrap();
-    let (fit, world, _) = recon::sim::inputs::support_plane_from_frame(&frame, &PlaneFitOptions::default()).unwrap();
+    let (fit, world, _) = recon::sim::support_plane_from_frame(&frame, &PlaneFitOptions::default()).unwrap();
     println!("YCB-Video sample: table plane rms {:.2} mm over {} inliers", fit.rms_residual_m * 1e3, fit.inliers);
     // camera ← world
     let r = world.rotation;
@@ -344,7 +344,7 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
         entries.push(serde_json::json!({"object": label, "pose": format!("elsewhere/{label}/pose.json"), "mesh_ply": format!("elsewhere/{label}/mesh.ply")}));
     }
     entries.push(serde_json::json!({"object": "no_mesh", "pose": "elsewhere/no_mesh/pose.json", "mesh_ply": null}));
-    std::fs::write(infer.join(recon::engine::output::MARKER), serde_json::json!({"objects": entries, "skipped": []}).to_string()).unwrap();
+    std::fs::write(infer.join(recon::engine::MARKER), serde_json::json!({"objects": entries, "skipped": []}).to_string()).unwrap();
     let out = dir.join("scene");
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["scene", "--input", infer.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "primitive"])

@@ -5,10 +5,10 @@
 //! (python checks skip when the packages are missing, unless
 //! RECON_REQUIRE_PYTHON_TESTS=1).
 
-use recon::sim::materials::MaterialTable;
-use recon::sim::plane::PlaneFitOptions;
-use recon::sim::scene_file::SceneFile;
-use recon::sim::settle::{body_distance, Body};
+use recon::sim::MaterialTable;
+use recon::sim::PlaneFitOptions;
+use recon::sim::SceneFile;
+use recon::sim::{body_distance, Body};
 use recon::sim::{build_scene, SceneOptions, MARKER};
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -82,7 +82,7 @@ fn synth_scene_settles_at_gt_and_depenetrates_when_perturbed() {
     // 2. Perturbed: every object 3 mm into the table, and the closest pair
     // pushed 5 mm into each other (measured on their collision geometry).
     let table = MaterialTable::builtin();
-    let (mut scene, _) = recon::sim::inputs::scene_from_bop(&scene_dir, None, &table, &PlaneFitOptions::default()).unwrap();
+    let (mut scene, _) = recon::sim::scene_from_bop(&scene_dir, None, &table, &PlaneFitOptions::default()).unwrap();
     let mut opts = SceneOptions::default();
     opts.collision_opts.vhacd.resolution = 32;
     opts.collision_opts.vhacd.max_convex_hulls = 8;

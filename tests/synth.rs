@@ -5,7 +5,7 @@
 use parry3d::math::Vector;
 use parry3d::query::PointQuery;
 use parry3d::shape::TriMesh as ParryMesh;
-use recon::dataset::bop::load_dataset;
+use recon::dataset::load_dataset;
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions, MARKER};
 use serde_json::Value;
@@ -254,9 +254,9 @@ fn cli_writes_a_dataset_and_reports_bad_sensor_files() {
 /// by the GT poses, must render where the Xtion saw them and at the depth it measured.
 #[test]
 fn renders_real_ycbv_objects_where_the_camera_saw_them() {
-    use recon::dataset::bop::load_ycbv;
-    use recon::dataset::frame::Intrinsics;
-    use recon::dataset::ply::read_ply;
+    use recon::dataset::load_ycbv;
+    use recon::dataset::read_ply;
+    use recon::dataset::Intrinsics;
     use recon::math::Similarity;
     use recon::render::render;
     use recon::synth::{Camera, Instance, RenderMesh, RenderOptions};

@@ -8,12 +8,12 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use recon::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
-use recon::engine::source::ModelSource;
-use recon::train::bop::{BopOptions, BopSource};
-use recon::train::data::{canonical_frame, prepare_train_view, TrainingSource};
-use recon::train::run::{run, Resume, Stage, TrainOptions};
-use recon::train::toy::{micro_architecture, ToyConfig, ToySource};
+use recon::engine::ModelSource;
+use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
+use recon::train::{canonical_frame, prepare_train_view, TrainingSource};
+use recon::train::{micro_architecture, ToyConfig, ToySource};
+use recon::train::{run, Resume, Stage, TrainOptions};
+use recon::train::{BopOptions, BopSource};
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -63,7 +63,7 @@ fn smoke_training_reduces_loss_and_output_runs_stage1() {
     let src = toy(true);
     let vae = run(&src, &{
         let mut o = opts(Stage::SsVae, &dir, "vae", 40, 3e-3);
-        o.recon_loss = recon::model::stage1::ss_vae::encoder::ReconLoss::Bce;
+        o.recon_loss = recon::model::ReconLoss::Bce;
         o
     })
     .unwrap();
@@ -86,7 +86,7 @@ fn smoke_training_reduces_loss_and_output_runs_stage1() {
     // the architecture copy reading the training-set pose stats.
     let out = dir.join("flow");
     for key in ["image_cond_model", "ss_flow", "ss_decoder"] {
-        assert!(!recon::weights::init::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap());
+        assert!(!recon::weights::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap());
     }
     let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     assert!(!p.weights().is_random());
@@ -122,13 +122,13 @@ fn slat_autoencoder_smoke_training_reduces_loss() {
     for term in ["\"sdf\"", "\"color\"", "\"gs_xyz\"", "\"sign_acc\""] {
         assert!(log.contains(term), "{term} missing from the log");
     }
-    let arch = recon::model::config::RecGenConfig::load(&dir.join("recgen-micro.json")).unwrap();
+    let arch = recon::model::RecGenConfig::load(&dir.join("recgen-micro.json")).unwrap();
     for (key, spec) in
         [("slat_dec_mesh", &arch.slat_dec_mesh), ("slat_dec_gs", &arch.slat_dec_gs), ("slat_encoder", arch.slat_encoder.as_ref().unwrap())]
     {
         let t = tensors(&dir.join(format!("slat/{key}.safetensors")));
-        let cfg = recon::weights::registry::ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-        let want = recon::weights::registry::expected_tensors(&cfg, key).unwrap();
+        let cfg = recon::weights::ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
+        let want = recon::weights::expected_tensors(&cfg, key).unwrap();
         assert_eq!(t.len(), want.len(), "{key}");
         assert!(want.iter().all(|s| t.get(&s.name).is_some_and(|v| v.len() == s.shape.iter().product::<usize>())), "{key}");
     }
@@ -165,24 +165,24 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     assert_eq!(std.len(), 8);
     assert!(std.iter().all(|s| s.is_finite() && *s > 0.0), "{std:?}");
     for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
-        assert!(!recon::weights::init::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap(), "{key}");
+        assert!(!recon::weights::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap(), "{key}");
     }
     let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::All, &LoadOptions::default()).unwrap();
     assert!(!p.weights().is_random());
     // `recon eval --method recgen`'s predictor runs the folder on a BOP dataset: every GT
     // instance is either predicted (a camera-frame mesh) or skipped with a reason.
     write_toy_bop(&src, &dir.join("data"));
-    let ds = recon::dataset::bop::load_dataset(&dir.join("data/train")).unwrap();
-    let engine = recon::engine::infer::Engine::load(
+    let ds = recon::dataset::load_dataset(&dir.join("data/train")).unwrap();
+    let engine = recon::engine::Engine::load(
         &ModelSource::Dir { dir: out.clone(), config: Some(out.join("recgen-micro.json")) },
         &LoadOptions::default(),
     )
     .unwrap();
-    let mut io = recon::engine::infer::InferOptions { max_faces: Some(2000), ..Default::default() };
+    let mut io = recon::engine::InferOptions { max_faces: Some(2000), ..Default::default() };
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);
     let n_gt: usize = ds.frames.iter().map(|f| f.gt.len()).sum();
-    let er = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, false, None, &|_, _| {}).unwrap();
+    let er = recon::eval::recgen_dataset(&ds, &engine, &io, false, None, &|_, _| {}).unwrap();
     eprintln!("recgen eval: {} predicted, {} skipped of {n_gt}", er.predictions.len(), er.skipped.len());
     assert_eq!(er.predictions.len() + er.skipped.len(), n_gt);
     assert!(er.predictions.iter().all(|p| !p.prediction.model_frame && !p.mesh.faces.is_empty()));

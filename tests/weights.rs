@@ -4,11 +4,11 @@
 //! tests/fixtures/weights/make_pt.py), manifest verification and offline fetch.
 
 use candle_core::{DType, Device, Tensor};
-use recon::model::stage1::dinov2::{Dinov2, Dinov2Config};
-use recon::weights::load::{mmaped_safetensors_vb, Checkpoint};
-use recon::weights::manifest::Manifest;
-use recon::weights::registry::{expected_tensors, ModuleConfig};
-use recon::weights::{init, validate_checkpoint, verify};
+use recon::model::{Dinov2, Dinov2Config};
+use recon::weights::Manifest;
+use recon::weights::{expected_tensors, ModuleConfig};
+use recon::weights::{is_random_init, print_table, validate_checkpoint, verify_dir, write_random_init};
+use recon::weights::{mmaped_safetensors_vb, Checkpoint};
 use recon::Error;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -32,7 +32,7 @@ fn tiny_cfg() -> (ModuleConfig, Vec<recon::weights::TensorSpec>) {
 
 /// Random-init tiny DINOv2 weights in `dir`; returns (path, tensors).
 fn make_init(dir: &Path, seed: u64) -> (PathBuf, HashMap<String, Tensor>) {
-    let p = init::write_random_init(&root().join("models/dinov2_tiny.json"), dir, seed).unwrap();
+    let p = write_random_init(&root().join("models/dinov2_tiny.json"), dir, seed).unwrap();
     let t = candle_core::safetensors::load(&p, &Device::Cpu).unwrap();
     (p, t)
 }
@@ -53,7 +53,7 @@ fn forward(vb: candle_nn::VarBuilder) -> Tensor {
 fn random_init_is_labelled_deterministic_and_valid() {
     let d = tmp("init");
     let (p, t) = make_init(&d, 3);
-    assert!(init::is_random_init(&p).unwrap());
+    assert!(is_random_init(&p).unwrap());
     let (_, specs) = tiny_cfg();
     assert_eq!(t.len(), specs.len());
     let ck = Checkpoint::open(&p, None).unwrap();
@@ -68,7 +68,7 @@ fn random_init_is_labelled_deterministic_and_valid() {
     // A trained-looking file is not labelled.
     let plain = d.join("plain.safetensors");
     save(&t, &plain);
-    assert!(!init::is_random_init(&plain).unwrap());
+    assert!(!is_random_init(&plain).unwrap());
     // The config copy next to the weights builds the same module.
     assert!(d.join("dinov2_tiny.json").exists());
     // One-call validated load.
@@ -205,12 +205,12 @@ fn verify_table_on_a_directory() {
             serde_json::from_value(serde_json::json!({"path": "absent.safetensors", "kind": "safetensors", "tensors_note": "x"})).unwrap(),
         ],
     };
-    let rows = verify::verify_dir(&m, &d).unwrap();
+    let rows = verify_dir(&m, &d).unwrap();
     assert!(rows[0].ok && rows[0].tensors == Some((specs.len(), specs.len())), "{:?}", rows[0]);
     assert!(rows[1].ok);
     assert!(!rows[2].ok && !rows[2].present);
     let mut out = Vec::new();
-    verify::print_table(&m, &d, &rows, &mut out);
+    print_table(&m, &d, &rows, &mut out);
     let s = String::from_utf8(out).unwrap();
     assert!(s.contains("MISSING") && s.contains("OK"), "{s}");
 }
@@ -221,6 +221,6 @@ fn fetch_without_network_names_repo_and_file() {
     std::env::set_var("HF_ENDPOINT", "http://127.0.0.1:9");
     let m = Manifest::load("recgen").unwrap();
     let cache = tmp("fetch");
-    let err = recon::weights::fetch::fetch(&m, Some(&cache), false).unwrap_err().to_string();
+    let err = recon::weights::fetch(&m, Some(&cache), false).unwrap_err().to_string();
     assert!(err.contains("TRI-ML/RecGen") && err.contains("pipeline.json"), "{err}");
 }

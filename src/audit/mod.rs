@@ -14,14 +14,15 @@ pub mod report;
 pub mod search;
 pub mod stats;
 pub mod table;
+pub use self::depth::{collect, residual_table, DepthOptions};
+pub use self::search::SearchOptions;
+pub use self::table::ResidualTable;
 
 use crate::sensor::SensorModel;
 use crate::{Error, Result};
 use fit::Ctx;
 use report::{InputPrediction, Report};
-use search::SearchOptions;
 use std::path::{Path, PathBuf};
-use table::ResidualTable;
 
 /// A finished audit: the report, the extended sensor model (depth audits) and the plots
 /// (file name, SVG text).

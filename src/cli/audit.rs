@@ -1,9 +1,9 @@
 //! `recon audit`: find what a simulation gets wrong (depth sensor or any table).
 use anyhow::Context;
-use recon::audit::depth::{collect, residual_table, DepthOptions};
-use recon::audit::search::SearchOptions;
-use recon::audit::table::ResidualTable;
+use recon::audit::ResidualTable;
+use recon::audit::SearchOptions;
 use recon::audit::{audit_depth, audit_table, write_outputs, Audit};
+use recon::audit::{collect, residual_table, DepthOptions};
 use recon::sensor::SensorModel;
 use std::path::{Path, PathBuf};
 

@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use recon::model::nn::fast::{Compute, Precision};
+use recon::model::{Compute, Precision};
 use recon::tools::bench::{self, upstream, BenchReport};
 
 #[derive(clap::Args)]
@@ -216,7 +216,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         }
     }
 
-    let arch = recon::model::config::RecGenConfig::load(&a.config)?;
+    let arch = recon::model::RecGenConfig::load(&a.config)?;
     if arch.name == "recgen-large" {
         print_ratios(&report);
     } else {

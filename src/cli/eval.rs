@@ -24,7 +24,7 @@ pub struct EvalArgs {
     /// or a YCB-Video folder (sequences + models_points_xyz/).
     #[arg(long)]
     dataset: PathBuf,
-    /// Predictions JSON (format in the recon::eval::report docs).
+    /// Predictions JSON (format in the `recon::eval` docs).
     #[arg(long, conflicts_with = "method", required_unless_present = "method")]
     predictions: Option<PathBuf>,
     /// Run a built-in predictor on every frame instead of reading predictions; its
@@ -109,10 +109,10 @@ impl Drop for Staging {
 
 pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     use anyhow::{bail, Context};
-    use recon::dataset::bop::load_dataset;
-    use recon::engine::output::{begin_output, finish_output};
-    use recon::eval::baseline::{observe_dataset, ObservedOptions, Shape};
-    use recon::eval::report::{evaluate, read_predictions, EvalOptions};
+    use recon::dataset::load_dataset;
+    use recon::engine::{begin_output, finish_output};
+    use recon::eval::{evaluate, read_predictions, EvalOptions};
+    use recon::eval::{observe_dataset, ObservedOptions, Shape};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -175,14 +175,14 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
         }
         (Some(Method::Recgen), _) => {
             let source = a.model.source()?;
-            let engine = recon::engine::infer::Engine::load(&source, &a.model.load_options())
-                .with_context(|| format!("loading the model ({source:?})"))?;
+            let engine =
+                recon::engine::Engine::load(&source, &a.model.load_options()).with_context(|| format!("loading the model ({source:?})"))?;
             let io = a.model.infer_options()?;
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = recon::eval::recgen::recgen_dataset(&ds, &engine, &io, a.two_view, a.occlusion, &|done, total| {
+            let run = recon::eval::recgen_dataset(&ds, &engine, &io, a.two_view, a.occlusion, &|done, total| {
                 if done % 10 == 0 || done == total {
                     eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
                 }

@@ -66,8 +66,8 @@ fn frame_options(
     intrinsics: &Option<String>,
     scale: Option<f64>,
     flag: &str,
-) -> anyhow::Result<recon::dataset::frame::FrameOptions> {
-    use recon::dataset::frame::{FrameOptions, Intrinsics};
+) -> anyhow::Result<recon::dataset::FrameOptions> {
+    use recon::dataset::{FrameOptions, Intrinsics};
     let mut fo = FrameOptions { depth: depth.clone(), depth_scale: scale, ..Default::default() };
     if let Some(k) = intrinsics {
         let nums: Vec<f64> = k.split(',').filter_map(|v| v.trim().parse().ok()).collect();
@@ -82,12 +82,12 @@ fn frame_options(
     Ok(fo)
 }
 
-type Masks = (Vec<recon::dataset::masks::ObjectMask>, Vec<recon::dataset::masks::MaskSkip>);
+type Masks = (Vec<recon::dataset::ObjectMask>, Vec<recon::dataset::MaskSkip>);
 
 /// One file is an instance-id map (a binary 0/255 mask is the one-object
 /// case); several files are binary masks, one object each.
 fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
-    use recon::dataset::masks::{load_binary_masks, InstanceMap};
+    use recon::dataset::{load_binary_masks, InstanceMap};
     if files.len() == 1 {
         Ok(InstanceMap::open(&files[0])?.objects(ids))
     } else {
@@ -99,7 +99,7 @@ fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
 }
 
 /// Per-stage seconds of one object (model stages summed over samples).
-fn stage_row(o: &recon::engine::infer::ObjectResult) -> [f64; 9] {
+fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 9] {
     let t = &o.timings;
     [
         t.image_encoder,
@@ -127,7 +127,7 @@ struct BarState {
     label: String,
     object: (usize, usize),
     seed: u64,
-    stage: Option<(recon::engine::pipeline::Stage, std::time::Instant)>,
+    stage: Option<(recon::engine::Stage, std::time::Instant)>,
     what: &'static str,
     done: Vec<String>,
 }
@@ -149,8 +149,8 @@ impl Bar {
         Bar { pb, state: Default::default() }
     }
 
-    fn event(&self, e: recon::engine::infer::Progress) {
-        use recon::engine::infer::Progress;
+    fn event(&self, e: recon::engine::Progress) {
+        use recon::engine::Progress;
         let Ok(mut s) = self.state.lock() else { return };
         let close_stage = |s: &mut BarState| {
             if let Some((st, t0)) = s.stage.take() {
@@ -196,10 +196,10 @@ impl Bar {
 
 pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
-    use recon::dataset::frame::RgbdFrame;
-    use recon::engine::infer::{Engine, SecondView};
-    use recon::engine::output::write_outputs;
-    use recon::geometry::camera_pose::parse_rel_pose;
+    use recon::dataset::RgbdFrame;
+    use recon::engine::write_outputs;
+    use recon::engine::{Engine, SecondView};
+    use recon::geometry::parse_rel_pose;
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -233,7 +233,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     }
 
     let bar = Bar::new((objects.len() * opts.samples) as u64);
-    let progress = |e: recon::engine::infer::Progress<'_>| bar.event(e);
+    let progress = |e: recon::engine::Progress<'_>| bar.event(e);
     let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
     let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
     bar.pb.finish_and_clear();
@@ -249,7 +249,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     let written = write_outputs(&result, &out)?;
     if a.preview {
         let meshes: Vec<&recon::mesh::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
-        recon::render::preview::save_preview(&frame, &meshes, &out.join("preview.png"))?;
+        recon::render::save_preview(&frame, &meshes, &out.join("preview.png"))?;
     }
     let totals: Vec<f64> = (0..STAGES.len()).map(|k| result.objects.iter().map(|o| stage_row(o)[k]).sum()).collect();
     if a.json {

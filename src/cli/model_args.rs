@@ -1,10 +1,10 @@
 //! The model settings `recon infer` and `recon eval --method recgen` share: one
 //! set of flags with one set of defaults, flattened into both commands.
-use recon::engine::infer::InferOptions;
-use recon::engine::pipeline::LoadOptions;
-use recon::engine::pose_fit::{PoseFit, SelectMethod};
-use recon::engine::source::ModelSource;
-use recon::model::nn::fast::Precision;
+use recon::engine::InferOptions;
+use recon::engine::LoadOptions;
+use recon::engine::ModelSource;
+use recon::engine::{PoseFit, SelectMethod};
+use recon::model::Precision;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Clone, Debug, serde::Serialize)]
@@ -46,7 +46,7 @@ pub struct ModelArgs {
     #[arg(long)]
     pub cfg: Option<f64>,
     /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
-    #[arg(long, default_value_t = recon::engine::infer::DEFAULT_MAX_FACES)]
+    #[arg(long, default_value_t = recon::engine::DEFAULT_MAX_FACES)]
     pub max_faces: usize,
     /// Floater removal: mesh components with less than this fraction of the total area are
     /// dropped (the largest is always kept); 0 keeps every component.

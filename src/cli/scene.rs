@@ -75,12 +75,12 @@ pub struct SceneArgs {
 
 pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
-    use recon::dataset::frame::{FrameOptions, RgbdFrame};
-    use recon::sim::collision::{CollisionMethod, VhacdOptions};
-    use recon::sim::materials::MaterialTable;
-    use recon::sim::plane::PlaneFitOptions;
-    use recon::sim::scene_file::SceneFile;
+    use recon::dataset::{FrameOptions, RgbdFrame};
+    use recon::sim::MaterialTable;
+    use recon::sim::PlaneFitOptions;
+    use recon::sim::SceneFile;
     use recon::sim::{build_scene, write_outputs, SceneOptions};
+    use recon::sim::{CollisionMethod, VhacdOptions};
 
     let table = match &a.materials {
         Some(p) => MaterialTable::load(p)?,
@@ -88,7 +88,7 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     };
     let plane_opts = PlaneFitOptions { threshold_m: a.plane_threshold_mm * 1e-3, seed: a.seed, ..Default::default() };
     let (scene, file) = if a.input.is_dir() && a.input.join("scene_gt.json").is_file() {
-        let (scene, check) = recon::sim::inputs::scene_from_bop(&a.input, a.view, &table, &plane_opts)?;
+        let (scene, check) = recon::sim::scene_from_bop(&a.input, a.view, &table, &plane_opts)?;
         if let Some(c) = check {
             println!(
                 "support plane vs the dataset's world plane: normal {:.3}°, distance {:.2} mm",
@@ -98,14 +98,14 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         }
         (scene, a.input.join("scene_gt.json").display().to_string())
     } else if a.input.is_dir() {
-        if !a.input.join(recon::engine::output::MARKER).is_file() {
+        if !a.input.join(recon::engine::MARKER).is_file() {
             anyhow::bail!(
                 "{}: neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)",
                 a.input.display(),
-                recon::engine::output::MARKER
+                recon::engine::MARKER
             );
         }
-        let color = match a.frame.clone().or_else(|| recon::sim::inputs::infer_frame(&a.input)) {
+        let color = match a.frame.clone().or_else(|| recon::sim::infer_frame(&a.input)) {
             Some(c) => c,
             None => anyhow::bail!(
                 "{}: the support plane comes from the frame's depth, and the colour image recorded in its pose.json is not found; pass --frame <the colour image given to recon infer>",
@@ -114,11 +114,11 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         };
         let fo = FrameOptions { depth: a.depth.clone(), depth_scale: a.depth_scale, ..Default::default() };
         let frame = RgbdFrame::open(&color, &fo).with_context(|| format!("--frame {}", color.display()))?;
-        let (scene, notes) = recon::sim::inputs::scene_from_infer_output(&a.input, &frame, &table, &plane_opts)?;
+        let (scene, notes) = recon::sim::scene_from_infer_output(&a.input, &frame, &table, &plane_opts)?;
         for n in notes {
             eprintln!("note: {n}");
         }
-        (scene, a.input.join(recon::engine::output::MARKER).display().to_string())
+        (scene, a.input.join(recon::engine::MARKER).display().to_string())
     } else {
         (SceneFile::load(&a.input)?, a.input.display().to_string())
     };

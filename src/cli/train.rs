@@ -1,5 +1,5 @@
 //! `recon train ss-vae|ss-flow|slat-ae|slat-flow`: train a model on BOP-format data
-//! (what `recon synth` writes). Recipe and outputs: `recon::train::run`.
+//! (what `recon synth` writes). Recipe and outputs: `recon::train`.
 use std::path::PathBuf;
 
 use clap::{Args, ValueEnum};
@@ -101,10 +101,10 @@ pub struct TrainArgs {
 
 pub fn run(a: TrainArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
-    use recon::geometry::voxelize::Fill;
-    use recon::train::bop::{BopOptions, BopSource};
-    use recon::train::data::TrainingSource;
-    use recon::train::run::{run, Resume, Stage, TrainOptions};
+    use recon::geometry::Fill;
+    use recon::train::TrainingSource;
+    use recon::train::{run, Resume, Stage, TrainOptions};
+    use recon::train::{BopOptions, BopSource};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }

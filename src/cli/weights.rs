@@ -40,8 +40,8 @@ pub enum WeightsCmd {
     },
 }
 
-fn manifests(name: &Option<String>) -> anyhow::Result<Vec<recon::weights::manifest::Manifest>> {
-    use recon::weights::manifest::Manifest;
+fn manifests(name: &Option<String>) -> anyhow::Result<Vec<recon::weights::Manifest>> {
+    use recon::weights::Manifest;
     Ok(match name {
         Some(n) => vec![Manifest::load(n)?],
         None => Manifest::all()?,
@@ -49,11 +49,10 @@ fn manifests(name: &Option<String>) -> anyhow::Result<Vec<recon::weights::manife
 }
 
 pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
-    use recon::weights::{fetch, init, registry, verify};
     match cmd {
         WeightsCmd::Fetch { manifest, cache, with_optional } => {
             for m in manifests(&manifest)? {
-                let paths = fetch::fetch(&m, cache.as_deref(), with_optional)?;
+                let paths = recon::weights::fetch(&m, cache.as_deref(), with_optional)?;
                 for p in paths {
                     println!("{}", p.display());
                 }
@@ -66,20 +65,20 @@ pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
             }
             let mut ok = true;
             for m in manifests(&manifest)? {
-                let rows = verify::verify_dir(&m, &dir)?;
-                verify::print_table(&m, &dir, &rows, &mut std::io::stdout());
+                let rows = recon::weights::verify_dir(&m, &dir)?;
+                recon::weights::print_table(&m, &dir, &rows, &mut std::io::stdout());
                 ok &= rows.iter().all(|r| r.ok);
             }
             Ok(ok)
         }
         WeightsCmd::Init { config, out, seed } => {
-            let p = init::write_random_init(&config, &out, seed)?;
+            let p = recon::weights::write_random_init(&config, &out, seed)?;
             println!("wrote {} (RANDOM weights, recon.random_init=true, seed {seed})", p.display());
             Ok(true)
         }
         WeightsCmd::Expected { config } => {
-            let cfg = registry::ModuleConfig::read(&config)?;
-            let specs = registry::expected_tensors(&cfg, &config.display().to_string())?;
+            let cfg = recon::weights::ModuleConfig::read(&config)?;
+            let specs = recon::weights::expected_tensors(&cfg, &config.display().to_string())?;
             println!("{}", serde_json::to_string(&specs)?);
             Ok(true)
         }

@@ -2,13 +2,20 @@
 //! images (with the DINOv2 preprocessing), MAT v5 (YCB-Video meta), PLY, and
 //! BOP / YCB-Video datasets.
 
-pub mod bop;
-pub mod frame;
-pub mod image;
-pub mod masks;
-pub mod matv5;
-pub mod ply;
-pub mod visibility;
+pub(crate) mod bop;
+pub(crate) mod frame;
+pub(crate) mod image;
+pub(crate) mod masks;
+pub(crate) mod matv5;
+pub(crate) mod ply;
+pub(crate) mod visibility;
+pub use self::bop::{load_dataset, load_ycbv};
+pub use self::frame::{FrameOptions, Intrinsics, RgbdFrame};
+pub use self::image::{pointmap_to_tensor, square_crop_box, trellis_preprocess_rgba, CropBox, DINO_SIZE};
+pub use self::masks::{load_binary_masks, validate_objects, InstanceMap, MaskOptions, MaskSkip, ObjectMask, SkipReason};
+pub use self::matv5::MatFile;
+pub use self::ply::read_ply;
+pub use self::visibility::{surface_patches, visible_fraction};
 
 /// The shared real-data folder (`realdata/` beside the repository, as on the
 /// development machines), for tests and examples that use the real frames:

@@ -8,11 +8,17 @@
 //!
 //! Entry point for the CLI: [`run_eval`].
 
-pub mod icp;
-pub mod metrics;
+pub(crate) mod icp;
+pub(crate) mod metrics;
 
-pub mod baseline;
-pub mod recgen;
-pub mod report;
+pub(crate) mod baseline;
+pub(crate) mod recgen;
+pub(crate) mod report;
 
+pub use self::baseline::fit_obb;
+pub use self::baseline::{observe_dataset, ObservedOptions, Shape};
+pub use self::icp::IcpResult;
+pub use self::metrics::{add, add_s};
+pub use self::metrics::{add_sb, f1_score};
+pub use self::recgen::recgen_dataset;
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

@@ -3,10 +3,13 @@
 //! live with the scene in `crate::sim`.
 
 mod axes;
-pub mod glb;
-pub mod obj;
-pub mod ply;
-pub mod splat;
+pub(crate) mod glb;
+pub(crate) mod obj;
+pub(crate) mod ply;
+pub(crate) mod splat;
 
+pub use self::ply::split_header;
+pub use self::ply::{save_mesh_ply, PlyOptions};
+pub use self::splat::save_splat_ply;
 pub use axes::Axes;
 pub use glb::{glb_bytes, save_glb, GlbOptions};

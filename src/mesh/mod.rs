@@ -1,9 +1,15 @@
 //! Triangle mesh as produced by the mesh decoder (FlexiCubes) and consumed by
 //! post-processing and the exporters.
 
-pub mod post;
-pub mod primitives;
-pub mod trimesh;
+pub(crate) mod post;
+pub(crate) mod primitives;
+pub(crate) mod trimesh;
+pub use self::post::{
+    decimate, drop_floaters, face_components, keep_largest_component, remove_small_components, remove_unreferenced_vertices, to_u8,
+    transfer_colors, vertex_colors_u8,
+};
+pub use self::primitives::tetrahedron;
+pub use self::trimesh::TriMesh;
 
 use crate::math::{cross, sub, Similarity32};
 use crate::{Error, Result};

@@ -20,7 +20,8 @@
 //! instance, `render(&instances, &Camera::new(w, h, k), &RenderOptions::default())`, and
 //! `covariates_full(frame_index, Some(&measured_rgb), None)` for the sensor covariates.
 
-pub mod preview;
+pub(crate) mod preview;
+pub use self::preview::save_preview;
 
 use crate::dataset::frame::Intrinsics;
 use crate::math::{cross, dot, normalize, sub, Similarity};

@@ -13,18 +13,24 @@
 //! formats (GLB, PLY, OBJ) in `crate::export`. [`write_outputs`] writes the
 //! whole folder atomically.
 
-pub mod collision;
-pub mod inputs;
-pub mod materials;
-pub mod mjcf;
-pub mod physics;
-pub mod plane;
+pub(crate) mod collision;
+pub(crate) mod inputs;
+pub(crate) mod materials;
+pub(crate) mod mjcf;
+pub(crate) mod physics;
+pub(crate) mod plane;
 mod scene;
-pub mod scene_file;
-pub mod settle;
-pub mod urdf;
-pub mod usd;
+pub(crate) mod scene_file;
+pub(crate) mod settle;
+pub(crate) mod urdf;
+pub(crate) mod usd;
 mod write;
 
+pub use self::collision::{CollisionMethod, VhacdOptions};
+pub use self::inputs::{infer_frame, scene_from_bop, scene_from_infer_output, support_plane_from_frame};
+pub use self::materials::MaterialTable;
+pub use self::plane::PlaneFitOptions;
+pub use self::scene_file::SceneFile;
+pub use self::settle::{body_distance, Body};
 pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};
 pub use write::{write_outputs, Written, MARKER};

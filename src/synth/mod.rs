@@ -8,9 +8,9 @@
 //! so the bytes do not depend on the thread count or scheduling. Output goes to a staging
 //! folder renamed into place at the end, with `recon-synth.json` written last.
 
-pub mod bop_writer;
-pub mod objects;
-pub mod scene;
+pub(crate) mod bop_writer;
+pub(crate) mod objects;
+pub(crate) mod scene;
 
 pub use crate::render::{render, Camera, Instance, Light, Material, Pattern, RenderMesh, RenderOptions, Rendered};
 pub use scene::{Scene, SceneConfig};

@@ -17,7 +17,7 @@
 //!   coordinated `_shared_cfg_mask` mode). Its pose loss is kept, as RecGen
 //!   does, so the unconditional model also predicts pose.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Tensor};
 
 use crate::rng::SeededRng;
 use crate::{Error, Result};
@@ -97,16 +97,12 @@ pub fn masked_pose_mse(pred: &Tensor, target: &Tensor, mask: &Tensor) -> Result<
     Ok((err / (n as f64 * p as f64))?)
 }
 
-/// Standard-normal noise shaped like `like`, from `rng`.
-pub fn noise_like(rng: &mut SeededRng, like: &Tensor) -> Result<Tensor> {
-    rng.randn(like.dims(), &Device::Cpu)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, FnVelocity, SamplerSettings};
     use crate::train::optim::AdamW;
+    use candle_core::Device;
     use candle_core::Var;
 
     #[test]

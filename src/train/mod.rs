@@ -26,15 +26,23 @@
 //! frozen encoder's latents ([`slat_flow`]) and writes the complete model
 //! folder (every module, pose statistics, latent normalisation).
 
-pub mod bop;
-pub mod data;
-pub mod flow;
-pub mod log;
-pub mod objective;
-pub mod optim;
-pub mod params;
-pub mod run;
-pub mod slat;
-pub mod slat_flow;
-pub mod toy;
-pub mod trainer;
+pub(crate) mod bop;
+pub(crate) mod data;
+pub(crate) mod flow;
+pub(crate) mod log;
+pub(crate) mod objective;
+pub(crate) mod optim;
+pub(crate) mod params;
+pub(crate) mod run;
+pub(crate) mod slat;
+pub(crate) mod slat_flow;
+pub(crate) mod toy;
+pub(crate) mod trainer;
+pub use self::bop::{BopOptions, BopSource};
+pub use self::data::{canonical_frame, pose_stats_json, prepare_train_view, scan, TrainingSource};
+pub use self::flow::FlowMatching;
+pub use self::objective::{FlowObjective, Objective, VaeObjective};
+pub use self::optim::{clip_grad_norm, AdamW};
+pub use self::params::ModuleParams;
+pub use self::run::{run, Resume, Stage, TrainOptions};
+pub use self::toy::{micro_architecture, ToyConfig, ToySource};

@@ -1,9 +1,10 @@
 //! Small shared helpers: JSON files with errors that name them ([`json`]),
 //! peak memory ([`memory`]), and the statistics several layers use.
 
-pub mod json;
-pub mod memory;
+pub(crate) mod json;
+pub(crate) mod memory;
 
+pub use self::memory::{peak_rss_mib, reset_peak_rss};
 pub use json::{from_value, read_json};
 
 use crate::{Error, Result};

@@ -2,15 +2,22 @@
 //! against the tensor list a config implies, manifests of the upstream files,
 //! download, and labelled random initialisation.
 
-pub mod fetch;
-pub mod init;
-pub mod load;
-pub mod manifest;
-pub mod record;
-pub mod registry;
-pub mod validate;
-pub mod verify;
+pub(crate) mod fetch;
+pub(crate) mod init;
+pub(crate) mod load;
+pub(crate) mod manifest;
+pub(crate) mod record;
+pub(crate) mod registry;
+pub(crate) mod validate;
+pub(crate) mod verify;
 
+pub use self::fetch::fetch;
+pub use self::init::{is_random_init, write_random_init};
+pub use self::load::mmaped_safetensors_vb;
+pub use self::manifest::Manifest;
+pub use self::record::RandomInit;
+pub use self::registry::{build_ss_encoder, expected_tensors, ModuleConfig};
+pub use self::verify::{print_table, verify_dir};
 pub use load::Checkpoint;
 pub use record::{record_with, TensorSpec};
 pub use validate::{compare, load_validated, validate_checkpoint, ValidationReport};

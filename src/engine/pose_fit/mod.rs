@@ -3,11 +3,11 @@
 //! free-space term ([`free_space`], [`refine`]), and the best candidate over
 //! views and samples is chosen ([`select`]).
 
-pub mod free_space;
-pub mod options;
-pub mod refine;
-pub mod score;
-pub mod select;
+pub(crate) mod free_space;
+pub(crate) mod options;
+pub(crate) mod refine;
+pub(crate) mod score;
+pub(crate) mod select;
 
 pub use free_space::{free_space, DepthView, ViewPoints};
 pub use options::{AlignOptions, PoseFit, FREE_SPACE_SAMPLES};

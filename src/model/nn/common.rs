@@ -27,14 +27,6 @@ pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
     Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, fast::build_compute())
 }
 
-/// [`layer_norm_plain`], or its fused kernel on the fast path.
-pub fn layer_norm_with(compute: Compute, x: &Tensor, eps: f64) -> Result<Tensor> {
-    match compute.fast_parts() {
-        Some((_, isa)) => fast::layer_norm(isa, x, eps, None, None),
-        None => layer_norm_plain(x, eps),
-    }
-}
-
 /// LayerNorm over the last dim without affine parameters (computed in f32).
 pub fn layer_norm_plain(x: &Tensor, eps: f64) -> Result<Tensor> {
     let dtype = x.dtype();

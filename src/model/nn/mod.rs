@@ -3,7 +3,8 @@
 //! [`dense3d`] (3D convolutions of the SS VAE) and [`gradcheck`] (directional
 //! gradient checks for training).
 
-pub mod common;
-pub mod dense3d;
-pub mod fast;
-pub mod gradcheck;
+pub(crate) mod common;
+pub(crate) mod dense3d;
+pub(crate) mod fast;
+#[cfg(test)]
+pub(crate) mod gradcheck;

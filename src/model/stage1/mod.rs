@@ -3,7 +3,7 @@
 //! sparse-structure latent and one pose token per view; the SS VAE decodes
 //! the latent to 64³ occupancy.
 
-pub mod dinov2;
-pub mod embedders;
-pub mod ss_flow;
-pub mod ss_vae;
+pub(crate) mod dinov2;
+pub(crate) mod embedders;
+pub(crate) mod ss_flow;
+pub(crate) mod ss_vae;

@@ -2,5 +2,5 @@
 //! voxels, conditioned on the pose through extra cross-attention tokens; the
 //! SLat VAE's decoders turn them into a mesh (FlexiCubes) and 3D Gaussians.
 
-pub mod slat_flow;
-pub mod slat_vae;
+pub(crate) mod slat_flow;
+pub(crate) mod slat_vae;

@@ -2,8 +2,8 @@
 //! transformer [`trunk`], the [`mesh`] decoder with [`flexicubes`] extraction,
 //! and the [`gaussian`] decoder.
 
-pub mod encoder;
-pub mod flexicubes;
-pub mod gaussian;
-pub mod mesh;
-pub mod trunk;
+pub(crate) mod encoder;
+pub(crate) mod flexicubes;
+pub(crate) mod gaussian;
+pub(crate) mod mesh;
+pub(crate) mod trunk;

@@ -14,7 +14,7 @@
 //! quads follow the sorted surface-edge ids, the ones whose first endpoint is
 //! outside (sdf > 0) first.
 
-pub mod tables;
+pub(crate) mod tables;
 
 pub use crate::mesh::Mesh;
 use crate::model::sparse::SparseTensor;
