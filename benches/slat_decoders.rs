@@ -7,6 +7,7 @@
 //!   fewer, the 12-block time is extrapolated from the measured per-block time.
 //! - `SLAT_BENCH_SIZES` (default `5000,10000,20000`): target voxel counts.
 //! - `SLAT_BENCH_MESH` / `SLAT_BENCH_GS` = 0 to skip a decoder.
+//!
 //! Peak RSS is the process high-water mark (VmHWM), reset before each run
 //! through `/proc/self/clear_refs`, so it includes the weights.
 

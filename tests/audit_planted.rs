@@ -6,6 +6,7 @@
 //!
 //! `AUDIT_PLANTED_SEEDS=a..b cargo test --release --test audit_planted -- --ignored sweep`
 //! runs the same checks over a range of seeds and prints the success rate.
+#![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > t)` also rejects NaN
 use recon::audit::SearchOptions;
 use recon::audit::{audit_depth, write_outputs, Audit};
 use recon::audit::{collect, residual_table, DepthOptions};

@@ -29,6 +29,7 @@ fn tmp(name: &str) -> PathBuf {
 /// cap seen head-on inside the disc (zeros outside). `shift` moves the disc.
 fn view(s: usize, seed: u64, shift: f32) -> ViewInput {
     let mut rng = SeededRng::new(seed);
+    #[allow(clippy::approx_constant)] // 6.28: test data, about a turn
     let waves: Vec<[f32; 4]> =
         (0..4).map(|_| [rng.normal() as f32 * 4.0, rng.normal() as f32 * 4.0, rng.uniform() as f32 * 6.28, rng.uniform() as f32]).collect();
     let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);

@@ -214,8 +214,7 @@ fn overlapping_objects_depenetrate_and_output_is_deterministic() {
     let scene = make_scene(&dir, 0.006);
     let table = MaterialTable::builtin();
     let s = SceneFile::load(&scene).unwrap();
-    let mut opts = SceneOptions::default();
-    opts.collision = recon::sim::CollisionMethod::Primitive;
+    let opts = SceneOptions { collision: recon::sim::CollisionMethod::Primitive, ..Default::default() };
     let run = |out: &Path| {
         let mut sim = build_scene(&s, &table, &opts, "scene.json").unwrap();
         write_outputs(&mut sim, out).unwrap();

@@ -4,6 +4,7 @@
 //! depenetrates and settles; both exports load in MuJoCo and usd-core
 //! (python checks skip when the packages are missing, unless
 //! RECON_REQUIRE_PYTHON_TESTS=1).
+#![allow(clippy::needless_range_loop)] // 3-vector index loops read as the maths does
 
 use recon::sim::MaterialTable;
 use recon::sim::PlaneFitOptions;

@@ -136,7 +136,7 @@ fn half_precision_files_load_as_f32() {
     let (p32, t) = make_init(&d, 5);
     let reference = forward(Checkpoint::open(&p32, None).unwrap().into_var_builder(DType::F32, &Device::Cpu));
     // candle's own mmap backend agrees with ours.
-    let via_mmap = forward(mmaped_safetensors_vb(&[p32.clone()], DType::F32, &Device::Cpu).unwrap());
+    let via_mmap = forward(mmaped_safetensors_vb(std::slice::from_ref(&p32), DType::F32, &Device::Cpu).unwrap());
     assert_eq!(recon::util::max_abs_diff(&reference, &via_mmap).unwrap(), 0.0);
     for (dt, tol) in [(DType::F16, 2e-2), (DType::BF16, 1e-1)] {
         let half: HashMap<String, Tensor> = t.iter().map(|(k, v)| (k.clone(), v.to_dtype(dt).unwrap())).collect();

@@ -5,6 +5,11 @@
 //! Fast paths are picked at run time by CPU feature detection ([`isa::Isa`]),
 //! each with a portable fallback.
 
+// Clippy lints allowed crate-wide, each for a reason:
+// - needless_range_loop: register-tile loops index several accumulators with one counter;
+// - too_many_arguments: kernels take their shapes, strides and buffers explicitly.
+#![allow(clippy::needless_range_loop, clippy::too_many_arguments)]
+
 pub mod attention;
 pub mod buf;
 pub mod conv3d;

@@ -98,7 +98,7 @@ pub struct NeighbourMap {
 impl NeighbourMap {
     /// Build the map for odd `kernel_size` over `coords` (outputs = inputs).
     pub fn submanifold(coords: &[[i32; 4]], kernel_size: usize) -> Result<Self, String> {
-        if kernel_size % 2 == 0 || kernel_size == 0 {
+        if kernel_size.is_multiple_of(2) || kernel_size == 0 {
             return Err(format!("submanifold conv needs an odd kernel size, got {kernel_size}"));
         }
         if coords.len() > u32::MAX as usize {
@@ -357,7 +357,7 @@ mod tests {
         for b in 0..2 {
             for v in 0..s * s * s {
                 if rng.next() > -0.2 {
-                    coords.push([b, (v / (s * s)) as i32, ((v / s) % s) as i32, (v % s) as i32]);
+                    coords.push([b, v / (s * s), (v / s) % s, v % s]);
                 }
             }
         }

@@ -80,7 +80,7 @@ fn parse_occlusion(v: &str) -> Result<[f64; 2], String> {
     let bad = || format!("`{v}`: expected LO-HI in percent, 0 ≤ LO < HI ≤ 100 (e.g. 20-70)");
     let (lo, hi) = v.split_once('-').ok_or_else(bad)?;
     let (lo, hi): (f64, f64) = (lo.trim().parse().map_err(|_| bad())?, hi.trim().parse().map_err(|_| bad())?);
-    if !(0.0..100.0).contains(&lo) || !(hi > lo && hi <= 100.0) {
+    if !((0.0..100.0).contains(&lo) && hi > lo && hi <= 100.0) {
         return Err(bad());
     }
     Ok([lo, hi])

@@ -122,11 +122,13 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     } else {
         (SceneFile::load(&a.input)?, a.input.display().to_string())
     };
-    let mut opts = SceneOptions::default();
-    opts.collision = match a.collision {
-        CollisionArg::Convex => CollisionMethod::Convex,
-        CollisionArg::Hull => CollisionMethod::Hull,
-        CollisionArg::Primitive => CollisionMethod::Primitive,
+    let mut opts = SceneOptions {
+        collision: match a.collision {
+            CollisionArg::Convex => CollisionMethod::Convex,
+            CollisionArg::Hull => CollisionMethod::Hull,
+            CollisionArg::Primitive => CollisionMethod::Primitive,
+        },
+        ..Default::default()
     };
     opts.collision_opts.vhacd = VhacdOptions {
         resolution: a.vhacd_resolution,

@@ -361,7 +361,7 @@ mod tests {
         let m: Vec<bool> = (0..w * h)
             .map(|_| {
                 s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                (s >> 33) % 7 != 0
+                !(s >> 33).is_multiple_of(7)
             })
             .collect();
         for k in [2, 3, 4, 5] {
@@ -390,7 +390,7 @@ mod tests {
         let lab = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
             image::Luma([if (5..20).contains(&x) && (5..20).contains(&y) {
                 3
-            } else if y == 25 && x < 30 || y == 26 && x < 30 {
+            } else if (y == 25 || y == 26) && x < 30 {
                 5
             } else if (25..38).contains(&x) && (2..15).contains(&y) {
                 700

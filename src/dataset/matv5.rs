@@ -269,7 +269,7 @@ pub(crate) mod tests {
             out.extend(ty.to_le_bytes());
             out.extend((data.len() as u32).to_le_bytes());
             out.extend(data);
-            while out.len() % 8 != 0 {
+            while !out.len().is_multiple_of(8) {
                 out.push(0);
             }
         }

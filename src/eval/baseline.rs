@@ -97,7 +97,7 @@ impl Obb {
     }
 
     /// Camera-frame point → box frame.
-    pub fn to_local(&self, p: &P3) -> P3 {
+    pub fn to_local(self, p: &P3) -> P3 {
         let d = [p[0] - self.center[0], p[1] - self.center[1], p[2] - self.center[2]];
         let r = &self.axes;
         [0, 1, 2].map(|j| r[0][j] * d[0] + r[1][j] * d[1] + r[2][j] * d[2])

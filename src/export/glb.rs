@@ -176,7 +176,7 @@ pub fn scene_glb_bytes(meshes: &[(&str, &Mesh)], clouds: &[PointCloud], opts: &G
             return Err(Error::msg(format!("glb: point cloud `{}` has {} colours for {} points", c.name, c.colors.len(), c.points.len())));
         }
         let pos: Vec<[f32; 3]> = c.points.iter().map(|&p| opts.axes.apply(p)).collect();
-        let col: Vec<[f32; 3]> = c.colors.iter().map(|c| c.map(|x| srgb_to_linear(x))).collect();
+        let col: Vec<[f32; 3]> = c.colors.iter().map(|c| c.map(srgb_to_linear)).collect();
         let pa = b.vec3(&pos, true);
         let ca = b.vec3(&col, false);
         out.push(json!({"name": c.name, "primitives": [{"attributes": {"POSITION": pa, "COLOR_0": ca}, "mode": 0, "material": 0}]}));

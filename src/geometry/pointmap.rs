@@ -510,7 +510,7 @@ mod tests {
         }
         let b = object_crop_box(&m, w, h, 1.2, 518.0 / 6.0);
         assert_eq!((b.x0, b.y0, b.x1, b.y1), (120, -29, 479, 328)); // half 179.4 around (300, 149.5)
-        assert_eq!(object_crop_box(&vec![false; 6], 3, 2, 1.2, 1.0), CropBox { x0: 0, y0: 0, x1: 3, y1: 2 });
+        assert_eq!(object_crop_box(&[false; 6], 3, 2, 1.2, 1.0), CropBox { x0: 0, y0: 0, x1: 3, y1: 2 });
     }
 
     #[test]

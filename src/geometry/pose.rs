@@ -54,6 +54,7 @@ pub enum NineDLayout {
 /// The layout of a pose vector (RecGen `pose_representation`): rotation, then
 /// translation (3) and scale (1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, Deserialize)]
+#[allow(clippy::enum_variant_names)] // the upstream names: rotation form + translation + scale
 pub enum PoseRepresentation {
     #[serde(rename = "quaternion_translation_scale")]
     QuaternionTranslationScale,

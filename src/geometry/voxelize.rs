@@ -68,7 +68,7 @@ impl CanonicalFrame {
         Ok(Self { centre: std::array::from_fn(|a| 0.5 * (lo[a] + hi[a])), extent })
     }
 
-    pub fn to_canonical(&self, p: [f64; 3]) -> [f64; 3] {
+    pub fn to_canonical(self, p: [f64; 3]) -> [f64; 3] {
         std::array::from_fn(|a| (p[a] - self.centre[a]) / self.extent)
     }
 }

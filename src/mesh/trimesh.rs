@@ -222,6 +222,7 @@ mod tests {
                     0 => [rng.uniform(), rng.uniform() * 3.0, rng.uniform() * 0.2],
                     1 => [rng.normal(), rng.normal(), rng.normal()],
                     _ => {
+                        #[allow(clippy::approx_constant)] // test data: roughly a full turn and a half turn
                         let (a, b) = (rng.uniform() * 6.283, rng.uniform() * 3.14);
                         [a.cos() * b.sin(), a.sin() * b.sin(), b.cos()]
                     }

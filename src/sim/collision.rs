@@ -156,13 +156,13 @@ impl Primitive {
     }
 
     /// A triangulation of the surface (for sampling and the GLB preview).
-    pub fn to_mesh(&self) -> Mesh {
+    pub fn to_mesh(self) -> Mesh {
         let place = |m: Mesh, c: [f32; 3], r: [[f32; 3]; 3]| Mesh {
             vertices: m.vertices.iter().map(|v| [0, 1, 2].map(|i| c[i] + r[i][0] * v[0] + r[i][1] * v[1] + r[i][2] * v[2])).collect(),
             faces: m.faces,
             vertex_attrs: None,
         };
-        match *self {
+        match self {
             Primitive::Box { center, rotation, half_extents: h } => {
                 let (v, f) = parry3d::shape::Cuboid::new(Vector::new(h[0], h[1], h[2])).to_trimesh();
                 place(from_parry(&v, &f), center, rotation)

@@ -138,7 +138,7 @@ pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions
         .zip(&result.bodies)
         .map(|(p, s)| {
             let end = Similarity32 { rotation: s.rotation, translation: s.translation_m, scale: 1.0 };
-            let bottom = p.visual.vertices.iter().map(|v| end.apply(&*v)[2] as f64).fold(f64::INFINITY, f64::min);
+            let bottom = p.visual.vertices.iter().map(|v| end.apply(v)[2] as f64).fold(f64::INFINITY, f64::min);
             SimObject {
                 name: p.spec.name.clone(),
                 id: safe_name(&p.spec.name),

@@ -70,7 +70,7 @@ impl FlowMatching {
 fn per_sample(t: &Tensor, rank: usize) -> Result<Tensor> {
     let b = t.dim(0)?;
     let mut shape = vec![b];
-    shape.extend(std::iter::repeat(1).take(rank.saturating_sub(1)));
+    shape.extend(std::iter::repeat_n(1, rank.saturating_sub(1)));
     Ok(t.reshape(shape)?)
 }
 

@@ -91,7 +91,7 @@ impl VaeObjective {
         let enc = registry::build_ss_encoder(&encoder.config, encoder.var_builder(), "ss_encoder")?;
         let dec = registry::build_ss_decoder(&decoder.config, decoder.var_builder(), "ss_decoder")?;
         let f = enc.config().downsample_factor();
-        if resolution % f != 0 {
+        if !resolution.is_multiple_of(f) {
             return Err(Error::config(
                 "ss_encoder",
                 "channels",

@@ -303,49 +303,6 @@ impl TrainingSource for ToySource {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::geometry::pointmap::backproject;
-
-    /// Rendered depth back-projects onto the posed mesh surface, and the
-    /// ground-truth pose maps the mesh onto the observed points.
-    #[test]
-    fn render_is_consistent_with_pose_and_intrinsics() -> Result<()> {
-        let src = ToySource::new(ToyConfig { occluders: false, samples: 3, ..Default::default() })?;
-        for i in 0..src.num_samples() {
-            let s = src.sample(i)?;
-            let v = &s.views[0];
-            let mesh = transform(&src.model(s.model)?.mesh, &v.r, v.t);
-            let f = &v.frame;
-            let pts = backproject(&f.depth_m, f.width, f.height, &f.intrinsics)?;
-            // Every masked point lies within noise of the posed mesh (all
-            // primitives are convex: distance to the nearest face plane that
-            // the point is behind is 0 for surface points).
-            let verts = mesh.used_vertices();
-            let (lo, hi) = verts.iter().fold(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]), |(mut lo, mut hi), p| {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(p[a]);
-                    hi[a] = hi[a].max(p[a]);
-                }
-                (lo, hi)
-            });
-            let n_mask = v.mask.iter().filter(|&&m| m).count();
-            assert!(n_mask >= 150);
-            for (p, _) in pts.iter().zip(&v.mask).filter(|(_, &m)| m) {
-                for a in 0..3 {
-                    assert!(p[a] > lo[a] - 0.01 && p[a] < hi[a] + 0.01, "point {p:?} outside the posed box {lo:?} {hi:?}");
-                }
-            }
-        }
-        // Determinism.
-        let a = ToySource::new(ToyConfig::default())?;
-        let b = ToySource::new(ToyConfig::default())?;
-        assert_eq!(a.sample(5)?.views[0].frame.depth_m, b.sample(5)?.views[0].frame.depth_m);
-        Ok(())
-    }
-}
-
 /// A micro variant of an architecture file (JSON), for tests and smoke runs
 /// that must take seconds: 28 px images (2×2 patches), 4³×4 latents,
 /// occupancy 16³, one 32-channel flow block. Stage-2 sections are kept.
@@ -399,4 +356,47 @@ pub fn micro_architecture(arch: &serde_json::Value) -> serde_json::Value {
     }
     f["io_block_channels"] = serde_json::json!([16]);
     v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::pointmap::backproject;
+
+    /// Rendered depth back-projects onto the posed mesh surface, and the
+    /// ground-truth pose maps the mesh onto the observed points.
+    #[test]
+    fn render_is_consistent_with_pose_and_intrinsics() -> Result<()> {
+        let src = ToySource::new(ToyConfig { occluders: false, samples: 3, ..Default::default() })?;
+        for i in 0..src.num_samples() {
+            let s = src.sample(i)?;
+            let v = &s.views[0];
+            let mesh = transform(&src.model(s.model)?.mesh, &v.r, v.t);
+            let f = &v.frame;
+            let pts = backproject(&f.depth_m, f.width, f.height, &f.intrinsics)?;
+            // Every masked point lies within noise of the posed mesh (all
+            // primitives are convex: distance to the nearest face plane that
+            // the point is behind is 0 for surface points).
+            let verts = mesh.used_vertices();
+            let (lo, hi) = verts.iter().fold(([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]), |(mut lo, mut hi), p| {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+                (lo, hi)
+            });
+            let n_mask = v.mask.iter().filter(|&&m| m).count();
+            assert!(n_mask >= 150);
+            for (p, _) in pts.iter().zip(&v.mask).filter(|(_, &m)| m) {
+                for a in 0..3 {
+                    assert!(p[a] > lo[a] - 0.01 && p[a] < hi[a] + 0.01, "point {p:?} outside the posed box {lo:?} {hi:?}");
+                }
+            }
+        }
+        // Determinism.
+        let a = ToySource::new(ToyConfig::default())?;
+        let b = ToySource::new(ToyConfig::default())?;
+        assert_eq!(a.sample(5)?.views[0].frame.depth_m, b.sample(5)?.views[0].frame.depth_m);
+        Ok(())
+    }
 }

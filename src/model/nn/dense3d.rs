@@ -626,8 +626,7 @@ mod tests {
         assert_eq!(y.dims(), &[b, c, 2 * d, 2 * h, 2 * w]);
         // Output voxel (z, y, x) = (2d+a, 2h+b, 2w+e) reads channel c*8 + a*4 + b*2 + e.
         let v = y.get(1).unwrap().get(1).unwrap().get(3).unwrap().get(2).unwrap().get(1).unwrap().to_scalar::<f32>().unwrap();
-        let want =
-            x.get(1).unwrap().get(8 + 4 + 0 + 1).unwrap().get(1).unwrap().get(1).unwrap().get(0).unwrap().to_scalar::<f32>().unwrap();
+        let want = x.get(1).unwrap().get((8 + 4) + 1).unwrap().get(1).unwrap().get(1).unwrap().get(0).unwrap().to_scalar::<f32>().unwrap();
         assert_eq!(v, want);
         let fast = pixel_shuffle_3d_fast(&Volume::from_tensor(&x).unwrap()).unwrap().to_tensor().unwrap();
         assert_eq!(max_abs_diff(&y, &fast).unwrap(), 0.0);

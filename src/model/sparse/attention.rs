@@ -102,7 +102,7 @@ mod tests {
         let r = vec![0..3, 3..7];
         let all = varlen_attention(&q, &k, &v, &r, &r)?;
         // Item 1 alone must give the same rows.
-        let r1 = vec![0..4];
+        let r1: Vec<_> = std::iter::once(0..4).collect();
         let one = varlen_attention(&q.narrow(0, 3, 4)?, &k.narrow(0, 3, 4)?, &v.narrow(0, 3, 4)?, &r1, &r1)?;
         let d = crate::util::max_abs_diff(&all.narrow(0, 3, 4)?, &one)?;
         assert!(d < 1e-6);

@@ -46,7 +46,7 @@ impl SparseConv3d {
     /// From a weight `[C_out, k, k, k, C_in]` and optional bias `[C_out]`.
     pub fn from_tensors(weight: Tensor, bias: Option<Tensor>) -> Result<Self> {
         let dims = weight.dims().to_vec();
-        if dims.len() != 5 || dims[1] != dims[2] || dims[2] != dims[3] || dims[1] % 2 == 0 {
+        if dims.len() != 5 || dims[1] != dims[2] || dims[2] != dims[3] || dims[1].is_multiple_of(2) {
             return Err(Error::msg(format!("sparse conv weight must be [C_out, k, k, k, C_in] with odd k, got {dims:?}")));
         }
         let weight_host = weight.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
@@ -131,7 +131,7 @@ mod tests {
                 for y in 0..n_side {
                     for z in 0..n_side {
                         i += 1;
-                        if (i * 7919) % keep_every != 0 {
+                        if !(i * 7919).is_multiple_of(keep_every) {
                             coords.push([b, x, y, z]);
                         }
                     }

@@ -89,10 +89,10 @@ impl Dinov2Config {
     }
 
     pub fn validate(&self, file: &str) -> crate::Result<()> {
-        if self.num_heads == 0 || self.embed_dim % self.num_heads != 0 {
+        if self.num_heads == 0 || !self.embed_dim.is_multiple_of(self.num_heads) {
             return Err(crate::Error::config(file, "num_heads", "embed_dim must be a positive multiple of num_heads"));
         }
-        if self.patch_size == 0 || self.img_size % self.patch_size != 0 {
+        if self.patch_size == 0 || !self.img_size.is_multiple_of(self.patch_size) {
             return Err(crate::Error::config(file, "img_size", "must be a multiple of patch_size"));
         }
         Ok(())

@@ -112,14 +112,14 @@ impl SsFlowConfig {
 
     pub fn validate(&self, file: &str) -> Result<()> {
         let err = |f: &str, m: String| Err(Error::config(file, f, m));
-        if self.patch_size == 0 || self.resolution == 0 || self.resolution % self.patch_size != 0 {
+        if self.patch_size == 0 || self.resolution == 0 || !self.resolution.is_multiple_of(self.patch_size) {
             return err(
                 "patch_size",
                 format!("resolution {} must be a positive multiple of patch_size {}", self.resolution, self.patch_size),
             );
         }
         let h = self.heads();
-        if h == 0 || self.model_channels % h != 0 {
+        if h == 0 || !self.model_channels.is_multiple_of(h) {
             return err("num_heads", format!("model_channels {} not divisible by {h} heads", self.model_channels));
         }
         if self.pe_mode != PeMode::Ape {
@@ -128,10 +128,8 @@ impl SsFlowConfig {
         if self.use_asymmetric_mask {
             return err("use_asymmetric_mask", "not supported (false in the released RecGen config)".into());
         }
-        if self.pose_representation.is_some() {
-            if self.num_pose_tokens == 0 {
-                return err("num_pose_tokens", "must be ≥ 1".into());
-            }
+        if self.pose_representation.is_some() && self.num_pose_tokens == 0 {
+            return err("num_pose_tokens", "must be ≥ 1".into());
         }
         if self.use_point_embedder && self.point_embedder_out_channels != self.cond_channels {
             return err("point_embedder_out_channels", "must equal cond_channels (its tokens are added to the condition)".into());

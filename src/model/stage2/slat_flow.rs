@@ -125,7 +125,7 @@ impl SLatFlowConfig {
             }
         }
         let heads = self.heads();
-        if heads == 0 || self.model_channels % heads != 0 {
+        if heads == 0 || !self.model_channels.is_multiple_of(heads) {
             return Err(Error::msg("SLat flow: model_channels must be divisible by num_heads"));
         }
         Ok(())

@@ -176,7 +176,7 @@ pub struct SparseGroupNorm {
 
 impl SparseGroupNorm {
     pub fn new(groups: usize, channels: usize, vb: VarBuilder) -> Result<Self> {
-        if groups == 0 || channels % groups != 0 {
+        if groups == 0 || !channels.is_multiple_of(groups) {
             return Err(Error::msg(format!("group norm: {channels} channels not divisible into {groups} groups")));
         }
         Ok(Self { groups, weight: vb.get(channels, "weight")?, bias: vb.get(channels, "bias")?, eps: 1e-5 })
