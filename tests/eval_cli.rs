@@ -2,23 +2,9 @@
 //! YCB-Video frames (skipped, with a note, when ../shared/realdata is absent), re-scoring its
 //! predictions file, and clear errors on bad input.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
-fn recon(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_recon")).args(args).output().expect("running recon")
-}
-
-fn tmpdir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-eval-cli-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn json(p: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-}
+use common::{read_json, recon, tmp};
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
@@ -27,7 +13,7 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
         return;
     };
     let root = root.as_path();
-    let dir = tmpdir("ycbv");
+    let dir = tmp("ycbv");
     let out = dir.join("observed");
     let (r, o) = (root.to_str().unwrap(), out.to_str().unwrap());
     let run = recon(&["eval", "--dataset", r, "--method", "observed", "--scenes", "1", "--surface-samples", "3000", "--out", o]);
@@ -38,7 +24,7 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     for f in ["report.json", "report.txt", "plot.svg", "predictions.json", "recon-output.json"] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
-    let rep = json(&out.join("report.json"));
+    let rep = read_json(&out.join("report.json"));
     let objs = rep["objects"].as_array().unwrap();
     // Sequence 0001: 5 frames × 4 objects, all visible, all scored.
     assert_eq!(objs.len(), 20);
@@ -71,7 +57,7 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     assert!(run2.status.success(), "{}", String::from_utf8_lossy(&run2.stderr));
     let rep2: serde_json::Value = serde_json::from_slice(&run2.stdout).unwrap();
     assert_eq!(rep2["overall"], rep["overall"]);
-    assert_eq!(json(&out2.join("report.json"))["overall"], rep["overall"]);
+    assert_eq!(read_json(&out2.join("report.json"))["overall"], rep["overall"]);
     // --occlusion keeps only the instances of that range, with the same per-object scores.
     let run4 = recon(&[
         "eval",
@@ -106,7 +92,7 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
 
 #[test]
 fn bad_input_gives_clear_errors() {
-    let dir = tmpdir("bad");
+    let dir = tmp("bad");
     let d = dir.to_str().unwrap();
     // Not a dataset.
     let run = recon(&["eval", "--dataset", d, "--method", "observed"]);

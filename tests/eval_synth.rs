@@ -2,6 +2,9 @@
 //! write, re-read, score. Also checks the visibility estimator of YCB-Video against the
 //! exact `visib_fract` the synthesiser writes.
 
+mod common;
+
+use common::tmp;
 use recon::dataset::load_dataset;
 use recon::dataset::{surface_patches, visible_fraction};
 use recon::eval::{evaluate, read_predictions, EvalOptions};
@@ -9,14 +12,7 @@ use recon::eval::{observe_dataset, ObservedOptions};
 use recon::math::Similarity;
 use recon::sensor::SensorModel;
 use recon::synth::{generate, SynthOptions};
-use std::path::{Path, PathBuf};
-
-fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-eval-synth-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use std::path::Path;
 
 fn tiny(sensor: SensorModel) -> SynthOptions {
     SynthOptions { scenes: 2, views: 1, seed: 5, width: 160, height: 120, parts: false, sensor }

@@ -1,28 +1,26 @@
 //! `recon infer` library path on the shipped YCB-Video sample: real frame,
 //! real masks, random tiny weights.
+mod common;
+
+use common::{recon_with_env, repo};
 use recon::dataset::{FrameOptions, RgbdFrame};
 use recon::dataset::{InstanceMap, SkipReason};
 use recon::engine::LoadOptions;
 use recon::engine::ModelSource;
 use recon::engine::{write_outputs, MARKER};
 use recon::engine::{Engine, InferOptions};
-use std::path::PathBuf;
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
 
 #[test]
 fn sample_frame_reconstructs_in_camera_frame() {
-    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
-    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
+    let frame = RgbdFrame::open(&repo().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let map = InstanceMap::open(&repo().join("data/sample/000001-label.png")).unwrap();
     // id 8 (gelatin box) is present; id 99 is not and must be reported, not fatal.
     let (objects, skipped) = map.objects(Some(&[8, 99]));
     assert_eq!(objects.len(), 1);
     assert!(skipped.iter().any(|s| s.reason == SkipReason::IdAbsent));
 
     let engine =
-        Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
+        Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
     let mut opts = InferOptions::default();
     opts.run.ss_steps = Some(2);
@@ -75,10 +73,10 @@ fn sample_frame_reconstructs_in_camera_frame() {
 /// with one sampler step, `samples` seeds, cross selection and no mesh decoding
 /// (the Gaussian centres are scored) to keep the tests fast.
 fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, InferOptions) {
-    let frame = RgbdFrame::open(&root().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
-    let map = InstanceMap::open(&root().join("data/sample/000001-label.png")).unwrap();
+    let frame = RgbdFrame::open(&repo().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let map = InstanceMap::open(&repo().join("data/sample/000001-label.png")).unwrap();
     let engine =
-        Engine::load(&ModelSource::Random { config: Some(root().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
+        Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
     let mut opts = InferOptions { samples, select: recon::engine::SelectMethod::Cross, ..Default::default() };
     opts.run.ss_steps = Some(1);
@@ -199,15 +197,6 @@ fn objects_of_two_views_pair_by_id_or_order() {
     assert!(e.contains("--masks2") && e.contains("order"), "{e}");
 }
 
-fn recon_cli(args: &[&str], env: &[(&str, &std::path::Path)]) -> std::process::Output {
-    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_recon"));
-    c.args(args).current_dir(root());
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    c.output().unwrap()
-}
-
 /// Input errors of the two-view and weights flags stop before any model
 /// work, name the flag and leave no output behind.
 #[test]
@@ -221,7 +210,7 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     let with = |extra: &[&str]| {
         let mut a: Vec<&str> = base.to_vec();
         a.extend_from_slice(extra);
-        recon_cli(&a, &[])
+        recon_with_env(&a, &[])
     };
     // --view2 needs --masks2 and --rel-pose.
     let o = with(&["--view2", "data/sample/000001-color.png"]);
@@ -240,7 +229,7 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--rel-pose") && err.contains("16"), "{err}");
     // A manifest name with an empty Hugging Face cache.
-    let o = recon_cli(&[&base[..], &["--weights", "recgen"]].concat(), &[("HF_HOME", &tmp)]);
+    let o = recon_with_env(&[&base[..], &["--weights", "recgen"]].concat(), &[("HF_HOME", &tmp)]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("recon weights fetch --manifest recgen") && err.contains("ss_flow"), "{err}");
@@ -259,7 +248,7 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
 /// normalisation, within the 30 MB weight budget, and it loads.
 #[test]
 fn shipped_recgen_nano_is_trained_and_loads() {
-    let dir = root().join("models/recgen-nano");
+    let dir = repo().join("models/recgen-nano");
     let mut bytes = 0u64;
     for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
         let p = dir.join(format!("{key}.safetensors"));
@@ -269,7 +258,7 @@ fn shipped_recgen_nano_is_trained_and_loads() {
     assert!(bytes <= 30 << 20, "{bytes} bytes of weights");
     let arch: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("recgen-nano.json")).unwrap()).unwrap();
     assert_eq!(arch["pose"]["ss_stats"], "pose_stats.json");
-    let tiny: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("models/recgen-nano.json")).unwrap()).unwrap();
+    let tiny: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo().join("models/recgen-nano.json")).unwrap()).unwrap();
     assert_ne!(arch["slat_normalization"], tiny["slat_normalization"], "the trained folder carries its own latent normalisation");
     let engine =
         Engine::load(&ModelSource::Dir { dir: dir.clone(), config: Some(dir.join("recgen-nano.json")) }, &LoadOptions::default()).unwrap();

@@ -3,26 +3,14 @@
 //! occupancy, mesh, Gaussians → GLB + splat PLY re-read and checked;
 //! determinism; two-view conditioning; loading the same weights from files.
 
+mod common;
+
 use candle_core::{Device, Tensor};
+use common::{tiny_config, tmp};
 use recon::engine::{LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
 use std::path::{Path, PathBuf};
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn tiny() -> PathBuf {
-    root().join("models/recgen-tiny.json")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-pipeline-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 /// One synthetic view of side `s`: a smooth random RGB image (a few random
 /// sinusoids, ImageNet-normalised), a disc mask, and the pointmap of a sphere
@@ -119,7 +107,7 @@ fn check_splat_ply(path: &Path, n: usize) {
 
 #[test]
 fn tiny_pipeline_end_to_end() {
-    let p = Pipeline::load(&tiny(), Weights::Random(0), Stages::All, &LoadOptions::default()).unwrap();
+    let p = Pipeline::load(&tiny_config(), Weights::Random(0), Stages::All, &LoadOptions::default()).unwrap();
     assert!(matches!(p.weights(), WeightsSource::Random { seed: 0 }));
     let s = p.image_size();
     let one = ObjectInputs { views: vec![view(s, 1, 0.0)] };
@@ -175,7 +163,7 @@ fn tiny_pipeline_end_to_end() {
 fn load_from_initialised_files() {
     let dir = tmp("load");
     // `recon weights init --config <architecture>` goes through write_random_init.
-    assert_eq!(recon::weights::write_random_init(&tiny(), &dir, 5).unwrap(), dir);
+    assert_eq!(recon::weights::write_random_init(&tiny_config(), &dir, 5).unwrap(), dir);
     let files: Vec<PathBuf> = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"]
         .iter()
         .map(|k| dir.join(format!("{k}.safetensors")))
@@ -188,7 +176,7 @@ fn load_from_initialised_files() {
     // Stage 1 only keeps this test short; stage 2 loads through the same code.
     let loaded = Pipeline::load(&cfg, Weights::Dir(&dir), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     assert!(loaded.weights().is_random());
-    let random = Pipeline::load(&tiny(), Weights::Random(5), Stages::SparseStructure, &LoadOptions::default()).unwrap();
+    let random = Pipeline::load(&tiny_config(), Weights::Random(5), Stages::SparseStructure, &LoadOptions::default()).unwrap();
     let one = ObjectInputs { views: vec![view(loaded.image_size(), 3, 0.0)] };
     let opts = RunOptions { seed: 1, stage1_only: true, ..Default::default() };
     let a = loaded.run(&one, &opts).unwrap();
@@ -220,8 +208,8 @@ fn load_options_precision_and_per_stage() {
     use recon::engine::LoadOptions;
     use recon::model::{Compute, Precision};
     let staged_opts = LoadOptions { per_stage: true, ..Default::default() };
-    let resident = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &LoadOptions::default()).unwrap();
-    let staged = Pipeline::load(&tiny(), Weights::Random(2), Stages::All, &staged_opts).unwrap();
+    let resident = Pipeline::load(&tiny_config(), Weights::Random(2), Stages::All, &LoadOptions::default()).unwrap();
+    let staged = Pipeline::load(&tiny_config(), Weights::Random(2), Stages::All, &staged_opts).unwrap();
     let one = ObjectInputs { views: vec![view(resident.image_size(), 1, 0.0)] };
     let opts = RunOptions { seed: 3, ss_steps: Some(3), slat_steps: Some(2), measure_memory: true, ..Default::default() };
     let a = resident.run(&one, &opts).unwrap();
@@ -244,16 +232,20 @@ fn load_options_precision_and_per_stage() {
 
     // Plain candle path vs fast f32 kernels: same occupancy and pose up to float rounding.
     let s1 = RunOptions { seed: 3, ss_steps: Some(3), stage1_only: true, ..Default::default() };
-    let plain =
-        Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions { compute: Compute::Plain, per_stage: false })
-            .unwrap();
+    let plain = Pipeline::load(
+        &tiny_config(),
+        Weights::Random(2),
+        Stages::SparseStructure,
+        &LoadOptions { compute: Compute::Plain, per_stage: false },
+    )
+    .unwrap();
     let p = plain.run(&one, &s1).unwrap();
     let f = resident.run(&one, &s1).unwrap();
     let d = p.pose.tokens_10d.iter().flatten().zip(f.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
     assert!(d < 1e-3, "plain vs fast pose tokens differ by {d}");
     assert_eq!(p.coords, f.coords);
     for precision in [Precision::Bf16, Precision::F16] {
-        let q = Pipeline::load(&tiny(), Weights::Random(2), Stages::SparseStructure, &LoadOptions::precision(precision)).unwrap();
+        let q = Pipeline::load(&tiny_config(), Weights::Random(2), Stages::SparseStructure, &LoadOptions::precision(precision)).unwrap();
         assert_eq!(q.load_options().compute.fast_parts().unwrap().0, precision);
         let r = q.run(&one, &s1).unwrap();
         assert!(r.pose.tokens_10d.iter().flatten().all(|v| v.is_finite()) && !r.coords.is_empty());

@@ -8,6 +8,9 @@
 //! is always tested.
 #![allow(clippy::needless_range_loop)] // 3×3 index loops read as the maths does
 
+mod common;
+
+use common::{repo, tmp};
 use std::path::{Path, PathBuf};
 
 use recon::dataset::MatFile;
@@ -26,17 +29,13 @@ fn realdata() -> Option<PathBuf> {
     p
 }
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 fn check_ycb_frame(color: &Path) {
     let f = RgbdFrame::open(color, &FrameOptions::default()).unwrap();
     assert_eq!((f.width, f.height), (640, 480));
     let k = f.intrinsics;
     assert!((k.fx - 1066.778).abs() < 1e-3 && (k.fy - 1067.487).abs() < 1e-3, "{k:?}");
     assert!((k.cx - 312.9869).abs() < 1e-3 && (k.cy - 241.3109).abs() < 1e-3, "{k:?}");
-    assert!((f.depth_scale - 1e-4).abs() < 1e-12, "factor_depth 10000 → 1e-4 m per unit");
+    assert!((f.depth_scale_m - 1e-4).abs() < 1e-12, "factor_depth 10000 → 1e-4 m per unit");
     let med = f.median_valid_depth().unwrap();
     // README: "depth at the median pixel is about 0.6 to 1.2 m"; the median
     // over all valid pixels of sequence 0001 is 1.225 m, hence the margin.
@@ -73,7 +72,7 @@ fn linemod_frame_loads() {
     assert_eq!((f.width, f.height), (640, 480));
     let k = f.intrinsics;
     assert_eq!((k.fx, k.fy, k.cx, k.cy), (572.4114, 573.57043, 325.2611, 242.04899));
-    assert_eq!(f.depth_scale, 0.001); // BOP depth_scale 1.0 = 1 mm per unit
+    assert_eq!(f.depth_scale_m, 0.001); // BOP depth_scale 1.0 = 1 mm per unit
     let med = f.median_valid_depth().unwrap();
     assert!((1.0..1.25).contains(&med), "README: median about 1.12 m, got {med}");
     let invalid = 1.0 - f.valid_fraction();
@@ -89,7 +88,7 @@ fn realsense_frames_load() {
         let k = f.intrinsics;
         assert!((k.fx - 618.0173).abs() < 1e-3 && (k.fy - 618.0034).abs() < 1e-3, "{k:?}");
         assert!((k.cx - 312.3770).abs() < 1e-3 && (k.cy - 232.3753).abs() < 1e-3, "{k:?}");
-        assert_eq!(f.depth_scale, 0.001);
+        assert_eq!(f.depth_scale_m, 0.001);
         assert!(f.intrinsics_source.ends_with("meta.yml"));
         let med = f.median_valid_depth().unwrap();
         assert!((0.6..0.85).contains(&med), "README: median 0.69–0.77 m, got {med}");
@@ -482,19 +481,12 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
     println!("{}: {}", out.display(), serde_json::to_string(&summary["stage_totals_s"]).unwrap());
 }
 
-fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-realdata-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 /// YCB-Video: the label map is the instance mask; the face budget is applied.
 #[test]
 fn infer_cli_ycb_video() {
     let Some(root) = realdata() else { return };
     let d = root.join("ycbv_video_oprb/0000");
-    let tmp = tmp_dir("ycb");
+    let tmp = tmp("ycb");
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     let summary = run_infer(&[
         "--rgbd".into(),
@@ -540,7 +532,7 @@ fn infer_cli_linemod_with_depth_mask() {
         }
     }
     assert!(n > 2000, "{n} mask pixels");
-    let tmp = tmp_dir("lm");
+    let tmp = tmp("lm");
     mask.save(tmp.join("can-mask.png")).unwrap();
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     let summary = run_infer(&[
@@ -571,7 +563,7 @@ fn infer_cli_realsense_with_posecnn_labels() {
             img.put_pixel(x as u32, y as u32, image::Luma([labels.at(&[y, x]).unwrap() as u8]));
         }
     }
-    let tmp = tmp_dir("rs");
+    let tmp = tmp("rs");
     img.save(tmp.join("labels.png")).unwrap();
     let s = |p: PathBuf| p.to_string_lossy().to_string();
     // Class 5 = mustard bottle (README).
@@ -633,7 +625,7 @@ fn ycb_rel_pose(seq: &Path, f1: usize, f2: usize, k: usize) -> [[f64; 4]; 4] {
 fn infer_cli_two_view_ycb_video() {
     let Some(root) = realdata() else { return };
     let d = root.join("ycbv_video_oprb/0000");
-    let tmp = tmp_dir("ycb2");
+    let tmp = tmp("ycb2");
     let rel = ycb_rel_pose(&d, 1, 5, 0);
     std::fs::write(tmp.join("rel.json"), serde_json::json!({ "T_c1_c2": rel }).to_string()).unwrap();
     let s = |p: PathBuf| p.to_string_lossy().to_string();

@@ -133,7 +133,7 @@ fn bop_round_trip_and_geometric_consistency() {
                     continue;
                 }
                 let (u, v) = ((i % w) as f64, (i / w) as f64);
-                let z = depth.as_raw()[i] as f64 * f.depth_scale_mm / 1000.0;
+                let z = depth.as_raw()[i] as f64 * f.depth_scale_m;
                 assert!(z > 0.0);
                 let c = [(u - k[0][2]) / k[0][0] * z, (v - k[1][2]) / k[1][1] * z, z];
                 let d = [c[0] - gt.t[0], c[1] - gt.t[1], c[2] - gt.t[2]];
@@ -301,7 +301,7 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
             let mut res: Vec<f64> = labelled
                 .iter()
                 .filter(|&&p| r.index[p] == i as i32 && depth.as_raw()[p] > 0)
-                .map(|&p| depth.as_raw()[p] as f64 * f.depth_scale_mm / 1000.0 - r.depth[p] as f64)
+                .map(|&p| depth.as_raw()[p] as f64 * f.depth_scale_m - r.depth[p] as f64)
                 .collect();
             res.sort_by(|a, b| a.partial_cmp(b).unwrap());
             let median = res[res.len() / 2];

@@ -157,7 +157,7 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
             idx.truncate(opts.max_pixels_per_frame);
             idx.sort_unstable();
         }
-        let scale_m = f.depth_scale_mm / 1000.0;
+        let scale_m = f.depth_scale_m;
         for i in idx {
             out.pixels.push(PixelSample { cov: covs[i], measured: raw[i] as f64 * scale_m });
         }

@@ -68,7 +68,7 @@ fn frame_options(
     flag: &str,
 ) -> anyhow::Result<recon::dataset::FrameOptions> {
     use recon::dataset::{FrameOptions, Intrinsics};
-    let mut fo = FrameOptions { depth: depth.clone(), depth_scale: scale, ..Default::default() };
+    let mut fo = FrameOptions { depth: depth.clone(), depth_scale_m: scale, ..Default::default() };
     if let Some(k) = intrinsics {
         let nums: Vec<f64> = k.split(',').filter_map(|v| v.trim().parse().ok()).collect();
         if nums.len() == 4 && k.split(',').count() == 4 {

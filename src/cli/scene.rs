@@ -112,7 +112,7 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
                 a.input.display()
             ),
         };
-        let fo = FrameOptions { depth: a.depth.clone(), depth_scale: a.depth_scale, ..Default::default() };
+        let fo = FrameOptions { depth: a.depth.clone(), depth_scale_m: a.depth_scale, ..Default::default() };
         let frame = RgbdFrame::open(&color, &fo).with_context(|| format!("--frame {}", color.display()))?;
         let (scene, notes) = recon::sim::scene_from_infer_output(&a.input, &frame, &table, &plane_opts)?;
         for n in notes {

@@ -46,8 +46,9 @@ pub struct Frame {
     pub frame: u32,
     /// Pinhole intrinsics in pixels.
     pub k: [[f64; 3]; 3],
-    /// Raw depth value → millimetres (BOP `depth_scale`; YCB-Video: 1000 / factor_depth).
-    pub depth_scale_mm: f64,
+    /// Metres per raw depth unit: BOP's `depth_scale` (millimetres per unit) / 1000;
+    /// YCB-Video: 1 / factor_depth. Metres end to end, as `RgbdFrame::depth_scale_m`.
+    pub depth_scale_m: f64,
     pub gt: Vec<GtInstance>,
     /// World → camera (`x_cam = R·x_w + t`, metres) when the dataset gives it
     /// (BOP `cam_R_w2c` / `cam_t_w2c`): relates frames of a scene.
@@ -106,7 +107,7 @@ impl Dataset {
         }
     }
 
-    /// Depth image of a frame (16-bit PNG; raw value × `depth_scale_mm` = millimetres).
+    /// Depth image of a frame (16-bit PNG; raw value × `depth_scale_m` = metres).
     pub fn depth_path(&self, f: &Frame) -> PathBuf {
         match self.layout {
             Layout::Bop => self.root.join(&f.scene).join("depth").join(format!("{:06}.png", f.frame)),
@@ -246,7 +247,7 @@ pub fn load_bop(split_dir: &Path, models_dir: &Path) -> Result<Dataset> {
                     bbox_visib,
                 });
             }
-            ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_mm, gt: gts, cam_w2c });
+            ds.frames.push(Frame { scene: scene.clone(), frame: im, k, depth_scale_m: depth_scale_mm / 1000.0, gt: gts, cam_w2c });
         }
     }
     let info_path = models_dir.join("models_info.json");
@@ -389,7 +390,7 @@ pub fn load_ycbv(root: &Path) -> Result<Dataset> {
             used.insert(c as u32);
             gts.push(GtInstance { obj_id: c as u32, r, t, visib_fract: None, visib_estimated: false, bbox_visib: None });
         }
-        ds.frames.push(Frame { scene, frame: id, k, depth_scale_mm: 1000.0 / fd, gt: gts, cam_w2c: None });
+        ds.frames.push(Frame { scene, frame: id, k, depth_scale_m: 1000.0 / fd / 1000.0, gt: gts, cam_w2c: None });
     }
     for id in used {
         let name = YCBV_CLASSES[id as usize - 1];
@@ -547,7 +548,7 @@ pub(crate) mod tests {
         let f1 = ds.frame("000048", 1).unwrap();
         assert_eq!(f1.k[0][0], 1066.778);
         assert_eq!(f1.k[1][2], 241.3109);
-        assert_eq!(f1.depth_scale_mm, 0.1);
+        assert_eq!(f1.depth_scale_m, 0.1 / 1000.0);
         assert_eq!(f1.gt.len(), 2);
         assert_eq!(f1.gt[0].t, [0.01, -0.02, 0.7]);
         assert_eq!(f1.gt[1].r[0], [0.0, -1.0, 0.0]);
@@ -592,7 +593,7 @@ pub(crate) mod tests {
         for f in &ds.frames {
             // README: fx=1066.778, fy=1067.487, cx=312.9869, cy=241.3109, factor_depth 10000.
             assert_eq!([f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2], f.k[2][2]], [1066.778, 1067.487, 312.9869, 241.3109, 1.0]);
-            assert_eq!(f.depth_scale_mm, 0.1);
+            assert_eq!(f.depth_scale_m, 0.1 / 1000.0);
             for g in &f.gt {
                 // Rotations are orthonormal.
                 for i in 0..3 {

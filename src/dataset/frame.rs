@@ -6,7 +6,7 @@
 //! "no reading" (PNG value 0). Every consumer (masks, point maps) treats both
 //! the same way. The stored PNG value `v` becomes `v · depth_scale` metres,
 //! with `depth_scale` (metres per unit) taken, in order of precedence, from
-//! [`FrameOptions::depth_scale`], the intrinsics file (BOP `depth_scale` is
+//! [`FrameOptions::depth_scale_m`], the intrinsics file (BOP `depth_scale` is
 //! *millimetres* per unit, YCB-Video `factor_depth` is units per metre, our
 //! `depth_scale_m` is metres per unit), or else 0.001 (millimetres), which is
 //! what RecGen's `normalize_depth` assumes for integer depth.
@@ -77,7 +77,7 @@ pub struct FrameOptions {
     /// Intrinsics JSON file (formats in the module docs).
     pub intrinsics_file: Option<PathBuf>,
     /// Metres per depth unit (e.g. 0.001 for millimetres, 1e-4 for YCB-Video).
-    pub depth_scale: Option<f64>,
+    pub depth_scale_m: Option<f64>,
 }
 
 /// One RGB-D frame in memory.
@@ -95,7 +95,7 @@ pub struct RgbdFrame {
     /// Where the intrinsics came from (a path, or "explicit").
     pub intrinsics_source: String,
     /// Metres per stored depth unit that was applied.
-    pub depth_scale: f64,
+    pub depth_scale_m: f64,
 }
 
 /// Whether a metric depth value is a usable reading.
@@ -371,7 +371,7 @@ impl RgbdFrame {
             }
         };
 
-        let depth_scale = opts.depth_scale.or(info.depth_scale_m).unwrap_or(0.001);
+        let depth_scale = opts.depth_scale_m.or(info.depth_scale_m).unwrap_or(0.001);
         if !(depth_scale.is_finite() && depth_scale > 0.0) {
             return Err(Error::input("depth_scale", format!("must be positive metres per unit, got {depth_scale}")));
         }
@@ -395,7 +395,7 @@ impl RgbdFrame {
             rgb_path: rgb_path.to_path_buf(),
             depth_path,
             intrinsics_source,
-            depth_scale,
+            depth_scale_m: depth_scale,
         })
     }
 
@@ -451,12 +451,12 @@ mod tests {
         let f = RgbdFrame::open(&d.join("shot.png"), &FrameOptions::default()).unwrap();
         assert_eq!((f.width, f.height), (8, 6));
         assert_eq!(f.intrinsics, Intrinsics { fx: 500.0, fy: 501.0, cx: 3.5, cy: 2.5 });
-        assert_eq!(f.depth_scale, 0.001); // default: millimetres
+        assert_eq!(f.depth_scale_m, 0.001); // default: millimetres
         assert!((f.depth_at(3, 2) - 1.5).abs() < 1e-6);
         assert_eq!(f.depth_at(0, 2), 0.0);
         assert_eq!(&f.rgb[(2 * 8 + 3) * 3..(2 * 8 + 3) * 3 + 3], &[3, 2, 7]);
         // Explicit scale overrides the default.
-        let f = RgbdFrame::open(&d.join("shot.png"), &FrameOptions { depth_scale: Some(1e-4), ..Default::default() }).unwrap();
+        let f = RgbdFrame::open(&d.join("shot.png"), &FrameOptions { depth_scale_m: Some(1e-4), ..Default::default() }).unwrap();
         assert!((f.depth_at(3, 2) - 0.15).abs() < 1e-6);
     }
 

@@ -329,7 +329,7 @@ mod tests {
             rgb_path: PathBuf::new(),
             depth_path: PathBuf::new(),
             intrinsics_source: "test".into(),
-            depth_scale: 0.001,
+            depth_scale_m: 0.001,
         }
     }
 

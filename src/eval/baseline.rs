@@ -457,7 +457,7 @@ pub(crate) fn write_predictions<'a>(
 fn frame_depth(ds: &Dataset, f: &Frame) -> Result<(Vec<f32>, usize, usize)> {
     let path = ds.depth_path(f);
     let (raw, w, h) = load_depth_u16(&path)?;
-    let m_per_unit = f.depth_scale_mm / 1000.0;
+    let m_per_unit = f.depth_scale_m;
     Ok((raw.iter().map(|&v| (v as f64 * m_per_unit) as f32).collect(), w, h))
 }
 

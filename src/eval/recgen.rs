@@ -77,12 +77,8 @@ pub struct RecgenRun {
 fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
     let at = || format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame);
     let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2]).map_err(|e| Error::input(at(), e.to_string()))?;
-    let fo = FrameOptions {
-        depth: Some(ds.depth_path(f)),
-        intrinsics: Some(k),
-        intrinsics_file: None,
-        depth_scale: Some(f.depth_scale_mm * 1e-3),
-    };
+    let fo =
+        FrameOptions { depth: Some(ds.depth_path(f)), intrinsics: Some(k), intrinsics_file: None, depth_scale_m: Some(f.depth_scale_m) };
     RgbdFrame::open(&ds.rgb_path(f), &fo)
 }
 
@@ -229,7 +225,7 @@ mod tests {
             scene: scene.into(),
             frame: id,
             k: [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]],
-            depth_scale_mm: 1.0,
+            depth_scale_m: 1e-3,
             gt: Vec::new(),
             cam_w2c: w2c,
         }

@@ -425,7 +425,7 @@ mod tests {
             rgb_path: PathBuf::from("test.png"),
             depth_path: PathBuf::new(),
             intrinsics_source: "test".into(),
-            depth_scale: 0.001,
+            depth_scale_m: 0.001,
         }
     }
 

@@ -78,7 +78,7 @@ mod tests {
             rgb_path: Default::default(),
             depth_path: Default::default(),
             intrinsics_source: "explicit".into(),
-            depth_scale: 1.0,
+            depth_scale_m: 1.0,
         };
         let s = 0.05f32;
         let v: Vec<[f32; 3]> = (0..8)

@@ -114,7 +114,7 @@ impl BopSource {
             depth: Some(scene.join("depth").join(format!("{name}.png"))),
             intrinsics: Some(k),
             intrinsics_file: None,
-            depth_scale: Some(f.depth_scale_mm * 1e-3),
+            depth_scale_m: Some(f.depth_scale_m),
         };
         let frame = RgbdFrame::open(&rgb, &opts)?;
         let mp = scene.join("mask_visib").join(format!("{name}_{:06}.png", r.gt));

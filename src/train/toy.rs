@@ -278,7 +278,7 @@ impl ToySource {
             rgb_path: format!("toy/{}/rgb.png", self.config.seed).into(),
             depth_path: "toy/depth.png".into(),
             intrinsics_source: "toy generator".into(),
-            depth_scale: 1.0,
+            depth_scale_m: 1.0,
         };
         Ok(Some(ObjectView { frame: Arc::new(frame), mask, r, t }))
     }
