@@ -2,11 +2,11 @@
 //! mesh and Gaussians in the metric camera frame.
 //!
 //! ```no_run
-//! use recon::engine::infer::{Engine, InferOptions};
-//! use recon::dataset::frame::{FrameOptions, RgbdFrame};
-//! use recon::dataset::masks::InstanceMap;
+//! use recon::dataset::{FrameOptions, InstanceMap, RgbdFrame};
+//! use recon::engine::{Engine, InferOptions, LoadOptions, ModelSource};
 //! # fn main() -> recon::Result<()> {
-//! let engine = Engine::random("models/recgen-tiny.json".as_ref(), 0)?; // or Engine::load(config, weights_dir)
+//! // The shipped recgen-nano; or ModelSource::Dir { .. }, ::Manifest { .. }, ::Random { .. }.
+//! let engine = Engine::load(&ModelSource::Default, &LoadOptions::default())?;
 //! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;
 //! let (objects, _skipped) = InstanceMap::open("data/sample/000001-label.png".as_ref())?.objects(None);
 //! let result = engine.reconstruct(&frame, objects, &InferOptions::default())?;

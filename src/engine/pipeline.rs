@@ -3,7 +3,7 @@
 //! # API
 //!
 //! ```no_run
-//! use recon::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, ViewInput};
+//! use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
 //! # fn main() -> recon::Result<()> {
 //! // Trained (or `recon weights init`) weights: `<dir>/<key>.safetensors` per module.
 //! let p = Pipeline::load("models/recgen-large.json".as_ref(), Weights::Dir("weights/".as_ref()), Stages::All, &LoadOptions::default())?;

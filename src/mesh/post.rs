@@ -6,7 +6,7 @@
 //! spec's §5.3 "cheapest acceptable path" allows.
 
 use crate::math::{cross, dot, sub};
-use crate::mesh::{face_area, Mesh, UnionFind};
+use crate::mesh::indexed::{face_area, Mesh, UnionFind};
 use std::cmp::Ordering;
 use std::collections::{BinaryHeap, HashSet};
 

@@ -3,8 +3,8 @@
 //! and swept tubes, closed and outward-oriented.
 
 use crate::math::{cross, normalize};
+use crate::mesh::indexed::Mesh;
 use crate::mesh::trimesh::TriMesh;
-use crate::mesh::Mesh;
 use crate::spatial::P3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 

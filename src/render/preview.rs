@@ -5,7 +5,7 @@
 use crate::dataset::frame::RgbdFrame;
 use crate::math::Similarity;
 use crate::mesh::Mesh;
-use crate::render::{render, Camera, Instance, Material, RenderMesh, RenderOptions};
+use crate::render::raycast::{render, Camera, Instance, Material, RenderMesh, RenderOptions};
 use crate::Result;
 
 const PALETTE: [[f32; 3]; 6] =

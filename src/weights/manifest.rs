@@ -5,6 +5,7 @@
 
 use crate::weights::record::TensorSpec;
 use crate::{Error, Result};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// Manifests shipped with the crate: (name, JSON text).
@@ -126,18 +127,14 @@ fn is_weights_file(f: &ManifestFile) -> bool {
 /// manifest's pose-statistics files (role "stage-1/stage-2 pose normaliser
 /// statistics"), when present, replace the architecture's. Missing files are
 /// one error listing every path looked at.
-pub fn resolve_module_files(
-    name_or_path: &str,
-    config: &crate::model::config::RecGenConfig,
-    cache: &Path,
-) -> Result<crate::weights::WeightFiles> {
+pub fn resolve_module_files(name_or_path: &str, config: &crate::model::config::RecGenConfig, cache: &Path) -> Result<WeightFiles> {
     use crate::weights::registry::ModuleKind;
     let primary = Manifest::load(name_or_path)?;
     let others: Vec<Manifest> = Manifest::all()?.into_iter().filter(|m| m.name != primary.name).collect();
     let lists = |m: &Manifest, kind: ModuleKind| -> Option<ManifestFile> {
         m.files.iter().find(|f| is_weights_file(f) && !f.optional && f.module.as_deref().and_then(ModuleKind::of) == Some(kind)).cloned()
     };
-    let mut out = crate::weights::WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
+    let mut out = WeightFiles { dir: primary.resolve_dir(cache), ..Default::default() };
     let mut missing = Vec::new();
     let mut fetch = vec![primary.name.clone()];
     for (key, spec) in config.modules() {
@@ -189,6 +186,20 @@ pub fn resolve_module_files(
         }
     }
     Ok(out)
+}
+
+/// Where each module's checkpoint is, for layouts other than
+/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
+/// weights manifest).
+#[derive(Debug, Clone, Default)]
+pub struct WeightFiles {
+    /// Reported as the weights' origin.
+    pub dir: PathBuf,
+    /// Module key ([`crate::model::config::RecGenConfig::modules`]) → checkpoint file.
+    pub modules: HashMap<String, PathBuf>,
+    /// Pose statistics to use instead of the files the architecture names.
+    pub ss_stats: Option<PathBuf>,
+    pub slat_stats: Option<PathBuf>,
 }
 
 #[cfg(test)]

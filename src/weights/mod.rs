@@ -14,27 +14,10 @@ pub(crate) mod verify;
 pub use self::fetch::fetch;
 pub use self::init::{is_random_init, write_random_init};
 pub use self::load::mmaped_safetensors_vb;
-pub use self::manifest::Manifest;
+pub use self::manifest::{Manifest, WeightFiles};
 pub use self::record::RandomInit;
 pub use self::registry::{build_ss_encoder, expected_tensors, ModuleConfig};
 pub use self::verify::{print_table, verify_dir};
 pub use load::Checkpoint;
 pub use record::{record_with, TensorSpec};
 pub use validate::{compare, load_validated, validate_checkpoint, ValidationReport};
-
-use std::collections::HashMap;
-use std::path::PathBuf;
-
-/// Where each module's checkpoint is, for layouts other than
-/// `<dir>/<key>.safetensors` (e.g. the upstream files resolved through a
-/// weights manifest).
-#[derive(Debug, Clone, Default)]
-pub struct WeightFiles {
-    /// Reported as the weights' origin.
-    pub dir: PathBuf,
-    /// Module key ([`crate::model::config::RecGenConfig::modules`]) → checkpoint file.
-    pub modules: HashMap<String, PathBuf>,
-    /// Pose statistics to use instead of the files the architecture names.
-    pub ss_stats: Option<PathBuf>,
-    pub slat_stats: Option<PathBuf>,
-}
