@@ -330,7 +330,7 @@ pub fn read_xyz(path: &Path) -> Result<Vec<P3>> {
 /// `<root>/models_points_xyz/<class name>/points.xyz` (metres, point clouds; diameters are
 /// computed exactly from them). There is no visibility annotation: `visib_fract` is
 /// estimated from the model, the GT pose and the `-label.png` map
-/// ([`crate::dataset::visibility`], `visib_estimated = true`), and left `None` without a label map.
+/// (`crate::dataset::visibility`, `visib_estimated = true`), and left `None` without a label map.
 pub fn load_ycbv(root: &Path) -> Result<Dataset> {
     let mut metas: Vec<(String, u32, PathBuf)> = Vec::new();
     let mut seqs: Vec<PathBuf> =

@@ -1,7 +1,7 @@
-//! The engine: both model stages on a frame's objects ([`pipeline`]), pose
-//! fitting and selection against the measured depth ([`pose_fit`]), the
+//! The engine: both model stages on a frame's objects (`pipeline`), pose
+//! fitting and selection against the measured depth (`pose_fit`), the
 //! user-facing [`infer::Engine`] with its [`source::ModelSource`], and its output
-//! folder ([`output`]).
+//! folder (`output`).
 
 pub(crate) mod infer;
 pub(crate) mod output;

@@ -1,10 +1,11 @@
 //! Evaluation of reconstructions against ground truth (RecGen metrics + BOP ADD/ADD-S).
 //!
-//! - [`metrics`]: the metric definitions (pure functions).
-//! - [`mesh`], [`knn`], [`icp`]: surface sampling, nearest neighbours, ICP alignment.
-//! - [`ply`], [`mat`], [`bop`]: reading BOP-format and YCB-Video datasets.
-//! - [`report`]: prediction files, [`report::evaluate`] and the report (JSON, text, SVG).
-//! - [`baseline`]: the non-learned `observed` predictor (visible points → box + hull).
+//! - `metrics`: the metric definitions (pure functions), `icp`: ICP alignment
+//!   (surface sampling and nearest neighbours are `crate::mesh` and `crate::spatial`;
+//!   the BOP and YCB-Video readers are `crate::dataset`).
+//! - `report`: prediction files, [`evaluate`] and the report (JSON, text, SVG).
+//! - `baseline`: the non-learned `observed` predictor (visible points → box + hull).
+//! - `recgen`: the model as a predictor on every GT instance.
 //!
 //! Entry point for the CLI: [`run_eval`].
 

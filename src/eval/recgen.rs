@@ -175,7 +175,7 @@ pub fn recgen_frame(
     Ok(run)
 }
 
-/// Every frame of `ds`, in order (with `two_view`, each with its [`partner`];
+/// Every frame of `ds`, in order (with `two_view`, each with its `partner`;
 /// frames without one are reconstructed from one view); `progress(done, total)` after each frame.
 pub fn recgen_dataset(
     ds: &Dataset,

@@ -4,7 +4,7 @@ use crate::{Error, Result};
 use std::path::Path;
 
 /// Output axis convention. The decoders work z-up; TRELLIS exports y-up by
-/// right-multiplying row vectors with [[1,0,0],[0,0,-1],[0,1,0]], i.e.
+/// right-multiplying row vectors with `[[1,0,0],[0,0,-1],[0,1,0]]`, i.e.
 /// (x, y, z) ↦ (x, z, −y).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Axes {

@@ -69,7 +69,7 @@ pub fn backproject(depth_m: &[f32], w: usize, h: usize, k: &Intrinsics) -> Resul
 }
 
 /// Project a camera-frame point to pixel coordinates (inverse of
-/// [`backproject`] for `z > 0`).
+/// `backproject` for `z > 0`).
 pub fn project(p: [f64; 3], k: &Intrinsics) -> [f64; 2] {
     [k.fx * p[0] / p[2] + k.cx, k.fy * p[1] / p[2] + k.cy]
 }

@@ -1,5 +1,5 @@
 //! The CPU ray caster that `recon synth`, the `recon infer` preview and the
-//! audit share ([`raycast`]), and the preview picture ([`preview`]).
+//! audit share (`raycast`), and the preview picture (`preview`).
 
 pub(crate) mod preview;
 pub(crate) mod raycast;

@@ -1,15 +1,15 @@
 //! sim: posed meshes → a physically plausible, simulator-ready scene.
 //!
-//! 1. [`scene_file`]: the versioned scene description (objects, camera,
+//! 1. `scene_file`: the versioned scene description (objects, camera,
 //!    support plane), read from JSON or built from `recon infer` output.
-//! 2. [`plane`]: the support plane from the observed depth (RANSAC + least
+//! 2. `plane`: the support plane from the observed depth (RANSAC + least
 //!    squares) and the world frame (gravity −z, plane z = 0).
-//! 3. [`physics`] + [`materials`]: mesh checks, solid or shell, mass and
+//! 3. `physics` + `materials`: mesh checks, solid or shell, mass and
 //!    inertia from the mesh and a material table.
-//! 4. [`collision`]: convex decomposition, single hull or primitive fits.
-//! 5. [`settle`]: rapier3d settling with bounded depenetration.
+//! 4. `collision`: convex decomposition, single hull or primitive fits.
+//! 5. `settle`: rapier3d settling with bounded depenetration.
 //!
-//! The simulator formats ([`urdf`], [`mjcf`], [`usd`]) live here; the asset
+//! The simulator formats (`urdf`, `mjcf`, `usd`) live here; the asset
 //! formats (GLB, PLY, OBJ) in `crate::export`. [`write_outputs`] writes the
 //! whole folder atomically.
 

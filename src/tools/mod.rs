@@ -1,5 +1,5 @@
-//! Developer tools: [`bench`] (kernel, module and end-to-end benchmarks) and
-//! [`conformance`] (every model stage against upstream golden fixtures).
+//! Developer tools: `bench` (kernel, module and end-to-end benchmarks) and
+//! `conformance` (every model stage against upstream golden fixtures).
 
 pub mod bench;
 pub(crate) mod conformance;

@@ -227,7 +227,7 @@ pub fn scan(source: &dyn TrainingSource) -> Result<Scan> {
 /// Pose statistics of `poses` in the JSON format of RecGen's
 /// `stereo_pose_stats.json` ([`PoseStats`]): 6-D rotation (first two
 /// columns), 9-D rotation in `layout`, translation and scale, each with
-/// per-component mean and population std (floored at [`MIN_POSE_STD`]).
+/// per-component mean and population std (floored at `MIN_POSE_STD`).
 pub fn pose_stats_json(poses: &[Pose], layout: NineDLayout, source: &str) -> Result<serde_json::Value> {
     let (mut r6, mut r9, mut tr, mut sc) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for p in poses {

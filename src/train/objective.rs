@@ -131,7 +131,7 @@ impl Objective for VaeObjective {
     }
 }
 
-/// Stage-1 flow objective (module docs of [`crate::train::flow`]).
+/// Stage-1 flow objective (module docs of `crate::train::flow`).
 pub struct FlowObjective<'a> {
     params: Vec<ModuleParams>,
     dino: Dinov2,

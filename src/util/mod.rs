@@ -1,5 +1,5 @@
-//! Small shared helpers: JSON files with errors that name them ([`json`]),
-//! peak memory ([`memory`]), and the statistics several layers use.
+//! Small shared helpers: JSON files with errors that name them (`json`),
+//! peak memory (`memory`), and the statistics several layers use.
 
 pub(crate) mod json;
 pub(crate) mod memory;

@@ -18,7 +18,7 @@ pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 
 /// Write `<out>/<config stem>.safetensors` and a copy of the config as
 /// `<out>/<config stem>.json`. Returns the weights path. For an architecture
-/// file see [`write_random_architecture`] (returns `out`).
+/// file see `write_random_architecture` (returns `out`).
 pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
     let v: serde_json::Value = crate::util::json::read_json(config)?;
     if v.get("ss_flow").is_some() && v.get("args").is_none() {

@@ -44,7 +44,7 @@ fn load_err(path: &Path, e: impl std::fmt::Display) -> Error {
 impl Checkpoint {
     /// Open by extension: `.safetensors` (memory-mapped), `.pt`/`.pth`/`.bin` (torch zip pickle).
     /// For torch files, `pt_key` selects a wrapped state dict; when `None` the
-    /// top level is tried first, then [`PT_WRAPPER_KEYS`].
+    /// top level is tried first, then `PT_WRAPPER_KEYS`.
     pub fn open(path: &Path, pt_key: Option<&str>) -> Result<Self> {
         if !path.exists() {
             return Err(Error::input(path.display().to_string(), "checkpoint file not found"));

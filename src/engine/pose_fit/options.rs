@@ -11,7 +11,7 @@ pub struct AlignOptions {
     pub max_points: usize,
     /// Seed of the surface sampling.
     pub seed: u64,
-    /// Weight of the free-space term ([`crate::engine::pose_fit::refine`]) in a view's score;
+    /// Weight of the free-space term (`crate::engine::pose_fit::refine`) in a view's score;
     /// 0 gives RecGen's one-sided score.
     pub free_space_weight: f64,
     /// Depth noise allowance of the free-space test (metres).
@@ -63,7 +63,7 @@ impl AlignOptions {
         Self::default()
     }
 
-    /// The depth-consistent score with refinement ([`crate::engine::pose_fit::refine`]).
+    /// The depth-consistent score with refinement (`crate::engine::pose_fit::refine`).
     pub fn depth() -> Self {
         // The prior weight was chosen on held-out scenes (README §Evaluation): 0.03 shrinks
         // the growth behind occluders without holding back fits the depth does constrain.

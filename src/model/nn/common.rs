@@ -12,7 +12,7 @@ pub use crate::model::nn::fast::Linear;
 use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
 
 /// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
-/// `{prefix}.bias`), for the current build setting ([`fast::build_compute`]).
+/// `{prefix}.bias`), for the current build setting (`fast::build_compute`).
 /// Position embedding of the transformers (`pe_mode`): TRELLIS offers
 /// absolute (`ape`) and rotary (`rope`); RecGen uses `ape`, the only one here.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]

@@ -267,7 +267,7 @@ impl Conv3d {
         Ok(Self { weight, bias, cin, cout, k, pad })
     }
 
-    /// Differentiable path ([`conv3d_trainable`]).
+    /// Differentiable path (`conv3d_trainable`).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         conv3d_trainable(x, &self.weight, &self.bias, self.pad)
     }
@@ -310,7 +310,7 @@ impl ChannelLayerNorm {
     }
 
     /// Differentiable path: the fast kernel forward, a hand-written backward
-    /// ([`channel_layer_norm_trainable`]).
+    /// (`channel_layer_norm_trainable`).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         channel_layer_norm_trainable(x, &self.weight, &self.bias, self.eps)
     }
