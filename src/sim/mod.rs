@@ -8,6 +8,8 @@
 //!    inertia from the mesh and a material table.
 //! 4. [`collision`]: convex decomposition, single hull or primitive fits.
 //! 5. [`settle`]: rapier3d settling with bounded depenetration.
+//! 6. [`variations`]: many re-arranged, settled scenes from one, under
+//!    spatial predicates, with distractors and object variants.
 //!
 //! The simulator formats ([`urdf`], [`mjcf`], [`usd`]) live here; the asset
 //! formats (GLB, PLY, OBJ) in `crate::export`. [`write_outputs`] writes the
@@ -24,7 +26,9 @@ pub mod scene_file;
 pub mod settle;
 pub mod urdf;
 pub mod usd;
+pub mod variations;
 mod write;
 
 pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};
-pub use write::{write_outputs, Written, MARKER};
+pub use variations::{run_variations, VariationOptions, VariationSpec};
+pub use write::{write_outputs, write_outputs_with, Written, MARKER};
