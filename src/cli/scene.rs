@@ -68,6 +68,15 @@ pub struct SceneArgs {
     flag_deg: f64,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Write this many variations of the scene instead (objects re-placed under
+    /// spatial predicates, distractors, object variants; `variant_NNNN/` folders
+    /// and manifest.json under --out); --seed makes them reproducible.
+    #[arg(long)]
+    variations: Option<usize>,
+    /// Variations spec (JSON: predicates, distractors, object variants); default:
+    /// two predicates sampled per variant, no distractors, no object variants.
+    #[arg(long, requires = "variations")]
+    spec: Option<PathBuf>,
     /// Print the per-object report as JSON instead of a table.
     #[arg(long)]
     json: bool,
@@ -82,6 +91,12 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     use recon::sim::{build_scene, write_outputs, SceneOptions};
     use recon::sim::{CollisionMethod, VhacdOptions};
 
+    // A bad spec fails before the scene is read.
+    let spec = match (&a.variations, &a.spec) {
+        (Some(_), Some(p)) => Some((recon::sim::VariationSpec::load(p)?, p.display().to_string())),
+        (Some(_), None) => Some((recon::sim::VariationSpec::default(), "<default spec>".to_string())),
+        _ => None,
+    };
     let table = match &a.materials {
         Some(p) => MaterialTable::load(p)?,
         None => MaterialTable::builtin(),
@@ -143,6 +158,39 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     opts.settle.flag_displacement_m = a.flag_mm * 1e-3;
     opts.settle.flag_rotation_deg = a.flag_deg;
 
+    if let (Some(count), Some((spec, spec_file))) = (a.variations, spec) {
+        let vo = recon::sim::VariationOptions { count, seed: a.seed, spec, spec_file };
+        let r = recon::sim::run_variations(&scene, &table, &opts, &vo, &file, &a.out)?;
+        let m = &r.manifest;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(m)?);
+        } else {
+            for v in &m.variants {
+                let preds: Vec<String> =
+                    v.predicates.iter().map(|p| format!("{} {}", p.label, if p.judged.holds { "ok" } else { "FAILS" })).collect();
+                println!(
+                    "variant {:>4}: {} ({} objects, attempt {}) {}",
+                    v.index,
+                    if v.kept { "kept" } else { "REJECTED" },
+                    v.objects.len(),
+                    v.attempts,
+                    if v.kept { preds.join(", ") } else { v.rejected.clone().unwrap_or_default() }
+                );
+            }
+            println!(
+                "kept {} of {} variants; every predicate holds in {:.1} % of them ({} of {} predicates); {:.2} variants/s ({:.1} s)",
+                m.kept,
+                m.requested,
+                m.predicate_pass_rate * 100.0,
+                m.predicates_held,
+                m.predicates_total,
+                m.kept as f64 / r.seconds,
+                r.seconds
+            );
+            println!("wrote {}", a.out.join(recon::sim::VARIATIONS_MANIFEST).display());
+        }
+        return Ok(m.kept == m.requested);
+    }
     let mut sim = build_scene(&scene, &table, &opts, &file)?;
     write_outputs(&mut sim, &a.out)?;
     if a.json {

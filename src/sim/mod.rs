@@ -8,6 +8,8 @@
 //!    inertia from the mesh and a material table.
 //! 4. `collision`: convex decomposition, single hull or primitive fits.
 //! 5. `settle`: rapier3d settling with bounded depenetration.
+//! 6. `variations`: many re-arranged, settled scenes from one, under
+//!    spatial predicates, with distractors and object variants.
 //!
 //! The simulator formats (`urdf`, `mjcf`, `usd`) live here; the asset
 //! formats (GLB, PLY, OBJ) in `crate::export`. [`write_outputs`] writes the
@@ -24,6 +26,7 @@ pub(crate) mod scene_file;
 pub(crate) mod settle;
 pub(crate) mod urdf;
 pub(crate) mod usd;
+pub(crate) mod variations;
 mod write;
 
 pub use self::collision::{CollisionMethod, VhacdOptions};
@@ -33,4 +36,5 @@ pub use self::plane::PlaneFitOptions;
 pub use self::scene_file::SceneFile;
 pub use self::settle::{body_distance, Body};
 pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};
-pub use write::{write_outputs, Written, MARKER};
+pub use variations::{run_variations, VariationOptions, VariationSpec, MANIFEST as VARIATIONS_MANIFEST};
+pub use write::{write_outputs, write_outputs_with, Written, MARKER};

@@ -118,48 +118,11 @@ pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions
         restitution: scene.support_plane.restitution.unwrap_or(pm.restitution),
         material: pm_name,
     };
-    let bodies: Vec<Body> = prepared
-        .iter()
-        .map(|p| Body {
-            name: p.spec.name.clone(),
-            pose: p.start,
-            mass_kg: p.inertial.mass_kg,
-            inertia: p.inertial.inertia,
-            friction: p.friction,
-            restitution: p.restitution,
-            parts: p.collision.parts.clone(),
-        })
-        .collect();
+    let bodies: Vec<Body> = prepared.iter().map(Prepared::body).collect();
     let t1 = std::time::Instant::now();
     let result = settle(&bodies, plane.friction, plane.restitution, &opts.settle)?;
     let settle_s = t1.elapsed().as_secs_f64();
-    let objects = prepared
-        .into_iter()
-        .zip(&result.bodies)
-        .map(|(p, s)| {
-            let end = Similarity32 { rotation: s.rotation, translation: s.translation_m, scale: 1.0 };
-            let bottom = p.visual.vertices.iter().map(|v| end.apply(v)[2] as f64).fold(f64::INFINITY, f64::min);
-            SimObject {
-                name: p.spec.name.clone(),
-                id: safe_name(&p.spec.name),
-                category: p.spec.category.clone(),
-                material: p.material,
-                material_source: p.material_source,
-                friction: p.friction,
-                restitution: p.restitution,
-                mesh_file: p.spec.mesh.clone(),
-                visual: p.visual,
-                mesh_report: p.mesh_report,
-                inertial: p.inertial,
-                collision: p.collision,
-                start: p.start,
-                end,
-                settle: s.clone(),
-                bottom_z_m: bottom,
-                spec: p.spec,
-            }
-        })
-        .collect();
+    let objects = prepared.into_iter().zip(&result.bodies).map(|(p, s)| p.finish(s)).collect();
     Ok(SimScene {
         input: scene.clone(),
         plane,
@@ -170,21 +133,63 @@ pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions
     })
 }
 
-struct Prepared {
-    spec: ObjectSpec,
-    material: String,
-    material_source: MaterialSource,
-    friction: f64,
-    restitution: f64,
-    visual: Mesh,
-    mesh_report: MeshReport,
-    inertial: Inertial,
-    collision: Collision,
-    start: Similarity32,
+/// An annotated object with collision geometry, before settling. Its body
+/// frame has the origin at the centre of mass.
+#[derive(Debug, Clone)]
+pub(crate) struct Prepared {
+    pub spec: ObjectSpec,
+    pub material: String,
+    pub material_source: MaterialSource,
+    pub friction: f64,
+    pub restitution: f64,
+    pub visual: Mesh,
+    pub mesh_report: MeshReport,
+    pub inertial: Inertial,
+    pub collision: Collision,
+    pub start: Similarity32,
+}
+
+impl Prepared {
+    pub fn body(&self) -> Body {
+        Body {
+            name: self.spec.name.clone(),
+            pose: self.start,
+            mass_kg: self.inertial.mass_kg,
+            inertia: self.inertial.inertia,
+            friction: self.friction,
+            restitution: self.restitution,
+            parts: self.collision.parts.clone(),
+        }
+    }
+
+    /// The settled object.
+    pub fn finish(self, s: &BodySettle) -> SimObject {
+        let p = self;
+        let end = Similarity32 { rotation: s.rotation, translation: s.translation_m, scale: 1.0 };
+        let bottom = p.visual.vertices.iter().map(|v| end.apply(v)[2] as f64).fold(f64::INFINITY, f64::min);
+        SimObject {
+            name: p.spec.name.clone(),
+            id: safe_name(&p.spec.name),
+            category: p.spec.category.clone(),
+            material: p.material,
+            material_source: p.material_source,
+            friction: p.friction,
+            restitution: p.restitution,
+            mesh_file: p.spec.mesh.clone(),
+            visual: p.visual,
+            mesh_report: p.mesh_report,
+            inertial: p.inertial,
+            collision: p.collision,
+            start: p.start,
+            end,
+            settle: s.clone(),
+            bottom_z_m: bottom,
+            spec: p.spec,
+        }
+    }
 }
 
 fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneOptions, file: &str) -> Result<Prepared> {
-    let field = format!("objects[{i}]");
     let mesh_file = o.mesh.display().to_string();
     let tm: TriMesh = crate::dataset::ply::read_ply(&o.mesh)?;
     if tm.faces.is_empty() {
@@ -192,7 +197,22 @@ fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneO
     }
     let s = o.scale;
     let raw = Mesh { vertices: tm.vertices.iter().map(|v| v.map(|x| (x * s) as f32)).collect(), faces: tm.faces, vertex_attrs: None };
-    let (mesh, mesh_report) = check_mesh(&raw, &mesh_file)?;
+    prepare_mesh(i, o, &raw, &mesh_file, table, opts, file)
+}
+
+/// Check, annotate and build collision for `raw` (the object's mesh in
+/// metres, in the frame `o.pose` places); `mesh_file` names it in errors.
+pub(crate) fn prepare_mesh(
+    i: usize,
+    o: &ObjectSpec,
+    raw: &Mesh,
+    mesh_file: &str,
+    table: &MaterialTable,
+    opts: &SceneOptions,
+    file: &str,
+) -> Result<Prepared> {
+    let field = format!("objects[{i}]");
+    let (mesh, mesh_report) = check_mesh(raw, mesh_file)?;
     let (material, material_source) =
         table.resolve(o.physics.material.as_deref(), &o.category, file, &format!("{field}.physics.material"))?;
     let mat = table.get(&material).copied().ok_or_else(|| Error::msg(format!("material {material} vanished")))?;
@@ -203,13 +223,13 @@ fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneO
         o.physics.density_kg_m3.unwrap_or(mat.density_kg_m3),
         o.physics.shell_thickness_m.unwrap_or(mat.shell_thickness_m),
         o.physics.mass_kg,
-        &mesh_file,
+        mesh_file,
     )?;
     let com = inertial.com.map(|x| x as f32);
     let visual = Mesh { vertices: mesh.vertices.iter().map(|v| [v[0] - com[0], v[1] - com[1], v[2] - com[2]]).collect(), ..mesh };
     let mut copts = opts.collision_opts.clone();
     copts.seed = copts.seed.wrapping_add(i as u64);
-    let collision = build_collision(&visual, mesh_report.volume_m3, opts.collision, &copts, &mesh_file)?;
+    let collision = build_collision(&visual, mesh_report.volume_m3, opts.collision, &copts, mesh_file)?;
     let pose = o.pose.to_similarity(file, &format!("{field}.pose"))?;
     let start = Similarity32 { rotation: pose.rotation, translation: pose.apply(&com), scale: 1.0 };
     Ok(Prepared {

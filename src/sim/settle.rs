@@ -120,6 +120,11 @@ pub struct BodySettle {
     pub flagged: bool,
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub flag_reasons: Vec<String>,
+    /// Bound on how far any point of the body moved over the last
+    /// `rest_duration_s` of the run (translation + rotation × reach), for
+    /// callers that need a position-based rest test. Not in reports.
+    #[serde(skip)]
+    pub rest_motion_m: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -197,6 +202,31 @@ fn part_shape(p: &Part) -> Option<(Pose, SharedShape)> {
 fn part_collider(p: &Part) -> Option<ColliderBuilder> {
     let (pose, shape) = part_shape(p)?;
     Some(ColliderBuilder::new(shape).position(pose))
+}
+
+/// A body's collision parts as parry shapes with their poses in the body frame.
+pub fn part_shapes(b: &Body) -> Result<Vec<(Pose, SharedShape)>> {
+    b.parts.iter().map(|p| part_shape(p).ok_or_else(|| Error::msg(format!("{}: degenerate collision part", b.name)))).collect()
+}
+
+/// Smallest distance between two sets of posed shapes (negative: the deepest overlap).
+pub fn shapes_distance(a: &[(Pose, SharedShape)], pose_a: &Similarity32, b: &[(Pose, SharedShape)], pose_b: &Similarity32) -> Result<f64> {
+    let (wa, wb) = (to_pose(pose_a), to_pose(pose_b));
+    let mut best = f64::INFINITY;
+    for (la, ga) in a {
+        for (lb, gb) in b {
+            let (pa, pb) = (wa * *la, wb * *lb);
+            let d = match parry3d::query::contact(&pa, &**ga, &pb, &**gb, 0.0) {
+                Ok(Some(c)) => c.dist as f64,
+                _ => {
+                    parry3d::query::distance(&pa, &**ga, &pb, &**gb).map_err(|e| Error::msg(format!("distance query: {e:?}")))?.distance
+                        as f64
+                }
+            };
+            best = best.min(d);
+        }
+    }
+    Ok(best)
 }
 
 /// Smallest distance between two bodies' collision geometry at their
@@ -389,9 +419,15 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
     let mut calm = 0;
     let mut steps = depen_steps;
     let mut at_rest = false;
+    // Poses over the last rest window, for the position-based rest bound.
+    let mut recent: std::collections::VecDeque<Vec<Pose>> = std::collections::VecDeque::with_capacity(rest_steps + 1);
     while steps < steps_max {
         world.step();
         steps += 1;
+        if recent.len() == rest_steps.max(1) {
+            recent.pop_front();
+        }
+        recent.push_back(handles.iter().map(|h| *world.bodies[*h].position()).collect());
         let still = handles.iter().all(|h| {
             let b = &world.bodies[*h];
             (b.linvel().length() as f64) < opts.rest_linear_m_s && (b.angvel().length() as f64) < opts.rest_angular_rad_s
@@ -428,6 +464,21 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             }
         }
         touching.sort();
+        let reach = b
+            .parts
+            .iter()
+            .flat_map(|p| p.surface_mesh().vertices)
+            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+            .fold(0.0f32, f32::max);
+        let k = out.len();
+        let rest_motion = recent
+            .iter()
+            .map(|poses| {
+                let p = from_pose(&poses[k]);
+                let dt = (0..3).map(|a| ((p.translation[a] - end.translation[a]) as f64).powi(2)).sum::<f64>().sqrt();
+                dt + rotation_angle_deg(&p.rotation, &end.rotation).to_radians() * reach as f64
+            })
+            .fold(0.0, f64::max);
         let speed = rb.linvel().length() as f64;
         let mut reasons = Vec::new();
         if d > opts.flag_displacement_m {
@@ -452,6 +503,7 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             touching,
             flagged: !reasons.is_empty(),
             flag_reasons: reasons,
+            rest_motion_m: rest_motion,
         });
     }
     Ok(SettleResult { simulated_s: steps as f64 * opts.dt_s, depenetration_s: depen_steps as f64 * opts.dt_s, steps, at_rest, bodies: out })

@@ -20,13 +20,21 @@ pub struct Written {
     pub mjcf: &'static str,
     pub usd: &'static str,
     pub glb: &'static str,
-    pub timings: &'static str,
+    /// Absent for outputs written without wall-clock timings.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timings: Option<&'static str>,
 }
 
 /// Write the settled scene (scene.json, meshes, URDF, MJCF, USD, GLB and the
 /// report) to a staging folder, then move it to `out`. An existing `out` is
 /// replaced only when it is an earlier `recon scene` output.
 pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
+    write_outputs_with(scene, out, true)
+}
+
+/// [`write_outputs`]; without `timings` no `timings.json` is written, so
+/// the folder depends on its inputs only (byte-identical for a fixed seed).
+pub fn write_outputs_with(scene: &mut SimScene, out: &Path, timings: bool) -> Result<Written> {
     let t0 = std::time::Instant::now();
     let staging = crate::engine::output::begin_output_marked(out, MARKER)?;
     let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
@@ -76,11 +84,13 @@ pub fn write_outputs(scene: &mut SimScene, out: &Path) -> Result<Written> {
         mjcf: "scene.xml",
         usd: "scene.usda",
         glb: "scene.glb",
-        timings: "timings.json",
+        timings: timings.then_some("timings.json"),
     };
-    scene.timings.export_s = t0.elapsed().as_secs_f64();
-    let timings = serde_json::to_string_pretty(&scene.timings).map_err(|e| Error::msg(e.to_string()))?;
-    write(&staging.join("timings.json"), timings.as_bytes())?;
+    if timings {
+        scene.timings.export_s = t0.elapsed().as_secs_f64();
+        let timings = serde_json::to_string_pretty(&scene.timings).map_err(|e| Error::msg(e.to_string()))?;
+        write(&staging.join("timings.json"), timings.as_bytes())?;
+    }
     let report = serde_json::json!({
         "version": 1,
         "world": "metres; gravity along -z; support plane z = 0",
