@@ -5,7 +5,9 @@
 //! positive held-out gain, and report nothing on a dataset without a planted effect.
 //!
 //! `AUDIT_PLANTED_SEEDS=a..b cargo test --release --test audit_planted -- --ignored sweep`
-//! runs the same checks over a range of seeds and prints the success rate.
+//! runs the same checks over a range of seeds (default 10..16), prints a table per class and
+//! asserts the floor (≥ 90 % found exactly, every null clean); `sweep_small_holds_its_floor`
+//! is its CI-sized version.
 use recon::audit::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
 use recon::audit::search::SearchOptions;
 use recon::audit::{audit_depth, write_outputs, Audit};
@@ -435,54 +437,94 @@ fn null_dataset_gives_no_finding() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Success rate over many seeds (run explicitly; see the module docs).
+/// The sweep's case kinds: six planted classes, the subset class, and two nulls.
+const KINDS: [&str; 9] = ["bias", "noise", "dropout", "bias group", "noise group", "dropout group", "subset", "null", "subset null"];
+
+/// One sweep case; Ok when found exactly (target, covariate, form, size within 30 %) or,
+/// for a null, when nothing is named.
+fn sweep_case(seed: u64, kind: &str) -> Result<String, String> {
+    let (target, group) = match kind {
+        "subset" => return run_subset(seed, false).map(|_| "subset".into()),
+        "subset null" => return run_subset(seed, true).map(|_| "subset null".into()),
+        "null" => {
+            let m = audited_model();
+            let (au, _, dir) = audit(&m, &m, 5000 + seed, &format!("sweepnull-{seed}"));
+            let _ = std::fs::remove_dir_all(&dir);
+            return clean(&au).map(|_| "null".into());
+        }
+        "bias" => (Target::Bias, false),
+        "noise" => (Target::Noise, false),
+        "dropout" => (Target::Dropout, false),
+        "bias group" => (Target::Bias, true),
+        "noise group" => (Target::Noise, true),
+        "dropout group" => (Target::Dropout, true),
+        other => return Err(format!("unknown sweep kind {other}")),
+    };
+    let p = plant(target, seed, group);
+    let (au, table, dir) = audit(&truth_with(&p), &audited_model(), 1000 + seed, &format!("sweep-{seed}"));
+    let _ = std::fs::remove_dir_all(&dir);
+    let what = format!("{} ~ {}({})", target.name(), p.effect.form.name(), p.effect.covariate.name());
+    check(&p, &au, &table).map(|_| what.clone()).map_err(|e| format!("{what}: {e}"))
+}
+
+/// Runs `kinds` over `seeds`, prints a table (found / planted per kind) and asserts the
+/// floor: at least `floor` of the planted effects found exactly and every null clean.
+fn sweep_assert(seeds: std::ops::Range<u64>, kinds: &[&str], floor: f64) {
+    let mut tally: BTreeMap<&str, (usize, usize)> = BTreeMap::new();
+    let mut fails = vec![];
+    for seed in seeds.clone() {
+        for &kind in kinds {
+            let r = sweep_case(seed, kind);
+            let e = tally.entry(kind).or_default();
+            e.1 += 1;
+            match r {
+                Ok(w) => {
+                    e.0 += 1;
+                    eprintln!("ok   seed {seed} {kind}: {w}");
+                }
+                Err(why) => {
+                    eprintln!("FAIL seed {seed} {kind}: {}", why.chars().take(300).collect::<String>());
+                    fails.push(format!("seed {seed} {kind}"));
+                }
+            }
+        }
+    }
+    let is_null = |k: &str| k.ends_with("null");
+    eprintln!("sweep seeds {seeds:?}:");
+    for k in kinds {
+        let (f, n) = tally[k];
+        eprintln!("  {k:<14} {f}/{n}");
+    }
+    let (found, planted) = tally.iter().filter(|(k, _)| !is_null(k)).fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1));
+    let (clean_n, nulls) = tally.iter().filter(|(k, _)| is_null(k)).fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1));
+    eprintln!(
+        "  planted found exactly {found}/{planted}; nulls clean {clean_n}/{nulls}; all cases {}/{}",
+        found + clean_n,
+        planted + nulls
+    );
+    assert_eq!(clean_n, nulls, "a null named something: {fails:?}");
+    assert!(found as f64 >= floor * planted as f64, "found {found}/{planted} < {floor}: {fails:?}");
+}
+
+/// The sweep with its floor: ≥ 90 % of planted effects found exactly, every null clean.
+/// Run explicitly (about 10 min in release on 2 cores for 6 seeds):
+///
+/// `AUDIT_PLANTED_SEEDS=10..16 cargo test --release --test audit_planted -- --ignored sweep --nocapture`
 #[test]
 #[ignore]
 fn sweep() {
-    let range = std::env::var("AUDIT_PLANTED_SEEDS").unwrap_or_else(|_| "0..10".into());
-    let (a, b) = range.split_once("..").map(|(a, b)| (a.parse::<u64>().unwrap(), b.parse::<u64>().unwrap())).unwrap();
-    let mut fails = vec![];
-    let mut n = 0;
-    for seed in a..b {
-        for (target, group) in [
-            (Target::Bias, false),
-            (Target::Noise, false),
-            (Target::Dropout, false),
-            (Target::Bias, true),
-            (Target::Noise, true),
-            (Target::Dropout, true),
-        ] {
-            let p = plant(target, seed, group);
-            let (au, table, dir) = audit(&truth_with(&p), &audited_model(), 1000 + seed, &format!("sweep-{seed}"));
-            n += 1;
-            match check(&p, &au, &table) {
-                Ok(()) => eprintln!("ok   seed {seed} {} ~ {}({})", target.name(), p.effect.form.name(), p.effect.covariate.name()),
-                Err(e) => {
-                    eprintln!("FAIL seed {seed} {} ~ {}({}): {e}", target.name(), p.effect.form.name(), p.effect.covariate.name());
-                    fails.push(seed);
-                }
-            }
-            let _ = std::fs::remove_dir_all(&dir);
-        }
-        let m = audited_model();
-        let (au, _, dir) = audit(&m, &m, 5000 + seed, &format!("sweepnull-{seed}"));
-        n += 1;
-        if au.report.findings.is_empty() {
-            eprintln!("ok   seed {seed} null");
-        } else {
-            eprintln!(
-                "FAIL seed {seed} null: {:?}",
-                au.report
-                    .findings
-                    .iter()
-                    .map(|f| format!("{}~{}({}) p={:.2e}", f.target, f.form, f.covariate, f.p_value))
-                    .collect::<Vec<_>>()
-            );
-            fails.push(seed);
-        }
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-    eprintln!("{} of {n} passed", n - fails.len());
+    let range = std::env::var("AUDIT_PLANTED_SEEDS").unwrap_or_else(|_| "10..16".into());
+    let (a, b) =
+        range.split_once("..").and_then(|(a, b)| Some((a.parse::<u64>().ok()?, b.parse::<u64>().ok()?))).expect("AUDIT_PLANTED_SEEDS=a..b");
+    sweep_assert(a..b, &KINDS, 0.9);
+}
+
+/// The CI-sized sweep: a per-object dropout group (which frame hold-out alone was too weak
+/// for) and a null, on seed 31 (not used while developing the search; its noise group is a
+/// known miss, see the README's sweep table).
+#[test]
+fn sweep_small_holds_its_floor() {
+    sweep_assert(31..32, &["dropout group", "null"], 0.9);
 }
 
 /// Prints covariate quantiles of the object pixels of a planted-test-sized dataset.

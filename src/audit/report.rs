@@ -15,6 +15,7 @@
 //!                 "t" (of the fold gains, descriptive), "p_value": family-wise
 //!                 (randomisation max statistic over the round's candidates),
 //!                 "p_value_raw": the candidate's own randomisation p, "candidates",
+//!                 "heldout_units": "frames" | "frame×object",
 //!                 "cause", "effect": the sensor-model Effect (depth only)}], strongest first,
 //!   "extended_model": path | null,
 //!   "after":    {"parameters", "standard_errors", "heldout": metrics,
@@ -81,6 +82,8 @@ pub struct Finding {
     pub p_value: f64,
     pub p_value_raw: f64,
     pub candidates: usize,
+    /// Held-out units of its test: `frames` or `frame×object` (see `audit::search`).
+    pub heldout_units: String,
     pub cause: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub effect: Option<Effect>,
@@ -324,6 +327,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             p_value: s.p_adjusted,
             p_value_raw: ev.p,
             candidates: s.candidates,
+            heldout_units: if ev.fine { "frame×object" } else { "frames" }.into(),
             effect: if depth_sensor { crate::audit::fit::effect(ctx, ft, Some(cause.clone())) } else { None },
             cause,
             fitted: Some(form),

@@ -26,6 +26,24 @@
 //! fits of candidates with no sign of an effect; their small held-out gains would not
 //! raise the null maximum noticeably.
 //!
+//! **Few units.** A term on a column that is constant within each frame (the frame
+//! index) can only be extrapolated to a held-out frame, and a per-object group is seen in
+//! few frames, so with ~12 frames neither reaches significance. Those candidates are
+//! judged on finer units instead: (frame, object) pairs in `max_folds` folds of them
+//! shuffled ([`Folds::fine`]), with the current model cross-fitted in those folds too.
+//! They form a second family with its own randomisation test (sign flips of its folds'
+//! gains, the same max statistics); with both families present every family-wise p is
+//! doubled (Bonferroni over the two), so a round's family-wise error stays at `alpha`.
+//! The price: pixels of one object in one frame are exchangeable with other objects'
+//! only if nothing ties the objects of a frame together beyond the tested term.
+//!
+//! **Outliers.** The robust fit's outlier component gives gross residuals no weight, so
+//! a bias confined to a subset of pixels (a step of 5–15 σ on a few % of them) is
+//! invisible to the score screen and to a fit started at zero. Each numeric column also
+//! gets a `Subset` candidate: a bias step at the threshold where the parent's signed
+//! outlier weights concentrate, started at those outliers' level ([`seed_subset`]);
+//! it is accepted, like any other term, by its held-out gain under the same test.
+//!
 //! **Selection.** Among candidates with family-wise p < `alpha` the largest total
 //! held-out gain wins; a more complex form (quadratic, step) replaces a significant
 //! linear term of the same target and covariate only if it beats it on held-out folds
@@ -95,6 +113,9 @@ impl Default for SearchOptions {
 /// Row sets per fold; index `k` (= number of folds) is the full data.
 pub struct Folds {
     pub k: usize,
+    /// Held-out unit of each row (the table's unit, or a finer one, see [`Folds::fine`]).
+    pub row_unit: Vec<usize>,
+    pub n_units: usize,
     pub unit_fold: Vec<usize>,
     pub train_valid: Vec<Vec<usize>>,
     pub train_all: Vec<Vec<usize>>,
@@ -103,11 +124,34 @@ pub struct Folds {
 }
 
 impl Folds {
+    /// Folds of the table's units (frames).
     pub fn new(ctx: &Ctx, max_folds: usize, seed: u64) -> Self {
+        Self::of_units(ctx, ctx.table.unit.clone(), ctx.table.n_units(), max_folds, seed)
+    }
+
+    /// Folds of finer units: (frame, object) pairs when the table has an `object`
+    /// column, which let a covariate that is constant within a frame (the frame index,
+    /// a per-frame exposure) or a per-object group be estimated for a held-out unit from
+    /// the rest of its frame or the object's other frames. None without such a column.
+    pub fn fine(ctx: &Ctx, max_folds: usize, seed: u64) -> Option<Self> {
         let t = ctx.table;
-        let nu = t.n_units();
+        let oc = t.columns.iter().position(|c| c.kind == ColumnKind::Categorical && c.name == "object")?;
+        let mut ids: BTreeMap<(usize, i64), usize> = BTreeMap::new();
+        for i in 0..t.len() {
+            let key = (t.unit[i], t.columns[oc].values[i].round() as i64);
+            let n = ids.len();
+            ids.entry(key).or_insert(n);
+        }
+        let row_unit: Vec<usize> = (0..t.len()).map(|i| ids[&(t.unit[i], t.columns[oc].values[i].round() as i64)]).collect();
+        let n = ids.len();
+        // Seeded differently from the frame folds: K-fold over shuffled fine units.
+        Some(Self::of_units(ctx, row_unit, n, max_folds.min(n.saturating_sub(1)).max(2), seed ^ 0xF1_4E))
+    }
+
+    fn of_units(ctx: &Ctx, row_unit: Vec<usize>, nu: usize, max_folds: usize, seed: u64) -> Self {
+        let t = ctx.table;
         let mut present = vec![false; nu];
-        for &u in &t.unit {
+        for &u in &row_unit {
             present[u] = true;
         }
         let units: Vec<usize> = (0..nu).filter(|&u| present[u]).collect();
@@ -132,6 +176,8 @@ impl Folds {
         };
         let mut f = Folds {
             k,
+            row_unit,
+            n_units: nu,
             unit_fold,
             train_valid: vec![vec![]; k + 1],
             train_all: vec![vec![]; k + 1],
@@ -139,7 +185,7 @@ impl Folds {
             test_all: vec![vec![]; k],
         };
         for i in 0..t.len() {
-            let fold = f.unit_fold[t.unit[i]];
+            let fold = f.unit_fold[f.row_unit[i]];
             let valid = !t.missing(i);
             for g in 0..=k {
                 if g == fold {
@@ -174,7 +220,7 @@ impl Cv {
     }
 
     fn baseline(ctx: &Ctx, folds: &Folds) -> Self {
-        let nu = ctx.table.n_units();
+        let nu = folds.n_units;
         let mut cv = Cv { models: vec![], unit_ll_gauss: vec![0.0; nu], unit_ll_bern: vec![0.0; nu] };
         for f in 0..=folds.k {
             let mut m = Model::initial(ctx, &folds.train_valid[f], &folds.train_all[f]);
@@ -182,10 +228,10 @@ impl Cv {
             fit_bern(ctx, &folds.train_all[f], &mut m);
             if f < folds.k {
                 for (&i, l) in folds.test_valid[f].iter().zip(m.ll_gauss_rows(ctx, &folds.test_valid[f])) {
-                    cv.unit_ll_gauss[ctx.table.unit[i]] += l;
+                    cv.unit_ll_gauss[folds.row_unit[i]] += l;
                 }
                 for &i in &folds.test_all[f] {
-                    cv.unit_ll_bern[ctx.table.unit[i]] += m.ll_bern(ctx, i);
+                    cv.unit_ll_bern[folds.row_unit[i]] += m.ll_bern(ctx, i);
                 }
             }
             cv.models.push(m);
@@ -197,7 +243,7 @@ impl Cv {
     /// fold's training rows cannot carry the term.
     fn with(&self, ctx: &Ctx, folds: &Folds, term: Term) -> Option<Cv> {
         let gauss = is_gauss(term.target);
-        let nu = ctx.table.n_units();
+        let nu = folds.n_units;
         let mut models = Vec::with_capacity(folds.k + 1);
         let mut ll = vec![0.0; nu];
         for f in 0..=folds.k {
@@ -222,11 +268,11 @@ impl Cv {
             if f < folds.k {
                 if gauss {
                     for (&i, l) in folds.test_valid[f].iter().zip(m.ll_gauss_rows(ctx, &folds.test_valid[f])) {
-                        ll[ctx.table.unit[i]] += l;
+                        ll[folds.row_unit[i]] += l;
                     }
                 } else {
                     for &i in &folds.test_all[f] {
-                        ll[ctx.table.unit[i]] += m.ll_bern(ctx, i);
+                        ll[folds.row_unit[i]] += m.ll_bern(ctx, i);
                     }
                 }
             }
@@ -273,6 +319,8 @@ pub struct Evidence {
     /// Held-out gain per held-out row of the channel (nats).
     pub gain_per_row: f64,
     pub gain_total: f64,
+    /// Held out by (frame, object) units ([`Folds::fine`]) instead of frames.
+    pub fine: bool,
 }
 
 /// One accepted term.
@@ -354,7 +402,8 @@ fn screen(ctx: &Ctx, full: &Model, folds: &Folds, term: Term) -> f64 {
 }
 
 fn evidence(ctx: &Ctx, folds: &Folds, parent: &Cv, term: Term, p_screen: f64, fit: bool) -> (Evidence, Option<Cv>) {
-    let mut ev = Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, p_adjusted: 1.0, gain_per_row: 0.0, gain_total: 0.0 };
+    let mut ev =
+        Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, p_adjusted: 1.0, gain_per_row: 0.0, gain_total: 0.0, fine: false };
     if !fit {
         return (ev, None);
     }
@@ -475,13 +524,76 @@ fn randomisation_test(results: &mut [(Evidence, Option<Cv>)], patterns: &[u64]) 
     }
 }
 
-fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &SearchOptions, round: usize) -> (Round, Option<(Selected, Cv)>) {
-    let full = parent.full();
-    let screened: Vec<(Term, f64)> = cands.par_iter().map(|&t| (t, screen(ctx, full, folds, t))).collect();
-    let mut results: Vec<(Evidence, Option<Cv>)> =
-        screened.par_iter().map(|&(t, ps)| evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha)).collect();
-    let patterns = sign_patterns(folds.k, opts.seed);
-    randomisation_test(&mut results, &patterns);
+/// One held-out scheme: folds and the current model cross-fitted in them.
+type Scheme<'a> = (&'a Folds, &'a Cv);
+
+/// Whether a term is judged on the fine (frame, object) units: groups, and terms on a
+/// column (or interaction) that is constant within every frame, which frame hold-out can
+/// only extrapolate to.
+fn needs_fine(ctx: &Ctx, frame_constant: &[bool], t: &Term) -> bool {
+    ctx.is_categorical(t.col) || frame_constant[t.col] || t.by.is_some_and(|b| frame_constant[b])
+}
+
+/// Columns whose value is the same on every row of each table unit.
+fn frame_constant(ctx: &Ctx) -> Vec<bool> {
+    let t = ctx.table;
+    t.columns
+        .iter()
+        .map(|c| {
+            let mut first: Vec<Option<f64>> = vec![None; t.n_units()];
+            (0..t.len()).all(|i| *first[t.unit[i]].get_or_insert(c.values[i]) == c.values[i])
+        })
+        .collect()
+}
+
+/// One selection round. Candidates are judged in their scheme (frames, or the fine units
+/// when `fine` is given and [`needs_fine`]); each scheme's candidates form a family with
+/// its own randomisation test, and with two families every family-wise p is doubled
+/// (Bonferroni), so the round's family-wise level stays `alpha`. Returns the selection,
+/// its cross-fitted model and whether that model is of the fine scheme.
+fn run_round(
+    ctx: &Ctx,
+    main: Scheme,
+    fine: Option<Scheme>,
+    frame_const: &[bool],
+    cands: &[Term],
+    opts: &SearchOptions,
+    round: usize,
+) -> (Round, Option<(Selected, Cv, bool)>) {
+    let scheme = |t: &Term| -> (Scheme, bool) {
+        match fine {
+            Some(f) if needs_fine(ctx, frame_const, t) => (f, true),
+            _ => (main, false),
+        }
+    };
+    let screened: Vec<(Term, f64)> = cands
+        .par_iter()
+        .map(|&t| {
+            let ((folds, parent), _) = scheme(&t);
+            (t, screen(ctx, parent.full(), folds, t))
+        })
+        .collect();
+    let results: Vec<(Evidence, Option<Cv>)> = screened
+        .par_iter()
+        .map(|&(t, ps)| {
+            let ((folds, parent), f) = scheme(&t);
+            let (mut e, cv) = evidence(ctx, folds, parent, t, ps, ps < opts.screen_alpha);
+            e.fine = f;
+            (e, cv)
+        })
+        .collect();
+    let (mut coarse, mut fined): (Vec<_>, Vec<_>) = results.into_iter().partition(|r| !r.0.fine);
+    let patterns = sign_patterns(main.0.k, opts.seed);
+    let fine_patterns = fine.map(|f| sign_patterns(f.0.k, opts.seed)).unwrap_or_default();
+    randomisation_test(&mut coarse, &patterns);
+    randomisation_test(&mut fined, &fine_patterns);
+    if !coarse.is_empty() && !fined.is_empty() {
+        for r in coarse.iter_mut().chain(fined.iter_mut()) {
+            r.0.p_adjusted = (2.0 * r.0.p_adjusted).min(1.0);
+        }
+    }
+    let mut results = coarse;
+    results.extend(fined);
     let m = cands.len();
     let fitted = results.iter().filter(|r| r.1.is_some()).count();
     if std::env::var("AUDIT_DEBUG").is_ok() {
@@ -514,7 +626,8 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
         if e.term.form != FormKind::Linear {
             let lin = results.iter().position(|(x, cv)| cv.is_some() && x.term == Term { form: FormKind::Linear, ..e.term });
             if let Some(l) = lin {
-                if significant(&results[l].0) && beats(e, &results[l].0, &patterns) >= opts.parsimony_alpha {
+                let pats = if e.fine { &fine_patterns } else { &patterns };
+                if significant(&results[l].0) && beats(e, &results[l].0, pats) >= opts.parsimony_alpha {
                     best = Some(l);
                 }
             }
@@ -527,7 +640,8 @@ fn run_round(ctx: &Ctx, folds: &Folds, parent: &Cv, cands: &[Term], opts: &Searc
     let sel = best.map(|b| {
         let (e, cv) = results.into_iter().nth(b).expect("index in range");
         rd.selected = Some(e.term);
-        (Selected { p_adjusted: e.p_adjusted, evidence: e, candidates: m, fitted, round }, cv.expect("fitted"))
+        let f = e.fine;
+        (Selected { p_adjusted: e.p_adjusted, evidence: e, candidates: m, fitted, round }, cv.expect("fitted"), f)
     });
     (rd, sel)
 }
@@ -545,6 +659,24 @@ pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
     }
     let baseline = Cv::baseline(ctx, &folds);
     let mut current = baseline.clone();
+    let frame_const = frame_constant(ctx);
+    let fine_folds = Folds::fine(ctx, opts.max_folds.clamp(2, 64), opts.seed).filter(|f| f.k >= 3);
+    let mut fine_cv = fine_folds.as_ref().map(|f| Cv::baseline(ctx, f));
+    // Adds a selected term to both schemes' current models; false when the frame scheme
+    // cannot carry it (then the search stops: every finding must be in the final model).
+    let accept = |current: &mut Cv, fine_cv: &mut Option<Cv>, cv: Cv, is_fine: bool, term: Term| -> bool {
+        if is_fine {
+            match current.with(ctx, &folds, term) {
+                Some(c) => *current = c,
+                None => return false,
+            }
+            *fine_cv = Some(cv);
+        } else {
+            *fine_cv = fine_cv.as_ref().zip(fine_folds.as_ref()).and_then(|(c, f)| c.with(ctx, f, term));
+            *current = cv;
+        }
+        true
+    };
     let all = candidates(ctx, &opts.targets);
     let mut selected: Vec<Selected> = vec![];
     let mut rounds = vec![];
@@ -554,12 +686,15 @@ pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
         if cands.is_empty() {
             break;
         }
-        let (rd, sel) = run_round(ctx, &folds, &current, &cands, opts, rounds.len());
+        let fine = fine_folds.as_ref().zip(fine_cv.as_ref());
+        let (rd, sel) = run_round(ctx, (&folds, &current), fine, &frame_const, &cands, opts, rounds.len());
         rounds.push(rd);
         match sel {
-            Some((s, cv)) => {
+            Some((s, cv, is_fine)) => {
+                if !accept(&mut current, &mut fine_cv, cv, is_fine, s.evidence.term) {
+                    break;
+                }
                 selected.push(s);
-                current = cv;
             }
             None => break,
         }
@@ -576,11 +711,13 @@ pub fn search(ctx: &Ctx, opts: &SearchOptions) -> Result<SearchResult> {
             }
         }
         if !cands.is_empty() {
-            let (rd, sel) = run_round(ctx, &folds, &current, &cands, opts, rounds.len());
+            let fine = fine_folds.as_ref().zip(fine_cv.as_ref());
+            let (rd, sel) = run_round(ctx, (&folds, &current), fine, &frame_const, &cands, opts, rounds.len());
             rounds.push(rd);
-            if let Some((s, cv)) = sel {
-                selected.push(s);
-                current = cv;
+            if let Some((s, cv, is_fine)) = sel {
+                if accept(&mut current, &mut fine_cv, cv, is_fine, s.evidence.term) {
+                    selected.push(s);
+                }
             }
         }
     }
