@@ -366,7 +366,7 @@ fn run_subset(seed: u64, null: bool) -> Result<(), String> {
     let Some(p) = planted else { return clean(&a) };
     check(&p, &a, &table)?;
     let o = a.report.outliers.as_ref().ok_or("no outlier audit")?;
-    if !(o.fraction_final < 0.5 * o.fraction_baseline) {
+    if o.fraction_final >= 0.5 * o.fraction_baseline {
         return Err(format!("outliers {:.3} → {:.3}: the subset stayed in the outlier component", o.fraction_baseline, o.fraction_final));
     }
     Ok(())

@@ -585,7 +585,7 @@ pub fn subset_split(ctx: &Ctx, parent: &Model, col: usize, rows: &[usize]) -> Op
     let total: f64 = v.iter().map(|e| e.1).sum();
     let mean = total / n as f64;
     let var = v.iter().map(|e| (e.1 - mean).powi(2)).sum::<f64>() / n as f64;
-    if !(var > 1e-12) {
+    if var.is_nan() || var <= 1e-12 {
         return None;
     }
     let (mut below, mut best, mut tried) = (0.0, None::<(f64, f64, usize)>, 0);
