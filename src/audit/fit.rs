@@ -30,6 +30,10 @@ pub enum FormKind {
     Quadratic,
     Step,
     Group,
+    /// A bias step whose subset is found among the parent model's outliers (where a
+    /// plain step's score is blind: the outlier component gives those rows no weight).
+    /// The same `Form::Step` in the sensor model.
+    Subset,
 }
 
 impl FormKind {
@@ -37,7 +41,7 @@ impl FormKind {
         match self {
             FormKind::Linear => "linear",
             FormKind::Quadratic => "quadratic",
-            FormKind::Step => "step",
+            FormKind::Step | FormKind::Subset => "step",
             FormKind::Group => "group",
         }
     }
@@ -45,7 +49,7 @@ impl FormKind {
     pub fn complexity(self) -> usize {
         match self {
             FormKind::Linear => 1,
-            FormKind::Quadratic | FormKind::Step => 2,
+            FormKind::Quadratic | FormKind::Step | FormKind::Subset => 2,
             FormKind::Group => 3,
         }
     }
@@ -142,7 +146,7 @@ pub struct FittedTerm {
 impl FittedTerm {
     pub fn k(&self) -> usize {
         match self.term.form {
-            FormKind::Linear | FormKind::Step => 1,
+            FormKind::Linear | FormKind::Step | FormKind::Subset => 1,
             FormKind::Quadratic => 2,
             FormKind::Group => self.cats.len(),
         }
@@ -159,7 +163,7 @@ impl FittedTerm {
                 out[0] = by * xs;
                 out[1] = by * xs * xs;
             }
-            FormKind::Step => out[0] = if x > self.threshold { by } else { 0.0 },
+            FormKind::Step | FormKind::Subset => out[0] = if x > self.threshold { by } else { 0.0 },
             FormKind::Group => {
                 let c = x.round() as i64;
                 for (o, &k) in out.iter_mut().zip(&self.cats) {
@@ -178,7 +182,7 @@ impl FittedTerm {
                 let xs = x / ctx.scale[self.term.col];
                 self.coef[0] * xs + self.coef[1] * xs * xs
             }
-            FormKind::Step => {
+            FormKind::Step | FormKind::Subset => {
                 if x > self.threshold {
                     self.coef[0]
                 } else {
@@ -200,7 +204,7 @@ impl FittedTerm {
         match self.term.form {
             FormKind::Linear => Form::Linear { slope: self.coef[0] / (sx * sb) },
             FormKind::Quadratic => Form::Quadratic { linear: self.coef[0] / (sx * sb), quadratic: self.coef[1] / (sx * sx * sb) },
-            FormKind::Step => Form::Step { threshold: self.threshold, delta: self.coef[0] / sb },
+            FormKind::Step | FormKind::Subset => Form::Step { threshold: self.threshold, delta: self.coef[0] / sb },
             FormKind::Group => Form::Group { values: self.cats.iter().zip(&self.coef).map(|(k, c)| (k.to_string(), c / sb)).collect() },
         }
     }
@@ -309,6 +313,12 @@ impl Model {
                 mix.ll(ctx.resid[i], p.mu, p.sigma).0
             })
             .collect()
+    }
+
+    /// Posterior weight of the outlier component for valid row i (0 when not robust).
+    pub fn outlier_weight(&self, ctx: &Ctx, i: usize) -> f64 {
+        let p = self.predict(ctx, i);
+        1.0 - Mix::new(ctx, self.outlier).ll(ctx.resid[i], p.mu, p.sigma).1
     }
 
     pub fn ll_bern(&self, ctx: &Ctx, i: usize) -> f64 {
@@ -536,6 +546,95 @@ pub fn best_step(ctx: &Ctx, wk: &Working, col: usize, by: Option<usize>) -> Opti
     best
 }
 
+/// Where the parent model's outliers concentrate along one column: the threshold whose
+/// two sides differ most in the mean signed outlier weight `(1 − inlier responsibility)
+/// · sign(r − μ)`, the side that holds them and their level there.
+#[derive(Clone, Copy, Debug)]
+pub struct SubsetSplit {
+    pub threshold: f64,
+    /// The outliers sit above the threshold (else at or below it).
+    pub above: bool,
+    /// Median of `r − μ` over that side's outliers of the dominant sign.
+    pub level: f64,
+    /// Two-sample z of the mean signed outlier weight, above vs below.
+    pub z: f64,
+    /// Thresholds tried (for a Bonferroni screen).
+    pub tried: usize,
+}
+
+/// [`SubsetSplit`] of `col` on `rows` (valid rows) at `parent`; None without outliers
+/// or distinct values. Each side keeps at least max(30, n/200) rows, as for steps.
+pub fn subset_split(ctx: &Ctx, parent: &Model, col: usize, rows: &[usize]) -> Option<SubsetSplit> {
+    let n = rows.len();
+    let min_side = (n / 200).max(30);
+    if n < 2 * min_side || !ctx.robust {
+        return None;
+    }
+    let mix = Mix::new(ctx, parent.outlier);
+    // (x, signed outlier weight, r − μ, outlier weight)
+    let mut v: Vec<(f64, f64, f64, f64)> = rows
+        .iter()
+        .map(|&i| {
+            let p = parent.predict(ctx, i);
+            let d = ctx.resid[i] - p.mu;
+            let w = 1.0 - mix.ll(ctx.resid[i], p.mu, p.sigma).1;
+            (ctx.value(col, i), w * d.signum(), d, w)
+        })
+        .collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let total: f64 = v.iter().map(|e| e.1).sum();
+    let mean = total / n as f64;
+    let var = v.iter().map(|e| (e.1 - mean).powi(2)).sum::<f64>() / n as f64;
+    if var.is_nan() || var <= 1e-12 {
+        return None;
+    }
+    let (mut below, mut best, mut tried) = (0.0, None::<(f64, f64, usize)>, 0);
+    for j in 0..n - 1 {
+        below += v[j].1;
+        let nb = j + 1;
+        if nb < min_side || n - nb < min_side || v[j + 1].0 == v[j].0 {
+            continue;
+        }
+        tried += 1;
+        let na = n - nb;
+        let z = ((total - below) / na as f64 - below / nb as f64) / (var * (1.0 / na as f64 + 1.0 / nb as f64)).sqrt();
+        if best.is_none_or(|(_, bz, _)| z.abs() > bz.abs()) {
+            best = Some((0.5 * (v[j].0 + v[j + 1].0), z, nb));
+        }
+    }
+    let (threshold, z, nb) = best?;
+    let side_mean = |s: &[(f64, f64, f64, f64)]| s.iter().map(|e| e.1).sum::<f64>() / s.len() as f64;
+    let (lo, hi) = v.split_at(nb);
+    let above = side_mean(hi).abs() > side_mean(lo).abs();
+    let side = if above { hi } else { lo };
+    let sign = side_mean(side).signum();
+    let d: Vec<f64> = side.iter().filter(|e| e.3 > 0.5 && e.2.signum() == sign).map(|e| e.2).collect();
+    if d.is_empty() {
+        return None;
+    }
+    let level = crate::audit::stats::median(&d);
+    Some(SubsetSplit { threshold, above, level, z, tried })
+}
+
+/// Starts the last term of `m` (a fresh [`FormKind::Subset`]) at the level of its
+/// subset's outliers, so that the fit begins in the mode where those rows are inliers
+/// of a shifted mean; from zero the outlier component keeps them at zero weight.
+pub fn seed_subset(ctx: &Ctx, m: &mut Model, rows: &[usize]) {
+    let Some(last) = m.terms.len().checked_sub(1) else { return };
+    if m.terms[last].term.form != FormKind::Subset || m.terms[last].term.by.is_some() {
+        return;
+    }
+    let Some(s) = subset_split(ctx, m, m.terms[last].term.col, rows) else { return };
+    m.terms[last].threshold = s.threshold;
+    if s.above {
+        m.terms[last].coef[0] = s.level;
+    } else {
+        // The subset lies below: it takes the intercept, the rest the step.
+        m.bias += s.level;
+        m.terms[last].coef[0] = -s.level;
+    }
+}
+
 /// Makes a term's structure from the training rows: the category set of a group, the
 /// threshold of a step (largest score at the parent model). None when the column cannot
 /// carry the term on these rows (one category, too few distinct values).
@@ -558,6 +657,7 @@ pub fn structure(ctx: &Ctx, parent: &Model, term: Term, rows: &[usize]) -> Optio
             let wk = working(ctx, parent, term.target, rows);
             ft.threshold = best_step(ctx, &wk, term.col, term.by)?.0;
         }
+        FormKind::Subset => ft.threshold = subset_split(ctx, parent, term.col, rows)?.threshold,
         _ => {
             let first = rows.first().map(|&i| ctx.value(term.col, i))?;
             if rows.iter().all(|&i| ctx.value(term.col, i) == first) {

@@ -5,11 +5,13 @@
 //! - [`depth`]: building it from a BOP / YCB-Video dataset and a sensor model;
 //! - [`fit`]: the residual model and its maximum-likelihood fit;
 //! - [`search`]: candidate effects, held-out testing by unit, greedy selection;
+//! - [`outliers`]: is the fit's outlier component structured (rate and sign by covariate)?
 //! - [`report`]: report JSON (schema in its docs), summary, plots; [`cause`]: the words;
 //! - [`stats`]: t / χ² tails, robust statistics, a small SPD solver.
 pub mod cause;
 pub mod depth;
 pub mod fit;
+pub mod outliers;
 pub mod report;
 pub mod search;
 pub mod stats;

@@ -15,13 +15,19 @@
 //!                 "t" (of the fold gains, descriptive), "p_value": family-wise
 //!                 (randomisation max statistic over the round's candidates),
 //!                 "p_value_raw": the candidate's own randomisation p, "candidates",
+//!                 "heldout_units": "frames" | "frame×object",
 //!                 "cause", "effect": the sensor-model Effect (depth only)}], strongest first,
 //!   "extended_model": path | null,
 //!   "after":    {"parameters", "standard_errors", "heldout": metrics,
 //!                "improvement": {rmse, robust_sd, loglik_per_row, bias_error, noise_error,
 //!                                missing_rate_error}: before − after (positive = better;
 //!                                loglik: after − before)},
+//!   "outliers": {fraction_baseline, fraction_final, stated, flagged, flag_level, tested,
+//!                "dependence": [{covariate, kind: rate|sign, split, rate_below, rate_above,
+//!                outlier_residual_below, outlier_residual_above, t, p_value}] strongest first}
+//!                (robust fits; see `audit::outliers`),
 //!   "rounds":   per selection round: candidates, fitted, top candidates, selected
+//!               (a bias step seeded from the outliers is marked "[outlier subset]")
 //! }
 //! metrics = {rows, valid, rmse, robust_sd, loglik_gauss_per_valid, loglik_dropout_per_row,
 //!            loglik_per_row, missing_rate, missing_rate_predicted, bias_error, noise_error,
@@ -76,6 +82,8 @@ pub struct Finding {
     pub p_value: f64,
     pub p_value_raw: f64,
     pub candidates: usize,
+    /// Held-out units of its test: `frames` or `frame×object` (see `audit::search`).
+    pub heldout_units: String,
     pub cause: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub effect: Option<Effect>,
@@ -97,6 +105,9 @@ pub struct Report {
     pub findings: Vec<Finding>,
     pub extended_model: Option<String>,
     pub after: Value,
+    /// The outlier component audited (robust fits).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub outliers: Option<crate::audit::outliers::OutlierAudit>,
     pub rounds: Vec<Value>,
 }
 
@@ -316,6 +327,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             p_value: s.p_adjusted,
             p_value_raw: ev.p,
             candidates: s.candidates,
+            heldout_units: if ev.fine { "frame×object" } else { "frames" }.into(),
             effect: if depth_sensor { crate::audit::fit::effect(ctx, ft, Some(cause.clone())) } else { None },
             cause,
             fitted: Some(form),
@@ -346,7 +358,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
     let method = json!({
         "likelihood": if opts.robust { "Gaussian with a uniform outlier component (valid rows) + Bernoulli (missing)" } else { "Gaussian (valid rows) + Bernoulli (missing)" },
         "test": "randomisation test: signs of whole held-out folds' log-likelihood gains flipped (all 2^K patterns for K ≤ 16 folds, else 20000 draws)",
-        "correction": "max statistic over the round's fitted candidates (Westfall–Young); screened-out candidates (pixel-level score p ≥ screen_alpha) are not fitted",
+        "correction": "max statistic over the round's fitted candidates (Westfall–Young), on fold-t and on totals, combined by Bonferroni (2·min); screened-out candidates (pixel-level score p ≥ screen_alpha) are not fitted",
         "alpha": opts.alpha, "screen_alpha": opts.screen_alpha, "parsimony_alpha": opts.parsimony_alpha,
         "uncertainty": format!("bootstrap over units (frames): {} resamples of the units with replacement, every parameter refitted (step thresholds re-chosen)", opts.bootstrap),
         "max_findings": opts.max_findings, "interactions": opts.interactions,
@@ -367,7 +379,8 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
     });
     let term_name = |tm: &crate::audit::fit::Term| {
         let by = tm.by.map(|b| format!(" × {}", t.columns[b].name)).unwrap_or_default();
-        format!("{} ~ {}({}){by}", tm.target.name(), tm.form.name(), t.columns[tm.col].name)
+        let subset = if tm.form == crate::audit::fit::FormKind::Subset { " [outlier subset]" } else { "" };
+        format!("{} ~ {}({}){by}{subset}", tm.target.name(), tm.form.name(), t.columns[tm.col].name)
     };
     let rounds = res
         .rounds
@@ -391,6 +404,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             findings,
             extended_model: None,
             after: after_v,
+            outliers: opts.robust.then(|| crate::audit::outliers::audit(ctx, res.baseline.full(), full, opts.outlier_flag, opts.seed)),
             rounds,
         },
         before,
@@ -470,6 +484,36 @@ impl Report {
             f(&b["missing_rate_error"]),
             f(&a["missing_rate_error"])
         );
+        if let Some(o) = &self.outliers {
+            let alpha = self.method["alpha"].as_f64().unwrap_or(0.01);
+            s += &format!(
+                "outliers: {:.2}% at baseline, {:.2}% after (the sensor model states {:.0}%){}\n",
+                100.0 * o.fraction_baseline,
+                100.0 * o.fraction_final,
+                100.0 * o.stated,
+                if o.flagged { " — unexplained, to be explained" } else { "" }
+            );
+            let opt = |x: Option<f64>| x.map(v).unwrap_or_else(|| "–".into());
+            let mut any = false;
+            for d in o.significant(alpha).take(4) {
+                any = true;
+                s += &format!(
+                    "  {} ~ {} (split {:.3}): outlier share {:.2}% below → {:.2}% above, outlier residual {} / {}; t {:.1}, p = {:.2e}\n",
+                    d.kind,
+                    d.covariate,
+                    d.split,
+                    100.0 * d.rate_below,
+                    100.0 * d.rate_above,
+                    opt(d.outlier_residual_below),
+                    opt(d.outlier_residual_above),
+                    d.t,
+                    d.p_value
+                );
+            }
+            if !any && o.tested > 0 {
+                s += &format!("  no dependence on any covariate ({} tested, family-wise alpha {alpha})\n", o.tested);
+            }
+        }
         s += &format!("input simulation as given: rmse {}, robust sd {}\n", v(self.input.rmse), v(self.input.robust_sd));
         if let Some(p) = &self.extended_model {
             s += &format!("extended sensor model: {p}\n");
