@@ -9,9 +9,11 @@
 //! asserts the floor (≥ 90 % found exactly, every null clean); `sweep_small_holds_its_floor`
 //! is its CI-sized version.
 #![allow(clippy::neg_cmp_op_on_partial_ord)] // `!(x > t)` also rejects NaN
-use recon::audit::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
-use recon::audit::search::SearchOptions;
+mod common;
+
+use common::tmp;
 use recon::audit::{audit_depth, write_outputs, Audit};
+use recon::audit::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample, SearchOptions};
 use recon::rng::SeededRng;
 use recon::sensor::{Covariate, Effect, Form, PixelCovariates, SensorModel, Target};
 use recon::synth::{generate, SynthOptions};
@@ -131,15 +133,8 @@ fn plant(target: Target, seed: u64, group: bool) -> Planted {
     Planted { effect: Effect { target, covariate: cov, form, by: None, cause: None }, dropout_shift, amplitude, bias_shift: 0.0 }
 }
 
-fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-audit-planted-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 /// Generates the dataset through `truth`, audits it against `audited`.
-fn audit(truth: &SensorModel, audited: &SensorModel, seed: u64, tag: &str) -> (Audit, recon::audit::table::ResidualTable, PathBuf) {
+fn audit(truth: &SensorModel, audited: &SensorModel, seed: u64, tag: &str) -> (Audit, recon::audit::ResidualTable, PathBuf) {
     audit_with(truth, audited, seed, tag, &mut |_| {})
 }
 
@@ -150,7 +145,7 @@ fn audit_with(
     seed: u64,
     tag: &str,
     plant: &mut dyn FnMut(&mut Vec<PixelSample>),
-) -> (Audit, recon::audit::table::ResidualTable, PathBuf) {
+) -> (Audit, recon::audit::ResidualTable, PathBuf) {
     let dir = tmp(tag);
     let data = dir.join("data");
     let opts = SynthOptions { scenes: SCENES, views: VIEWS, seed, width: W, height: H, parts: false, sensor: truth.clone() };

@@ -5,6 +5,9 @@
 //! Python-backed checks skip with a printed reason when python3 or the
 //! package is missing, unless RECON_REQUIRE_PYTHON_TESTS=1 (CI), where they fail.
 
+mod common;
+
+use common::tmp;
 use recon::export::{save_mesh_ply, PlyOptions};
 use recon::mesh::Mesh;
 use recon::sim::MaterialTable;
@@ -12,13 +15,6 @@ use recon::sim::SceneFile;
 use recon::sim::{build_scene, write_outputs, SceneOptions, MARKER};
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-scene-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn box_mesh(h: [f32; 3]) -> Mesh {
     let vertices = (0..8)

@@ -6,20 +6,16 @@
 //! RECON_REQUIRE_PYTHON_TESTS=1).
 #![allow(clippy::needless_range_loop)] // 3-vector index loops read as the maths does
 
+mod common;
+
+use common::tmp;
 use recon::sim::MaterialTable;
 use recon::sim::PlaneFitOptions;
 use recon::sim::SceneFile;
 use recon::sim::{body_distance, Body};
 use recon::sim::{build_scene, SceneOptions, MARKER};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-scene-synth-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn recon(args: &[&str]) -> String {
     let o = Command::new(env!("CARGO_BIN_EXE_recon")).args(args).output().unwrap();

@@ -11,19 +11,15 @@
 //! The run on a real `recon infer` output of the README sample needs the
 //! release build and the model: `cargo test --release --test scene_variations -- --ignored`.
 
+mod common;
+
+use common::tmp;
 use recon::export::{save_mesh_ply, PlyOptions};
 use recon::mesh::Mesh;
 use recon::mesh::{bowl_mesh, box_mesh, cylinder_mesh};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-variations-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn recon(args: &[&str]) -> (bool, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_recon")).args(args).output().unwrap();

@@ -45,14 +45,6 @@ impl FormKind {
             FormKind::Group => "group",
         }
     }
-    /// Free parameters (a step's threshold counts).
-    pub fn complexity(self) -> usize {
-        match self {
-            FormKind::Linear => 1,
-            FormKind::Quadratic | FormKind::Step | FormKind::Subset => 2,
-            FormKind::Group => 3,
-        }
-    }
 }
 
 /// A candidate term: `target += form(column) [· by]`.
@@ -294,11 +286,6 @@ impl Model {
         let sigma = (s0 + ctx.table.sd_offset[i] + self.sum(ctx, Target::Noise, i)).max(ctx.sd_lowest(i));
         let p = (self.dropout + ctx.table.p_offset[i] + self.sum(ctx, Target::Dropout, i)).clamp(P_EPS, 1.0 - P_EPS);
         Pred { mu, sigma, p }
-    }
-
-    /// Log-likelihood of row i in the Gaussian part (0 for a missing row).
-    pub fn ll_gauss(&self, ctx: &Ctx, i: usize) -> f64 {
-        self.ll_gauss_rows(ctx, &[i])[0]
     }
 
     /// Gaussian-part log-likelihoods of rows (0 for missing rows).

@@ -8,16 +8,16 @@
 //! - [`outliers`]: is the fit's outlier component structured (rate and sign by covariate)?
 //! - [`report`]: report JSON (schema in its docs), summary, plots; [`cause`]: the words;
 //! - [`stats`]: t / χ² tails, robust statistics, a small SPD solver.
-pub mod cause;
-pub mod depth;
-pub mod fit;
-pub mod outliers;
-pub mod report;
-pub mod search;
-pub mod stats;
-pub mod table;
-pub use self::depth::{collect, residual_table, DepthOptions};
-pub use self::search::SearchOptions;
+pub(crate) mod cause;
+pub(crate) mod depth;
+pub(crate) mod fit;
+pub(crate) mod outliers;
+pub(crate) mod report;
+pub(crate) mod search;
+pub(crate) mod stats;
+pub(crate) mod table;
+pub use self::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
+pub use self::search::{Round, SearchOptions, SearchResult, Selected, Uncertainty};
 pub use self::table::ResidualTable;
 
 use crate::sensor::SensorModel;

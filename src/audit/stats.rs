@@ -250,6 +250,7 @@ pub fn solve_spd(a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
 }
 
 /// Inverse of a symmetric positive-definite matrix (column by column through [`solve_spd`]).
+#[cfg(test)]
 pub fn inverse_spd(a: &[f64], k: usize) -> Option<Vec<f64>> {
     let mut inv = vec![0.0; k * k];
     for j in 0..k {
