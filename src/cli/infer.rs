@@ -263,6 +263,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
                     "rotation": o.pose_camera.rotation, "translation_m": o.pose_camera.translation, "scale_m": o.pose_camera.scale,
                     "selection": o.selection, "uncertainty": o.uncertainty, "views": o.views,
                     "occupied_voxels": o.occupied_voxels,
+                    "shape_fit": o.shape_fit,
                     "faces_decoded": o.faces_decoded,
                     "faces": o.mesh_camera.as_ref().map(|m| m.faces.len()),
                     "gaussians": o.gaussians_camera.as_ref().map(|g| g.len()),

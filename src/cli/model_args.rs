@@ -3,7 +3,7 @@
 use recon::engine::InferOptions;
 use recon::engine::LoadOptions;
 use recon::engine::ModelSource;
-use recon::engine::{PoseFit, SelectMethod};
+use recon::engine::{PoseFit, SelectMethod, ShapeFit};
 use recon::model::Precision;
 use std::path::PathBuf;
 
@@ -39,6 +39,10 @@ pub struct ModelArgs {
     /// How each predicted pose is checked against the measured depth.
     #[arg(long, value_enum, default_value_t = PoseFit::Depth)]
     pub pose_fit: PoseFit,
+    /// Observation-guided structure: fit the stage-1 occupancy to the depth (carve observed
+    /// free space, fill the observed surface, keep the outer shell) before stage 2.
+    #[arg(long, value_enum, default_value_t = ShapeFit::Depth)]
+    pub shape_fit: ShapeFit,
     /// Sampler steps for both stages (default: the config's).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -77,6 +81,7 @@ impl ModelArgs {
             align: self.pose_fit.options(),
             max_faces: (self.max_faces > 0).then_some(self.max_faces),
             floater_area_fraction: self.min_component_area,
+            shape_fit: self.shape_fit,
             ..Default::default()
         };
         opts.run.seed = self.seed;

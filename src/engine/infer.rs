@@ -34,13 +34,14 @@
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::engine::pipeline::Weights;
-use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput};
+use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput};
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;
 use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
+use crate::engine::shape_fit::{fit_occupancy, observe, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
@@ -82,6 +83,11 @@ pub struct InferOptions {
     /// are dropped as floaters before decimation (0: keep all; the largest
     /// component is always kept).
     pub floater_area_fraction: f64,
+    /// Whether the stage-1 occupancy is fitted to the depth before stage 2
+    /// ([`crate::engine::shape_fit`]); the pose is then refined before the
+    /// fit and not after it, so the fit sees the final pose.
+    pub shape_fit: ShapeFit,
+    pub shape_fit_options: ShapeFitOptions,
 }
 
 /// Default face budget of an output mesh.
@@ -98,6 +104,8 @@ impl Default for InferOptions {
             align: AlignOptions::default(),
             max_faces: Some(DEFAULT_MAX_FACES),
             floater_area_fraction: 0.02,
+            shape_fit: ShapeFit::default(),
+            shape_fit_options: ShapeFitOptions::default(),
         }
     }
 }
@@ -205,6 +213,8 @@ pub struct ObjectResult {
     /// Spread of the per-sample poses (with two or more samples).
     pub uncertainty: Option<PoseSpread>,
     pub occupied_voxels: usize,
+    /// What the shape fit did to the selected sample's occupancy (`None`: not run).
+    pub shape_fit: Option<ShapeFitReport>,
     /// Faces as decoded, before the face budget.
     pub faces_decoded: usize,
     /// Mesh and Gaussians placed in the anchor camera frame (metres).
@@ -268,6 +278,7 @@ fn add_timings(a: &mut StageTimings, b: &StageTimings) {
     a.ss_sampling += b.ss_sampling;
     a.ss_decoder += b.ss_decoder;
     a.pose += b.pose;
+    a.shape_fit += b.shape_fit;
     a.slat_condition += b.slat_condition;
     a.slat_sampling += b.slat_sampling;
     a.mesh_decoder += b.mesh_decoder;
@@ -296,10 +307,55 @@ fn object_view<'a>(
     Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
 }
 
-/// A frame's depth view for the free-space term (built once per frame, and
-/// only when the score uses it).
-fn depth_view(frame: &RgbdFrame, opts: &AlignOptions) -> Option<Arc<DepthView>> {
-    (opts.free_space_weight > 0.0).then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
+/// A frame's depth view for the free-space term and the shape fit (built
+/// once per frame, and only when one of them uses it).
+fn depth_view(frame: &RgbdFrame, opts: &InferOptions) -> Option<Arc<DepthView>> {
+    let used = opts.align.free_space_weight > 0.0 || opts.shape_fit != ShapeFit::None;
+    used.then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
+}
+
+/// The shape fit of one sample: the pose it was fitted in and the voxels.
+struct Fitted {
+    /// The token (view index) whose pose won.
+    view: usize,
+    /// Canonical → anchor camera, refined against the depth before the fit.
+    anchor: crate::math::Similarity,
+    stretch: [f64; 3],
+    report: ShapeFitReport,
+}
+
+/// Refine every token's pose against the model's own occupancy (its outer
+/// shell), pick one as the selection would, and fit the occupancy in that
+/// pose ([`crate::engine::shape_fit`]); returns the fit and the voxels for stage 2.
+fn fit_shape(
+    pose: &PredictedPose,
+    coords: &[[i32; 3]],
+    r: usize,
+    views: &[ObjView],
+    view_points: &[ViewPoints],
+    opts: &InferOptions,
+) -> Result<(Fitted, Vec<[i32; 3]>)> {
+    let t = Instant::now();
+    let model = Grid::from_coords(coords, r);
+    let surface = Surface::from_points(&model.outer_surface_points())?;
+    let mut cands = Vec::new();
+    for (k, v) in views.iter().enumerate() {
+        let own = pose_to_similarity(&pose_to_camera(&pose.per_token[k], &v.prepared.normaliser));
+        let mut anchor = v.points.to_anchor.compose(&own);
+        let mut stretch = [1.0; 3];
+        if opts.align.refine {
+            let r = refine_pose(&surface, &anchor, view_points, &opts.align);
+            (anchor, stretch) = (r.pose, r.stretch);
+        }
+        let score = score_candidate(&surface, &anchor, k, view_points, &opts.align);
+        cands.push((k, anchor, stretch, score));
+    }
+    let scores: Vec<CandidateScore> = cands.iter().map(|c| c.3.clone()).collect();
+    let (view, anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
+    let obs = observe(r, &anchor, stretch, view_points, opts.shape_fit_options.margin_m);
+    let (shell, mut report) = fit_occupancy(&model, &obs, &opts.shape_fit_options);
+    report.seconds = t.elapsed().as_secs_f64();
+    Ok((Fitted { view, anchor, stretch, report }, shell.coords()))
 }
 
 /// The observed points of a view in the anchor frame, with their colours.
@@ -321,6 +377,7 @@ struct Kept {
     mesh: Option<Mesh>,
     gaussians: Option<Gaussians>,
     metadata: RunMetadata,
+    shape_fit: Option<ShapeFitReport>,
 }
 
 impl Engine {
@@ -393,7 +450,7 @@ impl Engine {
             }
             None => (objects.into_iter().map(|o| (o, None)).collect(), Vec::new(), None, RigidTransform::identity()),
         };
-        let (depth1, depth2) = (depth_view(frame, &opts.align), frame2.and_then(|f| depth_view(f, &opts.align)));
+        let (depth1, depth2) = (depth_view(frame, opts), frame2.and_then(|f| depth_view(f, opts)));
         let mut skipped = Vec::new();
         let mut results = Vec::new();
         let total = pairs.len();
@@ -462,7 +519,20 @@ impl Engine {
             let seed = opts.run.seed.wrapping_add(s as u64);
             progress(Progress::Sample { index: s, total: opts.samples, seed });
             let run = RunOptions { seed, ..opts.run.clone() };
-            let rec = match self.pipeline.run_observed(&inputs, &run, &|st| progress(Progress::Stage(st))) {
+            let mut fitted: Option<Fitted> = None;
+            let on_stage = |st| progress(Progress::Stage(st));
+            let rec = match opts.shape_fit {
+                ShapeFit::None => self.pipeline.run_observed(&inputs, &run, &on_stage),
+                ShapeFit::Depth => {
+                    let mut hook = |pose: &PredictedPose, coords: &[[i32; 3]], r: usize| {
+                        let (f, c) = fit_shape(pose, coords, r, views, &view_points, opts)?;
+                        fitted = Some(f);
+                        Ok(c)
+                    };
+                    self.pipeline.run_guided(&inputs, &run, &on_stage, Some(&mut hook))
+                }
+            };
+            let rec = match rec {
                 Ok(r) => r,
                 Err(e) => {
                     // candle may append a backtrace; the first line says what failed.
@@ -491,7 +561,20 @@ impl Engine {
                 _ => None,
             };
             let first = candidates.len();
-            for (k, v) in views.iter().enumerate() {
+            // With the shape fit the pose was refined before the fit and stays
+            // as the fit saw it: one candidate per sample.
+            if let Some(f) = &fitted {
+                let stretched = match (&mesh, f.stretch != [1.0; 3]) {
+                    (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, f.stretch), opts.align.surface_samples, opts.align.seed).ok(),
+                    _ => None,
+                };
+                let score = match stretched.as_ref().or(surface.as_ref()) {
+                    Some(sf) => score_candidate(sf, &f.anchor, f.view, &view_points, &opts.align),
+                    None => CandidateScore { own_view: f.view, per_view_m: vec![f64::NAN; views.len()] },
+                };
+                candidates.push(Candidate { seed, view: f.view + 1, pose_camera: similarity_to_pose(&f.anchor), stretch: f.stretch, score });
+            }
+            for (k, v) in views.iter().enumerate().filter(|_| fitted.is_none()) {
                 let pose_n = rec.pose.per_token[k];
                 let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
                 let mut anchor = v.points.to_anchor.compose(&own);
@@ -524,6 +607,7 @@ impl Engine {
                     mesh,
                     gaussians: rec.gaussians,
                     metadata: rec.metadata,
+                    shape_fit: fitted.map(|f| f.report),
                 });
             }
             select_s += t.elapsed().as_secs_f64();
@@ -575,6 +659,7 @@ impl Engine {
             uncertainty: pose_spread(&per_sample_best),
             candidates,
             occupied_voxels: kept.coords,
+            shape_fit: kept.shape_fit,
             faces_decoded: kept.faces_decoded,
             mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
             gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),

@@ -5,6 +5,7 @@
 use crate::engine::infer::*;
 use crate::engine::pipeline::{RunMetadata, StageTimings};
 use crate::engine::pose_fit::PoseSpread;
+use crate::engine::shape_fit::ShapeFitReport;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
 use crate::export::ply::{save_mesh_ply, PlyOptions};
 use crate::export::splat::save_splat_ply;
@@ -34,6 +35,9 @@ pub struct PoseRecord<'a> {
     pub samples: usize,
     pub base_seed: u64,
     pub occupied_voxels: usize,
+    /// What the shape fit changed in the occupancy (absent with `--shape-fit none`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shape_fit: Option<&'a ShapeFitReport>,
     pub faces_decoded: usize,
     pub faces: usize,
     pub timings_s: &'a StageTimings,
@@ -105,6 +109,7 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
             samples: o.samples,
             base_seed: o.candidates.first().map_or(o.metadata.seed, |c| c.seed),
             occupied_voxels: o.occupied_voxels,
+            shape_fit: o.shape_fit.as_ref(),
             faces_decoded: o.faces_decoded,
             faces: o.mesh_camera.as_ref().map_or(0, |m| m.faces.len()),
             timings_s: &o.timings,

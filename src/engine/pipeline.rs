@@ -166,6 +166,8 @@ pub struct StageTimings {
     pub ss_sampling: f64,
     pub ss_decoder: f64,
     pub pose: f64,
+    /// The occupancy hook of [`Pipeline::run_guided`] (the shape fit).
+    pub shape_fit: f64,
     pub slat_condition: f64,
     pub slat_sampling: f64,
     pub mesh_decoder: f64,
@@ -261,6 +263,9 @@ pub struct RunMetadata {
     pub slat_sampler: Option<SamplerSettings>,
     pub noise_order: &'static str,
 }
+
+/// The occupancy hook of [`Pipeline::run_guided`]: `(pose, voxels, resolution) → voxels`.
+pub type OccupancyFit<'a> = dyn FnMut(&PredictedPose, &[[i32; 3]], usize) -> Result<Vec<[i32; 3]>> + 'a;
 
 /// Everything one run produces.
 #[derive(Debug, Clone)]
@@ -640,6 +645,19 @@ impl Pipeline {
 
     /// [`Self::run`], calling `on_stage` as each stage starts.
     pub fn run_observed(&self, inputs: &ObjectInputs, opts: &RunOptions, on_stage: &dyn Fn(Stage)) -> Result<ObjectReconstruction> {
+        self.run_guided(inputs, opts, on_stage, None)
+    }
+
+    /// [`Self::run_observed`], with `fit` given the stage-1 pose and occupied
+    /// voxels (grid resolution last) and returning the voxels stage 2 runs on
+    /// (e.g. [`crate::engine::fit_occupancy`]'s shell).
+    pub fn run_guided(
+        &self,
+        inputs: &ObjectInputs,
+        opts: &RunOptions,
+        on_stage: &dyn Fn(Stage),
+        fit: Option<&mut OccupancyFit<'_>>,
+    ) -> Result<ObjectReconstruction> {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
         let dev = Device::Cpu;
@@ -728,7 +746,17 @@ impl Pipeline {
         let pose = PredictedPose { pose: per_token[0], per_token, tokens_10d, slat_tokens_13d };
         tm.pose = secs(t);
 
-        let coords: Vec<[i32; 3]> = coords4.iter().map(|c| [c[1], c[2], c[3]]).collect();
+        let mut coords: Vec<[i32; 3]> = coords4.iter().map(|c| [c[1], c[2], c[3]]).collect();
+        let mut coords4 = coords4;
+        if let Some(fit) = fit {
+            let t = Instant::now();
+            coords = fit(&pose, &coords, ss_resolution)?;
+            tm.shape_fit = secs(t);
+            if coords.is_empty() {
+                return Err(Error::msg("the shape fit left no occupied voxel (the depth leaves no room for the object in its pose)"));
+            }
+            coords4 = coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect();
+        }
         let mut metadata = RunMetadata {
             architecture: self.config.name.clone(),
             weights: self.weights.clone(),
