@@ -14,6 +14,10 @@
 //! - **DRE**: `|d_pred − d_gt| / d_gt` (diameter ratio error), success at `< 0.05`.
 //! - **F1@τ**: precision = fraction of predicted samples with `nn(p, GT) ≤ τ`, recall =
 //!   fraction of GT samples with `nn(g, pred) ≤ τ`, `F1 = 2PR/(P+R)` (0 when P+R = 0).
+//! - **Normal consistency** (Occupancy Networks): `½ (mean_a |n_a · n_nn(a,B)| + mean_b
+//!   |n_b · n_nn(b,A)|)` over surface samples with their face normals, after the CD_norm
+//!   alignment: 1 for matching surfaces, about ½ for unrelated orientations; a crumpled
+//!   surface scores low even where it is close to the GT.
 //! - **Occlusion** = `1 − visib_fract`, binned by [`occlusion_bin`].
 
 use crate::eval::icp::{icp, IcpOptions, IcpResult};
@@ -65,6 +69,26 @@ impl NnDists {
         let f1 = if precision + recall > 0.0 { 2.0 * precision * recall / (precision + recall) } else { 0.0 };
         F1Score { precision, recall, f1, tau }
     }
+}
+
+/// Normal consistency (module docs) of two oriented samplings; `None` when either is
+/// empty or has no non-zero normal.
+pub fn normal_consistency(a: &[P3], na: &[P3], b: &[P3], nb: &[P3]) -> Option<f64> {
+    let one_way = |p: &[P3], np: &[P3], q: &[P3], nq: &[P3]| -> Option<f64> {
+        let tree = KdTree::new(q);
+        let v: Vec<f64> = tree
+            .nearest_all(p)
+            .iter()
+            .zip(np)
+            .filter(|((j, _), n)| *n != &[0.0; 3] && nq[*j] != [0.0; 3])
+            .map(|((j, _), n)| (n[0] * nq[*j][0] + n[1] * nq[*j][1] + n[2] * nq[*j][2]).abs())
+            .collect();
+        (!v.is_empty()).then(|| mean(&v))
+    };
+    if a.is_empty() || b.is_empty() {
+        return None;
+    }
+    Some(0.5 * (one_way(a, na, b, nb)? + one_way(b, nb, a, na)?))
 }
 
 /// Symmetric L1 Chamfer distance between two point sets.
@@ -304,6 +328,26 @@ pub(crate) mod tests {
         // With different samples of the same surface CD_norm is small but not zero.
         let (c2, _) = cd_norm(&m.transformed(&motion).sample_surface(8000, 10), &gt_pts, d, &IcpOptions::default());
         assert!(c2 < 0.01, "{c2}");
+    }
+
+    #[test]
+    fn normal_consistency_is_one_on_itself_and_the_cosine_when_turned() {
+        let m = crate::mesh::primitives::cuboid([0.5, 0.3, 0.2]);
+        let (pts, faces) = m.sample_surface_faces(4000, 3);
+        let n: Vec<P3> = faces.iter().map(|&f| m.face_normal(f as usize)).collect();
+        let nc = normal_consistency(&pts, &n, &pts, &n).unwrap();
+        assert!((nc - 1.0).abs() < 1e-12, "{nc}");
+        // Same points, every normal turned by 60° about an axis normal to it: |cos| = ½.
+        let turned: Vec<P3> = n
+            .iter()
+            .map(|v| {
+                let axis = if v[0].abs() < 0.9 { crate::math::normalize(crate::math::cross(*v, [1.0, 0.0, 0.0])) } else { [0.0, 1.0, 0.0] };
+                Similarity::rigid(axis_angle(axis, PI / 3.0), [0.0; 3]).apply(v)
+            })
+            .collect();
+        let nc = normal_consistency(&pts, &turned, &pts, &n).unwrap();
+        assert!((nc - 0.5).abs() < 1e-9, "{nc}");
+        assert_eq!(normal_consistency(&[], &[], &pts, &n), None);
     }
 
     #[test]

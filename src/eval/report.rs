@@ -179,6 +179,9 @@ pub struct ObjectMetrics {
     pub f1_posed: F1Score,
     /// F1 after the CD_norm ICP alignment (shape only).
     pub f1_aligned: F1Score,
+    /// Normal consistency after the CD_norm alignment (surface quality; `None`
+    /// for a prediction without faces).
+    pub normal_consistency: Option<f64>,
 }
 
 /// Aggregates over a set of GT instances. Rates are fractions in [0, 1] over all
@@ -198,6 +201,8 @@ pub struct Summary {
     pub dre_05: f64,
     pub f1_posed_mean: f64,
     pub f1_aligned_mean: f64,
+    /// Over the predictions with faces.
+    pub normal_consistency_mean: f64,
     pub add_10: f64,
     pub add_s_10: f64,
 }
@@ -238,6 +243,14 @@ impl Summary {
             dre_05: rate(&|m| m.dre_success_05),
             f1_posed_mean: mean(&|m| m.f1_posed.f1),
             f1_aligned_mean: mean(&|m| m.f1_aligned.f1),
+            normal_consistency_mean: {
+                let v: Vec<f64> = ms.iter().filter_map(|m| m.normal_consistency).collect();
+                if v.is_empty() {
+                    f64::NAN
+                } else {
+                    v.iter().sum::<f64>() / v.len() as f64
+                }
+            },
             add_10: add_rate(&|m| m.add_norm),
             add_s_10: add_rate(&|m| m.add_s_norm),
         }
@@ -271,14 +284,27 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
         (None, None)
     };
     // Surfaces in the camera frame.
-    let gt_s: Vec<P3> = gt_pose.apply_all(&model.mesh.sample_surface(opts.n_samples, opts.seed));
+    let (gt_local, gt_faces) = model.mesh.sample_surface_faces(opts.n_samples, opts.seed);
+    let gt_s: Vec<P3> = gt_pose.apply_all(&gt_local);
     let est_full = Similarity { rotation: pred.r, translation: pred.t, scale: pred.scale };
-    let pr_s: Vec<P3> = est_full.apply_all(&pred_mesh.sample_surface(opts.n_samples, opts.seed));
+    let (pr_local, pr_faces) = pred_mesh.sample_surface_faces(opts.n_samples, opts.seed);
+    let pr_s: Vec<P3> = est_full.apply_all(&pr_local);
     let tau = opts.f1_tau_rel * d;
     let posed = metrics::nn_dists(&pr_s, &gt_s);
     let add_sb = posed.chamfer();
     let (cd_norm, icp) = metrics::cd_norm(&pr_s, &gt_s, d, &opts.icp);
-    let aligned = metrics::nn_dists(&icp.transform.apply_all(&pr_s), &gt_s);
+    let pr_aligned = icp.transform.apply_all(&pr_s);
+    let aligned = metrics::nn_dists(&pr_aligned, &gt_s);
+    // Face normals rotated like the samples (scales are positive, so they keep their direction).
+    let normals = |m: &TriMesh, faces: &[u32], r: &[[f64; 3]; 3]| -> Vec<P3> {
+        faces
+            .iter()
+            .map(|&f| if f == u32::MAX { [0.0; 3] } else { Similarity::rigid(*r, [0.0; 3]).apply(&m.face_normal(f as usize)) })
+            .collect()
+    };
+    let r_pred = crate::math::matmul(&icp.transform.rotation, &pred.r);
+    let normal_consistency =
+        metrics::normal_consistency(&pr_aligned, &normals(pred_mesh, &pr_faces, &r_pred), &gt_s, &normals(&model.mesh, &gt_faces, &g.r));
     let pred_diameter = diameter(&pred_mesh.used_vertices()).0 * pred.scale;
     let dre = metrics::dre(pred_diameter, d);
     ObjectMetrics {
@@ -298,6 +324,7 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
         dre_success_05: dre < 0.05,
         f1_posed: posed.f1(tau),
         f1_aligned: aligned.f1(tau),
+        normal_consistency,
     }
 }
 
@@ -474,6 +501,7 @@ impl Report {
             "DRE@5%",
             "F1 posed",
             "F1 aligned",
+            "NC",
             "ADD@10%",
             "ADD-S@10%",
         ];
@@ -491,6 +519,7 @@ impl Report {
                 pct(s.dre_05),
                 num(s.f1_posed_mean),
                 num(s.f1_aligned_mean),
+                num(s.normal_consistency_mean),
                 pct(s.add_10),
                 pct(s.add_s_10),
             ]);
@@ -511,7 +540,7 @@ impl Report {
             }
         }
         out.push_str(&format!(
-            "F1 threshold = {:.1}% of GT diameter; {} surface samples per mesh; rates over all GT instances (missed = failure).\n",
+            "F1 threshold = {:.1}% of GT diameter; NC = normal consistency after alignment; {} surface samples per mesh; rates over all GT instances (missed = failure).\n",
             100.0 * self.options.f1_tau_rel,
             self.options.n_samples
         ));

@@ -40,6 +40,12 @@ impl TriMesh {
         self.faces.iter().map(|f| tri_area(&self.tri(f))).sum()
     }
 
+    /// Unit normal of face `f` (winding order; zero for a degenerate face).
+    pub fn face_normal(&self, f: usize) -> P3 {
+        let t = self.tri(&self.faces[f]);
+        crate::math::normalize(crate::math::cross(crate::math::sub(t[1], t[0]), crate::math::sub(t[2], t[0])))
+    }
+
     fn tri(&self, f: &[u32; 3]) -> [P3; 3] {
         [self.vertices[f[0] as usize], self.vertices[f[1] as usize], self.vertices[f[2] as usize]]
     }
