@@ -419,7 +419,7 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
     let objects = summary["objects"].as_array().unwrap();
     assert!(!objects.is_empty(), "no object reconstructed: {summary}");
     assert_eq!(summary["views"], views);
-    for k in ["encoder", "ss_sampling", "ss_decoder", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"] {
+    for k in ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"] {
         assert!(summary["stage_totals_s"][k].as_f64().is_some(), "stage_totals_s.{k}");
     }
     assert!(summary["stage_totals_s"]["total"].as_f64().unwrap() > 0.0);

@@ -99,12 +99,13 @@ fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
 }
 
 /// Per-stage seconds of one object (model stages summed over samples).
-fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 9] {
+fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 10] {
     let t = &o.timings;
     [
         t.image_encoder,
         t.ss_condition + t.ss_sampling,
         t.ss_decoder + t.pose,
+        t.shape_fit,
         t.slat_condition + t.slat_sampling,
         t.mesh_decoder,
         t.gaussian_decoder,
@@ -114,7 +115,7 @@ fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 9] {
     ]
 }
 
-const STAGES: [&str; 9] = ["encoder", "ss_sampling", "ss_decoder", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
+const STAGES: [&str; 10] = ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
 
 /// A terminal progress bar (hidden unless both stdout and stderr are terminals).
 struct Bar {

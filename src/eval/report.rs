@@ -31,7 +31,9 @@ use crate::dataset::ply::read_ply;
 use crate::eval::icp::IcpOptions;
 use crate::eval::metrics::{self, occlusion_bin, occlusion_bin_label, F1Score, OCCLUSION_BINS};
 use crate::math::Similarity;
+use crate::mesh::post::{mesh_quality, MeshQuality};
 use crate::mesh::trimesh::{diameter, TriMesh};
+use crate::mesh::Mesh;
 use crate::spatial::P3;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -182,6 +184,9 @@ pub struct ObjectMetrics {
     /// Normal consistency after the CD_norm alignment (surface quality; `None`
     /// for a prediction without faces).
     pub normal_consistency: Option<f64>,
+    /// Surface quality of the predicted and of the GT mesh (components, dihedral angles, holes).
+    pub mesh_quality: Option<MeshQuality>,
+    pub gt_mesh_quality: Option<MeshQuality>,
 }
 
 /// Aggregates over a set of GT instances. Rates are fractions in [0, 1] over all
@@ -203,6 +208,11 @@ pub struct Summary {
     pub f1_aligned_mean: f64,
     /// Over the predictions with faces.
     pub normal_consistency_mean: f64,
+    /// Mean dihedral angle (degrees) of the predicted meshes and of their GT meshes.
+    pub dihedral_deg_mean: f64,
+    pub gt_dihedral_deg_mean: f64,
+    /// Fraction of predicted meshes with one component.
+    pub one_component: f64,
     pub add_10: f64,
     pub add_s_10: f64,
 }
@@ -216,6 +226,15 @@ impl Summary {
                 f64::NAN
             } else {
                 ms.iter().map(|m| f(m)).sum::<f64>() / ms.len() as f64
+            }
+        };
+        // Means over the predictions that have the value.
+        let mean_some = |f: &dyn Fn(&ObjectMetrics) -> Option<f64>| {
+            let v: Vec<f64> = ms.iter().filter_map(|m| f(m)).filter(|x| x.is_finite()).collect();
+            if v.is_empty() {
+                f64::NAN
+            } else {
+                v.iter().sum::<f64>() / v.len() as f64
             }
         };
         let rate =
@@ -243,12 +262,15 @@ impl Summary {
             dre_05: rate(&|m| m.dre_success_05),
             f1_posed_mean: mean(&|m| m.f1_posed.f1),
             f1_aligned_mean: mean(&|m| m.f1_aligned.f1),
-            normal_consistency_mean: {
-                let v: Vec<f64> = ms.iter().filter_map(|m| m.normal_consistency).collect();
-                if v.is_empty() {
+            normal_consistency_mean: mean_some(&|m| m.normal_consistency),
+            dihedral_deg_mean: mean_some(&|m| m.mesh_quality.map(|q| q.mean_dihedral_deg)),
+            gt_dihedral_deg_mean: mean_some(&|m| m.gt_mesh_quality.map(|q| q.mean_dihedral_deg)),
+            one_component: {
+                let q: Vec<_> = ms.iter().filter_map(|m| m.mesh_quality).collect();
+                if q.is_empty() {
                     f64::NAN
                 } else {
-                    v.iter().sum::<f64>() / v.len() as f64
+                    q.iter().filter(|q| q.components == 1).count() as f64 / q.len() as f64
                 }
             },
             add_10: add_rate(&|m| m.add_norm),
@@ -266,6 +288,10 @@ pub struct Report {
     /// One row per occlusion bin, then `>70%` and `unknown` rows when non-empty.
     pub by_occlusion: Vec<Summary>,
     pub objects: Vec<ObjectResult>,
+}
+
+fn to_mesh(m: &TriMesh) -> Mesh {
+    Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None }
 }
 
 fn pose_of(g: &GtInstance) -> Similarity {
@@ -325,6 +351,8 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
         f1_posed: posed.f1(tau),
         f1_aligned: aligned.f1(tau),
         normal_consistency,
+        mesh_quality: mesh_quality(&to_mesh(pred_mesh)),
+        gt_mesh_quality: mesh_quality(&to_mesh(&model.mesh)),
     }
 }
 
@@ -544,6 +572,15 @@ impl Report {
             100.0 * self.options.f1_tau_rel,
             self.options.n_samples
         ));
+        let o = &self.overall;
+        if o.dihedral_deg_mean.is_finite() {
+            out.push_str(&format!(
+                "Surfaces: mean dihedral angle {:.1}° (GT meshes {:.1}°), {}% of predicted meshes in one component.\n",
+                o.dihedral_deg_mean,
+                o.gt_dihedral_deg_mean,
+                pct(o.one_component)
+            ));
+        }
         let est = self.objects.iter().filter(|o| o.visib_estimated).count();
         if est > 0 {
             out.push_str(&format!(

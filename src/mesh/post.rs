@@ -67,6 +67,59 @@ fn component_stats(mesh: &Mesh) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
     (comp, faces, area)
 }
 
+/// How clean a surface is: one closed, smooth component scores 1 component,
+/// no boundary edges and a small mean dihedral angle.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct MeshQuality {
+    pub components: usize,
+    /// The largest component's share of the area.
+    pub largest_area_fraction: f64,
+    /// Mean angle (degrees) between the normals of faces sharing an edge.
+    pub mean_dihedral_deg: f64,
+    /// Edges of one face (holes, open shells).
+    pub boundary_edges: usize,
+    /// Edges of three or more faces.
+    pub non_manifold_edges: usize,
+}
+
+/// [`MeshQuality`] of a mesh (`None` without faces).
+pub fn mesh_quality(mesh: &Mesh) -> Option<MeshQuality> {
+    if mesh.faces.is_empty() {
+        return None;
+    }
+    let (_, _, area) = component_stats(mesh);
+    let total: f64 = area.iter().sum();
+    let normal = |f: &[u32; 3]| {
+        let [a, b, c] = f.map(|i| mesh.vertices[i as usize].map(f64::from));
+        crate::math::normalize(cross(sub(b, a), sub(c, a)))
+    };
+    let mut edges: std::collections::HashMap<(u32, u32), Vec<usize>> = std::collections::HashMap::new();
+    for (k, f) in mesh.faces.iter().enumerate() {
+        for (a, b) in [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])] {
+            edges.entry((a.min(b), a.max(b))).or_default().push(k);
+        }
+    }
+    let (mut sum, mut n, mut boundary, mut non_manifold) = (0.0, 0usize, 0, 0);
+    for fs in edges.values() {
+        match fs.len() {
+            1 => boundary += 1,
+            2 => {
+                let c = dot(normal(&mesh.faces[fs[0]]), normal(&mesh.faces[fs[1]])).clamp(-1.0, 1.0);
+                sum += c.acos().to_degrees();
+                n += 1;
+            }
+            _ => non_manifold += 1,
+        }
+    }
+    Some(MeshQuality {
+        components: area.len(),
+        largest_area_fraction: if total > 0.0 { area.iter().cloned().fold(0.0, f64::max) / total } else { 0.0 },
+        mean_dihedral_deg: if n > 0 { sum / n as f64 } else { f64::NAN },
+        boundary_edges: boundary,
+        non_manifold_edges: non_manifold,
+    })
+}
+
 /// The faces of the components `keep` marks, without unreferenced vertices.
 fn keep_components(mesh: &Mesh, comp: &[usize], keep: &[bool]) -> Mesh {
     let kept = Mesh {
@@ -542,5 +595,38 @@ mod timing {
         let dec = decimate(&mesh, mesh.faces.len() / 20);
         println!("decimate {} -> {} faces in {:.2} s", mesh.faces.len(), dec.faces.len(), t0.elapsed().as_secs_f64());
         assert!(dec.topology().is_closed_oriented_manifold());
+    }
+}
+
+#[cfg(test)]
+mod quality_tests {
+    use super::*;
+
+    fn cube(offset: f32) -> Mesh {
+        let c = crate::mesh::primitives::cuboid([0.5, 0.5, 0.5]);
+        Mesh {
+            vertices: c.vertices.iter().map(|v| [v[0] as f32 + offset, v[1] as f32, v[2] as f32]).collect(),
+            faces: c.faces.clone(),
+            vertex_attrs: None,
+        }
+    }
+
+    #[test]
+    fn a_closed_cube_has_one_component_no_boundary_and_sixty_degrees() {
+        let q = mesh_quality(&cube(0.0)).unwrap();
+        // 6 face diagonals at 0°, 12 cube edges at 90°.
+        assert_eq!((q.components, q.boundary_edges, q.non_manifold_edges), (1, 0, 0));
+        assert!((q.mean_dihedral_deg - 60.0).abs() < 1e-4, "{q:?}");
+        // Two cubes: two components of half the area each; one face removed: 3 open edges.
+        let mut two = cube(0.0);
+        let other = cube(3.0);
+        let n = two.vertices.len() as u32;
+        two.vertices.extend(other.vertices);
+        two.faces.extend(other.faces.iter().map(|f| f.map(|i| i + n)));
+        two.faces.pop();
+        let q = mesh_quality(&two).unwrap();
+        assert_eq!((q.components, q.boundary_edges), (2, 3));
+        assert!((q.largest_area_fraction - 12.0 / 23.0).abs() < 1e-9, "{q:?}");
+        assert_eq!(mesh_quality(&Mesh::default()), None);
     }
 }
