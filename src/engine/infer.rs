@@ -41,7 +41,8 @@ use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
-use crate::engine::shape_fit::{fit_occupancy, observe, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
+use crate::engine::shape_fit::{fit_solid, observe, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
+use crate::math::Similarity;
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
@@ -319,7 +320,7 @@ struct Fitted {
     /// The token (view index) whose pose won.
     view: usize,
     /// Canonical → anchor camera, refined against the depth before the fit.
-    anchor: crate::math::Similarity,
+    anchor: Similarity,
     stretch: [f64; 3],
     report: ShapeFitReport,
 }
@@ -351,12 +352,65 @@ fn fit_shape(
         cands.push((k, anchor, stretch, score));
     }
     let scores: Vec<CandidateScore> = cands.iter().map(|c| c.3.clone()).collect();
-    let (view, anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
-    let obs = observe(r, &anchor, stretch, view_points, opts.shape_fit_options.margin_m);
-    let (shell, mut report) = fit_occupancy(&model, &obs, &opts.shape_fit_options);
+    let (view, mut anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
+    let fo = &ShapeFitOptions { hull: opts.shape_fit_options.hull || opts.shape_fit == ShapeFit::DepthHull, ..opts.shape_fit_options };
+    // Re-express the grid in a new canonical frame x_old = k·x_new + c (the pose absorbs it).
+    let reframe = |anchor: &Similarity, k: f64, c: [f64; 3]| {
+        anchor.compose(&Similarity { rotation: IDENTITY, translation: std::array::from_fn(|a| stretch[a] * c[a]), scale: k })
+    };
+    let mut model = model;
+    if fo.reframe {
+        // Grow the box to hold the observed points (1–99 % per axis, against stray points).
+        let inv = anchor.inverse();
+        let pts: Vec<[f64; 3]> = view_points
+            .iter()
+            .flat_map(|v| v.points.iter().map(|p| inv.apply(&v.to_anchor.apply(p))))
+            .map(|q| std::array::from_fn(|a| q[a] / stretch[a]))
+            .collect();
+        if pts.len() >= 10 {
+            let (mut lo, mut hi) = ([-0.5f64; 3], [0.5f64; 3]);
+            for a in 0..3 {
+                let mut v: Vec<f64> = pts.iter().map(|p| p[a]).collect();
+                v.sort_by(f64::total_cmp);
+                lo[a] = lo[a].min(v[v.len() / 100]);
+                hi[a] = hi[a].max(v[v.len() - 1 - v.len() / 100]);
+            }
+            let k = (0..3).map(|a| hi[a] - lo[a]).fold(1.0, f64::max);
+            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+            if k > 1.0 || c.iter().any(|&x| x != 0.0) {
+                model = model.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
+                anchor = reframe(&anchor, k, c);
+            }
+        }
+    }
+    let obs = observe(r, &anchor, stretch, view_points, fo.margin_m);
+    let (mut solid, mut report) = fit_solid(&model, &obs, fo);
+    if fo.reframe {
+        // Fit the box to the shape (longest side = the grid), then hold the constraints
+        // again in that frame: the shell handed on obeys them in the final pose.
+        if let Some((lo, hi)) = solid.bounds() {
+            let k = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+            if k > 0.0 {
+                solid = solid.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
+                anchor = reframe(&anchor, k, c);
+                let obs = observe(r, &anchor, stretch, view_points, fo.margin_m);
+                for i in 0..solid.occ.len() {
+                    solid.occ[i] = (solid.occ[i] && !obs.free[i]) || obs.surface[i];
+                }
+                solid.fill_pockets();
+                solid.keep_largest();
+                report.points_outside_grid = obs.points_outside_grid;
+            }
+        }
+    }
+    let shell = solid.shell();
+    report.shell_voxels = shell.count();
     report.seconds = t.elapsed().as_secs_f64();
     Ok((Fitted { view, anchor, stretch, report }, shell.coords()))
 }
+
+const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
 /// The observed points of a view in the anchor frame, with their colours.
 fn observed_in_anchor(v: &ObjView) -> (Vec<[f32; 3]>, Vec<[u8; 3]>) {
@@ -523,7 +577,7 @@ impl Engine {
             let on_stage = |st| progress(Progress::Stage(st));
             let rec = match opts.shape_fit {
                 ShapeFit::None => self.pipeline.run_observed(&inputs, &run, &on_stage),
-                ShapeFit::Depth => {
+                ShapeFit::Depth | ShapeFit::DepthHull => {
                     let mut hook = |pose: &PredictedPose, coords: &[[i32; 3]], r: usize| {
                         let (f, c) = fit_shape(pose, coords, r, views, &view_points, opts)?;
                         fitted = Some(f);

@@ -37,6 +37,8 @@ pub enum ShapeFit {
     /// Carve observed free space, fill observed surface, keep the outer shell (module docs).
     #[default]
     Depth,
+    /// `depth`, with the hidden concavities filled ([`ShapeFitOptions::hull`]): for convex objects.
+    DepthHull,
     /// The model's occupancy as decoded.
     None,
 }
@@ -51,11 +53,19 @@ pub struct ShapeFitOptions {
     pub margin_m: f64,
     /// Seal tunnels up to two voxels wide before filling pockets.
     pub close: bool,
+    /// Fill every axis-parallel line between its first and last occupied cell
+    /// (the orthogonally convex hull), then carve again: hidden concavities the
+    /// model made are filled, observed ones stay open.
+    pub hull: bool,
+    /// Grow the object's box until it holds the observed points (the model's
+    /// shape keeps its metric size), and fit the box to the result afterwards,
+    /// so the reported scale is the fitted shape's longest side.
+    pub reframe: bool,
 }
 
 impl Default for ShapeFitOptions {
     fn default() -> Self {
-        ShapeFitOptions { margin_m: 0.004, close: true }
+        ShapeFitOptions { margin_m: 0.004, close: true, hull: false, reframe: true }
     }
 }
 
@@ -232,6 +242,55 @@ impl Grid {
         dropped
     }
 
+    /// Fill each axis-parallel line of cells between its first and last occupied one.
+    pub fn fill_lines(&mut self) {
+        let r = self.r as i32;
+        for axis in 0..3 {
+            let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+            for u in 0..r {
+                for v in 0..r {
+                    let at = |t: i32| {
+                        let mut c = [0; 3];
+                        (c[axis], c[a], c[b]) = (t, u, v);
+                        c
+                    };
+                    let occ: Vec<i32> = (0..r).filter(|&t| self.index(at(t)).is_some_and(|i| self.occ[i])).collect();
+                    if let (Some(&lo), Some(&hi)) = (occ.first(), occ.last()) {
+                        for t in lo..=hi {
+                            if let Some(i) = self.index(at(t)) {
+                                self.occ[i] = true;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The grid seen through `to_old` (new canonical point → old canonical
+    /// point): each cell takes the value of the old cell its centre falls in.
+    pub fn resample(&self, to_old: impl Fn([f64; 3]) -> [f64; 3]) -> Grid {
+        let occ = (0..self.occ.len())
+            .map(|i| self.voxel_of(to_old(self.centre(self.coord(i)))).and_then(|c| self.index(c)).is_some_and(|j| self.occ[j]))
+            .collect();
+        Grid { r: self.r, occ }
+    }
+
+    /// Bounding box of the occupied cells (canonical units, cell faces).
+    pub fn bounds(&self) -> Option<([f64; 3], [f64; 3])> {
+        let cs = self.coords();
+        let first = *cs.first()?;
+        let (mut lo, mut hi) = (first, first);
+        for c in &cs {
+            for a in 0..3 {
+                lo[a] = lo[a].min(c[a]);
+                hi[a] = hi[a].max(c[a]);
+            }
+        }
+        let r = self.r as f64;
+        Some((lo.map(|v| v as f64 / r - 0.5), hi.map(|v| (v + 1) as f64 / r - 0.5)))
+    }
+
     /// Occupied cells with an empty (or out-of-grid) 6-neighbour.
     pub fn shell(&self) -> Grid {
         let occ = (0..self.occ.len()).map(|i| self.occ[i] && self.neighbours(i).any(|n| n.is_none_or(|n| !self.occ[n]))).collect();
@@ -292,6 +351,14 @@ pub fn observe(r: usize, pose: &Similarity, stretch: [f64; 3], views: &[ViewPoin
 /// Fit the model's occupancy to the observation (module docs): the shell
 /// handed to stage 2, and what changed.
 pub fn fit_occupancy(model: &Grid, obs: &Observation, opts: &ShapeFitOptions) -> (Grid, ShapeFitReport) {
+    let (solid, mut report) = fit_solid(model, obs, opts);
+    let shell = solid.shell();
+    report.shell_voxels = shell.count();
+    (shell, report)
+}
+
+/// [`fit_occupancy`] before the shell: the cleaned solid.
+pub fn fit_solid(model: &Grid, obs: &Observation, opts: &ShapeFitOptions) -> (Grid, ShapeFitReport) {
     let mut report = ShapeFitReport { model_voxels: model.count(), points_outside_grid: obs.points_outside_grid, ..Default::default() };
     let mut g = model.clone();
     for i in 0..g.occ.len() {
@@ -311,12 +378,16 @@ pub fn fit_occupancy(model: &Grid, obs: &Observation, opts: &ShapeFitOptions) ->
             g.occ[i] = (g.occ[i] && !obs.free[i]) || obs.surface[i];
         }
     }
+    if opts.hull {
+        g.fill_lines();
+        for i in 0..g.occ.len() {
+            g.occ[i] = (g.occ[i] && !obs.free[i]) || obs.surface[i];
+        }
+    }
     g.fill_pockets();
     report.sealed = g.count().saturating_sub(before);
     report.dropped = g.keep_largest();
-    let shell = g.shell();
-    report.shell_voxels = shell.count();
-    (shell, report)
+    (g, report)
 }
 
 #[cfg(test)]
