@@ -115,7 +115,8 @@ fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 10] {
     ]
 }
 
-const STAGES: [&str; 10] = ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
+const STAGES: [&str; 10] =
+    ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
 
 /// A terminal progress bar (hidden unless both stdout and stderr are terminals).
 struct Bar {

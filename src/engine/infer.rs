@@ -34,7 +34,9 @@
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::engine::pipeline::Weights;
-use crate::engine::pipeline::{LoadOptions, ObjectInputs, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput};
+use crate::engine::pipeline::{
+    LoadOptions, ObjectInputs, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput,
+};
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;
 use crate::engine::pose_fit::DepthView;
@@ -42,14 +44,16 @@ use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
 use crate::engine::shape_fit::{fit_solid, observe, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
-use crate::math::Similarity;
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
 use crate::geometry::camera_pose::pose_to_camera;
+use crate::geometry::plane::{fit_plane, Plane, PlaneFitOptions};
+use crate::geometry::pointmap::backproject;
 use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
 use crate::geometry::pose::Pose;
 use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
+use crate::math::Similarity;
 use crate::mesh::post::{decimate, drop_floaters};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
@@ -291,6 +295,8 @@ fn add_timings(a: &mut StageTimings, b: &StageTimings) {
 /// A prepared view of one object with what scoring needs.
 struct ObjView<'a> {
     frame: &'a RgbdFrame,
+    /// The frame's support plane (camera frame, facing the camera), for the shape fit.
+    support: Option<Plane>,
     label: String,
     prepared: PreparedView,
     points: ViewPoints,
@@ -303,9 +309,20 @@ fn object_view<'a>(
     prepared: PreparedView,
     to_anchor: RigidTransform,
     depth: Option<Arc<DepthView>>,
+    support: Option<Plane>,
 ) -> Result<ObjView<'a>> {
     let (points, _) = object_points(frame, &prepared.mask_full, None)?;
-    Ok(ObjView { frame, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+    Ok(ObjView { frame, support, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+}
+
+/// The dominant plane of a frame's depth, facing the camera (`None` when the
+/// fit fails or the shape fit is off).
+fn support_plane(frame: &RgbdFrame, opts: &InferOptions) -> Option<Plane> {
+    if opts.shape_fit == ShapeFit::None {
+        return None;
+    }
+    let pts = backproject(&frame.depth_m, frame.width, frame.height, &frame.intrinsics).ok()?;
+    fit_plane(&pts, &PlaneFitOptions::default()).ok().map(|f| f.plane.facing(&[0.0; 3]))
 }
 
 /// A frame's depth view for the free-space term and the shape fit (built
@@ -383,7 +400,8 @@ fn fit_shape(
             }
         }
     }
-    let obs = observe(r, &anchor, stretch, view_points, fo.margin_m);
+    let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
+    let obs = observe(r, &anchor, stretch, view_points, &supports, fo.margin_m);
     let (mut solid, mut report) = fit_solid(&model, &obs, fo);
     if fo.reframe {
         // Fit the box to the shape (longest side = the grid), then hold the constraints
@@ -394,7 +412,7 @@ fn fit_shape(
             if k > 0.0 {
                 solid = solid.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
                 anchor = reframe(&anchor, k, c);
-                let obs = observe(r, &anchor, stretch, view_points, fo.margin_m);
+                let obs = observe(r, &anchor, stretch, view_points, &supports, fo.margin_m);
                 for i in 0..solid.occ.len() {
                     solid.occ[i] = (solid.occ[i] && !obs.free[i]) || obs.surface[i];
                 }
@@ -505,6 +523,7 @@ impl Engine {
             None => (objects.into_iter().map(|o| (o, None)).collect(), Vec::new(), None, RigidTransform::identity()),
         };
         let (depth1, depth2) = (depth_view(frame, opts), frame2.and_then(|f| depth_view(f, opts)));
+        let (plane1, plane2) = (support_plane(frame, opts), frame2.and_then(|f| support_plane(f, opts)));
         let mut skipped = Vec::new();
         let mut results = Vec::new();
         let total = pairs.len();
@@ -520,11 +539,11 @@ impl Engine {
                 preprocess_seconds += t.elapsed().as_secs_f64();
                 continue;
             };
-            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone())?];
+            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone(), plane1)?];
             if let (Some(f2), Some(o2)) = (frame2, o2) {
                 let (mut p2, s2) = prepare_frame_objects(f2, vec![o2], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
                 match p2.pop() {
-                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2, depth2.clone())?),
+                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2, depth2.clone(), plane2)?),
                     None => obj_notes.extend(s2.iter().map(|s| format!("view 2 {s}; reconstructed from view 1 alone"))),
                 }
             } else if frame2.is_some() {
@@ -626,7 +645,13 @@ impl Engine {
                     Some(sf) => score_candidate(sf, &f.anchor, f.view, &view_points, &opts.align),
                     None => CandidateScore { own_view: f.view, per_view_m: vec![f64::NAN; views.len()] },
                 };
-                candidates.push(Candidate { seed, view: f.view + 1, pose_camera: similarity_to_pose(&f.anchor), stretch: f.stretch, score });
+                candidates.push(Candidate {
+                    seed,
+                    view: f.view + 1,
+                    pose_camera: similarity_to_pose(&f.anchor),
+                    stretch: f.stretch,
+                    score,
+                });
             }
             for (k, v) in views.iter().enumerate().filter(|_| fitted.is_none()) {
                 let pose_n = rec.pose.per_token[k];

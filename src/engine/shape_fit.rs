@@ -12,6 +12,8 @@
 //!    removed: observed free space.
 //!    This also trims the silhouette, since the background behind it is
 //!    measured too;
+//!    The frame's support plane bounds it too: an object whose points stand
+//!    in front of the plane does not reach through it;
 //! 2. **fill**: every voxel holding an observed point of the object is set;
 //! 3. hidden space (behind the surface, behind occluders, off the image) is
 //!    left to the model;
@@ -27,6 +29,7 @@
 //! decoder at every step.
 
 use crate::engine::pose_fit::ViewPoints;
+use crate::geometry::Plane;
 use crate::math::Similarity;
 use serde::Serialize;
 
@@ -316,14 +319,36 @@ pub struct Observation {
 
 /// Classify the cells of an `r³` grid placed by `pose` (canonical → anchor
 /// camera, after the per-axis `stretch` of the canonical frame) in every view.
-pub fn observe(r: usize, pose: &Similarity, stretch: [f64; 3], views: &[ViewPoints], margin_m: f64) -> Observation {
+/// `supports[k]` is view `k`'s support plane (camera frame, normal towards the
+/// camera), when one was found: an object standing on it cannot reach through
+/// it, so the cells beyond it count as free.
+pub fn observe(
+    r: usize,
+    pose: &Similarity,
+    stretch: [f64; 3],
+    views: &[ViewPoints],
+    supports: &[Option<Plane>],
+    margin_m: f64,
+) -> Observation {
     let grid = Grid::empty(r);
     let n = r * r * r;
     let mut free = vec![false; n];
     let mut surface = vec![false; n];
     let mut points_outside_grid = 0;
-    for v in views {
+    for (k, v) in views.iter().enumerate() {
         let to_view = v.to_anchor.inverse().compose(pose);
+        // Only a plane the object stands on (most of its points in front of it).
+        let support = supports.get(k).copied().flatten().filter(|p| {
+            let mut d: Vec<f64> = v.points.iter().map(|q| p.signed_distance(q)).collect();
+            d.sort_by(f64::total_cmp);
+            d.get(d.len() / 2).is_some_and(|&m| m > margin_m)
+        });
+        if let Some(p) = support {
+            for (i, f) in free.iter_mut().enumerate() {
+                let c = grid.centre(grid.coord(i));
+                *f |= p.signed_distance(&to_view.apply(&[c[0] * stretch[0], c[1] * stretch[1], c[2] * stretch[2]])) < -margin_m;
+            }
+        }
         if let Some(depth) = v.depth.as_deref() {
             for (i, f) in free.iter_mut().enumerate() {
                 if *f {
@@ -439,7 +464,7 @@ mod tests {
         // The model's guess: a ball, too full across the image and in front of the box.
         let model = ball(r, 0.45, [0.0; 3]);
         let opts = ShapeFitOptions::default();
-        let obs = observe(r, &pose, [1.0; 3], std::slice::from_ref(&view), opts.margin_m);
+        let obs = observe(r, &pose, [1.0; 3], std::slice::from_ref(&view), &[], opts.margin_m);
         assert_eq!(obs.points_outside_grid, 0);
         let (shell, report) = fit_occupancy(&model, &obs, &opts);
         let cell = 1.0 / r as f64;
@@ -456,7 +481,11 @@ mod tests {
                     d = d.min(raw_depth[vv as usize * W + uu as usize] as f64);
                 }
             }
-            assert!(p[2] >= d - opts.margin_m - 1e-9 || !d.is_finite(), "voxel {c:?} lies in free space: {:.4} m in front of {d:.4} m", p[2]);
+            assert!(
+                p[2] >= d - opts.margin_m - 1e-9 || !d.is_finite(),
+                "voxel {c:?} lies in free space: {:.4} m in front of {d:.4} m",
+                p[2]
+            );
         }
 
         // Across the image (y) and in front (−z) the shape now follows the box; along x
@@ -482,15 +511,34 @@ mod tests {
     }
 
     #[test]
+    fn the_support_plane_bounds_the_hidden_side() {
+        let (pose, mut view, _) = scene();
+        view.depth = None;
+        let r = 32;
+        let model = ball(r, 0.45, [0.0; 3]);
+        let opts = ShapeFitOptions::default();
+        // The plane the box stands on: y = 0.04 m (its bottom face; camera y is down).
+        let table = Plane { normal: [0.0, -1.0, 0.0], offset: 0.04 };
+        let obs = observe(r, &pose, [1.0; 3], std::slice::from_ref(&view), &[Some(table)], opts.margin_m);
+        let (shell, _) = fit_occupancy(&model, &obs, &opts);
+        let (_, y1) = extent(&shell, 1);
+        assert!(y1 <= HALF[1] + opts.margin_m / pose.scale + 1.0 / r as f64, "reaches y = {y1:.3} through the table");
+        // A plane the object is not standing on (its points behind it) is ignored.
+        let behind = Plane { normal: [0.0, 1.0, 0.0], offset: -0.04 };
+        let obs = observe(r, &pose, [1.0; 3], std::slice::from_ref(&view), &[Some(behind)], opts.margin_m);
+        assert!(obs.free.iter().all(|f| !f));
+    }
+
+    #[test]
     fn nothing_is_carved_without_depth_and_the_fit_is_deterministic() {
         let (pose, mut view, _) = scene();
         let model = ball(24, 0.45, [0.0; 3]);
         let opts = ShapeFitOptions::default();
-        let a = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), opts.margin_m), &opts);
-        let b = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), opts.margin_m), &opts);
+        let a = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), &[], opts.margin_m), &opts);
+        let b = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), &[], opts.margin_m), &opts);
         assert_eq!(a, b);
         view.depth = None;
-        let (_, report) = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), opts.margin_m), &opts);
+        let (_, report) = fit_occupancy(&model, &observe(24, &pose, [1.0; 3], std::slice::from_ref(&view), &[], opts.margin_m), &opts);
         assert_eq!(report.carved, 0);
     }
 

@@ -1,11 +1,13 @@
 //! Geometry: object poses (rotation encodings, normalisation), point maps and
-//! their crops, and mesh voxelisation.
+//! their crops, the support plane, and mesh voxelisation.
 
 pub(crate) mod camera_pose;
+pub(crate) mod plane;
 pub(crate) mod pointmap;
 pub(crate) mod pose;
 pub(crate) mod voxelize;
 pub use self::camera_pose::{canonical_to_camera, parse_rel_pose, pose_to_camera, pose_to_normalised};
+pub use self::plane::{fit_plane, least_squares_plane, world_from_camera, Plane, PlaneFit, PlaneFitOptions};
 pub use self::pointmap::project;
 pub use self::pointmap::{object_points, prepare_frame_objects, prepare_object, Normaliser, PrepareOptions};
 pub use self::pose::{pose_to_similarity, similarity_to_pose, Pose, PoseStats};

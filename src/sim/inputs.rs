@@ -2,10 +2,10 @@
 //! plane of an RGB-D frame, and a `recon infer` output folder.
 
 use crate::dataset::frame::RgbdFrame;
+use crate::geometry::plane::{fit_plane, world_from_camera, PlaneFit, PlaneFitOptions};
 use crate::math::dot;
 use crate::math::Similarity32;
 use crate::sim::materials::MaterialTable;
-use crate::sim::plane::{fit_plane, world_from_camera, PlaneFit, PlaneFitOptions};
 use crate::sim::scene_file::{
     CameraSpec, IntrinsicsSpec, ObjectSpec, PhysicsOverrides, PlaneRecord, PoseSpec, SceneFile, SupportPlaneSpec, VERSION,
 };
@@ -214,8 +214,8 @@ pub fn scene_from_bop(
         let n_gt = [r[2], r[5], r[8]]; // R · e_z
         let t_m = [t[0] * 1e-3, t[1] * 1e-3, t[2] * 1e-3];
         let d_gt = -dot(n_gt, t_m); // plane n·x + d = 0 through the world origin
-        let fit = crate::sim::plane::Plane { normal: rec.normal_camera, offset: rec.offset_camera_m };
-        let gt_plane = crate::sim::plane::Plane { normal: n_gt, offset: d_gt }.facing(&[0.0; 3]);
+        let fit = crate::geometry::plane::Plane { normal: rec.normal_camera, offset: rec.offset_camera_m };
+        let gt_plane = crate::geometry::plane::Plane { normal: n_gt, offset: d_gt }.facing(&[0.0; 3]);
         Some(PlaneCheck {
             normal_error_deg: dot(fit.normal, gt_plane.normal).clamp(-1.0, 1.0).acos().to_degrees(),
             offset_error_m: (fit.offset - gt_plane.offset).abs(),

@@ -21,9 +21,9 @@
 //! }
 //! ```
 
+use crate::geometry::plane::{Plane, PlaneFit};
 use crate::math::Similarity32;
 use crate::sim::physics::TreatmentChoice;
-use crate::sim::plane::{Plane, PlaneFit};
 use crate::{Error, Result};
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
