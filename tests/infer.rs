@@ -78,7 +78,10 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
     let engine =
         Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
-    let mut opts = InferOptions { samples, select: recon::engine::SelectMethod::Cross, ..Default::default() };
+    // These tests are about choosing among every token's pose: the shape fit
+    // (which fixes one pose per sample before stage 2) is off.
+    let mut opts =
+        InferOptions { samples, select: recon::engine::SelectMethod::Cross, shape_fit: recon::engine::ShapeFit::None, ..Default::default() };
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
     opts.run.decode_mesh = false;
@@ -158,6 +161,63 @@ fn two_views_and_samples_select_consistently() {
     assert_eq!((f.selection.view, f.candidates.len()), (1, 2));
     assert!(f.uncertainty.is_none());
     close(&f.pose_camera, &f.views[0].pose_own_token);
+}
+
+/// The shape fit end to end (random tiny model, sample frame): stage 2 runs on
+/// the fitted shell, one pose per sample is kept as the fit saw it, the posed
+/// mesh stays out of the observed free space, and the run is deterministic.
+#[test]
+fn shape_fit_keeps_the_mesh_out_of_observed_free_space() {
+    use recon::engine::{ShapeFit, ShapeFitOptions};
+    let frame = RgbdFrame::open(&repo().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let map = InstanceMap::open(&repo().join("data/sample/000001-label.png")).unwrap();
+    let engine =
+        Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
+            .unwrap();
+    let mut opts = InferOptions { max_faces: None, ..Default::default() };
+    opts.run.decode_gaussians = false;
+    (opts.run.ss_steps, opts.run.slat_steps) = (Some(1), Some(1));
+    let run = |shape_fit: ShapeFit| {
+        let (objects, _) = map.objects(Some(&[14]));
+        engine.reconstruct(&frame, objects, &InferOptions { shape_fit, ..opts.clone() }).unwrap().objects.remove(0)
+    };
+    let fitted = run(ShapeFit::Depth);
+    let report = fitted.shape_fit.clone().expect("a shape-fit report");
+    assert_eq!(fitted.occupied_voxels, report.shell_voxels);
+    assert!(report.carved > 0 && report.shell_voxels > 0, "{report:?}");
+    assert_eq!(fitted.candidates.len(), 1, "one pose per sample");
+    // Mesh vertices more than the margin plus a cell in front of the measured depth.
+    let violations = |o: &recon::engine::ObjectResult| {
+        let m = o.mesh_camera.as_ref().unwrap();
+        let cell = o.pose_camera.scale as f64 / 64.0;
+        let k = frame.intrinsics;
+        let bad = m
+            .vertices
+            .iter()
+            .filter(|p| {
+                let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
+                let (u, v) = ((k.fx * x / z + k.cx).round(), (k.fy * y / z + k.cy).round());
+                if z <= 0.0 || u < 1.0 || v < 1.0 || u >= (frame.width - 1) as f64 || v >= (frame.height - 1) as f64 {
+                    return false;
+                }
+                let d = (0..9)
+                    .map(|i| frame.depth_at(u as usize + i % 3 - 1, v as usize + i / 3 - 1) as f64)
+                    .filter(|&d| d > 0.0)
+                    .fold(f64::INFINITY, f64::min);
+                d.is_finite() && z + ShapeFitOptions::default().margin_m + 2.0 * cell < d
+            })
+            .count();
+        bad as f64 / m.vertices.len() as f64
+    };
+    let with = violations(&fitted);
+    let without = violations(&run(ShapeFit::None));
+    eprintln!("mesh vertices in observed free space: {:.2} % with the shape fit, {:.2} % without", 100.0 * with, 100.0 * without);
+    // The mesh decoder places vertices inside and just around the active cells, so a
+    // few can sit a little further out than the cells themselves.
+    assert!(with < 0.03 && with < without, "{:.2} % of the fitted mesh lies in observed free space", 100.0 * with);
+    let again = run(ShapeFit::Depth);
+    let untimed = |r: Option<recon::engine::ShapeFitReport>| r.map(|r| recon::engine::ShapeFitReport { seconds: 0.0, ..r });
+    assert_eq!((again.pose_camera, untimed(again.shape_fit)), (fitted.pose_camera, untimed(fitted.shape_fit)));
 }
 
 /// `AlignOptions::depth()` refines every candidate against the depth: the
