@@ -80,8 +80,12 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
             .unwrap();
     // These tests are about choosing among every token's pose: the shape fit
     // (which fixes one pose per sample before stage 2) is off.
-    let mut opts =
-        InferOptions { samples, select: recon::engine::SelectMethod::Cross, shape_fit: recon::engine::ShapeFit::None, ..Default::default() };
+    let mut opts = InferOptions {
+        samples,
+        select: recon::engine::SelectMethod::Cross,
+        shape_fit: recon::engine::ShapeFit::None,
+        ..Default::default()
+    };
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
     opts.run.decode_mesh = false;
