@@ -387,7 +387,8 @@ fn run_infer(args: &[String]) -> serde_json::Value {
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "recon infer {args:?} failed:\n{err}");
+    // 0: every object written; 3: some were skipped (listed in the summary), the rest written.
+    assert!(matches!(out.status.code(), Some(0 | 3)), "recon infer {args:?} failed ({:?}):\n{err}", out.status.code());
     assert!(err.contains("RANDOM weights"), "the random-weights notice is missing: {err}");
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("--json output: {e}\n{}", String::from_utf8_lossy(&out.stdout)))
 }
