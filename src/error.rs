@@ -30,11 +30,35 @@ pub enum Error {
     #[error("{file}: {msg}")]
     Input { file: String, msg: String },
 
+    /// An input claims a size beyond a stated bound; raised before anything
+    /// of that size is allocated.
+    #[error("{0}")]
+    TooLarge(Box<SizeBound>),
+
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 
     #[error("{0}")]
     Msg(String),
+}
+
+/// What [`Error::TooLarge`] reports: the file, the field whose claim was
+/// refused, the claimed size and the bound it exceeds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SizeBound {
+    pub file: String,
+    pub field: String,
+    pub claimed: u128,
+    pub limit: u128,
+    pub unit: &'static str,
+    pub why: String,
+}
+
+impl std::fmt::Display for SizeBound {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let SizeBound { file, field, claimed, limit, unit, why } = self;
+        write!(f, "{file}: {field} claims {claimed} {unit}, more than the limit of {limit} ({why})")
+    }
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -48,6 +72,16 @@ impl Error {
     }
     pub fn input(file: impl Into<String>, msg: impl Into<String>) -> Self {
         Error::Input { file: file.into(), msg: msg.into() }
+    }
+    pub fn too_large(
+        file: impl Into<String>,
+        field: impl Into<String>,
+        claimed: u128,
+        limit: u128,
+        unit: &'static str,
+        why: impl Into<String>,
+    ) -> Self {
+        Error::TooLarge(Box::new(SizeBound { file: file.into(), field: field.into(), claimed, limit, unit, why: why.into() }))
     }
     pub fn config(file: impl Into<String>, field: impl Into<String>, msg: impl Into<String>) -> Self {
         Error::Config { file: file.into(), field: field.into(), msg: msg.into() }

@@ -44,4 +44,4 @@ pub mod train;
 pub mod util;
 pub mod weights;
 
-pub use error::{Error, Result};
+pub use error::{Error, Result, SizeBound};

@@ -48,7 +48,10 @@ fn main() -> anyhow::Result<()> {
         Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Eval(a) => cli::eval::run(a)?,
-        Cmd::Infer(a) => cli::infer::run(a)?,
+        Cmd::Infer(a) => match cli::infer::run(a)? {
+            cli::infer::EXIT_ALL => true,
+            code => std::process::exit(code),
+        },
         Cmd::Bench(a) => cli::bench::run(a)?,
         Cmd::Train(a) => cli::train::run(a)?,
         Cmd::Synth(a) => cli::synth::run(a)?,

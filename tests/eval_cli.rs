@@ -8,8 +8,7 @@ use common::{read_json, recon, tmp};
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
-    let Some(root) = recon::dataset::shared_dataset("ycbv_video_oprb") else {
-        eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video baseline test");
+    let Some(root) = recon::dataset::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video baseline test") else {
         return;
     };
     let root = root.as_path();

@@ -3,8 +3,8 @@
 //!
 //! The datasets live in ../shared/realdata (not in the repository; see
 //! `recon::dataset::shared_realdata`); tests
-//! that need them print a note and return when the folder is absent, so CI
-//! passes without them. The one YCB-Video frame shipped in `data/sample/`
+//! that need them print a note and return when the folder is absent, or fail
+//! with `RECON_REQUIRE_REALDATA=1` (which `.ci/run` sets). The one YCB-Video frame shipped in `data/sample/`
 //! is always tested.
 #![allow(clippy::needless_range_loop)] // 3×3 index loops read as the maths does
 
@@ -22,11 +22,7 @@ use recon::geometry::{Pose, PoseStats};
 use recon::math::Similarity32;
 
 fn realdata() -> Option<PathBuf> {
-    let p = recon::dataset::shared_realdata();
-    if p.is_none() {
-        eprintln!("note: the shared real-data folder is absent (set RECON_REALDATA); skipping this real-data test");
-    }
-    p
+    recon::dataset::realdata_for_test(None, "this real-data test")
 }
 
 fn check_ycb_frame(color: &Path) {
@@ -391,7 +387,8 @@ fn run_infer(args: &[String]) -> serde_json::Value {
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "recon infer {args:?} failed:\n{err}");
+    // 0: every object written; 3: some were skipped (listed in the summary), the rest written.
+    assert!(matches!(out.status.code(), Some(0 | 3)), "recon infer {args:?} failed ({:?}):\n{err}", out.status.code());
     assert!(err.contains("RANDOM weights"), "the random-weights notice is missing: {err}");
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("--json output: {e}\n{}", String::from_utf8_lossy(&out.stdout)))
 }

@@ -260,8 +260,7 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
     use recon::math::Similarity;
     use recon::render::render;
     use recon::synth::{Camera, Instance, RenderMesh, RenderOptions};
-    let Some(root) = recon::dataset::shared_dataset("ycbv_video_oprb") else {
-        eprintln!("note: realdata/ycbv_video_oprb absent; skipping this real-data test");
+    let Some(root) = recon::dataset::realdata_for_test(Some("ycbv_video_oprb"), "this real-data test") else {
         return;
     };
     let root = root.as_path();

@@ -187,9 +187,7 @@ fn ycbv_rendering(
         return Err(Error::config(&file, "vertmap", format!("dims {:?}, expected [{h}, {w}, 3]", vm.dims)));
     }
     let label_path = meta.with_file_name(meta.file_name().and_then(|s| s.to_str()).unwrap_or("").replace("-meta.mat", "-label.png"));
-    let label = image::open(&label_path)
-        .map_err(|e| Error::input(label_path.display().to_string(), format!("cannot read label image: {e}")))?
-        .to_luma8();
+    let label = crate::util::open_image(&label_path, "label image")?.to_luma8();
     if (label.width() as usize, label.height() as usize) != (w, h) {
         return Err(Error::input(
             label_path.display().to_string(),

@@ -196,7 +196,25 @@ impl Bar {
     }
 }
 
-pub fn run(a: InferArgs) -> anyhow::Result<bool> {
+/// Exit status of `recon infer` (README "Exit codes"): every object written.
+pub const EXIT_ALL: i32 = 0;
+/// Some objects were written, others failed or were skipped (listed in the index file).
+pub const EXIT_SOME: i32 = 3;
+/// No object could be reconstructed (the index file lists why).
+pub const EXIT_NONE: i32 = 2;
+
+/// The exit status for `done` objects written and `failed` not.
+pub fn exit_code(done: usize, failed: usize) -> i32 {
+    match (done, failed) {
+        (0, _) => EXIT_NONE,
+        (_, 0) => EXIT_ALL,
+        _ => EXIT_SOME,
+    }
+}
+
+/// Runs `recon infer`; returns the exit status ([`exit_code`]); a fatal
+/// error (bad input, unwritable output) is an `Err` (exit status 1).
+pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     use anyhow::Context;
     use recon::dataset::RgbdFrame;
     use recon::engine::write_outputs;
@@ -208,6 +226,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     let opts = a.model.infer_options()?;
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
     let (objects, mut skipped) = load_masks(&a.masks, a.objects.as_deref())?;
+    // View 1's unreadable or unusable masks are objects that failed; view 2's only cost that view.
+    let failed_masks = skipped.len();
     let second = match &a.view2 {
         Some(v2) => {
             let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
@@ -239,8 +259,11 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
     let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
     let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
     bar.pb.finish_and_clear();
-    let result = result?;
+    let mut result = result?;
+    let failed = failed_masks + result.skipped.len();
     skipped.extend(result.skipped.iter().cloned());
+    // The index file lists every object that is not there, mask skips included.
+    result.skipped = skipped.clone();
     let out = match a.out {
         Some(o) => o,
         None => {
@@ -341,5 +364,5 @@ pub fn run(a: InferArgs) -> anyhow::Result<bool> {
         }
         println!("wrote {}{}", out.display(), if random { " (RANDOM weights)" } else { "" });
     }
-    Ok(!result.objects.is_empty())
+    Ok(exit_code(result.objects.len(), failed))
 }

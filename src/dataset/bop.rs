@@ -582,8 +582,7 @@ pub(crate) mod tests {
 
     #[test]
     fn loads_ycbv_real_frames() {
-        let Some(root) = crate::dataset::realdata::shared_dataset("ycbv_video_oprb") else {
-            eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video loading test");
+        let Some(root) = crate::dataset::realdata::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video loading test") else {
             return;
         };
         let root = root.as_path();

@@ -145,22 +145,7 @@ impl IntrSource {
                 let e = v.get(id.to_string()).ok_or_else(|| Error::input(&file, format!("no entry \"{id}\" in scene_camera.json")))?;
                 camera_from_json(e, &file)
             }
-            IntrSource::Mat(p) => {
-                let m = MatFile::open(p)?;
-                let k = m.require("intrinsic_matrix", &file)?;
-                let rows = k
-                    .rows()
-                    .filter(|r| r.len() == 3 && r[0].len() == 3)
-                    .ok_or_else(|| Error::input(&file, format!("intrinsic_matrix has dims {:?}, expected 3×3", k.dims)))?;
-                let flat: Vec<f64> = rows.concat();
-                let intr = Intrinsics::from_k_row_major(&flat, &file)?;
-                let scale = match m.get("factor_depth") {
-                    Some(f) if f.len() == 1 && f.data[0] > 0.0 => Some(1.0 / f.data[0]),
-                    Some(f) => return Err(Error::input(&file, format!("factor_depth must be one positive number, got {:?}", f.data))),
-                    None => None,
-                };
-                Ok(CameraInfo { k: intr, depth_scale_m: scale })
-            }
+            IntrSource::Mat(p) => camera_from_mat(&MatFile::open(p)?, &file),
             IntrSource::Yaml(p) => {
                 let text = std::fs::read_to_string(p).map_err(|e| Error::io(p, e))?;
                 camera_from_yaml(&text, &file)
@@ -183,6 +168,45 @@ fn flat_numbers(v: &serde_json::Value) -> Option<Vec<f64>> {
         }
     }
     Some(out)
+}
+
+/// Intrinsics from a YCB-Video `meta.mat` (`intrinsic_matrix`, `factor_depth`).
+fn camera_from_mat(m: &MatFile, file: &str) -> Result<CameraInfo> {
+    let k = m.require("intrinsic_matrix", file)?;
+    let rows = k
+        .rows()
+        .filter(|r| r.len() == 3 && r.iter().all(|row| row.len() == 3))
+        .ok_or_else(|| Error::input(file, format!("intrinsic_matrix has dims {:?}, expected 3×3", k.dims)))?;
+    let flat: Vec<f64> = rows.concat();
+    let intr = Intrinsics::from_k_row_major(&flat, file)?;
+    let scale = match m.get("factor_depth") {
+        Some(f) if f.len() == 1 && f.data[0] > 0.0 => Some(1.0 / f.data[0]),
+        Some(f) => return Err(Error::input(file, format!("factor_depth must be one positive number, got {:?}", f.data))),
+        None => None,
+    };
+    Ok(CameraInfo { k: intr, depth_scale_m: scale })
+}
+
+/// The camera file formats [`intrinsics_from_bytes`] reads.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum CameraFormat {
+    Json,
+    Yaml,
+    Mat,
+}
+
+/// Intrinsics and depth scale (metres per unit) from a camera file's bytes,
+/// as `RgbdFrame::open` reads them (the fuzz targets' entry point).
+pub(crate) fn intrinsics_from_bytes(bytes: &[u8], format: CameraFormat, file: &str) -> Result<(Intrinsics, Option<f64>)> {
+    let c = match format {
+        CameraFormat::Json => {
+            let v: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| Error::Json { path: file.into(), source: e })?;
+            camera_from_json(&v, file)?
+        }
+        CameraFormat::Yaml => camera_from_yaml(&String::from_utf8_lossy(bytes), file)?,
+        CameraFormat::Mat => camera_from_mat(&MatFile::parse(bytes, file)?, file)?,
+    };
+    Ok((c.k, c.depth_scale_m))
 }
 
 /// Intrinsics from a JSON object (formats in the module docs).
@@ -216,7 +240,9 @@ fn camera_from_json(v: &serde_json::Value, file: &str) -> Result<CameraInfo> {
 fn camera_from_yaml(text: &str, file: &str) -> Result<CameraInfo> {
     if let Some(i) = text.find("INTRINSICS:") {
         let rest = &text[i + "INTRINSICS:".len()..];
-        let (a, b) = (rest.find('['), rest.find(']'));
+        // The `]` that closes the list: searched after the `[` (fuzzing found `] … [`).
+        let a = rest.find('[');
+        let b = a.and_then(|a| rest[a..].find(']').map(|b| a + b));
         if let (Some(a), Some(b)) = (a, b) {
             let vals: std::result::Result<Vec<f64>, _> =
                 rest[a + 1..b].split(',').map(|s| s.trim()).filter(|s| !s.is_empty()).map(|s| s.parse::<f64>()).collect();
@@ -296,7 +322,7 @@ fn candidates(rgb: &Path) -> Vec<Candidate> {
 
 /// Decode a colour image to interleaved RGB8.
 pub fn load_rgb(path: &Path) -> Result<(Vec<u8>, usize, usize)> {
-    let img = image::open(path).map_err(|e| Error::input(path.display().to_string(), format!("cannot read colour image: {e}")))?;
+    let img = crate::util::open_image(path, "colour image")?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     Ok((img.to_rgb8().into_raw(), w, h))
 }
@@ -304,7 +330,7 @@ pub fn load_rgb(path: &Path) -> Result<(Vec<u8>, usize, usize)> {
 /// Read a 16-bit single-channel depth PNG as raw units.
 pub fn load_depth_u16(path: &Path) -> Result<(Vec<u16>, usize, usize)> {
     let file = path.display().to_string();
-    let img = image::open(path).map_err(|e| Error::input(&file, format!("cannot read depth image: {e}")))?;
+    let img = crate::util::open_image(path, "depth image")?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     match img {
         image::DynamicImage::ImageLuma16(b) => Ok((b.into_raw(), w, h)),

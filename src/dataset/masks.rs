@@ -116,7 +116,7 @@ impl InstanceMap {
     /// Read an 8- or 16-bit single-channel PNG of instance ids.
     pub fn open(path: &Path) -> Result<Self> {
         let file = path.display().to_string();
-        let img = image::open(path).map_err(|e| Error::input(&file, format!("cannot read instance mask: {e}")))?;
+        let img = crate::util::open_image(path, "instance mask")?;
         let (w, h) = (img.width() as usize, img.height() as usize);
         let ids: Vec<u32> = match img {
             image::DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(u32::from).collect(),
@@ -170,7 +170,7 @@ impl InstanceMap {
 /// does (RecGen: "non-zero pixels mark the object").
 pub fn load_binary_mask(path: &Path) -> Result<ObjectMask> {
     let file = path.display().to_string();
-    let img = image::open(path).map_err(|e| Error::input(&file, format!("cannot read mask: {e}")))?;
+    let img = crate::util::open_image(path, "mask")?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let mask: Vec<bool> = if img.color().has_alpha() {
         let a: Vec<u16> = img.to_luma_alpha16().pixels().map(|p| p.0[1]).collect();

@@ -43,8 +43,10 @@ impl MatArray {
             if i >= d {
                 return None;
             }
-            off += i * stride;
-            stride *= d;
+            // i < d, and the product of the dims before it is at most data.len()
+            // unless a later dim is 0: checked, as dims come from the file.
+            off = off.checked_add(i.checked_mul(stride)?)?;
+            stride = stride.checked_mul(d)?;
         }
         self.data.get(off).copied()
     }
@@ -64,6 +66,10 @@ impl MatArray {
             return None;
         }
         let (r, c) = (self.dims[0], self.dims[1]);
+        // Dims come from the file: a zero-sized side must not make `r` empty rows.
+        if r.checked_mul(c) != Some(self.data.len()) || self.data.is_empty() {
+            return None;
+        }
         Some((0..r).map(|i| (0..c).map(|j| self.data[i + r * j]).collect()).collect())
     }
 }
@@ -181,13 +187,15 @@ fn parse_matrix(payload: &[u8], big_endian: bool, file: &str) -> Result<Option<(
     if !NUMERIC_CLASSES.contains(&class) || f0 & FLAG_COMPLEX != 0 {
         return Ok(None);
     }
-    let n: usize = dims.iter().product();
+    // The values must be in the data element, so the claimed count is checked
+    // against it (and never multiplied out with overflow).
+    let n = crate::util::checked_product(dims.iter().map(|&d| d as u128)).unwrap_or(u128::MAX);
     let data = match r.next(true)? {
         Some((ty, raw)) => decode_numeric(ty, raw, big_endian, file)?,
         None if n == 0 => Vec::new(),
         None => return Err(r.err(format!("variable `{name}` has no data"))),
     };
-    if data.len() != n {
+    if data.len() as u128 != n {
         return Err(Error::input(file, format!("MAT v5: variable `{name}` has {} values for dims {dims:?}", data.len())));
     }
     Ok(Some((name, MatArray { dims, data })))
@@ -207,10 +215,23 @@ fn parse_elements(buf: &[u8], big_endian: bool, file: &str, out: &mut MatFile, d
         let Some((ty, data)) = r.next(padded)? else { break };
         match ty {
             MI_COMPRESSED => {
+                // Read one byte past the bound to tell "exactly at" from "over" (a zlib bomb).
+                let cap = crate::util::MAX_MAT_INFLATED;
                 let mut dec = Vec::new();
                 flate2::read::ZlibDecoder::new(data)
+                    .take(cap + 1)
                     .read_to_end(&mut dec)
                     .map_err(|e| Error::input(file, format!("MAT v5: bad zlib stream at byte {pos}: {e}")))?;
+                if dec.len() as u64 > cap {
+                    return Err(Error::too_large(
+                        file,
+                        format!("compressed element at byte {pos}"),
+                        dec.len() as u128,
+                        cap as u128,
+                        "bytes inflated",
+                        "MAT v5 zlib streams are bounded",
+                    ));
+                }
                 parse_elements(&dec, big_endian, file, out, depth + 1)?;
             }
             MI_MATRIX => {

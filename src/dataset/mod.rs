@@ -16,5 +16,5 @@ pub use self::image::{pointmap_to_tensor, square_crop_box, trellis_preprocess_rg
 pub use self::masks::{load_binary_masks, validate_objects, InstanceMap, MaskOptions, MaskSkip, ObjectMask, SkipReason};
 pub use self::matv5::MatFile;
 pub use self::ply::read_ply;
-pub use self::realdata::{shared_dataset, shared_realdata};
+pub use self::realdata::{realdata_for_test, realdata_required, shared_dataset, shared_realdata};
 pub use self::visibility::{surface_patches, visible_fraction};

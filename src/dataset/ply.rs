@@ -160,6 +160,31 @@ pub fn parse_ply_with_colors(bytes: &[u8], file: &str) -> Result<(TriMesh, Optio
         }),
         Format::Binary { le } => Box::new(BinReader { data, pos: 0, le }),
     };
+    // Bound every element count by the data before reading a row: each value
+    // takes at least one byte (ASCII: a digit; binary: its type's size), so a
+    // header claiming more rows than the file can hold is refused up front
+    // instead of looping or growing the mesh towards the claim.
+    let mut min_bytes: u128 = 0;
+    for e in &elems {
+        let row: u128 = match format {
+            Format::Ascii => e.props.len() as u128,
+            Format::Binary { .. } => e.props.iter().map(|p| p.list.unwrap_or(p.ty).size() as u128).sum(),
+        };
+        let need = row.saturating_mul(e.count as u128);
+        let room = (data.len() as u128).saturating_sub(min_bytes);
+        if need > room {
+            let limit = room.checked_div(row).unwrap_or(0);
+            return Err(Error::too_large(
+                file,
+                format!("element `{}` count", e.name),
+                e.count as u128,
+                limit,
+                "rows",
+                format!("{} data bytes left hold at most {limit} rows of {row} bytes", room),
+            ));
+        }
+        min_bytes += need;
+    }
     let n_vertices = elems.iter().find(|e| e.name == "vertex").map_or(0, |e| e.count);
     let mut colors: Vec<[f32; 3]> = Vec::new();
     for e in &elems {
@@ -175,7 +200,8 @@ pub fn parse_ply_with_colors(bytes: &[u8], file: &str) -> Result<(TriMesh, Optio
         let has_rgb = is_vertex && rgb.iter().all(Option::is_some);
         // uchar colours are 0..255; float colours are taken as 0..1.
         let rgb_scale = if has_rgb && e.props[rgb[0].unwrap_or(0)].ty == Ty::U8 { 1.0 / 255.0 } else { 1.0 };
-        for row in 0..e.count {
+        let rows = if e.props.is_empty() { 0 } else { e.count };
+        for row in 0..rows {
             let mut v = [0.0; 3];
             let mut c = [0f32; 3];
             for (pi, p) in e.props.iter().enumerate() {

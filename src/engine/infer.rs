@@ -550,7 +550,20 @@ impl Engine {
                 obj_notes.push("no mask in view 2; reconstructed from view 1 alone".to_string());
             }
             preprocess_seconds += t.elapsed().as_secs_f64();
-            match self.reconstruct_object(&label, id, &views, opts, progress, obj_notes)? {
+            // One object's failure (an error in its decoding, meshing or pose
+            // fit, even a panic) is reported for that object; the others go on.
+            let attempt = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                self.reconstruct_object(&label, id, &views, opts, progress, obj_notes)
+            }));
+            let outcome = match attempt {
+                Ok(Ok(r)) => r,
+                Ok(Err(e)) => Err(SkipReason::Preprocessing(format!("error: {}", e.to_string().lines().next().unwrap_or_default()))),
+                Err(p) => {
+                    let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()));
+                    Err(SkipReason::Preprocessing(format!("internal error: {}", msg.unwrap_or_default())))
+                }
+            };
+            match outcome {
                 Ok(r) => {
                     progress(Progress::ObjectDone { label: &label, seconds: t_obj.elapsed().as_secs_f64() });
                     results.push(r);

@@ -873,8 +873,7 @@ mod tests {
     /// folded into t: R(0.001·v_bop) + t − 0.001·R·off.
     #[test]
     fn ycbv_bop_mesh_at_gt_pose_scores_well() {
-        let Some(root) = crate::dataset::shared_dataset("ycbv_video_oprb") else {
-            eprintln!("note: realdata/ycbv_video_oprb absent; skipping the YCB-Video evaluation test");
+        let Some(root) = crate::dataset::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video evaluation test") else {
             return;
         };
         let root = root.as_path();

@@ -104,7 +104,83 @@ impl RecGenConfig {
         PoseStats::from_json_file(&self.base_dir.join(&self.pose.slat_stats))
     }
 
+    /// A lower bound of the peak memory running this architecture takes, in
+    /// bytes, with the part that sets it: the largest of any module's
+    /// weights (at 2 bytes a parameter, counting only the attention and MLP
+    /// matrices) and any dense grid of activations (f32; the stage-1 flow's
+    /// tokens, DINOv2's patch tokens, each level of the stage-1 decoder). All
+    /// in saturating u128 arithmetic, so absurd sizes cannot overflow.
+    pub fn min_memory_bytes(&self) -> (u128, String) {
+        let arg = |m: &ModuleSpec, k: &str| m.args.get(k).and_then(|v| v.as_u64()).unwrap_or(0) as u128;
+        let ratio = |m: &ModuleSpec| {
+            m.args.get("mlp_ratio").and_then(|v| v.as_f64()).filter(|r| r.is_finite()).unwrap_or(1.0).clamp(0.0, 1e6).ceil() as u128
+        };
+        let mut best = (0u128, String::new());
+        let mut consider = |bytes: u128, what: String| {
+            if bytes > best.0 {
+                best = (bytes, what);
+            }
+        };
+        let weights = |m: &ModuleSpec, c: &str, b: &str| {
+            let c = arg(m, c);
+            arg(m, b).saturating_mul(4 + 2 * ratio(m)).saturating_mul(c.saturating_mul(c)).saturating_mul(2)
+        };
+        for (key, m) in [
+            ("ss_flow", &self.ss_flow),
+            ("slat_flow", &self.slat_flow),
+            ("slat_dec_mesh", &self.slat_dec_mesh),
+            ("slat_dec_gs", &self.slat_dec_gs),
+        ] {
+            consider(weights(m, "model_channels", "num_blocks"), format!("{key} weights (args.model_channels, args.num_blocks)"));
+        }
+        let dino = &self.image_cond_model;
+        consider(
+            weights(dino, "hidden_size", "num_hidden_layers"),
+            "image_cond_model weights (args.hidden_size, args.num_hidden_layers)".into(),
+        );
+        let side = arg(dino, "image_size") / arg(dino, "patch_size").max(1);
+        let tokens = side.saturating_mul(side);
+        consider(
+            tokens.saturating_mul(arg(dino, "hidden_size")).saturating_mul(1 + ratio(dino)).saturating_mul(4),
+            "image_cond_model tokens (args.image_size / args.patch_size)²".into(),
+        );
+        let ss = &self.ss_flow;
+        let res = arg(ss, "resolution");
+        let side = res / arg(ss, "patch_size").max(1);
+        let tokens = side.saturating_mul(side).saturating_mul(side);
+        consider(
+            tokens.saturating_mul(arg(ss, "model_channels")).saturating_mul(1 + ratio(ss)).saturating_mul(4),
+            "ss_flow dense tokens (args.resolution / args.patch_size)³".into(),
+        );
+        if let Some(chs) = self.ss_decoder.args.get("channels").and_then(|v| v.as_array()) {
+            for (i, c) in chs.iter().enumerate() {
+                let r = res.saturating_mul(1u128.checked_shl(i as u32).unwrap_or(u128::MAX));
+                let c = c.as_u64().unwrap_or(0) as u128;
+                consider(
+                    r.saturating_mul(r).saturating_mul(r).saturating_mul(c).saturating_mul(4),
+                    format!("ss_decoder grid at level {i} (ss_flow.args.resolution · 2^{i})³ × ss_decoder.args.channels[{i}]"),
+                );
+            }
+        }
+        best
+    }
+
     fn validate(&self, file: &str) -> Result<()> {
+        // Before any module is parsed or built: an architecture that cannot
+        // fit this machine is refused with the part that does not fit.
+        if let Some(budget) = crate::util::memory_budget_bytes() {
+            let (need, what) = self.min_memory_bytes();
+            if need > budget as u128 {
+                return Err(Error::too_large(
+                    file,
+                    what,
+                    need,
+                    budget as u128,
+                    "bytes of memory",
+                    "a lower bound of one stage's memory vs this machine's (RECON_MEMORY_LIMIT_MB caps it)",
+                ));
+            }
+        }
         let ss = SsFlowConfig::from_value(&self.ss_flow.args, file)?;
         if ss.pose_representation != Some(self.pose.ss_representation) {
             return Err(Error::config(file, "pose.ss_representation", "must match ss_flow.args.pose_representation"));
@@ -188,6 +264,30 @@ mod tests {
         assert_eq!(large.samplers.sparse_structure.steps, 25);
         assert_eq!(large.ss_flow_config()?.heads(), 16);
         Ok(())
+    }
+
+    #[test]
+    fn architecture_beyond_the_machine_is_refused() {
+        let large = RecGenConfig::load(&models_dir().join("recgen-large.json")).unwrap();
+        let (need, _) = large.min_memory_bytes();
+        // The full model fits this 24 GiB machine: its largest part (a flow's
+        // weights at 2 bytes a parameter) is about 0.6 GB.
+        assert!(need > 500_000_000 && need < 2_000_000_000, "{need}");
+        let mut v: serde_json::Value = crate::util::json::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
+        v["ss_flow"]["args"]["resolution"] = 100_000.into();
+        let dir = std::env::temp_dir().join(format!("recon-cfg-big-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("big.json");
+        std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
+        let e = RecGenConfig::load(&p).unwrap_err();
+        match &e {
+            Error::TooLarge(b) => {
+                assert!(b.field.contains("ss_flow.args.resolution"), "{e}");
+                assert!(b.claimed > b.limit, "{e}");
+            }
+            other => panic!("expected TooLarge, got {other}"),
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

@@ -1,11 +1,16 @@
 //! Small shared helpers: JSON files with errors that name them (`json`),
-//! peak memory (`memory`), and the statistics several layers use.
+//! resource bounds for hostile inputs (`limits`), peak memory (`memory`), and the statistics several layers use.
 
 pub(crate) mod json;
+pub(crate) mod limits;
 pub(crate) mod memory;
 
 pub use self::memory::{peak_rss_mib, reset_peak_rss};
 pub use json::{from_value, read_json};
+pub use limits::{
+    check_image_dims, checked_product, memory_budget_bytes, open_image, MAX_DEFLATE_RATIO, MAX_IMAGE_ALLOC, MAX_IMAGE_PIXELS,
+    MAX_IMAGE_SIDE, MAX_MAT_INFLATED,
+};
 
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};

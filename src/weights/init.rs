@@ -95,19 +95,8 @@ pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result
 
 /// True when a safetensors file carries the random-init label (reads the header only).
 pub fn is_random_init(path: &Path) -> Result<bool> {
-    use std::io::Read;
-    let bad = |m: String| Error::input(path.display().to_string(), m);
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
-    let n = u64::from_le_bytes(len);
-    if n > 100 << 20 {
-        return Err(bad(format!("safetensors header of {n} bytes is implausible")));
-    }
-    let mut h = vec![0u8; n as usize];
-    f.read_exact(&mut h).map_err(|e| bad(format!("truncated safetensors header: {e}")))?;
-    let v: serde_json::Value = serde_json::from_slice(&h).map_err(|e| bad(format!("bad safetensors header: {e}")))?;
-    Ok(v.get("__metadata__").and_then(|m| m.get(RANDOM_INIT_KEY)).and_then(|x| x.as_str()) == Some("true"))
+    let h = super::load::read_safetensors_header(path)?;
+    Ok(h.get("__metadata__").and_then(|m| m.get(RANDOM_INIT_KEY)).and_then(|x| x.as_str()) == Some("true"))
 }
 
 fn dtype_name(d: DType) -> Result<&'static str> {
