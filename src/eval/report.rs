@@ -574,10 +574,14 @@ impl Report {
         ));
         let o = &self.overall;
         if o.dihedral_deg_mean.is_finite() {
+            let gt = if o.gt_dihedral_deg_mean.is_finite() {
+                format!("GT meshes {:.1}°", o.gt_dihedral_deg_mean)
+            } else {
+                "GT: points only".into()
+            };
             out.push_str(&format!(
-                "Surfaces: mean dihedral angle {:.1}° (GT meshes {:.1}°), {}% of predicted meshes in one component.\n",
+                "Surfaces: mean dihedral angle {:.1}° ({gt}), {}% of predicted meshes in one component.\n",
                 o.dihedral_deg_mean,
-                o.gt_dihedral_deg_mean,
                 pct(o.one_component)
             ));
         }
