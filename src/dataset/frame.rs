@@ -399,6 +399,36 @@ impl RgbdFrame {
         })
     }
 
+    /// A frame from buffers already in memory (the Python bindings' arrays):
+    /// interleaved RGB8 and metric depth, both row-major `height·width`. `name`
+    /// stands in for the file paths in reports and error messages.
+    pub fn from_buffers(width: usize, height: usize, rgb: Vec<u8>, depth_m: Vec<f32>, intrinsics: Intrinsics, name: &str) -> Result<Self> {
+        if width == 0 || height == 0 {
+            return Err(Error::input(name, format!("empty frame ({width}×{height})")));
+        }
+        if rgb.len() != width * height * 3 {
+            return Err(Error::input(name, format!("rgb has {} values, expected {height}×{width}×3", rgb.len())));
+        }
+        if depth_m.len() != width * height {
+            return Err(Error::input(
+                name,
+                format!("depth has {} values, expected {height}×{width} (registered to colour)", depth_m.len()),
+            ));
+        }
+        intrinsics.validate(name)?;
+        Ok(RgbdFrame {
+            width,
+            height,
+            rgb,
+            depth_m,
+            intrinsics,
+            rgb_path: PathBuf::from(name),
+            depth_path: PathBuf::from(name),
+            intrinsics_source: "explicit".to_string(),
+            depth_scale_m: 1.0,
+        })
+    }
+
     /// Depth at pixel `(u, v)` in metres (`0.0`/NaN = invalid).
     pub fn depth_at(&self, u: usize, v: usize) -> f32 {
         self.depth_m[v * self.width + u]

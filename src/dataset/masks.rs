@@ -200,6 +200,21 @@ pub fn load_binary_masks(paths: &[PathBuf]) -> (Vec<ObjectMask>, Vec<MaskSkip>) 
     (ok, skips)
 }
 
+/// The masks of a frame as `recon infer --masks` takes them: one file is an
+/// instance-id map (a binary 0/255 mask is the one-object case), several files are
+/// binary masks, one object each. `ids` selects instance ids of a map.
+pub fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> Result<(Vec<ObjectMask>, Vec<MaskSkip>)> {
+    match files {
+        [] => Err(Error::input("--masks", "no mask file given")),
+        [one] => Ok(InstanceMap::open(one)?.objects(ids)),
+        _ if ids.is_some() => Err(Error::input(
+            "--objects",
+            "selects ids of an instance-id map; with several binary mask files, list only the masks you want",
+        )),
+        _ => Ok(load_binary_masks(files)),
+    }
+}
+
 /// Why an object is left out.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SkipReason {
