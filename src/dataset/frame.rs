@@ -539,6 +539,19 @@ mod tests {
     }
 
     #[test]
+    fn frames_from_buffers_check_their_sizes() {
+        let k = Intrinsics::new(100.0, 100.0, 2.0, 1.5).unwrap();
+        let f = RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 12], k, "<array>").unwrap();
+        assert_eq!((f.width, f.height, f.depth_at(3, 2), f.rgb_path.as_path()), (4, 3, 1.5, Path::new("<array>")));
+        let e = RgbdFrame::from_buffers(4, 3, vec![7; 35], vec![1.5; 12], k, "<array>").unwrap_err().to_string();
+        assert!(e.contains("<array>") && e.contains("35") && e.contains("3×4×3"), "{e}");
+        let e = RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 11], k, "<array>").unwrap_err().to_string();
+        assert!(e.contains("depth has 11 values"), "{e}");
+        let bad = Intrinsics { fx: -1.0, ..k };
+        assert!(RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 12], bad, "<array>").is_err());
+    }
+
+    #[test]
     fn missing_and_bad_files_are_reported() {
         let d = tmpdir("missing");
         write_rgb(&d.join("000001-color.png"), 4, 4);
