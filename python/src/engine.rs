@@ -563,16 +563,11 @@ pub struct Object {
 impl Object {
     fn new(py: Python<'_>, o: ObjectResult) -> PyResult<Self> {
         let p = &o.pose_camera;
-        let mut m = [[0.0f64; 4]; 4];
-        for i in 0..3 {
-            for j in 0..3 {
-                m[i][j] = p.rotation[i][j] as f64;
-            }
-            m[i][3] = p.translation[i] as f64;
-        }
-        m[3][3] = 1.0;
-        let pose = numpy::PyArray2::from_vec2(py, &m.iter().map(|r| r.to_vec()).collect::<Vec<_>>())
-            .map_err(|e| crate::errors::ReconError::new_err(e.to_string()))?;
+        let row = |i: usize| -> [f64; 4] {
+            let r = p.rotation[i];
+            [r[0] as f64, r[1] as f64, r[2] as f64, p.translation[i] as f64]
+        };
+        let pose = rows(py, vec![row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]])?;
         let st = recon::engine::stage_seconds(&o);
         let stage = PyDict::new(py);
         for (k, v) in recon::engine::STAGE_COLUMNS.iter().zip(st) {
@@ -586,7 +581,7 @@ impl Object {
         Ok(Object {
             id: o.id,
             label: o.label.clone(),
-            pose: pose.into_any().unbind(),
+            pose: pose.unbind(),
             scale: p.scale as f64,
             score: o.selection.score_m,
             spread: to_python(py, &o.uncertainty)?.unbind(),

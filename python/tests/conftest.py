@@ -6,7 +6,6 @@ the comparisons with the CLI pass the same settings to both.
 
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -96,8 +95,3 @@ def assert_same_output(a, b):
             assert strip(ja) == strip(jb) and ja["skipped"] == jb["skipped"]
         else:
             assert (a / f).read_bytes() == (b / f).read_bytes(), f
-
-
-def copy_tree(src, dst):
-    shutil.copytree(src, dst)
-    return dst

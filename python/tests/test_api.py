@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import recon
-from conftest import INFER, assert_same_output, cli_flags, cli_infer, run_cli
+from conftest import INFER, assert_same_output, cli_infer, run_cli
 
 
 def frame0(ds):

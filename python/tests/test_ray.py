@@ -1,6 +1,5 @@
 """recon.ray on a local Ray cluster the test starts itself (2 CPUs)."""
 
-import json
 import shutil
 from pathlib import Path
 
