@@ -287,7 +287,7 @@ def reconstruct_dataset(
             fn_constructor_kwargs={"out": str(out), "engine": engine, "options": dict(infer_options)},
             batch_size=1,
             batch_format="numpy",
-            concurrency=min(num_workers, len(todo)),
+            compute=ray.data.ActorPoolStrategy(size=min(num_workers, len(todo))),
             num_cpus=threads_per_worker,
         )
         for r in res.iter_rows():
