@@ -168,9 +168,8 @@ pub fn write_shard(staging: &Path, opts: &SynthOptions, range: std::ops::Range<u
 }
 
 /// What one worker's scenes contribute to the dataset summary and `models_info.json`.
-/// The occlusions cross between processes as bit patterns so that a split run's summary
-/// is bit-identical to a single run's; `models_info` entries are JSON values (the Python
-/// bindings carry their floats exactly).
+/// Serialised, every float is its bit pattern (JSON text parsed back may move a float by
+/// one ulp), so a split run's files are bit-identical to a single run's.
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct Shard {
     pub first_scene: usize,
@@ -179,7 +178,8 @@ pub struct Shard {
 
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct ShardScene {
-    /// `(obj_id, models_info entry)`.
+    /// `(obj_id, models_info entry)`; serialised with every float as its bit pattern.
+    #[serde(with = "exact_floats")]
     pub models_info: Vec<(u32, Value)>,
     pub instances: usize,
     pub clipped: usize,
@@ -187,6 +187,41 @@ pub struct ShardScene {
     pub target_occlusion_bits: Vec<u64>,
     /// Kind name of every object of the scene.
     pub kinds: Vec<String>,
+}
+
+/// Serde for JSON values with each float written as `{"f64_bits": u64}`.
+mod exact_floats {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+    use serde_json::{json, Value};
+
+    fn encode(v: &Value) -> Value {
+        match v {
+            Value::Number(n) if n.is_f64() => json!({ "f64_bits": n.as_f64().unwrap_or(f64::NAN).to_bits() }),
+            Value::Array(a) => Value::Array(a.iter().map(encode).collect()),
+            Value::Object(o) => Value::Object(o.iter().map(|(k, v)| (k.clone(), encode(v))).collect()),
+            v => v.clone(),
+        }
+    }
+
+    fn decode(v: Value) -> Value {
+        match v {
+            Value::Object(o) if o.len() == 1 && o.get("f64_bits").is_some_and(Value::is_u64) => {
+                let bits = o["f64_bits"].as_u64().unwrap_or(0);
+                serde_json::Number::from_f64(f64::from_bits(bits)).map_or(Value::Null, Value::Number)
+            }
+            Value::Array(a) => Value::Array(a.into_iter().map(decode).collect()),
+            Value::Object(o) => Value::Object(o.into_iter().map(|(k, v)| (k, decode(v))).collect()),
+            v => v,
+        }
+    }
+
+    pub fn serialize<S: Serializer>(v: &[(u32, Value)], s: S) -> Result<S::Ok, S::Error> {
+        v.iter().map(|(id, x)| (*id, encode(x))).collect::<Vec<_>>().serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<(u32, Value)>, D::Error> {
+        Ok(Vec::<(u32, Value)>::deserialize(d)?.into_iter().map(|(id, x)| (id, decode(x))).collect())
+    }
 }
 
 /// Merges the shards (any order; every scene exactly once), writes `models_info.json`,
