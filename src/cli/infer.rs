@@ -82,41 +82,8 @@ fn frame_options(
     Ok(fo)
 }
 
-type Masks = (Vec<recon::dataset::ObjectMask>, Vec<recon::dataset::MaskSkip>);
-
-/// One file is an instance-id map (a binary 0/255 mask is the one-object
-/// case); several files are binary masks, one object each.
-fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> anyhow::Result<Masks> {
-    use recon::dataset::{load_binary_masks, InstanceMap};
-    if files.len() == 1 {
-        Ok(InstanceMap::open(&files[0])?.objects(ids))
-    } else {
-        if ids.is_some() {
-            anyhow::bail!("--objects selects ids of an instance-id map; with several binary mask files, list only the masks you want");
-        }
-        Ok(load_binary_masks(files))
-    }
-}
-
-/// Per-stage seconds of one object (model stages summed over samples).
-fn stage_row(o: &recon::engine::ObjectResult) -> [f64; 10] {
-    let t = &o.timings;
-    [
-        t.image_encoder,
-        t.ss_condition + t.ss_sampling,
-        t.ss_decoder + t.pose,
-        t.shape_fit,
-        t.slat_condition + t.slat_sampling,
-        t.mesh_decoder,
-        t.gaussian_decoder,
-        o.postprocess_seconds,
-        o.select_seconds,
-        t.total + o.postprocess_seconds + o.select_seconds,
-    ]
-}
-
-const STAGES: [&str; 10] =
-    ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
+use recon::engine::stage_seconds as stage_row;
+use recon::engine::STAGE_COLUMNS as STAGES;
 
 /// A terminal progress bar (hidden unless both stdout and stderr are terminals).
 struct Bar {
@@ -225,13 +192,13 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     }
     let opts = a.model.infer_options()?;
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
-    let (objects, mut skipped) = load_masks(&a.masks, a.objects.as_deref())?;
+    let (objects, mut skipped) = recon::dataset::load_masks(&a.masks, a.objects.as_deref())?;
     // View 1's unreadable or unusable masks are objects that failed; view 2's only cost that view.
     let failed_masks = skipped.len();
     let second = match &a.view2 {
         Some(v2) => {
             let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
-            let (o2, s2) = load_masks(&a.masks2, a.objects.as_deref())?;
+            let (o2, s2) = recon::dataset::load_masks(&a.masks2, a.objects.as_deref())?;
             skipped.extend(s2.into_iter().map(|mut s| {
                 s.label = format!("view 2 {}", s.label);
                 s

@@ -425,6 +425,36 @@ impl RgbdFrame {
         })
     }
 
+    /// A frame from buffers already in memory (the Python bindings' arrays):
+    /// interleaved RGB8 and metric depth, both row-major `height·width`. `name`
+    /// stands in for the file paths in reports and error messages.
+    pub fn from_buffers(width: usize, height: usize, rgb: Vec<u8>, depth_m: Vec<f32>, intrinsics: Intrinsics, name: &str) -> Result<Self> {
+        if width == 0 || height == 0 {
+            return Err(Error::input(name, format!("empty frame ({width}×{height})")));
+        }
+        if rgb.len() != width * height * 3 {
+            return Err(Error::input(name, format!("rgb has {} values, expected {height}×{width}×3", rgb.len())));
+        }
+        if depth_m.len() != width * height {
+            return Err(Error::input(
+                name,
+                format!("depth has {} values, expected {height}×{width} (registered to colour)", depth_m.len()),
+            ));
+        }
+        intrinsics.validate(name)?;
+        Ok(RgbdFrame {
+            width,
+            height,
+            rgb,
+            depth_m,
+            intrinsics,
+            rgb_path: PathBuf::from(name),
+            depth_path: PathBuf::from(name),
+            intrinsics_source: "explicit".to_string(),
+            depth_scale_m: 1.0,
+        })
+    }
+
     /// Depth at pixel `(u, v)` in metres (`0.0`/NaN = invalid).
     pub fn depth_at(&self, u: usize, v: usize) -> f32 {
         self.depth_m[v * self.width + u]
@@ -532,6 +562,19 @@ mod tests {
         let f = RgbdFrame::open(&d.join("000000-color.png"), &FrameOptions::default()).unwrap();
         assert_eq!(f.intrinsics, Intrinsics { fx: 618.0, fy: 618.1, cx: 312.3, cy: 232.3 });
         assert!((f.depth_at(2, 2) - 0.7).abs() < 1e-6);
+    }
+
+    #[test]
+    fn frames_from_buffers_check_their_sizes() {
+        let k = Intrinsics::new(100.0, 100.0, 2.0, 1.5).unwrap();
+        let f = RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 12], k, "<array>").unwrap();
+        assert_eq!((f.width, f.height, f.depth_at(3, 2), f.rgb_path.as_path()), (4, 3, 1.5, Path::new("<array>")));
+        let e = RgbdFrame::from_buffers(4, 3, vec![7; 35], vec![1.5; 12], k, "<array>").unwrap_err().to_string();
+        assert!(e.contains("<array>") && e.contains("35") && e.contains("3×4×3"), "{e}");
+        let e = RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 11], k, "<array>").unwrap_err().to_string();
+        assert!(e.contains("depth has 11 values"), "{e}");
+        let bad = Intrinsics { fx: -1.0, ..k };
+        assert!(RgbdFrame::from_buffers(4, 3, vec![7; 36], vec![1.5; 12], bad, "<array>").is_err());
     }
 
     #[test]

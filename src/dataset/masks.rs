@@ -200,6 +200,21 @@ pub fn load_binary_masks(paths: &[PathBuf]) -> (Vec<ObjectMask>, Vec<MaskSkip>) 
     (ok, skips)
 }
 
+/// The masks of a frame as `recon infer --masks` takes them: one file is an
+/// instance-id map (a binary 0/255 mask is the one-object case), several files are
+/// binary masks, one object each. `ids` selects instance ids of a map.
+pub fn load_masks(files: &[PathBuf], ids: Option<&[u32]>) -> Result<(Vec<ObjectMask>, Vec<MaskSkip>)> {
+    match files {
+        [] => Err(Error::input("--masks", "no mask file given")),
+        [one] => Ok(InstanceMap::open(one)?.objects(ids)),
+        _ if ids.is_some() => Err(Error::input(
+            "--objects",
+            "selects ids of an instance-id map; with several binary mask files, list only the masks you want",
+        )),
+        _ => Ok(load_binary_masks(files)),
+    }
+}
+
 /// Why an object is left out.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SkipReason {
@@ -312,6 +327,26 @@ pub fn validate_objects(frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &Mask
 mod tests {
     use super::*;
     use crate::dataset::frame::Intrinsics;
+
+    #[test]
+    fn load_masks_reads_a_map_or_binary_files() {
+        let d = std::env::temp_dir().join(format!("recon-load-masks-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        let ids = image::GrayImage::from_fn(4, 3, |x, _| image::Luma([if x < 2 { 3 } else { 9 }]));
+        ids.save(d.join("ids.png")).unwrap();
+        let one = image::GrayImage::from_fn(4, 3, |x, y| image::Luma([if x == y { 255 } else { 0 }]));
+        one.save(d.join("a.png")).unwrap();
+        one.save(d.join("b.png")).unwrap();
+        let (m, skip) = load_masks(&[d.join("ids.png")], Some(&[9, 5])).unwrap();
+        assert_eq!((m.len(), m[0].id, m[0].pixel_count()), (1, Some(9), 6));
+        assert_eq!(skip, vec![MaskSkip { label: "id 5".into(), reason: SkipReason::IdAbsent }]);
+        let (m, _) = load_masks(&[d.join("a.png"), d.join("b.png")], None).unwrap();
+        assert_eq!((m.len(), m[1].label.as_str(), m[1].pixel_count()), (2, "b.png", 3));
+        let e = load_masks(&[d.join("a.png"), d.join("b.png")], Some(&[1])).unwrap_err().to_string();
+        assert!(e.contains("--objects"), "{e}");
+        assert!(load_masks(&[], None).unwrap_err().to_string().contains("--masks"));
+        let _ = std::fs::remove_dir_all(&d);
+    }
 
     fn frame(w: usize, h: usize, depth: impl Fn(usize, usize) -> f32) -> RgbdFrame {
         let mut d = vec![0f32; w * h];

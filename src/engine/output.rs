@@ -48,6 +48,28 @@ pub struct PoseRecord<'a> {
     pub notes: &'a [String],
 }
 
+/// The per-stage seconds `recon infer` reports for every object, in its table's column
+/// order: model stages summed over samples, then decimation, pose selection and the total.
+pub const STAGE_COLUMNS: [&str; 10] =
+    ["encoder", "ss_sampling", "ss_decoder", "shape_fit", "slat_sampling", "mesh", "gaussians", "decimate", "select", "total"];
+
+/// One object's seconds per [`STAGE_COLUMNS`] entry.
+pub fn stage_seconds(o: &ObjectResult) -> [f64; 10] {
+    let t = &o.timings;
+    [
+        t.image_encoder,
+        t.ss_condition + t.ss_sampling,
+        t.ss_decoder + t.pose,
+        t.shape_fit,
+        t.slat_condition + t.slat_sampling,
+        t.mesh_decoder,
+        t.gaussian_decoder,
+        o.postprocess_seconds,
+        o.select_seconds,
+        t.total + o.postprocess_seconds + o.select_seconds,
+    ]
+}
+
 /// Paths written for one object.
 #[derive(Debug, Clone, Serialize)]
 pub struct WrittenObject {

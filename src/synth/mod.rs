@@ -26,7 +26,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Marker (and summary) file of a finished dataset.
 pub const MARKER: &str = "recon-synth.json";
@@ -111,7 +111,20 @@ fn unit_ids(n_units: usize, first_obj_id: u32) -> Vec<i64> {
 /// `camera.json`, and [`MARKER`]). `progress` is called once per scene generated and once
 /// per scene rendered (2 × scenes calls). An existing `out` is replaced only if it is an
 /// earlier `recon synth` output.
+///
+/// The same run split over workers ([`begin`], [`plan`], [`write_shard`] per range of
+/// scenes, [`finish`]) writes the same bytes: this function is that sequence in one process.
 pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -> Result<Summary> {
+    let staging = begin(out, opts)?;
+    let scenes = generate_scenes(0..opts.scenes, opts, progress)?;
+    let first_ids = first_object_ids(&scenes, opts);
+    let shard = write_scenes(&staging, 0, &scenes, &first_ids, opts, progress)?;
+    finish(&staging, out, opts, &[shard])
+}
+
+/// Checks `out` (absent, empty, or an earlier `recon synth` output) and creates an empty
+/// staging folder beside it (`<out>.partial`, with `models/` and `test/`) for the scenes.
+pub fn begin(out: &Path, opts: &SynthOptions) -> Result<PathBuf> {
     opts.validate()?;
     if out.exists() {
         let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
@@ -128,49 +141,119 @@ pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -
     }
     mkdir(&staging.join("models"))?;
     mkdir(&staging.join(SPLIT))?;
+    Ok(staging)
+}
 
-    let cfg = SceneConfig { width: opts.width, height: opts.height, views: opts.views, ..Default::default() };
-    // Phase 1: scenes (cheap), so object ids can be assigned in scene order.
-    let scenes: Vec<Scene> = (0..opts.scenes)
-        .into_par_iter()
-        .map(|i| {
-            let s = Scene::generate(derived_seed(opts.seed, i as u64, 0), &cfg);
-            progress();
-            s
-        })
-        .collect::<Result<_>>()?;
-    let mut first_ids = Vec::with_capacity(scenes.len());
-    let mut next = 1u32;
-    for s in &scenes {
-        first_ids.push(next);
-        let n: usize = if opts.parts { s.objects.iter().map(|o| o.object.parts.len()).sum() } else { s.objects.len() };
-        next += n as u32;
+/// Phase 1 over the whole dataset (scene generation, cheap): the first object id of every
+/// scene, since ids run on in scene order. A split run computes it once and hands it to
+/// every [`write_shard`].
+pub fn plan(opts: &SynthOptions) -> Result<Vec<u32>> {
+    opts.validate()?;
+    let scenes = generate_scenes(0..opts.scenes, opts, &|| {})?;
+    Ok(first_object_ids(&scenes, opts))
+}
+
+/// Phase 2 for scenes `range` (their generation again, rendering, the sensor, the files
+/// under `staging`), as one worker of a split run does it. `first_ids` is [`plan`]'s.
+pub fn write_shard(staging: &Path, opts: &SynthOptions, range: std::ops::Range<usize>, first_ids: &[u32]) -> Result<Shard> {
+    opts.validate()?;
+    if range.end > opts.scenes || first_ids.len() != opts.scenes || range.start > range.end {
+        return Err(Error::input(
+            "recon synth shard",
+            format!("scenes {range:?} of {} with {} first object ids", opts.scenes, first_ids.len()),
+        ));
+    }
+    let scenes = generate_scenes(range.clone(), opts, &|| {})?;
+    write_scenes(staging, range.start, &scenes, &first_ids[range], opts, &|| {})
+}
+
+/// What one worker's scenes contribute to the dataset summary and `models_info.json`.
+/// Serialised, every float is its bit pattern (JSON text parsed back may move a float by
+/// one ulp), so a split run's files are bit-identical to a single run's.
+#[derive(Serialize, serde::Deserialize, Clone, Debug)]
+pub struct Shard {
+    pub first_scene: usize,
+    pub scenes: Vec<ShardScene>,
+}
+
+#[derive(Serialize, serde::Deserialize, Clone, Debug)]
+pub struct ShardScene {
+    /// `(obj_id, models_info entry)`; serialised with every float as its bit pattern.
+    #[serde(with = "exact_floats")]
+    pub models_info: Vec<(u32, Value)>,
+    pub instances: usize,
+    pub clipped: usize,
+    /// `f64::to_bits` of each view's target occlusion.
+    pub target_occlusion_bits: Vec<u64>,
+    /// Kind name of every object of the scene.
+    pub kinds: Vec<String>,
+}
+
+/// Serde for JSON values with each float written as `{"f64_bits": u64}`.
+mod exact_floats {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+    use serde_json::{json, Value};
+
+    fn encode(v: &Value) -> Value {
+        match v {
+            Value::Number(n) if n.is_f64() => json!({ "f64_bits": n.as_f64().unwrap_or(f64::NAN).to_bits() }),
+            Value::Array(a) => Value::Array(a.iter().map(encode).collect()),
+            Value::Object(o) => Value::Object(o.iter().map(|(k, v)| (k.clone(), encode(v))).collect()),
+            v => v.clone(),
+        }
     }
 
-    // Phase 2: render, apply the sensor, write.
-    let results: Vec<SceneResult> = scenes
-        .par_iter()
-        .enumerate()
-        .map(|(i, s)| {
-            let r = write_scene(&staging, i, s, first_ids[i], opts);
-            progress();
-            r
-        })
-        .collect::<Result<_>>()?;
+    fn decode(v: Value) -> Value {
+        match v {
+            Value::Object(o) if o.len() == 1 && o.get("f64_bits").is_some_and(Value::is_u64) => {
+                let bits = o["f64_bits"].as_u64().unwrap_or(0);
+                serde_json::Number::from_f64(f64::from_bits(bits)).map_or(Value::Null, Value::Number)
+            }
+            Value::Array(a) => Value::Array(a.into_iter().map(decode).collect()),
+            Value::Object(o) => Value::Object(o.into_iter().map(|(k, v)| (k, decode(v))).collect()),
+            v => v,
+        }
+    }
 
+    pub fn serialize<S: Serializer>(v: &[(u32, Value)], s: S) -> Result<S::Ok, S::Error> {
+        v.iter().map(|(id, x)| (*id, encode(x))).collect::<Vec<_>>().serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<(u32, Value)>, D::Error> {
+        Ok(Vec::<(u32, Value)>::deserialize(d)?.into_iter().map(|(id, x)| (id, decode(x))).collect())
+    }
+}
+
+/// Merges the shards (any order; every scene exactly once), writes `models_info.json`,
+/// `camera.json` and [`MARKER`] last, and moves the staging folder to `out`.
+pub fn finish(staging: &Path, out: &Path, opts: &SynthOptions, shards: &[Shard]) -> Result<Summary> {
+    let mut scenes: Vec<Option<&ShardScene>> = vec![None; opts.scenes];
+    for sh in shards {
+        for (k, sc) in sh.scenes.iter().enumerate() {
+            match scenes.get_mut(sh.first_scene + k) {
+                Some(slot @ None) => *slot = Some(sc),
+                _ => {
+                    return Err(Error::input("recon synth shards", format!("scene {} is out of range or given twice", sh.first_scene + k)))
+                }
+            }
+        }
+    }
+    if let Some(i) = scenes.iter().position(Option::is_none) {
+        return Err(Error::input("recon synth shards", format!("scene {i} is missing")));
+    }
     let mut models_info = serde_json::Map::new();
-    let mut summary = Summary { scenes: scenes.len(), images: scenes.len() * opts.views, ..Default::default() };
+    let mut summary = Summary { scenes: opts.scenes, images: opts.scenes * opts.views, ..Default::default() };
     let mut counts = Vec::new();
-    for (s, r) in scenes.iter().zip(&results) {
+    for r in scenes.into_iter().flatten() {
         for (id, info) in &r.models_info {
             models_info.insert(id.to_string(), info.clone());
         }
         summary.instances += r.instances;
         summary.depth_clipped_px += r.clipped;
-        summary.target_occlusion.extend(&r.target_occlusion);
-        counts.push(s.objects.len() as f64);
-        for o in &s.objects {
-            *summary.objects_by_kind.entry(o.object.kind.name().to_string()).or_default() += 1;
+        summary.target_occlusion.extend(r.target_occlusion_bits.iter().map(|&b| f64::from_bits(b)));
+        counts.push(r.kinds.len() as f64);
+        for k in &r.kinds {
+            *summary.objects_by_kind.entry(k.clone()).or_default() += 1;
         }
     }
     summary.models = models_info.len();
@@ -201,8 +284,60 @@ pub fn generate(out: &Path, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -
     if out.exists() {
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
     }
-    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+    std::fs::rename(staging, out).map_err(|e| Error::io(out, e))?;
     Ok(summary)
+}
+
+/// Scenes `range`, each from its own derived seed.
+fn generate_scenes(range: std::ops::Range<usize>, opts: &SynthOptions, progress: &(dyn Fn() + Sync)) -> Result<Vec<Scene>> {
+    let cfg = SceneConfig { width: opts.width, height: opts.height, views: opts.views, ..Default::default() };
+    range
+        .into_par_iter()
+        .map(|i| {
+            let s = Scene::generate(derived_seed(opts.seed, i as u64, 0), &cfg);
+            progress();
+            s
+        })
+        .collect()
+}
+
+/// The first object id of every scene (ids run on in scene order).
+fn first_object_ids(scenes: &[Scene], opts: &SynthOptions) -> Vec<u32> {
+    let mut first_ids = Vec::with_capacity(scenes.len());
+    let mut next = 1u32;
+    for s in scenes {
+        first_ids.push(next);
+        let n: usize = if opts.parts { s.objects.iter().map(|o| o.object.parts.len()).sum() } else { s.objects.len() };
+        next += n as u32;
+    }
+    first_ids
+}
+
+/// Renders, applies the sensor and writes `scenes` (scene `first + k` for the k-th).
+fn write_scenes(
+    staging: &Path,
+    first: usize,
+    scenes: &[Scene],
+    first_ids: &[u32],
+    opts: &SynthOptions,
+    progress: &(dyn Fn() + Sync),
+) -> Result<Shard> {
+    let results: Vec<ShardScene> = scenes
+        .par_iter()
+        .enumerate()
+        .map(|(k, s)| {
+            let r = write_scene(staging, first + k, s, first_ids[k], opts).map(|r| ShardScene {
+                models_info: r.models_info,
+                instances: r.instances,
+                clipped: r.clipped,
+                target_occlusion_bits: r.target_occlusion.iter().map(|o| o.to_bits()).collect(),
+                kinds: s.objects.iter().map(|o| o.object.kind.name().to_string()).collect(),
+            });
+            progress();
+            r
+        })
+        .collect::<Result<_>>()?;
+    Ok(Shard { first_scene: first, scenes: results })
 }
 
 struct SceneResult {

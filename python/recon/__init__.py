@@ -1,0 +1,55 @@
+"""recon: RGB-D frames + object masks -> per-object textured meshes, 3D Gaussians and
+metric 6-DoF poses (RecGen re-implemented in Rust), from Python.
+
+    import recon
+    engine = recon.Engine()                      # the embedded recgen-nano, loaded once
+    f = recon.load_frame("data/sample/000001-color.png")
+    masks = ...                                  # H×W instance ids, or a list of boolean masks
+    for o in engine.reconstruct(f["rgb"], f["depth"], f["K"], masks, seed=42):
+        print(o.label, o.pose, o.scale, o.mesh.vertices.shape)
+
+`recon.ray` runs whole datasets on Ray. Errors are `recon.ReconError` (subclasses
+`InputError`, `WeightsError`, `ConfigError`) carrying the CLI's messages.
+"""
+
+from ._recon import (
+    OUTPUT_MARKER,
+    STAGE_COLUMNS,
+    ConfigError,
+    Engine,
+    Gaussians,
+    InputError,
+    Mesh,
+    Object,
+    ReconError,
+    WeightsError,
+    __version__,
+    audit_depth,
+    dataset_frames,
+    eval,
+    load_frame,
+    load_masks,
+    scene,
+    synth,
+)
+
+__all__ = [
+    "Engine",
+    "Object",
+    "Mesh",
+    "Gaussians",
+    "ReconError",
+    "InputError",
+    "WeightsError",
+    "ConfigError",
+    "load_frame",
+    "load_masks",
+    "scene",
+    "synth",
+    "eval",
+    "audit_depth",
+    "dataset_frames",
+    "OUTPUT_MARKER",
+    "STAGE_COLUMNS",
+    "__version__",
+]

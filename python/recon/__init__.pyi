@@ -1,0 +1,266 @@
+"""recon: RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
+
+from os import PathLike
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+
+import numpy as np
+import numpy.typing as npt
+
+_Path = Union[str, PathLike]
+
+__version__: str
+OUTPUT_MARKER: str
+"""Index file written last into every `recon infer` output folder (`recon-output.json`)."""
+STAGE_COLUMNS: List[str]
+"""Keys of `Object.stage_seconds`: the columns of `recon infer`'s timing table."""
+
+class ReconError(Exception):
+    """Base class of every error recon raises; the message is the CLI's."""
+
+class InputError(ReconError):
+    """Bad input: a file, an array, a mask or a dataset is not what recon expects."""
+
+class WeightsError(ReconError):
+    """The model's weights could not be found, read or matched to the architecture."""
+
+class ConfigError(ReconError):
+    """An option or a configuration field is missing or out of range."""
+
+class Mesh:
+    """A mesh in the camera frame of view 1 (OpenCV: x right, y down, z forward), metres."""
+
+    vertices: npt.NDArray[np.float32]
+    """N×3 float32."""
+    faces: npt.NDArray[np.int32]
+    """M×3 int32 vertex indices."""
+    attributes: Optional[npt.NDArray[np.float32]]
+    """N×6 float32 in [0, 1]: RGB, then a normal-map triple (TRELLIS's channels)."""
+    @property
+    def colors(self) -> Optional[npt.NDArray[np.float32]]:
+        """N×3 float32 RGB in [0, 1] (a view of `attributes`)."""
+
+class Gaussians:
+    """3D Gaussians in the camera frame (metres)."""
+
+    means: npt.NDArray[np.float32]
+    """N×3 centres."""
+    scales: npt.NDArray[np.float32]
+    """N×3 standard deviations along the local axes."""
+    rotations: npt.NDArray[np.float32]
+    """N×4 unit quaternions (w, x, y, z)."""
+    opacities: npt.NDArray[np.float32]
+    """N opacities in (0, 1)."""
+    colors: npt.NDArray[np.float32]
+    """N×3 RGB in [0, 1]."""
+    dc: npt.NDArray[np.float32]
+    """N×3 SH degree-0 coefficients (colors = 0.28209479·dc + 0.5)."""
+    def __len__(self) -> int: ...
+
+class Object:
+    """One reconstructed object."""
+
+    id: Optional[int]
+    """Instance id in the mask image; None for a boolean mask."""
+    label: str
+    """`id N`, or `mask N` for the N-th boolean mask."""
+    pose: npt.NDArray[np.float64]
+    """4×4 rigid camera-from-object transform (metres). With `scale`:
+    x_camera = R · (scale · x_object) + t; object frame = the decoder's [-0.5, 0.5]³."""
+    scale: float
+    """Object scale (metres per object-frame unit)."""
+    score: float
+    """Selection score (metres): trimmed mean distance of the observed points to the posed
+    mesh, plus the free-space term with pose_fit="depth"; lower is better."""
+    spread: Optional[Dict[str, float]]
+    """With samples > 1: translation_sd_mm, rotation_sd_deg, scale_sd_rel, samples."""
+    stage_seconds: Dict[str, float]
+    """Seconds per stage (keys: STAGE_COLUMNS)."""
+    mesh: Optional[Mesh]
+    gaussians: Optional[Gaussians]
+    details: Dict[str, Any]
+    """What pose.json holds besides the pose: selection, views, candidates, run, notes."""
+    def to_glb(self, path: _Path) -> None:
+        """Write the mesh as `recon infer` writes `<object>/mesh.glb`."""
+    def to_ply(self, path: _Path) -> None:
+        """Write the mesh as `recon infer` writes `<object>/mesh.ply`."""
+    def gaussians_to_ply(self, path: _Path) -> None:
+        """Write the Gaussians as `recon infer` writes `<object>/gaussians.ply`."""
+    def to_trimesh(self) -> Any:
+        """The mesh as a `trimesh.Trimesh` with RGBA vertex colours (needs trimesh)."""
+
+class Engine:
+    """A loaded model, reused across objects, frames and threads (the GIL is released while
+    it computes).
+
+    weights: None = the embedded trained recgen-nano; "random" = recgen-tiny with random
+    weights (plumbing only); a folder of `<module>.safetensors`; or a manifest name
+    ("recgen") resolved in the Hugging Face cache after `recon weights fetch`.
+    config: the architecture file when the weights do not imply it.
+    dtype: "auto" (= "f32"), "f32", "bf16" or "f16": the inference kernels' precision.
+    threads: worker threads of this engine (default: all cores, shared pool).
+    seed: seeds random weights.
+    """
+
+    random_weights: bool
+    def __init__(
+        self,
+        weights: Optional[_Path] = None,
+        config: Optional[_Path] = None,
+        dtype: str = "auto",
+        threads: Optional[int] = None,
+        seed: int = 42,
+    ) -> None: ...
+    def reconstruct(
+        self,
+        rgb: npt.NDArray[np.uint8],
+        depth: npt.NDArray[Any],
+        K: npt.ArrayLike,
+        masks: Union[npt.NDArray[np.integer], Sequence[npt.NDArray[np.bool_]]],
+        *,
+        depth_scale: Optional[float] = None,
+        view2: Optional[Dict[str, Any]] = None,
+        samples: int = 1,
+        select: str = "cross",
+        pose_fit: str = "depth",
+        shape_fit: str = "depth",
+        seed: int = 0,
+        max_faces: int = 200_000,
+        steps: Optional[int] = None,
+        cfg: Optional[float] = None,
+        min_component_area: float = 0.02,
+        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+    ) -> List[Object]:
+        """Reconstruct every masked object of one RGB-D frame.
+
+        rgb: H×W×3 uint8. depth: H×W uint16 (× depth_scale metres, default 0.001) or
+        float32/float64 metres (0 or NaN = no reading). K: 3×3 intrinsics. masks: an H×W
+        instance-id image (0 = background) or a list of H×W boolean masks.
+        view2: {"rgb", "depth", "K", "masks", "T_c1_c2"[, "depth_scale"]} for two-view
+        conditioning; T_c1_c2 maps camera 2 to camera 1 (x1 = R·x2 + t, metres).
+        samples: seeds seed … seed+samples−1, best pose kept, spread reported.
+        select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
+        shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
+        max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
+        progress: called with event dicts (object, sample, stage, …) from worker threads.
+        Objects that fail validation are left out (see `reconstruct_files` for the reasons).
+        """
+    def reconstruct_files(
+        self,
+        rgbd: _Path,
+        masks: Union[_Path, Sequence[_Path]],
+        out: Optional[_Path] = None,
+        *,
+        depth: Optional[_Path] = None,
+        intrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
+        depth_scale: Optional[float] = None,
+        objects: Optional[Sequence[int]] = None,
+        samples: int = 1,
+        select: str = "cross",
+        pose_fit: str = "depth",
+        shape_fit: str = "depth",
+        seed: int = 42,
+        max_faces: int = 200_000,
+        steps: Optional[int] = None,
+        cfg: Optional[float] = None,
+        min_component_area: float = 0.02,
+        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+    ) -> Dict[str, Any]:
+        """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
+        the same masks (one instance-id PNG or several binary masks), the same output folder
+        (default `<stem>_recon` beside the image). The defaults are the CLI's (seed 42).
+        Returns the summary: objects (pose, score, stage seconds, files), skipped, notes."""
+
+def load_frame(
+    path: _Path,
+    *,
+    depth: Optional[_Path] = None,
+    intrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
+    depth_scale: Optional[float] = None,
+) -> Dict[str, Any]:
+    """A frame as `recon infer --rgbd` finds it (YCB-Video, BOP, LINEMOD, generic layouts):
+    {"rgb": H×W×3 uint8, "depth": H×W float32 metres, "K": 3×3, "rgb_path", "depth_path",
+    "intrinsics_source", "depth_scale"}."""
+
+def load_masks(paths: Union[_Path, Sequence[_Path]], objects: Optional[Sequence[int]] = None) -> Dict[str, Any]:
+    """Masks as `recon infer --masks` reads them (one instance-id PNG, `objects` selecting
+    ids, or several binary mask files): {"objects": [{"label", "id", "mask": H×W bool}],
+    "skipped": [(label, reason)]}."""
+
+def scene(
+    objects: _Path,
+    frame: Optional[_Path] = None,
+    out: Optional[_Path] = None,
+    collision: str = "convex",
+    *,
+    view: Optional[int] = None,
+    depth: Optional[_Path] = None,
+    depth_scale: Optional[float] = None,
+    plane_threshold_mm: float = 10.0,
+    materials: Optional[_Path] = None,
+    settle_time: float = 5.0,
+    seed: int = 0,
+) -> Dict[str, Any]:
+    """`recon scene`: settle and export (URDF, MJCF, USD, GLB) a `recon infer` output folder
+    (with `frame`, the colour image whose depth gives the support plane; default: the one
+    its pose.json records), a scene.json, or a BOP scene folder. collision: "convex" |
+    "hull" | "primitive". Returns {"out", "files", "objects" (per-object physics), "settle",
+    "notes"}."""
+
+def synth(
+    out: _Path,
+    *,
+    scenes: int = 10,
+    views: int = 1,
+    seed: int = 0,
+    sensor: Optional[_Path] = None,
+    width: int = 640,
+    height: int = 480,
+    parts: bool = False,
+) -> Dict[str, Any]:
+    """`recon synth`: a BOP-format dataset of occluded tabletop scenes; returns its summary."""
+
+def eval(
+    dataset: _Path,
+    *,
+    predictions: Optional[_Path] = None,
+    method: Optional[str] = None,
+    engine: Optional[Engine] = None,
+    out: Optional[_Path] = None,
+    shape: str = "hull",
+    f1_tau: float = 0.05,
+    scenes: Optional[Sequence[str]] = None,
+    occlusion: Optional[Sequence[float]] = None,
+    surface_samples: int = 10_000,
+    surface_seed: int = 0,
+    all_frames: bool = False,
+    two_view: bool = False,
+    samples: int = 1,
+    select: str = "cross",
+    pose_fit: str = "depth",
+    shape_fit: str = "depth",
+    seed: int = 42,
+    max_faces: int = 200_000,
+) -> Dict[str, Any]:
+    """`recon eval`: score a predictions file, or run method "observed" or "recgen" (with
+    `engine`) over the dataset first (then `out` is required). Returns report.json's dict."""
+
+def audit_depth(
+    dataset: _Path,
+    *,
+    sensor: Optional[_Path] = None,
+    out: Optional[_Path] = None,
+    max_pixels: int = 3000,
+    frames: Optional[int] = None,
+    alpha: float = 0.01,
+    max_findings: int = 8,
+    robust: bool = True,
+    interactions: bool = True,
+    max_folds: int = 20,
+    seed: int = 0,
+) -> Dict[str, Any]:
+    """`recon audit depth`: measured vs simulated depth; returns the report (and writes the
+    CLI's files when `out` is given)."""
+
+def dataset_frames(source: _Path) -> List[Dict[str, Any]]:
+    """The frames of a BOP dataset or YCB-Video folder: {"frame": "<scene>/<NNNNNN>", "rgb",
+    "masks"} with the masks `recon infer` takes for it."""

@@ -1,0 +1,659 @@
+//! `recon.Engine` (a loaded model, [`recon::engine::Engine`]) and the objects it returns.
+//!
+//! The engine is immutable once loaded, so one Python object serves several threads:
+//! every call releases the GIL for its whole computation, and with `threads=N` runs in
+//! the engine's own rayon pool.
+
+use crate::convert::{rows, to_python};
+use crate::errors::{config, input, weights_to_py, IntoPy};
+use clap::ValueEnum;
+use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
+use recon::engine::{InferOptions, LoadOptions, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
+use recon::model::Precision;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// A CLI enum from its flag value (`"cross"`, `"depth-stretch"`, …).
+fn parse_enum<T: ValueEnum>(flag: &str, v: &str) -> PyResult<T> {
+    T::from_str(v, false).map_err(|_| {
+        let names: Vec<String> =
+            T::value_variants().iter().filter_map(|x| x.to_possible_value()).map(|p| p.get_name().to_string()).collect();
+        config(flag, format!("`{v}`: expected one of {}", names.join(", ")))
+    })
+}
+
+/// The per-frame options, checked as `recon infer` checks its flags (`ModelArgs::infer_options`).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn infer_options(
+    samples: usize,
+    select: &str,
+    pose_fit: &str,
+    shape_fit: &str,
+    seed: u64,
+    max_faces: usize,
+    steps: Option<usize>,
+    cfg: Option<f64>,
+    min_component_area: f64,
+) -> PyResult<InferOptions> {
+    if samples == 0 {
+        return Err(config("samples", "must be at least 1"));
+    }
+    if !(0.0..1.0).contains(&min_component_area) {
+        return Err(config("min_component_area", format!("must be in [0, 1), got {min_component_area}")));
+    }
+    let pose_fit: PoseFit = parse_enum("pose_fit", pose_fit)?;
+    let mut opts = InferOptions {
+        samples,
+        select: parse_enum::<SelectMethod>("select", select)?,
+        align: pose_fit.options(),
+        max_faces: (max_faces > 0).then_some(max_faces),
+        floater_area_fraction: min_component_area,
+        shape_fit: parse_enum::<ShapeFit>("shape_fit", shape_fit)?,
+        ..Default::default()
+    };
+    opts.run.seed = seed;
+    (opts.run.ss_steps, opts.run.slat_steps) = (steps, steps);
+    (opts.run.ss_cfg_strength, opts.run.slat_cfg_strength) = (cfg, cfg);
+    Ok(opts)
+}
+
+/// Intrinsics from a 3×3 K (any float or int array-like).
+fn intrinsics(k: &Bound<'_, PyAny>, what: &str) -> PyResult<Intrinsics> {
+    let np = k.py().import("numpy")?;
+    let a: PyReadonlyArray2<f64> =
+        np.call_method1("asarray", (k, "float64"))?.extract().map_err(|_| input(what, "expected a 3×3 matrix"))?;
+    let a = a.as_array();
+    if a.shape() != [3, 3] {
+        return Err(input(what, format!("expected a 3×3 matrix, got shape {:?}", a.shape())));
+    }
+    Intrinsics::new(a[[0, 0]], a[[1, 1]], a[[0, 2]], a[[1, 2]]).map_err(|e| input(what, e))
+}
+
+/// An RGB-D frame from numpy arrays: `rgb` H×W×3 uint8; `depth` H×W uint16 (× `depth_scale`
+/// metres, default 0.001) or float32/float64 metres.
+fn frame_from_arrays(
+    rgb: &Bound<'_, PyAny>,
+    depth: &Bound<'_, PyAny>,
+    k: &Bound<'_, PyAny>,
+    depth_scale: Option<f64>,
+    name: &str,
+) -> PyResult<RgbdFrame> {
+    let rgb: PyReadonlyArray3<u8> = rgb.extract().map_err(|_| input(&format!("{name} rgb"), "expected an H×W×3 uint8 array"))?;
+    let [h, w, c] = <[usize; 3]>::try_from(rgb.shape()).map_err(|_| input(name, "rgb must be H×W×3"))?;
+    if c != 3 {
+        return Err(input(&format!("{name} rgb"), format!("expected H×W×3 uint8, got {h}×{w}×{c}")));
+    }
+    // One copy into the frame's own buffer (a no-op reinterpretation is not possible: the
+    // frame owns its pixels); C-contiguous input is copied as one block.
+    let rgb_v: Vec<u8> = match rgb.as_slice() {
+        Ok(s) => s.to_vec(),
+        Err(_) => rgb.as_array().iter().copied().collect(),
+    };
+    let dname = format!("{name} depth");
+    let depth_v: Vec<f32> = if let Ok(d) = depth.extract::<PyReadonlyArray2<u16>>() {
+        if d.shape() != [h, w] {
+            return Err(input(&dname, format!("shape {:?} but rgb is {h}×{w}; depth must be registered to colour", d.shape())));
+        }
+        let s = depth_scale.unwrap_or(0.001);
+        if !(s.is_finite() && s > 0.0) {
+            return Err(config("depth_scale", format!("must be positive metres per unit, got {s}")));
+        }
+        d.as_array().iter().map(|&v| (v as f64 * s) as f32).collect()
+    } else if let Ok(d) = depth.extract::<PyReadonlyArray2<f32>>() {
+        if d.shape() != [h, w] {
+            return Err(input(&dname, format!("shape {:?} but rgb is {h}×{w}; depth must be registered to colour", d.shape())));
+        }
+        if depth_scale.is_some() {
+            return Err(config("depth_scale", "applies to uint16 depth; float depth is already in metres"));
+        }
+        match d.as_slice() {
+            Ok(s) => s.to_vec(),
+            Err(_) => d.as_array().iter().copied().collect(),
+        }
+    } else if let Ok(d) = depth.extract::<PyReadonlyArray2<f64>>() {
+        if d.shape() != [h, w] {
+            return Err(input(&dname, format!("shape {:?} but rgb is {h}×{w}; depth must be registered to colour", d.shape())));
+        }
+        if depth_scale.is_some() {
+            return Err(config("depth_scale", "applies to uint16 depth; float depth is already in metres"));
+        }
+        d.as_array().iter().map(|&v| v as f32).collect()
+    } else {
+        return Err(input(&dname, "expected an H×W uint16 (with depth_scale) or float32 metres array"));
+    };
+    RgbdFrame::from_buffers(w, h, rgb_v, depth_v, intrinsics(k, &format!("{name} K"))?, name).py()
+}
+
+/// Masks: an H×W instance-id image (0 = background; ids ascending) or a list of H×W
+/// boolean masks (labelled `mask 0`, `mask 1`, … and matched by order across views).
+fn masks_from(m: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<ObjectMask>, Vec<MaskSkip>)> {
+    let np = m.py().import("numpy")?;
+    if let Ok(list) = m.cast::<PyList>() {
+        let mut out = Vec::new();
+        for (i, x) in list.iter().enumerate() {
+            let a: PyReadonlyArray2<bool> = np
+                .call_method1("asarray", (x, "bool"))?
+                .extract()
+                .map_err(|_| input(what, format!("mask {i}: expected an H×W boolean array")))?;
+            let (h, w) = (a.shape()[0], a.shape()[1]);
+            out.push(ObjectMask {
+                id: None,
+                label: format!("mask {i}"),
+                width: w,
+                height: h,
+                mask: a.as_array().iter().copied().collect(),
+            });
+        }
+        return Ok((out, Vec::new()));
+    }
+    let arr = np.call_method1("asarray", (m,))?;
+    let kind: String = arr.getattr("dtype")?.getattr("kind")?.extract()?;
+    if !matches!(kind.as_str(), "u" | "i") {
+        return Err(input(what, format!("expected an H×W integer instance-id image or a list of boolean masks, got dtype kind `{kind}`")));
+    }
+    let ids: PyReadonlyArray2<i64> =
+        np.call_method1("asarray", (arr, "int64"))?.extract().map_err(|_| input(what, "an instance-id image must be H×W"))?;
+    let (h, w) = (ids.shape()[0], ids.shape()[1]);
+    let mut v = Vec::with_capacity(h * w);
+    for &x in ids.as_array().iter() {
+        v.push(u32::try_from(x).map_err(|_| input(what, format!("instance id {x} is not in 0..=4294967295")))?);
+    }
+    let map = recon::dataset::InstanceMap { width: w, height: h, ids: v, path: PathBuf::from(what) };
+    Ok(map.objects(None))
+}
+
+/// A loaded model, reused across objects, frames and threads.
+#[pyclass(frozen, module = "recon")]
+pub struct Engine {
+    engine: Arc<recon::engine::Engine>,
+    pool: Option<Arc<rayon::ThreadPool>>,
+    source: String,
+}
+
+impl Engine {
+    /// The model and its pool, for library calls that take an engine (`recon eval`).
+    pub(crate) fn shared(&self) -> (Arc<recon::engine::Engine>, Option<Arc<rayon::ThreadPool>>) {
+        (self.engine.clone(), self.pool.clone())
+    }
+
+    /// Run `f` without the GIL, in the engine's pool when it has one.
+    fn compute<T: Send>(&self, py: Python<'_>, f: impl FnOnce(&recon::engine::Engine) -> T + Send) -> T {
+        let engine = &self.engine;
+        let pool = self.pool.clone();
+        py.detach(move || match pool {
+            Some(p) => p.install(|| f(engine)),
+            None => f(engine),
+        })
+    }
+}
+
+/// Calls a Python callable with progress dictionaries (from any thread).
+fn progress_fn(cb: Option<Py<PyAny>>) -> impl Fn(recon::engine::Progress) + Sync {
+    move |e: recon::engine::Progress| {
+        let Some(cb) = cb.as_ref() else { return };
+        Python::attach(|py| {
+            use recon::engine::Progress as P;
+            let d = PyDict::new(py);
+            let r: PyResult<()> = (|| {
+                match e {
+                    P::Object { index, total, label } => {
+                        d.set_item("event", "object")?;
+                        d.set_item("index", index)?;
+                        d.set_item("total", total)?;
+                        d.set_item("object", label)?;
+                    }
+                    P::Sample { index, total, seed } => {
+                        d.set_item("event", "sample")?;
+                        d.set_item("index", index)?;
+                        d.set_item("total", total)?;
+                        d.set_item("seed", seed)?;
+                    }
+                    P::Stage(s) => {
+                        d.set_item("event", "stage")?;
+                        d.set_item("stage", s.name())?;
+                    }
+                    P::Decimating => d.set_item("event", "decimating")?,
+                    P::Selecting => d.set_item("event", "selecting")?,
+                    P::ObjectDone { label, seconds } => {
+                        d.set_item("event", "object_done")?;
+                        d.set_item("object", label)?;
+                        d.set_item("seconds", seconds)?;
+                    }
+                }
+                cb.call1(py, (d,))?;
+                Ok(())
+            })();
+            // A failing callback must not abort the reconstruction; Python reports it.
+            if let Err(err) = r {
+                err.write_unraisable(py, Some(cb.bind(py)));
+            }
+        })
+    }
+}
+
+#[pymethods]
+impl Engine {
+    #[new]
+    #[pyo3(signature = (weights=None, config=None, dtype="auto", threads=None, seed=42))]
+    fn new(
+        py: Python<'_>,
+        weights: Option<PathBuf>,
+        config: Option<PathBuf>,
+        dtype: &str,
+        threads: Option<usize>,
+        seed: u64,
+    ) -> PyResult<Self> {
+        let precision = match dtype {
+            "auto" => Precision::F32,
+            d => parse_enum::<Precision>("dtype", d)?,
+        };
+        let w = weights.as_ref().map(|p| p.to_string_lossy().into_owned());
+        let source = ModelSource::parse(w.as_deref(), config.as_deref(), seed).map_err(weights_to_py)?;
+        let pool = match threads {
+            Some(0) => return Err(crate::errors::config("threads", "must be at least 1")),
+            Some(n) => Some(Arc::new(
+                rayon::ThreadPoolBuilder::new().num_threads(n).build().map_err(|e| crate::errors::ReconError::new_err(e.to_string()))?,
+            )),
+            None => None,
+        };
+        let load = LoadOptions::precision(precision);
+        let src = source.clone();
+        let engine = py
+            .detach(|| match &pool {
+                Some(p) => p.install(|| recon::engine::Engine::load(&src, &load)),
+                None => recon::engine::Engine::load(&src, &load),
+            })
+            .map_err(weights_to_py)?;
+        Ok(Engine { engine: Arc::new(engine), pool, source: format!("{source:?}") })
+    }
+
+    /// Whether the weights are random (`weights="random"`: plumbing only).
+    #[getter]
+    fn random_weights(&self) -> bool {
+        self.engine.pipeline.weights().is_random()
+    }
+
+    fn __repr__(&self) -> String {
+        format!("recon.Engine({})", self.source)
+    }
+
+    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=0, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, progress=None))]
+    #[allow(non_snake_case, clippy::too_many_arguments)]
+    fn reconstruct(
+        &self,
+        py: Python<'_>,
+        rgb: &Bound<'_, PyAny>,
+        depth: &Bound<'_, PyAny>,
+        K: &Bound<'_, PyAny>,
+        masks: &Bound<'_, PyAny>,
+        depth_scale: Option<f64>,
+        view2: Option<&Bound<'_, PyDict>>,
+        samples: usize,
+        select: &str,
+        pose_fit: &str,
+        shape_fit: &str,
+        seed: u64,
+        max_faces: usize,
+        steps: Option<usize>,
+        cfg: Option<f64>,
+        min_component_area: f64,
+        progress: Option<Py<PyAny>>,
+    ) -> PyResult<Vec<Object>> {
+        let opts = infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+        let frame = frame_from_arrays(rgb, depth, K, depth_scale, "<array>")?;
+        let (objects, _) = masks_from(masks, "masks")?;
+        let second = match view2 {
+            None => None,
+            Some(v) => {
+                let get = |k: &str| -> PyResult<Bound<'_, PyAny>> {
+                    v.get_item(k)?
+                        .ok_or_else(|| input("view2", format!("missing key `{k}` (rgb, depth, K, masks, T_c1_c2[, depth_scale])")))
+                };
+                let ds: Option<f64> = v.get_item("depth_scale")?.map(|x| x.extract()).transpose()?;
+                let f2 = frame_from_arrays(&get("rgb")?, &get("depth")?, &get("K")?, ds, "<view2 array>")?;
+                let (o2, _) = masks_from(&get("masks")?, "view2 masks")?;
+                let np = py.import("numpy")?;
+                let t: PyReadonlyArray2<f64> = np
+                    .call_method1("asarray", (get("T_c1_c2")?, "float64"))?
+                    .extract()
+                    .map_err(|_| input("view2 T_c1_c2", "expected a 4×4 matrix"))?;
+                if t.shape() != [4, 4] {
+                    return Err(input("view2 T_c1_c2", format!("expected a 4×4 matrix, got {:?}", t.shape())));
+                }
+                let flat: Vec<String> = t.as_array().iter().map(|x| format!("{x:?}")).collect();
+                let rel = recon::geometry::parse_rel_pose(&flat.join(",")).map_err(|e| input("view2 T_c1_c2", e))?;
+                Some((f2, o2, rel))
+            }
+        };
+        let report = progress_fn(progress);
+        let result = self.compute(py, |e| {
+            let sv = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
+            e.reconstruct_with(&frame, objects, sv, &opts, &report)
+        });
+        let result = result.py()?;
+        result.objects.into_iter().map(|o| Object::new(py, o)).collect()
+    }
+
+    /// `recon infer` on files: the same discovery, the same calls, the same output folder.
+    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, progress=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn reconstruct_files<'py>(
+        &self,
+        py: Python<'py>,
+        rgbd: PathBuf,
+        masks: &Bound<'py, PyAny>,
+        out: Option<PathBuf>,
+        depth: Option<PathBuf>,
+        intrinsics: Option<&Bound<'py, PyAny>>,
+        depth_scale: Option<f64>,
+        objects: Option<Vec<u32>>,
+        samples: usize,
+        select: &str,
+        pose_fit: &str,
+        shape_fit: &str,
+        seed: u64,
+        max_faces: usize,
+        steps: Option<usize>,
+        cfg: Option<f64>,
+        min_component_area: f64,
+        progress: Option<Py<PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let opts = infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+        let masks: Vec<PathBuf> = match masks.extract::<PathBuf>() {
+            Ok(p) => vec![p],
+            Err(_) => masks.extract()?,
+        };
+        let fo = crate::tools::frame_options(depth, intrinsics, depth_scale)?;
+        let out = out.unwrap_or_else(|| {
+            let stem = rgbd.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "frame".into());
+            rgbd.with_file_name(format!("{stem}_recon"))
+        });
+        let report = progress_fn(progress);
+        let summary = self.compute(py, |e| -> recon::Result<serde_json::Value> {
+            let frame = RgbdFrame::open(&rgbd, &fo)?;
+            let (objs, mut skipped) = recon::dataset::load_masks(&masks, objects.as_deref())?;
+            let result = e.reconstruct_with(&frame, objs, None, &opts, &report)?;
+            skipped.extend(result.skipped.iter().cloned());
+            let written = recon::engine::write_outputs(&result, &out)?;
+            let objs: Vec<serde_json::Value> = result
+                .objects
+                .iter()
+                .zip(&written)
+                .map(|(o, w)| {
+                    let st = recon::engine::stage_seconds(o);
+                    serde_json::json!({
+                        "object": o.label, "id": o.id,
+                        "rotation": o.pose_camera.rotation, "translation_m": o.pose_camera.translation, "scale_m": o.pose_camera.scale,
+                        "score_m": o.selection.score_m, "uncertainty": o.uncertainty,
+                        "faces": o.mesh_camera.as_ref().map(|m| m.faces.len()),
+                        "stage_seconds": recon::engine::STAGE_COLUMNS.iter().zip(st).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
+                        "files": w,
+                    })
+                })
+                .collect();
+            Ok(serde_json::json!({
+                "out": out, "seed": seed, "preprocess_s": result.preprocess_seconds, "objects": objs,
+                "skipped": skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect::<Vec<_>>(),
+                "notes": result.notes,
+            }))
+        });
+        to_python(py, &summary.py()?)
+    }
+}
+
+/// Vertices, faces and per-vertex colours of a mesh in the camera frame (metres).
+#[pyclass(frozen, module = "recon")]
+pub struct Mesh {
+    /// float32 N×3, camera frame of view 1 (OpenCV: x right, y down, z forward), metres.
+    #[pyo3(get)]
+    vertices: Py<PyAny>,
+    /// int32 M×3 vertex indices.
+    #[pyo3(get)]
+    faces: Py<PyAny>,
+    /// float32 N×6 in [0, 1] (TRELLIS's colour channels: RGB, then a normal-map triple), or None.
+    #[pyo3(get)]
+    attributes: Py<PyAny>,
+}
+
+#[pymethods]
+impl Mesh {
+    /// float32 N×3 RGB in [0, 1] (a view of `attributes`), or None.
+    #[getter]
+    fn colors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let a = self.attributes.bind(py);
+        if a.is_none() {
+            return Ok(a.clone());
+        }
+        let s = py.import("builtins")?.getattr("slice")?;
+        a.get_item((s.call1((py.None(),))?, s.call1((0, 3))?))
+    }
+
+    fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
+        let n: usize = self.vertices.bind(py).len()?;
+        let m: usize = self.faces.bind(py).len()?;
+        Ok(format!("recon.Mesh({n} vertices, {m} faces)"))
+    }
+}
+
+impl Mesh {
+    fn new(py: Python<'_>, m: recon::mesh::Mesh) -> PyResult<Self> {
+        let faces: Vec<[i32; 3]> = m.faces.iter().map(|f| f.map(|i| i as i32)).collect();
+        Ok(Mesh {
+            vertices: rows(py, m.vertices)?.unbind(),
+            faces: rows(py, faces)?.unbind(),
+            attributes: match m.vertex_attrs {
+                Some(a) => rows(py, a)?.unbind(),
+                None => py.None(),
+            },
+        })
+    }
+
+    /// Back to recon's mesh (one copy), for the exporters.
+    fn to_recon(&self, py: Python<'_>) -> PyResult<recon::mesh::Mesh> {
+        let v: PyReadonlyArray2<f32> = self.vertices.bind(py).extract()?;
+        let f: PyReadonlyArray2<i32> = self.faces.bind(py).extract()?;
+        let vertices: Vec<[f32; 3]> = v.as_array().rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect();
+        let faces: Vec<[u32; 3]> = f.as_array().rows().into_iter().map(|r| [r[0] as u32, r[1] as u32, r[2] as u32]).collect();
+        let attrs = self.attributes.bind(py);
+        let vertex_attrs = if attrs.is_none() {
+            None
+        } else {
+            let a: PyReadonlyArray2<f32> = attrs.extract()?;
+            Some(a.as_array().rows().into_iter().map(|r| [r[0], r[1], r[2], r[3], r[4], r[5]]).collect())
+        };
+        Ok(recon::mesh::Mesh { vertices, faces, vertex_attrs })
+    }
+}
+
+/// 3D Gaussians in the camera frame (metres).
+#[pyclass(frozen, module = "recon")]
+pub struct Gaussians {
+    /// float32 N×3 centres.
+    #[pyo3(get)]
+    means: Py<PyAny>,
+    /// float32 N×3 standard deviations along the local axes (metres).
+    #[pyo3(get)]
+    scales: Py<PyAny>,
+    /// float32 N×4 unit quaternions (w, x, y, z).
+    #[pyo3(get)]
+    rotations: Py<PyAny>,
+    /// float32 N opacities in (0, 1).
+    #[pyo3(get)]
+    opacities: Py<PyAny>,
+    /// float32 N×3 RGB in [0, 1] (0.28209479·dc + 0.5).
+    #[pyo3(get)]
+    colors: Py<PyAny>,
+    /// float32 N×3 SH degree-0 coefficients, as stored in gaussians.ply.
+    #[pyo3(get)]
+    dc: Py<PyAny>,
+}
+
+#[pymethods]
+impl Gaussians {
+    fn __len__(&self, py: Python<'_>) -> PyResult<usize> {
+        self.means.bind(py).len()
+    }
+}
+
+impl Gaussians {
+    fn new(py: Python<'_>, g: recon::gaussians::Gaussians) -> PyResult<Self> {
+        let colors: Vec<[f32; 3]> = g.dc.iter().map(|c| c.map(|x| 0.282_094_8 * x + 0.5)).collect();
+        Ok(Gaussians {
+            means: rows(py, g.positions)?.unbind(),
+            scales: rows(py, g.scales)?.unbind(),
+            rotations: rows(py, g.rotations)?.unbind(),
+            opacities: numpy::PyArray1::from_vec(py, g.opacities).into_any().unbind(),
+            colors: rows(py, colors)?.unbind(),
+            dc: rows(py, g.dc)?.unbind(),
+        })
+    }
+
+    fn to_recon(&self, py: Python<'_>) -> PyResult<recon::gaussians::Gaussians> {
+        fn take<const K: usize>(a: &Bound<'_, PyAny>) -> PyResult<Vec<[f32; K]>> {
+            let a: PyReadonlyArray2<f32> = a.extract()?;
+            Ok(a.as_array().rows().into_iter().map(|r| std::array::from_fn(|k| r[k])).collect())
+        }
+        let op: PyReadonlyArray1<f32> = self.opacities.bind(py).extract()?;
+        Ok(recon::gaussians::Gaussians {
+            positions: take::<3>(self.means.bind(py))?,
+            scales: take::<3>(self.scales.bind(py))?,
+            rotations: take::<4>(self.rotations.bind(py))?,
+            opacities: op.as_array().to_vec(),
+            dc: take::<3>(self.dc.bind(py))?,
+        })
+    }
+}
+
+/// One reconstructed object.
+#[pyclass(frozen, module = "recon")]
+pub struct Object {
+    /// Instance id in the mask image, or None for a boolean mask.
+    #[pyo3(get)]
+    id: Option<u32>,
+    /// `id N`, or `mask N` for the N-th boolean mask.
+    #[pyo3(get)]
+    label: String,
+    /// float64 4×4 rigid camera-from-object transform (metres); with `scale`:
+    /// `x_camera = R · (scale · x_object) + t`, object frame = the decoder's [-0.5, 0.5]³.
+    #[pyo3(get)]
+    pose: Py<PyAny>,
+    #[pyo3(get)]
+    scale: f64,
+    /// The selection score (metres): trimmed mean distance of the observed points to the
+    /// posed mesh, plus the free-space term with pose_fit="depth".
+    #[pyo3(get)]
+    score: f64,
+    /// Spread of the per-sample poses with samples > 1 (translation_sd_mm, rotation_sd_deg,
+    /// scale_sd_rel), else None.
+    #[pyo3(get)]
+    spread: Py<PyAny>,
+    /// Seconds per stage, the columns of `recon infer`'s timing table.
+    #[pyo3(get)]
+    stage_seconds: Py<PyAny>,
+    /// The mesh in the camera frame, or None when the decoder produced none.
+    #[pyo3(get)]
+    mesh: Option<Py<Mesh>>,
+    /// The Gaussians in the camera frame, or None.
+    #[pyo3(get)]
+    gaussians: Option<Py<Gaussians>>,
+    /// Everything pose.json holds except the files (selection, views, candidates, run, notes).
+    #[pyo3(get)]
+    details: Py<PyAny>,
+}
+
+impl Object {
+    fn new(py: Python<'_>, o: ObjectResult) -> PyResult<Self> {
+        let p = &o.pose_camera;
+        let row = |i: usize| -> [f64; 4] {
+            let r = p.rotation[i];
+            [r[0] as f64, r[1] as f64, r[2] as f64, p.translation[i] as f64]
+        };
+        let pose = rows(py, vec![row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]])?;
+        let st = recon::engine::stage_seconds(&o);
+        let stage = PyDict::new(py);
+        for (k, v) in recon::engine::STAGE_COLUMNS.iter().zip(st) {
+            stage.set_item(k, v)?;
+        }
+        let details = serde_json::json!({
+            "selection": o.selection, "views": o.views, "candidates": o.candidates,
+            "occupied_voxels": o.occupied_voxels, "faces_decoded": o.faces_decoded,
+            "samples": o.samples, "run": o.metadata, "notes": o.notes,
+        });
+        Ok(Object {
+            id: o.id,
+            label: o.label.clone(),
+            pose: pose.unbind(),
+            scale: p.scale as f64,
+            score: o.selection.score_m,
+            spread: to_python(py, &o.uncertainty)?.unbind(),
+            stage_seconds: stage.into_any().unbind(),
+            details: to_python(py, &details)?.unbind(),
+            mesh: o.mesh_camera.map(|m| Mesh::new(py, m).and_then(|m| Py::new(py, m))).transpose()?,
+            gaussians: o.gaussians_camera.map(|g| Gaussians::new(py, g).and_then(|g| Py::new(py, g))).transpose()?,
+        })
+    }
+
+    fn mesh_or_err(&self, py: Python<'_>) -> PyResult<recon::mesh::Mesh> {
+        match &self.mesh {
+            Some(m) => m.get().to_recon(py),
+            None => Err(input(&self.label, "no mesh was decoded for this object")),
+        }
+    }
+}
+
+#[pymethods]
+impl Object {
+    /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb`.
+    fn to_glb(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        let m = self.mesh_or_err(py)?;
+        let opts = recon::export::GlbOptions { axes: recon::export::Axes::ZUp, vertex_colors: true };
+        py.detach(|| recon::export::save_glb(&m, &path, &opts)).py()
+    }
+
+    /// Write the mesh as PLY, exactly as `recon infer` writes `<object>/mesh.ply`.
+    fn to_ply(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        let m = self.mesh_or_err(py)?;
+        let opts = recon::export::PlyOptions { axes: recon::export::Axes::ZUp, normals: true, vertex_colors: true };
+        py.detach(|| recon::export::save_mesh_ply(&m, &path, &opts)).py()
+    }
+
+    /// Write the Gaussians as a 3DGS splat PLY, as `recon infer` writes `<object>/gaussians.ply`.
+    fn gaussians_to_ply(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        let g = match &self.gaussians {
+            Some(g) => g.get().to_recon(py)?,
+            None => return Err(input(&self.label, "no Gaussians were decoded for this object")),
+        };
+        py.detach(|| recon::export::save_splat_ply(&g, &path, recon::export::Axes::ZUp)).py()
+    }
+
+    /// The mesh as a `trimesh.Trimesh` (vertex colours as RGBA uint8); needs trimesh.
+    fn to_trimesh<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let tm = py
+            .import("trimesh")
+            .map_err(|_| pyo3::exceptions::PyImportError::new_err("Object.to_trimesh needs trimesh (pip install trimesh)"))?;
+        let Some(m) = &self.mesh else { return Err(input(&self.label, "no mesh was decoded for this object")) };
+        let m = m.get();
+        let kw = PyDict::new(py);
+        kw.set_item("vertices", m.vertices.bind(py))?;
+        kw.set_item("faces", m.faces.bind(py))?;
+        kw.set_item("process", false)?;
+        let colors = m.colors(py)?;
+        if !colors.is_none() {
+            let np = py.import("numpy")?;
+            let rgb = np
+                .call_method1("clip", (colors.call_method1("__mul__", (255.0,))?.call_method0("round")?, 0, 255))?
+                .call_method1("astype", ("uint8",))?;
+            let n: usize = rgb.len()?;
+            let alpha = np.call_method1("full", ((n, 1), 255u8, "uint8"))?;
+            kw.set_item("vertex_colors", np.call_method1("hstack", ((rgb, alpha),))?)?;
+        }
+        tm.getattr("Trimesh")?.call((), Some(&kw))
+    }
+
+    fn __repr__(&self) -> String {
+        format!("recon.Object({}, scale={:.4} m, score={:.4} m)", self.label, self.scale, self.score)
+    }
+}

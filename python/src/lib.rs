@@ -1,0 +1,40 @@
+//! `recon._recon`: the Python extension module of recon. Every function here calls the
+//! library function its CLI command calls (`recon infer` → [`recon::engine::Engine`] and
+//! [`recon::engine::write_outputs`], `recon synth` → [`recon::synth::generate`], …), with
+//! numpy arrays in and out and the GIL released while recon computes. The pure-Python
+//! package around it (`python/recon/`) adds `recon.ray` and the type stubs.
+
+use pyo3::prelude::*;
+
+mod convert;
+mod engine;
+mod errors;
+mod tools;
+
+#[pymodule]
+fn _recon(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("ReconError", py.get_type::<errors::ReconError>())?;
+    m.add("InputError", py.get_type::<errors::InputError>())?;
+    m.add("WeightsError", py.get_type::<errors::WeightsError>())?;
+    m.add("ConfigError", py.get_type::<errors::ConfigError>())?;
+    m.add_class::<engine::Engine>()?;
+    m.add_class::<engine::Object>()?;
+    m.add_class::<engine::Mesh>()?;
+    m.add_class::<engine::Gaussians>()?;
+    m.add_function(wrap_pyfunction!(tools::load_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::load_masks, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::scene, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::synth, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::synth_begin, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::synth_plan, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::synth_shard, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::synth_finish, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::eval, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::audit_depth, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::dataset_frames, m)?)?;
+    m.add("OUTPUT_MARKER", recon::engine::MARKER)?;
+    m.add("STAGE_COLUMNS", recon::engine::STAGE_COLUMNS.to_vec())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,464 @@
+//! The other commands as functions: `load_frame` (the frame discovery of `recon infer`),
+//! `scene` (`recon scene`), `synth` (`recon synth`, also split into shards for
+//! `recon.ray.synth`), `eval` (`recon eval`), `audit_depth` (`recon audit depth`) and
+//! `dataset_frames` (the frames of a BOP or YCB-Video dataset, for `recon.ray`). Each calls
+//! the library functions its command calls and returns the report as a dict.
+
+use crate::convert::{from_python, rows, to_python};
+use crate::errors::{config, input, IntoPy};
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use recon::dataset::{FrameOptions, Intrinsics, RgbdFrame};
+use recon::sensor::SensorModel;
+use recon::synth::SynthOptions;
+use std::path::PathBuf;
+
+/// `--depth`, `--intrinsics` (a 3×3 K, `[fx, fy, cx, cy]`, or a JSON/MAT/YAML file) and
+/// `--depth-scale` of `recon infer`.
+pub fn frame_options(depth: Option<PathBuf>, intrinsics: Option<&Bound<'_, PyAny>>, depth_scale: Option<f64>) -> PyResult<FrameOptions> {
+    let mut fo = FrameOptions { depth, depth_scale_m: depth_scale, ..Default::default() };
+    if let Some(k) = intrinsics {
+        if let Ok(p) = k.extract::<PathBuf>() {
+            fo.intrinsics_file = Some(p);
+        } else {
+            let np = k.py().import("numpy")?;
+            let flat: Vec<f64> =
+                np.call_method1("ravel", (np.call_method1("asarray", (k, "float64"))?,))?.call_method0("tolist")?.extract()?;
+            fo.intrinsics = Some(match flat.len() {
+                4 => Intrinsics::new(flat[0], flat[1], flat[2], flat[3]).py()?,
+                9 => Intrinsics::from_k_row_major(&flat, "intrinsics").py()?,
+                n => return Err(input("intrinsics", format!("expected a 3×3 K, [fx, fy, cx, cy] or a file; got {n} numbers"))),
+            });
+        }
+    }
+    Ok(fo)
+}
+
+/// A frame as `recon infer --rgbd` finds it: colour, metric depth and intrinsics.
+#[pyfunction]
+#[pyo3(signature = (path, *, depth=None, intrinsics=None, depth_scale=None))]
+pub fn load_frame<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    depth: Option<PathBuf>,
+    intrinsics: Option<&Bound<'py, PyAny>>,
+    depth_scale: Option<f64>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let fo = frame_options(depth, intrinsics, depth_scale)?;
+    let f = py.detach(|| RgbdFrame::open(&path, &fo)).py()?;
+    let d = PyDict::new(py);
+    let (w, h) = (f.width, f.height);
+    d.set_item("rgb", PyArray1::from_vec(py, f.rgb).reshape([h, w, 3])?)?;
+    d.set_item("depth", PyArray1::from_vec(py, f.depth_m).reshape([h, w])?)?;
+    let k = f.intrinsics;
+    d.set_item("K", rows(py, vec![[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])?)?;
+    d.set_item("rgb_path", f.rgb_path)?;
+    d.set_item("depth_path", f.depth_path)?;
+    d.set_item("intrinsics_source", f.intrinsics_source)?;
+    d.set_item("depth_scale", f.depth_scale_m)?;
+    Ok(d)
+}
+
+/// Masks as `recon infer --masks` reads them: one instance-id PNG (`objects` selects ids)
+/// or several binary mask files. Returns `{"label", "id", "mask"}` (H×W bool) per object,
+/// and the skipped ones with their reasons.
+#[pyfunction]
+#[pyo3(signature = (paths, objects=None))]
+pub fn load_masks<'py>(py: Python<'py>, paths: &Bound<'py, PyAny>, objects: Option<Vec<u32>>) -> PyResult<Bound<'py, PyDict>> {
+    let paths: Vec<PathBuf> = match paths.extract::<PathBuf>() {
+        Ok(p) => vec![p],
+        Err(_) => paths.extract()?,
+    };
+    let (masks, skipped) = py.detach(|| recon::dataset::load_masks(&paths, objects.as_deref())).py()?;
+    let list = pyo3::types::PyList::empty(py);
+    for m in masks {
+        let d = PyDict::new(py);
+        d.set_item("label", &m.label)?;
+        d.set_item("id", m.id)?;
+        d.set_item("mask", PyArray1::from_vec(py, m.mask).reshape([m.height, m.width])?)?;
+        list.append(d)?;
+    }
+    let out = PyDict::new(py);
+    out.set_item("objects", list)?;
+    let sk: Vec<(String, String)> = skipped.iter().map(|s| (s.label.clone(), s.reason.to_string())).collect();
+    out.set_item("skipped", sk)?;
+    Ok(out)
+}
+
+fn sensor(path: Option<PathBuf>) -> PyResult<SensorModel> {
+    match path {
+        Some(p) => SensorModel::load(&p).py(),
+        None => Ok(SensorModel::ideal()),
+    }
+}
+
+fn synth_options(
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor_path: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<SynthOptions> {
+    let opts = SynthOptions { scenes, views, seed, width, height, parts, sensor: sensor(sensor_path)? };
+    opts.validate().py()?;
+    Ok(opts)
+}
+
+/// `recon synth`: a BOP-format dataset; returns the summary.
+#[pyfunction]
+#[pyo3(signature = (out, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
+#[allow(clippy::too_many_arguments)]
+pub fn synth<'py>(
+    py: Python<'py>,
+    out: PathBuf,
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    let summary = py.detach(|| recon::synth::generate(&out, &opts, &|| {})).py()?;
+    to_python(py, &summary)
+}
+
+/// Split synth, step 1: checks `out` and makes the staging folder (returned).
+#[pyfunction]
+#[pyo3(signature = (out, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
+#[allow(clippy::too_many_arguments)]
+pub fn synth_begin(
+    py: Python<'_>,
+    out: PathBuf,
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<PathBuf> {
+    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    py.detach(|| recon::synth::begin(&out, &opts)).py()
+}
+
+/// Split synth, step 2: the first object id of every scene.
+#[pyfunction]
+#[pyo3(signature = (*, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
+#[allow(clippy::too_many_arguments)]
+pub fn synth_plan(
+    py: Python<'_>,
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<Vec<u32>> {
+    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    py.detach(|| recon::synth::plan(&opts)).py()
+}
+
+/// Split synth, step 3 (one worker): scenes `start..end` into the staging folder; returns
+/// the shard record for [`synth_finish`].
+#[pyfunction]
+#[pyo3(signature = (staging, start, end, first_ids, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
+#[allow(clippy::too_many_arguments)]
+pub fn synth_shard<'py>(
+    py: Python<'py>,
+    staging: PathBuf,
+    start: usize,
+    end: usize,
+    first_ids: Vec<u32>,
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    let shard = py.detach(|| recon::synth::write_shard(&staging, &opts, start..end, &first_ids)).py()?;
+    to_python(py, &shard)
+}
+
+/// Split synth, step 4: merges the shard records and moves the dataset into place.
+#[pyfunction]
+#[pyo3(signature = (staging, out, shards, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
+#[allow(clippy::too_many_arguments)]
+pub fn synth_finish<'py>(
+    py: Python<'py>,
+    staging: PathBuf,
+    out: PathBuf,
+    shards: Vec<Bound<'py, PyAny>>,
+    scenes: usize,
+    views: usize,
+    seed: u64,
+    sensor: Option<PathBuf>,
+    width: usize,
+    height: usize,
+    parts: bool,
+) -> PyResult<Bound<'py, PyAny>> {
+    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    let shards: Vec<recon::synth::Shard> =
+        shards.iter().map(|s| serde_json::from_value(from_python(s)?).map_err(|e| input("synth shard", e))).collect::<PyResult<_>>()?;
+    let summary = py.detach(|| recon::synth::finish(&staging, &out, &opts, &shards)).py()?;
+    to_python(py, &summary)
+}
+
+/// `recon scene`: a settled, simulator-ready scene from a `recon infer` output folder, a
+/// scene file or a BOP scene folder. Returns the written files and per-object physics.
+#[pyfunction]
+#[pyo3(signature = (objects, frame=None, out=None, collision="convex", *, view=None, depth=None, depth_scale=None, plane_threshold_mm=10.0, materials=None, settle_time=5.0, seed=0))]
+#[allow(clippy::too_many_arguments)]
+pub fn scene<'py>(
+    py: Python<'py>,
+    objects: PathBuf,
+    frame: Option<PathBuf>,
+    out: Option<PathBuf>,
+    collision: &str,
+    view: Option<u32>,
+    depth: Option<PathBuf>,
+    depth_scale: Option<f64>,
+    plane_threshold_mm: f64,
+    materials: Option<PathBuf>,
+    settle_time: f64,
+    seed: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    use recon::sim::{build_scene, CollisionMethod, MaterialTable, PlaneFitOptions, SceneFile, SceneOptions};
+    let out = out.ok_or_else(|| config("out", "the output folder is required"))?;
+    let collision = match collision {
+        "convex" => CollisionMethod::Convex,
+        "hull" => CollisionMethod::Hull,
+        "primitive" => CollisionMethod::Primitive,
+        c => return Err(config("collision", format!("`{c}`: expected convex, hull or primitive"))),
+    };
+    let result = py.detach(|| -> recon::Result<serde_json::Value> {
+        let table = match &materials {
+            Some(p) => MaterialTable::load(p)?,
+            None => MaterialTable::builtin(),
+        };
+        let plane_opts = PlaneFitOptions { threshold_m: plane_threshold_mm * 1e-3, seed, ..Default::default() };
+        let input = objects.as_path();
+        let mut notes = Vec::new();
+        let (scene, file) = if input.is_dir() && input.join("scene_gt.json").is_file() {
+            let (scene, _) = recon::sim::scene_from_bop(input, view, &table, &plane_opts)?;
+            (scene, input.join("scene_gt.json").display().to_string())
+        } else if input.is_dir() {
+            let marker = input.join(recon::engine::MARKER);
+            if !marker.is_file() {
+                return Err(recon::Error::input(
+                    input.display().to_string(),
+                    format!("neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)", recon::engine::MARKER),
+                ));
+            }
+            let color = frame.clone().or_else(|| recon::sim::infer_frame(input)).ok_or_else(|| {
+                recon::Error::input(input.display().to_string(), "the colour image recorded in its pose.json is not found; pass frame=")
+            })?;
+            let f = RgbdFrame::open(&color, &FrameOptions { depth: depth.clone(), depth_scale_m: depth_scale, ..Default::default() })?;
+            let (scene, n) = recon::sim::scene_from_infer_output(input, &f, &table, &plane_opts)?;
+            notes = n;
+            (scene, marker.display().to_string())
+        } else {
+            (SceneFile::load(input)?, input.display().to_string())
+        };
+        let mut opts = SceneOptions { collision, ..Default::default() };
+        opts.collision_opts.seed = seed;
+        opts.settle.max_time_s = settle_time;
+        let mut sim = build_scene(&scene, &table, &opts, &file)?;
+        let written = recon::sim::write_outputs(&mut sim, &out)?;
+        Ok(serde_json::json!({
+            "out": out, "files": written, "objects": sim.summaries(), "notes": notes,
+            "settle": {"at_rest": sim.settle.at_rest, "simulated_s": sim.settle.simulated_s, "steps": sim.settle.steps},
+        }))
+    });
+    to_python(py, &result.py()?)
+}
+
+/// `recon eval`: scores `predictions` (a file), or runs `method` ("observed", or
+/// "recgen" with `engine`) over the dataset first. Returns the report.
+#[pyfunction]
+#[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull", f1_tau=0.05, scenes=None, occlusion=None, surface_samples=10_000, surface_seed=0, all_frames=false, two_view=false, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000))]
+#[allow(clippy::too_many_arguments)]
+pub fn eval<'py>(
+    py: Python<'py>,
+    dataset: PathBuf,
+    predictions: Option<PathBuf>,
+    method: Option<&str>,
+    engine: Option<&Bound<'py, crate::engine::Engine>>,
+    out: Option<PathBuf>,
+    shape: &str,
+    f1_tau: f64,
+    scenes: Option<Vec<String>>,
+    occlusion: Option<[f64; 2]>,
+    surface_samples: usize,
+    surface_seed: u64,
+    all_frames: bool,
+    two_view: bool,
+    samples: usize,
+    select: &str,
+    pose_fit: &str,
+    shape_fit: &str,
+    seed: u64,
+    max_faces: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    use recon::engine::{begin_output, finish_output};
+    use recon::eval::{evaluate, observe_dataset, read_predictions, EvalOptions, ObservedOptions, Shape};
+    if !(f1_tau > 0.0 && f1_tau <= 1.0) {
+        return Err(config("f1_tau", format!("{f1_tau} must be a fraction of the diameter in (0, 1]")));
+    }
+    if surface_samples == 0 {
+        return Err(config("surface_samples", "must be positive"));
+    }
+    let shape = match shape {
+        "hull" => Shape::Hull,
+        "box" => Shape::Box,
+        s => return Err(config("shape", format!("`{s}`: expected hull or box"))),
+    };
+    let opts = EvalOptions {
+        n_samples: surface_samples,
+        seed: surface_seed,
+        f1_tau_rel: f1_tau,
+        all_frames: all_frames || method.is_some(),
+        occlusion,
+        ..Default::default()
+    };
+    let io = crate::engine::infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, None, None, 0.02)?;
+    let engine = match (method, engine) {
+        (Some("recgen"), None) => return Err(config("engine", "method=\"recgen\" needs engine=recon.Engine(...)")),
+        (Some("recgen"), Some(e)) => Some(e.get().shared()),
+        (Some("observed"), _) | (None, _) => None,
+        (Some(m), _) => return Err(config("method", format!("`{m}`: expected observed or recgen"))),
+    };
+    if method.is_none() && predictions.is_none() {
+        return Err(config("predictions", "give predictions=FILE or method=\"observed\"|\"recgen\""));
+    }
+    let method = method.map(str::to_string);
+    let report = py.detach(move || -> recon::Result<serde_json::Value> {
+        let mut ds = recon::dataset::load_dataset(&dataset)?;
+        if let Some(s) = &scenes {
+            ds.retain_scenes(s)?;
+        }
+        let staging = out.as_ref().map(|o| begin_output(o)).transpose()?;
+        let (report, index) = match (method.as_deref(), &predictions) {
+            (Some(m), _) => {
+                let dir =
+                    staging.clone().ok_or_else(|| recon::Error::input("out", format!("method={m} writes its predictions; give out=")))?;
+                let outp = out.clone().unwrap_or_default();
+                let (pf, index) = if m == "observed" {
+                    let run = observe_dataset(&ds, &ObservedOptions { shape, ..Default::default() })?;
+                    (run.write(&dir)?, serde_json::json!({"kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped}))
+                } else {
+                    let (engine, pool) = engine.clone().ok_or_else(|| recon::Error::msg("no engine"))?;
+                    let go = || recon::eval::recgen_dataset(&ds, &engine, &io, two_view, occlusion, &|_, _| {});
+                    let run = match pool {
+                        Some(p) => p.install(go)?,
+                        None => go()?,
+                    };
+                    let idx = serde_json::json!({"kind": "recon eval --method recgen", "two_view": two_view, "skipped": run.skipped,
+                        "seconds_model": run.seconds_model, "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>()});
+                    (run.write(&dir)?, idx)
+                };
+                let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
+                report.predictions = outp.join("predictions.json").display().to_string();
+                (report, index)
+            }
+            (None, Some(p)) => {
+                let preds = read_predictions(p)?;
+                (evaluate(&ds, &preds, p, &opts)?, serde_json::json!({"kind": "recon eval --predictions"}))
+            }
+            (None, None) => unreachable!("checked above"),
+        };
+        if let (Some(o), Some(dir)) = (&out, &staging) {
+            report.write_files(dir)?;
+            finish_output(dir, o, &index)?;
+        }
+        // to_value keeps every f64 as it is (parsing report.json's text back could move a
+        // float by one ulp).
+        serde_json::to_value(&report).map_err(|e| recon::Error::msg(e.to_string()))
+    });
+    to_python(py, &report.py()?)
+}
+
+/// `recon audit depth`: measured vs simulated depth of a dataset; returns the report
+/// (and writes the CLI's files when `out` is given).
+#[pyfunction]
+#[pyo3(signature = (dataset, *, sensor=None, out=None, max_pixels=3000, frames=None, alpha=0.01, max_findings=8, robust=true, interactions=true, max_folds=20, seed=0))]
+#[allow(clippy::too_many_arguments)]
+pub fn audit_depth<'py>(
+    py: Python<'py>,
+    dataset: PathBuf,
+    sensor: Option<PathBuf>,
+    out: Option<PathBuf>,
+    max_pixels: usize,
+    frames: Option<usize>,
+    alpha: f64,
+    max_findings: usize,
+    robust: bool,
+    interactions: bool,
+    max_folds: usize,
+    seed: u64,
+) -> PyResult<Bound<'py, PyAny>> {
+    use recon::audit::{collect, residual_table, DepthOptions, SearchOptions};
+    if !(alpha > 0.0 && alpha < 1.0) {
+        return Err(config("alpha", format!("must be in (0, 1), got {alpha}")));
+    }
+    if !(3..=64).contains(&max_folds) {
+        return Err(config("max_folds", format!("must be in 3..=64, got {max_folds}")));
+    }
+    if max_pixels == 0 {
+        return Err(config("max_pixels", "must be ≥ 1"));
+    }
+    let model = self::sensor(sensor)?;
+    let opts = SearchOptions { alpha, max_findings, robust, interactions, max_folds, seed, ..Default::default() };
+    let report = py.detach(|| -> recon::Result<serde_json::Value> {
+        let dopts = DepthOptions { max_pixels_per_frame: max_pixels, seed, max_frames: frames };
+        let col = collect(&dataset, &model, &dopts)?;
+        let mut table = residual_table(&model, &col.pixels, &dataset.display().to_string());
+        table.unit_names = table
+            .unit_names
+            .iter()
+            .map(|s| s.parse::<usize>().ok().and_then(|i| col.frame_names.get(i).cloned()).unwrap_or_else(|| s.clone()))
+            .collect();
+        let mut audit = recon::audit::audit_depth(&table, &opts, &model)?;
+        if let Some(o) = &out {
+            recon::audit::write_outputs(&mut audit, o, None)?;
+        }
+        serde_json::to_value(&audit.report).map_err(|e| recon::Error::msg(e.to_string()))
+    });
+    to_python(py, &report.py()?)
+}
+
+/// The frames of a BOP dataset (root or split) or a YCB-Video folder, each with what
+/// `recon infer` is given for it: `frame` (`<scene>/<NNNNNN>`, also the output folder
+/// below `out`), `rgb`, and `masks` (BOP: every GT instance's `mask_visib` file; YCB-Video:
+/// the `-label.png` instance map). Depth and intrinsics are found beside `rgb`.
+#[pyfunction]
+pub fn dataset_frames<'py>(py: Python<'py>, source: PathBuf) -> PyResult<Bound<'py, PyAny>> {
+    let frames = py.detach(|| -> recon::Result<Vec<serde_json::Value>> {
+        let ds = recon::dataset::load_dataset(&source)?;
+        Ok(ds
+            .frames
+            .iter()
+            .map(|f| {
+                let masks: Vec<PathBuf> = match ds.layout {
+                    recon::dataset::Layout::Ycbv => vec![ds.root.join(&f.scene).join(format!("{:06}-label.png", f.frame))],
+                    recon::dataset::Layout::Bop => (0..f.gt.len())
+                        .map(|g| ds.root.join(&f.scene).join("mask_visib").join(format!("{:06}_{g:06}.png", f.frame)))
+                        .collect(),
+                };
+                serde_json::json!({
+                    "frame": format!("{}/{:06}", f.scene, f.frame),
+                    "rgb": ds.rgb_path(f), "masks": masks,
+                })
+            })
+            .collect())
+    });
+    to_python(py, &frames.py()?)
+}

@@ -1,0 +1,175 @@
+"""The Python API: arrays in and out, errors, threads, and the same results as the CLI."""
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import recon
+from conftest import INFER, assert_same_output, cli_infer, run_cli
+
+
+def frame0(ds):
+    return recon.dataset_frames(ds)[0]
+
+
+def test_error_hierarchy_and_messages(tmp_path):
+    for cls in (recon.InputError, recon.WeightsError, recon.ConfigError):
+        assert issubclass(cls, recon.ReconError) and issubclass(cls, Exception)
+    with pytest.raises(recon.WeightsError, match="/no/such/weights"):
+        recon.Engine(weights="/no/such/weights")
+    with pytest.raises(recon.ConfigError, match="dtype"):
+        recon.Engine(dtype="f8")
+    (tmp_path / "a-color.png").write_bytes(b"not a png")
+    with pytest.raises(recon.InputError, match="a-color.png"):
+        recon.load_frame(tmp_path / "a-color.png")
+
+
+def test_bad_arrays_are_input_and_config_errors(engine):
+    rgb = np.zeros((12, 16, 3), np.uint8)
+    depth = np.ones((12, 16), np.float32)
+    K = np.array([[100.0, 0, 8], [0, 100, 6], [0, 0, 1]])
+    ids = np.zeros((12, 16), np.uint16)
+    with pytest.raises(recon.InputError, match="uint8"):
+        engine.reconstruct(rgb.astype(np.float32), depth, K, ids)
+    with pytest.raises(recon.InputError, match="registered"):
+        engine.reconstruct(rgb, depth[:5], K, ids)
+    with pytest.raises(recon.InputError, match="3×3"):
+        engine.reconstruct(rgb, depth, K[:2], ids)
+    with pytest.raises(recon.ConfigError, match="cross"):
+        engine.reconstruct(rgb, depth, K, ids, select="best")
+    with pytest.raises(recon.ConfigError, match="samples"):
+        engine.reconstruct(rgb, depth, K, ids, samples=0)
+    with pytest.raises(recon.ConfigError, match="depth_scale"):
+        engine.reconstruct(rgb, depth, K, ids, depth_scale=0.001)
+    # No object in the mask: nothing to reconstruct, not an error.
+    assert engine.reconstruct(rgb, depth, K, ids) == []
+
+
+def test_load_frame_follows_the_bop_layout(synth_ds):
+    f = frame0(synth_ds)
+    fr = recon.load_frame(f["rgb"])
+    assert fr["rgb"].shape == (120, 160, 3) and fr["rgb"].dtype == np.uint8
+    assert fr["depth"].shape == (120, 160) and fr["depth"].dtype == np.float32
+    cam = json.loads((Path(f["rgb"]).parents[1] / "scene_camera.json").read_text())["0"]
+    assert np.allclose(fr["K"].ravel(), cam["cam_K"])
+    assert fr["depth_scale"] == pytest.approx(cam["depth_scale"] / 1000)
+    assert "scene_camera.json" in fr["intrinsics_source"]
+    assert np.nanmax(fr["depth"]) > 0.1
+
+
+def test_arrays_give_the_cli_meshes_and_poses(synth_ds, engine, recon_cli, tmp_path):
+    """reconstruct() on load_frame's arrays = `recon infer` on the files, bit for bit."""
+    f = frame0(synth_ds)
+    cli_infer(recon_cli, f, tmp_path / "cli")
+    fr = recon.load_frame(f["rgb"])
+    masks = frame_masks(f)
+    objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
+    index = json.loads((tmp_path / "cli" / recon.OUTPUT_MARKER).read_text())
+    assert len(objs) == len(index["objects"]) > 0
+    for o, w in zip(objs, index["objects"]):
+        pose = json.loads((tmp_path / "cli" / Path(w["pose"]).parent.name / "pose.json").read_text())
+        assert np.array_equal(o.pose[:3, :3], np.array(pose["rotation"], np.float32).astype(np.float64))
+        assert np.array_equal(o.pose[:3, 3], np.array(pose["translation_m"], np.float32).astype(np.float64))
+        assert o.scale == np.float32(pose["scale_m"])
+        assert o.pose[3].tolist() == [0, 0, 0, 1]
+        assert o.score == pose["selection"]["score_m"]
+        assert set(o.stage_seconds) == set(recon.STAGE_COLUMNS) and o.stage_seconds["total"] > 0
+        assert o.mesh.vertices.dtype == np.float32 and o.mesh.vertices.shape[1] == 3
+        assert o.mesh.faces.dtype == np.int32 and o.mesh.faces.shape == (pose["faces"], 3)
+        assert o.mesh.colors.shape == o.mesh.vertices.shape and 0 <= o.mesh.colors.min() <= o.mesh.colors.max() <= 1
+        assert len(o.gaussians) == o.gaussians.means.shape[0] == o.gaussians.opacities.shape[0] > 0
+        assert o.gaussians.rotations.shape[1] == 4
+        if w["mesh_ply"]:
+            o.to_ply(tmp_path / "m.ply")
+            o.to_glb(tmp_path / "m.glb")
+            o.gaussians_to_ply(tmp_path / "g.ply")
+            d = tmp_path / "cli" / Path(w["pose"]).parent.name
+            assert (tmp_path / "m.ply").read_bytes() == (d / "mesh.ply").read_bytes()
+            assert (tmp_path / "m.glb").read_bytes() == (d / "mesh.glb").read_bytes()
+            assert (tmp_path / "g.ply").read_bytes() == (d / "gaussians.ply").read_bytes()
+
+
+def frame_masks(f):
+    """The frame's binary mask files as H×W booleans, read as `recon infer --masks` reads them."""
+    got = recon.load_masks(f["masks"])
+    assert len(f["masks"]) > 1 and not got["skipped"]
+    return [m["mask"] for m in got["objects"]]
+
+
+def test_reconstruct_files_writes_the_cli_folder(synth_ds, engine, recon_cli, tmp_path):
+    f = frame0(synth_ds)
+    cli_infer(recon_cli, f, tmp_path / "cli")
+    s = engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "py", **INFER)
+    assert Path(s["out"]) == tmp_path / "py" and len(s["objects"]) > 0
+    assert_same_output(tmp_path / "py", tmp_path / "cli")
+
+
+def test_one_engine_serves_several_threads(synth_ds, engine):
+    f = frame0(synth_ds)
+    fr = recon.load_frame(f["rgb"])
+    masks = frame_masks(f)
+    ref = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
+    got = [None] * 3
+
+    def work(i):
+        got[i] = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
+
+    ts = [threading.Thread(target=work, args=(i,)) for i in range(3)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    for g in got:
+        assert [o.pose.tolist() for o in g] == [o.pose.tolist() for o in ref]
+        assert all(np.array_equal(a.mesh.vertices, b.mesh.vertices) for a, b in zip(g, ref))
+
+
+def test_progress_events_and_trimesh(synth_ds, engine):
+    f = frame0(synth_ds)
+    fr = recon.load_frame(f["rgb"])
+    events = []
+    objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], frame_masks(f), progress=events.append, **INFER)
+    assert objs
+    kinds = {e["event"] for e in events}
+    assert {"object", "stage", "object_done"} <= kinds
+    trimesh = pytest.importorskip("trimesh")
+    if objs[0].mesh is not None:
+        tm = objs[0].to_trimesh()
+        assert isinstance(tm, trimesh.Trimesh)
+        assert np.array_equal(np.asarray(tm.vertices, np.float32), objs[0].mesh.vertices)
+        assert tm.visual.vertex_colors.shape == (len(objs[0].mesh.vertices), 4)
+
+
+def test_synth_eval_and_audit_match_the_cli(synth_ds, recon_cli, tmp_path):
+    run_cli(recon_cli, "synth", "--out", tmp_path / "cli", "--scenes", 3, "--seed", 3, "--width", 160, "--height", 120)
+    a = sorted(p.relative_to(synth_ds) for p in synth_ds.rglob("*") if p.is_file())
+    b = sorted(p.relative_to(tmp_path / "cli") for p in (tmp_path / "cli").rglob("*") if p.is_file())
+    assert a == b
+    for p in a:
+        assert (synth_ds / p).read_bytes() == (tmp_path / "cli" / p).read_bytes(), p
+
+    rep = recon.eval(synth_ds, method="observed", out=tmp_path / "ev")
+    run_cli(recon_cli, "eval", "--dataset", synth_ds, "--method", "observed", "--out", tmp_path / "ev_cli")
+    cli_rep = json.loads((tmp_path / "ev_cli" / "report.json").read_text())
+    assert rep["objects"] and [o for o in rep["objects"]] == cli_rep["objects"]
+    with pytest.raises(recon.ConfigError, match="engine"):
+        recon.eval(synth_ds, method="recgen", out=tmp_path / "ev2")
+
+    aud = recon.audit_depth(synth_ds, max_pixels=200, out=tmp_path / "au")
+    assert isinstance(aud, dict) and (tmp_path / "au" / "report.json").is_file()
+    with pytest.raises(recon.ConfigError, match="alpha"):
+        recon.audit_depth(synth_ds, alpha=2.0)
+
+
+def test_scene_settles_an_infer_output(synth_ds, engine, tmp_path):
+    f = frame0(synth_ds)
+    engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "inf", **INFER)
+    s = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim", collision="hull")
+    assert Path(s["out"]) == tmp_path / "sim" and s["objects"]
+    assert all("mass_kg" in json.dumps(o) for o in s["objects"])
+    assert (tmp_path / "sim" / s["files"]["urdf_scene"]).is_file()
+    with pytest.raises(recon.ConfigError, match="collision"):
+        recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim2", collision="spheres")

@@ -1,0 +1,92 @@
+"""recon.ray on a local Ray cluster the test starts itself (2 CPUs)."""
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+import recon
+from conftest import INFER, assert_same_output, cli_infer
+
+if os.environ.get("RECON_REQUIRE_PYTHON_TESTS") == "1":  # CI: a missing Ray fails
+    import pyarrow.parquet as pq
+    import ray
+else:
+    ray = pytest.importorskip("ray")
+    pq = pytest.importorskip("pyarrow.parquet")
+import recon.ray as rr  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def broken_ds(synth_ds, tmp_path_factory):
+    """The synth dataset with frame 1's colour image made unreadable."""
+    ds = tmp_path_factory.mktemp("broken") / "ds"
+    shutil.copytree(synth_ds, ds)
+    frames = recon.dataset_frames(ds)
+    Path(frames[1]["rgb"]).write_bytes(b"this is not a PNG")
+    return ds
+
+
+def test_dataset_run_matches_cli_records_failure_and_resumes(cluster, broken_ds, recon_cli, tmp_path):
+    frames = recon.dataset_frames(broken_ds)
+    bad = frames[1]["frame"]
+    out = tmp_path / "out"
+    s = rr.reconstruct_dataset(broken_ds, out, num_workers=2, **INFER)
+    assert (s["frames"], s["processed"], s["resumed"], s["failed"]) == (3, 3, 0, 1)
+    assert s["failed_frames"] == [bad]
+
+    # The results table has every frame; the failing one carries its error text.
+    t = pq.read_table(out / rr.RESULTS).to_pylist()
+    assert {r["frame"] for r in t} == {f["frame"] for f in frames}
+    (failed,) = [r for r in t if r["frame"] == bad]
+    assert failed["status"] == "failed" and "InputError" in failed["error"]
+    assert "rgb/000000.png" in failed["error"]
+    ok = [r for r in t if r["status"] == "ok"]
+    assert ok and all(len(r["pose"]) == 16 and r["pose"][-4:] == [0, 0, 0, 1] for r in ok)
+    assert all(r["seconds_total"] > 0 and r["score"] >= 0 for r in ok)
+
+    # Outputs identical to `recon infer` with the same seed on the same frames.
+    for f in frames:
+        if f["frame"] == bad:
+            assert not (out / bad / recon.OUTPUT_MARKER).exists()
+            continue
+        cli_infer(recon_cli, f, tmp_path / "cli" / f["frame"])
+        assert_same_output(out / f["frame"], tmp_path / "cli" / f["frame"])
+
+    # A second run redoes only the failed frame; finished folders are not touched.
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name != rr.RESULTS}
+    s2 = rr.reconstruct_dataset(broken_ds, out, num_workers=2, **INFER)
+    assert (s2["processed"], s2["resumed"], s2["failed"]) == (1, 2, 1)
+    assert stamps == {p: p.stat().st_mtime_ns for p in stamps}
+    t2 = pq.read_table(out / rr.RESULTS).to_pylist()
+    assert sorted((r["frame"], r["object"] or "") for r in t2) == sorted((r["frame"], r["object"] or "") for r in t)
+    key = lambda r: (r["frame"], r["object"] or "")
+    assert [r["pose"] for r in sorted(t2, key=key)] == [r["pose"] for r in sorted(t, key=key)]
+
+
+def test_frame_table_source(cluster, synth_ds, tmp_path):
+    frames = recon.dataset_frames(synth_ds)[:1]
+    table = [{"frame": "only", "rgb": f["rgb"], "masks": f["masks"]} for f in frames]
+    s = rr.reconstruct_dataset(table, tmp_path / "o", num_workers=1, **INFER)
+    assert (s["frames"], s["failed"]) == (1, 0)
+    assert (tmp_path / "o" / "only" / recon.OUTPUT_MARKER).is_file()
+    with pytest.raises(recon.InputError, match="masks"):
+        rr.frames_of([{"rgb": "x.png"}])
+
+
+def test_ray_synth_is_identical_to_one_process(cluster, synth_ds, tmp_path):
+    s = rr.synth(tmp_path / "ds", scenes=3, num_workers=2, scenes_per_task=1, seed=3, width=160, height=120)
+    assert s["scenes"] == 3
+    a = sorted(p.relative_to(synth_ds) for p in synth_ds.rglob("*") if p.is_file())
+    b = sorted(p.relative_to(tmp_path / "ds") for p in (tmp_path / "ds").rglob("*") if p.is_file())
+    assert a == b
+    for p in a:
+        assert (synth_ds / p).read_bytes() == (tmp_path / "ds" / p).read_bytes(), p
