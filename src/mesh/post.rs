@@ -93,7 +93,8 @@ pub fn mesh_quality(mesh: &Mesh) -> Option<MeshQuality> {
         let [a, b, c] = f.map(|i| mesh.vertices[i as usize].map(f64::from));
         crate::math::normalize(cross(sub(b, a), sub(c, a)))
     };
-    let mut edges: std::collections::HashMap<(u32, u32), Vec<usize>> = std::collections::HashMap::new();
+    // Ordered, so the sum (and the figure's last digits) is the same run to run.
+    let mut edges: std::collections::BTreeMap<(u32, u32), Vec<usize>> = std::collections::BTreeMap::new();
     for (k, f) in mesh.faces.iter().enumerate() {
         for (a, b) in [(f[0], f[1]), (f[1], f[2]), (f[2], f[0])] {
             edges.entry((a.min(b), a.max(b))).or_default().push(k);
