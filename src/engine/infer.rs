@@ -353,7 +353,6 @@ fn fit_shape(
     view_points: &[ViewPoints],
     opts: &InferOptions,
 ) -> Result<(Fitted, Vec<[i32; 3]>)> {
-    let t = Instant::now();
     let model = Grid::from_coords(coords, r);
     let surface = Surface::from_points(&model.outer_surface_points())?;
     let mut cands = Vec::new();
@@ -424,7 +423,6 @@ fn fit_shape(
     }
     let shell = solid.shell();
     report.shell_voxels = shell.count();
-    report.seconds = t.elapsed().as_secs_f64();
     Ok((Fitted { view, anchor, stretch, report }, shell.coords()))
 }
 

@@ -89,7 +89,6 @@ pub struct ShapeFitReport {
     pub dropped: usize,
     /// Voxels handed to stage 2 (the outer shell).
     pub shell_voxels: usize,
-    pub seconds: f64,
 }
 
 /// A dense `r³` occupancy grid, flat index `(i·r + j)·r + k`.
