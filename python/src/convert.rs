@@ -1,11 +1,15 @@
 //! Conversions between recon's values and Python's: JSON reports to dicts and back
 //! (floats exactly: Rust → Python goes through shortest round-trip text and Python's
-//! correctly rounded parser, Python → Rust reads the f64 itself), and numpy arrays.
+//! correctly rounded parser, Python → Rust reads the f64 itself), numpy arrays, and the
+//! frame-discovery arguments of `recon infer`.
 
+use crate::errors::{input, IntoPy};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
+use recon::dataset::{FrameOptions, Intrinsics};
 use serde_json::Value;
+use std::path::PathBuf;
 
 /// A serialisable report as a Python object (dicts, lists, floats, ints, strings).
 pub fn to_python<'py, T: serde::Serialize>(py: Python<'py>, v: &T) -> PyResult<Bound<'py, PyAny>> {
@@ -53,4 +57,25 @@ pub fn from_python(o: &Bound<'_, PyAny>) -> PyResult<Value> {
 pub fn rows<'py, T: numpy::Element, const K: usize>(py: Python<'py>, v: Vec<[T; K]>) -> PyResult<Bound<'py, PyAny>> {
     let n = v.len();
     Ok(PyArray1::from_vec(py, v.into_flattened()).reshape([n, K])?.into_any())
+}
+
+/// `--depth`, `--intrinsics` (a 3×3 K, `[fx, fy, cx, cy]`, or a JSON/MAT/YAML file) and
+/// `--depth-scale` of `recon infer`.
+pub fn frame_options(depth: Option<PathBuf>, intrinsics: Option<&Bound<'_, PyAny>>, depth_scale: Option<f64>) -> PyResult<FrameOptions> {
+    let mut fo = FrameOptions { depth, depth_scale_m: depth_scale, ..Default::default() };
+    if let Some(k) = intrinsics {
+        if let Ok(p) = k.extract::<PathBuf>() {
+            fo.intrinsics_file = Some(p);
+        } else {
+            let np = k.py().import("numpy")?;
+            let flat: Vec<f64> =
+                np.call_method1("ravel", (np.call_method1("asarray", (k, "float64"))?,))?.call_method0("tolist")?.extract()?;
+            fo.intrinsics = Some(match flat.len() {
+                4 => Intrinsics::new(flat[0], flat[1], flat[2], flat[3]).py()?,
+                9 => Intrinsics::from_k_row_major(&flat, "intrinsics").py()?,
+                n => return Err(input("intrinsics", format!("expected a 3×3 K, [fx, fy, cx, cy] or a file; got {n} numbers"))),
+            });
+        }
+    }
+    Ok(fo)
 }

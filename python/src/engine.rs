@@ -366,7 +366,7 @@ impl Engine {
             Ok(p) => vec![p],
             Err(_) => masks.extract()?,
         };
-        let fo = crate::tools::frame_options(depth, intrinsics, depth_scale)?;
+        let fo = crate::convert::frame_options(depth, intrinsics, depth_scale)?;
         let out = out.unwrap_or_else(|| {
             let stem = rgbd.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "frame".into());
             rgbd.with_file_name(format!("{stem}_recon"))

@@ -4,36 +4,15 @@
 //! `dataset_frames` (the frames of a BOP or YCB-Video dataset, for `recon.ray`). Each calls
 //! the library functions its command calls and returns the report as a dict.
 
-use crate::convert::{from_python, rows, to_python};
+use crate::convert::{frame_options, from_python, rows, to_python};
 use crate::errors::{config, input, IntoPy};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use recon::dataset::{FrameOptions, Intrinsics, RgbdFrame};
+use recon::dataset::{FrameOptions, RgbdFrame};
 use recon::sensor::SensorModel;
 use recon::synth::SynthOptions;
 use std::path::PathBuf;
-
-/// `--depth`, `--intrinsics` (a 3×3 K, `[fx, fy, cx, cy]`, or a JSON/MAT/YAML file) and
-/// `--depth-scale` of `recon infer`.
-pub fn frame_options(depth: Option<PathBuf>, intrinsics: Option<&Bound<'_, PyAny>>, depth_scale: Option<f64>) -> PyResult<FrameOptions> {
-    let mut fo = FrameOptions { depth, depth_scale_m: depth_scale, ..Default::default() };
-    if let Some(k) = intrinsics {
-        if let Ok(p) = k.extract::<PathBuf>() {
-            fo.intrinsics_file = Some(p);
-        } else {
-            let np = k.py().import("numpy")?;
-            let flat: Vec<f64> =
-                np.call_method1("ravel", (np.call_method1("asarray", (k, "float64"))?,))?.call_method0("tolist")?.extract()?;
-            fo.intrinsics = Some(match flat.len() {
-                4 => Intrinsics::new(flat[0], flat[1], flat[2], flat[3]).py()?,
-                9 => Intrinsics::from_k_row_major(&flat, "intrinsics").py()?,
-                n => return Err(input("intrinsics", format!("expected a 3×3 K, [fx, fy, cx, cy] or a file; got {n} numbers"))),
-            });
-        }
-    }
-    Ok(fo)
-}
 
 /// A frame as `recon infer --rgbd` finds it: colour, metric depth and intrinsics.
 #[pyfunction]
