@@ -43,7 +43,7 @@ use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
-use crate::engine::shape_fit::{fit_solid, observe, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
+use crate::engine::shape_fit::{fit_in_pose, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
@@ -368,65 +368,12 @@ fn fit_shape(
         cands.push((k, anchor, stretch, score));
     }
     let scores: Vec<CandidateScore> = cands.iter().map(|c| c.3.clone()).collect();
-    let (view, mut anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
+    let (view, anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
     let fo = &ShapeFitOptions { hull: opts.shape_fit_options.hull || opts.shape_fit == ShapeFit::DepthHull, ..opts.shape_fit_options };
-    // Re-express the grid in a new canonical frame x_old = k·x_new + c (the pose absorbs it).
-    let reframe = |anchor: &Similarity, k: f64, c: [f64; 3]| {
-        anchor.compose(&Similarity { rotation: IDENTITY, translation: std::array::from_fn(|a| stretch[a] * c[a]), scale: k })
-    };
-    let mut model = model;
-    if fo.reframe {
-        // Grow the box to hold the observed points (1–99 % per axis, against stray points).
-        let inv = anchor.inverse();
-        let pts: Vec<[f64; 3]> = view_points
-            .iter()
-            .flat_map(|v| v.points.iter().map(|p| inv.apply(&v.to_anchor.apply(p))))
-            .map(|q| std::array::from_fn(|a| q[a] / stretch[a]))
-            .collect();
-        if pts.len() >= 10 {
-            let (mut lo, mut hi) = ([-0.5f64; 3], [0.5f64; 3]);
-            for a in 0..3 {
-                let mut v: Vec<f64> = pts.iter().map(|p| p[a]).collect();
-                v.sort_by(f64::total_cmp);
-                lo[a] = lo[a].min(v[v.len() / 100]);
-                hi[a] = hi[a].max(v[v.len() - 1 - v.len() / 100]);
-            }
-            let k = (0..3).map(|a| hi[a] - lo[a]).fold(1.0, f64::max);
-            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
-            if k > 1.0 || c.iter().any(|&x| x != 0.0) {
-                model = model.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
-                anchor = reframe(&anchor, k, c);
-            }
-        }
-    }
     let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
-    let obs = observe(r, &anchor, stretch, view_points, &supports, fo.margin_m);
-    let (mut solid, mut report) = fit_solid(&model, &obs, fo);
-    if fo.reframe {
-        // Fit the box to the shape (longest side = the grid), then hold the constraints
-        // again in that frame: the shell handed on obeys them in the final pose.
-        if let Some((lo, hi)) = solid.bounds() {
-            let k = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
-            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
-            if k > 0.0 {
-                solid = solid.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
-                anchor = reframe(&anchor, k, c);
-                let obs = observe(r, &anchor, stretch, view_points, &supports, fo.margin_m);
-                for i in 0..solid.occ.len() {
-                    solid.occ[i] = (solid.occ[i] && !obs.free[i]) || obs.surface[i];
-                }
-                solid.fill_pockets();
-                solid.keep_largest();
-                report.points_outside_grid = obs.points_outside_grid;
-            }
-        }
-    }
-    let shell = solid.shell();
-    report.shell_voxels = shell.count();
+    let (anchor, shell, report) = fit_in_pose(model, anchor, stretch, view_points, &supports, fo);
     Ok((Fitted { view, anchor, stretch, report }, shell.coords()))
 }
-
-const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
 /// The observed points of a view in the anchor frame, with their colours.
 fn observed_in_anchor(v: &ObjView) -> (Vec<[f32; 3]>, Vec<[u8; 3]>) {

@@ -342,22 +342,13 @@ pub fn observe(
             d.sort_by(f64::total_cmp);
             d.get(d.len() / 2).is_some_and(|&m| m > margin_m)
         });
-        if let Some(p) = support {
-            for (i, f) in free.iter_mut().enumerate() {
-                let c = grid.centre(grid.coord(i));
-                *f |= p.signed_distance(&to_view.apply(&[c[0] * stretch[0], c[1] * stretch[1], c[2] * stretch[2]])) < -margin_m;
-            }
-        }
-        if let Some(depth) = v.depth.as_deref() {
-            for (i, f) in free.iter_mut().enumerate() {
-                if *f {
-                    continue;
-                }
+        let depth = v.depth.as_deref();
+        if support.is_some() || depth.is_some() {
+            for (i, f) in free.iter_mut().enumerate().filter(|(_, f)| !**f) {
                 let c = grid.centre(grid.coord(i));
                 let q = to_view.apply(&[c[0] * stretch[0], c[1] * stretch[1], c[2] * stretch[2]]);
-                if let Some(d) = depth.depth_at(&q) {
-                    *f = q[2] + margin_m < d;
-                }
+                *f = support.is_some_and(|p| p.signed_distance(&q) < -margin_m)
+                    || depth.and_then(|d| d.depth_at(&q)).is_some_and(|d| q[2] + margin_m < d);
             }
         }
         let from_view = to_view.inverse();
@@ -370,6 +361,15 @@ pub fn observe(
         }
     }
     Observation { free, surface, points_outside_grid }
+}
+
+impl Observation {
+    /// The observation wins over the grid: observed surface set, observed free space cleared.
+    pub fn impose(&self, g: &mut Grid) {
+        for (i, o) in g.occ.iter_mut().enumerate() {
+            *o = (*o && !self.free[i]) || self.surface[i];
+        }
+    }
 }
 
 /// Fit the model's occupancy to the observation (module docs): the shell
@@ -398,21 +398,84 @@ pub fn fit_solid(model: &Grid, obs: &Observation, opts: &ShapeFitOptions) -> (Gr
     if opts.close {
         g = g.morph(true).morph(false);
         // The closing must not put back what the depth removed.
-        for i in 0..g.occ.len() {
-            g.occ[i] = (g.occ[i] && !obs.free[i]) || obs.surface[i];
-        }
+        obs.impose(&mut g);
     }
     if opts.hull {
         g.fill_lines();
-        for i in 0..g.occ.len() {
-            g.occ[i] = (g.occ[i] && !obs.free[i]) || obs.surface[i];
-        }
+        obs.impose(&mut g);
     }
     g.fill_pockets();
     report.sealed = g.count().saturating_sub(before);
     report.dropped = g.keep_largest();
     (g, report)
 }
+
+/// Fit the model's grid in the pose it was chosen in (canonical → anchor camera, after
+/// `stretch`): with [`ShapeFitOptions::reframe`] the box first grows to hold the observed
+/// points and is fitted to the result afterwards, the constraints held again in that
+/// final frame. Returns the final pose, the shell for stage 2 and what changed.
+pub fn fit_in_pose(
+    mut model: Grid,
+    mut anchor: Similarity,
+    stretch: [f64; 3],
+    views: &[ViewPoints],
+    supports: &[Option<Plane>],
+    fo: &ShapeFitOptions,
+) -> (Similarity, Grid, ShapeFitReport) {
+    let r = model.r;
+    // Re-express the grid in a new canonical frame x_old = k·x_new + c (the pose absorbs it).
+    let reframe = |anchor: &Similarity, k: f64, c: [f64; 3]| {
+        anchor.compose(&Similarity { rotation: IDENTITY, translation: std::array::from_fn(|a| stretch[a] * c[a]), scale: k })
+    };
+    if fo.reframe {
+        // Grow the box to hold the observed points (1–99 % per axis, against stray points).
+        let inv = anchor.inverse();
+        let pts: Vec<[f64; 3]> = views
+            .iter()
+            .flat_map(|v| v.points.iter().map(|p| inv.apply(&v.to_anchor.apply(p))))
+            .map(|q| std::array::from_fn(|a| q[a] / stretch[a]))
+            .collect();
+        if pts.len() >= 10 {
+            let (mut lo, mut hi) = ([-0.5f64; 3], [0.5f64; 3]);
+            for a in 0..3 {
+                let mut v: Vec<f64> = pts.iter().map(|p| p[a]).collect();
+                v.sort_by(f64::total_cmp);
+                lo[a] = lo[a].min(v[v.len() / 100]);
+                hi[a] = hi[a].max(v[v.len() - 1 - v.len() / 100]);
+            }
+            let k = (0..3).map(|a| hi[a] - lo[a]).fold(1.0, f64::max);
+            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+            if k > 1.0 || c.iter().any(|&x| x != 0.0) {
+                model = model.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
+                anchor = reframe(&anchor, k, c);
+            }
+        }
+    }
+    let obs = observe(r, &anchor, stretch, views, supports, fo.margin_m);
+    let (mut solid, mut report) = fit_solid(&model, &obs, fo);
+    if fo.reframe {
+        // Fit the box to the shape (longest side = the grid), then hold the constraints
+        // again in that frame: the shell handed on obeys them in the final pose.
+        if let Some((lo, hi)) = solid.bounds() {
+            let k = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+            let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+            if k > 0.0 {
+                solid = solid.resample(|x| std::array::from_fn(|a| k * x[a] + c[a]));
+                anchor = reframe(&anchor, k, c);
+                let obs = observe(r, &anchor, stretch, views, supports, fo.margin_m);
+                obs.impose(&mut solid);
+                solid.fill_pockets();
+                solid.keep_largest();
+                report.points_outside_grid = obs.points_outside_grid;
+            }
+        }
+    }
+    let shell = solid.shell();
+    report.shell_voxels = shell.count();
+    (anchor, shell, report)
+}
+
+const IDENTITY: [[f64; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
 #[cfg(test)]
 mod tests {

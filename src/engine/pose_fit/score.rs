@@ -92,8 +92,7 @@ impl Surface {
 
     /// From a decoder mesh (f32, any frame).
     pub fn from_mesh(m: &crate::mesh::Mesh, samples: usize, seed: u64) -> Result<Self> {
-        let mesh = TriMesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f64)).collect(), faces: m.faces.clone() };
-        Self::new(mesh, samples, seed)
+        Self::new(TriMesh::from(m), samples, seed)
     }
 
     /// A point set (all points kept).
