@@ -290,10 +290,6 @@ pub struct Report {
     pub objects: Vec<ObjectResult>,
 }
 
-fn to_mesh(m: &TriMesh) -> Mesh {
-    Mesh { vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(), faces: m.faces.clone(), vertex_attrs: None }
-}
-
 fn pose_of(g: &GtInstance) -> Similarity {
     Similarity::rigid(g.r, g.t)
 }
@@ -351,8 +347,8 @@ fn eval_one(model: &Model, g: &GtInstance, pred: &Prediction, pred_mesh: &TriMes
         f1_posed: posed.f1(tau),
         f1_aligned: aligned.f1(tau),
         normal_consistency,
-        mesh_quality: mesh_quality(&to_mesh(pred_mesh)),
-        gt_mesh_quality: mesh_quality(&to_mesh(&model.mesh)),
+        mesh_quality: mesh_quality(&Mesh::from(pred_mesh)),
+        gt_mesh_quality: mesh_quality(&Mesh::from(&model.mesh)),
     }
 }
 

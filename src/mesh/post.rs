@@ -89,10 +89,7 @@ pub fn mesh_quality(mesh: &Mesh) -> Option<MeshQuality> {
     }
     let (_, _, area) = component_stats(mesh);
     let total: f64 = area.iter().sum();
-    let normal = |f: &[u32; 3]| {
-        let [a, b, c] = f.map(|i| mesh.vertices[i as usize].map(f64::from));
-        crate::math::normalize(cross(sub(b, a), sub(c, a)))
-    };
+    let normals: Vec<[f64; 3]> = mesh.face_normals().iter().map(|n| n.map(f64::from)).collect();
     // Ordered, so the sum (and the figure's last digits) is the same run to run.
     let mut edges: std::collections::BTreeMap<(u32, u32), Vec<usize>> = std::collections::BTreeMap::new();
     for (k, f) in mesh.faces.iter().enumerate() {
@@ -105,7 +102,7 @@ pub fn mesh_quality(mesh: &Mesh) -> Option<MeshQuality> {
         match fs.len() {
             1 => boundary += 1,
             2 => {
-                let c = dot(normal(&mesh.faces[fs[0]]), normal(&mesh.faces[fs[1]])).clamp(-1.0, 1.0);
+                let c = dot(normals[fs[0]], normals[fs[1]]).clamp(-1.0, 1.0);
                 sum += c.acos().to_degrees();
                 n += 1;
             }

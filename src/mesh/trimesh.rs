@@ -14,6 +14,24 @@ pub struct TriMesh {
     pub faces: Vec<[u32; 3]>,
 }
 
+/// The f32 asset mesh measured in f64 (vertex attributes are not carried).
+impl From<&crate::mesh::indexed::Mesh> for TriMesh {
+    fn from(m: &crate::mesh::indexed::Mesh) -> Self {
+        TriMesh { vertices: m.vertices.iter().map(|v| v.map(f64::from)).collect(), faces: m.faces.clone() }
+    }
+}
+
+/// A measured mesh as an asset mesh (f32, no vertex attributes).
+impl From<&TriMesh> for crate::mesh::indexed::Mesh {
+    fn from(m: &TriMesh) -> Self {
+        crate::mesh::indexed::Mesh {
+            vertices: m.vertices.iter().map(|v| v.map(|x| x as f32)).collect(),
+            faces: m.faces.clone(),
+            vertex_attrs: None,
+        }
+    }
+}
+
 impl TriMesh {
     pub fn transformed(&self, tf: &Similarity) -> TriMesh {
         TriMesh { vertices: tf.apply_all(&self.vertices), faces: self.faces.clone() }
@@ -40,7 +58,8 @@ impl TriMesh {
         self.faces.iter().map(|f| tri_area(&self.tri(f))).sum()
     }
 
-    /// Unit normal of face `f` (winding order; zero for a degenerate face).
+    /// Unit normal of face `f` (winding order; zero for a degenerate face); the f64
+    /// counterpart of `Mesh::face_normals` for measurement.
     pub fn face_normal(&self, f: usize) -> P3 {
         let t = self.tri(&self.faces[f]);
         crate::math::normalize(crate::math::cross(crate::math::sub(t[1], t[0]), crate::math::sub(t[2], t[0])))

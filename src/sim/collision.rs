@@ -424,8 +424,7 @@ fn vhacd(mesh: &Mesh, o: &VhacdOptions, file: &str) -> Result<Vec<Part>> {
 }
 
 fn surface_samples(mesh: &Mesh, n: usize, seed: u64) -> Vec<[f64; 3]> {
-    let t = TriMesh { vertices: mesh.vertices.iter().map(|v| v.map(|x| x as f64)).collect(), faces: mesh.faces.clone() };
-    t.sample_surface(n, seed)
+    TriMesh::from(mesh).sample_surface(n, seed)
 }
 
 /// Half-space form of a hull (outward normals, `n·x ≤ d` inside).
