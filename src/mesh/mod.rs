@@ -3,13 +3,15 @@
 //! and the primitive meshes that tests, synthetic scenes and baselines share.
 
 mod indexed;
+pub(crate) mod isosurface;
 pub(crate) mod post;
 pub(crate) mod primitives;
 pub(crate) mod trimesh;
 pub use self::indexed::*;
+pub use self::isosurface::{marching_tetrahedra, ScalarGrid};
 pub use self::post::{
     decimate, drop_floaters, face_components, keep_largest_component, mesh_quality, remove_small_components, remove_unreferenced_vertices,
-    to_u8, transfer_colors, vertex_colors_u8, MeshQuality,
+    taubin_smooth, to_u8, transfer_colors, vertex_colors_u8, MeshQuality,
 };
 pub use self::primitives::{bowl_mesh, box_mesh, cuboid, cup_mesh, cylinder_mesh, sphere_mesh, tetrahedron, torus_mesh};
 pub use self::trimesh::TriMesh;
