@@ -12,7 +12,7 @@ pub struct BenchArgs {
     /// Architecture file (full size: models/recgen-large.json).
     #[arg(long, default_value = "models/recgen-large.json")]
     config: PathBuf,
-    /// Sections to run: kernels, modules, precision, occupancy, e2e (comma separated).
+    /// Sections to run: kernels, modules, precision, occupancy, e2e, shape_fit (comma separated).
     #[arg(long, value_delimiter = ',', default_value = "kernels,modules")]
     sections: Vec<String>,
     /// Precisions of the fast kernels for modules / e2e / comparisons.
@@ -52,7 +52,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
-    let known = ["kernels", "modules", "precision", "occupancy", "e2e"];
+    let known = ["kernels", "modules", "precision", "occupancy", "e2e", "shape_fit"];
     if let Some(s) = a.sections.iter().find(|s| !known.contains(&s.as_str())) {
         anyhow::bail!("--sections: unknown section `{s}` (known: {})", known.join(", "));
     }
@@ -217,6 +217,40 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     }
 
     let arch = recon::model::RecGenConfig::load(&a.config)?;
+    if has("shape_fit") {
+        println!("\nshape fit per object (observe + fit in pose; nano decodes 32³, full size 64³):");
+        println!("{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>6}", "r", "points", "model", "shell", "carved", "filled", "s", "load");
+        report.shape_fit = bench::bench_shape_fit(&[32, 64], a.reps.max(3))?;
+        for r in &report.shape_fit {
+            println!(
+                "{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.3} {:>6}",
+                r.resolution,
+                r.observed_points,
+                r.model_voxels,
+                r.shell_voxels,
+                r.carved,
+                r.filled,
+                r.seconds,
+                opt(r.load_average, |v| format!("{v:.1}"))
+            );
+        }
+        // Against stage-1 sampling: the config's steps × one guided SS-flow forward.
+        let steps = arch.samplers.sparse_structure.steps;
+        let full = report.shape_fit.iter().find(|r| r.resolution == 64);
+        for m in report.modules.iter().filter(|m| m.module == "ss_flow") {
+            if let Some(f) = full {
+                let stage1 = steps as f64 * m.forward_seconds;
+                println!(
+                    "  64³ fit {:.3} s = {:.3} % of stage-1 sampling ({} steps × {:.2} s guided step, {})",
+                    f.seconds,
+                    100.0 * f.seconds / stage1,
+                    steps,
+                    m.forward_seconds,
+                    m.precision
+                );
+            }
+        }
+    }
     if arch.name == "recgen-large" {
         print_ratios(&report);
     } else {

@@ -3,7 +3,7 @@
 use recon::engine::InferOptions;
 use recon::engine::LoadOptions;
 use recon::engine::ModelSource;
-use recon::engine::{PoseFit, SelectMethod, ShapeFit};
+use recon::engine::{MeshFrom, PoseFit, SelectMethod, ShapeFit};
 use recon::model::Precision;
 use std::path::PathBuf;
 
@@ -43,6 +43,10 @@ pub struct ModelArgs {
     /// free space, fill the observed surface, keep the outer shell) before stage 2.
     #[arg(long, value_enum, default_value_t = ShapeFit::Depth)]
     pub shape_fit: ShapeFit,
+    /// With the shape fit: the mesh is the fitted occupancy's closed, smoothed surface
+    /// coloured from the decoder (`fitted`), or the stage-2 decoder's surface (`decoder`).
+    #[arg(long, value_enum, default_value_t = MeshFrom::Fitted)]
+    pub mesh_from: MeshFrom,
     /// Sampler steps for both stages (default: the config's).
     #[arg(long)]
     pub steps: Option<usize>,
@@ -56,6 +60,10 @@ pub struct ModelArgs {
     /// dropped (the largest is always kept); 0 keeps every component.
     #[arg(long, default_value_t = 0.02)]
     pub min_component_area: f64,
+    /// Taubin smoothing iterations on the decoded mesh (after floater removal, before
+    /// decimation); 0 keeps the decoder's surface.
+    #[arg(long, default_value_t = recon::engine::DEFAULT_SMOOTH_ITERATIONS)]
+    pub smooth: usize,
 }
 
 impl ModelArgs {
@@ -81,7 +89,9 @@ impl ModelArgs {
             align: self.pose_fit.options(),
             max_faces: (self.max_faces > 0).then_some(self.max_faces),
             floater_area_fraction: self.min_component_area,
+            smooth_iterations: self.smooth,
             shape_fit: self.shape_fit,
+            mesh_from: self.mesh_from,
             ..Default::default()
         };
         opts.run.seed = self.seed;

@@ -43,7 +43,7 @@ use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
-use crate::engine::shape_fit::{fit_in_pose, Grid, ShapeFit, ShapeFitOptions, ShapeFitReport};
+use crate::engine::shape_fit::{fit_in_pose, rest_on_supports, Grid, MeshFrom, ShapeFit, ShapeFitOptions, ShapeFitReport};
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
@@ -54,7 +54,7 @@ use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser
 use crate::geometry::pose::Pose;
 use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
 use crate::math::Similarity;
-use crate::mesh::post::{decimate, drop_floaters};
+use crate::mesh::post::{decimate, drop_floaters, taubin_smooth, transfer_colors};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
 use crate::weights::WeightFiles;
@@ -88,15 +88,24 @@ pub struct InferOptions {
     /// are dropped as floaters before decimation (0: keep all; the largest
     /// component is always kept).
     pub floater_area_fraction: f64,
+    /// Taubin smoothing iterations on the decoded mesh, after floater removal
+    /// and before decimation (0: the decoder's surface as it is).
+    pub smooth_iterations: usize,
     /// Whether the stage-1 occupancy is fitted to the depth before stage 2
     /// ([`crate::engine::shape_fit`]); the pose is then refined before the
     /// fit and not after it, so the fit sees the final pose.
     pub shape_fit: ShapeFit,
     pub shape_fit_options: ShapeFitOptions,
+    /// With the shape fit, whether the mesh is the fitted occupancy's closed
+    /// surface or the stage-2 decoder's (without the fit: always the decoder's).
+    pub mesh_from: MeshFrom,
 }
 
 /// Default face budget of an output mesh.
 pub const DEFAULT_MAX_FACES: usize = 200_000;
+
+/// Default Taubin smoothing iterations of an output mesh.
+pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
 
 impl Default for InferOptions {
     fn default() -> Self {
@@ -109,8 +118,10 @@ impl Default for InferOptions {
             align: AlignOptions::default(),
             max_faces: Some(DEFAULT_MAX_FACES),
             floater_area_fraction: 0.02,
+            smooth_iterations: DEFAULT_SMOOTH_ITERATIONS,
             shape_fit: ShapeFit::default(),
             shape_fit_options: ShapeFitOptions::default(),
+            mesh_from: MeshFrom::default(),
         }
     }
 }
@@ -340,6 +351,8 @@ struct Fitted {
     anchor: Similarity,
     stretch: [f64; 3],
     report: ShapeFitReport,
+    /// The fitted occupancy handed to stage 2 (its outer shell).
+    shell: Grid,
 }
 
 /// Refine every token's pose against the model's own occupancy (its outer
@@ -372,7 +385,22 @@ fn fit_shape(
     let fo = &ShapeFitOptions { hull: opts.shape_fit_options.hull || opts.shape_fit == ShapeFit::DepthHull, ..opts.shape_fit_options };
     let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
     let (anchor, shell, report) = fit_in_pose(model, anchor, stretch, view_points, &supports, fo);
-    Ok((Fitted { view, anchor, stretch, report }, shell.coords()))
+    let coords = shell.coords();
+    Ok((Fitted { view, anchor, stretch, report, shell }, coords))
+}
+
+/// The closed surface of the fitted occupancy ([`Grid::smooth_surface`] at
+/// twice its resolution, Taubin-smoothed against the facets of the net),
+/// coloured from the decoder's mesh when there is one.
+fn fitted_surface(shell: &Grid, decoded: Option<&Mesh>, floater_area_fraction: f64) -> Mesh {
+    let mut m = taubin_smooth(&drop_floaters(shell.smooth_surface(2), floater_area_fraction), 30);
+    if let Some(d) = decoded.filter(|d| !d.vertices.is_empty()) {
+        if let Some(a) = &d.vertex_attrs {
+            let rgb: Vec<[f32; 3]> = a.iter().map(|c| [c[0], c[1], c[2]]).collect();
+            transfer_colors(&mut m, &d.vertices, &rgb, 4);
+        }
+    }
+    m
 }
 
 /// The observed points of a view in the anchor frame, with their colours.
@@ -577,10 +605,23 @@ impl Engine {
             progress(Progress::Decimating);
             let t = Instant::now();
             let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
-            let mesh = rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)).map(|m| match opts.max_faces {
-                Some(n) if m.faces.len() > n => decimate(&m, n),
-                _ => m,
-            });
+            let mesh = match (opts.mesh_from, &fitted) {
+                (MeshFrom::Fitted, Some(f)) => Some(fitted_surface(&f.shell, rec.mesh.as_ref(), opts.floater_area_fraction)),
+                _ => rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)),
+            };
+            let mesh = mesh
+                .map(|m| {
+                    let mut m = taubin_smooth(&m, opts.smooth_iterations);
+                    if let Some(f) = &fitted {
+                        let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
+                        rest_on_supports(&mut m, &f.anchor, f.stretch, &view_points, &supports, opts.shape_fit_options.margin_m);
+                    }
+                    m
+                })
+                .map(|m| match opts.max_faces {
+                    Some(n) if m.faces.len() > n => decimate(&m, n),
+                    _ => m,
+                });
             post_s += t.elapsed().as_secs_f64();
 
             progress(Progress::Selecting);

@@ -14,5 +14,8 @@ pub use self::output::*;
 pub use self::pipeline::*;
 pub use self::pose_fit::{free_space, geodesic_angle, mean_rotation, refine_pose, view_score, DepthView, Refined, FREE_SPACE_SAMPLES};
 pub use self::pose_fit::{pose_spread, score_candidate, select_best, AlignOptions, PoseFit, SelectMethod, Surface, ViewPoints};
-pub use self::shape_fit::{fit_in_pose, fit_occupancy, fit_solid, observe, Grid, Observation, ShapeFit, ShapeFitOptions, ShapeFitReport};
+pub use self::shape_fit::{
+    fit_in_pose, fit_occupancy, fit_solid, observe, rest_on_supports, Grid, MeshFrom, Observation, ShapeFit, ShapeFitOptions,
+    ShapeFitReport,
+};
 pub use self::source::*;

@@ -31,6 +31,7 @@
 use crate::engine::pose_fit::ViewPoints;
 use crate::geometry::Plane;
 use crate::math::Similarity;
+use crate::mesh::{marching_tetrahedra, Mesh, ScalarGrid};
 use serde::Serialize;
 
 /// Whether the stage-1 occupancy is fitted to the depth (`--shape-fit`).
@@ -44,6 +45,18 @@ pub enum ShapeFit {
     DepthHull,
     /// The model's occupancy as decoded.
     None,
+}
+
+/// Where an object's mesh comes from when the shape fit ran (`--mesh-from`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MeshFrom {
+    /// The closed, smoothed surface of the fitted occupancy
+    /// ([`Grid::smooth_surface`]), coloured from the decoder's mesh.
+    #[default]
+    Fitted,
+    /// The stage-2 mesh decoder's surface (FlexiCubes) as it is.
+    Decoder,
 }
 
 /// Settings of the fit.
@@ -299,6 +312,46 @@ impl Grid {
         Grid { r: self.r, occ }
     }
 
+    /// A closed, smooth surface of the solid these voxels enclose (pockets
+    /// filled), in the canonical frame: the occupancy sampled `upsample` times
+    /// finer, blurred (binomial kernel, two passes: σ ≈ 0.7 fine cells; wider
+    /// blurs opened holes where the model's volume is thin), and its 0.5
+    /// level taken with marching tetrahedra, so flat faces stay at the voxel faces.
+    pub fn smooth_surface(&self, upsample: usize) -> Mesh {
+        let mut solid = self.clone();
+        solid.fill_pockets();
+        let up = upsample.max(1);
+        let pad = 3;
+        let n = self.r * up + 2 * pad;
+        let fine = 1.0 / (self.r * up) as f64;
+        let coarse = |p: usize| (p as i64 - pad as i64).div_euclid(up as i64) as i32;
+        let mut f: Vec<f32> = (0..n * n * n)
+            .map(|i| {
+                let c = [coarse(i / (n * n)), coarse(i / n % n), coarse(i % n)];
+                if solid.index(c).is_some_and(|k| solid.occ[k]) {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        const BLUR_PASSES: usize = 2;
+        const K: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+        let stride = [n * n, n, 1];
+        let mut tmp = vec![0f32; f.len()];
+        for _ in 0..BLUR_PASSES {
+            for s in stride {
+                for (i, out) in tmp.iter_mut().enumerate() {
+                    let pos = (i / s) % n;
+                    *out = (0..5).filter_map(|k| (pos + k).checked_sub(2).filter(|&q| q < n).map(|q| K[k] * f[i - pos * s + q * s])).sum();
+                }
+                std::mem::swap(&mut f, &mut tmp);
+            }
+        }
+        let origin = ((0.5 - pad as f64) * fine - 0.5) as f32;
+        marching_tetrahedra(&ScalarGrid { values: &f, dims: [n; 3], origin: [origin; 3], spacing: fine as f32 }, 0.5)
+    }
+
     /// Centres of the outer shell of the solid these voxels enclose (pockets
     /// filled), as canonical points: the surface a pose is refined against.
     pub fn outer_surface_points(&self) -> Vec<[f32; 3]> {
@@ -336,12 +389,7 @@ pub fn observe(
     let mut points_outside_grid = 0;
     for (k, v) in views.iter().enumerate() {
         let to_view = v.to_anchor.inverse().compose(pose);
-        // Only a plane the object stands on (most of its points in front of it).
-        let support = supports.get(k).copied().flatten().filter(|p| {
-            let mut d: Vec<f64> = v.points.iter().map(|q| p.signed_distance(q)).collect();
-            d.sort_by(f64::total_cmp);
-            d.get(d.len() / 2).is_some_and(|&m| m > margin_m)
-        });
+        let support = standing_on(supports.get(k).copied().flatten(), v, margin_m);
         let depth = v.depth.as_deref();
         if support.is_some() || depth.is_some() {
             for (i, f) in free.iter_mut().enumerate().filter(|(_, f)| !**f) {
@@ -352,7 +400,8 @@ pub fn observe(
             }
         }
         let from_view = to_view.inverse();
-        for p in &v.points {
+        // Points on the support plane are the table's, whatever the mask says.
+        for p in v.points.iter().filter(|p| support.is_none_or(|s| s.signed_distance(p) > margin_m)) {
             let c = from_view.apply(p);
             match grid.voxel_of([c[0] / stretch[0], c[1] / stretch[1], c[2] / stretch[2]]) {
                 Some(c) => surface[grid.index(c).unwrap_or_default()] = true,
@@ -361,6 +410,47 @@ pub fn observe(
         }
     }
     Observation { free, surface, points_outside_grid }
+}
+
+/// `plane` when the object stands on it: most of its observed points lie in
+/// front of it (by more than `margin_m`); a plane behind the object is not a support.
+fn standing_on(plane: Option<Plane>, v: &ViewPoints, margin_m: f64) -> Option<Plane> {
+    plane.filter(|p| {
+        let mut d: Vec<f64> = v.points.iter().map(|q| p.signed_distance(q)).collect();
+        d.sort_by(f64::total_cmp);
+        d.get(d.len() / 2).is_some_and(|&m| m > margin_m)
+    })
+}
+
+/// Move the vertices of a canonical mesh, placed by `pose` (canonical → anchor
+/// camera, after `stretch`), that lie beyond a support plane the object stands
+/// on ([`observe`]'s rule) onto that plane: the carved occupancy ends within a
+/// voxel of the table, and the decoder's surface may reach past it, which a
+/// physics engine would resolve by pushing the object up. Returns how many moved.
+pub fn rest_on_supports(
+    mesh: &mut Mesh,
+    pose: &Similarity,
+    stretch: [f64; 3],
+    views: &[ViewPoints],
+    supports: &[Option<Plane>],
+    margin_m: f64,
+) -> usize {
+    let mut moved = 0;
+    for (k, v) in views.iter().enumerate() {
+        let Some(plane) = standing_on(supports.get(k).copied().flatten(), v, margin_m) else { continue };
+        let to_view = v.to_anchor.inverse().compose(pose);
+        let from_view = to_view.inverse();
+        for p in mesh.vertices.iter_mut() {
+            let q = to_view.apply(&std::array::from_fn(|a| p[a] as f64 * stretch[a]));
+            let d = plane.signed_distance(&q);
+            if d < 0.0 {
+                let c = from_view.apply(&std::array::from_fn(|a| q[a] - d * plane.normal[a]));
+                *p = std::array::from_fn(|a| (c[a] / stretch[a]) as f32);
+                moved += 1;
+            }
+        }
+    }
+    moved
 }
 
 impl Observation {
@@ -650,5 +740,31 @@ mod tests {
         // Sealed behind its mouth (a one-voxel dent at the face stays, as for any closing).
         assert!((4..8).all(|x| closed.occ[closed.index([x, 8, 8]).unwrap()]));
         assert_eq!(closed.count(), open.count() + 4);
+    }
+
+    /// A mesh reaching through the table the box stands on ends on it; a plane
+    /// the object does not stand on moves nothing.
+    #[test]
+    fn a_mesh_through_the_support_plane_is_brought_onto_it() {
+        let (pose, view, _) = scene();
+        // The box's bottom face is y = +0.04 m (camera y down); the mesh is 10 % too tall.
+        let tall = crate::mesh::primitives::cuboid([HALF[0], HALF[1] * 1.1, HALF[2]]);
+        let mut mesh = Mesh::from(&tall);
+        let before = mesh.clone();
+        let table = Plane { normal: [0.0, -1.0, 0.0], offset: 0.04 };
+        let views = std::slice::from_ref(&view);
+        let moved = rest_on_supports(&mut mesh, &pose, [1.0; 3], views, &[Some(table)], 0.002);
+        assert!(moved > 0);
+        for (a, b) in mesh.vertices.iter().zip(&before.vertices) {
+            let q = pose.apply(&a.map(|x| x as f64));
+            assert!(table.signed_distance(&q) > -1e-6, "vertex {a:?} beyond the table");
+            if table.signed_distance(&pose.apply(&b.map(|x| x as f64))) >= 0.0 {
+                assert_eq!(a, b, "a vertex in front of the table moved");
+            }
+        }
+        let behind = Plane { normal: [0.0, 1.0, 0.0], offset: -0.04 };
+        let mut m2 = before.clone();
+        assert_eq!(rest_on_supports(&mut m2, &pose, [1.0; 3], views, &[Some(behind)], 0.002), 0);
+        assert_eq!(m2, before);
     }
 }

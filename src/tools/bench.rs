@@ -686,6 +686,83 @@ pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: usize, seed: 
     })
 }
 
+/// The shape fit ([`crate::engine::fit_in_pose`]) at one occupancy resolution.
+#[derive(Debug, Clone, Serialize)]
+pub struct ShapeFitRow {
+    pub resolution: usize,
+    pub observed_points: usize,
+    pub model_voxels: usize,
+    pub shell_voxels: usize,
+    pub carved: usize,
+    pub filled: usize,
+    /// Best of the repetitions.
+    pub seconds: f64,
+    pub load_average: Option<f64>,
+}
+
+/// What the shape fit adds per object, at each stage-1 occupancy resolution
+/// (recgen-nano decodes 32³, the full-size model 64³): a box 0.2 m long on a
+/// table, 0.8 m from a 640×480 camera, rendered, and an over-full ball as the
+/// model's occupancy (what the nano model tends to give).
+pub fn bench_shape_fit(resolutions: &[usize], reps: usize) -> Result<Vec<ShapeFitRow>> {
+    use crate::dataset::Intrinsics;
+    use crate::engine::{fit_in_pose, DepthView, Grid, ShapeFitOptions, ViewPoints};
+    use crate::geometry::Plane;
+    use crate::math::Similarity;
+    use crate::mesh::cuboid;
+    use crate::render::{render, Camera, Instance, RenderMesh, RenderOptions};
+
+    let (w, h) = (640, 480);
+    let k = Intrinsics { fx: 600.0, fy: 600.0, cx: 320.0, cy: 240.0 };
+    // Camera y points down; the table is the plane y = 0.05 m, the box stands on it.
+    let half = [0.5, 0.3, 0.2];
+    let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+    let pose = Similarity { rotation: [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], translation: [0.0, 0.05 - 0.3 * 0.2, 0.8], scale: 0.2 };
+    let obj = RenderMesh::from_trimesh(&cuboid(half), "box")?;
+    let table = RenderMesh::from_trimesh(&cuboid([1.0, 0.01, 1.0]), "table")?;
+    let table_pose = Similarity { translation: [0.0, 0.06, 0.8], ..Similarity::identity() };
+    let out =
+        render(&[Instance::new(&obj, pose, 1), Instance::new(&table, table_pose, 2)], &Camera::new(w, h, k), &RenderOptions::default())?;
+    let points: Vec<[f64; 3]> = (0..w * h)
+        .filter(|&i| out.index[i] == 0 && out.depth[i] > 0.0)
+        .map(|i| {
+            let z = out.depth[i] as f64;
+            [((i % w) as f64 - k.cx) / k.fx * z, ((i / w) as f64 - k.cy) / k.fy * z, z]
+        })
+        .collect();
+    let view = ViewPoints { points, to_anchor: Similarity::identity(), depth: DepthView::new(&out.depth, w, h, k) };
+    let support = Some(Plane { normal: [0.0, -1.0, 0.0], offset: 0.05 });
+    let opts = ShapeFitOptions::default();
+    let mut rows = Vec::new();
+    for &r in resolutions {
+        let cells: Vec<[i32; 3]> = (0..r * r * r)
+            .map(|i| [(i / (r * r)) as i32, (i / r % r) as i32, (i % r) as i32])
+            .filter(|c| c.iter().map(|&v| ((v as f64 + 0.5) / r as f64 - 0.5).powi(2)).sum::<f64>() < 0.45 * 0.45)
+            .collect();
+        let model = Grid::from_coords(&cells, r);
+        let mut best = f64::INFINITY;
+        let mut last = None;
+        for _ in 0..reps.max(1) {
+            let t = Instant::now();
+            let fitted = fit_in_pose(model.clone(), pose, [1.0; 3], std::slice::from_ref(&view), &[support], &opts);
+            best = best.min(t.elapsed().as_secs_f64());
+            last = Some(fitted);
+        }
+        let (_, shell, report) = last.expect("at least one repetition");
+        rows.push(ShapeFitRow {
+            resolution: r,
+            observed_points: view.points.len(),
+            model_voxels: model.count(),
+            shell_voxels: shell.count(),
+            carved: report.carved,
+            filled: report.filled,
+            seconds: best,
+            load_average: load_average(),
+        });
+    }
+    Ok(rows)
+}
+
 /// The upstream PyTorch figures of issue 8 (Intel Xeon, 2 cores, AVX-512 +
 /// AMX), for ratios: GEMM GFLOP/s, and seconds / peak GB per module.
 pub mod upstream {
@@ -712,6 +789,7 @@ pub struct BenchReport {
     pub precision: Vec<PrecisionRow>,
     pub occupancy: Vec<OccupancyRow>,
     pub end_to_end: Vec<EndToEndRow>,
+    pub shape_fit: Vec<ShapeFitRow>,
     pub notes: Vec<String>,
 }
 
