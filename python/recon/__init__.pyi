@@ -142,6 +142,8 @@ class Engine:
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         progress: called with event dicts (object, sample, stage, …) from worker threads.
+        seed: 0 by default (the API as specified), while `recon infer`, `reconstruct_files`,
+        `recon.eval` and `recon.ray` default to 42: pass seed=42 for the CLI's result.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
         """
     def reconstruct_files(
@@ -187,8 +189,8 @@ def load_masks(paths: Union[_Path, Sequence[_Path]], objects: Optional[Sequence[
     "skipped": [(label, reason)]}."""
 
 def scene(
-    objects: _Path,
-    frame: Optional[_Path] = None,
+    objects: Union[_Path, Sequence[Object]],
+    frame: Optional[Union[_Path, Dict[str, Any]]] = None,
     out: Optional[_Path] = None,
     collision: str = "convex",
     *,
@@ -197,14 +199,45 @@ def scene(
     depth_scale: Optional[float] = None,
     plane_threshold_mm: float = 10.0,
     materials: Optional[_Path] = None,
+    vhacd_resolution: int = 64,
+    vhacd_concavity: float = 0.01,
+    vhacd_max_hulls: int = 16,
+    primitive_volume_tolerance: float = 0.05,
     settle_time: float = 5.0,
+    max_corrective_velocity: float = 0.05,
+    flag_mm: float = 10.0,
+    flag_deg: float = 10.0,
     seed: int = 0,
+    variations: Optional[int] = None,
+    spec: Optional[Union[_Path, Dict[str, Any]]] = None,
 ) -> Dict[str, Any]:
-    """`recon scene`: settle and export (URDF, MJCF, USD, GLB) a `recon infer` output folder
-    (with `frame`, the colour image whose depth gives the support plane; default: the one
-    its pose.json records), a scene.json, or a BOP scene folder. collision: "convex" |
-    "hull" | "primitive". Returns {"out", "files", "objects" (per-object physics), "settle",
-    "notes"}."""
+    """`recon scene`: settle the objects on the support plane seen in the frame's depth and
+    export a simulator-ready scene (URDF, MJCF, USD, GLB, scene.json) into `out`.
+
+    objects: the list `Engine.reconstruct` returned (then `frame` is required: the colour
+    image path, its depth and intrinsics found beside it, or a dict with "rgb", "depth",
+    "K" as `load_frame` returns; objects without a mesh are left out, listed in "notes"), or
+    a `recon infer` output folder (`frame` defaults to the image its pose.json records), a
+    scene.json, or a BOP scene folder (`view`: the image id). The meshes of in-memory objects
+    go through a temporary folder; scene.input.json names them `<in memory: objects[i] label>`.
+    In-memory objects give the same scene as their `recon infer` folder.
+
+    The options are `recon scene`'s flags: collision "convex" (VHACD: vhacd_resolution,
+    vhacd_concavity, vhacd_max_hulls) | "hull" | "primitive" (primitive_volume_tolerance);
+    settle_time (s of simulated settling; objects still moving then are reported, not at
+    rest), max_corrective_velocity (m/s), flag_mm / flag_deg (objects moved or turned more
+    are flagged), materials (a material table JSON), seed (plane fit and decomposition).
+
+    Returns {"out", "files" (paths relative to out), "objects" (per object: name, category,
+    material, "physics" (mass_kg, com, inertia, treatment), friction, restitution,
+    collision, start_pose, settled_pose, displacement_mm, rotation_deg, flagged, …), "settle" {"at_rest", "simulated_s", "steps", "depenetration_s"},
+    "support_plane", "plane_check" (BOP), "timings", "notes"}.
+
+    variations=N: N re-arranged, settled variants instead (`recon scene --variations N
+    --seed S --spec`): `out/variant_NNNN/` folders and manifest.json; spec is a spec file or
+    a dict of the same JSON (passed to recon unchanged; default: the built-in spec). Returns
+    {"out", "manifest_file", "manifest" (kept, requested, variants, …), "seconds", "notes"}.
+    """
 
 def synth(
     out: _Path,
@@ -234,15 +267,30 @@ def eval(
     surface_seed: int = 0,
     all_frames: bool = False,
     two_view: bool = False,
+    weights: Optional[_Path] = None,
+    config: Optional[_Path] = None,
+    dtype: Optional[str] = None,
+    threads: Optional[int] = None,
     samples: int = 1,
     select: str = "cross",
     pose_fit: str = "depth",
     shape_fit: str = "depth",
     seed: int = 42,
     max_faces: int = 200_000,
+    steps: Optional[int] = None,
+    cfg: Optional[float] = None,
+    min_component_area: float = 0.02,
 ) -> Dict[str, Any]:
-    """`recon eval`: score a predictions file, or run method "observed" or "recgen" (with
-    `engine`) over the dataset first (then `out` is required). Returns report.json's dict."""
+    """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
+    dataset first (then `out` is required: predictions.json, meshes, report files).
+
+    Every flag of `recon eval` is a keyword here with the CLI's default: shape, f1_tau,
+    scenes (`["48"]` matches 000048), occlusion ((LO, HI) percent), surface_samples,
+    surface_seed, all_frames, two_view; and for method="recgen" the model flags: either
+    `engine` (a loaded Engine), or weights / config / dtype / threads, loaded as
+    `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
+    per-frame flags of `recon infer`: samples, select, pose_fit, shape_fit, seed (42, as
+    the CLI), max_faces, steps, cfg, min_component_area. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,

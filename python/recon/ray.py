@@ -4,7 +4,9 @@
 frame list becomes a dataset, and `map_batches` hands frames to a pool of actors, each
 holding one loaded `recon.Engine`. Every frame gets its own output folder below `out`,
 written exactly as `recon infer --out <out>/<frame>` writes it, and a Parquet results
-table (`<out>/results.parquet`) holds one row per object (or per failed frame).
+table (`<out>/results.parquet`) holds one row per object (or per failed frame). Finished
+frames' rows are also kept per frame (`<out>/results.parts/`), so a job that dies before
+the table is written gets it back, stage seconds included, from the rerun.
 
 `synth` splits `recon synth` over Ray tasks by scene; the dataset is byte-identical to a
 single-process `recon synth` with the same options.
@@ -24,6 +26,11 @@ from . import _recon
 
 RESULTS = "results.parquet"
 """File name of the results table below `out`."""
+
+PARTS = "results.parts"
+"""Folder below `out` with one JSON file of result rows per finished frame
+(`results.parts/<frame>.json`), written by the worker right after the frame's folder:
+the table is rebuilt from them, stage seconds included, when a job died before writing it."""
 
 STATUS_OK = "ok"
 STATUS_FAILED = "failed"
@@ -177,12 +184,40 @@ class _FrameWorker:
         rows: List[Dict[str, Any]] = []
         for task in batch["task"]:
             f = json.loads(task)
-            rows.extend(reconstruct_frame(self.engine, f, self.out, self.options))
-        # Linux reports ru_maxrss in KiB: this actor's peak resident memory so far.
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        for r in rows:
-            r.update(worker_pid=os.getpid(), worker_peak_rss_mb=peak)
+            frame_rows = reconstruct_frame(self.engine, f, self.out, self.options)
+            # Linux reports ru_maxrss in KiB: this actor's peak resident memory so far.
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+            for r in frame_rows:
+                r.update(worker_pid=os.getpid(), worker_peak_rss_mb=peak)
+            if _complete(self.out, f["frame"]):
+                _write_part(self.out, f["frame"], frame_rows)
+            rows.extend(frame_rows)
         return {"row": np.array([json.dumps(r) for r in rows], dtype=object)}
+
+
+def _part(out: Path, frame: str) -> Path:
+    return out / PARTS / f"{frame}.json"
+
+
+def _write_part(out: Path, frame: str, rows: List[Dict[str, Any]]) -> None:
+    """The frame's rows beside the table, atomically (a reader sees all or nothing)."""
+    p = _part(out, frame)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f"{p.name}.{os.getpid()}.partial")
+    tmp.write_text(json.dumps(rows))
+    os.replace(tmp, p)
+
+
+def _read_part(out: Path, frame: str) -> Optional[List[Dict[str, Any]]]:
+    p = _part(out, frame)
+    if not p.is_file():
+        return None
+    try:
+        rows = json.loads(p.read_text())
+    except ValueError:
+        return None  # unreadable: rebuilt from the table or the folder instead
+    names = set(_schema().names)
+    return [{k: r.get(k) for k in names} for r in rows] if isinstance(rows, list) else None
 
 
 def reconstruct_frame(engine: "_recon.Engine", f: Mapping[str, Any], out: Path, options: Mapping[str, Any]) -> List[Dict[str, Any]]:
@@ -273,7 +308,11 @@ def reconstruct_dataset(
     todo = [f for f in frames if f["frame"] not in done_names]
     rows: List[Dict[str, Any]] = []
     for f in done:
-        kept = [r for r in previous.get(f["frame"], []) if r["status"] != STATUS_FAILED]
+        # Finished earlier: its rows from the frame's part file (written with the folder),
+        # else an earlier table, else (stage seconds unknown) the folder's pose.json files.
+        kept = _read_part(out, f["frame"])
+        if kept is None:
+            kept = [r for r in previous.get(f["frame"], []) if r["status"] != STATUS_FAILED]
         rows.extend(kept or _rows_of_folder(f["frame"], out / f["frame"]))
     if todo:
         if not ray.is_initialized():
@@ -344,4 +383,4 @@ def synth(
     return _recon.synth_finish(str(staging), str(out), shards, **opts)
 
 
-__all__ = ["reconstruct_dataset", "reconstruct_frame", "frames_of", "synth", "RESULTS"]
+__all__ = ["reconstruct_dataset", "reconstruct_frame", "frames_of", "synth", "RESULTS", "PARTS"]

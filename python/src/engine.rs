@@ -74,7 +74,7 @@ fn intrinsics(k: &Bound<'_, PyAny>, what: &str) -> PyResult<Intrinsics> {
 
 /// An RGB-D frame from numpy arrays: `rgb` H×W×3 uint8; `depth` H×W uint16 (× `depth_scale`
 /// metres, default 0.001) or float32/float64 metres.
-fn frame_from_arrays(
+pub(crate) fn frame_from_arrays(
     rgb: &Bound<'_, PyAny>,
     depth: &Bound<'_, PyAny>,
     k: &Bound<'_, PyAny>,
@@ -238,7 +238,7 @@ fn progress_fn(cb: Option<Py<PyAny>>) -> impl Fn(recon::engine::Progress) + Sync
 impl Engine {
     #[new]
     #[pyo3(signature = (weights=None, config=None, dtype="auto", threads=None, seed=42))]
-    fn new(
+    pub(crate) fn new(
         py: Python<'_>,
         weights: Option<PathBuf>,
         config: Option<PathBuf>,
@@ -594,6 +594,15 @@ impl Object {
             mesh: o.mesh_camera.map(|m| Mesh::new(py, m).and_then(|m| Py::new(py, m))).transpose()?,
             gaussians: o.gaussians_camera.map(|g| Gaussians::new(py, g).and_then(|g| Py::new(py, g))).transpose()?,
         })
+    }
+
+    pub(crate) fn label(&self) -> &str {
+        &self.label
+    }
+
+    /// `(label, mesh)` for `recon.scene`, or None when no mesh was decoded.
+    pub(crate) fn mesh_for_scene(&self, py: Python<'_>) -> PyResult<Option<(String, recon::mesh::Mesh)>> {
+        self.mesh.as_ref().map(|m| Ok((self.label.clone(), m.get().to_recon(py)?))).transpose()
     }
 
     fn mesh_or_err(&self, py: Python<'_>) -> PyResult<recon::mesh::Mesh> {

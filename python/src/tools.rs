@@ -191,15 +191,90 @@ pub fn synth_finish<'py>(
     to_python(py, &summary)
 }
 
-/// `recon scene`: a settled, simulator-ready scene from a `recon infer` output folder, a
-/// scene file or a BOP scene folder. Returns the written files and per-object physics.
+/// Removes a folder when dropped (the in-memory objects' meshes, once the scene is built).
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new() -> Self {
+        static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
+        TempDir(std::env::temp_dir().join(format!("recon-scene-{}-{t}-{n}", std::process::id())))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// The frame of in-memory objects: a colour image path (depth and intrinsics found beside
+/// it as `recon infer` finds them) or a mapping with `rgb`, `depth`, `K` (and `depth_scale`
+/// for uint16 depth), such as `load_frame`'s dict.
+fn scene_frame(frame: &Bound<'_, PyAny>, depth: Option<PathBuf>, depth_scale: Option<f64>) -> PyResult<RgbdFrame> {
+    if let Ok(p) = frame.extract::<PathBuf>() {
+        let fo = FrameOptions { depth, depth_scale_m: depth_scale, ..Default::default() };
+        return frame.py().detach(|| RgbdFrame::open(&p, &fo)).py();
+    }
+    let Ok(d) = frame.cast::<PyDict>() else {
+        return Err(input("frame", "expected a colour image path or a dict with rgb, depth and K (as load_frame returns)"));
+    };
+    let get = |k: &str| -> PyResult<Bound<'_, PyAny>> {
+        d.get_item(k)?.ok_or_else(|| input("frame", format!("missing key `{k}` (rgb, depth, K[, depth_scale])")))
+    };
+    let dep = get("depth")?;
+    // load_frame's dict holds depth in metres already; its `depth_scale` records the file's.
+    let is_u16 = dep.getattr("dtype").and_then(|t| t.str()).map(|t| t == "uint16").unwrap_or(false);
+    let scale = match (is_u16, depth_scale) {
+        (true, Some(s)) => Some(s),
+        (true, None) => d.get_item("depth_scale")?.map(|x| x.extract()).transpose()?,
+        (false, Some(_)) => return Err(config("depth_scale", "applies to uint16 depth; float depth is already in metres")),
+        (false, None) => None,
+    };
+    let name: String = match d.get_item("depth_path")? {
+        Some(p) => p.str()?.to_string(),
+        None => "<frame arrays>".to_string(),
+    };
+    let mut f = crate::engine::frame_from_arrays(&get("rgb")?, &dep, &get("K")?, scale, &name)?;
+    if let Some(p) = d.get_item("rgb_path")? {
+        f.rgb_path = p.extract()?;
+    }
+    Ok(f)
+}
+
+/// In-memory objects for a scene: `(label, mesh)` of those with a mesh, notes on the
+/// others, and their frame.
+type InMemory = (Vec<(String, recon::mesh::Mesh)>, Vec<String>, RgbdFrame);
+
+/// The variations spec: a file, a dict (the file's JSON, passed through as text), or the default.
+fn variation_spec(spec: Option<&Bound<'_, PyAny>>) -> PyResult<(recon::sim::VariationSpec, String)> {
+    use recon::sim::VariationSpec;
+    let Some(s) = spec else { return Ok((VariationSpec::default(), "<default spec>".to_string())) };
+    if let Ok(p) = s.extract::<PathBuf>() {
+        return Ok((VariationSpec::load(&p).py()?, p.display().to_string()));
+    }
+    if s.cast::<PyDict>().is_err() {
+        return Err(config("spec", "expected a spec file path or a dict of the spec's JSON"));
+    }
+    let text = serde_json::to_string(&from_python(s)?).map_err(|e| input("spec", e))?;
+    Ok((VariationSpec::parse(&text, "<spec dict>").py()?, "<spec dict>".to_string()))
+}
+
+/// `recon scene`: a settled, simulator-ready scene from `Engine.reconstruct`'s objects and
+/// their frame, a `recon infer` output folder, a scene file or a BOP scene folder. Returns
+/// the written files and per-object physics; with `variations=N`, N re-arranged scenes
+/// (`recon scene --variations`) and their manifest.
 #[pyfunction]
-#[pyo3(signature = (objects, frame=None, out=None, collision="convex", *, view=None, depth=None, depth_scale=None, plane_threshold_mm=10.0, materials=None, settle_time=5.0, seed=0))]
+#[pyo3(signature = (objects, frame=None, out=None, collision="convex", *, view=None, depth=None, depth_scale=None,
+    plane_threshold_mm=10.0, materials=None, vhacd_resolution=64, vhacd_concavity=0.01, vhacd_max_hulls=16,
+    primitive_volume_tolerance=0.05, settle_time=5.0, max_corrective_velocity=0.05, flag_mm=10.0, flag_deg=10.0,
+    seed=0, variations=None, spec=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn scene<'py>(
     py: Python<'py>,
-    objects: PathBuf,
-    frame: Option<PathBuf>,
+    objects: &Bound<'py, PyAny>,
+    frame: Option<&Bound<'py, PyAny>>,
     out: Option<PathBuf>,
     collision: &str,
     view: Option<u32>,
@@ -207,10 +282,19 @@ pub fn scene<'py>(
     depth_scale: Option<f64>,
     plane_threshold_mm: f64,
     materials: Option<PathBuf>,
+    vhacd_resolution: u32,
+    vhacd_concavity: f32,
+    vhacd_max_hulls: u32,
+    primitive_volume_tolerance: f64,
     settle_time: f64,
+    max_corrective_velocity: f64,
+    flag_mm: f64,
+    flag_deg: f64,
     seed: u64,
+    variations: Option<usize>,
+    spec: Option<&Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    use recon::sim::{build_scene, CollisionMethod, MaterialTable, PlaneFitOptions, SceneFile, SceneOptions};
+    use recon::sim::{build_scene, CollisionMethod, MaterialTable, PlaneFitOptions, SceneFile, SceneOptions, VhacdOptions};
     let out = out.ok_or_else(|| config("out", "the output folder is required"))?;
     let collision = match collision {
         "convex" => CollisionMethod::Convex,
@@ -218,52 +302,135 @@ pub fn scene<'py>(
         "primitive" => CollisionMethod::Primitive,
         c => return Err(config("collision", format!("`{c}`: expected convex, hull or primitive"))),
     };
-    let result = py.detach(|| -> recon::Result<serde_json::Value> {
-        let table = match &materials {
-            Some(p) => MaterialTable::load(p)?,
-            None => MaterialTable::builtin(),
-        };
-        let plane_opts = PlaneFitOptions { threshold_m: plane_threshold_mm * 1e-3, seed, ..Default::default() };
-        let input = objects.as_path();
-        let mut notes = Vec::new();
-        let (scene, file) = if input.is_dir() && input.join("scene_gt.json").is_file() {
-            let (scene, _) = recon::sim::scene_from_bop(input, view, &table, &plane_opts)?;
-            (scene, input.join("scene_gt.json").display().to_string())
-        } else if input.is_dir() {
-            let marker = input.join(recon::engine::MARKER);
-            if !marker.is_file() {
-                return Err(recon::Error::input(
-                    input.display().to_string(),
-                    format!("neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)", recon::engine::MARKER),
-                ));
+    // A bad spec fails before the scene is read, as in the CLI.
+    let spec = match (variations, spec) {
+        (Some(_), s) => Some(variation_spec(s)?),
+        (None, Some(_)) => return Err(config("spec", "applies with variations=N")),
+        (None, None) => None,
+    };
+    let table = match &materials {
+        Some(p) => MaterialTable::load(p).py()?,
+        None => MaterialTable::builtin(),
+    };
+    let plane_opts = PlaneFitOptions { threshold_m: plane_threshold_mm * 1e-3, seed, ..Default::default() };
+    let mut opts = SceneOptions { collision, ..Default::default() };
+    opts.collision_opts.vhacd =
+        VhacdOptions { resolution: vhacd_resolution, concavity: vhacd_concavity, max_convex_hulls: vhacd_max_hulls, ..Default::default() };
+    opts.collision_opts.primitive.volume_tolerance = primitive_volume_tolerance;
+    opts.collision_opts.seed = seed;
+    opts.settle.max_time_s = settle_time;
+    opts.settle.max_corrective_velocity_m_s = max_corrective_velocity;
+    opts.settle.flag_displacement_m = flag_mm * 1e-3;
+    opts.settle.flag_rotation_deg = flag_deg;
+
+    // In-memory objects: their meshes (or a note for those without one) and their frame.
+    let memory: Option<InMemory> = match objects.extract::<PathBuf>() {
+        Ok(_) => None,
+        Err(_) => {
+            let mut meshes = Vec::new();
+            let mut notes = Vec::new();
+            for (i, o) in objects.try_iter().map_err(|_| input("objects", "expected a list of recon.Object or a path"))?.enumerate() {
+                let o = o?;
+                let o = o.cast::<crate::engine::Object>().map_err(|_| input("objects", format!("item {i}: expected a recon.Object")))?;
+                match o.get().mesh_for_scene(py)? {
+                    Some(m) => meshes.push(m),
+                    None => notes.push(format!("{}: no mesh was decoded; left out", o.get().label())),
+                }
             }
-            let color = frame.clone().or_else(|| recon::sim::infer_frame(input)).ok_or_else(|| {
-                recon::Error::input(input.display().to_string(), "the colour image recorded in its pose.json is not found; pass frame=")
-            })?;
-            let f = RgbdFrame::open(&color, &FrameOptions { depth: depth.clone(), depth_scale_m: depth_scale, ..Default::default() })?;
-            let (scene, n) = recon::sim::scene_from_infer_output(input, &f, &table, &plane_opts)?;
-            notes = n;
-            (scene, marker.display().to_string())
-        } else {
-            (SceneFile::load(input)?, input.display().to_string())
+            let f = frame.ok_or_else(|| input("frame", "in-memory objects need their frame: a colour image path or load_frame's dict"))?;
+            Some((meshes, notes, scene_frame(f, depth.clone(), depth_scale)?))
+        }
+    };
+    let frame_path: Option<PathBuf> = match (&memory, frame) {
+        (None, Some(f)) => {
+            Some(f.extract().map_err(|_| input("frame", "with a folder or file of objects, frame is the colour image path"))?)
+        }
+        _ => None,
+    };
+    let input_path: Option<PathBuf> = objects.extract().ok();
+    let result = py.detach(|| -> recon::Result<serde_json::Value> {
+        let tmp = TempDir::new();
+        let mut notes = Vec::new();
+        let mut plane_check = None;
+        let (scene, file) = match (&memory, &input_path) {
+            (Some((meshes, n, f)), _) => {
+                notes.extend(n.iter().cloned());
+                (recon::sim::scene_from_meshes(meshes, &tmp.0, f, &table, &plane_opts)?, "objects".to_string())
+            }
+            (None, Some(input)) if input.is_dir() && input.join("scene_gt.json").is_file() => {
+                let (scene, check) = recon::sim::scene_from_bop(input, view, &table, &plane_opts)?;
+                plane_check = check;
+                (scene, input.join("scene_gt.json").display().to_string())
+            }
+            (None, Some(input)) if input.is_dir() => {
+                let marker = input.join(recon::engine::MARKER);
+                if !marker.is_file() {
+                    return Err(recon::Error::input(
+                        input.display().to_string(),
+                        format!("neither a recon infer output (no {}) nor a BOP scene folder (no scene_gt.json)", recon::engine::MARKER),
+                    ));
+                }
+                let color = frame_path.clone().or_else(|| recon::sim::infer_frame(input)).ok_or_else(|| {
+                    recon::Error::input(input.display().to_string(), "the colour image recorded in its pose.json is not found; pass frame=")
+                })?;
+                let f = RgbdFrame::open(&color, &FrameOptions { depth: depth.clone(), depth_scale_m: depth_scale, ..Default::default() })?;
+                let (scene, n) = recon::sim::scene_from_infer_output(input, &f, &table, &plane_opts)?;
+                notes = n;
+                (scene, marker.display().to_string())
+            }
+            (None, Some(input)) => (SceneFile::load(input)?, input.display().to_string()),
+            (None, None) => unreachable!("objects is a path when not in memory"),
         };
-        let mut opts = SceneOptions { collision, ..Default::default() };
-        opts.collision_opts.seed = seed;
-        opts.settle.max_time_s = settle_time;
+        if let (Some(count), Some((spec, spec_file))) = (variations, spec) {
+            let vo = recon::sim::VariationOptions { count, seed, spec, spec_file };
+            let r = recon::sim::run_variations(&scene, &table, &opts, &vo, &file, &out)?;
+            return Ok(serde_json::json!({
+                "out": out, "manifest_file": recon::sim::VARIATIONS_MANIFEST, "manifest": r.manifest, "seconds": r.seconds, "notes": notes,
+            }));
+        }
         let mut sim = build_scene(&scene, &table, &opts, &file)?;
+        if memory.is_some() {
+            // The meshes were read from a temporary folder removed below; the records name
+            // the objects instead of files that will not exist.
+            for (i, (s, o)) in sim.input.objects.iter_mut().zip(sim.objects.iter_mut()).enumerate() {
+                let p = PathBuf::from(format!("<in memory: objects[{i}] {}>", s.name));
+                s.mesh = p.clone();
+                o.spec.mesh = p.clone();
+                o.mesh_file = p;
+            }
+        }
         let written = recon::sim::write_outputs(&mut sim, &out)?;
         Ok(serde_json::json!({
             "out": out, "files": written, "objects": sim.summaries(), "notes": notes,
-            "settle": {"at_rest": sim.settle.at_rest, "simulated_s": sim.settle.simulated_s, "steps": sim.settle.steps},
+            "support_plane": sim.input.support_plane.fit, "plane_check": plane_check,
+            "settle": {"at_rest": sim.settle.at_rest, "simulated_s": sim.settle.simulated_s, "steps": sim.settle.steps,
+                "depenetration_s": sim.settle.depenetration_s},
+            "timings": sim.timings,
         }))
     });
     to_python(py, &result.py()?)
 }
 
-/// `recon eval`: scores `predictions` (a file), or runs `method` ("observed", or
-/// "recgen" with `engine`) over the dataset first. Returns the report.
+/// Removes an eval staging folder left by a failed run (after success it has been renamed).
+struct Staging(Option<PathBuf>);
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if let Some(p) = self.0.as_ref().filter(|p| p.exists()) {
+            let _ = std::fs::remove_dir_all(p);
+        }
+    }
+}
+
+/// `recon eval`: scores `predictions` (a file), or runs `method` ("observed", or "recgen")
+/// over the dataset first. With "recgen" the model is `engine`, or loaded from `weights`,
+/// `config`, `dtype` and `seed` as `recon eval --method recgen` loads it; the per-frame
+/// flags are `recon infer`'s. Returns the report.
 #[pyfunction]
-#[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull", f1_tau=0.05, scenes=None, occlusion=None, surface_samples=10_000, surface_seed=0, all_frames=false, two_view=false, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000))]
+#[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull", f1_tau=0.05, scenes=None,
+    occlusion=None, surface_samples=10_000, surface_seed=0, all_frames=false, two_view=false, weights=None, config=None,
+    dtype=None, threads=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000,
+    steps=None, cfg=None, min_component_area=0.02))]
 #[allow(clippy::too_many_arguments)]
 pub fn eval<'py>(
     py: Python<'py>,
@@ -280,55 +447,91 @@ pub fn eval<'py>(
     surface_seed: u64,
     all_frames: bool,
     two_view: bool,
+    weights: Option<PathBuf>,
+    config: Option<PathBuf>,
+    dtype: Option<&str>,
+    threads: Option<usize>,
     samples: usize,
     select: &str,
     pose_fit: &str,
     shape_fit: &str,
     seed: u64,
     max_faces: usize,
+    steps: Option<usize>,
+    cfg: Option<f64>,
+    min_component_area: f64,
 ) -> PyResult<Bound<'py, PyAny>> {
+    use crate::errors::config as config_err;
     use recon::engine::{begin_output, finish_output};
     use recon::eval::{evaluate, observe_dataset, read_predictions, EvalOptions, ObservedOptions, Shape};
     if !(f1_tau > 0.0 && f1_tau <= 1.0) {
-        return Err(config("f1_tau", format!("{f1_tau} must be a fraction of the diameter in (0, 1]")));
+        return Err(config_err("f1_tau", format!("{f1_tau} must be a fraction of the diameter in (0, 1]")));
     }
     if surface_samples == 0 {
-        return Err(config("surface_samples", "must be positive"));
+        return Err(config_err("surface_samples", "must be positive"));
+    }
+    if let Some([lo, hi]) = occlusion {
+        if !((0.0..100.0).contains(&lo) && hi > lo && hi <= 100.0) {
+            return Err(config_err("occlusion", format!("({lo}, {hi}): expected (LO, HI) in percent, 0 ≤ LO < HI ≤ 100")));
+        }
     }
     let shape = match shape {
         "hull" => Shape::Hull,
         "box" => Shape::Box,
-        s => return Err(config("shape", format!("`{s}`: expected hull or box"))),
+        s => return Err(config_err("shape", format!("`{s}`: expected hull or box"))),
     };
-    let opts = EvalOptions {
-        n_samples: surface_samples,
-        seed: surface_seed,
-        f1_tau_rel: f1_tau,
-        all_frames: all_frames || method.is_some(),
-        occlusion,
-        ..Default::default()
-    };
-    let io = crate::engine::infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, None, None, 0.02)?;
-    let engine = match (method, engine) {
-        (Some("recgen"), None) => return Err(config("engine", "method=\"recgen\" needs engine=recon.Engine(...)")),
-        (Some("recgen"), Some(e)) => Some(e.get().shared()),
-        (Some("observed"), _) | (None, _) => None,
-        (Some(m), _) => return Err(config("method", format!("`{m}`: expected observed or recgen"))),
-    };
-    if method.is_none() && predictions.is_none() {
-        return Err(config("predictions", "give predictions=FILE or method=\"observed\"|\"recgen\""));
+    match method {
+        None | Some("observed") | Some("recgen") => {}
+        Some(m) => return Err(config_err("method", format!("`{m}`: expected observed or recgen"))),
     }
+    if method.is_none() && predictions.is_none() {
+        return Err(config_err("predictions", "give predictions=FILE or method=\"observed\"|\"recgen\""));
+    }
+    if method.is_some() && predictions.is_some() {
+        return Err(config_err("predictions", "give predictions= or method=, not both"));
+    }
+    if two_view && method != Some("recgen") {
+        return Err(config_err("two_view", "applies to method=\"recgen\" only"));
+    }
+    let model_given = weights.is_some() || config.is_some() || dtype.is_some() || threads.is_some();
+    let io = crate::engine::infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+    let engine = match (method, engine) {
+        (Some("recgen"), Some(_)) if model_given => {
+            return Err(config_err("engine", "give engine= or weights/config/dtype/threads, not both"));
+        }
+        (Some("recgen"), Some(e)) => Some(e.get().shared()),
+        // As `recon eval --method recgen`: the model loaded with the run's seed (which also
+        // seeds weights="random").
+        (Some("recgen"), None) => {
+            let e = crate::engine::Engine::new(py, weights, config, dtype.unwrap_or("auto"), threads, seed)?;
+            Some(e.shared())
+        }
+        _ if model_given => return Err(config_err("weights", "weights/config/dtype/threads apply to method=\"recgen\" only")),
+        _ => None,
+    };
+    let model = serde_json::json!({
+        "samples": samples, "select": select, "pose_fit": pose_fit, "shape_fit": shape_fit, "seed": seed,
+        "max_faces": max_faces, "steps": steps, "cfg": cfg, "min_component_area": min_component_area,
+    });
     let method = method.map(str::to_string);
     let report = py.detach(move || -> recon::Result<serde_json::Value> {
         let mut ds = recon::dataset::load_dataset(&dataset)?;
         if let Some(s) = &scenes {
             ds.retain_scenes(s)?;
         }
-        let staging = out.as_ref().map(|o| begin_output(o)).transpose()?;
+        let opts = EvalOptions {
+            n_samples: surface_samples,
+            seed: surface_seed,
+            f1_tau_rel: f1_tau,
+            all_frames: all_frames || method.is_some(),
+            occlusion,
+            ..Default::default()
+        };
+        let staging = Staging(out.as_ref().map(|o| begin_output(o)).transpose()?);
         let (report, index) = match (method.as_deref(), &predictions) {
             (Some(m), _) => {
                 let dir =
-                    staging.clone().ok_or_else(|| recon::Error::input("out", format!("method={m} writes its predictions; give out=")))?;
+                    staging.0.clone().ok_or_else(|| recon::Error::input("out", format!("method={m} writes its predictions; give out=")))?;
                 let outp = out.clone().unwrap_or_default();
                 let (pf, index) = if m == "observed" {
                     let run = observe_dataset(&ds, &ObservedOptions { shape, ..Default::default() })?;
@@ -340,21 +543,26 @@ pub fn eval<'py>(
                         Some(p) => p.install(go)?,
                         None => go()?,
                     };
-                    let idx = serde_json::json!({"kind": "recon eval --method recgen", "two_view": two_view, "skipped": run.skipped,
-                        "seconds_model": run.seconds_model, "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>()});
+                    let idx = serde_json::json!({"kind": "recon eval --method recgen", "model": model, "two_view": two_view,
+                        "skipped": run.skipped, "seconds_model": run.seconds_model,
+                        "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>()});
                     (run.write(&dir)?, idx)
                 };
+                // Score what was written, as the CLI does, so re-scoring reproduces it.
                 let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
                 report.predictions = outp.join("predictions.json").display().to_string();
                 (report, index)
             }
             (None, Some(p)) => {
-                let preds = read_predictions(p)?;
+                let mut preds = read_predictions(p)?;
+                if scenes.is_some() {
+                    preds.predictions.retain(|q| ds.frames.iter().any(|f| f.scene == q.scene));
+                }
                 (evaluate(&ds, &preds, p, &opts)?, serde_json::json!({"kind": "recon eval --predictions"}))
             }
             (None, None) => unreachable!("checked above"),
         };
-        if let (Some(o), Some(dir)) = (&out, &staging) {
+        if let (Some(o), Some(dir)) = (&out, &staging.0) {
             report.write_files(dir)?;
             finish_output(dir, o, &index)?;
         }

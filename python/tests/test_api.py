@@ -155,8 +155,8 @@ def test_synth_eval_and_audit_match_the_cli(synth_ds, recon_cli, tmp_path):
     run_cli(recon_cli, "eval", "--dataset", synth_ds, "--method", "observed", "--out", tmp_path / "ev_cli")
     cli_rep = json.loads((tmp_path / "ev_cli" / "report.json").read_text())
     assert rep["objects"] and [o for o in rep["objects"]] == cli_rep["objects"]
-    with pytest.raises(recon.ConfigError, match="engine"):
-        recon.eval(synth_ds, method="recgen", out=tmp_path / "ev2")
+    with pytest.raises(recon.ConfigError, match="method"):
+        recon.eval(synth_ds, method="oracle", out=tmp_path / "ev2")
 
     aud = recon.audit_depth(synth_ds, max_pixels=200, out=tmp_path / "au")
     assert isinstance(aud, dict) and (tmp_path / "au" / "report.json").is_file()
@@ -164,12 +164,81 @@ def test_synth_eval_and_audit_match_the_cli(synth_ds, recon_cli, tmp_path):
         recon.audit_depth(synth_ds, alpha=2.0)
 
 
-def test_scene_settles_an_infer_output(synth_ds, engine, tmp_path):
+def strip_names(objects):
+    """Scene summaries without what names the objects or their input files."""
+    return [{k: v for k, v in o.items() if k not in ("name", "mesh")} for o in objects]
+
+
+def test_scene_from_objects_equals_scene_from_their_folder(synth_ds, engine, recon_cli, tmp_path):
+    """recon.scene on Engine.reconstruct's objects + the frame settles and exports exactly
+    what `recon scene` makes of the same objects' `recon infer` folder."""
     f = frame0(synth_ds)
     engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "inf", **INFER)
-    s = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim", collision="hull")
-    assert Path(s["out"]) == tmp_path / "sim" and s["objects"]
-    assert all("mass_kg" in json.dumps(o) for o in s["objects"])
-    assert (tmp_path / "sim" / s["files"]["urdf_scene"]).is_file()
+    run_cli(recon_cli, "scene", "--input", tmp_path / "inf", "--frame", f["rgb"], "--out", tmp_path / "cli", "--collision", "hull")
+    folder = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim", collision="hull")
+    fr = recon.load_frame(f["rgb"])
+    objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], frame_masks(f), **INFER)
+    mem = recon.scene(objs, fr, tmp_path / "mem", collision="hull")
+    assert Path(mem["out"]) == tmp_path / "mem" and len(mem["objects"]) == len(folder["objects"]) > 0
+    assert all(o["physics"]["mass_kg"] > 0 for o in mem["objects"])
+    assert strip_names(mem["objects"]) == strip_names(folder["objects"])
+    assert mem["settle"] == folder["settle"] and mem["support_plane"] == folder["support_plane"]
+    for name in ("scene.glb", "scene.json"):
+        if name == "scene.json":
+            strip = lambda p: strip_names(json.loads(p.read_text())["objects"])
+            assert strip(tmp_path / "mem" / name) == strip(tmp_path / "cli" / name)
+        else:
+            assert (tmp_path / "mem" / name).read_bytes() == (tmp_path / "cli" / name).read_bytes()
+    assert (tmp_path / "mem" / mem["files"]["urdf_scene"]).is_file()
+    assert "<in memory: objects[0]" in (tmp_path / "mem" / "scene.input.json").read_text()
+
+    # The CLI's scene options pass through: a settle time below the 0.1 s minimum
+    # cannot come to rest and stops after fewer steps.
+    short = recon.scene(objs, f["rgb"], tmp_path / "short", collision="hull", settle_time=0.05)
+    assert not short["settle"]["at_rest"] and short["settle"]["steps"] < mem["settle"]["steps"]
     with pytest.raises(recon.ConfigError, match="collision"):
-        recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim2", collision="spheres")
+        recon.scene(objs, fr, tmp_path / "x", collision="spheres")
+    with pytest.raises(recon.InputError, match="frame"):
+        recon.scene(objs, None, tmp_path / "x")
+    with pytest.raises(recon.ConfigError, match="variations"):
+        recon.scene(objs, fr, tmp_path / "x", spec={"version": 1})
+
+
+def test_scene_variations_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
+    """variations=N with a spec dict = `recon scene --variations N --seed S --spec file`."""
+    f = frame0(synth_ds)
+    engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "inf", **INFER)
+    spec = {"version": 1, "sampled_predicates": 1}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    common = ["--collision", "hull", "--variations", 2, "--seed", 5]
+    run_cli(recon_cli, "scene", "--input", tmp_path / "inf", "--frame", f["rgb"], "--out", tmp_path / "cli", *common,
+            "--spec", tmp_path / "spec.json", ok=(0, 1))
+    r = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "py", collision="hull", variations=2, seed=5, spec=spec)
+    assert r["manifest"]["requested"] == 2 and r["manifest"]["seed"] == 5
+    a = sorted(p.relative_to(tmp_path / "py") for p in (tmp_path / "py").rglob("*") if p.is_file())
+    b = sorted(p.relative_to(tmp_path / "cli") for p in (tmp_path / "cli").rglob("*") if p.is_file())
+    assert a == b and any(p.name == "scene.urdf" for p in a)
+    for p in a:
+        assert (tmp_path / "py" / p).read_bytes() == (tmp_path / "cli" / p).read_bytes(), p
+    with pytest.raises(recon.ConfigError, match="version"):
+        recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "bad", variations=1, spec={"predicates": []})
+
+
+def test_eval_recgen_takes_the_cli_model_flags(synth_ds, engine, recon_cli, tmp_path):
+    """recon.eval(method="recgen", steps=…) = `recon eval --method recgen --steps …`, and
+    the flag changes the result as it does in the CLI."""
+    flags = {"scenes": ["1"], "max_faces": 2000, "seed": 7}
+    run_cli(recon_cli, "eval", "--dataset", synth_ds, "--method", "recgen", "--scenes", "1", "--max-faces", 2000,
+            "--seed", 7, "--steps", 3, "--out", tmp_path / "cli3")
+    cli3 = json.loads((tmp_path / "cli3" / "report.json").read_text())
+    py3 = recon.eval(synth_ds, method="recgen", out=tmp_path / "py3", steps=3, **flags)
+    py2 = recon.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "py2", steps=2, **flags)
+    assert py3["objects"] and py3["objects"] == cli3["objects"]
+    assert (tmp_path / "py3" / "predictions.json").read_bytes() == (tmp_path / "cli3" / "predictions.json").read_bytes()
+    assert [o for o in py2["objects"]] != py3["objects"]
+    with pytest.raises(recon.ConfigError, match="min_component_area"):
+        recon.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "x", min_component_area=1.5)
+    with pytest.raises(recon.ConfigError, match="not both"):
+        recon.eval(synth_ds, method="recgen", engine=engine, weights="random", out=tmp_path / "x")
+    with pytest.raises(recon.ConfigError, match="two_view"):
+        recon.eval(synth_ds, method="observed", two_view=True, out=tmp_path / "x")

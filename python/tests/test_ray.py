@@ -71,6 +71,15 @@ def test_dataset_run_matches_cli_records_failure_and_resumes(cluster, broken_ds,
     key = lambda r: (r["frame"], r["object"] or "")
     assert [r["pose"] for r in sorted(t2, key=key)] == [r["pose"] for r in sorted(t, key=key)]
 
+    # A job that died before writing the table: the rerun rebuilds it from the finished
+    # frames' part files, stage seconds and worker figures included.
+    (out / rr.RESULTS).unlink()
+    s3 = rr.reconstruct_dataset(broken_ds, out, num_workers=2, **INFER)
+    assert (s3["processed"], s3["resumed"], s3["failed"]) == (1, 2, 1)
+    finished = lambda t: sorted((r for r in t if r["frame"] != bad), key=key)
+    t3 = pq.read_table(out / rr.RESULTS).to_pylist()
+    assert finished(t3) == finished(t) and all(r["seconds_total"] > 0 for r in finished(t3) if r["status"] == "ok")
+
 
 def test_frame_table_source(cluster, synth_ds, tmp_path):
     frames = recon.dataset_frames(synth_ds)[:1]

@@ -71,9 +71,8 @@ pub fn scene_from_infer_output(
         .get("objects")
         .and_then(|o| o.as_array())
         .ok_or_else(|| Error::config(&file, "objects", "expected the array written by `recon infer`"))?;
-    let (_fit, world, rec) = support_plane_from_frame(frame, plane)?;
     let mut notes = Vec::new();
-    let mut objects = Vec::new();
+    let mut meshes = Vec::new();
     for (i, o) in objs.iter().enumerate() {
         let name = o
             .get("object")
@@ -93,29 +92,72 @@ pub fn scene_from_infer_output(
         if !mesh.is_file() {
             return Err(Error::config(&file, format!("objects[{i}].mesh_ply"), format!("{} does not exist", mesh.display())));
         }
-        objects.push(ObjectSpec {
-            name: name.to_string(),
-            category: guess_category(name, table),
+        meshes.push((name.to_string(), mesh));
+    }
+    if meshes.is_empty() {
+        return Err(Error::input(&file, "no object with a mesh in this recon infer output"));
+    }
+    let source = format!("recon infer output {} with the depth of {}", dir.display(), frame.rgb_path.display());
+    Ok((camera_frame_scene(meshes, frame, table, plane, source)?, notes))
+}
+
+/// Scene file for objects held in memory (e.g. the engine's results): each
+/// `(name, mesh)`, the mesh in the camera frame of `frame` in metres, is
+/// written to `mesh_dir/NNN.ply` (the bytes `recon infer` writes as
+/// `mesh.ply`, so the scene equals the one of the same objects' infer
+/// folder) and placed as [`scene_from_infer_output`] places it. The scene
+/// reads its meshes from those files: keep `mesh_dir` until it is built.
+pub fn scene_from_meshes(
+    objects: &[(String, crate::mesh::Mesh)],
+    mesh_dir: &Path,
+    frame: &RgbdFrame,
+    table: &MaterialTable,
+    plane: &PlaneFitOptions,
+) -> Result<SceneFile> {
+    if objects.is_empty() {
+        return Err(Error::input("objects", "no object with a mesh to place in a scene"));
+    }
+    std::fs::create_dir_all(mesh_dir).map_err(|e| Error::io(mesh_dir, e))?;
+    let ply = crate::export::ply::PlyOptions { axes: crate::export::Axes::ZUp, normals: true, vertex_colors: true };
+    let mut meshes = Vec::with_capacity(objects.len());
+    for (i, (name, mesh)) in objects.iter().enumerate() {
+        let path = mesh_dir.join(format!("{i:03}.ply"));
+        crate::export::ply::save_mesh_ply(mesh, &path, &ply)?;
+        meshes.push((name.clone(), path));
+    }
+    let source = format!("{} objects in memory with the depth of {}", objects.len(), frame.depth_path.display());
+    camera_frame_scene(meshes, frame, table, plane, source)
+}
+
+/// Camera-frame meshes `(name, PLY file)` in the world frame of the support
+/// plane seen in `frame`.
+fn camera_frame_scene(
+    meshes: Vec<(String, PathBuf)>,
+    frame: &RgbdFrame,
+    table: &MaterialTable,
+    plane: &PlaneFitOptions,
+    source: String,
+) -> Result<SceneFile> {
+    let (_fit, world, rec) = support_plane_from_frame(frame, plane)?;
+    let objects = meshes
+        .into_iter()
+        .map(|(name, mesh)| ObjectSpec {
+            category: guess_category(&name, table),
+            name,
             mesh,
             scale: 1.0,
             // The mesh is in the camera frame already.
             pose: PoseSpec::from_similarity(&world),
             physics: PhysicsOverrides::default(),
-        });
-    }
-    if objects.is_empty() {
-        return Err(Error::input(&file, "no object with a mesh in this recon infer output"));
-    }
-    Ok((
-        SceneFile {
-            version: VERSION,
-            source: Some(format!("recon infer output {} with the depth of {}", dir.display(), frame.rgb_path.display())),
-            camera: Some(camera_spec(frame, &world)),
-            support_plane: SupportPlaneSpec { fit: Some(rec), ..Default::default() },
-            objects,
-        },
-        notes,
-    ))
+        })
+        .collect();
+    Ok(SceneFile {
+        version: VERSION,
+        source: Some(source),
+        camera: Some(camera_spec(frame, &world)),
+        support_plane: SupportPlaneSpec { fit: Some(rec), ..Default::default() },
+        objects,
+    })
 }
 
 /// How far the fitted support plane is from the dataset's ground-truth
@@ -242,6 +284,35 @@ mod tests {
         assert_eq!(guess_category("003_cracker_box", &t), "box");
         assert_eq!(guess_category("024_bowl", &t), "bowl");
         assert_eq!(guess_category("obj_000007", &t), "object");
+    }
+
+    #[test]
+    fn in_memory_meshes_become_a_scene_of_their_files() {
+        let color = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/sample/000001-color.png");
+        let frame = RgbdFrame::open(&color, &Default::default()).unwrap();
+        let mut mesh = crate::mesh::box_mesh(0.05, 0.04, 0.03);
+        for v in &mut mesh.vertices {
+            v[2] += 0.6;
+        }
+        let dir = std::env::temp_dir().join(format!("recon-scene-meshes-{}", std::process::id()));
+        let table = MaterialTable::builtin();
+        let plane = PlaneFitOptions::default();
+        let objects = vec![("025_mug".to_string(), mesh.clone())];
+        let scene = scene_from_meshes(&objects, &dir, &frame, &table, &plane).unwrap();
+        let (_, world, rec) = support_plane_from_frame(&frame, &plane).unwrap();
+        assert_eq!(scene.objects.len(), 1);
+        let o = &scene.objects[0];
+        assert_eq!((o.name.as_str(), o.category.as_str(), o.scale), ("025_mug", "mug", 1.0));
+        assert_eq!(o.pose, PoseSpec::from_similarity(&world));
+        assert_eq!(scene.support_plane.fit.as_ref().map(|f| f.inliers), Some(rec.inliers));
+        // The file holds the mesh exactly (binary float32 PLY).
+        let back: crate::mesh::trimesh::TriMesh = crate::dataset::ply::read_ply(&o.mesh).unwrap();
+        assert_eq!(back.faces, mesh.faces);
+        let v: Vec<[f32; 3]> = back.vertices.iter().map(|v| v.map(|x| x as f32)).collect();
+        assert_eq!(v, mesh.vertices);
+        let err = scene_from_meshes(&[], &dir, &frame, &table, &plane).unwrap_err();
+        assert!(err.to_string().contains("no object"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

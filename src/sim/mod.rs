@@ -29,7 +29,7 @@ pub(crate) mod variations;
 mod write;
 
 pub use self::collision::{CollisionMethod, VhacdOptions};
-pub use self::inputs::{infer_frame, scene_from_bop, scene_from_infer_output, support_plane_from_frame};
+pub use self::inputs::{infer_frame, scene_from_bop, scene_from_infer_output, scene_from_meshes, support_plane_from_frame};
 pub use self::materials::MaterialTable;
 pub use self::scene_file::SceneFile;
 pub use self::settle::{body_distance, Body};
