@@ -123,11 +123,13 @@ class Engine:
         select: str = "cross",
         pose_fit: str = "depth",
         shape_fit: str = "depth",
+        mesh_from: str = "fitted",
         seed: int = 0,
         max_faces: int = 200_000,
         steps: Optional[int] = None,
         cfg: Optional[float] = None,
         min_component_area: float = 0.02,
+        smooth: int = 0,
         progress: Optional[Callable[[Dict[str, Any]], None]] = None,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
@@ -140,6 +142,9 @@ class Engine:
         samples: seeds seed … seed+samples−1, best pose kept, spread reported.
         select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
+        mesh_from: with the shape fit, "fitted" (the fitted occupancy's closed, smoothed surface,
+            coloured from the decoder) or "decoder" (the stage-2 mesh decoder's surface).
+        smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         progress: called with event dicts (object, sample, stage, …) from worker threads.
         seed: 0 by default (the API as specified), while `recon infer`, `reconstruct_files`,
@@ -160,11 +165,13 @@ class Engine:
         select: str = "cross",
         pose_fit: str = "depth",
         shape_fit: str = "depth",
+        mesh_from: str = "fitted",
         seed: int = 42,
         max_faces: int = 200_000,
         steps: Optional[int] = None,
         cfg: Optional[float] = None,
         min_component_area: float = 0.02,
+        smooth: int = 0,
         progress: Optional[Callable[[Dict[str, Any]], None]] = None,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
@@ -275,11 +282,13 @@ def eval(
     select: str = "cross",
     pose_fit: str = "depth",
     shape_fit: str = "depth",
+    mesh_from: str = "fitted",
     seed: int = 42,
     max_faces: int = 200_000,
     steps: Optional[int] = None,
     cfg: Optional[float] = None,
     min_component_area: float = 0.02,
+    smooth: int = 0,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -289,8 +298,8 @@ def eval(
     surface_seed, all_frames, two_view; and for method="recgen" the model flags: either
     `engine` (a loaded Engine), or weights / config / dtype / threads, loaded as
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
-    per-frame flags of `recon infer`: samples, select, pose_fit, shape_fit, seed (42, as
-    the CLI), max_faces, steps, cfg, min_component_area. Returns report.json's dict."""
+    per-frame flags of `recon infer`: samples, select, pose_fit, shape_fit, mesh_from, seed (42, as
+    the CLI), max_faces, steps, cfg, min_component_area, smooth. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,

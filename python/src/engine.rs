@@ -11,7 +11,7 @@ use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArray
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
-use recon::engine::{InferOptions, LoadOptions, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
+use recon::engine::{InferOptions, LoadOptions, MeshFrom, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
 use recon::model::Precision;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -32,11 +32,13 @@ pub(crate) fn infer_options(
     select: &str,
     pose_fit: &str,
     shape_fit: &str,
+    mesh_from: &str,
     seed: u64,
     max_faces: usize,
     steps: Option<usize>,
     cfg: Option<f64>,
     min_component_area: f64,
+    smooth: usize,
 ) -> PyResult<InferOptions> {
     if samples == 0 {
         return Err(config("samples", "must be at least 1"));
@@ -52,6 +54,8 @@ pub(crate) fn infer_options(
         max_faces: (max_faces > 0).then_some(max_faces),
         floater_area_fraction: min_component_area,
         shape_fit: parse_enum::<ShapeFit>("shape_fit", shape_fit)?,
+        mesh_from: parse_enum::<MeshFrom>("mesh_from", mesh_from)?,
+        smooth_iterations: smooth,
         ..Default::default()
     };
     opts.run.seed = seed;
@@ -280,7 +284,7 @@ impl Engine {
         format!("recon.Engine({})", self.source)
     }
 
-    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=0, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, progress=None))]
+    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=0, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, smooth=0, progress=None))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn reconstruct(
         &self,
@@ -295,14 +299,16 @@ impl Engine {
         select: &str,
         pose_fit: &str,
         shape_fit: &str,
+        mesh_from: &str,
         seed: u64,
         max_faces: usize,
         steps: Option<usize>,
         cfg: Option<f64>,
         min_component_area: f64,
+        smooth: usize,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Vec<Object>> {
-        let opts = infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+        let opts = infer_options(samples, select, pose_fit, shape_fit, mesh_from, seed, max_faces, steps, cfg, min_component_area, smooth)?;
         let frame = frame_from_arrays(rgb, depth, K, depth_scale, "<array>")?;
         let (objects, _) = masks_from(masks, "masks")?;
         let second = match view2 {
@@ -338,7 +344,7 @@ impl Engine {
     }
 
     /// `recon infer` on files: the same discovery, the same calls, the same output folder.
-    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, progress=None))]
+    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=42, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, smooth=0, progress=None))]
     #[allow(clippy::too_many_arguments)]
     fn reconstruct_files<'py>(
         &self,
@@ -354,14 +360,16 @@ impl Engine {
         select: &str,
         pose_fit: &str,
         shape_fit: &str,
+        mesh_from: &str,
         seed: u64,
         max_faces: usize,
         steps: Option<usize>,
         cfg: Option<f64>,
         min_component_area: f64,
+        smooth: usize,
         progress: Option<Py<PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let opts = infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+        let opts = infer_options(samples, select, pose_fit, shape_fit, mesh_from, seed, max_faces, steps, cfg, min_component_area, smooth)?;
         let masks: Vec<PathBuf> = match masks.extract::<PathBuf>() {
             Ok(p) => vec![p],
             Err(_) => masks.extract()?,

@@ -429,8 +429,8 @@ impl Drop for Staging {
 #[pyfunction]
 #[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull", f1_tau=0.05, scenes=None,
     occlusion=None, surface_samples=10_000, surface_seed=0, all_frames=false, two_view=false, weights=None, config=None,
-    dtype=None, threads=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", seed=42, max_faces=200_000,
-    steps=None, cfg=None, min_component_area=0.02))]
+    dtype=None, threads=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=42, max_faces=200_000,
+    steps=None, cfg=None, min_component_area=0.02, smooth=0))]
 #[allow(clippy::too_many_arguments)]
 pub fn eval<'py>(
     py: Python<'py>,
@@ -455,11 +455,13 @@ pub fn eval<'py>(
     select: &str,
     pose_fit: &str,
     shape_fit: &str,
+    mesh_from: &str,
     seed: u64,
     max_faces: usize,
     steps: Option<usize>,
     cfg: Option<f64>,
     min_component_area: f64,
+    smooth: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     use crate::errors::config as config_err;
     use recon::engine::{begin_output, finish_output};
@@ -494,7 +496,19 @@ pub fn eval<'py>(
         return Err(config_err("two_view", "applies to method=\"recgen\" only"));
     }
     let model_given = weights.is_some() || config.is_some() || dtype.is_some() || threads.is_some();
-    let io = crate::engine::infer_options(samples, select, pose_fit, shape_fit, seed, max_faces, steps, cfg, min_component_area)?;
+    let io = crate::engine::infer_options(
+        samples,
+        select,
+        pose_fit,
+        shape_fit,
+        mesh_from,
+        seed,
+        max_faces,
+        steps,
+        cfg,
+        min_component_area,
+        smooth,
+    )?;
     let engine = match (method, engine) {
         (Some("recgen"), Some(_)) if model_given => {
             return Err(config_err("engine", "give engine= or weights/config/dtype/threads, not both"));
