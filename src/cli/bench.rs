@@ -219,11 +219,14 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     let arch = recon::model::RecGenConfig::load(&a.config)?;
     if has("shape_fit") {
         println!("\nshape fit per object (observe + fit in pose; nano decodes 32³, full size 64³):");
-        println!("{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>6}", "r", "points", "model", "shell", "carved", "filled", "s", "load");
+        println!(
+            "{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9} {:>10} {:>8} {:>6}",
+            "r", "points", "model", "shell", "carved", "filled", "fit s", "surface s", "faces", "load"
+        );
         report.shape_fit = bench::bench_shape_fit(&[32, 64], a.reps.max(3))?;
         for r in &report.shape_fit {
             println!(
-                "{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.3} {:>6}",
+                "{:>4} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.3} {:>10.3} {:>8} {:>6}",
                 r.resolution,
                 r.observed_points,
                 r.model_voxels,
@@ -231,6 +234,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
                 r.carved,
                 r.filled,
                 r.seconds,
+                r.surface_seconds,
+                r.surface_faces,
                 opt(r.load_average, |v| format!("{v:.1}"))
             );
         }
@@ -240,10 +245,11 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         for m in report.modules.iter().filter(|m| m.module == "ss_flow") {
             if let Some(f) = full {
                 let stage1 = steps as f64 * m.forward_seconds;
+                let added = f.seconds + f.surface_seconds;
                 println!(
-                    "  64³ fit {:.3} s = {:.3} % of stage-1 sampling ({} steps × {:.2} s guided step, {})",
-                    f.seconds,
-                    100.0 * f.seconds / stage1,
+                    "  64³ fit + surface {:.3} s = {:.3} % of stage-1 sampling ({} steps × {:.2} s guided step, {})",
+                    added,
+                    100.0 * added / stage1,
                     steps,
                     m.forward_seconds,
                     m.precision

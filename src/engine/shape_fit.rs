@@ -312,6 +312,53 @@ impl Grid {
         Grid { r: self.r, occ }
     }
 
+    /// Occupied cells that touch only along an edge or at a corner are joined
+    /// through a face-adjacent cell (x first, then y), so the 26-connected solid
+    /// is 6-connected and its surface one piece. Returns the cells added.
+    pub fn bridge_diagonals(&mut self) -> usize {
+        let mut added = 0;
+        for i in 0..self.occ.len() {
+            if !self.occ[i] {
+                continue;
+            }
+            let c = self.coord(i);
+            for d in (0..27).map(|k| [k / 9 - 1, k / 3 % 3 - 1, k % 3 - 1]).filter(|d| d.iter().filter(|&&v| v != 0).count() >= 2) {
+                let n = [c[0] + d[0], c[1] + d[1], c[2] + d[2]];
+                if !self.index(n).is_some_and(|j| self.occ[j]) {
+                    continue;
+                }
+                // Every monotone face path from c to n, axes taken in each order.
+                let axes: Vec<usize> = (0..3).filter(|&a| d[a] != 0).collect();
+                let orders: Vec<Vec<usize>> = if axes.len() == 2 {
+                    vec![vec![axes[0], axes[1]], vec![axes[1], axes[0]]]
+                } else {
+                    vec![vec![0, 1, 2], vec![0, 2, 1], vec![1, 0, 2], vec![1, 2, 0], vec![2, 0, 1], vec![2, 1, 0]]
+                };
+                let path = |order: &[usize]| -> Vec<[i32; 3]> {
+                    let mut p = c;
+                    order[..order.len() - 1]
+                        .iter()
+                        .map(|&a| {
+                            p[a] += d[a];
+                            p
+                        })
+                        .collect()
+                };
+                let open = |q: &[i32; 3]| self.index(*q).is_some_and(|j| self.occ[j]);
+                if orders.iter().any(|o| path(o).iter().all(open)) {
+                    continue;
+                }
+                for q in path(&orders[0]) {
+                    if let Some(j) = self.index(q) {
+                        added += usize::from(!self.occ[j]);
+                        self.occ[j] = true;
+                    }
+                }
+            }
+        }
+        added
+    }
+
     /// A closed, smooth surface of the solid these voxels enclose (pockets
     /// filled), in the canonical frame: the occupancy sampled `upsample` times
     /// finer, blurred (binomial kernel, two passes: σ ≈ 0.7 fine cells; wider
@@ -320,6 +367,7 @@ impl Grid {
     pub fn smooth_surface(&self, upsample: usize) -> Mesh {
         let mut solid = self.clone();
         solid.fill_pockets();
+        solid.bridge_diagonals();
         let up = upsample.max(1);
         let pad = 3;
         let n = self.r * up + 2 * pad;
@@ -766,5 +814,37 @@ mod tests {
         let mut m2 = before.clone();
         assert_eq!(rest_on_supports(&mut m2, &pose, [1.0; 3], views, &[Some(behind)], 0.002), 0);
         assert_eq!(m2, before);
+    }
+
+    /// Cells touching at an edge or a corner only become one 6-connected piece,
+    /// and the fitted surface of a solid is one closed piece.
+    #[test]
+    fn diagonal_contacts_are_bridged_and_the_surface_is_one_piece() {
+        let mut g = Grid::empty(8);
+        for c in [[2, 2, 2], [3, 3, 2], [4, 4, 3]] {
+            let i = g.index(c).unwrap();
+            g.occ[i] = true;
+        }
+        let added = g.bridge_diagonals();
+        assert!(added >= 3, "{added}");
+        let six_connected = |g: &Grid| {
+            let start = g.occ.iter().position(|&o| o).unwrap();
+            let (mut seen, mut stack) = (vec![false; g.occ.len()], vec![start]);
+            seen[start] = true;
+            while let Some(i) = stack.pop() {
+                for n in g.neighbours(i).flatten() {
+                    if g.occ[n] && !seen[n] {
+                        seen[n] = true;
+                        stack.push(n);
+                    }
+                }
+            }
+            seen.iter().filter(|&&s| s).count() == g.count()
+        };
+        assert!(six_connected(&g));
+        assert_eq!(g.bridge_diagonals(), 0);
+        let m = ball(16, 0.35, [0.0; 3]).smooth_surface(2);
+        let q = crate::mesh::mesh_quality(&m).unwrap();
+        assert_eq!((q.components, q.boundary_edges, q.non_manifold_edges), (1, 0, 0), "{q:?}");
     }
 }

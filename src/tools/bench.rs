@@ -697,6 +697,10 @@ pub struct ShapeFitRow {
     pub filled: usize,
     /// Best of the repetitions.
     pub seconds: f64,
+    /// The fitted mesh (`--mesh-from fitted`): closed surface of the fitted
+    /// solid plus its smoothing, best of the repetitions, and its faces.
+    pub surface_seconds: f64,
+    pub surface_faces: usize,
     pub load_average: Option<f64>,
 }
 
@@ -749,6 +753,13 @@ pub fn bench_shape_fit(resolutions: &[usize], reps: usize) -> Result<Vec<ShapeFi
             last = Some(fitted);
         }
         let (_, shell, report) = last.expect("at least one repetition");
+        let (mut surface_seconds, mut surface_faces) = (f64::INFINITY, 0);
+        for _ in 0..reps.max(1) {
+            let t = Instant::now();
+            let m = crate::mesh::taubin_smooth(&shell.smooth_surface(2), 30);
+            surface_seconds = surface_seconds.min(t.elapsed().as_secs_f64());
+            surface_faces = m.faces.len();
+        }
         rows.push(ShapeFitRow {
             resolution: r,
             observed_points: view.points.len(),
@@ -757,6 +768,8 @@ pub fn bench_shape_fit(resolutions: &[usize], reps: usize) -> Result<Vec<ShapeFi
             carved: report.carved,
             filled: report.filled,
             seconds: best,
+            surface_seconds,
+            surface_faces,
             load_average: load_average(),
         });
     }
