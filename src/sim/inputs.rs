@@ -101,6 +101,7 @@ pub fn scene_from_infer_output(
             // The mesh is in the camera frame already.
             pose: PoseSpec::from_similarity(&world),
             physics: PhysicsOverrides::default(),
+            color_rgba: None,
         });
     }
     if objects.is_empty() {
@@ -202,6 +203,7 @@ pub fn scene_from_bop(
             scale: 1e-3,
             pose: PoseSpec::from_similarity(&world.compose(&m2c)),
             physics: PhysicsOverrides::default(),
+            color_rgba: None,
         });
     }
     if objects.is_empty() {
