@@ -65,6 +65,14 @@ fn write_ply(m: &Mesh, p: &Path) {
 /// World-frame bounds of each object of a written variant, from its
 /// scene.json (settled poses) and meshes: the files a user gets.
 fn settled_bounds(dir: &Path) -> BTreeMap<String, ([f64; 3], [f64; 3])> {
+    settled(dir).into_iter().map(|(k, (lo, hi, _))| (k, (lo, hi))).collect()
+}
+
+/// Lowest corner, highest corner, centre of mass.
+type Settled = ([f64; 3], [f64; 3], [f64; 3]);
+
+/// [`settled_bounds`] with each object's centre of mass (its body origin in scene.json).
+fn settled(dir: &Path) -> BTreeMap<String, Settled> {
     let scene = recon::sim::SceneFile::load(&dir.join("scene.json")).unwrap();
     let mut out = BTreeMap::new();
     for (i, o) in scene.objects.iter().enumerate() {
@@ -78,7 +86,7 @@ fn settled_bounds(dir: &Path) -> BTreeMap<String, ([f64; 3], [f64; 3])> {
                 hi[k] = hi[k].max(w[k] as f64);
             }
         }
-        out.insert(o.name.clone(), (lo, hi));
+        out.insert(o.name.clone(), (lo, hi, o.pose.translation_m));
     }
     out
 }
@@ -92,12 +100,15 @@ fn check_run(out: &Path, requested: usize) -> serde_json::Value {
     assert!(kept as f64 >= 0.95 * requested as f64, "only {kept} of {requested} variants kept");
     let rate = m["predicate_pass_rate"].as_f64().unwrap();
     assert!(rate >= 0.95, "predicates hold in only {:.1} % of the variants", rate * 100.0);
-    let world = m["frame"]["used"] == "world";
+    // The directions the manifest states (camera or world frame, on the plane).
+    let axis = |k: &str| -> [f64; 2] { [0, 1].map(|i| m["frame"][k][i].as_f64().unwrap()) };
+    let (right, behind) = (axis("right"), axis("behind"));
     let mut rechecked = 0;
     for v in m["variants"].as_array().unwrap().iter().filter(|v| v["kept"] == true) {
         let dir = out.join(v["dir"].as_str().unwrap());
         let s = &v["settle"];
         assert!(s["max_rest_motion_mm"].as_f64().unwrap() < 1.0, "{}: {s}", dir.display());
+        let com = settled(&dir);
         let bounds = settled_bounds(&dir);
         assert_eq!(bounds.len(), v["objects"].as_array().unwrap().len());
         for p in v["predicates"].as_array().unwrap() {
@@ -114,14 +125,20 @@ fn check_run(out: &Path, requested: usize) -> serde_json::Value {
                     assert!(ba.0[2] < bb.1[2] && (0..2).all(|k| ba.0[k] > bb.0[k] - 0.01 && ba.1[k] < bb.1[k] + 0.01), "{p}");
                     rechecked += 1;
                 }
-                "left_of" | "right_of" if holds && world => {
-                    let d = (ba.0[0] + ba.1[0] - bb.0[0] - bb.1[0]) / 2.0;
-                    assert!(if p["predicate"]["predicate"] == "right_of" { d > 0.0 } else { d < 0.0 }, "{p}");
+                // Centre of mass to centre of mass, at least 1 cm along the stated direction.
+                kind @ ("left_of" | "right_of" | "behind" | "in_front_of") if holds => {
+                    let (ta, tb) = (com[a].2, com[b].2);
+                    let ax = if kind == "left_of" || kind == "right_of" { right } else { behind };
+                    let d = (ta[0] - tb[0]) * ax[0] + (ta[1] - tb[1]) * ax[1];
+                    let d = if kind == "left_of" || kind == "in_front_of" { -d } else { d };
+                    assert!(d > 0.0099, "{}: {p}: {:.1} mm along {ax:?}", dir.display(), d * 1e3);
                     rechecked += 1;
                 }
-                "behind" | "in_front_of" if holds && world => {
-                    let d = (ba.0[1] + ba.1[1] - bb.0[1] - bb.1[1]) / 2.0;
-                    assert!(if p["predicate"]["predicate"] == "behind" { d > 0.0 } else { d < 0.0 }, "{p}");
+                // The collision geometries within d: their boxes are at least that close.
+                "near" if holds => {
+                    let gap = (0..3).map(|k| (ba.0[k] - bb.1[k]).max(bb.0[k] - ba.1[k]).max(0.0)).fold(0.0, |s: f64, g| s.hypot(g));
+                    let d = p["predicate"]["distance_m"].as_f64().unwrap();
+                    assert!(gap <= d + 0.005, "{}: {p}: boxes {:.1} mm apart", dir.display(), gap * 1e3);
                     rechecked += 1;
                 }
                 _ => {}
