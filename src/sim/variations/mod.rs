@@ -48,9 +48,12 @@ const PLACEMENTS: usize = 4;
 const REST_MOTION_M: f64 = 0.001;
 const REST_WINDOW_S: f64 = 0.5;
 
+/// What [`run_variations`] is asked for.
 #[derive(Debug, Clone)]
 pub struct VariationOptions {
+    /// Variants to write (1 to 10 000).
     pub count: usize,
+    /// Every variant's seed derives from it: the same seed gives byte-identical files.
     pub seed: u64,
     pub spec: VariationSpec,
     /// Names the spec in errors.
@@ -58,6 +61,13 @@ pub struct VariationOptions {
     /// The spec's asset folder, loaded ahead (the CLI does, to fail before
     /// reading the scene); `None` loads it at the start of the run.
     pub assets: Option<AssetLibrary>,
+}
+
+impl VariationOptions {
+    /// Options whose asset folder (if the spec has one) is loaded by the run.
+    pub fn new(count: usize, seed: u64, spec: VariationSpec, spec_file: impl Into<String>) -> Self {
+        Self { count, seed, spec, spec_file: spec_file.into(), assets: None }
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
