@@ -29,6 +29,20 @@ fn mul(a: &M4, b: &M4) -> M4 {
     std::array::from_fn(|i| std::array::from_fn(|j| (0..4).map(|k| a[i][k] * b[k][j]).sum()))
 }
 
+/// An accessor's elements, read in place (checked to lie inside the data).
+struct Elements<'a> {
+    bin: &'a [u8],
+    stride: usize,
+    elem: usize,
+    count: usize,
+}
+
+impl<'a> Elements<'a> {
+    fn iter(&self) -> impl Iterator<Item = &'a [u8]> + '_ {
+        (0..self.count).map(|i| &self.bin[i * self.stride..i * self.stride + self.elem])
+    }
+}
+
 struct Doc<'a> {
     file: &'a str,
     json: Value,
@@ -152,9 +166,9 @@ impl Doc<'_> {
         Ok(m)
     }
 
-    /// Accessor `idx`'s bytes: each element's slice, after checking that
+    /// Accessor `idx`'s elements and component type, after checking that
     /// every element lies inside its buffer view and the BIN chunk.
-    fn accessor(&self, idx: &Value, field: &str, want_type: &str, types: &[u64]) -> Result<(Vec<&[u8]>, u64)> {
+    fn accessor(&self, idx: &Value, field: &str, want_type: &str, types: &[u64]) -> Result<(Elements<'_>, u64)> {
         let (k, a) = self.item("accessors", idx, field)?;
         let af = format!("accessors[{k}]");
         if a.get("sparse").is_some() {
@@ -214,8 +228,7 @@ impl Doc<'_> {
             ));
         }
         let base = (voff + aoff) as usize;
-        let out = (0..count as usize).map(|i| &self.bin[base + i * stride as usize..base + i * stride as usize + elem as usize]).collect();
-        Ok((out, ct))
+        Ok((Elements { bin: &self.bin[base..], stride: stride as usize, elem: elem as usize, count: count as usize }, ct))
     }
 
     fn primitive(&self, mk: usize, pk: usize, p: &Value, m: &M4, out: &mut TriMesh) -> Result<()> {
@@ -227,24 +240,24 @@ impl Doc<'_> {
         let pos = pos.ok_or_else(|| self.bad(format!("{pf}.attributes.POSITION"), "missing"))?;
         let (elems, _) = self.accessor(pos, &format!("{pf}.attributes.POSITION"), "VEC3", &[FLOAT])?;
         let base = out.vertices.len() as u64;
-        if base + elems.len() as u64 > MAX_MESH_VERTICES {
+        if base + elems.count as u64 > MAX_MESH_VERTICES {
             return Err(Error::too_large(
                 self.file,
                 "vertices (all primitives)",
-                (base + elems.len() as u64) as u128,
+                (base + elems.count as u64) as u128,
                 MAX_MESH_VERTICES as u128,
                 "vertices",
                 pf,
             ));
         }
-        for e in &elems {
+        for e in elems.iter() {
             let v: [f64; 3] = std::array::from_fn(|k| f32::from_le_bytes([e[4 * k], e[4 * k + 1], e[4 * k + 2], e[4 * k + 3]]) as f64);
             if v.iter().any(|x| !x.is_finite()) {
                 return Err(self.bad(format!("{pf}.attributes.POSITION"), format!("expected finite coordinates, got {v:?}")));
             }
             out.vertices.push(std::array::from_fn(|i| (0..3).map(|k| m[i][k] * v[k]).sum::<f64>() + m[i][3]));
         }
-        let n = elems.len() as u64;
+        let n = elems.count as u64;
         let idx: Vec<u64> = match p.get("indices") {
             Some(i) => {
                 let (ie, ct) = self.accessor(i, &format!("{pf}.indices"), "SCALAR", &[5121, 5123, 5125])?;
