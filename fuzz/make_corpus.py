@@ -100,3 +100,43 @@ put("intrinsics_json", "cam_K.json", json.dumps({"cam_K": [500, 0, 320, 0, 500, 
 put("intrinsics_json", "nested.json", json.dumps({"intrinsics": {"K": [[500, 0, 320], [0, 500, 240], [0, 0, 1]]}}))
 put("intrinsics_yaml", "list.yml", "INTRINSICS: [1066.778, 0, 312.9869, 0, 1067.487, 241.3109, 0, 0, 1]\n")
 put("intrinsics_yaml", "lines.yml", "fx: 500\nfy: 500.5\ncx: 320\ncy: 240\ndepth_scale_m: 0.001\n")
+
+# User assets (recon scene --variations, distractors.assets): OBJ, GLB and the physics JSON.
+put("obj", "quad.obj", "# recon fuzz seed\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0.5 0.5 1\nvn 0 0 1\nvt 0 0\n"
+    "g pyramid\nf 1/1/1 4/1/1 3/1/1 2/1/1\nf 1//1 2//1 5//1\nf 2 3 5\nf -3 -2 -1\nf 4 1 5\n")
+
+
+def glb(positions, indices, extra_nodes=False):
+    bin_ = b"".join(struct.pack("<3f", *p) for p in positions)
+    ioff = len(bin_)
+    bin_ += b"".join(struct.pack("<H", i) for i in indices)
+    while len(bin_) % 4:
+        bin_ += b"\0"
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0, "translation": [0, 0.1, 0], "rotation": [0, 0, 0.7071068, 0.7071068]}],
+           "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "mode": 4}]}],
+           "accessors": [{"bufferView": 0, "componentType": 5126, "count": len(positions), "type": "VEC3",
+                          "min": [0, 0, 0], "max": [1, 1, 1]},
+                         {"bufferView": 1, "componentType": 5123, "count": len(indices), "type": "SCALAR"}],
+           "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": ioff},
+                           {"buffer": 0, "byteOffset": ioff, "byteLength": 2 * len(indices)}],
+           "buffers": [{"byteLength": len(bin_)}]}
+    if extra_nodes:
+        doc["scene"] = 0
+        doc["nodes"] = [{"children": [1], "matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0.5, 1]},
+                        {"mesh": 0, "scale": [2, 2, 2]}]
+    js = json.dumps(doc).encode()
+    while len(js) % 4:
+        js += b" "
+    return (struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(js) + 8 + len(bin_)) + struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(bin_), 0x004E4942) + bin_)
+
+
+tet = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]
+tet_faces = [0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3]
+put("glb", "tetrahedron.glb", glb(tet, tet_faces))
+put("glb", "nodes.glb", glb(tet, tet_faces, extra_nodes=True))
+put("asset_physics", "mass.json", json.dumps({"version": 1, "category": "fruit", "units_m": 0.001, "up_axis": "y",
+                                              "material": "produce", "mass_kg": 0.15, "friction": 0.7, "restitution": 0.1,
+                                              "color_rgba": [0.8, 0.1, 0.1, 1.0]}, indent=1))
+put("asset_physics", "density.json", json.dumps({"version": 1, "density_kg_m3": 650, "up_axis": "z"}))

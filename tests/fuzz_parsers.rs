@@ -195,4 +195,7 @@ targets! {
     variation_spec => Target::VariationSpec,
     intrinsics_json => Target::IntrinsicsJson,
     intrinsics_yaml => Target::IntrinsicsYaml,
+    obj => Target::Obj,
+    glb => Target::Glb,
+    asset_physics => Target::AssetPhysics,
 }

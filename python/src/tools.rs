@@ -382,7 +382,7 @@ pub fn scene<'py>(
             (None, None) => unreachable!("objects is a path when not in memory"),
         };
         if let (Some(count), Some((spec, spec_file))) = (variations, spec) {
-            let vo = recon::sim::VariationOptions { count, seed, spec, spec_file };
+            let vo = recon::sim::VariationOptions::new(count, seed, spec, spec_file);
             let r = recon::sim::run_variations(&scene, &table, &opts, &vo, &file, &out)?;
             return Ok(serde_json::json!({
                 "out": out, "manifest_file": recon::sim::VARIATIONS_MANIFEST, "manifest": r.manifest, "seconds": r.seconds, "notes": notes,

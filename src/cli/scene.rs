@@ -91,7 +91,7 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     use recon::sim::{build_scene, write_outputs, SceneOptions};
     use recon::sim::{CollisionMethod, VhacdOptions};
 
-    // A bad spec fails before the scene is read.
+    // A bad spec or asset fails before the scene is read.
     let spec = match (&a.variations, &a.spec) {
         (Some(_), Some(p)) => Some((recon::sim::VariationSpec::load(p)?, p.display().to_string())),
         (Some(_), None) => Some((recon::sim::VariationSpec::default(), "<default spec>".to_string())),
@@ -100,6 +100,10 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     let table = match &a.materials {
         Some(p) => MaterialTable::load(p)?,
         None => MaterialTable::builtin(),
+    };
+    let assets = match spec.as_ref().and_then(|(s, f)| s.distractors.assets.as_ref().map(|a| (a, f))) {
+        Some((a, f)) => Some(recon::sim::AssetLibrary::load(a, &table, f)?),
+        None => None,
     };
     let plane_opts = PlaneFitOptions { threshold_m: a.plane_threshold_mm * 1e-3, seed: a.seed, ..Default::default() };
     let (scene, file) = if a.input.is_dir() && a.input.join("scene_gt.json").is_file() {
@@ -159,7 +163,7 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     opts.settle.flag_rotation_deg = a.flag_deg;
 
     if let (Some(count), Some((spec, spec_file))) = (a.variations, spec) {
-        let vo = recon::sim::VariationOptions { count, seed: a.seed, spec, spec_file };
+        let vo = recon::sim::VariationOptions { count, seed: a.seed, spec, spec_file, assets };
         let r = recon::sim::run_variations(&scene, &table, &opts, &vo, &file, &a.out)?;
         let m = &r.manifest;
         if a.json {

@@ -98,7 +98,17 @@ impl Builder {
     }
 
     /// The GLB file image of `meshes` (each `{"primitives": [...], "name"?: ...}`), one node each.
-    fn finish(mut self, meshes: Vec<serde_json::Value>, node_names: Vec<Option<String>>) -> Result<Vec<u8>> {
+    fn finish(self, meshes: Vec<serde_json::Value>, node_names: Vec<Option<String>>) -> Result<Vec<u8>> {
+        self.finish_with(meshes, node_names, vec![material([1.0; 4])])
+    }
+
+    /// [`Builder::finish`] with the document's materials (primitives refer to them by index).
+    fn finish_with(
+        mut self,
+        meshes: Vec<serde_json::Value>,
+        node_names: Vec<Option<String>>,
+        materials: Vec<serde_json::Value>,
+    ) -> Result<Vec<u8>> {
         while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
@@ -116,7 +126,7 @@ impl Builder {
             "scenes": [{"nodes": (0..nodes.len()).collect::<Vec<_>>()}],
             "nodes": nodes,
             "meshes": meshes,
-            "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+            "materials": materials,
             "accessors": self.accessors,
             "bufferViews": self.views,
             "buffers": [{"byteLength": self.bin.len()}],
@@ -188,6 +198,35 @@ pub fn scene_glb_bytes(meshes: &[(&str, &Mesh)], clouds: &[PointCloud], opts: &G
     b.finish(out, names)
 }
 
+/// A matte glTF material of a linear base colour (alpha below 1 is blended).
+fn material(rgba: [f32; 4]) -> serde_json::Value {
+    let mut m = json!({"pbrMetallicRoughness": {"baseColorFactor": rgba, "metallicFactor": 0.0, "roughnessFactor": 1.0}});
+    if rgba[3] < 1.0 {
+        m["alphaMode"] = json!("BLEND");
+    }
+    m
+}
+
+/// Named meshes, one node each, each with its own material of a linear
+/// base colour (white where `None`), all in the same frame.
+pub fn colored_meshes_glb_bytes(meshes: &[(&str, &Mesh, Option<[f32; 4]>)], opts: &GlbOptions) -> Result<Vec<u8>> {
+    if meshes.is_empty() {
+        return Err(Error::msg("glb: empty scene"));
+    }
+    let mut b = Builder::default();
+    let (mut out, mut names, mut materials) = (Vec::new(), Vec::new(), Vec::new());
+    for (k, (name, m, rgba)) in meshes.iter().enumerate() {
+        let mut prim = b.mesh_primitive(m, opts)?;
+        prim["material"] = json!(k);
+        out.push(json!({"name": name, "primitives": [prim]}));
+        names.push(Some(name.to_string()));
+        let mut mat = material(rgba.unwrap_or([1.0; 4]));
+        mat["name"] = json!(name);
+        materials.push(mat);
+    }
+    b.finish_with(out, names, materials)
+}
+
 /// glTF vertex colours are linear.
 fn srgb_to_linear(c: u8) -> f32 {
     let x = c as f32 / 255.0;
@@ -209,6 +248,25 @@ mod tests {
 
     fn u32_at(b: &[u8], o: usize) -> u32 {
         u32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]])
+    }
+
+    #[test]
+    fn the_asset_reader_reads_what_recon_writes() {
+        let t = tetrahedron();
+        let b = glb_bytes(&t, &GlbOptions { axes: Axes::ZUp, vertex_colors: false }).unwrap();
+        let m = crate::dataset::parse_glb(&b, "t.glb").unwrap();
+        assert_eq!(m.faces, t.faces);
+        for (a, b) in m.vertices.iter().zip(&t.vertices) {
+            assert!((0..3).all(|k| (a[k] - b[k] as f64).abs() < 1e-7));
+        }
+        // The coloured scene: one node and one material per mesh.
+        let b = colored_meshes_glb_bytes(&[("a", &t, Some([0.5, 0.25, 0.0, 1.0])), ("b", &t, None)], &GlbOptions::default()).unwrap();
+        let jlen = u32_at(&b, 12) as usize;
+        let doc: serde_json::Value = serde_json::from_slice(&b[20..20 + jlen]).unwrap();
+        assert_eq!(doc["materials"][0]["pbrMetallicRoughness"]["baseColorFactor"], json!([0.5, 0.25, 0.0, 1.0]));
+        assert_eq!(doc["meshes"][1]["primitives"][0]["material"], 1);
+        assert_eq!(doc["nodes"][0]["name"], "a");
+        assert_eq!(crate::dataset::parse_glb(&b, "s.glb").unwrap().faces.len(), 2 * t.faces.len());
     }
 
     #[test]

@@ -12,4 +12,4 @@ pub use self::ply::split_header;
 pub use self::ply::{save_mesh_ply, PlyOptions};
 pub use self::splat::save_splat_ply;
 pub use axes::Axes;
-pub use glb::{glb_bytes, save_glb, GlbOptions};
+pub use glb::{colored_meshes_glb_bytes, glb_bytes, save_glb, GlbOptions};

@@ -149,6 +149,7 @@ fn camera_frame_scene(
             // The mesh is in the camera frame already.
             pose: PoseSpec::from_similarity(&world),
             physics: PhysicsOverrides::default(),
+            color_rgba: None,
         })
         .collect();
     Ok(SceneFile {
@@ -244,6 +245,7 @@ pub fn scene_from_bop(
             scale: 1e-3,
             pose: PoseSpec::from_similarity(&world.compose(&m2c)),
             physics: PhysicsOverrides::default(),
+            color_rgba: None,
         });
     }
     if objects.is_empty() {

@@ -19,6 +19,11 @@ pub struct Material {
     pub restitution: f64,
     /// Wall thickness for objects treated as shells.
     pub shell_thickness_m: f64,
+    /// Display colour, linear RGBA in [0, 1]: written to the URDF visual
+    /// material, the MJCF visual geom, USD `displayColor`/`displayOpacity`
+    /// and the GLB material. Optional: without it the exports carry no colour.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub color_rgba: Option<[f64; 4]>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -50,7 +55,19 @@ impl Material {
         if !(self.shell_thickness_m.is_finite() && self.shell_thickness_m > 0.0 && self.shell_thickness_m < 0.1) {
             return bad("shell_thickness_m", &format!("expected a wall thickness in (0, 0.1) m, got {}", self.shell_thickness_m));
         }
+        if let Some(c) = self.color_rgba {
+            check_rgba(c, file, &format!("{field}.color_rgba"))?;
+        }
         Ok(())
+    }
+}
+
+/// A colour's four channels must be finite and in [0, 1].
+pub fn check_rgba(c: [f64; 4], file: &str, field: &str) -> Result<()> {
+    if c.iter().all(|x| x.is_finite() && (0.0..=1.0).contains(x)) {
+        Ok(())
+    } else {
+        Err(Error::config(file, field, format!("expected linear RGBA, four numbers in [0, 1], got {c:?}")))
     }
 }
 
@@ -165,5 +182,15 @@ mod tests {
         assert!(e.contains("fricton"), "{e}");
         let e = MaterialTable::from_json_str(&base.replace("\"version\": 1", "\"version\": 2"), "t.json").unwrap_err().to_string();
         assert!(e.contains("version"), "{e}");
+        let e = MaterialTable::from_json_str(&base.replace("[0.55, 0.35, 0.17, 1.0]", "[0.55, 0.35, 1.7, 1.0]"), "t.json")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("materials.wood.color_rgba") && e.contains("[0, 1]"), "{e}");
+    }
+
+    #[test]
+    fn every_shipped_material_has_a_colour() {
+        let t = MaterialTable::builtin();
+        assert!(t.materials.values().all(|m| m.color_rgba.is_some()));
     }
 }

@@ -67,9 +67,10 @@ pub fn scene_mjcf(scene: &SimScene, mesh_dir: &str) -> String {
             "      <inertial pos=\"0 0 0\" mass=\"{}\" fullinertia=\"{} {} {} {} {} {}\"/>",
             o.inertial.mass_kg, i[0][0], i[1][1], i[2][2], i[0][1], i[0][2], i[1][2]
         );
+        let rgba = o.color_rgba.map(|c| format!(" rgba=\"{} {} {} {}\"", c[0], c[1], c[2], c[3])).unwrap_or_default();
         let _ = writeln!(
             s,
-            "      <geom name=\"{}_visual\" type=\"mesh\" mesh=\"{}_visual\" contype=\"0\" conaffinity=\"0\" group=\"1\"/>",
+            "      <geom name=\"{}_visual\" type=\"mesh\" mesh=\"{}_visual\" contype=\"0\" conaffinity=\"0\" group=\"1\"{rgba}/>",
             o.id, o.id
         );
         let f = friction(o.friction);

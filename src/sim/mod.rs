@@ -35,5 +35,8 @@ pub use self::scene_file::SceneFile;
 pub use self::settle::{body_distance, Body};
 pub use crate::geometry::PlaneFitOptions;
 pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};
-pub use variations::{run_variations, VariationOptions, VariationSpec, MANIFEST as VARIATIONS_MANIFEST};
+pub use variations::{
+    run_variations, Asset, AssetLibrary, AssetPhysics, AssetSpec, Category, DirFrame, Manifest as VariationsManifest, Predicate,
+    RunSummary, UpAxis, VariationOptions, VariationSpec, MANIFEST as VARIATIONS_MANIFEST,
+};
 pub use write::{write_outputs, write_outputs_with, Written, MARKER};

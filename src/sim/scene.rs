@@ -47,6 +47,8 @@ pub struct SimObject {
     pub material_source: MaterialSource,
     pub friction: f64,
     pub restitution: f64,
+    /// Display colour (linear RGBA): the object's own, else its material's.
+    pub color_rgba: Option<[f32; 4]>,
     pub mesh_file: PathBuf,
     pub visual: Mesh,
     pub mesh_report: MeshReport,
@@ -147,6 +149,7 @@ pub(crate) struct Prepared {
     pub inertial: Inertial,
     pub collision: Collision,
     pub start: Similarity32,
+    pub color_rgba: Option<[f32; 4]>,
 }
 
 impl Prepared {
@@ -175,6 +178,7 @@ impl Prepared {
             material_source: p.material_source,
             friction: p.friction,
             restitution: p.restitution,
+            color_rgba: p.color_rgba,
             mesh_file: p.spec.mesh.clone(),
             visual: p.visual,
             mesh_report: p.mesh_report,
@@ -243,6 +247,7 @@ pub(crate) fn prepare_mesh(
         inertial,
         collision,
         start,
+        color_rgba: o.color_rgba.or(mat.color_rgba).map(|c| c.map(|x| x as f32)),
     })
 }
 
@@ -258,6 +263,8 @@ pub struct ObjectSummary<'a> {
     pub physics: &'a Inertial,
     pub friction: f64,
     pub restitution: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub color_rgba: Option<[f32; 4]>,
     pub collision: &'a crate::sim::collision::CollisionReport,
     pub start_pose: PoseSpec,
     pub settled_pose: PoseSpec,
@@ -289,6 +296,7 @@ impl SimScene {
                 physics: &o.inertial,
                 friction: o.friction,
                 restitution: o.restitution,
+                color_rgba: o.color_rgba,
                 collision: &o.collision.report,
                 start_pose: PoseSpec::from_similarity(&o.start),
                 settled_pose: PoseSpec::from_similarity(&o.end),

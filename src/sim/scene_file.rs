@@ -187,6 +187,9 @@ pub struct ObjectSpec {
     pub pose: PoseSpec,
     #[serde(default, skip_serializing_if = "is_default_physics")]
     pub physics: PhysicsOverrides,
+    /// Display colour (linear RGBA in [0, 1]); default: the material's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub color_rgba: Option<[f64; 4]>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -308,6 +311,9 @@ impl SceneFile {
             range(p.shell_thickness_m, "shell_thickness_m", 0.0, 0.1, "a wall thickness in (0, 0.1] m")?;
             range(p.friction.map(|x| x + 1.0), "friction", 0.0, 3.0, "a friction coefficient in [0, 2]")?;
             range(p.restitution.map(|x| x + 1.0), "restitution", 0.0, 2.0, "a restitution in [0, 1]")?;
+            if let Some(c) = o.color_rgba {
+                crate::sim::materials::check_rgba(c, file, &format!("{f}.color_rgba"))?;
+            }
         }
         if let Some(c) = &self.camera {
             c.pose_world.to_similarity(file, "camera.pose_world")?;

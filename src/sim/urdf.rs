@@ -41,9 +41,16 @@ fn link(o: &SimObject, mesh_dir: &str) -> String {
         i[0][0], i[0][1], i[0][2], i[1][1], i[1][2], i[2][2]
     );
     let _ = writeln!(s, "    </inertial>");
+    // The material's (or the object's) colour; URDF names materials, so the name is the object's.
+    let color = o
+        .color_rgba
+        .map(|c| {
+            format!("\n      <material name=\"{}_{}\"><color rgba=\"{} {} {} {}\"/></material>", o.id, o.material, c[0], c[1], c[2], c[3])
+        })
+        .unwrap_or_default();
     let _ = writeln!(
         s,
-        "    <visual>\n      {}\n      <geometry><mesh filename=\"{mesh_dir}/{}/visual.obj\"/></geometry>\n    </visual>",
+        "    <visual>\n      {}\n      <geometry><mesh filename=\"{mesh_dir}/{}/visual.obj\"/></geometry>{color}\n    </visual>",
         origin([0.0; 3], &IDENTITY),
         o.id
     );

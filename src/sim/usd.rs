@@ -81,6 +81,7 @@ pub fn scene_usda(scene: &SimScene) -> String {
         );
         let _ = writeln!(s, "        custom string recon:name = \"{}\"", o.name.replace('\\', "\\\\").replace('"', "\\\""));
         let _ = writeln!(s, "        custom string recon:massModel = \"{:?}\"", o.inertial.treatment);
+        let _ = writeln!(s, "        custom string recon:material = \"{}\"", o.material.replace('\\', "\\\\").replace('"', "\\\""));
         let _ = writeln!(s, "        point3f physics:centerOfMass = (0, 0, 0)");
         let _ = writeln!(s, "        float3 physics:diagonalInertia = ({}, {}, {})", moments[0], moments[1], moments[2]);
         let _ = writeln!(s, "        float physics:mass = {}", o.inertial.mass_kg);
@@ -88,6 +89,10 @@ pub fn scene_usda(scene: &SimScene) -> String {
         xform(&mut s, o.end.translation, &o.end.rotation, None, "        ");
         s += "\n        def Mesh \"visual\"\n        {\n";
         mesh_body(&mut s, &o.visual, "            ");
+        if let Some(c) = o.color_rgba {
+            let _ = writeln!(s, "            color3f[] primvars:displayColor = [({}, {}, {})]", c[0], c[1], c[2]);
+            let _ = writeln!(s, "            float[] primvars:displayOpacity = [{}]", c[3]);
+        }
         s += "        }\n";
         for (k, p) in o.collision.parts.iter().enumerate() {
             let bind = format!(

@@ -60,19 +60,16 @@ pub fn write_outputs_with(scene: &mut SimScene, out: &Path, timings: bool) -> Re
     write(&staging.join("urdf/scene.urdf"), crate::sim::urdf::scene_urdf(scene, "../meshes").as_bytes())?;
     write(&staging.join("scene.xml"), crate::sim::mjcf::scene_mjcf(scene, "meshes").as_bytes())?;
     write(&staging.join("scene.usda"), crate::sim::usd::scene_usda(scene).as_bytes())?;
-    let mut world = Mesh::default();
-    for o in &scene.objects {
-        let m = o.end.apply_mesh(&o.visual);
-        let base = world.vertices.len() as u32;
-        world.vertices.extend_from_slice(&m.vertices);
-        world.faces.extend(m.faces.iter().map(|f| f.map(|i| i + base)));
-    }
+    // One node per object, placed in the world, with the object's colour as its material.
+    let placed: Vec<Mesh> = scene.objects.iter().map(|o| o.end.apply_mesh(&o.visual)).collect();
+    let nodes: Vec<(&str, &Mesh, Option<[f32; 4]>)> =
+        scene.objects.iter().zip(&placed).map(|(o, m)| (o.id.as_str(), m, o.color_rgba)).collect();
     // glTF is y-up; the world is z-up.
-    crate::export::glb::save_glb(
-        &world,
-        &staging.join("scene.glb"),
+    let glb = crate::export::glb::colored_meshes_glb_bytes(
+        &nodes,
         &crate::export::GlbOptions { axes: crate::export::Axes::YUp, vertex_colors: false },
     )?;
+    write(&staging.join("scene.glb"), &glb)?;
     let settled = scene.settled_scene_file();
     write(&staging.join("scene.json"), settled.to_json()?.as_bytes())?;
     let input_path = staging.join("scene.input.json");

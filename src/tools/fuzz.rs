@@ -42,10 +42,16 @@ pub enum Target {
     IntrinsicsJson,
     /// A frame's intrinsics file (YAML subset).
     IntrinsicsYaml,
+    /// A user asset mesh in Wavefront OBJ.
+    Obj,
+    /// A user asset mesh in binary glTF (GLB).
+    Glb,
+    /// The physics JSON beside a user asset.
+    AssetPhysics,
 }
 
 impl Target {
-    pub const ALL: [Target; 15] = [
+    pub const ALL: [Target; 18] = [
         Target::Safetensors,
         Target::Pt,
         Target::MatV5,
@@ -61,6 +67,9 @@ impl Target {
         Target::VariationSpec,
         Target::IntrinsicsJson,
         Target::IntrinsicsYaml,
+        Target::Obj,
+        Target::Glb,
+        Target::AssetPhysics,
     ];
 
     /// The target's name: its corpus folder and its cargo-fuzz binary.
@@ -81,6 +90,9 @@ impl Target {
             Target::VariationSpec => "variation_spec",
             Target::IntrinsicsJson => "intrinsics_json",
             Target::IntrinsicsYaml => "intrinsics_yaml",
+            Target::Obj => "obj",
+            Target::Glb => "glb",
+            Target::AssetPhysics => "asset_physics",
         }
     }
 
@@ -90,7 +102,7 @@ impl Target {
 
     /// Text formats get number substitutions among their mutations.
     pub fn is_text(self) -> bool {
-        !matches!(self, Target::Safetensors | Target::Pt | Target::MatV5)
+        !matches!(self, Target::Safetensors | Target::Pt | Target::MatV5 | Target::Glb)
     }
 }
 
@@ -186,6 +198,12 @@ pub fn run(target: Target, data: &[u8]) -> Result<()> {
         Target::VariationSpec => crate::sim::VariationSpec::parse(&text(), "variations.json").map(|_| ()),
         Target::IntrinsicsJson => intrinsics_from_bytes(data, CameraFormat::Json, "camera.json").map(|_| ()),
         Target::IntrinsicsYaml => intrinsics_from_bytes(data, CameraFormat::Yaml, "meta.yml").map(|_| ()),
+        Target::Obj => crate::dataset::parse_mesh(data, crate::dataset::MeshFormat::Obj, "asset.obj").map(|_| ()),
+        Target::Glb => crate::dataset::parse_mesh(data, crate::dataset::MeshFormat::Glb, "asset.glb").map(|_| ()),
+        Target::AssetPhysics => {
+            let table = crate::sim::MaterialTable::builtin();
+            crate::sim::AssetPhysics::parse(&text(), "asset.json", Some(&table)).map(|_| ())
+        }
     }
 }
 

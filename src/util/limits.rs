@@ -20,6 +20,22 @@ pub const MAX_MAT_INFLATED: u64 = 64 << 20;
 /// `n` bytes cannot honestly claim more than `n · MAX_DEFLATE_RATIO`.
 pub const MAX_DEFLATE_RATIO: u64 = 1032;
 
+/// Largest user mesh file read (GLB, OBJ or PLY asset), in bytes.
+pub const MAX_MESH_FILE_BYTES: u64 = 256 << 20;
+/// Most vertices and most triangles one user mesh may hold (a scanned
+/// object decimated for simulation has well under a million).
+pub const MAX_MESH_VERTICES: u64 = 4_000_000;
+pub const MAX_MESH_TRIANGLES: u64 = 8_000_000;
+/// Most mesh files one asset folder may hold, and the deepest folder walked.
+pub const MAX_ASSET_FILES: usize = 1000;
+pub const MAX_ASSET_DEPTH: usize = 4;
+/// Largest physics JSON beside an asset, in bytes.
+pub const MAX_ASSET_JSON_BYTES: u64 = 1 << 20;
+/// Largest JSON chunk of a GLB file, in bytes.
+pub const MAX_GLB_JSON_BYTES: u64 = 64 << 20;
+/// Deepest glTF node hierarchy followed.
+pub const MAX_GLTF_NODE_DEPTH: usize = 64;
+
 /// The machine's memory in bytes (`MemTotal` of /proc/meminfo), capped by
 /// `RECON_MEMORY_LIMIT_MB` when set (for clusters whose jobs get less than
 /// the node has). `None` where neither is known.

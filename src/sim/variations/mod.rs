@@ -3,8 +3,9 @@
 //! The scene is settled once; each object keeps its resting orientation and
 //! is re-placed (with a random yaw) on the support plane under the spec's
 //! spatial predicates, or under predicates sampled per variant. Distractors
-//! come from `recon synth`'s procedural library; scene objects may be
-//! rescaled, stretched and given another material (mass, inertia and
+//! come from `recon synth`'s procedural library and from a folder of the
+//! user's meshes ([`AssetLibrary`]); scene objects may be rescaled,
+//! stretched and given another material or colour (mass, inertia and
 //! collision geometry are rebuilt). Every variant is settled with rapier
 //! and kept only when at rest (every point of every object moved < 1 mm over
 //! the last 0.5 s); the predicates are then judged on the settled poses.
@@ -14,12 +15,14 @@
 //! the scene, the spec, the options and the seed only: the same seed gives
 //! byte-identical files.
 
+mod assets;
 mod place;
 mod profile;
 pub mod spec;
 
+pub use assets::{Asset, AssetLibrary, AssetPhysics, UpAxis};
 pub use place::Judged;
-pub use spec::{Category, DirFrame, Predicate, VariationSpec};
+pub use spec::{AssetSpec, Category, DirFrame, Predicate, VariationSpec};
 
 use crate::math::Similarity32;
 use crate::mesh::Mesh;
@@ -45,13 +48,26 @@ const PLACEMENTS: usize = 4;
 const REST_MOTION_M: f64 = 0.001;
 const REST_WINDOW_S: f64 = 0.5;
 
+/// What [`run_variations`] is asked for.
 #[derive(Debug, Clone)]
 pub struct VariationOptions {
+    /// Variants to write (1 to 10 000).
     pub count: usize,
+    /// Every variant's seed derives from it: the same seed gives byte-identical files.
     pub seed: u64,
     pub spec: VariationSpec,
     /// Names the spec in errors.
     pub spec_file: String,
+    /// The spec's asset folder, loaded ahead (the CLI does, to fail before
+    /// reading the scene); `None` loads it at the start of the run.
+    pub assets: Option<AssetLibrary>,
+}
+
+impl VariationOptions {
+    /// Options whose asset folder (if the spec has one) is loaded by the run.
+    pub fn new(count: usize, seed: u64, spec: VariationSpec, spec_file: impl Into<String>) -> Self {
+        Self { count, seed, spec, spec_file: spec_file.into(), assets: None }
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -67,12 +83,19 @@ pub struct FrameRecord {
 pub struct ObjectRecord {
     pub name: String,
     pub category: String,
-    /// "scene" or "distractor".
+    /// "scene", "distractor" (procedural library) or "asset" (the user's folder).
     pub source: &'static str,
+    /// The asset's path in its folder.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub asset: Option<String>,
     /// Scale of the scene object along its resting axes (x, y, z); distractors: their size factor.
     pub scale: [f64; 3],
     pub material: String,
+    /// Density the mass came from (the material's, or the object's override).
+    pub density_kg_m3: f64,
     pub mass_kg: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub color_rgba: Option<[f32; 4]>,
     pub start_pose: PoseSpec,
     pub settled_pose: PoseSpec,
     /// Bound on any point's motion over the last 0.5 s of the settle.
@@ -340,6 +363,15 @@ pub fn run_variations(
     let spec = &v.spec;
     let names: Vec<String> = scene.objects.iter().map(|o| o.name.clone()).collect();
     spec.check_names(&names, table, &v.spec_file)?;
+    let loaded;
+    let assets = match (&spec.distractors.assets, &v.assets) {
+        (Some(_), Some(l)) => Some(l),
+        (Some(a), None) => {
+            loaded = AssetLibrary::load(a, table, &v.spec_file)?;
+            Some(&loaded)
+        }
+        (None, _) => None,
+    };
     check_shapes(scene, spec, &v.spec_file)?;
     if v.count == 0 || v.count > 10_000 {
         return Err(Error::input("--variations", format!("expected 1 to 10000 variations, got {}", v.count)));
@@ -375,6 +407,7 @@ pub fn run_variations(
                 inertial: o.inertial.clone(),
                 collision: o.collision.clone(),
                 start: o.end,
+                color_rgba: o.color_rgba,
             };
             let orient = settle_alone(&prepared, o.end.rotation, &base.plane, &settle_opts)?;
             let placeable = placeable(&o.name, &o.visual, &prepared, orient, true, &o.mesh_file.display().to_string())?;
@@ -395,7 +428,7 @@ pub fn run_variations(
         }
     };
 
-    let ctx = Ctx { scene, table, opts, spec, bases: &bases, base: &base, region: &region, axes, settle: settle_opts, file, out };
+    let ctx = Ctx { scene, table, opts, spec, assets, bases: &bases, base: &base, region: &region, axes, settle: settle_opts, file, out };
     let variants: Vec<VariantRecord> = (0..v.count).into_par_iter().map(|i| ctx.variant(i, v.seed)).collect::<Result<_>>()?;
 
     let kept: Vec<&VariantRecord> = variants.iter().filter(|r| r.kept).collect();
@@ -440,6 +473,7 @@ struct Ctx<'a> {
     table: &'a MaterialTable,
     opts: &'a SceneOptions,
     spec: &'a VariationSpec,
+    assets: Option<&'a AssetLibrary>,
     bases: &'a [BaseObject],
     base: &'a SimScene,
     region: &'a Region,
@@ -455,6 +489,7 @@ struct VObj {
     placeable: Placeable,
     source: &'static str,
     scale: [f64; 3],
+    asset: Option<String>,
 }
 
 /// A variant's objects and predicates, before placement.
@@ -551,9 +586,12 @@ impl Ctx<'_> {
                 name: o.prepared.spec.name.clone(),
                 category: o.prepared.spec.category.clone(),
                 source: o.source,
+                asset: o.asset.clone(),
                 scale: o.scale,
                 material: o.prepared.material.clone(),
+                density_kg_m3: o.prepared.inertial.density_kg_m3,
                 mass_kg: o.prepared.inertial.mass_kg,
+                color_rgba: o.prepared.color_rgba,
                 start_pose: PoseSpec::from_similarity(start),
                 settled_pose: PoseSpec::from_similarity(&Similarity32 { rotation: b.rotation, translation: b.translation_m, scale: 1.0 }),
                 rest_motion_mm: b.rest_motion_m * 1e3,
@@ -608,6 +646,7 @@ impl Ctx<'_> {
             // lose their exact primitive and, as convex parts, rock without end.
             let scale = if b.placeable.profile.flat_base() { [s * stretch[0], s * stretch[1], s] } else { [s; 3] };
             let material = (!ov.materials.is_empty()).then(|| ov.materials[(rng.next_u64() % ov.materials.len() as u64) as usize].clone());
+            let color = (!ov.colors.is_empty()).then(|| ov.colors[(rng.next_u64() % ov.colors.len() as u64) as usize]);
             // The body-frame mesh turned to rest, then stretched along the resting axes
             // (`build` settles it alone again: the stretched shape may rest differently).
             let o = b.orient;
@@ -627,6 +666,8 @@ impl Ctx<'_> {
             spec.scale = 1.0;
             spec.mesh = PathBuf::from(format!("meshes/{}/visual.ply", safe_name(&spec.name)));
             if let Some(m) = &material {
+                // The material's colour, unless a colour is drawn below.
+                spec.color_rgba = None;
                 spec.physics.material = Some(m.clone());
                 spec.physics.density_kg_m3 = None;
                 spec.physics.friction = None;
@@ -635,7 +676,10 @@ impl Ctx<'_> {
             } else if let Some(m) = spec.physics.mass_kg {
                 spec.physics.mass_kg = Some(m * scale[0] * scale[1] * scale[2]);
             }
-            objs.push(self.build(i, spec, &raw, "scene", scale)?);
+            if color.is_some() {
+                spec.color_rgba = color;
+            }
+            objs.push(self.build(i, spec, &raw, "scene", scale, None)?);
         }
         let ds = &self.spec.distractors;
         let n = ds.count[0] + (rng.next_u64() % (ds.count[1] - ds.count[0] + 1) as u64) as u32;
@@ -656,8 +700,39 @@ impl Ctx<'_> {
                 scale: 1.0,
                 pose: PoseSpec::from_similarity(&Similarity32::identity()),
                 physics: Default::default(),
+                color_rgba: None,
             };
-            objs.push(self.build(self.bases.len() + k, spec, &raw, "distractor", [f; 3])?);
+            objs.push(self.build(self.bases.len() + k, spec, &raw, "distractor", [f; 3], None)?);
+        }
+        // The user's assets, drawn after the library's (a spec without assets draws as before).
+        if let (Some(lib), Some(a)) = (self.assets, &ds.assets) {
+            let m = a.count[0] + (rng.next_u64() % (a.count[1] - a.count[0] + 1) as u64) as u32;
+            for k in 0..m as usize {
+                let asset = &lib.assets[(rng.next_u64() % lib.assets.len() as u64) as usize];
+                let u = |rng: &mut SeededRng, r: [f64; 2]| r[0] + (r[1] - r[0]) * rng.uniform();
+                let size = a.size_m.map_or(1.0, |r| u(rng, r) / asset.extent_m);
+                let f = size * u(rng, a.scale);
+                let raw = Mesh {
+                    vertices: asset.mesh.vertices.iter().map(|v| v.map(|x| x * f as f32)).collect(),
+                    faces: asset.mesh.faces.clone(),
+                    vertex_attrs: None,
+                };
+                let name = format!("distractor_{}", n as usize + k);
+                let mut physics = asset.physics.clone();
+                // A given mass is the asset's at its own size: it scales with the volume.
+                physics.mass_kg = physics.mass_kg.map(|m| m * f * f * f);
+                let spec = ObjectSpec {
+                    name: name.clone(),
+                    category: asset.category.clone(),
+                    mesh: PathBuf::from(format!("meshes/{name}/visual.ply")),
+                    scale: 1.0,
+                    pose: PoseSpec::from_similarity(&Similarity32::identity()),
+                    physics,
+                    color_rgba: asset.color_rgba,
+                };
+                let i = self.bases.len() + n as usize + k;
+                objs.push(self.build(i, spec, &raw, "asset", [f; 3], Some(asset.rel.clone()))?);
+            }
         }
         let preds = if self.spec.predicates.is_empty() { self.sample_predicates(&objs, rng) } else { self.bind(&objs)? };
         // A variant that no longer fits its support (a grown load, a shrunk
@@ -679,16 +754,17 @@ impl Ctx<'_> {
         let mut prepared = b.prepared.clone();
         prepared.spec.mesh = PathBuf::from(format!("meshes/{}/visual.ply", safe_name(&prepared.spec.name)));
         prepared.spec.scale = 1.0;
-        VObj { prepared, placeable: b.placeable.clone(), source: "scene", scale: [1.0; 3] }
+        VObj { prepared, placeable: b.placeable.clone(), source: "scene", scale: [1.0; 3], asset: None }
     }
 
     /// Annotate and build collision for a resting-frame mesh.
-    fn build(&self, i: usize, spec: ObjectSpec, raw: &Mesh, source: &'static str, scale: [f64; 3]) -> Result<VObj> {
+    #[allow(clippy::too_many_arguments)]
+    fn build(&self, i: usize, spec: ObjectSpec, raw: &Mesh, source: &'static str, scale: [f64; 3], asset: Option<String>) -> Result<VObj> {
         let what = format!("{} (variant)", spec.name);
         let prepared = prepare_mesh(i, &spec, raw, &what, self.table, self.opts, self.file)?;
         let orient = settle_alone(&prepared, Similarity32::identity().rotation, &self.base.plane, &self.settle)?;
         let placeable = placeable(&spec.name, &prepared.visual, &prepared, orient, true, &what)?;
-        Ok(VObj { prepared, placeable, source, scale })
+        Ok(VObj { prepared, placeable, source, scale, asset })
     }
 
     fn bind(&self, objs: &[VObj]) -> Result<Vec<Bound>> {

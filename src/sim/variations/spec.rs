@@ -24,7 +24,7 @@ use crate::synth::objects::Kind;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 pub const SPEC_VERSION: u32 = 1;
 
@@ -185,12 +185,36 @@ pub struct DistractorSpec {
     /// Uniform size factor on the library's random size (3–30 cm objects).
     #[serde(default = "default_unit")]
     pub scale: [f64; 2],
+    /// Distractors from a folder of the user's meshes, drawn in addition to the library's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub assets: Option<AssetSpec>,
 }
 
 impl Default for DistractorSpec {
     fn default() -> Self {
-        Self { count: default_count(), categories: vec![], scale: default_unit() }
+        Self { count: default_count(), categories: vec![], scale: default_unit(), assets: None }
     }
+}
+
+/// Distractors from the user's assets: GLB, OBJ or PLY files under `dir`
+/// (see `sim::variations::assets` for the layout and the physics JSON).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AssetSpec {
+    /// The asset folder; relative paths are resolved against the spec file's folder.
+    pub dir: PathBuf,
+    /// Inclusive range of the number of asset distractors per variant.
+    #[serde(default = "default_count")]
+    pub count: [u32; 2],
+    /// Asset categories to draw from (default: all found).
+    #[serde(default)]
+    pub categories: Vec<String>,
+    /// Range of the largest extent (m) an asset is rescaled to; default: its own size.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub size_m: Option<[f64; 2]>,
+    /// Uniform size factor range, after `size_m`.
+    #[serde(default = "default_unit")]
+    pub scale: [f64; 2],
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -206,13 +230,18 @@ pub struct ObjectVariantSpec {
     #[serde(default = "default_unit")]
     pub aspect: [f64; 2],
     /// Materials (of the material table) to draw from; empty keeps the object's.
+    /// A drawn material brings its density (mass and inertia are recomputed),
+    /// friction, restitution and colour.
     #[serde(default)]
     pub materials: Vec<String>,
+    /// Colours (linear RGBA in [0, 1]) to draw from; empty: the material's colour.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub colors: Vec<[f64; 4]>,
 }
 
 impl Default for ObjectVariantSpec {
     fn default() -> Self {
-        Self { probability: 0.0, scale: default_unit(), aspect: default_unit(), materials: vec![] }
+        Self { probability: 0.0, scale: default_unit(), aspect: default_unit(), materials: vec![], colors: vec![] }
     }
 }
 
@@ -262,9 +291,16 @@ impl Default for VariationSpec {
 }
 
 impl VariationSpec {
+    /// Read and check a spec file; the asset folder is resolved against the file's folder.
     pub fn load(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        Self::parse(&text, &path.display().to_string())
+        let mut s = Self::parse(&text, &path.display().to_string())?;
+        if let Some(a) = &mut s.distractors.assets {
+            if a.dir.is_relative() {
+                a.dir = path.parent().unwrap_or(Path::new(".")).join(&a.dir);
+            }
+        }
+        Ok(s)
     }
 
     /// Parse and check value ranges; errors name the file and the field
@@ -303,7 +339,26 @@ impl VariationSpec {
         if c[0] > c[1] || c[1] > 20 {
             return Err(Error::config(file, "distractors.count", format!("expected [min, max] with min ≤ max ≤ 20, got {c:?}")));
         }
+        if let Some(a) = &self.distractors.assets {
+            if a.count[0] > a.count[1] || a.count[1] > 20 {
+                return Err(Error::config(
+                    file,
+                    "distractors.assets.count",
+                    format!("expected [min, max] with min ≤ max ≤ 20, got {:?}", a.count),
+                ));
+            }
+            if let Some(r) = a.size_m {
+                range(r, "distractors.assets.size_m", 0.01, 2.0)?;
+            }
+            range(a.scale, "distractors.assets.scale", 0.2, 3.0)?;
+            if a.dir.as_os_str().is_empty() {
+                return Err(Error::config(file, "distractors.assets.dir", "expected the asset folder"));
+            }
+        }
         let ov = &self.object_variants;
+        for (i, c) in ov.colors.iter().enumerate() {
+            crate::sim::materials::check_rgba(*c, file, &format!("object_variants.colors[{i}]"))?;
+        }
         range([ov.probability, ov.probability], "object_variants.probability", 0.0, 1.0)?;
         range(ov.scale, "object_variants.scale", 0.2, 3.0)?;
         range(ov.aspect, "object_variants.aspect", 0.5, 2.0)?;
