@@ -45,8 +45,8 @@ use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
 use crate::engine::shape_fit::{fit_in_pose, rest_on_supports, Grid, MeshFrom, ShapeFit, ShapeFitOptions, ShapeFitReport};
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
-use crate::gaussians::stretch_gaussians;
 use crate::gaussians::Gaussians;
+use crate::gaussians::{stretch_gaussians, SH_C0};
 use crate::geometry::camera_pose::pose_to_camera;
 use crate::geometry::plane::{fit_plane, Plane, PlaneFitOptions};
 use crate::geometry::pointmap::backproject;
@@ -54,9 +54,10 @@ use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser
 use crate::geometry::pose::Pose;
 use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
 use crate::math::Similarity;
-use crate::mesh::post::{decimate, drop_floaters, taubin_smooth, transfer_colors};
+use crate::mesh::post::{decimate, drop_floaters, taubin_smooth};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
+use crate::spatial::KdTree;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};
 use candle_core::Device;
@@ -390,15 +391,47 @@ fn fit_shape(
 }
 
 /// The closed surface of the fitted occupancy ([`Grid::smooth_surface`] at
-/// twice its resolution, Taubin-smoothed against the facets of the net),
-/// coloured from the decoder's mesh when there is one.
-fn fitted_surface(shell: &Grid, decoded: Option<&Mesh>, floater_area_fraction: f64) -> Mesh {
-    let mut m = taubin_smooth(&drop_floaters(shell.smooth_surface(2), floater_area_fraction), 30);
-    if let Some(d) = decoded.filter(|d| !d.vertices.is_empty()) {
-        if let Some(a) = &d.vertex_attrs {
-            let rgb: Vec<[f32; 3]> = a.iter().map(|c| [c[0], c[1], c[2]]).collect();
-            transfer_colors(&mut m, &d.vertices, &rgb, 4);
+/// twice its resolution, Taubin-smoothed against the facets of the
+/// tetrahedra), coloured from the measured colours of the object's observed
+/// points (4 nearest; the hidden side takes the nearest seen colour), or from
+/// the Gaussians' degree-0 colour without observed points.
+fn fitted_surface(fitted: &Fitted, views: &[ObjView], gaussians: Option<&Gaussians>, floater_area_fraction: f64) -> Mesh {
+    let mut m = taubin_smooth(&drop_floaters(fitted.shell.smooth_surface(2), floater_area_fraction), 30);
+    let to_canonical = fitted.anchor.inverse();
+    let (mut points, mut rgb) = (Vec::new(), Vec::new());
+    for v in views {
+        let (p, c) = observed_in_anchor(v);
+        points.extend(p.iter().map(|q| {
+            let c = to_canonical.apply(&q.map(|x| x as f64));
+            std::array::from_fn(|a| (c[a] / fitted.stretch[a]) as f32)
+        }));
+        rgb.extend(c.iter().map(|c| c.map(|x| x as f32 / 255.0)));
+    }
+    if points.is_empty() {
+        if let Some(g) = gaussians.filter(|g| !g.is_empty()) {
+            points = g.positions.clone();
+            rgb = g.dc.iter().map(|d| d.map(|c| (SH_C0 * c + 0.5).clamp(0.0, 1.0))).collect();
         }
+    }
+    if !points.is_empty() {
+        // A k-d tree, not transfer_colors' grid: the hidden side lies far from every seen point.
+        let tree = KdTree::new(&points.iter().map(|p| p.map(|x| x as f64)).collect::<Vec<_>>());
+        let queries: Vec<[f64; 3]> = m.vertices.iter().map(|v| v.map(|x| x as f64)).collect();
+        let attrs = tree
+            .k_nearest_all(&queries, 4)
+            .iter()
+            .map(|near| {
+                let (mut acc, mut wsum) = ([0f64; 3], 0f64);
+                for &(i, d) in near {
+                    let w = 1.0 / (d + 1e-6);
+                    acc = std::array::from_fn(|k| acc[k] + w * rgb[i][k] as f64);
+                    wsum += w;
+                }
+                let c = acc.map(|x| (x / wsum) as f32);
+                [c[0], c[1], c[2], 0.5, 0.5, 0.5]
+            })
+            .collect();
+        m.vertex_attrs = Some(attrs);
     }
     m
 }
@@ -577,7 +610,11 @@ impl Engine {
         for s in 0..opts.samples {
             let seed = opts.run.seed.wrapping_add(s as u64);
             progress(Progress::Sample { index: s, total: opts.samples, seed });
-            let run = RunOptions { seed, ..opts.run.clone() };
+            let mut run = RunOptions { seed, ..opts.run.clone() };
+            // The fitted mesh takes its colours from the measured ones: the decoder's mesh is not needed.
+            if opts.shape_fit != ShapeFit::None && opts.mesh_from == MeshFrom::Fitted && run.decode_gaussians {
+                run.decode_mesh = false;
+            }
             let mut fitted: Option<Fitted> = None;
             let on_stage = |st| progress(Progress::Stage(st));
             let rec = match opts.shape_fit {
@@ -606,7 +643,7 @@ impl Engine {
             let t = Instant::now();
             let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
             let mesh = match (opts.mesh_from, &fitted) {
-                (MeshFrom::Fitted, Some(f)) => Some(fitted_surface(&f.shell, rec.mesh.as_ref(), opts.floater_area_fraction)),
+                (MeshFrom::Fitted, Some(f)) => Some(fitted_surface(f, views, rec.gaussians.as_ref(), opts.floater_area_fraction)),
                 _ => rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)),
             };
             let mesh = mesh
