@@ -5,7 +5,7 @@
 //! marching cubes there are no ambiguous cases, so the surface is a closed
 //! 2-manifold wherever the field's border samples are all outside.
 
-use super::Mesh;
+use super::indexed::Mesh;
 use std::collections::HashMap;
 
 /// A scalar field sampled on a regular grid, flat index `(x·ny + y)·nz + z`.
@@ -100,7 +100,7 @@ pub fn marching_tetrahedra(grid: &ScalarGrid, iso: f32) -> Mesh {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::mesh_quality;
+    use crate::mesh::post::mesh_quality;
 
     fn signed_volume(m: &Mesh) -> f64 {
         m.faces
