@@ -2,7 +2,7 @@
 //! size bounded before it is read.
 
 use crate::mesh::trimesh::TriMesh;
-use crate::util::limits::MAX_MESH_FILE_BYTES;
+use crate::util::limits::{check_file_size, MAX_MESH_FILE_BYTES};
 use crate::{Error, Result};
 use std::path::Path;
 
@@ -44,10 +44,7 @@ pub fn parse_mesh(bytes: &[u8], format: MeshFormat, file: &str) -> Result<TriMes
 pub fn read_mesh_file(path: &Path) -> Result<TriMesh> {
     let file = path.display().to_string();
     let format = MeshFormat::of(path).ok_or_else(|| Error::input(&file, "expected a .glb, .obj or .ply mesh file"))?;
-    let len = std::fs::metadata(path).map_err(|e| Error::io(path, e))?.len();
-    if len > MAX_MESH_FILE_BYTES {
-        return Err(Error::too_large(&file, "file size", len as u128, MAX_MESH_FILE_BYTES as u128, "bytes", "user mesh file"));
-    }
+    check_file_size(path, MAX_MESH_FILE_BYTES, "user mesh file")?;
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     parse_mesh(&bytes, format, &file)
 }

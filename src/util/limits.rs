@@ -56,6 +56,16 @@ pub fn checked_product(dims: impl IntoIterator<Item = u128>) -> Option<u128> {
     dims.into_iter().try_fold(1u128, |a, d| a.checked_mul(d))
 }
 
+/// A file's size, checked against `max` bytes before it is read (`what` names
+/// the bound in the error).
+pub fn check_file_size(path: &std::path::Path, max: u64, what: &str) -> Result<u64> {
+    let len = std::fs::metadata(path).map_err(|e| Error::io(path, e))?.len();
+    if len > max {
+        return Err(Error::too_large(path.display().to_string(), "file size", len as u128, max as u128, "bytes", what));
+    }
+    Ok(len)
+}
+
 /// The dimensions of an image file, checked against [`MAX_IMAGE_SIDE`] and
 /// [`MAX_IMAGE_PIXELS`] from its header alone.
 pub fn check_image_dims(file: &str, w: u32, h: u32) -> Result<()> {

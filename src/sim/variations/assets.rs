@@ -31,7 +31,7 @@ use super::spec::AssetSpec;
 use crate::mesh::Mesh;
 use crate::sim::materials::MaterialTable;
 use crate::sim::scene_file::PhysicsOverrides;
-use crate::util::limits::{MAX_ASSET_DEPTH, MAX_ASSET_FILES, MAX_ASSET_JSON_BYTES};
+use crate::util::limits::{check_file_size, MAX_ASSET_DEPTH, MAX_ASSET_FILES, MAX_ASSET_JSON_BYTES};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -182,17 +182,7 @@ impl AssetLibrary {
             let json = f.with_extension("json");
             let physics = if json.is_file() {
                 let jf = json.display().to_string();
-                let len = std::fs::metadata(&json).map_err(|e| Error::io(&json, e))?.len();
-                if len > MAX_ASSET_JSON_BYTES {
-                    return Err(Error::too_large(
-                        jf,
-                        "file size",
-                        len as u128,
-                        MAX_ASSET_JSON_BYTES as u128,
-                        "bytes",
-                        "asset physics JSON",
-                    ));
-                }
+                check_file_size(&json, MAX_ASSET_JSON_BYTES, "asset physics JSON")?;
                 let text = std::fs::read_to_string(&json).map_err(|e| Error::io(&json, e))?;
                 AssetPhysics::parse(&text, &jf, Some(table))?
             } else {
