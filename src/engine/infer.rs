@@ -365,6 +365,7 @@ fn fit_shape(
     r: usize,
     views: &[ObjView],
     view_points: &[ViewPoints],
+    supports: &[Option<Plane>],
     opts: &InferOptions,
 ) -> Result<(Fitted, Vec<[i32; 3]>)> {
     let model = Grid::from_coords(coords, r);
@@ -384,8 +385,7 @@ fn fit_shape(
     let scores: Vec<CandidateScore> = cands.iter().map(|c| c.3.clone()).collect();
     let (view, anchor, stretch, _) = cands.swap_remove(select_best(opts.select, &scores).unwrap_or(0));
     let fo = &ShapeFitOptions { hull: opts.shape_fit_options.hull || opts.shape_fit == ShapeFit::DepthHull, ..opts.shape_fit_options };
-    let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
-    let (anchor, shell, report) = fit_in_pose(model, anchor, stretch, view_points, &supports, fo);
+    let (anchor, shell, report) = fit_in_pose(model, anchor, stretch, view_points, supports, fo);
     let coords = shell.coords();
     Ok((Fitted { view, anchor, stretch, report, shell }, coords))
 }
@@ -395,18 +395,19 @@ fn fit_shape(
 /// tetrahedra), coloured from the measured colours of the object's observed
 /// points (4 nearest; the hidden side takes the nearest seen colour), or from
 /// the Gaussians' degree-0 colour without observed points.
-fn fitted_surface(fitted: &Fitted, views: &[ObjView], gaussians: Option<&Gaussians>, floater_area_fraction: f64) -> Mesh {
+/// `observed`: the object's observed points (anchor frame) and their colours.
+fn fitted_surface(fitted: &Fitted, observed: (&[[f32; 3]], &[[u8; 3]]), gaussians: Option<&Gaussians>, floater_area_fraction: f64) -> Mesh {
     let mut m = taubin_smooth(&drop_floaters(fitted.shell.smooth_surface(2), floater_area_fraction), 30);
     let to_canonical = fitted.anchor.inverse();
-    let (mut points, mut rgb) = (Vec::new(), Vec::new());
-    for v in views {
-        let (p, c) = observed_in_anchor(v);
-        points.extend(p.iter().map(|q| {
+    let mut points: Vec<[f32; 3]> = observed
+        .0
+        .iter()
+        .map(|q| {
             let c = to_canonical.apply(&q.map(|x| x as f64));
             std::array::from_fn(|a| (c[a] / fitted.stretch[a]) as f32)
-        }));
-        rgb.extend(c.iter().map(|c| c.map(|x| x as f32 / 255.0)));
-    }
+        })
+        .collect();
+    let mut rgb: Vec<[f32; 3]> = observed.1.iter().map(|c| c.map(|x| x as f32 / 255.0)).collect();
     if points.is_empty() {
         if let Some(g) = gaussians.filter(|g| !g.is_empty()) {
             points = g.positions.clone();
@@ -601,6 +602,13 @@ impl Engine {
                 .collect(),
         };
         let view_points: Vec<ViewPoints> = views.iter().map(|v| v.points.clone()).collect();
+        let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
+        let (mut observed_points, mut observed_colors) = (Vec::new(), Vec::new());
+        for v in views {
+            let (p, c) = observed_in_anchor(v);
+            observed_points.extend(p);
+            observed_colors.extend(c);
+        }
         let mut timings = StageTimings::default();
         let (mut post_s, mut select_s) = (0.0, 0.0);
         let mut candidates: Vec<Candidate> = Vec::new();
@@ -621,7 +629,7 @@ impl Engine {
                 ShapeFit::None => self.pipeline.run_observed(&inputs, &run, &on_stage),
                 ShapeFit::Depth | ShapeFit::DepthHull => {
                     let mut hook = |pose: &PredictedPose, coords: &[[i32; 3]], r: usize| {
-                        let (f, c) = fit_shape(pose, coords, r, views, &view_points, opts)?;
+                        let (f, c) = fit_shape(pose, coords, r, views, &view_points, &supports, opts)?;
                         fitted = Some(f);
                         Ok(c)
                     };
@@ -643,14 +651,15 @@ impl Engine {
             let t = Instant::now();
             let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
             let mesh = match (opts.mesh_from, &fitted) {
-                (MeshFrom::Fitted, Some(f)) => Some(fitted_surface(f, views, rec.gaussians.as_ref(), opts.floater_area_fraction)),
+                (MeshFrom::Fitted, Some(f)) => {
+                    Some(fitted_surface(f, (&observed_points, &observed_colors), rec.gaussians.as_ref(), opts.floater_area_fraction))
+                }
                 _ => rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)),
             };
             let mesh = mesh
                 .map(|m| {
                     let mut m = taubin_smooth(&m, opts.smooth_iterations);
                     if let Some(f) = &fitted {
-                        let supports: Vec<Option<Plane>> = views.iter().map(|v| v.support).collect();
                         rest_on_supports(&mut m, &f.anchor, f.stretch, &view_points, &supports, opts.shape_fit_options.margin_m);
                     }
                     m
@@ -758,12 +767,6 @@ impl Engine {
                 }
             })
             .collect();
-        let (mut observed_points, mut observed_colors) = (Vec::new(), Vec::new());
-        for v in views {
-            let (p, c) = observed_in_anchor(v);
-            observed_points.extend(p);
-            observed_colors.extend(c);
-        }
         Ok(Ok(ObjectResult {
             label: label.to_string(),
             id,
