@@ -5,7 +5,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use recon::model::{Compute, Precision};
-use recon::tools::bench::{self, upstream, BenchReport};
+use recon::tools::bench::{self, BenchReport};
+use recon::tools::upstream;
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
@@ -42,6 +43,14 @@ pub struct BenchArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Upstream timing report from the same machine (`benches/upstream/harness.py --json`):
+    /// print recon/upstream ratios for the module rows of this run.
+    #[arg(long)]
+    compare: Option<PathBuf>,
+    /// Folder written by `benches/upstream/harness.py --save`: load its released-layout
+    /// full-size checkpoints and measure recon's outputs against upstream's (per --dtype).
+    #[arg(long)]
+    released: Option<PathBuf>,
 }
 
 fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
@@ -216,6 +225,19 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
         }
     }
 
+    if let Some(dir) = &a.released {
+        println!("\nreleased-layout checkpoints in {} against upstream's outputs on the same inputs:", dir.display());
+        println!("{:<11} {:<28} {:<24} {:>9} {:>10} {:>10}", "module", "recon", "vs", "forward s", "max rel", "mean rel");
+        let computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
+        report.released = upstream::check_released(dir, &computes).with_context(|| format!("--released {}", dir.display()))?;
+        for r in &report.released {
+            println!(
+                "{:<11} {:<28} {:<24} {:>9.2} {:>10.2e} {:>10.2e}",
+                r.module, r.compute, r.reference, r.forward_seconds, r.max_rel, r.mean_rel
+            );
+        }
+    }
+
     let arch = recon::model::RecGenConfig::load(&a.config)?;
     if has("shape_fit") {
         println!("\nshape fit per object (observe + fit in pose; nano decodes 32³, full size 64³):");
@@ -257,7 +279,45 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
             }
         }
     }
-    if arch.name == "recgen-large" {
+    if let Some(path) = &a.compare {
+        let up = upstream::UpstreamReport::read(path).with_context(|| format!("--compare {}", path.display()))?;
+        let here = report.machine.as_ref().map(|m| (m.cpu.clone(), m.threads));
+        if here.as_ref() != Some(&(up.machine.cpu.clone(), up.machine.threads)) {
+            println!(
+                "\nwarning: {} was taken on `{}` with {} threads; this run: {:?} — ratios compare different set-ups",
+                path.display(),
+                up.machine.cpu,
+                up.machine.threads,
+                here
+            );
+        }
+        report.compare = upstream::compare(&report.modules, &up);
+        if report.compare.is_empty() {
+            println!("\n--compare: no module row of this run has an upstream row (run `--sections modules`)");
+        } else {
+            println!("\nrecon vs upstream PyTorch ({}; speed-up = upstream s / recon s):", path.display());
+            println!(
+                "{:<11} {:<22} {:>9} {:>11} {:>9} {:>10} {:>12}",
+                "module", "precision", "recon s", "upstream s", "speed-up", "recon MiB", "upstream MiB"
+            );
+            for c in &report.compare {
+                let mib = |v: Option<f64>| opt(v, |x| format!("{x:.0}"));
+                println!(
+                    "{:<11} {:<22} {:>9.2} {:>11.2} {:>8.2}× {:>10} {:>12}",
+                    c.module,
+                    c.precision,
+                    c.recon_seconds,
+                    c.upstream_seconds,
+                    c.speedup,
+                    mib(c.recon_peak_mib),
+                    mib(c.upstream_peak_mib)
+                );
+            }
+        }
+        for n in &report.notes {
+            println!("note: {n}");
+        }
+    } else if arch.name == "recgen-large" {
         print_ratios(&report);
     } else {
         println!("\n(ratios against the upstream figures are printed for models/recgen-large.json only; this is {})", arch.name);
@@ -283,19 +343,19 @@ fn print_ratios(r: &BenchReport) {
     if let Some(g) = gemm("f32") {
         lines.push(format!(
             "GEMM 4096³ f32: {g:.0} GFLOP/s = {:.2}× upstream MKL ({}), {:.2}× stock candle there ({})",
-            g / upstream::GEMM_4096_F32_GFLOPS,
-            upstream::GEMM_4096_F32_GFLOPS,
-            g / upstream::CANDLE_4096_F32_GFLOPS,
-            upstream::CANDLE_4096_F32_GFLOPS
+            g / bench::upstream::GEMM_4096_F32_GFLOPS,
+            bench::upstream::GEMM_4096_F32_GFLOPS,
+            g / bench::upstream::CANDLE_4096_F32_GFLOPS,
+            bench::upstream::CANDLE_4096_F32_GFLOPS
         ));
     }
     if let Some(g) = gemm("bf16") {
         lines.push(format!(
             "GEMM 4096³ bf16: {g:.0} GFLOP/s = {:.2}× upstream oneDNN AMX ({}), {:.2}× stock candle there ({})",
-            g / upstream::GEMM_4096_BF16_GFLOPS,
-            upstream::GEMM_4096_BF16_GFLOPS,
-            g / upstream::CANDLE_4096_BF16_GFLOPS,
-            upstream::CANDLE_4096_BF16_GFLOPS
+            g / bench::upstream::GEMM_4096_BF16_GFLOPS,
+            bench::upstream::GEMM_4096_BF16_GFLOPS,
+            g / bench::upstream::CANDLE_4096_BF16_GFLOPS,
+            bench::upstream::CANDLE_4096_BF16_GFLOPS
         ));
     }
     if let Some(c) = r.gemm.iter().find(|g| g.isa == "candle") {
@@ -305,9 +365,9 @@ fn print_ratios(r: &BenchReport) {
     }
     let module = |key: &str, prec: &str| r.modules.iter().find(|m| m.module == key && m.precision.starts_with(&format!("fast {prec}")));
     for (key, prec, up_s, up_gb) in [
-        ("ss_flow", "f32", upstream::SS_FLOW_F32_S, upstream::SS_FLOW_F32_GB),
-        ("ss_flow", "bf16", upstream::SS_FLOW_BF16_S, upstream::SS_FLOW_BF16_GB),
-        ("ss_decoder", "f32", upstream::SS_DECODER_F32_S, upstream::SS_DECODER_F32_GB),
+        ("ss_flow", "f32", bench::upstream::SS_FLOW_F32_S, bench::upstream::SS_FLOW_F32_GB),
+        ("ss_flow", "bf16", bench::upstream::SS_FLOW_BF16_S, bench::upstream::SS_FLOW_BF16_GB),
+        ("ss_decoder", "f32", bench::upstream::SS_DECODER_F32_S, bench::upstream::SS_DECODER_F32_GB),
     ] {
         if let Some(m) = module(key, prec) {
             lines.push(format!(

@@ -542,7 +542,7 @@ pub struct PrecisionRow {
     pub occupied_reference: Option<usize>,
 }
 
-fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
+pub(crate) fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
     let a = a.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
     let b = b.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
     if a.len() != b.len() {
@@ -803,6 +803,10 @@ pub struct BenchReport {
     pub occupancy: Vec<OccupancyRow>,
     pub end_to_end: Vec<EndToEndRow>,
     pub shape_fit: Vec<ShapeFitRow>,
+    /// recon against an upstream report from the same machine (`--compare`).
+    pub compare: Vec<crate::tools::upstream::CompareRow>,
+    /// recon on released-layout checkpoints against upstream's outputs (`--released`).
+    pub released: Vec<crate::tools::upstream::ReleasedRow>,
     pub notes: Vec<String>,
 }
 

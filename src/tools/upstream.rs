@@ -1,0 +1,300 @@
+//! recon against upstream PyTorch on the same machine, from what
+//! `benches/upstream/harness.py` writes:
+//! - a timing report in `recon bench`'s JSON schema, compared row by row
+//!   with recon's module rows (`recon bench --compare FILE`);
+//! - full-size checkpoints in the released layout (fp16 safetensors and
+//!   `{name, args}` JSON under `ckpts/`, released file names) with upstream's
+//!   outputs on them, loaded here through the real, strict loading path
+//!   (`recon bench --released DIR`, `tests/upstream_fullsize.rs`): the
+//!   full-size counterpart of the tiny conformance fixtures.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{DType, Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::model::nn::fast::{self, Compute, Precision};
+use crate::tools::bench::{rel_errors, ModuleRow};
+use crate::weights::registry::{self, ModuleConfig};
+use crate::{Error, Result};
+
+/// The released TRELLIS-image-large file stems of the modules the harness
+/// can build on a CPU (the sparse ones need spconv and CUDA).
+pub const RELEASED: [(&str, &str); 2] = [("ss_flow", "ss_flow_img_dit_L_16l8_fp16"), ("ss_decoder", "ss_dec_conv3d_16l8_fp16")];
+
+/// One row of an upstream timing report (recon's [`ModuleRow`] fields).
+#[derive(Debug, Clone, Deserialize)]
+pub struct UpstreamRow {
+    pub module: String,
+    pub precision: String,
+    pub forward_seconds: f64,
+    #[serde(default)]
+    pub peak_rss_mib: Option<f64>,
+    #[serde(default)]
+    pub load_average: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct UpstreamMachine {
+    pub cpu: String,
+    pub threads: usize,
+}
+
+/// What `harness.py --json` writes.
+#[derive(Debug, Clone, Deserialize)]
+pub struct UpstreamReport {
+    pub machine: UpstreamMachine,
+    pub modules: Vec<UpstreamRow>,
+    #[serde(default)]
+    pub notes: Vec<String>,
+}
+
+impl UpstreamReport {
+    pub fn read(path: &Path) -> Result<Self> {
+        let r: Self = crate::util::json::read_json(path)?;
+        if let Some(bad) = r.modules.iter().find(|m| !(m.forward_seconds.is_finite() && m.forward_seconds > 0.0)) {
+            return Err(Error::input(
+                path.display().to_string(),
+                format!("modules[{}].forward_seconds: expected a positive number of seconds, found {}", bad.module, bad.forward_seconds),
+            ));
+        }
+        Ok(r)
+    }
+}
+
+/// The arithmetic a row ran in: `f32`, or `bf16` (recon's bf16 kernels,
+/// upstream's bf16 autocast).
+pub fn row_dtype(precision: &str) -> Option<Precision> {
+    let p = precision.to_ascii_lowercase();
+    if p.contains("bf16") {
+        Some(Precision::Bf16)
+    } else if p.contains("f16") {
+        Some(Precision::F16)
+    } else if p.contains("f32") {
+        Some(Precision::F32)
+    } else {
+        None
+    }
+}
+
+/// recon vs upstream for one module in one precision (`speedup` > 1: recon faster).
+#[derive(Debug, Clone, Serialize)]
+pub struct CompareRow {
+    pub module: String,
+    pub precision: String,
+    pub recon_seconds: f64,
+    pub upstream_seconds: f64,
+    pub speedup: f64,
+    pub recon_peak_mib: Option<f64>,
+    pub upstream_peak_mib: Option<f64>,
+}
+
+/// Matching rows by module and precision, then each module's best recon
+/// precision against upstream's best (the "best vs best" row, precision `best`).
+pub fn compare(recon: &[ModuleRow], upstream: &UpstreamReport) -> Vec<CompareRow> {
+    let mut rows = Vec::new();
+    let mut modules: Vec<&str> = recon.iter().map(|r| r.module.as_str()).collect();
+    modules.dedup();
+    for module in modules {
+        let ours: Vec<&ModuleRow> = recon.iter().filter(|r| r.module == module).collect();
+        let theirs: Vec<&UpstreamRow> = upstream.modules.iter().filter(|r| r.module == module).collect();
+        for r in &ours {
+            let Some(dtype) = row_dtype(&r.precision) else { continue };
+            if let Some(u) = theirs.iter().find(|u| row_dtype(&u.precision) == Some(dtype)) {
+                rows.push(CompareRow {
+                    module: module.into(),
+                    precision: dtype.name().into(),
+                    recon_seconds: r.forward_seconds,
+                    upstream_seconds: u.forward_seconds,
+                    speedup: u.forward_seconds / r.forward_seconds,
+                    recon_peak_mib: r.peak_rss_mib,
+                    upstream_peak_mib: u.peak_rss_mib,
+                });
+            }
+        }
+        let best_ours = ours.iter().min_by(|a, b| a.forward_seconds.total_cmp(&b.forward_seconds));
+        let best_theirs = theirs.iter().min_by(|a, b| a.forward_seconds.total_cmp(&b.forward_seconds));
+        if let (Some(r), Some(u)) = (best_ours, best_theirs) {
+            rows.push(CompareRow {
+                module: module.into(),
+                precision: format!(
+                    "best ({} vs {})",
+                    row_dtype(&r.precision).map_or("?", Precision::name),
+                    row_dtype(&u.precision).map_or("?", Precision::name)
+                ),
+                recon_seconds: r.forward_seconds,
+                upstream_seconds: u.forward_seconds,
+                speedup: u.forward_seconds / r.forward_seconds,
+                recon_peak_mib: r.peak_rss_mib,
+                upstream_peak_mib: u.peak_rss_mib,
+            });
+        }
+    }
+    rows
+}
+
+/// recon's output on a released-layout checkpoint against upstream's.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReleasedRow {
+    pub module: String,
+    pub file: String,
+    pub compute: String,
+    /// `upstream f32` (upstream in f32 on the stored fp16 values) or
+    /// `upstream bf16 autocast`.
+    pub reference: String,
+    pub forward_seconds: f64,
+    pub max_rel: f64,
+    pub mean_rel: f64,
+}
+
+fn reference_tensors(dir: &Path) -> Result<(PathBuf, HashMap<String, Tensor>)> {
+    let path = dir.join("reference.safetensors");
+    if !path.is_file() {
+        return Err(Error::input(
+            dir.display().to_string(),
+            "no reference.safetensors: expected a folder written by `benches/upstream/harness.py --save`".to_string(),
+        ));
+    }
+    let t = candle_core::safetensors::load(&path, &Device::Cpu)
+        .map_err(|e| Error::input(path.display().to_string(), format!("not a readable safetensors file: {e}")))?;
+    Ok((path, t))
+}
+
+fn tensor<'a>(t: &'a HashMap<String, Tensor>, file: &Path, name: &str) -> Result<&'a Tensor> {
+    t.get(name).ok_or_else(|| Error::input(file.display().to_string(), format!("tensor `{name}`: missing")))
+}
+
+/// Load each released module found under `dir/ckpts` strictly (every tensor
+/// named and shaped as the config expects, no extras), run it with each of
+/// `computes` on the stored inputs, and measure it against upstream's outputs.
+pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRow>> {
+    let (ref_path, t) = reference_tensors(dir)?;
+    let mut rows = Vec::new();
+    for (key, stem) in RELEASED {
+        let json = dir.join("ckpts").join(format!("{stem}.json"));
+        let st = dir.join("ckpts").join(format!("{stem}.safetensors"));
+        if !json.is_file() || !st.is_file() {
+            continue;
+        }
+        let cfg = ModuleConfig::read(&json)?;
+        let label = json.display().to_string();
+        let expected = registry::expected_tensors(&cfg, &label)?;
+        for &compute in computes {
+            let vb = crate::weights::load_validated(&st, &expected, false, DType::F32, &Device::Cpu)?;
+            let (out, seconds) = match key {
+                "ss_flow" => {
+                    let m = fast::build_with(compute, || registry::build_ss_flow(&cfg, vb, &label))?;
+                    let (x, tt, cond) = (
+                        tensor(&t, &ref_path, "input.ss_flow.x")?,
+                        tensor(&t, &ref_path, "input.ss_flow.t")?,
+                        tensor(&t, &ref_path, "input.ss_flow.cond")?,
+                    );
+                    let s = Instant::now();
+                    let (v, _) = m.forward(x, None, tt, cond)?;
+                    (v, s.elapsed().as_secs_f64())
+                }
+                _ => {
+                    let m = fast::build_with(compute, || registry::build_ss_decoder(&cfg, vb, &label))?;
+                    let x = tensor(&t, &ref_path, "input.ss_decoder.x")?;
+                    let s = Instant::now();
+                    let o = m.forward(x)?;
+                    (o, s.elapsed().as_secs_f64())
+                }
+            };
+            for (dtype, reference) in [("f32", "upstream f32"), ("bf16", "upstream bf16 autocast")] {
+                let want = tensor(&t, &ref_path, &format!("output.{key}.{dtype}"))?;
+                if want.dims() != out.dims() {
+                    return Err(Error::input(
+                        ref_path.display().to_string(),
+                        format!("output.{key}.{dtype}: shape {:?}, recon's output is {:?}", want.dims(), out.dims()),
+                    ));
+                }
+                let (max_rel, mean_rel) = rel_errors(&out, want)?;
+                rows.push(ReleasedRow {
+                    module: key.into(),
+                    file: st.display().to_string(),
+                    compute: compute.describe(),
+                    reference: reference.into(),
+                    forward_seconds: seconds,
+                    max_rel,
+                    mean_rel,
+                });
+            }
+        }
+        // Upstream's own bf16 error, for the budget.
+        let (a, b) = (tensor(&t, &ref_path, &format!("output.{key}.bf16"))?, tensor(&t, &ref_path, &format!("output.{key}.f32"))?);
+        let (max_rel, mean_rel) = rel_errors(a, b)?;
+        rows.push(ReleasedRow {
+            module: key.into(),
+            file: ref_path.display().to_string(),
+            compute: "upstream bf16 autocast".into(),
+            reference: "upstream f32".into(),
+            forward_seconds: 0.0,
+            max_rel,
+            mean_rel,
+        });
+    }
+    if rows.is_empty() {
+        return Err(Error::input(
+            dir.join("ckpts").display().to_string(),
+            format!(
+                "no released checkpoint found: expected {}",
+                RELEASED.iter().map(|(_, s)| format!("{s}.json + {s}.safetensors")).collect::<Vec<_>>().join(" or ")
+            ),
+        ));
+    }
+    Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(module: &str, precision: &str, s: f64) -> ModuleRow {
+        ModuleRow {
+            module: module.into(),
+            input: String::new(),
+            precision: precision.into(),
+            build_seconds: 0.0,
+            forward_seconds: s,
+            peak_rss_mib: None,
+            packed_weights_mib: None,
+            load_average: None,
+        }
+    }
+
+    #[test]
+    fn rows_pair_by_module_and_precision() {
+        let ours = vec![row("ss_flow", "fast f32 (avx512bf16)", 40.0), row("ss_flow", "fast bf16 (avx512bf16)", 20.0)];
+        let up = UpstreamReport {
+            machine: UpstreamMachine { cpu: "x".into(), threads: 2 },
+            modules: vec![
+                UpstreamRow {
+                    module: "ss_flow".into(),
+                    precision: "upstream torch f32 (AVX512)".into(),
+                    forward_seconds: 48.0,
+                    peak_rss_mib: None,
+                    load_average: None,
+                },
+                UpstreamRow {
+                    module: "ss_flow".into(),
+                    precision: "upstream torch bf16 autocast (AVX512)".into(),
+                    forward_seconds: 15.0,
+                    peak_rss_mib: None,
+                    load_average: None,
+                },
+            ],
+            notes: vec![],
+        };
+        let c = compare(&ours, &up);
+        assert_eq!(c.len(), 3);
+        assert_eq!((c[0].precision.as_str(), c[0].speedup), ("f32", 1.2));
+        assert_eq!((c[1].precision.as_str(), c[1].speedup), ("bf16", 0.75));
+        assert_eq!(c[2].precision, "best (bf16 vs bf16)");
+        assert!((c[2].speedup - 0.75).abs() < 1e-12);
+        assert_eq!(row_dtype("plain candle f32"), Some(Precision::F32));
+        assert_eq!(row_dtype("what"), None);
+    }
+}
