@@ -33,6 +33,52 @@ pub fn measure_peak_gflops(isa: Isa, kind: PeakKind, iters: usize, reps: usize) 
     Some(best)
 }
 
+/// `vdpbf16ps` must beat f32 FMA by this factor (same-thread peaks) to be
+/// used: below it, bf16 weights are widened to f32 in registers and run on
+/// FMA, so bf16 is never slower than f32. Zen 4 gives about 2; the 2-core
+/// Xeon of issue 21 gave 0.5 (half-rate `vdpbf16ps`).
+pub const BF16_DOT_MIN_GAIN: f64 = 1.25;
+
+/// Whether bf16 pair dot products pay over f32 FMA, from two peaks.
+pub fn bf16_dot_pays_given(bf16_gflops: f64, f32_gflops: f64) -> bool {
+    bf16_gflops >= BF16_DOT_MIN_GAIN * f32_gflops
+}
+
+/// The instruction set bf16 weights run on: [`Isa::best`], except that
+/// [`Isa::Avx512Bf16`] falls back to [`Isa::Avx512`] (bf16 storage, f32
+/// FMA) where `vdpbf16ps` does not pay. Measured once per process on the
+/// calling thread (about a millisecond); `RECON_BF16_DOT=on|off` overrides
+/// the measurement.
+pub fn bf16_isa() -> Isa {
+    static CHOICE: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+    *CHOICE.get_or_init(|| {
+        let best = Isa::best();
+        if best < Isa::Avx512Bf16 {
+            return best;
+        }
+        let pays = match std::env::var("RECON_BF16_DOT").ok().as_deref().map(str::trim) {
+            Some("on") => true,
+            Some("off") => false,
+            _ => {
+                let peak = |kind| (0..3).map(|_| timed(best, kind, 100_000)).fold(0f64, f64::max);
+                bf16_dot_pays_given(peak(PeakKind::Bf16), peak(PeakKind::F32))
+            }
+        };
+        if pays {
+            best
+        } else {
+            Isa::Avx512
+        }
+    })
+}
+
+/// GFLOP/s of one `run` on the calling thread.
+fn timed(isa: Isa, kind: PeakKind, iters: usize) -> f64 {
+    let t0 = Instant::now();
+    let flops = run(isa, kind, iters);
+    flops / t0.elapsed().as_secs_f64().max(1e-9) / 1e9
+}
+
 fn run(isa: Isa, kind: PeakKind, iters: usize) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if isa >= Isa::Avx512 {
@@ -94,5 +140,23 @@ mod x86 {
         }
         std::hint::black_box(acc);
         (iters * CHAINS * 64) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bf16_dot_is_used_only_where_it_pays() {
+        // Zen 4-like (full-rate vdpbf16ps: twice the FMA peak) and the Xeon of issue 21 (half rate).
+        assert!(bf16_dot_pays_given(2.0 * 470.0, 470.0));
+        assert!(!bf16_dot_pays_given(238.9, 475.6));
+        assert!(!bf16_dot_pays_given(470.0, 470.0));
+        let isa = bf16_isa();
+        assert!(isa <= Isa::best() && isa.supported());
+        if Isa::best() < Isa::Avx512Bf16 {
+            assert_eq!(isa, Isa::best());
+        }
     }
 }

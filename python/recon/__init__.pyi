@@ -96,7 +96,7 @@ class Engine:
     weights (plumbing only); a folder of `<module>.safetensors`; or a manifest name
     ("recgen") resolved in the Hugging Face cache after `recon weights fetch`.
     config: the architecture file when the weights do not imply it.
-    dtype: "auto" (= "f32"), "f32", "bf16" or "f16": the inference kernels' precision.
+    dtype: "auto" (bf16 for models whose flow transformers are >= 512 channels wide, i.e. recgen-large; f32 for smaller ones such as the default recgen-nano), "f32", "bf16" or "f16": the inference kernels' precision.
     threads: worker threads of this engine (default: all cores, shared pool).
     seed: seeds random weights.
     """

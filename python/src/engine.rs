@@ -11,8 +11,7 @@ use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArray
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
-use recon::engine::{InferOptions, LoadOptions, MeshFrom, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
-use recon::model::Precision;
+use recon::engine::{Dtype, InferOptions, MeshFrom, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -250,10 +249,7 @@ impl Engine {
         threads: Option<usize>,
         seed: u64,
     ) -> PyResult<Self> {
-        let precision = match dtype {
-            "auto" => Precision::F32,
-            d => parse_enum::<Precision>("dtype", d)?,
-        };
+        let dtype = parse_enum::<Dtype>("dtype", dtype)?;
         let w = weights.as_ref().map(|p| p.to_string_lossy().into_owned());
         let source = ModelSource::parse(w.as_deref(), config.as_deref(), seed).map_err(weights_to_py)?;
         let pool = match threads {
@@ -263,7 +259,7 @@ impl Engine {
             )),
             None => None,
         };
-        let load = LoadOptions::precision(precision);
+        let load = source.load_options(dtype).map_err(weights_to_py)?;
         let src = source.clone();
         let engine = py
             .detach(|| match &pool {

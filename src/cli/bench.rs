@@ -25,9 +25,10 @@ pub struct BenchArgs {
     /// Also run the plain candle path in the module section (slow at full size).
     #[arg(long)]
     plain: bool,
-    /// Sampler steps per stage of the end-to-end object.
-    #[arg(long, default_value_t = 2)]
-    steps: usize,
+    /// Sampler steps per stage of the end-to-end object (default: the architecture
+    /// file's, i.e. the paper's 25 + 25 with its CFG for recgen-large).
+    #[arg(long)]
+    steps: Option<usize>,
     /// Stage-1 sampler steps of the occupancy comparison.
     #[arg(long, default_value_t = 2)]
     occupancy_steps: usize,
@@ -78,11 +79,12 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     let mut report = BenchReport { machine: Some(bench::MachineInfo::detect()), ..Default::default() };
     let m = report.machine.as_ref().unwrap();
     println!(
-        "machine: {} | {} threads | ISAs {:?} (using {}) | load {}",
+        "machine: {} | {} threads | ISAs {:?} (using {}; bf16 on {}) | load {}",
         m.cpu,
         m.threads,
         m.supported_isas,
         m.best_isa,
+        m.bf16_isa,
         opt(m.load_average, |v| format!("{v:.2}"))
     );
     report.notes.push(
@@ -204,10 +206,30 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
             let r = bench::bench_end_to_end(&a.config, Compute::fast(p), a.steps, 0)?;
             let t = &r.timings;
             println!(
-                "  {} | steps {}/{} | {} voxels, {:?} faces, {:?} gaussians | total {:.1} s (loading {:.1}): encoder {:.1}, ss {:.1}, ss dec {:.1}, slat {:.1}, mesh {:.1}, gs {:.1} | load {}",
-                r.precision, r.ss_steps, r.slat_steps, r.occupied_voxels, r.faces, r.gaussians, t.total, t.loading,
-                t.image_encoder, t.ss_condition + t.ss_sampling, t.ss_decoder, t.slat_condition + t.slat_sampling, t.mesh_decoder, t.gaussian_decoder,
+                "  {} | steps {}/{} | {} voxels, {:?} faces ({:?} after post-processing), {:?} gaussians | total {:.1} s + post {:.1} s (loading {:.1}) | peak RSS {} MiB | load {}",
+                r.precision,
+                r.ss_steps,
+                r.slat_steps,
+                r.occupied_voxels,
+                r.faces,
+                r.faces_after_postprocess,
+                r.gaussians,
+                t.total,
+                r.postprocess_seconds,
+                t.loading,
+                opt(r.peak_rss_mib, |v| format!("{v:.0}")),
                 opt(r.load_average, |v| format!("{v:.1}"))
+            );
+            println!(
+                "    seconds per stage: DINOv2 {:.1}, stage-1 sampling {:.1}, SS decoder {:.1}, stage-2 sampling {:.1}, mesh decoder {:.1}, FlexiCubes {:.1}, Gaussian decoder {:.1}, post-processing {:.1}",
+                t.image_encoder,
+                t.ss_condition + t.ss_sampling,
+                t.ss_decoder + t.pose,
+                t.slat_condition + t.slat_sampling,
+                t.mesh_decoder,
+                t.flexicubes,
+                t.gaussian_decoder,
+                r.postprocess_seconds
             );
             if let Some(m) = &r.memory {
                 let f = |v: Option<f64>| opt(v, |x| format!("{x:.0}"));

@@ -175,8 +175,8 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
         }
         (Some(Method::Recgen), _) => {
             let source = a.model.source()?;
-            let engine =
-                recon::engine::Engine::load(&source, &a.model.load_options()).with_context(|| format!("loading the model ({source:?})"))?;
+            let engine = recon::engine::Engine::load(&source, &a.model.load_options(&source)?)
+                .with_context(|| format!("loading the model ({source:?})"))?;
             let io = a.model.infer_options()?;
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));

@@ -210,7 +210,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     };
 
     let source = a.model.source()?;
-    let engine = Engine::load(&source, &a.model.load_options())?;
+    let load = a.model.load_options(&source)?;
+    let engine = Engine::load(&source, &load)?;
     let config = source.architecture()?;
     let random = engine.pipeline.weights().is_random();
     if random {
@@ -268,7 +269,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         let skips: Vec<serde_json::Value> =
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
-            "out": out, "random_weights": random, "config": config, "dtype": a.model.dtype.name(),
+            "out": out, "random_weights": random, "config": config, "dtype": load.compute.fast_parts().map_or("f32", |(p, _)| p.name()),
             "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.pose_fit, "seed": a.model.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),

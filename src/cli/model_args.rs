@@ -3,8 +3,7 @@
 use recon::engine::InferOptions;
 use recon::engine::LoadOptions;
 use recon::engine::ModelSource;
-use recon::engine::{MeshFrom, PoseFit, SelectMethod, ShapeFit};
-use recon::model::Precision;
+use recon::engine::{Dtype, MeshFrom, PoseFit, SelectMethod, ShapeFit};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Clone, Debug, serde::Serialize)]
@@ -21,10 +20,13 @@ pub struct ModelArgs {
     /// else models/recgen-tiny.json; models/recgen-large.json with a manifest name).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Model precision of the inference kernels (bf16: bf16 weights and products, f32
-    /// accumulation, vdpbf16ps on AVX512-BF16 CPUs; f16: f16 weights, f32 arithmetic).
-    #[arg(long, value_enum, default_value_t = Precision::F32)]
-    pub dtype: Precision,
+    /// Model precision of the inference kernels. auto: bf16 for models whose flow
+    /// transformers are ≥ 512 channels wide (recgen-large), f32 for smaller ones (the
+    /// default recgen-nano); bf16: bf16 weights and products, f32 accumulation
+    /// (vdpbf16ps where it beats f32 FMA, else bf16 weights widened onto FMA); f16: f16
+    /// weights, f32 arithmetic.
+    #[arg(long, value_enum, default_value_t = Dtype::Auto)]
+    pub dtype: Dtype,
     /// Model seed: sample k of an object uses seed + k (also seeds random weights).
     #[arg(long, default_value_t = 42)]
     pub seed: u64,
@@ -71,8 +73,9 @@ impl ModelArgs {
         Ok(ModelSource::parse(self.weights.as_deref(), self.config.as_deref(), self.seed)?)
     }
 
-    pub fn load_options(&self) -> LoadOptions {
-        LoadOptions::precision(self.dtype)
+    /// Load options with `--dtype` resolved for the architecture of `source`.
+    pub fn load_options(&self, source: &ModelSource) -> anyhow::Result<LoadOptions> {
+        Ok(source.load_options(self.dtype)?)
     }
 
     /// The per-frame options these flags set (checked).

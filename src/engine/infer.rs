@@ -299,6 +299,7 @@ fn add_timings(a: &mut StageTimings, b: &StageTimings) {
     a.slat_condition += b.slat_condition;
     a.slat_sampling += b.slat_sampling;
     a.mesh_decoder += b.mesh_decoder;
+    a.flexicubes += b.flexicubes;
     a.gaussian_decoder += b.gaussian_decoder;
     a.loading += b.loading;
     a.total += b.total;

@@ -62,7 +62,7 @@ pub fn stage_seconds(o: &ObjectResult) -> [f64; 10] {
         t.ss_decoder + t.pose,
         t.shape_fit,
         t.slat_condition + t.slat_sampling,
-        t.mesh_decoder,
+        t.mesh_decoder + t.flexicubes,
         t.gaussian_decoder,
         o.postprocess_seconds,
         o.select_seconds,

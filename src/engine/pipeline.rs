@@ -170,7 +170,10 @@ pub struct StageTimings {
     pub shape_fit: f64,
     pub slat_condition: f64,
     pub slat_sampling: f64,
+    /// The mesh decoder's network (FlexiCubes features per cube).
     pub mesh_decoder: f64,
+    /// FlexiCubes surface extraction from those features.
+    pub flexicubes: f64,
     pub gaussian_decoder: f64,
     /// Building modules during the run ([`LoadOptions::per_stage`]); also
     /// counted in the stage it belongs to.
@@ -317,6 +320,55 @@ impl LoadOptions {
     /// Fast kernels at `precision` (the `--dtype` of the CLI), all modules resident.
     pub fn precision(precision: Precision) -> Self {
         Self { compute: Compute::fast(precision), per_stage: false }
+    }
+}
+
+/// The `--dtype` of the CLI and Python: a precision, or `auto`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Dtype {
+    /// The fastest precision within the stated budget for this model (see [`Dtype::resolve`]).
+    #[default]
+    Auto,
+    F32,
+    Bf16,
+    F16,
+}
+
+/// Flow transformers at least this wide run bf16 under [`Dtype::Auto`].
+pub const AUTO_BF16_MIN_CHANNELS: usize = 512;
+
+impl Dtype {
+    /// The precision to build `arch` with. `auto`: bf16 when the flow
+    /// transformers are at least [`AUTO_BF16_MIN_CHANNELS`] wide (recgen-large:
+    /// the packed GEMMs dominate, bf16 is the faster path — `vdpbf16ps` where it
+    /// pays, else bf16 storage on f32 FMA — and stays within the 1 % budget of
+    /// `recon bench --sections precision`); f32 for narrower models, whose time
+    /// is outside the GEMMs, so they keep the conformance-exact path and
+    /// byte-stable outputs.
+    pub fn resolve(self, arch: &RecGenConfig) -> Result<Precision> {
+        Ok(match self {
+            Dtype::F32 => Precision::F32,
+            Dtype::Bf16 => Precision::Bf16,
+            Dtype::F16 => Precision::F16,
+            Dtype::Auto => {
+                let width = arch.ss_flow_config()?.model_channels;
+                if width >= AUTO_BF16_MIN_CHANNELS {
+                    Precision::Bf16
+                } else {
+                    Precision::F32
+                }
+            }
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Dtype::Auto => "auto",
+            Dtype::F32 => "f32",
+            Dtype::Bf16 => "bf16",
+            Dtype::F16 => "f16",
+        }
     }
 }
 
@@ -805,9 +857,12 @@ impl Pipeline {
                 mark();
                 let t = Instant::now();
                 let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut tm.loading)?;
-                mesh = Some(dec.forward(&slat)?.into_iter().next().unwrap_or_default());
-                drop(dec);
+                let feats = dec.forward_feats_fused(&slat)?;
                 tm.mesh_decoder = secs(t);
+                let t = Instant::now();
+                mesh = Some(dec.extractor.extract_sparse(&feats)?.into_iter().next().unwrap_or_default());
+                drop((dec, feats));
+                tm.flexicubes = secs(t);
                 mem.mesh_decoder = peak();
             }
             if opts.decode_gaussians {

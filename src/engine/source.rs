@@ -57,6 +57,12 @@ impl ModelSource {
         ))
     }
 
+    /// Load options for `dtype` on this source's architecture (`auto` resolved).
+    pub fn load_options(&self, dtype: crate::engine::Dtype) -> Result<crate::engine::LoadOptions> {
+        let arch = crate::model::RecGenConfig::load(&self.architecture()?)?;
+        Ok(crate::engine::LoadOptions::precision(dtype.resolve(&arch)?))
+    }
+
     /// The architecture file this source is built with.
     pub fn architecture(&self) -> Result<PathBuf> {
         Ok(match self {

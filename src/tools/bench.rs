@@ -38,6 +38,8 @@ pub struct MachineInfo {
     pub cpu: String,
     pub threads: usize,
     pub best_isa: &'static str,
+    /// Where bf16 weights run: `avx512bf16` (`vdpbf16ps`) only where it beats f32 FMA.
+    pub bf16_isa: &'static str,
     pub supported_isas: Vec<&'static str>,
     pub load_average: Option<f64>,
 }
@@ -52,6 +54,7 @@ impl MachineInfo {
             cpu,
             threads: rayon::current_num_threads(),
             best_isa: Isa::best().name(),
+            bf16_isa: recon_kernels::peak::bf16_isa().name(),
             supported_isas: Isa::all_supported().into_iter().map(|i| i.name()).collect(),
             load_average: load_average(),
         }
@@ -660,19 +663,42 @@ pub struct EndToEndRow {
     pub faces: Option<usize>,
     pub gaussians: Option<usize>,
     pub timings: crate::engine::pipeline::StageTimings,
+    /// `recon infer`'s mesh post-processing of the decoded mesh (floater
+    /// removal, decimation to the default face budget), seconds.
+    pub postprocess_seconds: f64,
+    pub faces_after_postprocess: Option<usize>,
     pub memory: Option<crate::engine::pipeline::StageMemory>,
+    /// Peak RSS of the whole run (MiB).
+    pub peak_rss_mib: Option<f64>,
     pub load_average: Option<f64>,
 }
 
 /// An object end to end on random weights (synthetic single view), every
-/// module built for its stage and freed after it.
-pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: usize, seed: u64) -> Result<EndToEndRow> {
+/// module built for its stage and freed after it; `steps` `None`: the
+/// architecture file's sampler settings (the paper's 25 + 25 steps and CFG
+/// for recgen-large).
+pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: Option<usize>, seed: u64) -> Result<EndToEndRow> {
+    reset_peak_rss();
     let opts = crate::engine::pipeline::LoadOptions { compute, per_stage: true };
     let p = Pipeline::load(arch_path, Weights::Random(seed), Stages::All, &opts)?;
     let inputs = ObjectInputs { views: vec![synthetic_view(p.image_size(), 0.0)] };
-    let run = RunOptions { seed, ss_steps: Some(steps), slat_steps: Some(steps), measure_memory: true, ..Default::default() };
+    let run = RunOptions { seed, ss_steps: steps, slat_steps: steps, measure_memory: true, ..Default::default() };
     let out = p.run(&inputs, &run)?;
+    let t = Instant::now();
+    let post = out.mesh.as_ref().map(|m| {
+        let m = crate::mesh::post::drop_floaters(m.clone(), 0.02);
+        let n = crate::engine::DEFAULT_MAX_FACES;
+        if m.faces.len() > n {
+            crate::mesh::post::decimate(&m, n)
+        } else {
+            m
+        }
+    });
+    let postprocess_seconds = t.elapsed().as_secs_f64();
     Ok(EndToEndRow {
+        postprocess_seconds,
+        faces_after_postprocess: post.map(|m| m.faces.len()),
+        peak_rss_mib: peak_rss_mib(),
         precision: compute.describe(),
         per_stage: true,
         ss_steps: out.metadata.ss_sampler.steps,

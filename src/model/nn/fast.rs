@@ -95,9 +95,12 @@ pub enum Compute {
 }
 
 impl Compute {
-    /// Fast kernels with the best instruction set of this CPU ([`Isa::best`]).
+    /// Fast kernels with the best instruction set of this CPU ([`Isa::best`]);
+    /// bf16 on the family where it is fastest ([`recon_kernels::peak::bf16_isa`]:
+    /// `vdpbf16ps` only where it beats f32 FMA, else bf16 storage on FMA).
     pub fn fast(precision: Precision) -> Self {
-        Compute::Fast { precision, isa: Isa::best() }
+        let isa = if precision == Precision::Bf16 { recon_kernels::peak::bf16_isa() } else { Isa::best() };
+        Compute::Fast { precision, isa }
     }
     pub fn is_fast(&self) -> bool {
         matches!(self, Compute::Fast { .. })
