@@ -38,10 +38,53 @@ pub struct Blocking {
 }
 
 impl Blocking {
-    /// Defaults per weight format (tuned on Zen 4: 32 KiB L1, 1 MiB L2).
+    /// Blocking for this CPU's caches ([`cache_sizes`]).
     pub fn for_format(format: WeightFormat) -> Self {
-        Blocking { mc: MR * 24, kc: format.kc() }
+        Self::for_caches(format, cache_sizes())
     }
+
+    /// Blocking for an L1d / L2 of `(l1, l2)` bytes: the `KC×NR` micro-panel
+    /// of B fills L1 (the rule tuned on Zen 4: 32 KiB gives kc 256 in f32,
+    /// 512 in bf16/f16) and `MC` rows of that `KC` a third of L2 at B's
+    /// element size (1 MiB gives 336 rows), so the larger caches of other cores (e.g. 48 KiB
+    /// / 2 MiB) get proportionally larger blocks.
+    pub fn for_caches(format: WeightFormat, (l1, l2): (usize, usize)) -> Self {
+        let bytes = format.bytes_per_element();
+        let kc = (l1 / (NR * bytes)).clamp(64, 1024) & !1;
+        let tiles = (l2 / 3 / (kc * bytes) / MR).clamp(4, 64);
+        Blocking { mc: MR * tiles, kc }
+    }
+}
+
+/// L1 data and L2 cache sizes (bytes) of cpu0 from Linux sysfs, read once;
+/// Zen 4's 32 KiB / 1 MiB where unavailable.
+pub fn cache_sizes() -> (usize, usize) {
+    static SIZES: std::sync::OnceLock<(usize, usize)> = std::sync::OnceLock::new();
+    *SIZES.get_or_init(|| {
+        let (mut l1, mut l2) = (32 << 10, 1 << 20);
+        for i in 0..8 {
+            let dir = format!("/sys/devices/system/cpu/cpu0/cache/index{i}");
+            let read = |f: &str| std::fs::read_to_string(format!("{dir}/{f}")).ok().map(|s| s.trim().to_string());
+            let (Some(level), Some(kind), Some(size)) = (read("level"), read("type"), read("size")) else { continue };
+            let Some(bytes) = parse_cache_size(&size) else { continue };
+            match (level.as_str(), kind.as_str()) {
+                ("1", "Data") => l1 = bytes,
+                ("2", "Unified") => l2 = bytes,
+                _ => {}
+            }
+        }
+        (l1, l2)
+    })
+}
+
+/// sysfs cache sizes: `32K`, `1024K`, `2M`, or bytes.
+fn parse_cache_size(s: &str) -> Option<usize> {
+    let (num, mult) = match s.as_bytes().last()? {
+        b'K' => (&s[..s.len() - 1], 1 << 10),
+        b'M' => (&s[..s.len() - 1], 1 << 20),
+        _ => (s, 1),
+    };
+    num.parse::<usize>().ok().filter(|&n| n > 0).map(|n| n * mult)
 }
 
 /// Storage format of a packed `B` operand.
@@ -64,13 +107,6 @@ impl WeightFormat {
         match self {
             WeightFormat::F32 => 4,
             _ => 2,
-        }
-    }
-    /// K values per slice of a task (the L1-resident micro-panel is `KC×NR`).
-    fn kc(self) -> usize {
-        match self {
-            WeightFormat::F32 => 256,
-            _ => 512,
         }
     }
     /// K rounded up to the format's step (bf16 packs k in pairs).
@@ -772,6 +808,18 @@ mod tests {
             };
             assert_eq!(run(1), run(3), "{isa:?}");
         }
+    }
+
+    #[test]
+    fn blocking_follows_the_caches() {
+        // Zen 4 (the tuned values), and a core with 48 KiB L1d / 2 MiB L2.
+        assert_eq!(Blocking::for_caches(WeightFormat::F32, (32 << 10, 1 << 20)), Blocking { mc: 336, kc: 256 });
+        assert_eq!(Blocking::for_caches(WeightFormat::Bf16, (32 << 10, 1 << 20)), Blocking { mc: 336, kc: 512 });
+        assert_eq!(Blocking::for_caches(WeightFormat::F16, (32 << 10, 1 << 20)), Blocking { mc: 336, kc: 512 });
+        assert_eq!(Blocking::for_caches(WeightFormat::F32, (48 << 10, 2 << 20)), Blocking { mc: 448, kc: 384 });
+        assert_eq!((parse_cache_size("32K"), parse_cache_size("2M"), parse_cache_size("x")), (Some(32 << 10), Some(2 << 20), None));
+        let (l1, l2) = cache_sizes();
+        assert!(l1 >= 4 << 10 && l2 > l1);
     }
 
     #[test]
