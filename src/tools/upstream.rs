@@ -65,9 +65,10 @@ impl UpstreamReport {
 }
 
 /// The arithmetic a row ran in: `f32`, or `bf16` (recon's bf16 kernels,
-/// upstream's bf16 autocast).
+/// upstream's bf16 autocast). The instruction set in parentheses is not
+/// read (`fast f32 (avx512bf16)` is f32).
 pub fn row_dtype(precision: &str) -> Option<Precision> {
-    let p = precision.to_ascii_lowercase();
+    let p = precision.split('(').next().unwrap_or("").to_ascii_lowercase();
     if p.contains("bf16") {
         Some(Precision::Bf16)
     } else if p.contains("f16") {
@@ -268,20 +269,21 @@ mod tests {
     #[test]
     fn rows_pair_by_module_and_precision() {
         let ours = vec![row("ss_flow", "fast f32 (avx512bf16)", 40.0), row("ss_flow", "fast bf16 (avx512bf16)", 20.0)];
+        // Upstream's bf16 row first: the pairing must not depend on the order.
         let up = UpstreamReport {
             machine: UpstreamMachine { cpu: "x".into(), threads: 2 },
             modules: vec![
                 UpstreamRow {
                     module: "ss_flow".into(),
-                    precision: "upstream torch f32 (AVX512)".into(),
-                    forward_seconds: 48.0,
+                    precision: "upstream torch bf16 autocast (AVX512)".into(),
+                    forward_seconds: 15.0,
                     peak_rss_mib: None,
                     load_average: None,
                 },
                 UpstreamRow {
                     module: "ss_flow".into(),
-                    precision: "upstream torch bf16 autocast (AVX512)".into(),
-                    forward_seconds: 15.0,
+                    precision: "upstream torch f32 (AVX512)".into(),
+                    forward_seconds: 48.0,
                     peak_rss_mib: None,
                     load_average: None,
                 },
@@ -295,6 +297,8 @@ mod tests {
         assert_eq!(c[2].precision, "best (bf16 vs bf16)");
         assert!((c[2].speedup - 0.75).abs() < 1e-12);
         assert_eq!(row_dtype("plain candle f32"), Some(Precision::F32));
+        assert_eq!(row_dtype("fast f32 (avx512bf16)"), Some(Precision::F32));
+        assert_eq!(row_dtype("upstream torch bf16 autocast (AVX512)"), Some(Precision::Bf16));
         assert_eq!(row_dtype("what"), None);
     }
 }
