@@ -215,13 +215,21 @@ pub struct FeedForward {
     fc2: Linear,
 }
 
+/// Rows of a fast feed-forward's hidden activations alive at once (32 MB at
+/// 1024 channels × 4).
+pub const FFN_ROWS: usize = 2048;
+
 impl FeedForward {
     pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder) -> Result<Self> {
         let hidden = (channels as f64 * mlp_ratio) as usize;
         Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"))?, fc2: linear(hidden, channels, vb.pp("mlp.2"))? })
     }
-    /// GELU (tanh form) is fused into `fc1` on the fast path.
+    /// GELU (tanh form) is fused into `fc1` on the fast path, which also
+    /// runs [`FFN_ROWS`] rows at a time (bounded hidden activations).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        if let (Some(f1), Some(f2)) = (self.fc1.fast(), self.fc2.fast()) {
+            return fast::mlp_by_rows(f1, f2, x, Activation::GeluTanh, FFN_ROWS);
+        }
         self.fc2.forward(&self.fc1.forward_act(x, Activation::GeluTanh)?)
     }
 }
