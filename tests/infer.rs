@@ -327,3 +327,38 @@ fn shipped_recgen_nano_is_trained_and_loads() {
         Engine::load(&ModelSource::Dir { dir: dir.clone(), config: Some(dir.join("recgen-nano.json")) }, &LoadOptions::default()).unwrap();
     assert!(!engine.pipeline.weights().is_random());
 }
+
+/// Objects run at once give what they give one after another, in the same
+/// order, and an object that cannot run (a mask of a few pixels, here the
+/// second of four) is skipped without losing the others.
+#[test]
+fn objects_in_parallel_match_one_at_a_time() {
+    let (frame, map, engine, opts) = one_step_sample_setup(1);
+    let (mut objects, _) = map.objects(None);
+    assert!(objects.len() >= 3, "{} objects", objects.len());
+    let mut tiny = objects[0].clone();
+    let keep = tiny.mask.iter().position(|&m| m).unwrap();
+    for (i, m) in tiny.mask.iter_mut().enumerate() {
+        *m &= i < keep + 3;
+    }
+    tiny.label = "tiny".to_string();
+    objects.insert(1, tiny);
+    let run = |n: usize| {
+        let opts = InferOptions { parallel_objects: std::num::NonZeroUsize::new(n).unwrap(), ..opts.clone() };
+        engine.reconstruct(&frame, objects.clone(), &opts).unwrap()
+    };
+    let (one, many) = (run(1), run(3));
+    assert_eq!(one.skipped.len(), 1, "{:?}", one.skipped);
+    assert_eq!(one.skipped[0].label, "tiny");
+    assert_eq!(one.objects.len(), objects.len() - 1);
+    assert_eq!(many.skipped.len(), 1);
+    assert_eq!(many.skipped[0].label, "tiny");
+    let labels = |r: &recon::engine::FrameResult| r.objects.iter().map(|o| o.label.clone()).collect::<Vec<_>>();
+    assert_eq!(labels(&one), labels(&many));
+    for (a, b) in one.objects.iter().zip(&many.objects) {
+        assert_eq!(a.pose_camera, b.pose_camera, "{}", a.label);
+        assert_eq!(a.selection.score_m.to_bits(), b.selection.score_m.to_bits(), "{}", a.label);
+        let (ga, gb) = (a.gaussians_camera.as_ref().unwrap(), b.gaussians_camera.as_ref().unwrap());
+        assert!(ga.positions == gb.positions && ga.dc == gb.dc, "{}", a.label);
+    }
+}

@@ -66,6 +66,11 @@ pub struct ModelArgs {
     /// decimation); 0 keeps the decoder's surface.
     #[arg(long, default_value_t = recon::engine::DEFAULT_SMOOTH_ITERATIONS)]
     pub smooth: usize,
+    /// Objects of a frame reconstructed at once (threads sharing the loaded model and the
+    /// kernels' threads; 1: one after another). Results are the same for any value; more
+    /// than 1 pays only with cores the model leaves idle, and costs memory per object.
+    #[arg(long, default_value_t = recon::engine::DEFAULT_PARALLEL_OBJECTS)]
+    pub parallel_objects: std::num::NonZeroUsize,
 }
 
 impl ModelArgs {
@@ -95,6 +100,7 @@ impl ModelArgs {
             smooth_iterations: self.smooth,
             shape_fit: self.shape_fit,
             mesh_from: self.mesh_from,
+            parallel_objects: self.parallel_objects,
             ..Default::default()
         };
         opts.run.seed = self.seed;

@@ -5,8 +5,9 @@
 //! and runs FlexiCubes over all R³ cubes (~700 MB at R = 256). Only cubes with
 //! an occupied corner (sdf < 0) can be surface cubes, and only corners of
 //! active cubes can be occupied (untouched vertices default to sdf = +1), so
-//! this port visits just the cubes around occupied vertices, with hash maps
-//! standing in for the dense grids. Cubes outside the active set get the
+//! this port visits just the cubes around occupied vertices, with sorted
+//! lattice ids and a dense per-column table ([`ColumnIndex`]) standing in for
+//! the dense grids. Cubes outside the active set get the
 //! dense defaults: raw weights 0, deform 0, colour 0.
 //!
 //! Output order matches upstream: dual vertices are grouped by their cube's
@@ -21,8 +22,6 @@ use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::DType;
 use rayon::prelude::*;
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
 pub use tables::CUBE_CORNERS;
 use tables::{CHECK_TABLE, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
 
@@ -34,26 +33,36 @@ pub const COLOR: std::ops::Range<usize> = 53..101;
 
 const WEIGHT_SCALE: f32 = 0.99;
 
-/// Multiplicative hasher for integer keys (grid ids are already well spread).
-#[derive(Default, Clone, Copy)]
-pub(crate) struct IdHasher(u64);
-
-impl Hasher for IdHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0.rotate_left(8) ^ b as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        }
-    }
-    fn write_u64(&mut self, i: u64) {
-        let h = (self.0 ^ i).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        self.0 = h ^ (h >> 29);
-    }
+/// Sorted, distinct lattice ids `column · depth + z` with a dense table of
+/// where each column's ids start: a lookup reads the table and searches the
+/// few ids of one column, in memory the caller walks in order (the hash maps
+/// it replaces hashed every corner of every cube to a random place).
+pub(crate) struct ColumnIndex {
+    keys: Vec<u64>,
+    starts: Vec<u32>,
+    depth: u64,
 }
 
-pub(crate) type IdMap<V> = HashMap<u64, V, BuildHasherDefault<IdHasher>>;
+impl ColumnIndex {
+    /// `keys` sorted and distinct, each below `columns · depth`.
+    fn new(keys: Vec<u64>, columns: usize, depth: u64) -> Self {
+        let mut starts = vec![0u32; columns + 1];
+        for &k in &keys {
+            starts[(k / depth) as usize + 1] += 1;
+        }
+        for c in 0..columns {
+            starts[c + 1] += starts[c];
+        }
+        ColumnIndex { keys, starts, depth }
+    }
+
+    /// The position of `key` among the keys.
+    fn find(&self, key: u64) -> Option<usize> {
+        let col = (key / self.depth) as usize;
+        let (a, b) = (*self.starts.get(col)? as usize, self.starts[col + 1] as usize);
+        self.keys[a..b].binary_search(&key).ok().map(|i| a + i)
+    }
+}
 
 /// `SparseFeatures2Mesh(res, use_color)`.
 #[derive(Debug, Clone, Copy)]
@@ -67,7 +76,8 @@ pub struct SparseFeatures2Mesh {
 /// `scatter_reduce(mean)`).
 pub struct VertexField {
     res: usize,
-    index: IdMap<u32>,
+    /// Touched vertices; a vertex's slot is its position here.
+    index: ColumnIndex,
     sdf: Vec<f32>,
     deform: Vec<[f32; 3]>,
     color: Vec<[f32; 6]>,
@@ -81,7 +91,7 @@ impl VertexField {
     }
 
     fn slot(&self, v: [u32; 3]) -> Option<usize> {
-        self.index.get(&self.key(v)).map(|&i| i as usize)
+        self.index.find(self.key(v))
     }
 
     /// Signed distance (bias included); +1 where no active cube touches `v`.
@@ -91,14 +101,23 @@ impl VertexField {
 
     /// Deformed position `v/R - 0.5 + (1-1e-8)/(2R)·tanh(deform)`.
     pub fn position(&self, v: [u32; 3]) -> [f32; 3] {
-        let d = self.slot(v).map_or([0.0; 3], |i| self.deform[i]);
+        self.position_at(v, self.slot(v))
+    }
+
+    /// [`Self::position`] of `v`, whose slot is known.
+    fn position_at(&self, v: [u32; 3], slot: Option<usize>) -> [f32; 3] {
+        let d = slot.map_or([0.0; 3], |i| self.deform[i]);
         let r = self.res as f32;
         [0, 1, 2].map(|k| (v[k] as f32 / r - 0.5) + self.deform_scale * d[k].tanh())
     }
 
     /// Raw (pre-sigmoid) colour; 0 where untouched or without colour.
     pub fn color_raw(&self, v: [u32; 3]) -> [f32; 6] {
-        match self.slot(v) {
+        self.color_raw_at(self.slot(v))
+    }
+
+    fn color_raw_at(&self, slot: Option<usize>) -> [f32; 6] {
+        match slot {
             Some(i) if !self.color.is_empty() => self.color[i],
             _ => [0.0; 6],
         }
@@ -119,7 +138,8 @@ pub struct SparseGrid {
     pub res: usize,
     pub use_color: bool,
     pub field: VertexField,
-    weights: IdMap<u32>,
+    /// Active cubes; a cube's row of `weight_rows` is its position here.
+    weights: ColumnIndex,
     weight_rows: Vec<[f32; 21]>,
 }
 
@@ -131,7 +151,7 @@ impl SparseGrid {
 
     /// Raw weights of cube `c` (β 0..12, α 12..20, γ 20); zeros when inactive.
     pub fn cube_weights(&self, c: [u32; 3]) -> [f32; 21] {
-        self.weights.get(&self.cube_key(c)).map_or([0.0; 21], |&i| self.weight_rows[i as usize])
+        self.weights.find(self.cube_key(c)).map_or([0.0; 21], |i| self.weight_rows[i])
     }
 }
 
@@ -139,6 +159,8 @@ struct SurfCube {
     c: [u32; 3],
     case: u8,
     s: [f32; 8],
+    /// The corners' vertex slots (`None`: untouched).
+    slots: [Option<u32>; 8],
 }
 
 impl SparseFeatures2Mesh {
@@ -164,6 +186,9 @@ impl SparseFeatures2Mesh {
         if res == 0 || res > (1 << 20) {
             return Err(Error::msg(format!("flexicubes: resolution {res} out of range")));
         }
+        if coords.len() > (u32::MAX / 8) as usize {
+            return Err(Error::msg(format!("flexicubes: {} cubes, at most {}", coords.len(), u32::MAX / 8)));
+        }
         if feats.len() != coords.len() * ch {
             return Err(Error::msg(format!("flexicubes: {} feature values for {} cubes x {ch} channels", feats.len(), coords.len())));
         }
@@ -172,24 +197,25 @@ impl SparseFeatures2Mesh {
         }
         let bias = (-1.0f64 / res as f64) as f32;
         let n = res as u64 + 1;
-        let mut index: IdMap<u32> = IdMap::default();
-        index.reserve(coords.len() * 2);
-        let mut sums: Vec<[f32; 10]> = Vec::with_capacity(coords.len() * 2);
-        let mut counts: Vec<u32> = Vec::with_capacity(coords.len() * 2);
-        let mut weights: IdMap<u32> = IdMap::default();
-        let mut weight_rows = Vec::with_capacity(coords.len());
+        // Every (vertex, cube, corner), sorted by vertex and then by cube: each
+        // vertex's sums are taken over its cubes in input order, as a scatter
+        // in input order takes them.
+        let mut touches: Vec<(u64, u32)> = Vec::with_capacity(coords.len() * 8);
         for (i, c) in coords.iter().enumerate() {
-            let row = &feats[i * ch..(i + 1) * ch];
             for (k, o) in CUBE_CORNERS.iter().enumerate() {
                 let v = [c[0] as u64 + o[0] as u64, c[1] as u64 + o[1] as u64, c[2] as u64 + o[2] as u64];
-                let key = (v[0] * n + v[1]) * n + v[2];
-                let next = sums.len() as u32;
-                let slot = *index.entry(key).or_insert(next) as usize;
-                if slot == sums.len() {
-                    sums.push([0.0; 10]);
-                    counts.push(0);
-                }
-                let acc = &mut sums[slot];
+                touches.push(((v[0] * n + v[1]) * n + v[2], (i * 8 + k) as u32));
+            }
+        }
+        touches.par_sort_unstable();
+        let mut keys: Vec<u64> = Vec::with_capacity(coords.len() * 2);
+        let mut sums: Vec<[f32; 10]> = Vec::with_capacity(coords.len() * 2);
+        let mut counts: Vec<u32> = Vec::with_capacity(coords.len() * 2);
+        for run in touches.chunk_by(|a, b| a.0 == b.0) {
+            let mut acc = [0f32; 10];
+            for &(_, ik) in run {
+                let (i, k) = (ik as usize / 8, ik as usize % 8);
+                let row = &feats[i * ch..(i + 1) * ch];
                 acc[0] += row[SDF.start + k] + bias;
                 for d in 0..3 {
                     acc[1 + d] += row[DEFORM.start + 3 * k + d];
@@ -199,20 +225,27 @@ impl SparseFeatures2Mesh {
                         acc[4 + d] += row[COLOR.start + 6 * k + d];
                     }
                 }
-                counts[slot] += 1;
             }
-            let key = (c[0] as u64 * res as u64 + c[1] as u64) * res as u64 + c[2] as u64;
-            let mut w = [0f32; 21];
-            w.copy_from_slice(&row[WEIGHTS]);
-            // Duplicate coordinates: the last row wins, like a dense index_put.
-            match weights.get(&key) {
-                Some(&j) => weight_rows[j as usize] = w,
-                None => {
-                    weights.insert(key, weight_rows.len() as u32);
-                    weight_rows.push(w);
-                }
-            }
+            keys.push(run[0].0);
+            sums.push(acc);
+            counts.push(run.len() as u32);
         }
+        drop(touches);
+        // Duplicate coordinates: the last row wins, like a dense index_put.
+        let r = res as u64;
+        let mut cubes: Vec<(u64, u32)> =
+            coords.iter().enumerate().map(|(i, c)| ((c[0] as u64 * r + c[1] as u64) * r + c[2] as u64, i as u32)).collect();
+        cubes.par_sort_unstable();
+        let mut cube_keys = Vec::with_capacity(cubes.len());
+        let mut weight_rows = Vec::with_capacity(cubes.len());
+        for run in cubes.chunk_by(|a, b| a.0 == b.0) {
+            let (key, i) = run[run.len() - 1];
+            let mut w = [0f32; 21];
+            w.copy_from_slice(&feats[i as usize * ch..(i as usize + 1) * ch][WEIGHTS]);
+            cube_keys.push(key);
+            weight_rows.push(w);
+        }
+        let weights = ColumnIndex::new(cube_keys, res * res, r);
         let mean = |s: &[f32; 10], c: u32, k: usize| s[k] / c as f32;
         let field = VertexField {
             res,
@@ -223,7 +256,7 @@ impl SparseFeatures2Mesh {
             } else {
                 Vec::new()
             },
-            index,
+            index: ColumnIndex::new(keys, (res + 1) * (res + 1), n),
             deform_scale: ((1.0 - 1e-8) / (res as f64 * 2.0)) as f32,
         };
         Ok(SparseGrid { res, use_color: self.use_color, field, weights, weight_rows })
@@ -276,8 +309,8 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
 
     // 1. Surface cubes: every cube around an occupied vertex, in cube-id order.
     let mut cand: Vec<u64> = Vec::new();
-    for (&k, &i) in &field.index {
-        if field.sdf[i as usize] < 0.0 {
+    for (&k, &sdf) in field.index.keys.iter().zip(&field.sdf) {
+        if sdf < 0.0 {
             let v = [(k / (nv * nv)) as i64, ((k / nv) % nv) as i64, (k % nv) as i64];
             for o in CUBE_CORNERS {
                 let c = [v[0] - o[0] as i64, v[1] - o[1] as i64, v[2] - o[2] as i64];
@@ -293,15 +326,17 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
         .par_iter()
         .filter_map(|&k| {
             let c = decode(k);
-            let s = CUBE_CORNERS.map(|o| field.sdf(offset(c, o)));
+            let slots = CUBE_CORNERS.map(|o| field.slot(offset(c, o)).map(|i| i as u32));
+            let s = slots.map(|i| i.map_or(1.0, |i| field.sdf[i as usize]));
             let case = s.iter().enumerate().fold(0u32, |acc, (i, &v)| acc | ((v < 0.0) as u32) << i);
-            (case != 0 && case != 255).then_some(SurfCube { c, case: case as u8, s })
+            (case != 0 && case != 255).then_some(SurfCube { c, case: case as u8, s, slots })
         })
         .collect();
     if surf.is_empty() {
         return Mesh { vertices: vec![], faces: vec![], vertex_attrs: g.use_color.then(Vec::new) };
     }
-    let surf_index: IdMap<u32> = surf.iter().enumerate().map(|(i, sc)| (ckey(sc.c), i as u32)).collect();
+    // In cube-id order, as the candidates were.
+    let surf_keys: Vec<u64> = surf.iter().map(|sc| ckey(sc.c)).collect();
 
     // 2. Ambiguity resolution: a problem case whose neighbour in the table's
     //    direction is also a problem case is inverted (original cases decide).
@@ -316,8 +351,8 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
             let n = [sc.c[0] as i64 + row[1] as i64, sc.c[1] as i64 + row[2] as i64, sc.c[2] as i64 + row[3] as i64];
             if n.iter().all(|&x| (0..r).contains(&x)) {
                 let nk = ckey([n[0] as u32, n[1] as u32, n[2] as u32]);
-                if let Some(&j) = surf_index.get(&nk) {
-                    if is_problem(surf[j as usize].case) {
+                if let Ok(j) = surf_keys.binary_search(&nk) {
+                    if is_problem(surf[j].case) {
                         return row[4] as u8;
                     }
                 }
@@ -328,42 +363,33 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
 
     // 3. Surface edges: unique sign-changing edges of surface cubes, sorted by
     //    (first vertex id, second vertex id) like torch.unique(dim=0).
-    let mut edges: Vec<(u64, u64)> = surf
+    //    Each carries where it came from (cube · 12 + edge slot), so the ids
+    //    are handed back without searching for them.
+    let mut edges: Vec<(u64, u64, usize)> = surf
         .par_iter()
-        .flat_map_iter(|sc| {
+        .enumerate()
+        .flat_map_iter(|(i, sc)| {
             CUBE_EDGES
                 .iter()
-                .filter(move |&&[a, b]| (sc.s[a] < 0.0) != (sc.s[b] < 0.0))
-                .map(move |&[a, b]| (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b]))))
+                .enumerate()
+                .filter(move |&(_, &[a, b])| (sc.s[a] < 0.0) != (sc.s[b] < 0.0))
+                .map(move |(e, &[a, b])| (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b])), i * 12 + e))
         })
         .collect();
     edges.par_sort_unstable();
     let mut uniq: Vec<(u64, u64)> = Vec::with_capacity(edges.len() / 3);
     let mut counts: Vec<u32> = Vec::with_capacity(edges.len() / 3);
-    for e in edges {
-        if uniq.last() == Some(&e) {
-            if let Some(c) = counts.last_mut() {
-                *c += 1;
-            }
-        } else {
-            uniq.push(e);
-            counts.push(1);
-        }
-    }
     // Surface-edge id of each (cube, edge slot), -1 without a sign change.
-    let edge_ids: Vec<[i64; 12]> = surf
-        .par_iter()
-        .map(|sc| {
-            let mut ids = [-1i64; 12];
-            for (e, &[a, b]) in CUBE_EDGES.iter().enumerate() {
-                if (sc.s[a] < 0.0) != (sc.s[b] < 0.0) {
-                    let key = (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b])));
-                    ids[e] = uniq.binary_search(&key).map_or(-1, |i| i as i64);
-                }
-            }
-            ids
-        })
-        .collect();
+    let mut edge_ids: Vec<[i64; 12]> = vec![[-1i64; 12]; surf.len()];
+    for run in edges.chunk_by(|x, y| (x.0, x.1) == (y.0, y.1)) {
+        let id = uniq.len() as i64;
+        for &(_, _, from) in run {
+            edge_ids[from / 12][from % 12] = id;
+        }
+        uniq.push((run[0].0, run[0].1));
+        counts.push(run.len() as u32);
+    }
+    drop(edges);
 
     // 4. Dual vertices, numbered by (vertex count of the cube, cube, group).
     let num_vd: Vec<usize> = cases.iter().map(|&c| NUM_VD_TABLE[c as usize] as usize).collect();
@@ -410,13 +436,14 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
                     let den = p + q;
                     let va = offset(sc.c, CUBE_CORNERS[a]);
                     let vb = offset(sc.c, CUBE_CORNERS[b]);
-                    let (x0, x1) = (field.position(va), field.position(vb));
+                    let (sa, sb) = (sc.slots[a].map(|i| i as usize), sc.slots[b].map(|i| i as usize));
+                    let (x0, x1) = (field.position_at(va, sa), field.position_at(vb, sb));
                     let be = beta[e];
                     for k in 0..3 {
                         acc[k] += (x0[k] * p + x1[k] * q) / den * be;
                     }
                     if g.use_color {
-                        let (c0, c1) = (field.color_raw(va).map(sigmoid), field.color_raw(vb).map(sigmoid));
+                        let (c0, c1) = (field.color_raw_at(sa).map(sigmoid), field.color_raw_at(sb).map(sigmoid));
                         for k in 0..6 {
                             cacc[k] += (c0[k] * p + c1[k] * q) / den * be;
                         }
