@@ -519,8 +519,8 @@ fn sweep() {
 }
 
 /// The CI-sized sweep: a per-object dropout group (which frame hold-out alone was too weak
-/// for) and a null, on seed 31 (not used while developing the search; its noise group is a
-/// known miss, see the README's sweep table).
+/// for) and a null, on seed 31 (not used while developing the search; the other classes are
+/// the ignored sweep's).
 #[test]
 fn sweep_small_holds_its_floor() {
     sweep_assert(31..32, &["dropout group", "null"], 0.9);

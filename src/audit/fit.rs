@@ -15,7 +15,10 @@
 //! The Gaussian and the Bernoulli parts have separate parameters, so they are fitted
 //! (and candidate terms scored) independently. Fitting is Fisher scoring with
 //! step halving, the outlier weight by EM; a term's threshold (`step`) or category set
-//! (`group`) is fixed from the training rows before its coefficients are fitted.
+//! (`group`) is fixed from the training rows before its coefficients are fitted. A noise
+//! group's reference is its quietest category (the others' excess then adds to σ as in
+//! the sensor model) and dropout group rates are shrunk toward the overall rate by a
+//! prior of a few rows (a category with no missing training pixel stays off the clamp).
 use crate::audit::stats::solve_spd;
 use crate::audit::table::{ColumnKind, ResidualTable};
 use crate::sensor::{Effect, Form, Target};
@@ -1094,6 +1097,84 @@ mod tests {
         for i in 0..50 {
             let x = t.columns[0].values[i];
             assert!((m.terms[0].form(&ctx).eval(x) - m.terms[0].value(&ctx, i)).abs() < 1e-12);
+        }
+    }
+
+    /// Rows in categories 0..5 with residual sd 0.002 + `excess[c]`, 5 % gross outliers,
+    /// missing with probability `miss[c]`; category 5 has only `small` rows.
+    fn grouped(seed: u64, excess: [f64; 6], miss: [f64; 6], small: usize) -> ResidualTable {
+        let mut rng = SeededRng::new(seed);
+        let mut t = ResidualTable { source: "test".into(), ..Default::default() };
+        let mut cats = vec![];
+        for c in 0..6 {
+            let n = if c == 5 { small } else { 1500 };
+            for i in 0..n {
+                let mut r = (0.002 + excess[c]) * rng.normal();
+                if rng.uniform() < 0.05 {
+                    r = 0.4 * rng.uniform() - 0.2;
+                }
+                t.measured.push(if rng.uniform() < miss[c] { f64::NAN } else { 1.0 + r });
+                t.simulated.push(1.0);
+                t.unit.push(i % 10);
+                cats.push(c as f64);
+            }
+        }
+        let n = t.measured.len();
+        t.unit_names = (0..10).map(|u| u.to_string()).collect();
+        t.sd_floor = vec![0.0; n];
+        t.sd_offset = vec![0.0; n];
+        t.p_offset = vec![0.0; n];
+        t.columns.push(Column::categorical("object", cats));
+        t
+    }
+
+    #[test]
+    fn noise_group_takes_the_quietest_category_as_reference_despite_outliers() {
+        let excess = [0.003, 0.0, 0.001, 0.004, 0.002, 0.0];
+        let t = grouped(3, excess, [0.01; 6], 1500);
+        let ctx = Ctx::new(&t, true);
+        let all: Vec<usize> = (0..t.len()).collect();
+        let valid: Vec<usize> = all.iter().copied().filter(|&i| !t.missing(i)).collect();
+        let mut m = Model::initial(&ctx, &valid, &all);
+        fit_gauss(&ctx, &valid, &mut m);
+        // The robust excess orders the categories as planted, outliers notwithstanding.
+        let ex = category_excess(&ctx, &m, 0, &valid);
+        let order: Vec<i64> = {
+            let mut v: Vec<(i64, f64)> = ex.into_iter().collect();
+            v.sort_by(|a, b| a.1.total_cmp(&b.1));
+            v.into_iter().map(|e| e.0).collect()
+        };
+        assert_eq!(&order[2..], &[2, 4, 0, 3], "{order:?}");
+        let ft = structure(&ctx, &m, Term { target: Target::Noise, col: 0, form: FormKind::Group, by: None }, &valid).unwrap();
+        assert!(ft.reference == 1 || ft.reference == 5, "reference {}", ft.reference);
+        m.terms.push(ft);
+        seed_noise_group(&ctx, &mut m, &valid);
+        fit_gauss(&ctx, &valid, &mut m);
+        for c in 0..6 {
+            let i = valid.iter().copied().find(|&i| t.columns[0].values[i] == c as f64).unwrap();
+            let sd = m.predict(&ctx, i).sigma;
+            assert!((sd - 0.002 - excess[c]).abs() < 0.0003, "category {c}: σ {sd}");
+        }
+        assert!((m.outlier - 0.05).abs() < 0.015, "outlier {}", m.outlier);
+    }
+
+    #[test]
+    fn dropout_group_category_without_missing_rows_stays_off_the_clamp() {
+        // Category 5: 60 rows, none missing (rate 0); the others 20–40 %.
+        let t = grouped(4, [0.0; 6], [0.2, 0.3, 0.4, 0.25, 0.35, 0.0], 60);
+        let ctx = Ctx::new(&t, true);
+        let all: Vec<usize> = (0..t.len()).collect();
+        let valid: Vec<usize> = all.iter().copied().filter(|&i| !t.missing(i)).collect();
+        let mut m = Model::initial(&ctx, &valid, &all);
+        fit_bern(&ctx, &all, &mut m);
+        let ft = structure(&ctx, &m, Term { target: Target::Dropout, col: 0, form: FormKind::Group, by: None }, &all).unwrap();
+        m.terms.push(ft);
+        fit_bern(&ctx, &all, &mut m);
+        let p = |c: f64| m.predict(&ctx, all.iter().copied().find(|&i| t.columns[0].values[i] == c).unwrap()).p;
+        // The prior (4 rows at the overall ~25 %) gives ≈ 1/64, not the clamp 1e-6.
+        assert!(p(5.0) > 0.005 && p(5.0) < 0.03, "p {}", p(5.0));
+        for (c, want) in [(0.0, 0.2), (1.0, 0.3), (2.0, 0.4)] {
+            assert!((p(c) - want).abs() < 0.035, "category {c}: {} vs {want}", p(c));
         }
     }
 }

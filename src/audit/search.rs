@@ -36,6 +36,13 @@
 //! doubled (Bonferroni over the two), so a round's family-wise error stays at `alpha`.
 //! The price: pixels of one object in one frame are exchangeable with other objects'
 //! only if nothing ties the objects of a frame together beyond the tested term.
+//! A group has a parameter per object, each seen in few frames, so its fit is guarded
+//! where a held-out unit would otherwise pay for one fold's noise: a noise group is
+//! referenced to its quietest well-observed object and started at robust (median-based)
+//! per-object excess noise, and a dropout group's rates carry a weak prior toward the
+//! overall rate ([`crate::audit::fit`]). Both are fixed from the training rows of each
+//! fold, like a step's threshold, so the randomisation test and its family-wise level
+//! are unchanged.
 //!
 //! **Outliers.** The robust fit's outlier component gives gross residuals no weight, so
 //! a bias confined to a subset of pixels (a step of 5–15 σ on a few % of them) is
