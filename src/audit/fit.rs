@@ -15,7 +15,10 @@
 //! The Gaussian and the Bernoulli parts have separate parameters, so they are fitted
 //! (and candidate terms scored) independently. Fitting is Fisher scoring with
 //! step halving, the outlier weight by EM; a term's threshold (`step`) or category set
-//! (`group`) is fixed from the training rows before its coefficients are fitted.
+//! (`group`) is fixed from the training rows before its coefficients are fitted. A noise
+//! group's reference is its quietest category (the others' excess then adds to σ as in
+//! the sensor model) and dropout group rates are shrunk toward the overall rate by a
+//! prior of a few rows (a category with no missing training pixel stays off the clamp).
 use crate::audit::stats::solve_spd;
 use crate::audit::table::{ColumnKind, ResidualTable};
 use crate::sensor::{Effect, Form, Target};
@@ -622,6 +625,71 @@ pub fn seed_subset(ctx: &Ctx, m: &mut Model, rows: &[usize]) {
     }
 }
 
+/// Rows a category needs for its robust excess noise ([`category_excess`]).
+const MIN_CATEGORY: usize = 30;
+
+/// Robust excess noise of each category of `col` (with ≥ [`MIN_CATEGORY`] rows) at
+/// `parent`: the `v` for which the median of `|r − μ| / (σ + v)` over the category's rows
+/// is the standard normal's (0.6745). A median, so outliers (up to half the rows) do not
+/// move it, where a squared-residual estimate would be inflated by them.
+pub fn category_excess(ctx: &Ctx, parent: &Model, col: usize, rows: &[usize]) -> BTreeMap<i64, f64> {
+    let mut by_cat: BTreeMap<i64, Vec<(f64, f64)>> = BTreeMap::new();
+    for &i in rows {
+        let p = parent.predict(ctx, i);
+        by_cat.entry(ctx.value(col, i).round() as i64).or_default().push(((ctx.resid[i] - p.mu).abs(), p.sigma));
+    }
+    const MEDIAN_ABS_Z: f64 = 0.674_489_750_196_081_7;
+    let mut out = BTreeMap::new();
+    let mut buf = vec![];
+    for (k, v) in by_cat {
+        if v.len() < MIN_CATEGORY {
+            continue;
+        }
+        let smin = v.iter().map(|e| e.1).fold(f64::INFINITY, f64::min);
+        let med = |x: f64, buf: &mut Vec<f64>| -> f64 {
+            buf.clear();
+            buf.extend(v.iter().map(|e| e.0 / (e.1 + x)));
+            let m = buf.len() / 2;
+            *buf.select_nth_unstable_by(m, f64::total_cmp).1
+        };
+        // Bisection on the decreasing median, σ + v kept above 10 % of the smallest σ.
+        let (mut lo, mut hi) = (-0.9 * smin, 0.0f64);
+        while med(hi, &mut buf) > MEDIAN_ABS_Z && hi < 1e6 * smin.max(1e-12) {
+            hi = 2.0 * hi + smin;
+        }
+        if med(lo, &mut buf) <= MEDIAN_ABS_Z {
+            out.insert(k, lo);
+            continue;
+        }
+        for _ in 0..50 {
+            let mid = 0.5 * (lo + hi);
+            if med(mid, &mut buf) > MEDIAN_ABS_Z {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        out.insert(k, 0.5 * (lo + hi));
+    }
+    out
+}
+
+/// Starts the last term of `m` (a fresh noise group) at each category's robust excess
+/// noise over the reference's ([`category_excess`]): from zero, the rows of a noisy
+/// category start as outliers of the uniform component, which gives them no weight, and
+/// the fit can stall with part of that category's noise left to the outliers.
+pub fn seed_noise_group(ctx: &Ctx, m: &mut Model, rows: &[usize]) {
+    let Some(last) = m.terms.len().checked_sub(1) else { return };
+    let ft = &m.terms[last];
+    if ft.term.form != FormKind::Group || ft.term.target != Target::Noise || ft.term.by.is_some() {
+        return;
+    }
+    let ex = category_excess(ctx, m, ft.term.col, rows);
+    let Some(&base) = ex.get(&ft.reference) else { return };
+    let coef: Vec<f64> = ft.cats.iter().map(|k| ex.get(k).map_or(0.0, |v| v - base)).collect();
+    m.terms[last].coef = coef;
+}
+
 /// Makes a term's structure from the training rows: the category set of a group, the
 /// threshold of a step (largest score at the parent model). None when the column cannot
 /// carry the term on these rows (one category, too few distinct values).
@@ -636,7 +704,22 @@ pub fn structure(ctx: &Ctx, parent: &Model, term: Term, rows: &[usize]) -> Optio
             if counts.len() < 2 {
                 return None;
             }
-            let reference = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(k, _)| *k)?;
+            let frequent = counts.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))).map(|(k, _)| *k)?;
+            // Noise: the quietest well-observed category is the reference, so the others'
+            // excess noise adds to σ (the sensor model's form) instead of a noisy reference
+            // sitting in the global noise, where it adds in quadrature and misfits every
+            // depth but one.
+            let quiet = if term.target == Target::Noise && term.by.is_none() {
+                let big = counts.values().max().copied().unwrap_or(0) / 4;
+                category_excess(ctx, parent, term.col, rows)
+                    .into_iter()
+                    .filter(|(k, _)| counts.get(k).is_some_and(|&c| c >= big.max(MIN_CATEGORY)))
+                    .min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)))
+                    .map(|(k, _)| k)
+            } else {
+                None
+            };
+            let reference = quiet.unwrap_or(frequent);
             ft.reference = reference;
             ft.cats = counts.keys().copied().filter(|&k| k != reference).collect();
         }
@@ -806,7 +889,11 @@ pub fn fit_gauss(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
     ll
 }
 
-/// Fits the dropout part on `rows` (all rows), starting from `m`. Returns the log-likelihood.
+/// Prior weight (in rows at the overall missing rate) on each dropout group category.
+const GROUP_PSEUDO: f64 = 4.0;
+
+/// Fits the dropout part on `rows` (all rows), starting from `m`. Returns the penalised
+/// log-likelihood (group categories carry a weak prior, see [`GROUP_PSEUDO`]).
 pub fn fit_bern(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
     if rows.is_empty() {
         return 0.0;
@@ -830,21 +917,50 @@ pub fn fit_bern(ctx: &Ctx, rows: &[usize], m: &mut Model) -> f64 {
     for &t in &dt {
         th.extend_from_slice(&m.terms[t].coef);
     }
+    // A group category's rate is shrunk toward the overall rate by a Beta prior worth
+    // GROUP_PSEUDO rows at that rate (pseudo-rows with fractional outcome, at the
+    // category's mean offset): a category whose few training rows happen to have no
+    // missing pixel would otherwise sit at the clamp (p = 1e-6) and cost ~14 nats for
+    // every missing pixel it has in a held-out frame.
+    let ybar = y.iter().sum::<f64>() / n as f64;
+    let mut pseudo: Vec<(Vec<f64>, f64)> = vec![];
+    let mut o = 1;
+    for &t in &dt {
+        let ft = &m.terms[t];
+        if ft.term.form == FormKind::Group && ft.term.by.is_none() {
+            let mut off = vec![(0.0, 0usize); ft.cats.len()];
+            for &i in rows {
+                let c = ctx.value(ft.term.col, i).round() as i64;
+                if let Some(q) = ft.cats.iter().position(|&k| k == c) {
+                    off[q].0 += ctx.table.p_offset[i];
+                    off[q].1 += 1;
+                }
+            }
+            for (q, (s, cnt)) in off.into_iter().enumerate() {
+                let mut xr = vec![0.0; k];
+                xr[0] = 1.0;
+                xr[o + q] = 1.0;
+                pseudo.push((xr, s / cnt.max(1) as f64));
+            }
+        }
+        o += ft.k();
+    }
     let eval = |th: &[f64]| -> (f64, Vec<f64>, Vec<f64>) {
         let (mut ll, mut a, mut b) = (0.0, vec![0.0; k * k], vec![0.0; k]);
-        for (j, &i) in rows.iter().enumerate() {
-            let xr = &x[j * k..(j + 1) * k];
-            let mut eta = ctx.table.p_offset[i];
+        let real = rows.iter().enumerate().map(|(j, &i)| (&x[j * k..(j + 1) * k], ctx.table.p_offset[i], y[j], 1.0));
+        let prior = pseudo.iter().map(|(xr, off)| (xr.as_slice(), *off, ybar, GROUP_PSEUDO));
+        for (xr, off, yj, wt) in real.chain(prior) {
+            let mut eta = off;
             for r in 0..k {
                 eta += xr[r] * th[r];
             }
             let p = eta.clamp(P_EPS, 1.0 - P_EPS);
-            ll += if y[j] > 0.5 { p.ln() } else { (1.0 - p).ln() };
+            ll += wt * (yj * p.ln() + (1.0 - yj) * (1.0 - p).ln());
             let v = p * (1.0 - p);
-            let g = (y[j] - p) / v;
+            let g = wt * (yj - p) / v;
             for r in 0..k {
                 b[r] += g * xr[r];
-                let wr = xr[r] / v;
+                let wr = wt * xr[r] / v;
                 for c in 0..=r {
                     a[r * k + c] += wr * xr[c];
                 }
@@ -981,6 +1097,84 @@ mod tests {
         for i in 0..50 {
             let x = t.columns[0].values[i];
             assert!((m.terms[0].form(&ctx).eval(x) - m.terms[0].value(&ctx, i)).abs() < 1e-12);
+        }
+    }
+
+    /// Rows in categories 0..5 with residual sd 0.002 + `excess[c]`, 5 % gross outliers,
+    /// missing with probability `miss[c]`; category 5 has only `small` rows.
+    fn grouped(seed: u64, excess: [f64; 6], miss: [f64; 6], small: usize) -> ResidualTable {
+        let mut rng = SeededRng::new(seed);
+        let mut t = ResidualTable { source: "test".into(), ..Default::default() };
+        let mut cats = vec![];
+        for c in 0..6 {
+            let n = if c == 5 { small } else { 1500 };
+            for i in 0..n {
+                let mut r = (0.002 + excess[c]) * rng.normal();
+                if rng.uniform() < 0.05 {
+                    r = 0.4 * rng.uniform() - 0.2;
+                }
+                t.measured.push(if rng.uniform() < miss[c] { f64::NAN } else { 1.0 + r });
+                t.simulated.push(1.0);
+                t.unit.push(i % 10);
+                cats.push(c as f64);
+            }
+        }
+        let n = t.measured.len();
+        t.unit_names = (0..10).map(|u| u.to_string()).collect();
+        t.sd_floor = vec![0.0; n];
+        t.sd_offset = vec![0.0; n];
+        t.p_offset = vec![0.0; n];
+        t.columns.push(Column::categorical("object", cats));
+        t
+    }
+
+    #[test]
+    fn noise_group_takes_the_quietest_category_as_reference_despite_outliers() {
+        let excess = [0.003, 0.0, 0.001, 0.004, 0.002, 0.0];
+        let t = grouped(3, excess, [0.01; 6], 1500);
+        let ctx = Ctx::new(&t, true);
+        let all: Vec<usize> = (0..t.len()).collect();
+        let valid: Vec<usize> = all.iter().copied().filter(|&i| !t.missing(i)).collect();
+        let mut m = Model::initial(&ctx, &valid, &all);
+        fit_gauss(&ctx, &valid, &mut m);
+        // The robust excess orders the categories as planted, outliers notwithstanding.
+        let ex = category_excess(&ctx, &m, 0, &valid);
+        let order: Vec<i64> = {
+            let mut v: Vec<(i64, f64)> = ex.into_iter().collect();
+            v.sort_by(|a, b| a.1.total_cmp(&b.1));
+            v.into_iter().map(|e| e.0).collect()
+        };
+        assert_eq!(&order[2..], &[2, 4, 0, 3], "{order:?}");
+        let ft = structure(&ctx, &m, Term { target: Target::Noise, col: 0, form: FormKind::Group, by: None }, &valid).unwrap();
+        assert!(ft.reference == 1 || ft.reference == 5, "reference {}", ft.reference);
+        m.terms.push(ft);
+        seed_noise_group(&ctx, &mut m, &valid);
+        fit_gauss(&ctx, &valid, &mut m);
+        for c in 0..6 {
+            let i = valid.iter().copied().find(|&i| t.columns[0].values[i] == c as f64).unwrap();
+            let sd = m.predict(&ctx, i).sigma;
+            assert!((sd - 0.002 - excess[c]).abs() < 0.0003, "category {c}: σ {sd}");
+        }
+        assert!((m.outlier - 0.05).abs() < 0.015, "outlier {}", m.outlier);
+    }
+
+    #[test]
+    fn dropout_group_category_without_missing_rows_stays_off_the_clamp() {
+        // Category 5: 60 rows, none missing (rate 0); the others 20–40 %.
+        let t = grouped(4, [0.0; 6], [0.2, 0.3, 0.4, 0.25, 0.35, 0.0], 60);
+        let ctx = Ctx::new(&t, true);
+        let all: Vec<usize> = (0..t.len()).collect();
+        let valid: Vec<usize> = all.iter().copied().filter(|&i| !t.missing(i)).collect();
+        let mut m = Model::initial(&ctx, &valid, &all);
+        fit_bern(&ctx, &all, &mut m);
+        let ft = structure(&ctx, &m, Term { target: Target::Dropout, col: 0, form: FormKind::Group, by: None }, &all).unwrap();
+        m.terms.push(ft);
+        fit_bern(&ctx, &all, &mut m);
+        let p = |c: f64| m.predict(&ctx, all.iter().copied().find(|&i| t.columns[0].values[i] == c).unwrap()).p;
+        // The prior (4 rows at the overall ~25 %) gives ≈ 1/64, not the clamp 1e-6.
+        assert!(p(5.0) > 0.005 && p(5.0) < 0.03, "p {}", p(5.0));
+        for (c, want) in [(0.0, 0.2), (1.0, 0.3), (2.0, 0.4)] {
+            assert!((p(c) - want).abs() < 0.035, "category {c}: {} vs {want}", p(c));
         }
     }
 }

@@ -36,6 +36,13 @@
 //! doubled (Bonferroni over the two), so a round's family-wise error stays at `alpha`.
 //! The price: pixels of one object in one frame are exchangeable with other objects'
 //! only if nothing ties the objects of a frame together beyond the tested term.
+//! A group has a parameter per object, each seen in few frames, so its fit is guarded
+//! where a held-out unit would otherwise pay for one fold's noise: a noise group is
+//! referenced to its quietest well-observed object and started at robust (median-based)
+//! per-object excess noise, and a dropout group's rates carry a weak prior toward the
+//! overall rate ([`crate::audit::fit`]). Both are fixed from the training rows of each
+//! fold, like a step's threshold, so the randomisation test and its family-wise level
+//! are unchanged.
 //!
 //! **Outliers.** The robust fit's outlier component gives gross residuals no weight, so
 //! a bias confined to a subset of pixels (a step of 5–15 σ on a few % of them) is
@@ -56,7 +63,8 @@
 //! ([`bootstrap`]): frames resampled with replacement, the final model refitted on each
 //! resample (thresholds re-chosen), so within-frame correlation is accounted for.
 use crate::audit::fit::{
-    fit_bern, fit_gauss, is_gauss, score_stat, seed_subset, structure, subset_split, working, Ctx, FormKind, Model, Pred, Term,
+    fit_bern, fit_gauss, is_gauss, score_stat, seed_noise_group, seed_subset, structure, subset_split, working, Ctx, FormKind, Model, Pred,
+    Term,
 };
 use crate::audit::stats::{chi2_upper_tail, one_sided_t};
 use crate::audit::table::ColumnKind;
@@ -251,16 +259,27 @@ impl Cv {
             let mut m = self.models[f].clone();
             let ft = structure(ctx, &m, term, rows)?;
             m.terms.push(ft.clone());
-            if term.form == FormKind::Subset {
-                seed_subset(ctx, &mut m, rows);
-            }
+            let seeded = match (term.form, term.target) {
+                (FormKind::Subset, _) => {
+                    seed_subset(ctx, &mut m, rows);
+                    true
+                }
+                (FormKind::Group, Target::Noise) => {
+                    seed_noise_group(ctx, &mut m, rows);
+                    true
+                }
+                _ => false,
+            };
             if gauss {
                 let ll = fit_gauss(ctx, rows, &mut m);
                 // A seeded start can end in a mode worse than the parent's (a subset that
-                // holds no outliers' level): then the term is zero, as a nested fit would be.
-                if term.form == FormKind::Subset && ll < self.models[f].ll_gauss_rows(ctx, rows).iter().sum::<f64>() {
+                // holds no outliers' level): then the fit starts from zero, as a nested fit would.
+                if seeded && ll < self.models[f].ll_gauss_rows(ctx, rows).iter().sum::<f64>() {
                     m = self.models[f].clone();
                     m.terms.push(ft);
+                    if term.form != FormKind::Subset {
+                        fit_gauss(ctx, rows, &mut m);
+                    }
                 }
             } else {
                 fit_bern(ctx, rows, &mut m);
