@@ -58,9 +58,9 @@ impl ModelSource {
     }
 
     /// Load options for `dtype` on this source's architecture (`auto` resolved).
-    pub fn load_options(&self, dtype: crate::engine::Dtype) -> Result<crate::engine::LoadOptions> {
+    pub fn load_options(&self, dtype: crate::engine::pipeline::Dtype) -> Result<crate::engine::pipeline::LoadOptions> {
         let arch = crate::model::RecGenConfig::load(&self.architecture()?)?;
-        Ok(crate::engine::LoadOptions::precision(dtype.resolve(&arch)?))
+        Ok(crate::engine::pipeline::LoadOptions::precision(dtype.resolve(&arch)?))
     }
 
     /// The architecture file this source is built with.

@@ -18,6 +18,7 @@ use crate::model::config::RecGenConfig;
 use crate::model::nn::fast::{self, Compute, Precision};
 use crate::model::sparse::SparseTensor;
 use crate::rng::SeededRng;
+use crate::tools::upstream::rel_errors;
 use crate::util::memory::{peak_rss_mib, reset_peak_rss};
 use crate::weights::registry::{self, ModuleConfig};
 use crate::Result;
@@ -543,23 +544,6 @@ pub struct PrecisionRow {
     /// SS decoder only: fraction of voxels whose occupancy (logit > 0) differs.
     pub occupancy_flip_fraction: Option<f64>,
     pub occupied_reference: Option<usize>,
-}
-
-pub(crate) fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
-    let a = a.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-    let b = b.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-    if a.len() != b.len() {
-        return Err(crate::Error::msg("bench: outputs of different sizes"));
-    }
-    let (mut maxd, mut maxb, mut sumd, mut sumb) = (0f64, 0f64, 0f64, 0f64);
-    for (&x, &y) in a.iter().zip(&b) {
-        let d = (x as f64 - y as f64).abs();
-        maxd = maxd.max(d);
-        maxb = maxb.max((y as f64).abs());
-        sumd += d;
-        sumb += (y as f64).abs();
-    }
-    Ok((maxd / maxb.max(1e-30), sumd / sumb.max(1e-30)))
 }
 
 /// Each module's output in `precisions` against fast f32, full size.

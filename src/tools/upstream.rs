@@ -16,7 +16,6 @@ use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::model::nn::fast::{self, Compute, Precision};
-use crate::tools::bench::{rel_errors, ModuleRow};
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
@@ -24,9 +23,10 @@ use crate::{Error, Result};
 /// can build on a CPU (the sparse ones need spconv and CUDA).
 pub const RELEASED: [(&str, &str); 2] = [("ss_flow", "ss_flow_img_dit_L_16l8_fp16"), ("ss_decoder", "ss_dec_conv3d_16l8_fp16")];
 
-/// One row of an upstream timing report (recon's [`ModuleRow`] fields).
+/// One module timing: a row of an upstream report, or recon's
+/// module rows reduced to what the comparison reads.
 #[derive(Debug, Clone, Deserialize)]
-pub struct UpstreamRow {
+pub struct TimingRow {
     pub module: String,
     pub precision: String,
     pub forward_seconds: f64,
@@ -46,7 +46,7 @@ pub struct UpstreamMachine {
 #[derive(Debug, Clone, Deserialize)]
 pub struct UpstreamReport {
     pub machine: UpstreamMachine,
-    pub modules: Vec<UpstreamRow>,
+    pub modules: Vec<TimingRow>,
     #[serde(default)]
     pub notes: Vec<String>,
 }
@@ -94,13 +94,13 @@ pub struct CompareRow {
 
 /// Matching rows by module and precision, then each module's best recon
 /// precision against upstream's best (the "best vs best" row, precision `best`).
-pub fn compare(recon: &[ModuleRow], upstream: &UpstreamReport) -> Vec<CompareRow> {
+pub fn compare(recon: &[TimingRow], upstream: &UpstreamReport) -> Vec<CompareRow> {
     let mut rows = Vec::new();
     let mut modules: Vec<&str> = recon.iter().map(|r| r.module.as_str()).collect();
     modules.dedup();
     for module in modules {
-        let ours: Vec<&ModuleRow> = recon.iter().filter(|r| r.module == module).collect();
-        let theirs: Vec<&UpstreamRow> = upstream.modules.iter().filter(|r| r.module == module).collect();
+        let ours: Vec<&TimingRow> = recon.iter().filter(|r| r.module == module).collect();
+        let theirs: Vec<&TimingRow> = upstream.modules.iter().filter(|r| r.module == module).collect();
         for r in &ours {
             let Some(dtype) = row_dtype(&r.precision) else { continue };
             if let Some(u) = theirs.iter().find(|u| row_dtype(&u.precision) == Some(dtype)) {
@@ -134,6 +134,24 @@ pub fn compare(recon: &[ModuleRow], upstream: &UpstreamReport) -> Vec<CompareRow
         }
     }
     rows
+}
+
+/// `max|a−b| / max|b|` and `mean|a−b| / mean|b|` over all elements.
+pub(crate) fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
+    let a = a.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    let b = b.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    if a.len() != b.len() {
+        return Err(crate::Error::msg("bench: outputs of different sizes"));
+    }
+    let (mut maxd, mut maxb, mut sumd, mut sumb) = (0f64, 0f64, 0f64, 0f64);
+    for (&x, &y) in a.iter().zip(&b) {
+        let d = (x as f64 - y as f64).abs();
+        maxd = maxd.max(d);
+        maxb = maxb.max((y as f64).abs());
+        sumd += d;
+        sumb += (y as f64).abs();
+    }
+    Ok((maxd / maxb.max(1e-30), sumd / sumb.max(1e-30)))
 }
 
 /// recon's output on a released-layout checkpoint against upstream's.
@@ -253,17 +271,8 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
 mod tests {
     use super::*;
 
-    fn row(module: &str, precision: &str, s: f64) -> ModuleRow {
-        ModuleRow {
-            module: module.into(),
-            input: String::new(),
-            precision: precision.into(),
-            build_seconds: 0.0,
-            forward_seconds: s,
-            peak_rss_mib: None,
-            packed_weights_mib: None,
-            load_average: None,
-        }
+    fn row(module: &str, precision: &str, s: f64) -> TimingRow {
+        TimingRow { module: module.into(), precision: precision.into(), forward_seconds: s, peak_rss_mib: None, load_average: None }
     }
 
     #[test]
@@ -273,14 +282,14 @@ mod tests {
         let up = UpstreamReport {
             machine: UpstreamMachine { cpu: "x".into(), threads: 2 },
             modules: vec![
-                UpstreamRow {
+                TimingRow {
                     module: "ss_flow".into(),
                     precision: "upstream torch bf16 autocast (AVX512)".into(),
                     forward_seconds: 15.0,
                     peak_rss_mib: None,
                     load_average: None,
                 },
-                UpstreamRow {
+                TimingRow {
                     module: "ss_flow".into(),
                     precision: "upstream torch f32 (AVX512)".into(),
                     forward_seconds: 48.0,
