@@ -1060,11 +1060,17 @@ mod tests {
             t.unit.push(i % 10);
             xs.push(x);
         }
+        finish(t, Column::numeric("x", xs))
+    }
+
+    /// Ten units, no sensor-model offsets, and the one covariate column.
+    fn finish(mut t: ResidualTable, column: Column) -> ResidualTable {
+        let n = t.measured.len();
         t.unit_names = (0..10).map(|u| u.to_string()).collect();
         t.sd_floor = vec![0.0; n];
         t.sd_offset = vec![0.0; n];
         t.p_offset = vec![0.0; n];
-        t.columns.push(Column::numeric("x", xs));
+        t.columns.push(column);
         t
     }
 
@@ -1119,13 +1125,7 @@ mod tests {
                 cats.push(c as f64);
             }
         }
-        let n = t.measured.len();
-        t.unit_names = (0..10).map(|u| u.to_string()).collect();
-        t.sd_floor = vec![0.0; n];
-        t.sd_offset = vec![0.0; n];
-        t.p_offset = vec![0.0; n];
-        t.columns.push(Column::categorical("object", cats));
-        t
+        finish(t, Column::categorical("object", cats))
     }
 
     #[test]

@@ -316,17 +316,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
                 here
             );
         }
-        let ours: Vec<upstream::TimingRow> = report
-            .modules
-            .iter()
-            .map(|m| upstream::TimingRow {
-                module: m.module.clone(),
-                precision: m.precision.clone(),
-                forward_seconds: m.forward_seconds,
-                peak_rss_mib: m.peak_rss_mib,
-                load_average: m.load_average,
-            })
-            .collect();
+        let ours: Vec<upstream::TimingRow> = report.modules.iter().map(Into::into).collect();
         report.compare = upstream::compare(&ours, &up);
         if report.compare.is_empty() {
             println!("\n--compare: no module row of this run has an upstream row (run `--sections modules`)");

@@ -361,15 +361,6 @@ impl Dtype {
             }
         })
     }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Dtype::Auto => "auto",
-            Dtype::F32 => "f32",
-            Dtype::Bf16 => "bf16",
-            Dtype::F16 => "f16",
-        }
-    }
 }
 
 /// Where a module's weights come from.

@@ -9,6 +9,25 @@ use crate::spatial::P3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 /// A closed, outward-oriented tetrahedron.
+/// The unit square in z = 0 as an `n`×`n` grid of cells, two triangles each
+/// (an open mesh with a boundary, all faces coplanar).
+pub fn flat_grid(n: u32) -> Mesh {
+    let mut mesh = Mesh::default();
+    for y in 0..=n {
+        for x in 0..=n {
+            mesh.vertices.push([x as f32 / n as f32, y as f32 / n as f32, 0.0]);
+        }
+    }
+    let id = |x: u32, y: u32| y * (n + 1) + x;
+    for y in 0..n {
+        for x in 0..n {
+            mesh.faces.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
+            mesh.faces.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
+        }
+    }
+    mesh
+}
+
 pub fn tetrahedron() -> Mesh {
     Mesh {
         vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],

@@ -304,6 +304,18 @@ pub struct ModuleRow {
     pub load_average: Option<f64>,
 }
 
+impl From<&ModuleRow> for crate::tools::upstream::TimingRow {
+    fn from(m: &ModuleRow) -> Self {
+        Self {
+            module: m.module.clone(),
+            precision: m.precision.clone(),
+            forward_seconds: m.forward_seconds,
+            peak_rss_mib: m.peak_rss_mib,
+            load_average: m.load_average,
+        }
+    }
+}
+
 /// A voxel shell of radius `r` (thickness 2) centred in a `res`³ grid, batch index `b`.
 pub fn shell_coords(res: i32, r: f64, b: i32) -> Vec<[i32; 4]> {
     let c = res as f64 / 2.0;

@@ -198,10 +198,14 @@ impl FastLinear {
 
     /// `act(x·Wᵀ + b)` on `m` rows of `x` (`[m, K]`), `[m, N]` out.
     pub fn forward_slice(&self, x: &[f32], m: usize, act: Activation) -> Result<Vec<f32>> {
-        let n = self.out_dim();
-        let mut out = vec![0f32; m * n];
-        gemm(self.isa, x, m, self.in_dim(), &self.w, self.bias.as_deref(), act, &mut out, n).map_err(kerr)?;
+        let mut out = vec![0f32; m * self.out_dim()];
+        self.forward_into(x, m, act, &mut out)?;
         Ok(out)
+    }
+
+    /// [`Self::forward_slice`] into `out` (`[m, N]`).
+    pub fn forward_into(&self, x: &[f32], m: usize, act: Activation, out: &mut [f32]) -> Result<()> {
+        gemm(self.isa, x, m, self.in_dim(), &self.w, self.bias.as_deref(), act, out, self.out_dim()).map_err(kerr)
     }
 
     /// `act(x·Wᵀ + b)` over the last dim of `x`.
@@ -237,8 +241,7 @@ pub fn mlp_by_rows(fc1: &FastLinear, fc2: &FastLinear, x: &Tensor, act: Activati
         let mut out = vec![0f32; m * n];
         for (xc, oc) in xs.chunks(rows * k).zip(out.chunks_mut(rows * n)) {
             let r = xc.len() / k;
-            let h = fc1.forward_slice(xc, r, act)?;
-            gemm(fc2.isa, &h, r, fc2.in_dim(), &fc2.w, fc2.bias.as_deref(), Activation::None, oc, n).map_err(kerr)?;
+            fc2.forward_into(&fc1.forward_slice(xc, r, act)?, r, Activation::None, oc)?;
         }
         Ok(out)
     })?;

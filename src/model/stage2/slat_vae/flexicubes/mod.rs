@@ -799,19 +799,7 @@ mod post_tests {
     #[test]
     fn flat_grid_decimates_and_keeps_its_boundary() {
         let n = 20u32;
-        let mut mesh = Mesh::default();
-        for y in 0..=n {
-            for x in 0..=n {
-                mesh.vertices.push([x as f32 / n as f32, y as f32 / n as f32, 0.0]);
-            }
-        }
-        let id = |x: u32, y: u32| y * (n + 1) + x;
-        for y in 0..n {
-            for x in 0..n {
-                mesh.faces.push([id(x, y), id(x + 1, y), id(x + 1, y + 1)]);
-                mesh.faces.push([id(x, y), id(x + 1, y + 1), id(x, y + 1)]);
-            }
-        }
+        let mesh = crate::mesh::flat_grid(n);
         let before = mesh.topology();
         let dec = decimate(&mesh, 100);
         let t = dec.topology();
