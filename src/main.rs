@@ -43,6 +43,11 @@ enum Cmd {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Large activations reuse freed heap memory (see keep_freed_memory);
+    // RECON_MALLOC=system keeps glibc's defaults.
+    if std::env::var_os("RECON_MALLOC").is_none_or(|v| v != "system") {
+        recon::util::keep_freed_memory();
+    }
     let cli = Cli::parse();
     let ok = match cli.cmd {
         Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,

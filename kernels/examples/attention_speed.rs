@@ -2,6 +2,7 @@
 //! self-attention over 4098 tokens (fused qkv layout) and cross-attention to
 //! 1374 condition tokens.
 //! `cargo run --release -p recon-kernels --example attention_speed`
+//! (`ISA=avx512bf16 PREC=bf16` to time one combination.)
 use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
 use recon_kernels::isa::Isa;
 use std::time::Instant;
@@ -20,7 +21,13 @@ fn main() {
             if isa == Isa::Portable && std::env::var("PORTABLE").is_err() {
                 continue;
             }
+            if std::env::var("ISA").is_ok_and(|v| v != isa.name()) {
+                continue;
+            }
             for precision in [AttnPrecision::F32, AttnPrecision::Bf16] {
+                if std::env::var("PREC").is_ok_and(|v| !v.eq_ignore_ascii_case(&format!("{precision:?}"))) {
+                    continue;
+                }
                 let spec = AttnSpec {
                     heads: h,
                     head_dim: d,

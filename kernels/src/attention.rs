@@ -298,22 +298,25 @@ unsafe fn attend(
                     false,
                 );
             }
-            softmax_block(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha);
+            // Oᵀ += Vᵀ·P below, P (= Sᵀ after exp) as the B operand [key][query]:
+            // f32 in place, or bf16 pairs written by the softmax pass itself.
+            let nkp = fmt.k_padded(nk);
+            let bptr: *const u8 = match fmt {
+                WeightFormat::Bf16 => {
+                    let pw = &mut pbuf[..nkp.div_ceil(2) * NR];
+                    softmax_block_pairs(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha, pw);
+                    pw.as_ptr() as *const u8
+                }
+                _ => {
+                    softmax_block(isa, &mut sbuf[..nk * NR], nk, &mut m, &mut l, &mut alpha);
+                    sbuf.as_ptr() as *const u8
+                }
+            };
             // Rescale the running output by exp(m_old − m_new) per query
             // (nothing to do once the running maxima stop changing).
             if alpha.iter().any(|&a| a != 1.0) {
                 scale_columns(isa, obuf, &alpha);
             }
-            // Oᵀ += Vᵀ·P, P (= Sᵀ after exp) as the B operand [key][query].
-            let nkp = fmt.k_padded(nk);
-            let bptr: *const u8 = match fmt {
-                WeightFormat::Bf16 => {
-                    let pw = &mut pbuf[..nkp.div_ceil(2) * NR];
-                    to_bf16_pairs(isa, &sbuf[..nk * NR], nk, pw);
-                    pw.as_ptr() as *const u8
-                }
-                _ => sbuf.as_ptr() as *const u8,
-            };
             for et in 0..etiles {
                 let rows = MR.min(d - et * MR);
                 microkernel(
@@ -399,6 +402,21 @@ fn softmax_block(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut 
         }
     }
     *m = mn;
+}
+
+/// [`softmax_block`] followed by [`to_bf16_pairs`] into `dst`, in one pass
+/// over the scores on AVX-512 (the exponentials go straight to bf16 pairs
+/// instead of through `s`); same values either way.
+fn softmax_block_pairs(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+    #[cfg(target_arch = "x86_64")]
+    if isa >= Isa::Avx512 {
+        // SAFETY: the ISA is supported (checked by the caller); s holds nk rows
+        // of NR and dst ceil(nk/2)·NR words.
+        unsafe { x86::softmax_block_pairs(s, nk, m, l, alpha, dst) };
+        return;
+    }
+    softmax_block(isa, s, nk, m, l, alpha);
+    to_bf16_pairs(isa, s, nk, dst);
 }
 
 /// `o[r][c] *= alpha[c]` for every row of `NR` columns.
@@ -498,6 +516,46 @@ mod x86 {
         _mm512_storeu_ps(l.as_mut_ptr().add(16), l1);
         _mm512_storeu_ps(m.as_mut_ptr(), m0);
         _mm512_storeu_ps(m.as_mut_ptr().add(16), m1);
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+        let sp = s.as_ptr();
+        let dp = dst.as_mut_ptr() as *mut i32;
+        let mo = [_mm512_loadu_ps(m.as_ptr()), _mm512_loadu_ps(m.as_ptr().add(16))];
+        let mut mn = mo;
+        for j in 0..nk {
+            for h in 0..2 {
+                mn[h] = _mm512_max_ps(mn[h], _mm512_loadu_ps(sp.add(j * NR + 16 * h)));
+            }
+        }
+        let mut acc = [_mm512_setzero_ps(); 2];
+        for h in 0..2 {
+            let a = exp512(_mm512_sub_ps(mo[h], mn[h]));
+            _mm512_storeu_ps(alpha.as_mut_ptr().add(16 * h), a);
+            acc[h] = _mm512_mul_ps(_mm512_loadu_ps(l.as_ptr().add(16 * h)), a);
+        }
+        for j2 in 0..nk.div_ceil(2) {
+            let j = 2 * j2;
+            for h in 0..2 {
+                // Summed in key order, as softmax_block does.
+                let pe = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add(j * NR + 16 * h)), mn[h]));
+                acc[h] = _mm512_add_ps(acc[h], pe);
+                let hi = if j + 1 < nk {
+                    let po = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add((j + 1) * NR + 16 * h)), mn[h]));
+                    acc[h] = _mm512_add_ps(acc[h], po);
+                    rne_hi(po)
+                } else {
+                    _mm512_setzero_si512()
+                };
+                let lo = _mm512_srli_epi32::<16>(rne_hi(pe));
+                _mm512_storeu_si512(dp.add(j2 * NR + 16 * h) as *mut __m512i, _mm512_or_si512(lo, hi));
+            }
+        }
+        for h in 0..2 {
+            _mm512_storeu_ps(l.as_mut_ptr().add(16 * h), acc[h]);
+            _mm512_storeu_ps(m.as_mut_ptr().add(16 * h), mn[h]);
+        }
     }
 
     #[target_feature(enable = "avx512f,avx512bw,fma")]
@@ -609,6 +667,28 @@ mod tests {
                 for (i, (h, d, segs, fused)) in cases.iter().enumerate() {
                     run_case(isa, precision, *h, *d, segs, *fused, i as u64 + 7);
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn fused_softmax_pairs_equal_softmax_then_pairs() {
+        let mut r = Lcg(11);
+        for isa in Isa::all_supported() {
+            for nk in [1, 2, 13, BC - 1, BC] {
+                let s0 = r.vec(nk * NR, 8.0);
+                let (m0, l0): (Vec<f32>, Vec<f32>) = (r.vec(NR, 4.0), r.vec(NR, 1.0).iter().map(|v| v.abs() + 0.5).collect());
+                let init = |v: &[f32]| -> [f32; NR] { v.try_into().unwrap() };
+                let (mut m1, mut l1, mut a1) = (init(&m0), init(&l0), [0f32; NR]);
+                let mut s1 = s0.clone();
+                let mut want = vec![0u32; nk.div_ceil(2) * NR];
+                softmax_block(isa, &mut s1, nk, &mut m1, &mut l1, &mut a1);
+                to_bf16_pairs(isa, &s1, nk, &mut want);
+                let (mut m2, mut l2, mut a2) = (init(&m0), init(&l0), [0f32; NR]);
+                let mut got = vec![u32::MAX; want.len()];
+                softmax_block_pairs(isa, &mut s0.clone(), nk, &mut m2, &mut l2, &mut a2, &mut got);
+                assert_eq!((m1, l1, a1), (m2, l2, a2), "{isa:?} nk {nk}: running statistics differ");
+                assert_eq!(want, got, "{isa:?} nk {nk}: bf16 pairs differ");
             }
         }
     }

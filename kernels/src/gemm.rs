@@ -388,11 +388,26 @@ pub(crate) unsafe fn microkernel(
 ) {
     #[cfg(target_arch = "x86_64")]
     if isa >= Isa::Avx512 {
-        match (format, isa) {
-            (WeightFormat::F32, _) => x86::kern_f32(kc, a as *const f32, b as *const f32, c, ldc, rows, cols, load),
-            (WeightFormat::F16, _) => x86::kern_f16(kc, a as *const f32, b as *const u16, c, ldc, rows, cols, load),
-            (WeightFormat::Bf16, Isa::Avx512Bf16) => x86::kern_bf16_dp(kc / 2, a, b as *const u16, c, ldc, rows, cols, load),
-            (WeightFormat::Bf16, _) => x86::kern_bf16_widen(kc / 2, a as *const f32, b as *const u16, c, ldc, rows, cols, load),
+        // A short tile (the last rows of M, or a head dim that is not a
+        // multiple of MR) runs a kernel that computes only those rows: the
+        // full one would spend MR rows of FMAs on it. Each row's sum is the
+        // same either way.
+        macro_rules! rows {
+            ($r:expr) => {
+                match (format, isa) {
+                    (WeightFormat::F32, _) => x86::kern_f32::<$r>(kc, a as *const f32, b as *const f32, c, ldc, rows, cols, load),
+                    (WeightFormat::F16, _) => x86::kern_f16::<$r>(kc, a as *const f32, b as *const u16, c, ldc, rows, cols, load),
+                    (WeightFormat::Bf16, Isa::Avx512Bf16) => x86::kern_bf16_dp::<$r>(kc / 2, a, b as *const u16, c, ldc, rows, cols, load),
+                    (WeightFormat::Bf16, _) => {
+                        x86::kern_bf16_widen::<$r>(kc / 2, a as *const f32, b as *const u16, c, ldc, rows, cols, load)
+                    }
+                }
+            };
+        }
+        match rows {
+            0..=4 => rows!(4),
+            5..=8 => rows!(8),
+            _ => rows!(MR),
         }
         return;
     }
@@ -612,9 +627,9 @@ mod x86 {
     }
 
     #[inline(always)]
-    unsafe fn store(acc: &[[__m512; 2]; MR], c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
+    unsafe fn store<const R: usize>(acc: &[[__m512; 2]; R], c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
         if cols == NR {
-            for i in 0..MR {
+            for i in 0..R {
                 if i < rows {
                     let p = c.add(i * ldc);
                     let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
@@ -628,7 +643,7 @@ mod x86 {
             }
         } else {
             let (m0, m1) = mask(cols);
-            for i in 0..MR {
+            for i in 0..R {
                 if i < rows {
                     let p = c.add(i * ldc);
                     let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
@@ -645,13 +660,22 @@ mod x86 {
 
     #[target_feature(enable = "avx512f,avx512bw,fma")]
     #[allow(clippy::too_many_arguments)]
-    pub unsafe fn kern_f32(kc: usize, a: *const f32, b: *const f32, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
-        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+    pub unsafe fn kern_f32<const R: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const f32,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; R];
         let (mut a, mut b) = (a, b);
         for _ in 0..kc {
             let b0 = _mm512_load_ps(b);
             let b1 = _mm512_load_ps(b.add(16));
-            for i in 0..MR {
+            for i in 0..R {
                 let ai = _mm512_set1_ps(*a.add(i));
                 acc[i][0] = _mm512_fmadd_ps(ai, b0, acc[i][0]);
                 acc[i][1] = _mm512_fmadd_ps(ai, b1, acc[i][1]);
@@ -664,13 +688,22 @@ mod x86 {
 
     #[target_feature(enable = "avx512f,avx512bw,fma")]
     #[allow(clippy::too_many_arguments)]
-    pub unsafe fn kern_f16(kc: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
-        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+    pub unsafe fn kern_f16<const R: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const u16,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; R];
         let (mut a, mut b) = (a, b);
         for _ in 0..kc {
             let b0 = _mm512_cvtph_ps(_mm256_load_si256(b as *const __m256i));
             let b1 = _mm512_cvtph_ps(_mm256_load_si256(b.add(16) as *const __m256i));
-            for i in 0..MR {
+            for i in 0..R {
                 let ai = _mm512_set1_ps(*a.add(i));
                 acc[i][0] = _mm512_fmadd_ps(ai, b0, acc[i][0]);
                 acc[i][1] = _mm512_fmadd_ps(ai, b1, acc[i][1]);
@@ -685,8 +718,17 @@ mod x86 {
     /// the even k, the high halves the odd k.
     #[target_feature(enable = "avx512f,avx512bw,fma")]
     #[allow(clippy::too_many_arguments)]
-    pub unsafe fn kern_bf16_widen(kc2: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
-        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+    pub unsafe fn kern_bf16_widen<const R: usize>(
+        kc2: usize,
+        a: *const f32,
+        b: *const u16,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; R];
         let hi_mask = _mm512_set1_epi32(0xffff_0000u32 as i32);
         let (mut a, mut b) = (a, b);
         for _ in 0..kc2 {
@@ -696,7 +738,7 @@ mod x86 {
             let e1 = _mm512_castsi512_ps(_mm512_slli_epi32::<16>(r1));
             let o0 = _mm512_castsi512_ps(_mm512_and_si512(r0, hi_mask));
             let o1 = _mm512_castsi512_ps(_mm512_and_si512(r1, hi_mask));
-            for i in 0..MR {
+            for i in 0..R {
                 let ae = _mm512_set1_ps(*a.add(i));
                 let ao = _mm512_set1_ps(*a.add(MR + i));
                 acc[i][0] = _mm512_fmadd_ps(ao, o0, _mm512_fmadd_ps(ae, e0, acc[i][0]));
@@ -710,13 +752,22 @@ mod x86 {
 
     #[target_feature(enable = "avx512f,avx512bw,avx512bf16,fma")]
     #[allow(clippy::too_many_arguments)]
-    pub unsafe fn kern_bf16_dp(kc2: usize, a: *const u32, b: *const u16, c: *mut f32, ldc: usize, rows: usize, cols: usize, load: bool) {
-        let mut acc = [[_mm512_setzero_ps(); 2]; MR];
+    pub unsafe fn kern_bf16_dp<const R: usize>(
+        kc2: usize,
+        a: *const u32,
+        b: *const u16,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); 2]; R];
         let (mut a, mut b) = (a, b);
         for _ in 0..kc2 {
             let b0: __m512bh = std::mem::transmute(_mm512_load_si512(b as *const __m512i));
             let b1: __m512bh = std::mem::transmute(_mm512_load_si512(b.add(32) as *const __m512i));
-            for i in 0..MR {
+            for i in 0..R {
                 let ai: __m512bh = std::mem::transmute(_mm512_set1_epi32(*a.add(i) as i32));
                 acc[i][0] = _mm512_dpbf16_ps(acc[i][0], ai, b0);
                 acc[i][1] = _mm512_dpbf16_ps(acc[i][1], ai, b1);
