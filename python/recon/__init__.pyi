@@ -318,6 +318,11 @@ def audit_depth(
     """`recon audit depth`: measured vs simulated depth; returns the report (and writes the
     CLI's files when `out` is given)."""
 
+def keep_freed_memory() -> bool:
+    """Keep large freed buffers in the process heap for reuse (glibc), as the `recon` CLI
+    does: full-size model steps stop paying page faults on every activation, for a few
+    percent more peak memory. Process-wide, hence opt-in. False where it did not apply."""
+
 def dataset_frames(source: _Path) -> List[Dict[str, Any]]:
     """The frames of a BOP dataset or YCB-Video folder: {"frame": "<scene>/<NNNNNN>", "rgb",
     "masks"} with the masks `recon infer` takes for it."""

@@ -33,6 +33,7 @@ fn _recon(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(tools::eval, m)?)?;
     m.add_function(wrap_pyfunction!(tools::audit_depth, m)?)?;
     m.add_function(wrap_pyfunction!(tools::dataset_frames, m)?)?;
+    m.add_function(wrap_pyfunction!(tools::keep_freed_memory, m)?)?;
     m.add("OUTPUT_MARKER", recon::engine::MARKER)?;
     m.add("STAGE_COLUMNS", recon::engine::STAGE_COLUMNS.to_vec())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

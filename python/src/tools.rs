@@ -663,3 +663,12 @@ pub fn dataset_frames<'py>(py: Python<'py>, source: PathBuf) -> PyResult<Bound<'
     });
     to_python(py, &frames.py()?)
 }
+
+/// Keep large freed buffers in the process heap for reuse (glibc; what the `recon` CLI
+/// does at start): full-size model steps then stop paying page faults on every
+/// activation, for a few percent more peak memory. Process-wide, so opt-in from Python.
+/// Returns whether it took effect (`False` off glibc).
+#[pyfunction]
+pub fn keep_freed_memory() -> bool {
+    recon::util::keep_freed_memory()
+}

@@ -127,6 +127,22 @@ def test_one_engine_serves_several_threads(synth_ds, engine):
         assert all(np.array_equal(a.mesh.vertices, b.mesh.vertices) for a, b in zip(g, ref))
 
 
+def test_keep_freed_memory_applies_and_changes_no_result(synth_ds, engine):
+    import platform
+    import sys
+
+    f = frame0(synth_ds)
+    fr = recon.load_frame(f["rgb"])
+    masks = frame_masks(f)
+    ref = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
+    kept = recon.keep_freed_memory()
+    if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":
+        assert kept is True
+    got = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
+    assert [o.pose.tolist() for o in got] == [o.pose.tolist() for o in ref]
+    assert all(np.array_equal(a.mesh.vertices, b.mesh.vertices) for a, b in zip(got, ref))
+
+
 def test_progress_events_and_trimesh(synth_ds, engine):
     f = frame0(synth_ds)
     fr = recon.load_frame(f["rgb"])

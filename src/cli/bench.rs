@@ -79,12 +79,13 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     let mut report = BenchReport { machine: Some(bench::MachineInfo::detect()), ..Default::default() };
     let m = report.machine.as_ref().unwrap();
     println!(
-        "machine: {} | {} threads | ISAs {:?} (using {}; bf16 on {}) | load {}",
+        "machine: {} | {} threads | ISAs {:?} (using {}; bf16 on {}) | allocator: {} | load {}",
         m.cpu,
         m.threads,
         m.supported_isas,
         m.best_isa,
         m.bf16_isa,
+        m.allocator,
         opt(m.load_average, |v| format!("{v:.2}"))
     );
     if a.compare.is_none() {

@@ -43,6 +43,9 @@ pub struct MachineInfo {
     pub bf16_isa: &'static str,
     pub supported_isas: Vec<&'static str>,
     pub load_average: Option<f64>,
+    /// `heap reuse` when large freed buffers stay in the heap
+    /// (`util::keep_freed_memory`, the CLI's default), else `system`.
+    pub allocator: &'static str,
 }
 
 impl MachineInfo {
@@ -58,6 +61,7 @@ impl MachineInfo {
             bf16_isa: recon_kernels::peak::bf16_isa().name(),
             supported_isas: Isa::all_supported().into_iter().map(|i| i.name()).collect(),
             load_average: load_average(),
+            allocator: if crate::util::freed_memory_kept() { "heap reuse" } else { "system" },
         }
     }
 }

@@ -46,8 +46,18 @@ pub fn keep_freed_memory() -> bool {
         const M_MMAP_THRESHOLD: i32 = -3;
         // SAFETY: mallopt only changes allocator thresholds; called before any
         // worker threads exist, and valid at any time in glibc anyway.
-        unsafe { mallopt(M_MMAP_THRESHOLD, 1 << 30) == 1 && mallopt(M_TRIM_THRESHOLD, 1 << 30) == 1 }
+        let ok = unsafe { mallopt(M_MMAP_THRESHOLD, 1 << 30) == 1 && mallopt(M_TRIM_THRESHOLD, 1 << 30) == 1 };
+        KEPT.store(ok, std::sync::atomic::Ordering::Relaxed);
+        ok
     }
     #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
     false
+}
+
+static KEPT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Whether [`keep_freed_memory`] is in effect in this process (reports
+/// record it: it changes both time and peak memory).
+pub fn freed_memory_kept() -> bool {
+    KEPT.load(std::sync::atomic::Ordering::Relaxed)
 }

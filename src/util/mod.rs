@@ -5,7 +5,7 @@ pub(crate) mod json;
 pub(crate) mod limits;
 pub(crate) mod memory;
 
-pub use self::memory::{keep_freed_memory, peak_rss_mib, reset_peak_rss};
+pub use self::memory::{freed_memory_kept, keep_freed_memory, peak_rss_mib, reset_peak_rss};
 pub use json::{from_value, read_json};
 pub use limits::{
     check_image_dims, checked_product, memory_budget_bytes, open_image, MAX_DEFLATE_RATIO, MAX_IMAGE_ALLOC, MAX_IMAGE_PIXELS,
