@@ -11,7 +11,7 @@
 //! row-major is already the `[Cout, Cin·k³]` GEMM left operand, so no packing
 //! step is needed at load time.
 
-use crate::gemm::WeightFormat;
+use crate::gemm::{WeightFormat, MR};
 use crate::isa::Isa;
 use rayon::prelude::*;
 
@@ -270,7 +270,8 @@ pub fn conv3d_winograd(
     if s.k != 3 || s.pad != 1 {
         return Err(format!("conv3d_winograd: only k=3, pad=1 (got k={}, pad={})", s.k, s.pad));
     }
-    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 4096);
+    // Whole register tiles of the GEMM (MR rows) per chunk.
+    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 4096) / MR * MR;
     winograd::winograd(x, s, weight, bias, out, accumulate, format, isa, tiles_per_chunk, None)
 }
 
