@@ -11,7 +11,11 @@
 //! row-major is already the `[Cout, Cin·k³]` GEMM left operand, so no packing
 //! step is needed at load time.
 
+use crate::gemm::{WeightFormat, MR};
+use crate::isa::Isa;
 use rayon::prelude::*;
+
+mod winograd;
 
 /// Upper bound on the floats of one im2col chunk (per worker thread): 4 MiB.
 const COL_BUDGET: usize = 1 << 20;
@@ -99,8 +103,24 @@ const WINOGRAD_MIN_CHANNELS: usize = 64;
 /// Wide 3×3×3 pad-1 layers run [`conv3d_winograd`], everything else
 /// [`conv3d_im2col`].
 pub fn conv3d(x: &[f32], s: &Conv3dShape, weight: &[f32], bias: Option<&[f32]>, out: &mut [f32], accumulate: bool) -> Result<(), String> {
+    conv3d_with(x, s, weight, bias, out, accumulate, WeightFormat::F32, Isa::best())
+}
+
+/// [`conv3d`] with the Winograd layers' weight `format` and kernels `isa`
+/// (see [`conv3d_winograd`]); the im2col layers compute in f32 whatever the format.
+#[allow(clippy::too_many_arguments)]
+pub fn conv3d_with(
+    x: &[f32],
+    s: &Conv3dShape,
+    weight: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    accumulate: bool,
+    format: WeightFormat,
+    isa: Isa,
+) -> Result<(), String> {
     if s.k == 3 && s.pad == 1 && s.cin >= WINOGRAD_MIN_CHANNELS && s.cout >= WINOGRAD_MIN_CHANNELS {
-        conv3d_winograd(x, s, weight, bias, out, accumulate)
+        conv3d_winograd(x, s, weight, bias, out, accumulate, format, isa)
     } else {
         conv3d_im2col(x, s, weight, bias, out, accumulate)
     }
@@ -225,30 +245,17 @@ fn im2col_rows(xb: &[f32], s: &Conv3dShape, (oh, ow): (usize, usize), r0: usize,
     }
 }
 
-/// Winograd F(2,3) transforms (Lavin & Gray 2015), applied along each axis.
-#[inline(always)]
-fn wino_bt(d: [f32; 4]) -> [f32; 4] {
-    [d[0] - d[2], d[1] + d[2], d[2] - d[1], d[1] - d[3]]
-}
-#[inline(always)]
-fn wino_g(g: [f32; 3]) -> [f32; 4] {
-    [g[0], 0.5 * (g[0] + g[1] + g[2]), 0.5 * (g[0] - g[1] + g[2]), g[2]]
-}
-#[inline(always)]
-fn wino_at(m: [f32; 4]) -> [f32; 2] {
-    [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]
-}
-
 /// Floats of the transformed input + output buffers of one Winograd tile
-/// chunk (32 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
-const WINO_BUDGET: usize = 8 << 20;
+/// chunk (64 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
+const WINO_BUDGET: usize = 16 << 20;
 
-/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³): each 2×2×2 output tile is
-/// `Aᵀ [ (G g Gᵀ) ⊙ (Bᵀ d B) ] A` per axis, and the elementwise product summed
-/// over input channels becomes 64 independent `[Cout, Cin] × [Cin, tiles]`
-/// GEMMs. Weights are transformed once per call (a transient `64·Cout·Cin`
-/// buffer); tiles are processed in chunks bounded by `WINO_BUDGET`. Same contract as
+/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³) ([`winograd`] module docs):
+/// 3.4× fewer multiplies than direct, as 64 `[tiles, Cin] × [Cin, Cout]`
+/// GEMMs on recon's packed GEMM. `format` is the storage of the transformed
+/// weights (bf16: they and the transformed activations are rounded to bf16,
+/// products accumulated in f32), `isa` the kernels. Same contract as
 /// [`conv3d`], restricted to `k = 3, pad = 1`.
+#[allow(clippy::too_many_arguments)]
 pub fn conv3d_winograd(
     x: &[f32],
     s: &Conv3dShape,
@@ -256,203 +263,16 @@ pub fn conv3d_winograd(
     bias: Option<&[f32]>,
     out: &mut [f32],
     accumulate: bool,
-) -> Result<(), String> {
-    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 1024);
-    winograd_chunked(x, s, weight, bias, out, accumulate, tiles_per_chunk)
-}
-
-fn winograd_chunked(
-    x: &[f32],
-    s: &Conv3dShape,
-    weight: &[f32],
-    bias: Option<&[f32]>,
-    out: &mut [f32],
-    accumulate: bool,
-    tiles_per_chunk: usize,
+    format: WeightFormat,
+    isa: Isa,
 ) -> Result<(), String> {
     s.check(x, weight, bias, out)?;
     if s.k != 3 || s.pad != 1 {
         return Err(format!("conv3d_winograd: only k=3, pad=1 (got k={}, pad={})", s.k, s.pad));
     }
-    let (cin, cout, d, h, w) = (s.cin, s.cout, s.d, s.h, s.w);
-    let plane = d * h * w;
-    let (td, th, tw) = (d.div_ceil(2), h.div_ceil(2), w.div_ceil(2));
-    let ntiles = td * th * tw;
-
-    // U[e][co][ci] = (G g Gᵀ) of weight (co, ci), e = (z·4 + y)·4 + x.
-    let mut u = vec![0f32; 64 * cout * cin];
-    let u_ptr = SendPtr(u.as_mut_ptr());
-    // Per-job staging rows keep the writes to U/V and reads of M contiguous.
-    (0..cout).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, co| {
-        stage.resize(64 * cin, 0.0);
-        for ci in 0..cin {
-            let g = &weight[(co * cin + ci) * 27..][..27];
-            let mut t1 = [0f32; 36]; // [3 z][3 y][4 x]
-            for zy in 0..9 {
-                let r = wino_g([g[zy * 3], g[zy * 3 + 1], g[zy * 3 + 2]]);
-                t1[zy * 4..zy * 4 + 4].copy_from_slice(&r);
-            }
-            let mut t2 = [0f32; 48]; // [3 z][4 y][4 x]
-            for z in 0..3 {
-                for xx in 0..4 {
-                    let r = wino_g([t1[(z * 3) * 4 + xx], t1[(z * 3 + 1) * 4 + xx], t1[(z * 3 + 2) * 4 + xx]]);
-                    for (y, v) in r.iter().enumerate() {
-                        t2[(z * 4 + y) * 4 + xx] = *v;
-                    }
-                }
-            }
-            for yx in 0..16 {
-                let r = wino_g([t2[yx], t2[16 + yx], t2[32 + yx]]);
-                for (z, v) in r.iter().enumerate() {
-                    stage[(z * 16 + yx) * cin + ci] = *v;
-                }
-            }
-        }
-        for e in 0..64 {
-            // SAFETY: row co of every U[e] is written by this job only.
-            let dst = unsafe { std::slice::from_raw_parts_mut(u_ptr.get().add((e * cout + co) * cin), cin) };
-            dst.copy_from_slice(&stage[e * cin..][..cin]);
-        }
-    });
-
-    let tc_max = tiles_per_chunk.clamp(1, ntiles);
-    let mut v = vec![0f32; 64 * cin * tc_max];
-    let mut m = vec![0f32; 64 * cout * tc_max];
-    for b in 0..s.batch {
-        let xb = &x[b * cin * plane..][..cin * plane];
-        let ob = &mut out[b * cout * plane..][..cout * plane];
-        for t0 in (0..ntiles).step_by(tc_max) {
-            let tc = tc_max.min(ntiles - t0);
-            // V[e][ci][t] = Bᵀ d B of the 4×4×4 input patch of tile t.
-            let v_ptr = SendPtr(v.as_mut_ptr());
-            (0..cin).into_par_iter().for_each_init(Vec::new, |stage: &mut Vec<f32>, ci| {
-                stage.resize(64 * tc, 0.0);
-                let xc = &xb[ci * plane..][..plane];
-                for tl in 0..tc {
-                    let t = t0 + tl;
-                    let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
-                    let mut p = [0f32; 64];
-                    for a in 0..4 {
-                        let zi = (2 * tz + a) as isize - 1;
-                        if zi < 0 || zi >= d as isize {
-                            continue;
-                        }
-                        for bb in 0..4 {
-                            let yi = (2 * ty + bb) as isize - 1;
-                            if yi < 0 || yi >= h as isize {
-                                continue;
-                            }
-                            let row = &xc[(zi as usize * h + yi as usize) * w..][..w];
-                            for c in 0..4 {
-                                let xi = (2 * tx + c) as isize - 1;
-                                if xi >= 0 && xi < w as isize {
-                                    p[(a * 4 + bb) * 4 + c] = row[xi as usize];
-                                }
-                            }
-                        }
-                    }
-                    for zy in 0..16 {
-                        let r = wino_bt([p[zy * 4], p[zy * 4 + 1], p[zy * 4 + 2], p[zy * 4 + 3]]);
-                        p[zy * 4..zy * 4 + 4].copy_from_slice(&r);
-                    }
-                    for z in 0..4 {
-                        for xx in 0..4 {
-                            let i = |y: usize| (z * 4 + y) * 4 + xx;
-                            let r = wino_bt([p[i(0)], p[i(1)], p[i(2)], p[i(3)]]);
-                            for (y, val) in r.iter().enumerate() {
-                                p[i(y)] = *val;
-                            }
-                        }
-                    }
-                    for yx in 0..16 {
-                        let r = wino_bt([p[yx], p[16 + yx], p[32 + yx], p[48 + yx]]);
-                        for (z, val) in r.iter().enumerate() {
-                            stage[(z * 16 + yx) * tc + tl] = *val;
-                        }
-                    }
-                }
-                for e in 0..64 {
-                    // SAFETY: row ci of every V[e] belongs to this job.
-                    let dst = unsafe { std::slice::from_raw_parts_mut(v_ptr.get().add((e * cin + ci) * tc), tc) };
-                    dst.copy_from_slice(&stage[e * tc..][..tc]);
-                }
-            });
-            // M[e] = U[e] · V[e]: 64 independent GEMMs.
-            let m_ptr = SendPtr(m.as_mut_ptr());
-            let (u, v) = (&u, &v);
-            (0..64).into_par_iter().for_each(|e| unsafe {
-                // SAFETY: M[e] is written by job e only.
-                gemm::gemm(
-                    cout,
-                    tc,
-                    cin,
-                    m_ptr.get().add(e * cout * tc),
-                    1,
-                    tc as isize,
-                    false,
-                    u.as_ptr().add(e * cout * cin),
-                    1,
-                    cin as isize,
-                    v.as_ptr().add(e * cin * tc),
-                    1,
-                    tc as isize,
-                    0.0,
-                    1.0,
-                    false,
-                    false,
-                    false,
-                    gemm::Parallelism::None,
-                );
-            });
-            // Output tiles: Aᵀ m A, cropped at the far edges, plus bias.
-            let m = &m;
-            ob.par_chunks_mut(plane).enumerate().for_each_init(Vec::new, |stage: &mut Vec<f32>, (co, oc)| {
-                stage.resize(64 * tc, 0.0);
-                for e in 0..64 {
-                    stage[e * tc..][..tc].copy_from_slice(&m[(e * cout + co) * tc..][..tc]);
-                }
-                let bc = bias.map_or(0.0, |bv| bv[co]);
-                for tl in 0..tc {
-                    let t = t0 + tl;
-                    let (tz, ty, tx) = (t / (th * tw), (t / tw) % th, t % tw);
-                    let mut q = [0f32; 64];
-                    for (e, qe) in q.iter_mut().enumerate() {
-                        *qe = stage[e * tc + tl];
-                    }
-                    let mut r1 = [0f32; 32]; // [4 z][4 y][2 x]
-                    for zy in 0..16 {
-                        let r = wino_at([q[zy * 4], q[zy * 4 + 1], q[zy * 4 + 2], q[zy * 4 + 3]]);
-                        r1[zy * 2..zy * 2 + 2].copy_from_slice(&r);
-                    }
-                    let mut r2 = [0f32; 16]; // [4 z][2 y][2 x]
-                    for z in 0..4 {
-                        for xx in 0..2 {
-                            let i = |y: usize| (z * 4 + y) * 2 + xx;
-                            let r = wino_at([r1[i(0)], r1[i(1)], r1[i(2)], r1[i(3)]]);
-                            r2[(z * 2) * 2 + xx] = r[0];
-                            r2[(z * 2 + 1) * 2 + xx] = r[1];
-                        }
-                    }
-                    for yx in 0..4 {
-                        let r = wino_at([r2[yx], r2[4 + yx], r2[8 + yx], r2[12 + yx]]);
-                        let (y, xx) = (yx / 2, yx % 2);
-                        let (oy, ox) = (2 * ty + y, 2 * tx + xx);
-                        if oy >= h || ox >= w {
-                            continue;
-                        }
-                        for (z, val) in r.iter().enumerate() {
-                            let oz = 2 * tz + z;
-                            if oz < d {
-                                let o = &mut oc[(oz * h + oy) * w + ox];
-                                *o = if accumulate { *o + val + bc } else { val + bc };
-                            }
-                        }
-                    }
-                }
-            });
-        }
-    }
-    Ok(())
+    // Whole register tiles of the GEMM (MR rows) per chunk.
+    let tiles_per_chunk = (WINO_BUDGET / (64 * (s.cin + s.cout).max(1))).clamp(32, 4096) / MR * MR;
+    winograd::winograd(x, s, weight, bias, out, accumulate, format, isa, tiles_per_chunk, None)
 }
 
 /// Straightforward direct convolution, the reference the fast path is tested
@@ -637,37 +457,73 @@ mod tests {
         }
     }
 
+    /// Relative L2 error of `got` against `want`.
+    fn rel_l2(got: &[f32], want: &[f32]) -> f64 {
+        let num: f64 = got.iter().zip(want).map(|(a, b)| ((a - b) as f64).powi(2)).sum();
+        let den: f64 = want.iter().map(|b| (*b as f64).powi(2)).sum();
+        (num / den.max(1e-30)).sqrt()
+    }
+
     #[test]
     fn winograd_matches_reference() {
-        // (batch, cin, cout, d, h, w): odd sizes exercise the cropped edge tiles.
-        for (i, &(batch, cin, cout, d, h, w)) in
-            [(1, 3, 2, 4, 4, 4), (2, 5, 7, 3, 5, 6), (1, 70, 66, 5, 3, 7), (1, 4, 3, 1, 2, 1)].iter().enumerate()
-        {
+        // (batch, cin, cout, d, h, w): odd sizes exercise the cropped edge tiles,
+        // channel counts off multiples of 16 / 32 the partial vectors and panels.
+        let cases = [(1, 3, 2, 4, 4, 4), (2, 5, 7, 3, 5, 6), (1, 70, 66, 5, 3, 7), (1, 4, 3, 1, 2, 1), (2, 20, 35, 3, 4, 5)];
+        for (i, &(batch, cin, cout, d, h, w)) in cases.iter().enumerate() {
             let s = Conv3dShape { batch, cin, cout, d, h, w, k: 3, pad: 1 };
             let x = rand_vec(s.input_len(), 300 + i as u64);
             let wt = rand_vec(s.weight_len(), 400 + i as u64);
             let bias = rand_vec(cout, 500 + i as u64);
+            let bias = (i % 2 == 0).then_some(&bias[..]);
             let mut want = vec![0.0; s.output_len()];
-            conv3d_reference(&x, &s, &wt, Some(&bias), &mut want).unwrap();
-            let mut got = vec![f32::NAN; s.output_len()];
-            conv3d_winograd(&x, &s, &wt, Some(&bias), &mut got, false).unwrap();
-            let diff = max_diff(&got, &want);
-            assert!(diff < 1e-5 * (cin as f32 * 27.0).sqrt() * 4.0, "case {i}: {diff}");
+            conv3d_reference(&x, &s, &wt, bias, &mut want).unwrap();
             let base = rand_vec(s.output_len(), 600);
-            let mut acc = base.clone();
-            conv3d_winograd(&x, &s, &wt, Some(&bias), &mut acc, true).unwrap();
             let want_acc: Vec<f32> = base.iter().zip(&want).map(|(a, b)| a + b).collect();
-            assert!(max_diff(&acc, &want_acc) < 1e-3, "case {i} accumulate");
+            for isa in Isa::all_supported() {
+                for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+                    let mut got = vec![f32::NAN; s.output_len()];
+                    conv3d_winograd(&x, &s, &wt, bias, &mut got, false, format, isa).unwrap();
+                    let mut acc = base.clone();
+                    conv3d_winograd(&x, &s, &wt, bias, &mut acc, true, format, isa).unwrap();
+                    let diff = max_diff(&got, &want);
+                    let tag = format!("case {i} {isa:?} {format:?}");
+                    match format {
+                        WeightFormat::F32 => {
+                            assert!(diff < 1e-5 * (cin as f32 * 27.0).sqrt() * 4.0, "{tag}: {diff}");
+                            assert!(max_diff(&acc, &want_acc) < 1e-3, "{tag}: accumulate");
+                        }
+                        // Transformed weights (and, for bf16, activations) rounded:
+                        // the budget is 1 % relative L2; bf16 must really round.
+                        _ => {
+                            let rel = rel_l2(&got, &want);
+                            let lo = if format == WeightFormat::Bf16 { 1e-5 } else { 0.0 };
+                            assert!(rel < 1e-2 && rel > lo, "{tag}: relative error {rel}");
+                            assert!(rel_l2(&acc, &want_acc) < 1e-2, "{tag}: accumulate");
+                        }
+                    }
+                }
+            }
         }
-        // Several tile chunks (the last one partial), batch 2.
-        let s = Conv3dShape { batch: 2, cin: 6, cout: 5, d: 5, h: 6, w: 7, k: 3, pad: 1 };
+        // Several tile chunks (the last one partial) and k slices (the last one
+        // partial), batch 2, no bias.
+        let s = Conv3dShape { batch: 2, cin: 70, cout: 5, d: 5, h: 6, w: 7, k: 3, pad: 1 };
         let x = rand_vec(s.input_len(), 700);
         let wt = rand_vec(s.weight_len(), 701);
         let mut want = vec![0.0; s.output_len()];
         conv3d_reference(&x, &s, &wt, None, &mut want).unwrap();
-        let mut got = vec![f32::NAN; s.output_len()];
-        winograd_chunked(&x, &s, &wt, None, &mut got, false, 7).unwrap();
-        assert!(max_diff(&got, &want) < 1e-4);
+        for isa in Isa::all_supported() {
+            for format in [WeightFormat::F32, WeightFormat::Bf16] {
+                for (chunk, kc) in [(7, Some(16)), (15, Some(32)), (1000, None)] {
+                    let mut got = vec![f32::NAN; s.output_len()];
+                    winograd::winograd(&x, &s, &wt, None, &mut got, false, format, isa, chunk, kc).unwrap();
+                    let tag = format!("{isa:?} {format:?} chunk {chunk} kc {kc:?}");
+                    match format {
+                        WeightFormat::F32 => assert!(max_diff(&got, &want) < 1e-4, "{tag}"),
+                        _ => assert!(rel_l2(&got, &want) < 1e-2, "{tag}"),
+                    }
+                }
+            }
+        }
         // Through the dispatcher at a width that selects Winograd.
         let s = Conv3dShape { batch: 1, cin: 64, cout: 64, d: 6, h: 14, w: 13, k: 3, pad: 1 };
         check_shape(s, true, 77);

@@ -198,6 +198,89 @@ impl PackedMatrix {
         Self { k, n, format, store }
     }
 
+    /// Pack `count` matrices of one `[K, N]` shape together, for operands
+    /// whose values are cheapest to produce all at once (the 64 Winograd taps
+    /// of a convolution weight). `fill(k, p, row)` writes row `k` of panel
+    /// `p` of every matrix: `B_i[k][p·NR + j]` at `row[i·NR + j]` (`row` is
+    /// zeroed before each call; columns at or past `N` are discarded).
+    pub fn pack_many(count: usize, k: usize, n: usize, format: WeightFormat, fill: impl Fn(usize, usize, &mut [f32]) + Sync) -> Vec<Self> {
+        let kp = format.k_padded(k);
+        let panels = n.div_ceil(NR);
+        let stride = kp * NR;
+        let len = panels * stride;
+        let mut f32s: Vec<AlignedBuf<f32>> = Vec::new();
+        let mut u16s: Vec<AlignedBuf<u16>> = Vec::new();
+        // Destination addresses as integers so the panel jobs can share them.
+        let addrs: Vec<usize> = match format {
+            WeightFormat::F32 => {
+                f32s = (0..count).map(|_| AlignedBuf::zeroed(len)).collect();
+                f32s.iter_mut().map(|b| b.as_mut_ptr() as usize).collect()
+            }
+            _ => {
+                u16s = (0..count).map(|_| AlignedBuf::zeroed(len)).collect();
+                u16s.iter_mut().map(|b| b.as_mut_ptr() as usize).collect()
+            }
+        };
+        (0..panels).into_par_iter().for_each_init(
+            || (vec![0f32; count * NR], vec![0f32; count * NR]),
+            |(r0, r1), p| {
+                let cols = NR.min(n - p * NR);
+                let row = |kk: usize, r: &mut Vec<f32>| {
+                    r.fill(0.0);
+                    if kk < k {
+                        fill(kk, p, r);
+                        r.chunks_exact_mut(NR).for_each(|c| c[cols..].fill(0.0));
+                    }
+                };
+                let base = p * stride;
+                match format {
+                    WeightFormat::F32 => {
+                        for kk in 0..k {
+                            row(kk, r0);
+                            for (i, &a) in addrs.iter().enumerate() {
+                                // SAFETY: panel p of each buffer (len elements) is written by this job only.
+                                let dst = unsafe { std::slice::from_raw_parts_mut((a as *mut f32).add(base + kk * NR), NR) };
+                                dst.copy_from_slice(&r0[i * NR..][..NR]);
+                            }
+                        }
+                    }
+                    WeightFormat::Bf16 => {
+                        for k2 in 0..kp / 2 {
+                            row(2 * k2, r0);
+                            row(2 * k2 + 1, r1);
+                            for (i, &a) in addrs.iter().enumerate() {
+                                // SAFETY: as above.
+                                let dst = unsafe { std::slice::from_raw_parts_mut((a as *mut u16).add(base + k2 * 2 * NR), 2 * NR) };
+                                let (lo, hi) = (&r0[i * NR..][..NR], &r1[i * NR..][..NR]);
+                                for j in 0..NR {
+                                    dst[2 * j] = f32_to_bf16(lo[j]);
+                                    dst[2 * j + 1] = f32_to_bf16(hi[j]);
+                                }
+                            }
+                        }
+                    }
+                    WeightFormat::F16 => {
+                        for kk in 0..k {
+                            row(kk, r0);
+                            for (i, &a) in addrs.iter().enumerate() {
+                                // SAFETY: as above.
+                                let dst = unsafe { std::slice::from_raw_parts_mut((a as *mut u16).add(base + kk * NR), NR) };
+                                for (d, &v) in dst.iter_mut().zip(&r0[i * NR..][..NR]) {
+                                    *d = f32_to_f16(v);
+                                }
+                            }
+                        }
+                    }
+                }
+            },
+        );
+        let stores: Vec<Store> = match format {
+            WeightFormat::F32 => f32s.into_iter().map(Store::F32).collect(),
+            _ => u16s.into_iter().map(Store::U16).collect(),
+        };
+        stores.into_iter().map(|store| Self { k, n, format, store }).collect()
+    }
+
     /// Pack a PyTorch `Linear` weight `W` (`[N, K]` row-major, `y = x·Wᵀ`).
     pub fn from_linear_weight(w: &[f32], n: usize, k: usize, format: WeightFormat) -> Result<Self, String> {
         if w.len() != n * k {
@@ -243,7 +326,7 @@ impl PackedMatrix {
     }
 
     /// Pointer to panel `p` at k offset `k0` (`k0` even for bf16).
-    fn panel_ptr(&self, p: usize, k0: usize) -> *const u8 {
+    pub(crate) fn panel_ptr(&self, p: usize, k0: usize) -> *const u8 {
         let off = p * self.format.k_padded(self.k) * NR + k0 * NR;
         match &self.store {
             Store::F32(b) => b[off..].as_ptr() as *const u8,
@@ -893,5 +976,42 @@ mod tests {
         let h = PackedMatrix::from_linear_weight(&w, 2, 1, WeightFormat::F16).unwrap();
         assert_eq!(h.get(0, 0), w[0]); // exact in f16 (11-bit mantissa)
         assert_eq!(b.bytes(), 2 * NR * 2);
+    }
+
+    /// `pack_many` gives, bit for bit, the matrices `pack_with` packs one at a time.
+    #[test]
+    fn pack_many_matches_pack_with() {
+        for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+            for (k, n) in [(1, 1), (5, 33), (16, 64), (7, 70)] {
+                let mut r = Lcg(k as u64 * 131 + n as u64);
+                let vals: Vec<Vec<f32>> = (0..3).map(|_| r.vec(k * n, 2.0)).collect();
+                let many = PackedMatrix::pack_many(3, k, n, format, |kk, p, row| {
+                    for (i, v) in vals.iter().enumerate() {
+                        for j in 0..NR.min(n - p * NR) {
+                            row[i * NR + j] = v[kk * n + p * NR + j];
+                        }
+                    }
+                });
+                for (i, v) in vals.iter().enumerate() {
+                    let one = PackedMatrix::from_kn(v, k, n, format).unwrap();
+                    assert_eq!((many[i].k(), many[i].n(), many[i].bytes()), (k, n, one.bytes()));
+                    for kk in 0..format.k_padded(k) {
+                        for j in 0..n.div_ceil(NR) * NR {
+                            let (p, jj) = (j / NR, j % NR);
+                            let idx = p * format.k_padded(k) * NR
+                                + match format {
+                                    WeightFormat::Bf16 => (kk / 2) * 2 * NR + 2 * jj + kk % 2,
+                                    _ => kk * NR + jj,
+                                };
+                            let bits = |m: &PackedMatrix| match &m.store {
+                                Store::F32(b) => b[idx].to_bits(),
+                                Store::U16(b) => b[idx] as u32,
+                            };
+                            assert_eq!(bits(&many[i]), bits(&one), "{format:?} k{k} n{n} matrix {i} at ({kk}, {j})");
+                        }
+                    }
+                }
+            }
+        }
     }
 }

@@ -27,9 +27,11 @@ pub enum NormType {
     Layer,
     Group,
 }
+use crate::model::nn::fast::{self, Isa, Precision};
 use candle_core::{CpuStorage, DType, Device, Layout, Shape, Storage, Tensor};
 use candle_nn::VarBuilder;
 use recon_kernels::conv3d as k;
+use recon_kernels::gemm::WeightFormat;
 
 /// An NCDHW `f32` volume in a plain buffer, the currency of the fast path.
 #[derive(Debug, Clone)]
@@ -250,6 +252,15 @@ impl candle_core::CustomOp3 for Conv3dOp {
 }
 
 /// `nn.Conv3d(cin, cout, k, padding=pad)` with bias (`{prefix}.weight`, `{prefix}.bias`).
+///
+/// The fast path takes the precision of the build scope it was constructed in
+/// ([`fast::build_compute`]; f32 outside one). It matters for the wide
+/// Winograd layers (`recon_kernels::conv3d::conv3d_winograd`): at bf16 their
+/// transformed weights (transformed in f32, rounded once) and activations are
+/// rounded to bf16, products accumulated in f32, as torch's bf16 autocast
+/// does. f16 computes as f32: the transformed weights are made per call, so
+/// f16 storage would save no resident memory. Narrow layers (im2col) and the
+/// differentiable path are f32 in every mode.
 #[derive(Debug, Clone)]
 pub struct Conv3d {
     weight: Tensor,
@@ -258,13 +269,25 @@ pub struct Conv3d {
     cout: usize,
     k: usize,
     pad: usize,
+    format: WeightFormat,
+    isa: Isa,
 }
 
 impl Conv3d {
     pub fn new(cin: usize, cout: usize, k: usize, pad: usize, vb: VarBuilder) -> Result<Self> {
         let weight = vb.get((cout, cin, k, k, k), "weight")?;
         let bias = vb.get(cout, "bias")?;
-        Ok(Self { weight, bias, cin, cout, k, pad })
+        let (format, isa) = match fast::build_compute().fast_parts() {
+            Some((Precision::Bf16, isa)) => (WeightFormat::Bf16, isa),
+            Some((_, isa)) => (WeightFormat::F32, isa),
+            None => (WeightFormat::F32, Isa::best()),
+        };
+        Ok(Self { weight, bias, cin, cout, k, pad, format, isa })
+    }
+
+    /// Storage format of the Winograd layers' transformed weights.
+    pub fn weight_format(&self) -> WeightFormat {
+        self.format
     }
 
     /// Differentiable path (`conv3d_trainable`).
@@ -288,7 +311,7 @@ impl Conv3d {
             None => (Volume { data: vec![0.0; s.output_len()], dims }, false),
         };
         with_f32_slice(&self.weight, |wt| {
-            with_f32_slice(&self.bias, |bias| k::conv3d(&x.data, &s, wt, Some(bias), &mut out.data, accumulate))
+            with_f32_slice(&self.bias, |bias| k::conv3d_with(&x.data, &s, wt, Some(bias), &mut out.data, accumulate, self.format, self.isa))
         })??
         .map_err(Error::msg)?;
         Ok(out)
@@ -538,6 +561,39 @@ mod tests {
             assert!(max_abs_diff(&fast, &want).unwrap() < 1e-5, "fast path, case {i}");
             assert!(max_abs_diff(&conv.forward(&x).unwrap(), &fast).unwrap() < 1e-5);
         }
+    }
+
+    /// A `Conv3d` built in a bf16 scope runs its Winograd layers on bf16
+    /// operands: within 1 % (relative L2) of the f32 reference, but not f32.
+    #[test]
+    fn conv3d_takes_the_build_precision() {
+        use crate::model::nn::fast::{build_with, Compute};
+        let (cin, cout) = (64, 66);
+        let x = rand(&[2, cin, 3, 4, 5], 90);
+        let wt = (rand(&[cout, cin, 3, 3, 3], 91) * 0.1).unwrap();
+        let b = rand(&[cout], 92);
+        let want = conv_ref(&x, &wt, &b, 1).flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let mut ws = HashMap::new();
+        ws.insert("weight".to_string(), wt);
+        ws.insert("bias".to_string(), b);
+        let vb = VarBuilder::from_tensors(ws, DType::F32, &Device::Cpu);
+        let vx = Volume::from_tensor(&x).unwrap();
+        for (precision, format) in
+            [(Precision::F32, WeightFormat::F32), (Precision::Bf16, WeightFormat::Bf16), (Precision::F16, WeightFormat::F32)]
+        {
+            let conv = build_with(Compute::fast(precision), || Conv3d::new(cin, cout, 3, 1, vb.clone())).unwrap();
+            assert_eq!(conv.weight_format(), format);
+            let got = conv.forward_fast(&vx, None).unwrap().data;
+            let num: f64 = got.iter().zip(&want).map(|(a, b)| ((a - b) as f64).powi(2)).sum();
+            let den: f64 = want.iter().map(|b| (*b as f64).powi(2)).sum();
+            let rel = (num / den).sqrt();
+            match format {
+                WeightFormat::Bf16 => assert!(rel > 1e-5 && rel < 1e-2, "{precision}: relative error {rel}"),
+                _ => assert!(rel < 1e-5, "{precision}: relative error {rel}"),
+            }
+        }
+        // Outside a build scope: f32.
+        assert_eq!(Conv3d::new(cin, cout, 3, 1, vb).unwrap().weight_format(), WeightFormat::F32);
     }
 
     #[test]

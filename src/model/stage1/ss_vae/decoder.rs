@@ -24,7 +24,8 @@ pub struct SparseStructureDecoderConfig {
     pub num_res_blocks_middle: usize,
     #[serde(default)]
     pub norm_type: NormType,
-    /// Upstream runs the torso in fp16; this port computes in f32 throughout.
+    /// Upstream runs the torso in fp16; this port computes in the precision of
+    /// its build scope (bf16 for the wide convolutions at bf16, else f32; see `Conv3d`).
     #[serde(default)]
     pub use_fp16: bool,
 }
