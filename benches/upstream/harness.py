@@ -275,6 +275,9 @@ def timing(a):
             "random weights (benches/upstream/harness.py randomize), one forward per row, best of --reps; each row in its own process (peak RSS = ru_maxrss)",
         ],
     }
+    # glibc allocator settings change both time and peak memory (recon's CLI keeps freed memory in the heap).
+    malloc_env = {k: v for k, v in os.environ.items() if k.startswith("MALLOC_")}
+    report["notes"].append(f"glibc allocator environment: {malloc_env or 'defaults'}")
     if a.json:
         tmp = a.json + ".partial"
         with open(tmp, "w") as f:
