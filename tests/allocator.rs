@@ -32,7 +32,8 @@ fn main() {
     let f0 = minor_faults();
     touch(64);
     let default_faults = minor_faults() - f0;
-    assert!(default_faults > 8000, "expected glibc to fault in a fresh 64 MiB buffer, saw {default_faults} faults");
+    // One fault per 4 KiB page, or per 2 MiB where transparent huge pages are always on.
+    assert!(default_faults >= 16, "expected glibc to fault in a fresh 64 MiB buffer, saw {default_faults} faults");
 
     assert!(recon::util::keep_freed_memory(), "glibc refused the thresholds");
     assert!(recon::util::freed_memory_kept());
