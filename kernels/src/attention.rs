@@ -17,8 +17,8 @@
 //! are rounded to bf16 and products accumulate in f32 (`vdpbf16ps` where
 //! available); softmax statistics stay in f32.
 
-use crate::buf::AlignedBuf;
-use crate::gemm::{self, a_format, a_tile_words, microkernel, pack_a_rows, pack_a_tile_cols, AFormat, SendPtr, WeightFormat, MR, NR};
+use crate::buf::{AlignedBuf, SendPtr};
+use crate::gemm::{self, a_format, a_tile_words, microkernel, pack_a_rows, pack_a_tile_cols, AFormat, WeightFormat, MR, NR};
 use crate::isa::Isa;
 use rayon::prelude::*;
 use std::ops::Range;
@@ -243,7 +243,7 @@ unsafe fn attend(
     qr: Range<usize>,
     lk: usize,
     hh: usize,
-    out: SendPtr,
+    out: SendPtr<f32>,
     scr: &mut Scratch,
 ) {
     let d = spec.head_dim;
@@ -416,7 +416,7 @@ fn softmax_block_pairs(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l:
         return;
     }
     softmax_block(isa, s, nk, m, l, alpha);
-    to_bf16_pairs(isa, s, nk, dst);
+    to_bf16_pairs(s, nk, dst);
 }
 
 /// `o[r][c] *= alpha[c]` for every row of `NR` columns.
@@ -438,14 +438,7 @@ fn scale_columns(isa: Isa, o: &mut [f32], alpha: &[f32; NR]) {
 /// `Sᵀ` rows `[nk][NR]` f32 → bf16 pairs over keys: word `(j/2, c)` =
 /// `bf16(s[j][c]) | bf16(s[j+1][c]) << 16` (round to nearest even; an odd last
 /// key is paired with zero).
-fn to_bf16_pairs(isa: Isa, s: &[f32], nk: usize, dst: &mut [u32]) {
-    #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: the ISA is supported; dst holds ceil(nk/2)·NR words.
-        unsafe { x86::to_bf16_pairs(s, nk, dst) };
-        return;
-    }
-    let _ = isa;
+fn to_bf16_pairs(s: &[f32], nk: usize, dst: &mut [u32]) {
     for j2 in 0..nk.div_ceil(2) {
         for c in 0..NR {
             let lo = gemm::f32_to_bf16(s[2 * j2 * NR + c]) as u32;
@@ -488,40 +481,17 @@ mod x86 {
     use crate::vecmath::x86::exp512;
     use std::arch::x86_64::*;
 
-    #[target_feature(enable = "avx512f,avx512bw,fma")]
-    pub unsafe fn softmax_block(s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR]) {
-        let sp = s.as_mut_ptr();
-        let mo0 = _mm512_loadu_ps(m.as_ptr());
-        let mo1 = _mm512_loadu_ps(m.as_ptr().add(16));
-        let (mut m0, mut m1) = (mo0, mo1);
-        for j in 0..nk {
-            m0 = _mm512_max_ps(m0, _mm512_loadu_ps(sp.add(j * NR)));
-            m1 = _mm512_max_ps(m1, _mm512_loadu_ps(sp.add(j * NR + 16)));
-        }
-        let a0 = exp512(_mm512_sub_ps(mo0, m0));
-        let a1 = exp512(_mm512_sub_ps(mo1, m1));
-        _mm512_storeu_ps(alpha.as_mut_ptr(), a0);
-        _mm512_storeu_ps(alpha.as_mut_ptr().add(16), a1);
-        let mut l0 = _mm512_mul_ps(_mm512_loadu_ps(l.as_ptr()), a0);
-        let mut l1 = _mm512_mul_ps(_mm512_loadu_ps(l.as_ptr().add(16)), a1);
-        for j in 0..nk {
-            let p0 = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add(j * NR)), m0));
-            let p1 = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add(j * NR + 16)), m1));
-            _mm512_storeu_ps(sp.add(j * NR), p0);
-            _mm512_storeu_ps(sp.add(j * NR + 16), p1);
-            l0 = _mm512_add_ps(l0, p0);
-            l1 = _mm512_add_ps(l1, p1);
-        }
-        _mm512_storeu_ps(l.as_mut_ptr(), l0);
-        _mm512_storeu_ps(l.as_mut_ptr().add(16), l1);
-        _mm512_storeu_ps(m.as_mut_ptr(), m0);
-        _mm512_storeu_ps(m.as_mut_ptr().add(16), m1);
-    }
-
-    #[target_feature(enable = "avx512f,avx512bw,fma")]
-    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
-        let sp = s.as_ptr();
-        let dp = dst.as_mut_ptr() as *mut i32;
+    /// The block's new running maxima `mn` (also stored into `m`) and
+    /// `alpha = exp(m_old − mn)` (stored), and the running sums rescaled by
+    /// it, to which the caller adds the block's exponentials.
+    #[inline(always)]
+    unsafe fn block_start(
+        sp: *const f32,
+        nk: usize,
+        m: &mut [f32; NR],
+        l: &[f32; NR],
+        alpha: &mut [f32; NR],
+    ) -> ([__m512; 2], [__m512; 2]) {
         let mo = [_mm512_loadu_ps(m.as_ptr()), _mm512_loadu_ps(m.as_ptr().add(16))];
         let mut mn = mo;
         for j in 0..nk {
@@ -534,7 +504,32 @@ mod x86 {
             let a = exp512(_mm512_sub_ps(mo[h], mn[h]));
             _mm512_storeu_ps(alpha.as_mut_ptr().add(16 * h), a);
             acc[h] = _mm512_mul_ps(_mm512_loadu_ps(l.as_ptr().add(16 * h)), a);
+            _mm512_storeu_ps(m.as_mut_ptr().add(16 * h), mn[h]);
         }
+        (mn, acc)
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    pub unsafe fn softmax_block(s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR]) {
+        let sp = s.as_mut_ptr();
+        let (mn, mut acc) = block_start(sp, nk, m, l, alpha);
+        for j in 0..nk {
+            for h in 0..2 {
+                let p = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add(j * NR + 16 * h)), mn[h]));
+                _mm512_storeu_ps(sp.add(j * NR + 16 * h), p);
+                acc[h] = _mm512_add_ps(acc[h], p);
+            }
+        }
+        for h in 0..2 {
+            _mm512_storeu_ps(l.as_mut_ptr().add(16 * h), acc[h]);
+        }
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+        let sp = s.as_ptr();
+        let dp = dst.as_mut_ptr() as *mut i32;
+        let (mn, mut acc) = block_start(sp, nk, m, l, alpha);
         for j2 in 0..nk.div_ceil(2) {
             let j = 2 * j2;
             for h in 0..2 {
@@ -554,7 +549,6 @@ mod x86 {
         }
         for h in 0..2 {
             _mm512_storeu_ps(l.as_mut_ptr().add(16 * h), acc[h]);
-            _mm512_storeu_ps(m.as_mut_ptr().add(16 * h), mn[h]);
         }
     }
 
@@ -576,19 +570,6 @@ mod x86 {
         let lsb = _mm512_and_si512(_mm512_srli_epi32::<16>(b), _mm512_set1_epi32(1));
         let r = _mm512_add_epi32(_mm512_add_epi32(b, _mm512_set1_epi32(0x7fff)), lsb);
         _mm512_and_si512(r, _mm512_set1_epi32(0xffff_0000u32 as i32))
-    }
-
-    #[target_feature(enable = "avx512f,avx512bw,fma")]
-    pub unsafe fn to_bf16_pairs(s: &[f32], nk: usize, dst: &mut [u32]) {
-        let sp = s.as_ptr();
-        let dp = dst.as_mut_ptr() as *mut i32;
-        for j2 in 0..nk.div_ceil(2) {
-            for c in [0usize, 16] {
-                let lo = _mm512_srli_epi32::<16>(rne_hi(_mm512_loadu_ps(sp.add(2 * j2 * NR + c))));
-                let hi = if 2 * j2 + 1 < nk { rne_hi(_mm512_loadu_ps(sp.add((2 * j2 + 1) * NR + c))) } else { _mm512_setzero_si512() };
-                _mm512_storeu_si512(dp.add(j2 * NR + c) as *mut __m512i, _mm512_or_si512(lo, hi));
-            }
-        }
     }
 }
 
@@ -683,7 +664,7 @@ mod tests {
                 let mut s1 = s0.clone();
                 let mut want = vec![0u32; nk.div_ceil(2) * NR];
                 softmax_block(isa, &mut s1, nk, &mut m1, &mut l1, &mut a1);
-                to_bf16_pairs(isa, &s1, nk, &mut want);
+                to_bf16_pairs(&s1, nk, &mut want);
                 let (mut m2, mut l2, mut a2) = (init(&m0), init(&l0), [0f32; NR]);
                 let mut got = vec![u32::MAX; want.len()];
                 softmax_block_pairs(isa, &mut s0.clone(), nk, &mut m2, &mut l2, &mut a2, &mut got);

@@ -90,3 +90,25 @@ impl<T: Copy> std::fmt::Debug for AlignedBuf<T> {
         write!(f, "AlignedBuf({} × {})", self.len, std::any::type_name::<T>())
     }
 }
+
+/// Address of a buffer shared by parallel jobs that each write a disjoint
+/// part of it (output rows, panels, tiles); the writers' SAFETY comments say
+/// which part is theirs.
+pub(crate) struct SendPtr<T>(pub *mut T);
+
+impl<T> Clone for SendPtr<T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<T> Copy for SendPtr<T> {}
+// SAFETY: only hands disjoint regions of one buffer to worker threads.
+unsafe impl<T> Send for SendPtr<T> {}
+unsafe impl<T> Sync for SendPtr<T> {}
+
+impl<T> SendPtr<T> {
+    // A method (not field access) so closures capture the whole Send wrapper.
+    pub fn get(self) -> *mut T {
+        self.0
+    }
+}

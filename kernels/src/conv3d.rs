@@ -11,6 +11,7 @@
 //! row-major is already the `[Cout, Cin·k³]` GEMM left operand, so no packing
 //! step is needed at load time.
 
+use crate::buf::SendPtr;
 use crate::gemm::{WeightFormat, MR};
 use crate::isa::Isa;
 use rayon::prelude::*;
@@ -74,20 +75,6 @@ impl Conv3dShape {
             }
         }
         Ok(())
-    }
-}
-
-/// Raw output pointer shared by the chunk workers; every chunk writes a
-/// disjoint set of output columns.
-#[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-
-impl SendPtr {
-    // A method (not field access) so closures capture the whole Send wrapper.
-    fn get(self) -> *mut f32 {
-        self.0
     }
 }
 

@@ -20,7 +20,7 @@
 //!   products;
 //! - f16 weights: widened with `vcvtph2ps` (AVX-512) / in software; A stays f32.
 
-use crate::buf::AlignedBuf;
+use crate::buf::{AlignedBuf, SendPtr};
 use crate::isa::Isa;
 use crate::vecmath::{self, Activation};
 use rayon::prelude::*;
@@ -544,17 +544,6 @@ unsafe fn portable_kernel(
         for j in 0..cols {
             dst[j] = if load { dst[j] + acc[i][j] } else { acc[i][j] };
         }
-    }
-}
-
-#[derive(Clone, Copy)]
-pub(crate) struct SendPtr(pub *mut f32);
-// SAFETY: used only to hand disjoint output regions to worker threads.
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-impl SendPtr {
-    pub fn get(self) -> *mut f32 {
-        self.0
     }
 }
 

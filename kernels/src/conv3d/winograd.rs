@@ -23,7 +23,8 @@
 //! (portable) or an AVX-512 register; both do the same operations in the
 //! same order (no fused multiply-adds), so they give identical bits.
 
-use super::{Conv3dShape, SendPtr};
+use super::Conv3dShape;
+use crate::buf::SendPtr;
 use crate::gemm::{a_format, a_tile_words, f32_to_bf16, microkernel, AFormat, Blocking, PackedMatrix, WeightFormat, MR, NR};
 use crate::isa::Isa;
 use rayon::prelude::*;
@@ -409,21 +410,9 @@ unsafe fn input_job_avx512(xp: &[f32], g: &Geom, ap: &APack, t0: usize, tc: usiz
     input_job::<x86::Zmm>(xp, g, ap, t0, tc, rt, v)
 }
 
-/// Address of a buffer shared by jobs that write disjoint parts of it.
-#[derive(Clone, Copy)]
-struct Words(*mut u32);
-// SAFETY: see the type docs.
-unsafe impl Send for Words {}
-unsafe impl Sync for Words {}
-impl Words {
-    fn get(self) -> *mut u32 {
-        self.0
-    }
-}
-
 fn input_transform(isa: Isa, xp: &[f32], g: &Geom, ap: &APack, t0: usize, tc: usize, v: &mut [u32]) {
     assert!(v.len() >= ap.offset(64, 0, 0) && tc <= ap.nrt * MR);
-    let vp = Words(v.as_mut_ptr());
+    let vp = SendPtr(v.as_mut_ptr());
     (0..tc.div_ceil(MR)).into_par_iter().for_each(|rt| {
         #[cfg(target_arch = "x86_64")]
         if isa >= Isa::Avx512 {
@@ -477,7 +466,15 @@ fn gemm_taps(isa: Isa, format: WeightFormat, u: &[PackedMatrix], g: &Geom, ap: &
 /// (every output channel).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn output_job<T: Lanes>(m: &[f32], g: &Geom, t0: usize, (tl0, tl1): (usize, usize), bias: Option<&[f32]>, accumulate: bool, out: SendPtr) {
+fn output_job<T: Lanes>(
+    m: &[f32],
+    g: &Geom,
+    t0: usize,
+    (tl0, tl1): (usize, usize),
+    bias: Option<&[f32]>,
+    accumulate: bool,
+    out: SendPtr<f32>,
+) {
     let (d, h, w) = (g.d, g.h, g.w);
     let plane = d * h * w;
     assert!(m.len() >= tl1 * 64 * g.coutp);
@@ -512,7 +509,7 @@ fn output_job<T: Lanes>(m: &[f32], g: &Geom, t0: usize, (tl0, tl1): (usize, usiz
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,fma")]
-unsafe fn output_job_avx512(m: &[f32], g: &Geom, t0: usize, tls: (usize, usize), bias: Option<&[f32]>, acc: bool, out: SendPtr) {
+unsafe fn output_job_avx512(m: &[f32], g: &Geom, t0: usize, tls: (usize, usize), bias: Option<&[f32]>, acc: bool, out: SendPtr<f32>) {
     output_job::<x86::Zmm>(m, g, t0, tls, bias, acc, out)
 }
 
