@@ -3,6 +3,11 @@ use clap::{Parser, Subcommand};
 
 mod cli;
 
+/// Large activations reuse freed buffers of the same size (see
+/// `LargeBufferCache`); `RECON_MALLOC=system` turns that off.
+#[global_allocator]
+static ALLOC: recon::util::LargeBufferCache = recon::util::LargeBufferCache;
+
 #[derive(Parser)]
 #[command(name = "recon", version, about = "RGB-D frames + masks → simulation-ready posed 3D objects")]
 struct Cli {
@@ -43,11 +48,6 @@ enum Cmd {
 }
 
 fn main() -> anyhow::Result<()> {
-    // Large activations reuse freed heap memory (see keep_freed_memory);
-    // RECON_MALLOC=system keeps glibc's defaults.
-    if std::env::var_os("RECON_MALLOC").is_none_or(|v| v != "system") {
-        recon::util::keep_freed_memory();
-    }
     let cli = Cli::parse();
     let ok = match cli.cmd {
         Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,

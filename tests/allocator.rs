@@ -1,18 +1,34 @@
-//! `keep_freed_memory` (the CLI's default): a large buffer freed and then
-//! allocated again is served from the heap, not from freshly faulted pages.
-//! Its own binary without the test harness: the check must run on the main
-//! thread (glibc serves other threads' large buffers from mmap whatever the
-//! thresholds), with no other test faulting pages meanwhile.
+//! `LargeBufferCache`, the CLI's global allocator: a large buffer freed and
+//! allocated again at the same size reuses its pages (no page faults), comes
+//! back zeroed when asked, does not creep in resident memory over repeated
+//! transformer-like blocks, and drops sizes that stop recurring.
+//! Its own binary without the test harness: page faults and resident memory
+//! are per process, so no other test may run meanwhile.
+
+#[global_allocator]
+static ALLOC: recon::util::LargeBufferCache = recon::util::LargeBufferCache;
+
+const MIB: usize = 1 << 20;
 
 /// Minor page faults of this process so far (field 10 of /proc/self/stat).
+#[cfg(target_os = "linux")]
 fn minor_faults() -> u64 {
     let s = std::fs::read_to_string("/proc/self/stat").expect("/proc/self/stat");
     let after = s.rsplit(')').next().unwrap();
     after.split_whitespace().nth(7).unwrap().parse().unwrap()
 }
 
-fn touch(mib: usize) -> u64 {
-    let mut v = vec![0u8; mib << 20];
+/// Anonymous resident memory (RssAnon of /proc/self/status) in bytes.
+#[cfg(target_os = "linux")]
+fn rss_anon() -> usize {
+    let s = std::fs::read_to_string("/proc/self/status").expect("/proc/self/status");
+    let line = s.lines().find(|l| l.starts_with("RssAnon:")).expect("RssAnon");
+    line.split_whitespace().nth(1).unwrap().parse::<usize>().unwrap() * 1024
+}
+
+/// Allocate `bytes`, write every page, return a checksum so nothing is elided.
+fn touch(bytes: usize) -> u64 {
+    let mut v = vec![0u8; bytes];
     for i in (0..v.len()).step_by(4096) {
         v[i] = 1;
     }
@@ -20,27 +36,98 @@ fn touch(mib: usize) -> u64 {
     v.iter().step_by(4096).map(|&b| b as u64).sum()
 }
 
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+#[cfg(not(target_os = "linux"))]
 fn main() {
-    println!("allocator: not glibc on Linux, nothing to check");
+    assert!(!recon::util::buffer_cache_active(), "the cache is Linux-only");
+    println!("allocator: not Linux, the cache is off");
 }
 
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[cfg(target_os = "linux")]
 fn main() {
-    // glibc's defaults: a 64 MiB buffer is mmapped, so every allocation faults in all its pages.
-    touch(64);
-    let f0 = minor_faults();
-    touch(64);
-    let default_faults = minor_faults() - f0;
-    // One fault per 4 KiB page, or per 2 MiB where transparent huge pages are always on.
-    assert!(default_faults >= 16, "expected glibc to fault in a fresh 64 MiB buffer, saw {default_faults} faults");
+    use recon::util::{buffer_cache_active, cached_buffer_bytes, release_cached_buffers};
+    if std::env::var_os("RECON_MALLOC").is_some_and(|v| v == "system") {
+        assert!(!buffer_cache_active(), "RECON_MALLOC=system must turn the cache off");
+        println!("allocator: RECON_MALLOC=system, cache off");
+        return;
+    }
+    assert!(buffer_cache_active());
 
-    assert!(recon::util::keep_freed_memory(), "glibc refused the thresholds");
-    assert!(recon::util::freed_memory_kept());
-    touch(64);
+    // 1. Reuse: a fresh 64 MiB buffer faults its pages in; the same size again does not.
+    release_cached_buffers();
+    let f0 = minor_faults();
+    touch(64 * MIB);
+    let fresh = minor_faults() - f0;
+    // One fault per 4 KiB page, or per 2 MiB where transparent huge pages are always on.
+    assert!(fresh >= 16, "a fresh 64 MiB mapping should fault, saw {fresh} faults");
+    assert!(cached_buffer_bytes() >= 64 * MIB, "the freed buffer is kept");
     let f1 = minor_faults();
-    touch(64);
-    let kept_faults = minor_faults() - f1;
-    assert!(kept_faults < default_faults / 10, "kept heap: {kept_faults} faults vs {default_faults} with glibc's defaults");
-    println!("allocator: 64 MiB reallocated: {default_faults} page faults with glibc's defaults, {kept_faults} with freed memory kept");
+    touch(64 * MIB);
+    let reused = minor_faults() - f1;
+    assert!(reused < fresh / 10, "reused buffer: {reused} faults vs {fresh} fresh");
+
+    // 2. Zeroed on reuse: `vec![0; n]` over a kept buffer that held data.
+    let mut v = vec![7u8; 48 * MIB];
+    v[48 * MIB - 1] = 9;
+    drop(std::hint::black_box(v));
+    let z = vec![0u8; 48 * MIB];
+    assert!(z.iter().all(|&b| b == 0), "a reused buffer must come back zeroed");
+    drop(z);
+
+    // 3. Growth across the threshold keeps the contents.
+    let mut g: Vec<u32> = (0..1000).collect();
+    g.resize(3 * MIB, 5);
+    g.truncate(1000);
+    g.shrink_to_fit();
+    assert!(g.iter().enumerate().all(|(i, &x)| x == i as u32));
+    let mut g: Vec<u32> = (0..(2 * MIB as u32)).collect();
+    g.extend(std::iter::repeat_n(1, 4 * MIB));
+    assert_eq!(g[2 * MIB - 1], 2 * MIB as u32 - 1);
+    drop(g);
+
+    // 4. Steady state: a block-like pattern (one residual stream, mixed
+    //    short-lived sizes) repeated does not grow resident memory.
+    release_cached_buffers();
+    let block = |x: Vec<f32>| -> Vec<f32> {
+        let n = x.len();
+        let h: Vec<f32> = x.iter().map(|v| v * 0.5).collect();
+        let qkv = vec![1f32; 3 * n];
+        let packs = vec![2u32; n + n / 20];
+        let o: Vec<f32> = h.iter().zip(&qkv).map(|(a, b)| a + b).collect();
+        drop((qkv, packs, h));
+        let kv = vec![0.5f32; 2 * n / 3];
+        let x1: Vec<f32> = x.iter().zip(&o).zip(&kv).map(|((a, b), c)| a + b * c).collect();
+        drop((o, kv, x));
+        let hidden = vec![0.25f32; n];
+        x1.iter().zip(&hidden).map(|(a, b)| a - b).collect()
+    };
+    let n = 8 * MIB / 4;
+    let mut x = vec![0f32; n];
+    for _ in 0..3 {
+        x = block(x);
+    }
+    let settled = rss_anon();
+    for _ in 0..30 {
+        x = block(x);
+    }
+    let after = rss_anon();
+    assert!(after <= settled + 4 * MIB, "resident memory crept over 30 blocks: {} → {} MiB", settled / MIB, after / MIB);
+    drop(x);
+
+    // 5. A size that stops recurring is unmapped after later large requests.
+    release_cached_buffers();
+    drop(std::hint::black_box(vec![1u8; 40 * MIB]));
+    assert!(cached_buffer_bytes() >= 40 * MIB);
+    for _ in 0..100 {
+        drop(std::hint::black_box(vec![1u8; 5 * MIB]));
+    }
+    assert!(cached_buffer_bytes() < 40 * MIB, "a stale 40 MiB buffer is still kept ({} MiB kept)", cached_buffer_bytes() / MIB);
+    let released = release_cached_buffers();
+    assert_eq!(cached_buffer_bytes(), 0);
+    assert!(released >= 5 * MIB);
+
+    println!(
+        "allocator: 64 MiB reallocated: {fresh} page faults fresh, {reused} reused; 30 blocks: resident {} → {} MiB",
+        settled / MIB,
+        after / MIB
+    );
 }

@@ -130,59 +130,68 @@ pub fn flash_attention(
         return Err("attention: segments share query rows".into());
     }
 
-    // Phase 1: pack K (A tiles over d) and Vᵀ (A tiles over the keys of each
-    // block) once per (segment, head), shared by all query chunks.
+    // Heads are done a group at a time: K and Vᵀ of the group's heads are
+    // packed once (phase 1), shared by all its query chunks (phase 2). A
+    // group holds enough (segment, head) packs to keep every thread busy,
+    // and no more: packing all heads at once would hold a copy of K and V
+    // as large as the inputs (67 MB in f32 for a full-size guided step).
     let fmt = spec.precision.format();
     let afmt = a_format(isa, fmt);
     let kw = a_tile_words(afmt, d);
     let etiles = d.div_ceil(MR);
     let vw = a_tile_words(afmt, BC);
     let pack_words = |lk: usize| lk.div_ceil(MR) * kw + lk.div_ceil(BC) * etiles * vw;
-    let mut offsets = Vec::with_capacity(segments.len() * h + 1);
-    let mut total = 0usize;
-    for s in segments {
-        for _ in 0..h {
-            offsets.push(total);
-            total += pack_words(s.kv.len());
-        }
-    }
-    let mut packs = AlignedBuf::<u32>::zeroed(total);
-    {
-        let mut parts: Vec<&mut [u32]> = Vec::with_capacity(offsets.len());
-        let mut rest: &mut [u32] = &mut packs;
+    let live = segments.iter().filter(|s| !s.q.is_empty()).count().max(1);
+    let group = (4 * rayon::current_num_threads()).div_ceil(live).clamp(1, h);
+    let optr = SendPtr(out.as_mut_ptr());
+    let mut packs = AlignedBuf::<u32>::zeroed(0);
+    for h0 in (0..h).step_by(group) {
+        let heads = h0..(h0 + group).min(h);
+        let mut offsets = Vec::with_capacity(segments.len() * heads.len());
+        let mut total = 0usize;
         for s in segments {
-            for _ in 0..h {
-                let (a, b) = rest.split_at_mut(pack_words(s.kv.len()));
-                parts.push(a);
-                rest = b;
+            for _ in heads.clone() {
+                offsets.push(total);
+                total += pack_words(s.kv.len());
             }
         }
-        parts.into_par_iter().enumerate().for_each(|(i, dst)| {
-            let (s, hh) = (&segments[i / h], i % h);
-            pack_kv(afmt, spec, k, v, s.kv.clone(), hh, dst);
+        packs.ensure(total);
+        {
+            let mut parts: Vec<&mut [u32]> = Vec::with_capacity(offsets.len());
+            let mut rest: &mut [u32] = &mut packs;
+            for s in segments {
+                for _ in heads.clone() {
+                    let (a, b) = rest.split_at_mut(pack_words(s.kv.len()));
+                    parts.push(a);
+                    rest = b;
+                }
+            }
+            parts.into_par_iter().enumerate().for_each(|(i, dst)| {
+                let (s, hh) = (&segments[i / heads.len()], h0 + i % heads.len());
+                pack_kv(afmt, spec, k, v, s.kv.clone(), hh, dst);
+            });
+        }
+
+        let mut tasks = Vec::new();
+        for (si, s) in segments.iter().enumerate() {
+            for c in 0..s.q.len().div_ceil(QCHUNK) {
+                for hh in heads.clone() {
+                    tasks.push((si, hh, c));
+                }
+            }
+        }
+        let packs = &packs;
+        tasks.into_par_iter().for_each_init(Scratch::default, |scr, (si, hh, c)| {
+            let s = &segments[si];
+            let q0 = s.q.start + c * QCHUNK;
+            let q1 = (q0 + QCHUNK).min(s.q.end);
+            let off = offsets[si * heads.len() + hh - h0];
+            let pack = &packs[off..off + pack_words(s.kv.len())];
+            // SAFETY: this task is the only writer of rows q0..q1, head hh (segments
+            // do not share query rows; heads are disjoint column ranges).
+            unsafe { attend(isa, spec, q, pack, q0..q1, s.kv.len(), hh, optr, scr) };
         });
     }
-
-    // Phase 2: tasks (segment, head, query chunk).
-    let mut tasks = Vec::new();
-    for (si, s) in segments.iter().enumerate() {
-        for c in 0..s.q.len().div_ceil(QCHUNK) {
-            for hh in 0..h {
-                tasks.push((si, hh, c));
-            }
-        }
-    }
-    let optr = SendPtr(out.as_mut_ptr());
-    tasks.into_par_iter().for_each_init(Scratch::default, |scr, (si, hh, c)| {
-        let s = &segments[si];
-        let q0 = s.q.start + c * QCHUNK;
-        let q1 = (q0 + QCHUNK).min(s.q.end);
-        let off = offsets[si * h + hh];
-        let pack = &packs[off..off + pack_words(s.kv.len())];
-        // SAFETY: this task is the only writer of rows q0..q1, head hh (segments
-        // do not share query rows; heads are disjoint column ranges).
-        unsafe { attend(isa, spec, q, pack, q0..q1, s.kv.len(), hh, optr, scr) };
-    });
     Ok(())
 }
 
@@ -642,6 +651,9 @@ mod tests {
             (1, 64, vec![Segment { q: 0..270, kv: 0..(2 * BC + 15) }], true),
             // Empty kv gives zeros; uncovered rows 5..9 stay untouched.
             (2, 4, vec![Segment { q: 0..5, kv: 0..0 }, Segment { q: 9..12, kv: 2..3 }], false),
+            // More heads than one group holds (heads are packed a group at a time).
+            (37, 8, vec![Segment { q: 0..40, kv: 0..70 }], false),
+            (9, 16, vec![Segment { q: 0..20, kv: 0..20 }, Segment { q: 20..45, kv: 20..61 }], true),
         ];
         for isa in Isa::all_supported() {
             for precision in [AttnPrecision::F32, AttnPrecision::Bf16] {

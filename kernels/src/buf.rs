@@ -3,9 +3,15 @@
 
 use std::alloc::{alloc_zeroed, dealloc, Layout};
 
+/// Smallest long-lived buffer given its own mapping: smaller ones fit the
+/// heap's holes anyway, and a mapping costs a system call and whole pages.
+const MAPPED_MIN_BYTES: usize = 1 << 20;
+
 pub struct AlignedBuf<T: Copy> {
     ptr: *mut T,
     len: usize,
+    /// Bytes of this buffer's own anonymous mapping (0: from the allocator).
+    mapped: usize,
 }
 
 // SAFETY: the buffer owns its allocation exclusively, like a Vec<T>.
@@ -28,7 +34,44 @@ impl<T: Copy> AlignedBuf<T> {
         if ptr.is_null() {
             std::alloc::handle_alloc_error(layout);
         }
-        Self { ptr, len }
+        Self { ptr, len, mapped: 0 }
+    }
+
+    /// [`Self::zeroed`] for a buffer that lives as long as a model (packed
+    /// weights). On Linux a large one gets its own anonymous mapping rather
+    /// than heap memory: the heap then holds only short-lived buffers, so
+    /// freed activations are reused without leaving holes between weights
+    /// that raise peak resident memory (where large heap buffers are kept for
+    /// reuse, `recon::util::keep_freed_memory`). Elsewhere, or if the mapping
+    /// fails, it is [`Self::zeroed`].
+    pub fn zeroed_long_lived(len: usize) -> Self {
+        #[cfg(target_os = "linux")]
+        {
+            let bytes = Self::layout(len).size();
+            if bytes >= MAPPED_MIN_BYTES {
+                // SAFETY: a fresh private anonymous mapping (zero-filled by the
+                // kernel, page-aligned so 64-byte aligned); checked for failure.
+                let p = unsafe {
+                    libc::mmap(
+                        std::ptr::null_mut(),
+                        bytes,
+                        libc::PROT_READ | libc::PROT_WRITE,
+                        libc::MAP_PRIVATE | libc::MAP_ANONYMOUS,
+                        -1,
+                        0,
+                    )
+                };
+                if p != libc::MAP_FAILED {
+                    return Self { ptr: p as *mut T, len, mapped: bytes };
+                }
+            }
+        }
+        Self::zeroed(len)
+    }
+
+    /// Whether the buffer has its own mapping ([`Self::zeroed_long_lived`]).
+    pub fn is_mapped(&self) -> bool {
+        self.mapped > 0
     }
 
     pub fn len(&self) -> usize {
@@ -72,6 +115,12 @@ impl<T: Copy> std::ops::DerefMut for AlignedBuf<T> {
 
 impl<T: Copy> Drop for AlignedBuf<T> {
     fn drop(&mut self) {
+        #[cfg(target_os = "linux")]
+        if self.mapped > 0 {
+            // SAFETY: the whole mapping made in `zeroed_long_lived`, unmapped once.
+            unsafe { libc::munmap(self.ptr as *mut libc::c_void, self.mapped) };
+            return;
+        }
         // SAFETY: allocated in `zeroed` with the same layout.
         unsafe { dealloc(self.ptr as *mut u8, Self::layout(self.len)) }
     }
@@ -79,7 +128,7 @@ impl<T: Copy> Drop for AlignedBuf<T> {
 
 impl<T: Copy> Clone for AlignedBuf<T> {
     fn clone(&self) -> Self {
-        let mut b = Self::zeroed(self.len);
+        let mut b = if self.is_mapped() { Self::zeroed_long_lived(self.len) } else { Self::zeroed(self.len) };
         b.copy_from_slice(self);
         b
     }
@@ -110,5 +159,26 @@ impl<T> SendPtr<T> {
     // A method (not field access) so closures capture the whole Send wrapper.
     pub fn get(self) -> *mut T {
         self.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn long_lived_buffers_are_zeroed_aligned_and_cloned() {
+        for len in [0usize, 3, 1000, (MAPPED_MIN_BYTES / 4) + 5] {
+            let mut b = AlignedBuf::<f32>::zeroed_long_lived(len);
+            assert_eq!(b.len(), len);
+            assert_eq!(b.as_ptr() as usize % 64, 0, "64-byte aligned");
+            assert!(b.iter().all(|&v| v == 0.0), "zeroed");
+            // Large ones have their own mapping on Linux; small ones come from the heap.
+            assert_eq!(b.is_mapped(), cfg!(target_os = "linux") && len * 4 >= MAPPED_MIN_BYTES, "len {len}");
+            b.iter_mut().enumerate().for_each(|(i, v)| *v = i as f32);
+            let c = b.clone();
+            assert_eq!(c.is_mapped(), b.is_mapped());
+            assert!(c.iter().enumerate().all(|(i, &v)| v == i as f32));
+        }
     }
 }

@@ -184,13 +184,13 @@ impl PackedMatrix {
         };
         let store = match format {
             WeightFormat::F32 => {
-                let mut buf = AlignedBuf::<f32>::zeroed(panels * stride);
+                let mut buf = AlignedBuf::<f32>::zeroed_long_lived(panels * stride);
                 buf.par_chunks_mut(stride.max(1)).enumerate().for_each(|(p, dst)| fill(p, &mut |i, v| dst[i] = v));
                 Store::F32(buf)
             }
             WeightFormat::Bf16 | WeightFormat::F16 => {
                 let conv = if format == WeightFormat::Bf16 { f32_to_bf16 } else { f32_to_f16 };
-                let mut buf = AlignedBuf::<u16>::zeroed(panels * stride);
+                let mut buf = AlignedBuf::<u16>::zeroed_long_lived(panels * stride);
                 buf.par_chunks_mut(stride.max(1)).enumerate().for_each(|(p, dst)| fill(p, &mut |i, v| dst[i] = conv(v)));
                 Store::U16(buf)
             }

@@ -319,9 +319,11 @@ def audit_depth(
     CLI's files when `out` is given)."""
 
 def keep_freed_memory() -> bool:
-    """Keep large freed buffers in the process heap for reuse (glibc), as the `recon` CLI
-    does: full-size model steps stop paying page faults on every activation, for a few
-    percent more peak memory. Process-wide, hence opt-in. False where it did not apply."""
+    """Keep large freed buffers in the process heap for reuse (glibc's thresholds), for
+    every library in the process. recon's own large buffers are already reused by size
+    (the extension's allocator, as in the `recon` CLI), so this only concerns other
+    libraries; it raises peak memory a little. Process-wide, hence opt-in. False where
+    it did not apply."""
 
 def dataset_frames(source: _Path) -> List[Dict[str, Any]]:
     """The frames of a BOP dataset or YCB-Video folder: {"frame": "<scene>/<NNNNNN>", "rgb",

@@ -6,6 +6,12 @@
 
 use pyo3::prelude::*;
 
+/// recon's large buffers are reused by size, as in the `recon` CLI
+/// (`recon::util::LargeBufferCache`; `RECON_MALLOC=system` turns it off).
+/// It serves this extension's Rust allocations only, not Python's.
+#[global_allocator]
+static ALLOC: recon::util::LargeBufferCache = recon::util::LargeBufferCache;
+
 mod convert;
 mod engine;
 mod errors;

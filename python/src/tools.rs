@@ -664,9 +664,10 @@ pub fn dataset_frames<'py>(py: Python<'py>, source: PathBuf) -> PyResult<Bound<'
     to_python(py, &frames.py()?)
 }
 
-/// Keep large freed buffers in the process heap for reuse (glibc; what the `recon` CLI
-/// does at start): full-size model steps then stop paying page faults on every
-/// activation, for a few percent more peak memory. Process-wide, so opt-in from Python.
+/// Keep large freed buffers in the process heap for reuse (glibc's thresholds), for
+/// every library of the process. recon's own large buffers are already reused by
+/// size (the extension's allocator, as in the `recon` CLI), so this is only for other
+/// libraries' allocations; it raises peak memory a little. Process-wide, so opt-in.
 /// Returns whether it took effect (`False` off glibc).
 #[pyfunction]
 pub fn keep_freed_memory() -> bool {

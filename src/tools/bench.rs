@@ -43,8 +43,9 @@ pub struct MachineInfo {
     pub bf16_isa: &'static str,
     pub supported_isas: Vec<&'static str>,
     pub load_average: Option<f64>,
-    /// `heap reuse` when large freed buffers stay in the heap
-    /// (`util::keep_freed_memory`, the CLI's default), else `system`.
+    /// `buffer cache` when large buffers are reused by size
+    /// (`util::LargeBufferCache`, the CLI's allocator), `heap reuse` when
+    /// glibc keeps freed memory (`util::keep_freed_memory`), else `system`.
     pub allocator: &'static str,
 }
 
@@ -61,7 +62,13 @@ impl MachineInfo {
             bf16_isa: recon_kernels::peak::bf16_isa().name(),
             supported_isas: Isa::all_supported().into_iter().map(|i| i.name()).collect(),
             load_average: load_average(),
-            allocator: if crate::util::freed_memory_kept() { "heap reuse" } else { "system" },
+            allocator: if crate::util::buffer_cache_active() {
+                "buffer cache"
+            } else if crate::util::freed_memory_kept() {
+                "heap reuse"
+            } else {
+                "system"
+            },
         }
     }
 }

@@ -1,10 +1,13 @@
 //! Small shared helpers: JSON files with errors that name them (`json`),
-//! resource bounds for hostile inputs (`limits`), peak memory (`memory`), and the statistics several layers use.
+//! resource bounds for hostile inputs (`limits`), peak memory (`memory`), the
+//! large-buffer allocator (`buffer_cache`), and the statistics several layers use.
 
+pub(crate) mod buffer_cache;
 pub(crate) mod json;
 pub(crate) mod limits;
 pub(crate) mod memory;
 
+pub use self::buffer_cache::{buffer_cache_active, cached_buffer_bytes, release_cached_buffers, LargeBufferCache};
 pub use self::memory::{freed_memory_kept, keep_freed_memory, peak_rss_mib, reset_peak_rss};
 pub use json::{from_value, read_json};
 pub use limits::{

@@ -442,11 +442,20 @@ impl ModulatedTransformerCrossBlock {
         let ch = m.chunk(6, 1)?;
         if let Some((_, isa)) = self.compute.fast_parts() {
             // Fused kernels: LN + modulation, gated residuals (same math).
+            // Each activation is dropped as soon as it is used: at full size
+            // one is 33.5 MB, and shadowed bindings would live to the end.
             let h = fast::layer_norm(isa, x, 1e-6, Some(&(&ch[1] + 1.0)?), Some(&ch[0]))?;
-            let x = fast::gated_residual(x, &self.self_attn.forward(&h, None)?, Some(&ch[2]))?;
-            let x = fast::gated_residual(&x, &self.cross_attn.forward(&self.norm2.forward(&x)?, Some(cond))?, None)?;
-            let h = fast::layer_norm(isa, &x, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
-            return fast::gated_residual(&x, &self.mlp.forward(&h)?, Some(&ch[5]));
+            let a = self.self_attn.forward(&h, None)?;
+            drop(h);
+            let x1 = fast::gated_residual(x, &a, Some(&ch[2]))?;
+            drop(a);
+            let a = self.cross_attn.forward(&self.norm2.forward(&x1)?, Some(cond))?;
+            let x2 = fast::gated_residual(&x1, &a, None)?;
+            drop((a, x1));
+            let h = fast::layer_norm(isa, &x2, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
+            let f = self.mlp.forward(&h)?;
+            drop(h);
+            return fast::gated_residual(&x2, &f, Some(&ch[5]));
         }
         let (shift_msa, scale_msa, gate_msa) = (ch[0].unsqueeze(1)?, ch[1].unsqueeze(1)?, ch[2].unsqueeze(1)?);
         let (shift_mlp, scale_mlp, gate_mlp) = (ch[3].unsqueeze(1)?, ch[4].unsqueeze(1)?, ch[5].unsqueeze(1)?);

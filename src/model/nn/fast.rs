@@ -135,7 +135,10 @@ pub fn build_with<R>(compute: Compute, f: impl FnOnce() -> R) -> R {
         }
     }
     let _restore = Restore(BUILD.with(|b| b.replace(compute)));
-    f()
+    let r = f();
+    // The build's temporaries (f32 weights before packing) do not recur.
+    crate::util::release_cached_buffers();
+    r
 }
 
 /// The construction setting of this thread (see [`build_with`]).
