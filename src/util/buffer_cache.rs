@@ -23,7 +23,7 @@ use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
 use std::sync::Mutex;
 
 /// Smallest buffer served by the cache.
-pub const LARGE_BYTES: usize = 4 << 20;
+pub const LARGE_BYTES: usize = 16 << 20;
 /// Most bytes of freed buffers kept for reuse.
 pub const CACHE_BYTES: usize = 512 << 20;
 /// A kept buffer not reused within this many later large requests is
