@@ -202,7 +202,16 @@ fn pack_kv(afmt: AFormat, spec: &AttnSpec, k: &[f32], v: &[f32], kr: Range<usize
     let kw = a_tile_words(afmt, d);
     let ktiles = lk.div_ceil(MR);
     let (kdst, vdst) = dst.split_at_mut(ktiles * kw);
+    // Key rows lie a whole token apart (several KB): the hardware does not
+    // prefetch them, so each tile asks for the rows of the next but one.
+    let fetch_rows = |buf: &[f32], lay: &HeadLayout, rows: Range<usize>| {
+        for r in rows.start.min(lk)..rows.end.min(lk) {
+            prefetch(&buf[lay.at(kr.start + r, hh, d)..][..d]);
+        }
+    };
+    fetch_rows(k, &spec.k, 0..2 * MR);
     for t in 0..ktiles {
+        fetch_rows(k, &spec.k, (t + 2) * MR..(t + 3) * MR);
         let rows = MR.min(lk - t * MR);
         let first = spec.k.at(kr.start + t * MR, hh, d);
         // Rows of K for these keys, stride spec.k.stride.
@@ -210,9 +219,11 @@ fn pack_kv(afmt: AFormat, spec: &AttnSpec, k: &[f32], v: &[f32], kr: Range<usize
     }
     let etiles = d.div_ceil(MR);
     let vw = a_tile_words(afmt, BC);
+    fetch_rows(v, &spec.v, 0..BC);
     for bi in 0..lk.div_ceil(BC) {
         let nk = BC.min(lk - bi * BC);
         let kb = kr.start + bi * BC;
+        fetch_rows(v, &spec.v, (bi + 1) * BC..(bi + 2) * BC);
         for et in 0..etiles {
             let rows = MR.min(d - et * MR);
             let at = (bi * etiles + et) * vw;
@@ -280,9 +291,17 @@ unsafe fn attend(
     let mut l = [0f32; NR];
     let mut alpha = [0f32; NR];
 
+    let q_rows = |p: usize| p.min(qr.end)..(p + NR).min(qr.end);
+    for r in q_rows(qr.start) {
+        prefetch(&q[spec.q.at(r, hh, d)..][..d]);
+    }
     let mut p0 = qr.start;
     while p0 < qr.end {
         let nq = NR.min(qr.end - p0);
+        // The next panel's query rows (a token apart) arrive while this one computes.
+        for r in q_rows(p0 + NR) {
+            prefetch(&q[spec.q.at(r, hh, d)..][..d]);
+        }
         // Qᵀ panel (B operand over d), pre-scaled.
         pack_q_panel(fmt, qpanel, d, nq, |j| &q[spec.q.at(p0 + j, hh, d)..][..d], spec.scale);
         obuf.fill(0.0);
@@ -352,6 +371,18 @@ unsafe fn attend(
     }
 }
 
+/// Ask for the cache lines of `x` (a hint: no effect on results).
+#[inline(always)]
+fn prefetch(x: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    for c in (0..x.len()).step_by(16) {
+        // SAFETY: a prefetch never faults; the address is inside `x`.
+        unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(x.as_ptr().add(c) as *const i8) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
+}
+
 /// Pack `nq ≤ NR` query rows times `scale` as a B panel over `d`: f32
 /// `[e][j]` or bf16 pairs `[e/2][j][2]`; missing queries and the odd-d pad are zero.
 fn pack_q_panel<'a>(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, row: impl Fn(usize) -> &'a [f32], scale: f32) {
@@ -360,12 +391,16 @@ fn pack_q_panel<'a>(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, row
             // As u32 words: word (e/2, j) = bf16(q[j][e]) | bf16(q[j][e+1]) << 16.
             let words = d.div_ceil(2) * NR;
             dst[..words].fill(0);
+            let mut w = [0u32; gemm::PAIRS_CHUNK / 2];
             for j in 0..nq {
-                let r = row(j);
-                for e2 in 0..d.div_ceil(2) {
-                    let lo = gemm::f32_to_bf16(r[2 * e2] * scale) as u32;
-                    let hi = if 2 * e2 + 1 < d { gemm::f32_to_bf16(r[2 * e2 + 1] * scale) as u32 } else { 0 };
-                    dst[e2 * NR + j] = lo | (hi << 16);
+                let r = &row(j)[..d];
+                for (c, part) in r.chunks(gemm::PAIRS_CHUNK).enumerate() {
+                    let w = &mut w[..part.len().div_ceil(2)];
+                    gemm::bf16_pairs_of_row(part, scale, w);
+                    let e0 = c * gemm::PAIRS_CHUNK / 2;
+                    for (e2, &v) in w.iter().enumerate() {
+                        dst[(e0 + e2) * NR + j] = v;
+                    }
                 }
             }
         }
@@ -421,7 +456,13 @@ fn softmax_block_pairs(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l:
     if isa >= Isa::Avx512 {
         // SAFETY: the ISA is supported (checked by the caller); s holds nk rows
         // of NR and dst ceil(nk/2)·NR words.
-        unsafe { x86::softmax_block_pairs(s, nk, m, l, alpha, dst) };
+        unsafe {
+            if isa >= Isa::Avx512Bf16 {
+                x86::softmax_block_pairs_bf16(s, nk, m, l, alpha, dst)
+            } else {
+                x86::softmax_block_pairs(s, nk, m, l, alpha, dst)
+            }
+        };
         return;
     }
     softmax_block(isa, s, nk, m, l, alpha);
@@ -534,8 +575,18 @@ mod x86 {
         }
     }
 
-    #[target_feature(enable = "avx512f,avx512bw,fma")]
-    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+    /// [`super::softmax_block`] with the exponentials of each key pair
+    /// written straight to bf16 pairs by `pairs(even key, odd key)`.
+    #[inline(always)]
+    unsafe fn softmax_pairs_with(
+        s: &[f32],
+        nk: usize,
+        m: &mut [f32; NR],
+        l: &mut [f32; NR],
+        alpha: &mut [f32; NR],
+        dst: &mut [u32],
+        pairs: impl Fn(__m512, __m512) -> __m512i,
+    ) {
         let sp = s.as_ptr();
         let dp = dst.as_mut_ptr() as *mut i32;
         let (mn, mut acc) = block_start(sp, nk, m, l, alpha);
@@ -545,20 +596,47 @@ mod x86 {
                 // Summed in key order, as softmax_block does.
                 let pe = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add(j * NR + 16 * h)), mn[h]));
                 acc[h] = _mm512_add_ps(acc[h], pe);
-                let hi = if j + 1 < nk {
+                let po = if j + 1 < nk {
                     let po = exp512(_mm512_sub_ps(_mm512_loadu_ps(sp.add((j + 1) * NR + 16 * h)), mn[h]));
                     acc[h] = _mm512_add_ps(acc[h], po);
-                    rne_hi(po)
+                    po
                 } else {
-                    _mm512_setzero_si512()
+                    _mm512_setzero_ps()
                 };
-                let lo = _mm512_srli_epi32::<16>(rne_hi(pe));
-                _mm512_storeu_si512(dp.add(j2 * NR + 16 * h) as *mut __m512i, _mm512_or_si512(lo, hi));
+                _mm512_storeu_si512(dp.add(j2 * NR + 16 * h) as *mut __m512i, pairs(pe, po));
             }
         }
         for h in 0..2 {
             _mm512_storeu_ps(l.as_mut_ptr().add(16 * h), acc[h]);
         }
+    }
+
+    #[target_feature(enable = "avx512f,avx512bw,fma")]
+    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+        softmax_pairs_with(s, nk, m, l, alpha, dst, |pe, po| _mm512_or_si512(_mm512_srli_epi32::<16>(rne_hi(pe)), rne_hi(po)));
+    }
+
+    /// [`softmax_block_pairs`] rounding with `vcvtne2ps2bf16` (one instruction
+    /// for two vectors, then one word shuffle into pairs). The same bits for
+    /// every finite score: the exponentials are never subnormal (the exponent
+    /// is clamped at −87.3, above the smallest normal), where the instruction
+    /// would flush; only a NaN keeps its own payload instead of 0x7fc0.
+    #[target_feature(enable = "avx512f,avx512bw,avx512bf16,fma")]
+    pub unsafe fn softmax_block_pairs_bf16(
+        s: &[f32],
+        nk: usize,
+        m: &mut [f32; NR],
+        l: &mut [f32; NR],
+        alpha: &mut [f32; NR],
+        dst: &mut [u32],
+    ) {
+        // Words 0..16 of the conversion are the even key's, 16..32 the odd key's.
+        let idx = _mm512_set_epi16(
+            31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8, 23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0,
+        );
+        softmax_pairs_with(s, nk, m, l, alpha, dst, |pe, po| {
+            _mm512_permutexvar_epi16(idx, std::mem::transmute::<__m512bh, __m512i>(_mm512_cvtne2ps_pbh(po, pe)))
+        });
     }
 
     #[target_feature(enable = "avx512f,avx512bw,fma")]

@@ -138,6 +138,40 @@ pub fn bf16_to_f32(b: u16) -> f32 {
 pub fn round_bf16(x: f32) -> f32 {
     bf16_to_f32(f32_to_bf16(x))
 }
+/// Whether the AVX-512 conversions below may run (a CPU check std caches).
+#[inline]
+fn avx512_bw() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// Most floats [`bf16_pairs_of_row`] converts per call of its caller's
+/// stack buffer.
+pub(crate) const PAIRS_CHUNK: usize = 512;
+
+/// `out[k] = bf16(x[2k]·scale) | bf16(x[2k+1]·scale) << 16`, rounded as
+/// [`f32_to_bf16`] (a zero high half past an odd end); 16 floats at a time
+/// with AVX-512 where the CPU has it, bit for bit the same.
+pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
+    let out = &mut out[..x.len().div_ceil(2)];
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if avx512_bw() {
+        // SAFETY: AVX-512 F/BW checked; `out` holds x.len()/2 words.
+        done = unsafe { x86::bf16_pairs_of_row(x, scale, out) };
+    }
+    for k in done / 2..out.len() {
+        let lo = f32_to_bf16(x[2 * k] * scale) as u32;
+        let hi = if 2 * k + 1 < x.len() { f32_to_bf16(x[2 * k + 1] * scale) as u32 } else { 0 };
+        out[k] = lo | (hi << 16);
+    }
+}
+
 #[inline(always)]
 pub fn f32_to_f16(x: f32) -> u16 {
     half::f16::from_f32(x).to_bits()
@@ -388,6 +422,12 @@ pub(crate) fn pack_a_tile_cols<'a>(afmt: AFormat, dst: &mut [u32], rows: usize, 
             }
         }
         AFormat::Bf16Pairs => {
+            #[cfg(target_arch = "x86_64")]
+            if avx512_bw() {
+                // SAFETY: AVX-512 F/BW checked; `dst` holds the tile's kc/2 rows of MR words.
+                unsafe { x86::pack_pairs_cols(dst, rows, kc, col) };
+                return;
+            }
             for k2 in 0..kc / 2 {
                 let (lo, hi) = (&col(2 * k2)[..rows], &col(2 * k2 + 1)[..rows]);
                 for i in 0..rows {
@@ -434,14 +474,16 @@ pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize,
             if rows < MR {
                 dst[..kc.div_ceil(2) * MR].fill(0);
             }
+            let mut words = [0u32; PAIRS_CHUNK / 2];
             for i in 0..rows {
                 let src = &a[i * lda..i * lda + kc];
-                let mut pairs = src.chunks_exact(2);
-                for (k2, p) in pairs.by_ref().enumerate() {
-                    dst[k2 * MR + i] = f32_to_bf16(p[0]) as u32 | ((f32_to_bf16(p[1]) as u32) << 16);
-                }
-                if let [last] = pairs.remainder() {
-                    dst[(kc / 2) * MR + i] = f32_to_bf16(*last) as u32;
+                for (c, part) in src.chunks(PAIRS_CHUNK).enumerate() {
+                    let w = &mut words[..part.len().div_ceil(2)];
+                    bf16_pairs_of_row(part, 1.0, w);
+                    let k0 = c * PAIRS_CHUNK / 2;
+                    for (k2, &v) in w.iter().enumerate() {
+                        dst[(k0 + k2) * MR + i] = v;
+                    }
                 }
             }
         }
@@ -690,6 +732,45 @@ pub fn gemm_reference(a: &[f32], m: usize, lda: usize, b: &PackedMatrix, bias: O
 mod x86 {
     use super::{MR, NR};
     use std::arch::x86_64::*;
+
+    /// bf16 bits (round to nearest even, NaN → 0x7fc0) in the low half of each lane.
+    #[inline(always)]
+    unsafe fn bf16_bits(v: __m512) -> __m512i {
+        let b = _mm512_castps_si512(v);
+        let lsb = _mm512_and_si512(_mm512_srli_epi32::<16>(b), _mm512_set1_epi32(1));
+        let r = _mm512_srli_epi32::<16>(_mm512_add_epi32(_mm512_add_epi32(b, _mm512_set1_epi32(0x7fff)), lsb));
+        _mm512_mask_mov_epi32(r, _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(v, v), _mm512_set1_epi32(0x7fc0))
+    }
+
+    /// The whole 16-float blocks of [`super::bf16_pairs_of_row`]; returns
+    /// the floats done.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) -> usize {
+        let s = _mm512_set1_ps(scale);
+        let n = x.len() / 16 * 16;
+        for i in (0..n).step_by(16) {
+            let v = _mm512_mul_ps(_mm512_loadu_ps(x.as_ptr().add(i)), s);
+            _mm256_storeu_si256(out.as_mut_ptr().add(i / 2) as *mut __m256i, _mm512_cvtepi32_epi16(bf16_bits(v)));
+        }
+        n
+    }
+
+    /// The bf16-pairs branch of [`super::pack_a_tile_cols`]: key pairs of
+    /// two columns of `rows ≤ MR` values into one row of MR words.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub unsafe fn pack_pairs_cols<'a>(dst: &mut [u32], rows: usize, kc: usize, col: impl Fn(usize) -> &'a [f32]) {
+        let m = crate::vecmath::x86::tail_mask(rows);
+        for k2 in 0..kc.div_ceil(2) {
+            let lo = bf16_bits(_mm512_maskz_loadu_ps(m, col(2 * k2)[..rows].as_ptr()));
+            let w = if 2 * k2 + 1 < kc {
+                let hi = bf16_bits(_mm512_maskz_loadu_ps(m, col(2 * k2 + 1)[..rows].as_ptr()));
+                _mm512_or_si512(lo, _mm512_slli_epi32::<16>(hi))
+            } else {
+                lo
+            };
+            _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(k2 * MR) as *mut i32, m, w);
+        }
+    }
 
     #[inline(always)]
     fn mask(cols: usize) -> (__mmask16, __mmask16) {
@@ -965,6 +1046,74 @@ mod tests {
         let h = PackedMatrix::from_linear_weight(&w, 2, 1, WeightFormat::F16).unwrap();
         assert_eq!(h.get(0, 0), w[0]); // exact in f16 (11-bit mantissa)
         assert_eq!(b.bytes(), 2 * NR * 2);
+    }
+
+    /// The vectorised bf16-pair conversions and packs give the scalar
+    /// rounding bit for bit: ties, carries into the exponent, infinities,
+    /// NaN, denormals, odd lengths and short tiles.
+    #[test]
+    fn bf16_pair_packs_match_scalar_rounding() {
+        let mut r = Lcg(5);
+        let n = 20000;
+        let mut vals = r.vec(n, 4.0);
+        let specials = [
+            f32::from_bits(0x3f80_8000), // tie, even: stays
+            f32::from_bits(0x3f81_8000), // tie, odd: rounds up
+            f32::from_bits(0x3f7f_ffff), // carries into the exponent
+            f32::MAX,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::from_bits(1),
+            -f32::from_bits(0x007f_ffff),
+            0.0,
+            -0.0,
+        ];
+        for (i, v) in specials.iter().enumerate() {
+            for j in (i * 37..n).step_by(997) {
+                vals[j] = *v;
+            }
+        }
+        let want_pair = |x: &[f32], k: usize, scale: f32| -> u32 {
+            let lo = f32_to_bf16(x[2 * k] * scale) as u32;
+            let hi = if 2 * k + 1 < x.len() { f32_to_bf16(x[2 * k + 1] * scale) as u32 } else { 0 };
+            lo | (hi << 16)
+        };
+        for len in [0usize, 1, 2, 15, 16, 17, 31, 33, 64, 1001] {
+            for scale in [1.0f32, 0.125, 3.7] {
+                let x = &vals[len..2 * len];
+                let mut got = vec![u32::MAX; len.div_ceil(2)];
+                bf16_pairs_of_row(x, scale, &mut got);
+                for (k, &g) in got.iter().enumerate() {
+                    assert_eq!(g, want_pair(x, k, scale), "len {len} scale {scale} word {k}");
+                }
+            }
+        }
+        for rows in [1usize, 5, MR] {
+            for kc in [1usize, 2, 7, 32, 33, 600, 1025] {
+                let lda = kc + 3;
+                let a = &vals[..rows * lda];
+                let mut got = vec![7u32; a_tile_words(AFormat::Bf16Pairs, kc)];
+                pack_a_rows(AFormat::Bf16Pairs, &mut got, a, lda, rows, kc);
+                let mut cols = vec![7u32; got.len()];
+                pack_a_tile_cols(AFormat::Bf16Pairs, &mut cols, rows, kc, |k| &vals[k * MR..k * MR + MR]);
+                for k2 in 0..kc.div_ceil(2) {
+                    for i in 0..MR {
+                        let (w, wc) = if i < rows {
+                            let row = &a[i * lda..i * lda + kc];
+                            let lo = f32_to_bf16(vals[2 * k2 * MR + i]) as u32;
+                            let hi = if 2 * k2 + 1 < kc { f32_to_bf16(vals[(2 * k2 + 1) * MR + i]) as u32 } else { 0 };
+                            (want_pair(row, k2, 1.0), lo | (hi << 16))
+                        } else {
+                            (0, 0)
+                        };
+                        assert_eq!(got[k2 * MR + i], w, "rows {rows} kc {kc}: pack_a_rows word ({k2}, {i})");
+                        assert_eq!(cols[k2 * MR + i], wc, "rows {rows} kc {kc}: pack_a_tile_cols word ({k2}, {i})");
+                    }
+                }
+            }
+        }
     }
 
     /// `pack_many` gives, bit for bit, the matrices `pack_with` packs one at a time.
