@@ -25,12 +25,12 @@ use std::sync::Mutex;
 /// Smallest buffer served by the cache.
 pub const LARGE_BYTES: usize = 16 << 20;
 /// Most bytes of freed buffers kept for reuse.
-pub const CACHE_BYTES: usize = 512 << 20;
+pub const CACHE_BYTES: usize = 384 << 20;
 /// A kept buffer not reused within this many later large requests is
 /// unmapped: its size is not recurring (a model's build temporaries), and
 /// holding it would only add to resident memory. A transformer block makes
 /// about 20 large requests, so its sizes recur well within this.
-const STALE_AFTER: usize = 48;
+const STALE_AFTER: usize = 24;
 const SLOTS: usize = 64;
 const PAGE: usize = 4096;
 
