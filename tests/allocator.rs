@@ -114,6 +114,21 @@ fn main() {
     assert!(after <= settled + 4 * MIB, "resident memory crept over 30 blocks: {} → {} MiB", settled / MIB, after / MIB);
     drop(x);
 
+    // 5a. When the sizes change, new buffers are paid for with kept ones:
+    //     resident memory after the switch stays within the old sizes' peak.
+    release_cached_buffers();
+    let phase = |mib: usize, rounds: usize| {
+        for _ in 0..rounds {
+            let a: Vec<Vec<u8>> = (0..4).map(|i| vec![1u8; (mib + i) * MIB]).collect();
+            drop(std::hint::black_box(a));
+        }
+    };
+    phase(40, 3);
+    let big = rss_anon();
+    phase(20, 3);
+    let small = rss_anon();
+    assert!(small <= big + 4 * MIB, "switching sizes grew resident memory: {} → {} MiB", big / MIB, small / MIB);
+
     // 5. A size that stops recurring is unmapped after later large requests.
     release_cached_buffers();
     drop(std::hint::black_box(vec![1u8; 40 * MIB]));
@@ -126,8 +141,53 @@ fn main() {
     assert_eq!(cached_buffer_bytes(), 0);
     assert!(released >= 17 * MIB);
 
+    // 6. fork while other threads hold the cache's lock in a tight loop: every
+    //    child can still allocate a large buffer (the lock is taken around fork).
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let churn: Vec<_> = (0..2)
+        .map(|_| {
+            let stop = stop.clone();
+            std::thread::spawn(move || {
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    drop(std::hint::black_box(Vec::<u8>::with_capacity(17 * MIB)));
+                }
+            })
+        })
+        .collect();
+    let forks = 100;
+    for _ in 0..forks {
+        // SAFETY: the child only allocates, frees and exits.
+        let pid = unsafe { libc::fork() };
+        assert!(pid >= 0, "fork failed");
+        if pid == 0 {
+            let v = vec![0u8; 18 * MIB];
+            let code = if v[18 * MIB - 1] == 0 { 0 } else { 3 };
+            drop(v);
+            // SAFETY: leave the child without running the parent's exit handlers.
+            unsafe { libc::_exit(code) };
+        }
+        let t = std::time::Instant::now();
+        loop {
+            let mut status = 0;
+            // SAFETY: waits on our own child.
+            let r = unsafe { libc::waitpid(pid, &mut status, libc::WNOHANG) };
+            if r == pid {
+                assert!(libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0, "child exited with {status}");
+                break;
+            }
+            if t.elapsed() > std::time::Duration::from_secs(20) {
+                // SAFETY: our own child.
+                unsafe { libc::kill(pid, libc::SIGKILL) };
+                panic!("a child forked while the cache's lock was held never got a large buffer");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    churn.into_iter().for_each(|t| t.join().unwrap());
+
     println!(
-        "allocator: 64 MiB reallocated: {fresh} page faults fresh, {reused} reused; 30 blocks: resident {} → {} MiB",
+        "allocator: {forks} forks under contention, every child allocated; 64 MiB reallocated: {fresh} page faults fresh, {reused} reused; 30 blocks: resident {} → {} MiB",
         settled / MIB,
         after / MIB
     );

@@ -19,8 +19,8 @@
 //! allocated).
 
 use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::cell::UnsafeCell;
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
 
 /// Smallest buffer served by the cache.
 pub const LARGE_BYTES: usize = 16 << 20;
@@ -44,7 +44,69 @@ struct Kept {
     bytes: usize,
 }
 
-static KEPT: Mutex<Kept> = Mutex::new(Kept { slots: [(0, 0, 0); SLOTS], len: 0, bytes: 0 });
+/// The kept buffers behind a spin lock: critical sections are a scan of at
+/// most `SLOTS` entries, and unlike a `Mutex` the lock can be taken and
+/// released around `fork` (a child forked while another thread held it would
+/// otherwise wait forever on its first large buffer).
+struct Locked(UnsafeCell<Kept>);
+// SAFETY: the cell is only reached through `kept()`, which holds LOCK.
+unsafe impl Sync for Locked {}
+static KEPT: Locked = Locked(UnsafeCell::new(Kept { slots: [(0, 0, 0); SLOTS], len: 0, bytes: 0 }));
+static LOCK: AtomicBool = AtomicBool::new(false);
+
+fn lock() {
+    let mut spins = 0u32;
+    while LOCK.compare_exchange_weak(false, true, Ordering::Acquire, Ordering::Relaxed).is_err() {
+        spins += 1;
+        if spins < 64 {
+            std::hint::spin_loop();
+        } else {
+            std::thread::yield_now();
+        }
+    }
+}
+
+fn unlock() {
+    LOCK.store(false, Ordering::Release);
+}
+
+struct KeptGuard;
+
+impl std::ops::Deref for KeptGuard {
+    type Target = Kept;
+    fn deref(&self) -> &Kept {
+        // SAFETY: LOCK is held for the guard's lifetime.
+        unsafe { &*KEPT.0.get() }
+    }
+}
+
+impl std::ops::DerefMut for KeptGuard {
+    fn deref_mut(&mut self) -> &mut Kept {
+        // SAFETY: LOCK is held for the guard's lifetime, and there is one guard.
+        unsafe { &mut *KEPT.0.get() }
+    }
+}
+
+impl Drop for KeptGuard {
+    fn drop(&mut self) {
+        unlock();
+    }
+}
+
+#[cfg(target_os = "linux")]
+fn hold_lock_across_fork() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    extern "C" fn prepare() {
+        lock();
+    }
+    extern "C" fn release() {
+        unlock();
+    }
+    // SAFETY: registers plain functions that take and release the spin lock.
+    ONCE.call_once(|| unsafe {
+        libc::pthread_atfork(Some(prepare), Some(release), Some(release));
+    });
+}
 
 const UNDECIDED: u8 = 0;
 const ON: u8 = 1;
@@ -87,8 +149,11 @@ fn rounded(size: usize) -> usize {
     size.div_ceil(PAGE) * PAGE
 }
 
-fn kept() -> std::sync::MutexGuard<'static, Kept> {
-    KEPT.lock().unwrap_or_else(|e| e.into_inner())
+fn kept() -> KeptGuard {
+    #[cfg(target_os = "linux")]
+    hold_lock_across_fork();
+    lock();
+    KeptGuard
 }
 
 #[cfg(target_os = "linux")]
@@ -127,6 +192,18 @@ fn take(bytes: usize) -> (*mut u8, bool) {
         let mut k = kept();
         let found = k.slots[..k.len].iter().position(|s| s.1 == bytes).map(|i| k.remove(i).0);
         k.evict(&mut evicted, |s, _| s.2 + STALE_AFTER < served);
+        if found.is_none() {
+            // A new mapping is paid for with kept ones (oldest first): when the
+            // sizes change (a sampler's guided steps give way to unguided
+            // ones, a decoder moves to the next resolution) the old sizes'
+            // buffers would otherwise sit beside the new ones until stale.
+            let mut need = bytes;
+            k.evict(&mut evicted, |s, _| {
+                let go = need > 0;
+                need = need.saturating_sub(s.1);
+                go
+            });
+        }
         found
     };
     evicted.unmap();
