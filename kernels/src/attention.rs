@@ -391,17 +391,8 @@ fn pack_q_panel<'a>(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, row
             // As u32 words: word (e/2, j) = bf16(q[j][e]) | bf16(q[j][e+1]) << 16.
             let words = d.div_ceil(2) * NR;
             dst[..words].fill(0);
-            let mut w = [0u32; gemm::PAIRS_CHUNK / 2];
             for j in 0..nq {
-                let r = &row(j)[..d];
-                for (c, part) in r.chunks(gemm::PAIRS_CHUNK).enumerate() {
-                    let w = &mut w[..part.len().div_ceil(2)];
-                    gemm::bf16_pairs_of_row(part, scale, w);
-                    let e0 = c * gemm::PAIRS_CHUNK / 2;
-                    for (e2, &v) in w.iter().enumerate() {
-                        dst[(e0 + e2) * NR + j] = v;
-                    }
-                }
+                gemm::bf16_pairs_down_column(&row(j)[..d], scale, dst, NR, j);
             }
         }
         _ => {
@@ -528,6 +519,7 @@ pub fn attention_reference(spec: &AttnSpec, q: &[f32], k: &[f32], v: &[f32], seg
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::NR;
+    use crate::gemm::x86::bf16_pairs;
     use crate::vecmath::x86::exp512;
     use std::arch::x86_64::*;
 
@@ -613,7 +605,7 @@ mod x86 {
 
     #[target_feature(enable = "avx512f,avx512bw,fma")]
     pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
-        softmax_pairs_with(s, nk, m, l, alpha, dst, |pe, po| _mm512_or_si512(_mm512_srli_epi32::<16>(rne_hi(pe)), rne_hi(po)));
+        softmax_pairs_with(s, nk, m, l, alpha, dst, |pe, po| bf16_pairs(pe, po));
     }
 
     /// [`softmax_block_pairs`] rounding with `vcvtne2ps2bf16` (one instruction
@@ -648,15 +640,6 @@ mod x86 {
             _mm512_storeu_ps(p, _mm512_mul_ps(_mm512_loadu_ps(p), a0));
             _mm512_storeu_ps(p.add(16), _mm512_mul_ps(_mm512_loadu_ps(p.add(16)), a1));
         }
-    }
-
-    /// Round-to-nearest-even f32 → bf16 bits kept in the high half of each lane.
-    #[inline(always)]
-    unsafe fn rne_hi(x: __m512) -> __m512i {
-        let b = _mm512_castps_si512(x);
-        let lsb = _mm512_and_si512(_mm512_srli_epi32::<16>(b), _mm512_set1_epi32(1));
-        let r = _mm512_add_epi32(_mm512_add_epi32(b, _mm512_set1_epi32(0x7fff)), lsb);
-        _mm512_and_si512(r, _mm512_set1_epi32(0xffff_0000u32 as i32))
     }
 }
 

@@ -149,9 +149,8 @@ fn avx512_bw() -> bool {
     false
 }
 
-/// Most floats [`bf16_pairs_of_row`] converts per call of its caller's
-/// stack buffer.
-pub(crate) const PAIRS_CHUNK: usize = 512;
+/// Floats converted per pass of [`bf16_pairs_down_column`] (its stack buffer).
+const PAIRS_CHUNK: usize = 128;
 
 /// `out[k] = bf16(x[2k]·scale) | bf16(x[2k+1]·scale) << 16`, rounded as
 /// [`f32_to_bf16`] (a zero high half past an odd end); 16 floats at a time
@@ -169,6 +168,21 @@ pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
         let lo = f32_to_bf16(x[2 * k] * scale) as u32;
         let hi = if 2 * k + 1 < x.len() { f32_to_bf16(x[2 * k + 1] * scale) as u32 } else { 0 };
         out[k] = lo | (hi << 16);
+    }
+}
+
+/// Row `x` (times `scale`) as bf16 pairs down column `col` of a word matrix
+/// with `stride` words per row: `dst[k·stride + col]` = pair `k` of
+/// [`bf16_pairs_of_row`]. The layout of packed A tiles (`stride` = MR) and
+/// of attention's Qᵀ panels (`stride` = NR).
+pub(crate) fn bf16_pairs_down_column(x: &[f32], scale: f32, dst: &mut [u32], stride: usize, col: usize) {
+    let mut words = [0u32; PAIRS_CHUNK / 2];
+    for (c, part) in x.chunks(PAIRS_CHUNK).enumerate() {
+        let w = &mut words[..part.len().div_ceil(2)];
+        bf16_pairs_of_row(part, scale, w);
+        for (k, &v) in w.iter().enumerate() {
+            dst[(c * PAIRS_CHUNK / 2 + k) * stride + col] = v;
+        }
     }
 }
 
@@ -474,17 +488,8 @@ pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize,
             if rows < MR {
                 dst[..kc.div_ceil(2) * MR].fill(0);
             }
-            let mut words = [0u32; PAIRS_CHUNK / 2];
             for i in 0..rows {
-                let src = &a[i * lda..i * lda + kc];
-                for (c, part) in src.chunks(PAIRS_CHUNK).enumerate() {
-                    let w = &mut words[..part.len().div_ceil(2)];
-                    bf16_pairs_of_row(part, 1.0, w);
-                    let k0 = c * PAIRS_CHUNK / 2;
-                    for (k2, &v) in w.iter().enumerate() {
-                        dst[(k0 + k2) * MR + i] = v;
-                    }
-                }
+                bf16_pairs_down_column(&a[i * lda..i * lda + kc], 1.0, dst, MR, i);
             }
         }
     }
@@ -729,17 +734,24 @@ pub fn gemm_reference(a: &[f32], m: usize, lda: usize, b: &PackedMatrix, bias: O
 }
 
 #[cfg(target_arch = "x86_64")]
-mod x86 {
+pub(crate) mod x86 {
     use super::{MR, NR};
     use std::arch::x86_64::*;
 
-    /// bf16 bits (round to nearest even, NaN → 0x7fc0) in the low half of each lane.
+    /// bf16 bits (round to nearest even, NaN → 0x7fc0, as [`super::f32_to_bf16`])
+    /// in the low half of each lane.
     #[inline(always)]
-    unsafe fn bf16_bits(v: __m512) -> __m512i {
+    pub(crate) unsafe fn bf16_bits(v: __m512) -> __m512i {
         let b = _mm512_castps_si512(v);
         let lsb = _mm512_and_si512(_mm512_srli_epi32::<16>(b), _mm512_set1_epi32(1));
         let r = _mm512_srli_epi32::<16>(_mm512_add_epi32(_mm512_add_epi32(b, _mm512_set1_epi32(0x7fff)), lsb));
         _mm512_mask_mov_epi32(r, _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(v, v), _mm512_set1_epi32(0x7fc0))
+    }
+
+    /// Words `bf16(lo) | bf16(hi) << 16`, lane by lane.
+    #[inline(always)]
+    pub(crate) unsafe fn bf16_pairs(lo: __m512, hi: __m512) -> __m512i {
+        _mm512_or_si512(bf16_bits(lo), _mm512_slli_epi32::<16>(bf16_bits(hi)))
     }
 
     /// The whole 16-float blocks of [`super::bf16_pairs_of_row`]; returns
@@ -761,14 +773,10 @@ mod x86 {
     pub unsafe fn pack_pairs_cols<'a>(dst: &mut [u32], rows: usize, kc: usize, col: impl Fn(usize) -> &'a [f32]) {
         let m = crate::vecmath::x86::tail_mask(rows);
         for k2 in 0..kc.div_ceil(2) {
-            let lo = bf16_bits(_mm512_maskz_loadu_ps(m, col(2 * k2)[..rows].as_ptr()));
-            let w = if 2 * k2 + 1 < kc {
-                let hi = bf16_bits(_mm512_maskz_loadu_ps(m, col(2 * k2 + 1)[..rows].as_ptr()));
-                _mm512_or_si512(lo, _mm512_slli_epi32::<16>(hi))
-            } else {
-                lo
-            };
-            _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(k2 * MR) as *mut i32, m, w);
+            let lo = _mm512_maskz_loadu_ps(m, col(2 * k2)[..rows].as_ptr());
+            // An odd last key pairs with zero.
+            let hi = if 2 * k2 + 1 < kc { _mm512_maskz_loadu_ps(m, col(2 * k2 + 1)[..rows].as_ptr()) } else { _mm512_setzero_ps() };
+            _mm512_mask_storeu_epi32(dst.as_mut_ptr().add(k2 * MR) as *mut i32, m, bf16_pairs(lo, hi));
         }
     }
 

@@ -78,6 +78,7 @@ impl Lanes for Plain {
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{Lanes, L};
+    use crate::gemm::x86::bf16_bits;
     use std::arch::x86_64::*;
 
     /// One AVX-512 register; only used inside `avx512f` functions.
@@ -110,16 +111,9 @@ mod x86 {
         }
         #[inline(always)]
         fn to_bf16(self) -> [u16; L] {
-            // Round to nearest even on the bits; NaN → 0x7fc0 (as f32_to_bf16).
+            // Rounded as f32_to_bf16 (nearest even; NaN → 0x7fc0).
             let mut a = [0u16; L];
-            unsafe {
-                let b = _mm512_castps_si512(self.0);
-                let odd = _mm512_and_si512(_mm512_srli_epi32::<16>(b), _mm512_set1_epi32(1));
-                let r = _mm512_srli_epi32::<16>(_mm512_add_epi32(b, _mm512_add_epi32(_mm512_set1_epi32(0x7fff), odd)));
-                let nan = _mm512_cmp_ps_mask::<_CMP_UNORD_Q>(self.0, self.0);
-                let r = _mm512_mask_mov_epi32(r, nan, _mm512_set1_epi32(0x7fc0));
-                _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, _mm512_cvtepi32_epi16(r));
-            }
+            unsafe { _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, _mm512_cvtepi32_epi16(bf16_bits(self.0))) };
             a
         }
     }
