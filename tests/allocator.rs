@@ -114,8 +114,8 @@ fn main() {
     assert!(after <= settled + 4 * MIB, "resident memory crept over 30 blocks: {} → {} MiB", settled / MIB, after / MIB);
     drop(x);
 
-    // 5a. When the sizes change, new buffers are paid for with kept ones:
-    //     resident memory after the switch stays within the old sizes' peak.
+    // 5. When the sizes change, new buffers are paid for with kept ones:
+    //    resident memory after the switch stays within the old sizes' peak.
     release_cached_buffers();
     let phase = |mib: usize, rounds: usize| {
         for _ in 0..rounds {
@@ -129,7 +129,7 @@ fn main() {
     let small = rss_anon();
     assert!(small <= big + 4 * MIB, "switching sizes grew resident memory: {} → {} MiB", big / MIB, small / MIB);
 
-    // 5. A size that stops recurring is unmapped after later large requests.
+    // 6. A size that stops recurring is unmapped after later large requests.
     release_cached_buffers();
     drop(std::hint::black_box(vec![1u8; 40 * MIB]));
     assert!(cached_buffer_bytes() >= 40 * MIB);
@@ -141,7 +141,7 @@ fn main() {
     assert_eq!(cached_buffer_bytes(), 0);
     assert!(released >= 17 * MIB);
 
-    // 6. fork while other threads hold the cache's lock in a tight loop: every
+    // 7. fork while other threads hold the cache's lock in a tight loop: every
     //    child can still allocate a large buffer (the lock is taken around fork).
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let churn: Vec<_> = (0..2)

@@ -40,10 +40,9 @@ impl<T: Copy> AlignedBuf<T> {
     /// [`Self::zeroed`] for a buffer that lives as long as a model (packed
     /// weights). On Linux a large one gets its own anonymous mapping rather
     /// than heap memory: the heap then holds only short-lived buffers, so
-    /// freed activations are reused without leaving holes between weights
-    /// that raise peak resident memory (where large heap buffers are kept for
-    /// reuse, `recon::util::keep_freed_memory`). Elsewhere, or if the mapping
-    /// fails, it is [`Self::zeroed`].
+    /// freed ones are reused without leaving holes between weights that
+    /// raise peak resident memory. Elsewhere, or if the mapping fails, it is
+    /// [`Self::zeroed`].
     pub fn zeroed_long_lived(len: usize) -> Self {
         #[cfg(target_os = "linux")]
         {

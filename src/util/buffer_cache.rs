@@ -10,7 +10,8 @@
 //! [`LargeBufferCache`] gives every buffer of at least [`LARGE_BYTES`] its
 //! own mapping and, when it is freed, keeps the mapping for the next request
 //! of exactly the same page-rounded size (which the next block makes). Kept
-//! buffers are bounded ([`CACHE_BYTES`], oldest unmapped first) and
+//! buffers are unmapped, oldest first, beyond [`CACHE_BYTES`], when their
+//! size has not recurred for a while, and to pay for a new mapping; all are
 //! released by [`release_cached_buffers`] at stage boundaries. Smaller
 //! buffers go to the system allocator unchanged.
 //!
@@ -37,9 +38,19 @@ const PAGE: usize = 4096;
 /// Install with `#[global_allocator] static A: LargeBufferCache = LargeBufferCache;`.
 pub struct LargeBufferCache;
 
+#[derive(Clone, Copy)]
+struct Slot {
+    addr: usize,
+    bytes: usize,
+    /// SERVED when it was kept (its age in large requests).
+    kept_at: usize,
+}
+
+const EMPTY: Slot = Slot { addr: 0, bytes: 0, kept_at: 0 };
+
 struct Kept {
-    /// (address, bytes, value of SERVED when kept), oldest first.
-    slots: [(usize, usize, usize); SLOTS],
+    /// Oldest first.
+    slots: [Slot; SLOTS],
     len: usize,
     bytes: usize,
 }
@@ -51,7 +62,7 @@ struct Kept {
 struct Locked(UnsafeCell<Kept>);
 // SAFETY: the cell is only reached through `kept()`, which holds LOCK.
 unsafe impl Sync for Locked {}
-static KEPT: Locked = Locked(UnsafeCell::new(Kept { slots: [(0, 0, 0); SLOTS], len: 0, bytes: 0 }));
+static KEPT: Locked = Locked(UnsafeCell::new(Kept { slots: [EMPTY; SLOTS], len: 0, bytes: 0 }));
 static LOCK: AtomicBool = AtomicBool::new(false);
 
 fn lock() {
@@ -190,17 +201,17 @@ fn take(bytes: usize) -> (*mut u8, bool) {
     let mut evicted = Evicted::default();
     let found = {
         let mut k = kept();
-        let found = k.slots[..k.len].iter().position(|s| s.1 == bytes).map(|i| k.remove(i).0);
-        k.evict(&mut evicted, |s, _| s.2 + STALE_AFTER < served);
+        let found = k.slots[..k.len].iter().position(|s| s.bytes == bytes).map(|i| k.remove(i).addr);
+        k.evict(&mut evicted, |s| s.kept_at + STALE_AFTER < served);
         if found.is_none() {
             // A new mapping is paid for with kept ones (oldest first): when the
             // sizes change (a sampler's guided steps give way to unguided
             // ones, a decoder moves to the next resolution) the old sizes'
             // buffers would otherwise sit beside the new ones until stale.
             let mut need = bytes;
-            k.evict(&mut evicted, |s, _| {
+            k.evict(&mut evicted, |s| {
                 let go = need > 0;
-                need = need.saturating_sub(s.1);
+                need = need.saturating_sub(s.bytes);
                 go
             });
         }
@@ -225,16 +236,16 @@ fn give_back(addr: usize, bytes: usize) {
         // Oldest first, until the new one fits.
         let mut need = (k.len + 1).saturating_sub(SLOTS);
         let mut over = (k.bytes + bytes).saturating_sub(CACHE_BYTES);
-        k.evict(&mut evicted, |s, _| {
+        k.evict(&mut evicted, |s| {
             let go = need > 0 || over > 0;
             if go {
                 need = need.saturating_sub(1);
-                over = over.saturating_sub(s.1);
+                over = over.saturating_sub(s.bytes);
             }
             go
         });
         let len = k.len;
-        k.slots[len] = (addr, bytes, served);
+        k.slots[len] = Slot { addr, bytes, kept_at: served };
         k.len += 1;
         k.bytes += bytes;
     }
@@ -242,22 +253,21 @@ fn give_back(addr: usize, bytes: usize) {
 }
 
 impl Kept {
-    fn remove(&mut self, i: usize) -> (usize, usize, usize) {
+    fn remove(&mut self, i: usize) -> Slot {
         let s = self.slots[i];
         let len = self.len;
         self.slots.copy_within(i + 1..len, i);
         self.len -= 1;
-        self.bytes -= s.1;
+        self.bytes -= s.bytes;
         s
     }
 
     /// Remove the slots `go` picks (visited oldest first) into `out`.
-    fn evict(&mut self, out: &mut Evicted, mut go: impl FnMut(&(usize, usize, usize), usize) -> bool) {
+    fn evict(&mut self, out: &mut Evicted, mut go: impl FnMut(&Slot) -> bool) {
         let mut i = 0;
         while i < self.len {
-            if go(&self.slots[i], i) {
-                let s = self.remove(i);
-                out.list[out.len] = (s.0, s.1);
+            if go(&self.slots[i]) {
+                out.list[out.len] = self.remove(i);
                 out.len += 1;
             } else {
                 i += 1;
@@ -269,20 +279,20 @@ impl Kept {
 /// Mappings to unmap once the lock is released (other threads' requests
 /// need not wait on the system calls).
 struct Evicted {
-    list: [(usize, usize); SLOTS],
+    list: [Slot; SLOTS],
     len: usize,
 }
 
 impl Default for Evicted {
     fn default() -> Self {
-        Self { list: [(0, 0); SLOTS], len: 0 }
+        Self { list: [EMPTY; SLOTS], len: 0 }
     }
 }
 
 impl Evicted {
     fn unmap(&self) {
-        for &(a, b) in &self.list[..self.len] {
-            unmap(a, b);
+        for s in &self.list[..self.len] {
+            unmap(s.addr, s.bytes);
         }
     }
 }
@@ -291,9 +301,9 @@ impl Evicted {
 /// not count in the next one's resident memory). Returns the bytes released.
 pub fn release_cached_buffers() -> usize {
     let mut evicted = Evicted::default();
-    kept().evict(&mut evicted, |_, _| true);
+    kept().evict(&mut evicted, |_| true);
     evicted.unmap();
-    evicted.list[..evicted.len].iter().map(|s| s.1).sum()
+    evicted.list[..evicted.len].iter().map(|s| s.bytes).sum()
 }
 
 /// Bytes of freed large buffers kept for reuse now.

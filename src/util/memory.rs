@@ -12,9 +12,8 @@ pub fn peak_rss_mib() -> Option<f64> {
 /// Reset the peak-RSS high-water mark (Linux `clear_refs` 5), so the next
 /// reading covers only what follows; a no-op where unsupported. Free heap
 /// memory is first handed back to the OS (kept large buffers, and glibc's
-/// `malloc_trim`): otherwise
-/// memory freed by an earlier stage stays resident and the new mark starts
-/// from it.
+/// `malloc_trim`): otherwise memory freed by an earlier stage stays resident
+/// and the new mark starts from it.
 pub fn reset_peak_rss() {
     super::buffer_cache::release_cached_buffers();
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
