@@ -1,47 +1,26 @@
 //! recon: RGB-D frames + object masks → posed meshes and 3D Gaussians.
 //!
-//! Modules follow the data's path through the system, each layer importing
-//! only the layers above it in this list (`docs/ARCHITECTURE.md`; checked by
-//! `tests/layers.rs`):
+//! This crate is the `recon` command line and its tools, and a facade over the
+//! workspace's crates so that one dependency reaches all of them:
 //!
-//! - ground floor: [`error`], [`math`], [`rng`], [`util`], [`spatial`],
-//!   [`mesh`], [`gaussians`];
-//! - data: [`dataset`] (frames, masks, BOP/YCB-Video, PLY, MAT v5),
-//!   [`sensor`] (depth sensor models), [`render`] (CPU ray caster),
-//!   [`export`] (GLB, PLY, OBJ, splat PLY);
-//! - [`geometry`]: point maps, pose encodings, voxelisation;
-//! - [`model`]: the networks (stage 1, stage 2, sampler) and [`weights`];
-//! - [`engine`]: both stages on a frame, pose fitting, outputs;
-//! - applications: [`eval`], [`synth`], [`sim`], [`audit`], [`train`],
-//!   [`tools`] (bench, conformance).
+//! - the engine, [`recon_core`]: [`error`], [`math`], [`rng`], [`util`],
+//!   [`spatial`], [`mesh`], [`gaussians`], [`dataset`], [`sensor`], [`render`],
+//!   [`export`], [`geometry`], [`model`], [`weights`], [`engine`];
+//! - the applications: [`synth`] (`recon-synth`), [`eval`] (`recon-eval`),
+//!   [`sim`] (`recon-sim`), [`audit`] (`recon-audit`), [`train`] (`recon-train`);
+//! - [`tools`]: bench, conformance, fuzz targets.
+//!
+//! A program that only reconstructs objects depends on `recon-core` alone
+//! (with `default-features = false` it leaves out the hub download too).
 
-// Clippy lints allowed crate-wide, each for a reason:
-// - needless_range_loop: index loops over 3×3 matrices and channel triples read as the maths does;
-// - neg_cmp_op_on_partial_ord: `!(x > 0.0)` deliberately rejects NaN along with out-of-range values;
-// - too_many_arguments: kernel and fitting entry points take their shapes and buffers explicitly;
-// - type_complexity: tuples returned by internal helpers, used once each.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
 
-pub mod audit;
-pub mod dataset;
-pub mod engine;
-pub mod error;
-pub mod eval;
-pub mod export;
-pub mod gaussians;
-pub mod geometry;
-pub mod math;
-pub mod mesh;
-pub mod model;
-pub mod render;
-pub mod rng;
-pub mod sensor;
-pub mod sim;
-pub mod spatial;
-pub mod synth;
-pub mod tools;
-pub mod train;
-pub mod util;
-pub mod weights;
+pub use recon_audit as audit;
+pub use recon_core::{dataset, engine, error, export, gaussians, geometry, math, mesh, model, render, rng, sensor, spatial, util, weights};
+pub use recon_core::{Error, Result, SizeBound};
+pub use recon_eval as eval;
+pub use recon_sim as sim;
+pub use recon_synth as synth;
+pub use recon_train as train;
 
-pub use error::{Error, Result, SizeBound};
+pub mod tools;

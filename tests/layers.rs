@@ -1,14 +1,30 @@
-//! The layer rule of `docs/ARCHITECTURE.md`, read from the source: every
-//! `crate::…` / `super::…` / `self::…` path in `src/` (tests inside the library included)
-//! may only name its own top-level module or one listed below it in
-//! [`LAYERS`], and the files of the library import each other without a
-//! circle (test modules left out of the circle check: a test may use a
-//! sibling's helpers).
+//! The layer rule of `docs/ARCHITECTURE.md`, read from the source.
+//!
+//! - Between crates: each crate of the workspace depends only on the crates
+//!   listed before it in [`CRATES`] (the compiler then refuses any other import).
+//! - Inside `recon-core`: every `crate::…` / `super::…` / `self::…` path in
+//!   `crates/core/src/` (tests inside the library included) may only name its own
+//!   top-level module or one listed below it in [`LAYERS`].
+//! - In every crate the files import each other without a circle (test modules
+//!   left out of the circle check: a test may use a sibling's helpers).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-/// Top-level modules of the library, bottom first (the order of `docs/ARCHITECTURE.md`).
+/// The workspace's crates, bottom first, with their folders (the order of `docs/ARCHITECTURE.md`).
+const CRATES: &[(&str, &str)] = &[
+    ("recon-kernels", "crates/kernels"),
+    ("recon-core", "crates/core"),
+    ("recon-synth", "crates/synth"),
+    ("recon-eval", "crates/eval"),
+    ("recon-sim", "crates/sim"),
+    ("recon-audit", "crates/audit"),
+    ("recon-train", "crates/train"),
+    ("recon", "."),
+    ("recon-python", "python"),
+];
+
+/// Top-level modules of `recon-core`, bottom first (the order of `docs/ARCHITECTURE.md`).
 const LAYERS: &[&str] = &[
     "error",
     "math",
@@ -25,12 +41,6 @@ const LAYERS: &[&str] = &[
     "model",
     "weights",
     "engine",
-    "eval",
-    "synth",
-    "sim",
-    "audit",
-    "train",
-    "tools",
 ];
 
 /// A source file of the library: its module path and its code, with comments
@@ -43,8 +53,12 @@ struct Source {
     children: BTreeSet<String>,
 }
 
-fn src_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("src")
+fn workspace() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn core_dir() -> PathBuf {
+    workspace().join("crates/core/src")
 }
 
 fn rs_files(dir: &Path, out: &mut Vec<PathBuf>) {
@@ -145,13 +159,12 @@ fn split_tests(code: &str) -> (String, String) {
     (main, tests)
 }
 
-fn read_sources() -> BTreeMap<Vec<String>, Source> {
-    let root = src_dir();
+fn read_sources(root: &Path) -> BTreeMap<Vec<String>, Source> {
     let mut files = Vec::new();
-    rs_files(&root, &mut files);
+    rs_files(root, &mut files);
     let mut out = BTreeMap::new();
     for f in files {
-        let rel = f.strip_prefix(&root).unwrap().to_path_buf();
+        let rel = f.strip_prefix(root).unwrap().to_path_buf();
         // The binary (`main.rs`, `cli/`) is a separate crate on top of the library.
         if rel.starts_with("cli") || rel == Path::new("main.rs") {
             continue;
@@ -266,7 +279,7 @@ fn rank(top: &str) -> Option<usize> {
 
 #[test]
 fn every_top_level_module_has_a_layer() {
-    let sources = read_sources();
+    let sources = read_sources(&core_dir());
     let tops: BTreeSet<String> = sources.keys().filter_map(|m| m.first().cloned()).collect();
     let missing: Vec<&String> = tops.iter().filter(|t| rank(t).is_none()).collect();
     assert!(missing.is_empty(), "modules without a layer in LAYERS (and docs/ARCHITECTURE.md): {missing:?}");
@@ -274,7 +287,7 @@ fn every_top_level_module_has_a_layer() {
 
 #[test]
 fn no_module_imports_a_layer_above_it() {
-    let sources = read_sources();
+    let sources = read_sources(&core_dir());
     let mut upward = Vec::new();
     for src in sources.values() {
         let Some(from) = src.module.first() else { continue };
@@ -297,11 +310,46 @@ fn no_module_imports_a_layer_above_it() {
 
 #[test]
 fn files_import_each_other_without_circles() {
-    let sources = read_sources();
+    let mut circles = Vec::new();
+    for (name, dir) in CRATES {
+        for c in circles_in(&read_sources(&workspace().join(dir).join("src"))) {
+            circles.push(format!("{name}: {c}"));
+        }
+    }
+    assert!(circles.is_empty(), "{} import circle(s):\n{}", circles.len(), circles.join("\n"));
+}
+
+/// Each crate's `recon-*` dependencies come before it in [`CRATES`].
+#[test]
+fn crates_depend_only_on_crates_below_them() {
+    let mut upward = Vec::new();
+    for (i, (name, dir)) in CRATES.iter().enumerate() {
+        let manifest = std::fs::read_to_string(workspace().join(dir).join("Cargo.toml")).unwrap();
+        // Dependencies are the `recon-…` keys at the start of a line in a dependencies table.
+        let mut in_deps = false;
+        for line in manifest.lines() {
+            let l = line.trim();
+            if l.starts_with('[') {
+                in_deps = l.ends_with("dependencies]");
+                continue;
+            }
+            let Some(dep) = l.split(['=', '.', ' ']).next().filter(|d| in_deps && d.starts_with("recon")) else { continue };
+            match CRATES.iter().position(|(n, _)| *n == dep) {
+                Some(j) if j < i => {}
+                Some(_) => upward.push(format!("{name} -> {dep}")),
+                None => upward.push(format!("{name} -> {dep} (not in CRATES)")),
+            }
+        }
+    }
+    assert!(upward.is_empty(), "crate dependencies out of order:\n{}", upward.join("\n"));
+}
+
+/// The import circles among one crate's files.
+fn circles_in(sources: &BTreeMap<Vec<String>, Source>) -> Vec<String> {
     let mut edges: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = BTreeMap::new();
     for src in sources.values() {
         for p in paths(src, &src.code) {
-            if let Some(to) = resolve(&sources, &p) {
+            if let Some(to) = resolve(sources, &p) {
                 if to != src.module {
                     edges.entry(src.module.clone()).or_default().insert(to);
                 }
@@ -341,7 +389,7 @@ fn files_import_each_other_without_circles() {
             visit(n, &edges, &mut state, &mut stack, &mut circles);
         }
     }
-    assert!(circles.is_empty(), "{} import circle(s):\n{}", circles.len(), circles.join("\n"));
+    circles
 }
 
 /// The checker itself: a planted upward import and a planted circle are found.

@@ -1,0 +1,146 @@
+//! `recon audit`: compare measured with simulated data, find what the simulation
+//! gets wrong, name the cause, extend the sensor model and measure the gain.
+//!
+//! - [`table`]: the residual table (measured, simulated, missing, unit, covariates);
+//! - [`depth`]: building it from a BOP / YCB-Video dataset and a sensor model;
+//! - [`fit`]: the residual model and its maximum-likelihood fit;
+//! - [`search`]: candidate effects, held-out testing by unit, greedy selection;
+//! - [`outliers`]: is the fit's outlier component structured (rate and sign by covariate)?
+//! - [`report`]: report JSON (schema in its docs), summary, plots; [`cause`]: the words;
+//! - [`stats`]: t / χ² tails, robust statistics, a small SPD solver.
+
+// Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+pub(crate) mod cause;
+pub(crate) mod depth;
+pub(crate) mod fit;
+pub(crate) mod outliers;
+pub(crate) mod report;
+pub(crate) mod search;
+pub(crate) mod stats;
+pub(crate) mod table;
+pub use self::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
+pub use self::search::{Round, SearchOptions, SearchResult, Selected, Uncertainty};
+pub use self::table::ResidualTable;
+
+use fit::Ctx;
+use recon_core::sensor::SensorModel;
+use recon_core::{Error, Result};
+use report::{InputPrediction, Report};
+use std::path::{Path, PathBuf};
+
+/// A finished audit: the report, the extended sensor model (depth audits) and the plots
+/// (file name, SVG text).
+pub struct Audit {
+    pub report: Report,
+    pub extended: Option<SensorModel>,
+    pub plots: Vec<(String, String)>,
+}
+
+/// Audits any table of measured vs simulated values (`recon audit table`).
+pub fn audit_table(table: &ResidualTable, opts: &SearchOptions) -> Result<Audit> {
+    run(table, opts, "table", None)
+}
+
+/// Audits a depth residual table built against `model` (`recon audit depth`): findings
+/// become effects of the extended model.
+pub fn audit_depth(table: &ResidualTable, opts: &SearchOptions, model: &SensorModel) -> Result<Audit> {
+    run(table, opts, "depth", Some(model))
+}
+
+fn run(table: &ResidualTable, opts: &SearchOptions, kind: &str, model: Option<&SensorModel>) -> Result<Audit> {
+    let ctx = Ctx::new(table, opts.robust);
+    let res = search::search(&ctx, opts)?;
+    let input = InputPrediction { noise: model.map(|m| m.noise_m), dropout: model.map(|m| m.dropout) };
+    let built = report::build(&ctx, &res, opts, kind, &input, model.is_some());
+    let extended = model.map(|m| {
+        let full = res.final_cv.full();
+        let mut e = m.clone();
+        e.name = if m.name.is_empty() { "audited".into() } else { format!("{} (audited)", m.name) };
+        e.bias_m += full.bias;
+        e.noise_m = full.noise(&ctx);
+        e.dropout = full.dropout.clamp(0.0, 1.0);
+        for f in &built.report.findings {
+            if let Some(eff) = &f.effect {
+                e.effects.push(eff.clone());
+            }
+        }
+        e
+    });
+    let mm = table.value_unit == "m";
+    let plots = built
+        .report
+        .findings
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let col = table.column(&f.covariate).expect("finding column exists");
+            let by = f.by.as_ref().map(|b| format!("_x_{b}")).unwrap_or_default();
+            (
+                format!("finding{}_{}_{}_{}{by}.svg", i + 1, f.target, f.form, safe(&f.covariate)),
+                report::finding_svg(&ctx, f, col, &built.before, &built.after, mm),
+            )
+        })
+        .collect();
+    Ok(Audit { report: built.report, extended, plots })
+}
+
+fn safe(s: &str) -> String {
+    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
+}
+
+/// Marker written last into an audit output folder.
+pub const MARKER: &str = "recon-audit.json";
+
+/// Writes `report.json`, `summary.txt`, `sensor_extended.json` (depth) and the plots
+/// into `out` through a staging folder (an interrupted run leaves no complete-looking
+/// output; an existing folder is replaced only if it is an earlier audit output), and
+/// the report JSON also to `json` when given. Sets the report's `extended_model`.
+pub fn write_outputs(audit: &mut Audit, out: &Path, json: Option<&Path>) -> Result<Vec<PathBuf>> {
+    if out.exists() {
+        let empty = std::fs::read_dir(out).map(|mut d| d.next().is_none()).unwrap_or(false);
+        if !empty && !out.join(MARKER).exists() {
+            return Err(Error::input(
+                out.display().to_string(),
+                format!("output folder exists and is not a recon audit output (no {MARKER}); remove it or choose another --out"),
+            ));
+        }
+    }
+    let staging = out.with_extension("partial");
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging).map_err(|e| Error::io(&staging, e))?;
+    }
+    std::fs::create_dir_all(staging.join("plots")).map_err(|e| Error::io(&staging, e))?;
+    let mut written = vec![];
+    if let Some(m) = &audit.extended {
+        m.save(&staging.join("sensor_extended.json"))?;
+        let p = out.join("sensor_extended.json");
+        audit.report.extended_model = Some(p.display().to_string());
+        written.push(p);
+    }
+    let text = serde_json::to_string_pretty(&audit.report).map_err(|e| Error::msg(e.to_string()))?;
+    let put = |name: &str, body: &str| -> Result<()> {
+        let p = staging.join(name);
+        std::fs::write(&p, body).map_err(|e| Error::io(&p, e))
+    };
+    put("report.json", &text)?;
+    put("summary.txt", &audit.report.summary())?;
+    written.push(out.join("report.json"));
+    written.push(out.join("summary.txt"));
+    for (name, svg) in &audit.plots {
+        put(&format!("plots/{name}"), svg)?;
+        written.push(out.join("plots").join(name));
+    }
+    put(MARKER, &serde_json::json!({"report": "report.json", "files": written}).to_string())?;
+    if out.exists() {
+        std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
+    }
+    std::fs::rename(&staging, out).map_err(|e| Error::io(out, e))?;
+    if let Some(j) = json {
+        let tmp = j.with_extension("json.partial");
+        std::fs::write(&tmp, &text).map_err(|e| Error::io(&tmp, e))?;
+        std::fs::rename(&tmp, j).map_err(|e| Error::io(j, e))?;
+        written.push(j.to_path_buf());
+    }
+    Ok(written)
+}

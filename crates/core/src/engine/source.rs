@@ -1,0 +1,204 @@
+//! Where an [`Engine`](crate::engine::infer::Engine)'s model comes from: the
+//! trained default that ships with recon, a folder, a weights manifest, or
+//! random weights. The CLI's `--weights` and `--config` map onto this
+//! ([`ModelSource::parse`]), so every front end loads a model the same way.
+
+use crate::weights::manifest::{Manifest, EMBEDDED};
+use crate::{Error, Result};
+use std::path::{Path, PathBuf};
+
+/// A model: its weights and, where it is not implied, its architecture file.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ModelSource {
+    /// The trained recgen-nano: `models/recgen-nano/` in the working folder
+    /// when it holds a complete model (a checkout, possibly retrained), else
+    /// the copy compiled into recon (unpacked once under `$RECON_CACHE`,
+    /// `$XDG_CACHE_HOME/recon` or `~/.cache/recon`).
+    Default,
+    /// `<module>.safetensors` per module; the architecture file is the JSON in
+    /// the folder holding an `ss_flow` section unless `config` names one
+    /// (`models/recgen-tiny.json` when the folder holds none).
+    Dir { dir: PathBuf, config: Option<PathBuf> },
+    /// A weights manifest (`recgen`, or a manifest file) resolved in the
+    /// Hugging Face cache after `recon weights fetch`; architecture
+    /// `models/recgen-large.json` unless `config` names one.
+    Manifest { name: String, config: Option<PathBuf>, cache: PathBuf },
+    /// Random weights (`models/recgen-tiny.json` unless `config` names an
+    /// architecture): the plumbing is real, the shapes and poses are not.
+    Random { config: Option<PathBuf>, seed: u64 },
+}
+
+impl ModelSource {
+    /// From the `--weights` / `weights=` convention: none → the default,
+    /// `random`, a folder, or a manifest name or file. `config` overrides the
+    /// architecture file; `seed` seeds random weights.
+    pub fn parse(weights: Option<&str>, config: Option<&Path>, seed: u64) -> Result<Self> {
+        let config = config.map(Path::to_path_buf);
+        let Some(w) = weights else {
+            return Ok(match config {
+                None => ModelSource::Default,
+                Some(c) => ModelSource::Dir { dir: default_model_dir()?, config: Some(c) },
+            });
+        };
+        if w == "random" {
+            return Ok(ModelSource::Random { config, seed });
+        }
+        let p = Path::new(w);
+        if p.is_dir() {
+            return Ok(ModelSource::Dir { dir: p.to_path_buf(), config });
+        }
+        if EMBEDDED.iter().any(|(n, _)| *n == w) || (p.is_file() && Manifest::load(w).is_ok()) {
+            return Ok(ModelSource::Manifest { name: w.to_string(), config, cache: crate::weights::fetch::default_hf_cache() });
+        }
+        let known: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
+        Err(Error::input(
+            "--weights",
+            format!("`{w}`: not a directory, and not `random`, a manifest name ({}) or a manifest file", known.join(", ")),
+        ))
+    }
+
+    /// Load options for `dtype` on this source's architecture (`auto` resolved).
+    pub fn load_options(&self, dtype: crate::engine::pipeline::Dtype) -> Result<crate::engine::pipeline::LoadOptions> {
+        let arch = crate::model::RecGenConfig::load(&self.architecture()?)?;
+        Ok(crate::engine::pipeline::LoadOptions::precision(dtype.resolve(&arch)?))
+    }
+
+    /// The architecture file this source is built with.
+    pub fn architecture(&self) -> Result<PathBuf> {
+        Ok(match self {
+            ModelSource::Default => find_architecture(&default_model_dir()?)?,
+            // A trained folder carries its architecture file (`recon train slat-flow`).
+            ModelSource::Dir { dir, config } => match config {
+                Some(c) => c.clone(),
+                None => find_architecture(dir).unwrap_or_else(|_| PathBuf::from("models/recgen-tiny.json")),
+            },
+            ModelSource::Manifest { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-large.json")),
+            ModelSource::Random { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-tiny.json")),
+        })
+    }
+}
+
+/// The architecture file of a trained folder: the one JSON holding an `ss_flow` section.
+pub fn find_architecture(dir: &Path) -> Result<PathBuf> {
+    let mut found = Vec::new();
+    for e in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
+        let p = e.map_err(|e| Error::io(dir, e))?.path();
+        if p.extension().is_some_and(|x| x == "json") {
+            let v: Option<serde_json::Value> = std::fs::read_to_string(&p).ok().and_then(|s| serde_json::from_str(&s).ok());
+            if v.is_some_and(|v| v.get("ss_flow").is_some()) {
+                found.push(p);
+            }
+        }
+    }
+    found.sort();
+    match found.len() {
+        1 => Ok(found.remove(0)),
+        0 => Err(Error::input(dir.display().to_string(), "no architecture file (a JSON with an `ss_flow` section); pass --config")),
+        _ => Err(Error::input(dir.display().to_string(), format!("several architecture files ({found:?}); pass --config"))),
+    }
+}
+
+/// The trained recgen-nano, compiled in so that recon has its trained default
+/// wherever it runs (the files of models/recgen-nano/ at build time).
+const EMBEDDED_NANO: [(&str, &[u8]); 8] = [
+    ("recgen-nano.json", include_bytes!("../../../../models/recgen-nano/recgen-nano.json")),
+    ("pose_stats.json", include_bytes!("../../../../models/recgen-nano/pose_stats.json")),
+    ("image_cond_model.safetensors", include_bytes!("../../../../models/recgen-nano/image_cond_model.safetensors")),
+    ("ss_flow.safetensors", include_bytes!("../../../../models/recgen-nano/ss_flow.safetensors")),
+    ("ss_decoder.safetensors", include_bytes!("../../../../models/recgen-nano/ss_decoder.safetensors")),
+    ("slat_flow.safetensors", include_bytes!("../../../../models/recgen-nano/slat_flow.safetensors")),
+    ("slat_dec_mesh.safetensors", include_bytes!("../../../../models/recgen-nano/slat_dec_mesh.safetensors")),
+    ("slat_dec_gs.safetensors", include_bytes!("../../../../models/recgen-nano/slat_dec_gs.safetensors")),
+];
+
+/// The default model's folder: models/recgen-nano/ in the working folder when
+/// it holds a complete model, else the embedded copy unpacked.
+pub fn default_model_dir() -> Result<PathBuf> {
+    let local = Path::new("models/recgen-nano");
+    if local.join("slat_flow.safetensors").is_file() && local.join("recgen-nano.json").is_file() {
+        return Ok(local.to_path_buf());
+    }
+    embedded_model_in(&cache_root())
+}
+
+/// Where the embedded model is unpacked: `$RECON_CACHE`, else `$XDG_CACHE_HOME/recon`,
+/// else `~/.cache/recon`, else the temporary folder.
+fn cache_root() -> PathBuf {
+    let env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    env("RECON_CACHE")
+        .or_else(|| env("XDG_CACHE_HOME").map(|p| p.join("recon")))
+        .or_else(|| env("HOME").map(|p| p.join(".cache/recon")))
+        .unwrap_or_else(|| std::env::temp_dir().join("recon"))
+}
+
+/// The embedded recgen-nano as a folder under `root`: unpacked once per content
+/// (the folder name carries a hash of every file), written beside and renamed
+/// into place so a half-written copy is never used.
+pub fn embedded_model_in(root: &Path) -> Result<PathBuf> {
+    // FNV-1a over names and contents: a changed model gets a new folder.
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for (name, bytes) in EMBEDDED_NANO {
+        for &b in name.as_bytes().iter().chain(bytes.iter()) {
+            h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
+        }
+    }
+    let dir = root.join(format!("recgen-nano-{h:016x}"));
+    if dir.join("recgen-nano.json").is_file() {
+        return Ok(dir);
+    }
+    let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).map_err(|e| {
+        Error::input(
+            tmp.display().to_string(),
+            format!("cannot unpack the embedded recgen-nano here ({e}); set RECON_CACHE to a writable folder"),
+        )
+    })?;
+    for (name, bytes) in EMBEDDED_NANO {
+        std::fs::write(tmp.join(name), bytes).map_err(|e| Error::io(tmp.join(name), e))?;
+    }
+    match std::fs::rename(&tmp, &dir) {
+        Ok(()) => Ok(dir),
+        // Another process unpacked it first.
+        Err(_) if dir.join("recgen-nano.json").is_file() => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            Ok(dir)
+        }
+        Err(e) => Err(Error::io(&dir, e)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_model_unpacks_the_shipped_files_once() {
+        let root = std::env::temp_dir().join(format!("recon-embedded-test-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let dir = embedded_model_in(&root).unwrap();
+        let shipped = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano");
+        for (name, _) in EMBEDDED_NANO {
+            assert_eq!(std::fs::read(dir.join(name)).unwrap(), std::fs::read(shipped.join(name)).unwrap(), "{name}");
+        }
+        // Reused, and nothing half-written is left beside it.
+        assert_eq!(embedded_model_in(&root).unwrap(), dir);
+        let entries: Vec<_> = std::fs::read_dir(&root).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(entries.len(), 1, "{entries:?}");
+        let _ = std::fs::remove_dir_all(&root);
+    }
+
+    #[test]
+    fn weights_arguments_map_to_sources() {
+        assert_eq!(ModelSource::parse(None, None, 1).unwrap(), ModelSource::Default);
+        assert_eq!(ModelSource::parse(Some("random"), None, 7).unwrap(), ModelSource::Random { config: None, seed: 7 });
+        let tiny = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
+        let r = ModelSource::parse(Some("random"), Some(&tiny), 7).unwrap();
+        assert_eq!(r.architecture().unwrap(), tiny);
+        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano");
+        let d = ModelSource::parse(dir.to_str(), None, 0).unwrap();
+        assert_eq!(d, ModelSource::Dir { dir: dir.clone(), config: None });
+        assert_eq!(d.architecture().unwrap(), dir.join("recgen-nano.json"));
+        let e = ModelSource::parse(Some("/no/such/weights"), None, 0).unwrap_err().to_string();
+        assert!(e.contains("--weights") && e.contains("/no/such/weights") && e.contains("recgen"), "{e}");
+    }
+}

@@ -1,0 +1,263 @@
+//! `recon eval --method recgen`: the model itself as the predictor. Every
+//! GT instance of every frame is reconstructed from its visible mask (the
+//! inference path of `recon infer`: preprocessing, both stages, samples and
+//! pose selection, decimation), and its camera-frame mesh is written as the
+//! prediction (identity placement, `model_frame: false`: the surface
+//! metrics ADD-SB, CD_norm, DRE and F1 score it; ADD/ADD-S need a GT-model
+//! frame and are not defined).
+//!
+//! **Two views** ([`recgen_dataset`] with `two_view`): each frame is paired
+//! with the next frame of its scene (cyclically) and every object seen in
+//! both is reconstructed from both (RecGen two-view conditioning, the
+//! relative camera pose from the frames' world poses, pose selection across
+//! views); results stay in the first frame's camera, scored against its GT.
+
+use std::path::{Path, PathBuf};
+
+use crate::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use crate::report::in_occlusion;
+use crate::report::Prediction;
+use recon_core::dataset::bop::{Dataset, Frame};
+use recon_core::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
+use recon_core::dataset::masks::{InstanceMap, ObjectMask};
+use recon_core::engine::infer::{Engine, InferOptions, SecondView};
+use recon_core::geometry::pose::Pose;
+use recon_core::math::Similarity;
+use recon_core::mesh::Mesh;
+use recon_core::{Error, Result};
+
+pub struct RecgenPrediction {
+    pub prediction: Prediction,
+    /// Camera frame, metres.
+    pub mesh: Mesh,
+    /// The selected pose: canonical object frame → camera (metres), and the
+    /// number of views the object was reconstructed from.
+    pub pose: Pose,
+    pub views: usize,
+}
+
+impl RecgenPrediction {
+    /// One line of `recon-output.json`'s `poses` (what the model predicted, for diagnosis).
+    pub fn pose_record(&self) -> serde_json::Value {
+        let p = &self.prediction;
+        serde_json::json!({
+            "scene": p.scene, "frame": p.frame, "gt_index": p.gt_index, "obj_id": p.obj_id,
+            "rotation": self.pose.rotation, "translation_m": self.pose.translation, "scale_m": self.pose.scale, "views": self.views,
+        })
+    }
+}
+
+/// Camera 2 → camera 1 of two frames with world poses (`None` without them).
+pub fn relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
+    let ((r1, t1), (r2, t2)) = (f1.cam_w2c?, f2.cam_w2c?);
+    // T_c1_c2 = T_c1_w · T_c2_w⁻¹
+    Some(Similarity::rigid(r1, t1).compose(&(Similarity::rigid(r2, t2)).inverse()))
+}
+
+/// The frame paired with frame `i` for two-view evaluation: the next frame of
+/// its scene (cyclically), when the scene has another frame and both have world poses.
+pub fn partner(ds: &Dataset, i: usize) -> Option<usize> {
+    let f = &ds.frames[i];
+    let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
+    if same.len() < 2 || f.cam_w2c.is_none() {
+        return None;
+    }
+    let pos = same.iter().position(|&j| j == i)?;
+    let j = same[(pos + 1) % same.len()];
+    ds.frames[j].cam_w2c.is_some().then_some(j)
+}
+
+#[derive(Default)]
+pub struct RecgenRun {
+    pub predictions: Vec<RecgenPrediction>,
+    pub skipped: Vec<ObservedSkip>,
+    pub seconds_model: f64,
+}
+
+fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
+    let at = || format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame);
+    let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2]).map_err(|e| Error::input(at(), e.to_string()))?;
+    let fo =
+        FrameOptions { depth: Some(ds.depth_path(f)), intrinsics: Some(k), intrinsics_file: None, depth_scale_m: Some(f.depth_scale_m) };
+    RgbdFrame::open(&ds.rgb_path(f), &fo)
+}
+
+/// Reconstructs every GT instance of one frame; with `second`, objects also
+/// visible there (matched by `obj_id`) are reconstructed from both frames.
+/// With `occlusion`, only GT instances in that occlusion range (percent,
+/// [`in_occlusion`]) are reconstructed.
+pub fn recgen_frame(
+    ds: &Dataset,
+    f: &Frame,
+    second: Option<&Frame>,
+    engine: &Engine,
+    opts: &InferOptions,
+    occlusion: Option<[f64; 2]>,
+) -> Result<RecgenRun> {
+    let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
+    let mut run = RecgenRun::default();
+    if !(0..f.gt.len()).any(keep) {
+        return Ok(run);
+    }
+    let frame = open_frame(ds, f)?;
+    let mut label: Option<InstanceMap> = None;
+    let mut masks = Vec::with_capacity(f.gt.len());
+    for gi in (0..f.gt.len()).filter(|&gi| keep(gi)) {
+        let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
+        masks.push(ObjectMask { id: Some(gi as u32), label: format!("gt {gi}"), width: w, height: h, mask });
+    }
+    let second = match second {
+        Some(f2) => {
+            let rel = relative_pose(f, f2).ok_or_else(|| {
+                Error::input(
+                    ds.root.display().to_string(),
+                    format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for two views", f.scene, f.frame, f2.frame),
+                )
+            })?;
+            let frame2 = open_frame(ds, f2)?;
+            let mut label2: Option<InstanceMap> = None;
+            let mut masks2 = Vec::new();
+            for (gj, g2) in f2.gt.iter().enumerate() {
+                // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
+                let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
+                let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
+                if mask.iter().any(|&b| b) {
+                    masks2.push(ObjectMask { id: Some(gi as u32), label: format!("view 2 gt {gj}"), width: w, height: h, mask });
+                }
+            }
+            Some((frame2, masks2, rel))
+        }
+        None => None,
+    };
+    let t0 = std::time::Instant::now();
+    let r = match second {
+        Some((frame2, masks2, rel)) => {
+            engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?
+        }
+        None => engine.reconstruct(&frame, masks, opts)?,
+    };
+    run.seconds_model = t0.elapsed().as_secs_f64();
+    for s in r.skipped {
+        let gi: usize = s.label.trim_start_matches("gt ").parse().unwrap_or(usize::MAX);
+        let obj_id = f.gt.get(gi).map_or(0, |g| g.obj_id);
+        run.skipped.push(ObservedSkip { scene: f.scene.clone(), frame: f.frame, gt_index: gi, obj_id, reason: s.to_string() });
+    }
+    for o in r.objects {
+        let gi = o.id.ok_or_else(|| Error::msg("recgen eval: object without id"))? as usize;
+        let obj_id = f.gt[gi].obj_id;
+        let Some(mesh) = o.mesh_camera else {
+            run.skipped.push(ObservedSkip {
+                scene: f.scene.clone(),
+                frame: f.frame,
+                gt_index: gi,
+                obj_id,
+                reason: "no mesh decoded".into(),
+            });
+            continue;
+        };
+        if mesh.faces.is_empty() {
+            run.skipped.push(ObservedSkip { scene: f.scene.clone(), frame: f.frame, gt_index: gi, obj_id, reason: "empty mesh".into() });
+            continue;
+        }
+        let prediction = Prediction {
+            scene: f.scene.clone(),
+            frame: f.frame,
+            obj_id,
+            gt_index: Some(gi),
+            r: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            t: [0.0; 3],
+            scale: 1.0,
+            mesh: Some(PathBuf::from("meshes").join(mesh_name(&f.scene, f.frame, gi, obj_id))),
+            model_frame: false,
+        };
+        run.predictions.push(RecgenPrediction { prediction, mesh, pose: o.pose_camera, views: o.views.len() });
+    }
+    Ok(run)
+}
+
+/// Every frame of `ds`, in order (with `two_view`, each with its `partner`;
+/// frames without one are reconstructed from one view); `progress(done, total)` after each frame.
+pub fn recgen_dataset(
+    ds: &Dataset,
+    engine: &Engine,
+    opts: &InferOptions,
+    two_view: bool,
+    occlusion: Option<[f64; 2]>,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RecgenRun> {
+    let mut all = RecgenRun::default();
+    for (i, f) in ds.frames.iter().enumerate() {
+        let second = if two_view { partner(ds, i).map(|j| &ds.frames[j]) } else { None };
+        let r = recgen_frame(ds, f, second, engine, opts, occlusion)?;
+        all.predictions.extend(r.predictions);
+        all.skipped.extend(r.skipped);
+        all.seconds_model += r.seconds_model;
+        progress(i + 1, ds.frames.len());
+    }
+    Ok(all)
+}
+
+impl RecgenRun {
+    /// Writes `dir/predictions.json` and `dir/meshes/*.ply` (camera frame, metres).
+    pub fn write(&self, dir: &Path) -> Result<PathBuf> {
+        write_predictions(dir, self.predictions.iter().map(|p| (&p.prediction, std::borrow::Cow::Borrowed(&p.mesh))))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rot(axis: usize, a: f64) -> [[f64; 3]; 3] {
+        let (c, s) = (a.cos(), a.sin());
+        let (i, j) = ((axis + 1) % 3, (axis + 2) % 3);
+        let mut r = [[0.0; 3]; 3];
+        r[axis][axis] = 1.0;
+        r[i][i] = c;
+        r[i][j] = -s;
+        r[j][i] = s;
+        r[j][j] = c;
+        r
+    }
+
+    fn frame(scene: &str, id: u32, w2c: Option<([[f64; 3]; 3], [f64; 3])>) -> Frame {
+        Frame {
+            scene: scene.into(),
+            frame: id,
+            k: [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]],
+            depth_scale_m: 1e-3,
+            gt: Vec::new(),
+            cam_w2c: w2c,
+        }
+    }
+
+    fn apply(r: &[[f64; 3]; 3], t: &[f64; 3], x: &[f64; 3]) -> [f64; 3] {
+        std::array::from_fn(|i| (0..3).map(|k| r[i][k] * x[k]).sum::<f64>() + t[i])
+    }
+
+    #[test]
+    fn relative_pose_maps_camera_2_points_to_camera_1() {
+        let (r1, t1) = (rot(0, 0.7), [0.1, -0.2, 0.9]);
+        let (r2, t2) = (rot(1, -1.1), [-0.3, 0.05, 1.2]);
+        let f1 = frame("a", 0, Some((r1, t1)));
+        let f2 = frame("a", 1, Some((r2, t2)));
+        let rel = relative_pose(&f1, &f2).unwrap();
+        let xw = [0.2, 0.4, -0.1];
+        let (x1, x2) = (apply(&r1, &t1, &xw), apply(&r2, &t2, &xw));
+        let got = apply(&rel.rotation, &rel.translation, &x2);
+        for k in 0..3 {
+            assert!((got[k] - x1[k]).abs() < 1e-12, "{got:?} vs {x1:?}");
+        }
+        assert!(relative_pose(&f1, &frame("a", 2, None)).is_none());
+    }
+
+    #[test]
+    fn partner_is_the_next_frame_of_the_same_scene() {
+        let p = Some((rot(2, 0.0), [0.0; 3]));
+        let ds = Dataset {
+            frames: vec![frame("a", 0, p), frame("a", 3, p), frame("a", 5, p), frame("b", 0, p), frame("c", 0, p), frame("c", 1, None)],
+            ..Default::default()
+        };
+        assert_eq!((0..6).map(|i| partner(&ds, i)).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
+    }
+}

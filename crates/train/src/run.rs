@@ -1,0 +1,425 @@
+//! One training run of `recon train`, as a library call (the CLI parses
+//! arguments and calls [`run`]; the smoke tests call it directly).
+//!
+//! **Output folder** (`--out`):
+//! - `recon-train.json`: the run record (also the marker that the folder
+//!   belongs to `recon train`; any other non-empty folder is refused);
+//! - `<key>.safetensors`: the trained modules, labelled `recon.trained`
+//!   (`ss_encoder` + `ss_decoder` for ss-vae; `image_cond_model` +
+//!   `ss_flow` for ss-flow, plus a copy of the VAE's `ss_decoder`, so the
+//!   folder runs stage 1 with `Pipeline::load_stages`);
+//! - ss-flow only: `pose_stats.json` (training-set pose statistics) and the
+//!   architecture file with its pose-stat paths pointing at it;
+//! - `loss.jsonl`, `loss.svg`, `checkpoints/`.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use crate::data::{pose_stats_json, scan, TrainingSource};
+use crate::flow::FlowMatching;
+use crate::objective::{fixed_eval, frozen_var_builder, FlowObjective, Objective, VaeObjective};
+use crate::params::ModuleParams;
+use crate::trainer::{latest_checkpoint, train, write_weights, LoopSettings, RunSummary};
+use recon_core::geometry::pose::PoseStats;
+use recon_core::geometry::voxelize::Fill;
+use recon_core::model::config::{ModuleSpec, RecGenConfig};
+use recon_core::model::stage1::ss_vae::encoder::ReconLoss;
+use recon_core::weights::registry::{self, ModuleConfig};
+use recon_core::{Error, Result};
+
+/// Which model to train.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Stage {
+    SsVae,
+    SsFlow,
+    SlatAe,
+    SlatFlow,
+}
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::SsVae => "ss-vae",
+            Stage::SsFlow => "ss-flow",
+            Stage::SlatAe => "slat-ae",
+            Stage::SlatFlow => "slat-flow",
+        }
+    }
+}
+
+/// Where to resume from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Resume {
+    /// The newest checkpoint under `<out>/checkpoints`.
+    Latest,
+    Dir(PathBuf),
+}
+
+/// Everything a run needs besides its data.
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
+    pub stage: Stage,
+    /// Architecture file (`models/recgen-nano.json`).
+    pub config: PathBuf,
+    pub out: PathBuf,
+    pub resume: Option<Resume>,
+    pub settings: LoopSettings,
+    pub fill: Fill,
+    pub recon_loss: ReconLoss,
+    pub lambda_kl: f64,
+    pub flow: FlowMatching,
+    pub context: [f64; 2],
+    pub p_two_view: f64,
+    /// ss-flow: the ss-vae output folder (`ss_encoder.safetensors`, `ss_decoder.safetensors`).
+    pub vae: Option<PathBuf>,
+    /// slat-ae: crop side in voxels (0: whole objects) and most voxels per crop.
+    pub crop: usize,
+    pub max_voxels: usize,
+    /// slat-flow: the ss-flow output folder (frozen image encoder, pose
+    /// statistics, stage-1 modules copied into the complete model folder).
+    pub stage1: Option<PathBuf>,
+    /// slat-flow: the slat-ae output folder (frozen encoder, decoders copied).
+    pub slat_ae: Option<PathBuf>,
+    /// slat-flow: most models encoded.
+    pub max_models: usize,
+    /// Warm start: the trained modules start from this folder's
+    /// `<key>.safetensors` (a finished run of the same stage) instead of
+    /// random; the optimiser starts afresh, so settings may differ.
+    pub init: Option<PathBuf>,
+    pub progress: bool,
+    /// Batches of the fixed evaluation before and after training (0: skip).
+    pub eval_batches: usize,
+}
+
+impl TrainOptions {
+    pub fn new(stage: Stage, config: PathBuf, out: PathBuf) -> Self {
+        Self {
+            stage,
+            config,
+            out,
+            resume: None,
+            settings: LoopSettings::default(),
+            fill: Fill::Solid,
+            // TRELLIS's SS VAE recipe: Dice on occupancy, λ_KL = 1e-3.
+            recon_loss: ReconLoss::Dice,
+            lambda_kl: 1e-3,
+            flow: FlowMatching::default(),
+            context: [1.2, 2.0],
+            p_two_view: 0.5,
+            vae: None,
+            crop: 10,
+            max_voxels: 400,
+            stage1: None,
+            slat_ae: None,
+            max_models: 1000,
+            init: None,
+            progress: true,
+            eval_batches: 4,
+        }
+    }
+}
+
+/// The run record (`recon-train.json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    pub stage: Stage,
+    pub status: &'static str,
+    pub architecture: String,
+    pub data: String,
+    pub params: BTreeMap<String, usize>,
+    pub settings: serde_json::Value,
+    pub summary: Option<RunSummary>,
+    /// Mean loss of a fixed set of batches before / after training.
+    pub eval_before: Option<f64>,
+    pub eval_after: Option<f64>,
+    pub files: Vec<PathBuf>,
+    pub notes: Vec<String>,
+}
+
+const MARKER: &str = "recon-train.json";
+const EVAL_SEED: u64 = 0x5EED_E7A1;
+
+fn spec_cfg(s: &ModuleSpec) -> ModuleConfig {
+    ModuleConfig { name: s.name.clone(), args: s.args.clone() }
+}
+
+/// Refuse folders that are not ours, and finished-or-started runs without `--resume`.
+fn check_out(out: &Path, resume: bool) -> Result<()> {
+    if !out.exists() {
+        return Ok(());
+    }
+    let non_empty = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_some();
+    if !non_empty {
+        return Ok(());
+    }
+    if !out.join(MARKER).is_file() {
+        return Err(Error::input(
+            out.display().to_string(),
+            format!("folder exists and is not a recon train output (no {MARKER}); choose an empty or new --out"),
+        ));
+    }
+    if !resume {
+        return Err(Error::input(
+            out.display().to_string(),
+            "already holds a training run; pass --resume to continue it or choose another --out",
+        ));
+    }
+    Ok(())
+}
+
+fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
+    let s = serde_json::to_string_pretty(v).map_err(|e| Error::msg(e.to_string()))?;
+    let tmp = path.with_extension("json.partial");
+    std::fs::write(&tmp, s).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}
+
+fn load_module(dir: &Path, key: &str) -> Result<BTreeMap<String, candle_core::Tensor>> {
+    let p = dir.join(format!("{key}.safetensors"));
+    if !p.is_file() {
+        return Err(Error::input(
+            dir.display().to_string(),
+            format!("no {key}.safetensors (give the output folder of the `recon train` stage that writes it)"),
+        ));
+    }
+    let m = candle_core::safetensors::load(&p, &candle_core::Device::Cpu)
+        .map_err(|e| Error::input(p.display().to_string(), format!("cannot read: {e}")))?;
+    Ok(m.into_iter().collect())
+}
+
+/// Write `tensors` as `<out>/<key>.safetensors`, labelled trained and copied from `from`
+/// (the modules a run's folder carries beside its own, so the folder runs a pipeline).
+fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &Path, out: &Path, key: &str) -> Result<PathBuf> {
+    let meta: BTreeMap<String, String> =
+        [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), from.display().to_string())].into();
+    let path = out.join(format!("{key}.safetensors"));
+    recon_core::weights::init::write_safetensors(tensors, &meta, &path)?;
+    Ok(path)
+}
+
+/// The architecture file of a run folder: `config` reading its pose statistics from
+/// the folder's `pose_stats.json`, and with `slat_norm` as its `slat_normalization`.
+fn write_architecture(config: &Path, out: &Path, slat_norm: Option<&(Vec<f32>, Vec<f32>)>) -> Result<PathBuf> {
+    let mut v: serde_json::Value = recon_core::util::json::read_json(config)?;
+    v["pose"]["ss_stats"] = "pose_stats.json".into();
+    v["pose"]["slat_stats"] = "pose_stats.json".into();
+    if let Some((m, s)) = slat_norm {
+        v["slat_normalization"] = serde_json::json!({"mean": m, "std": s});
+    }
+    let name = config.file_name().ok_or_else(|| Error::input(config.display().to_string(), "not a file"))?;
+    let arch_out = out.join(name);
+    write_json(&arch_out, &v)?;
+    Ok(arch_out)
+}
+
+/// Run one stage on `source` (see the module docs for what is written).
+pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport> {
+    let arch = RecGenConfig::load(&opts.config)?;
+    let cfile = opts.config.display().to_string();
+    check_out(&opts.out, opts.resume.is_some())?;
+    std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
+    let resume_dir = match &opts.resume {
+        None => None,
+        Some(Resume::Dir(d)) => Some(d.clone()),
+        Some(Resume::Latest) => Some(
+            latest_checkpoint(&opts.out)?
+                .ok_or_else(|| Error::input(opts.out.display().to_string(), "--resume: no checkpoint in <out>/checkpoints"))?,
+        ),
+    };
+    let seed = opts.settings.seed;
+    let mut notes = Vec::new();
+    let ss_encoder_cfg = || -> Result<ModuleConfig> {
+        let spec = arch
+            .ss_encoder
+            .as_ref()
+            .ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
+        Ok(spec_cfg(spec))
+    };
+    // A trained module: random for the seed, or the --init folder's weights.
+    let module = |key: &str, cfg: &ModuleConfig| -> Result<ModuleParams> {
+        match &opts.init {
+            None => ModuleParams::init(key, cfg, registry::module_seed(seed, key)),
+            Some(dir) => {
+                let file = dir.join(format!("{key}.safetensors"));
+                ModuleParams::from_tensors(key, cfg, &load_module(dir, key)?, &file.display().to_string())
+            }
+        }
+    };
+    let obj: Box<dyn Objective + '_>;
+    let mut slat_norm: Option<(Vec<f32>, Vec<f32>)> = None;
+    // Modules copied into the output folder (reported after the trained ones).
+    let mut copied: Vec<PathBuf> = Vec::new();
+    let mut settings = serde_json::json!({
+        "loop": opts.settings,
+        "architecture": arch.name,
+        "data": source.describe(),
+        "fill": opts.fill,
+    });
+    if let Some(dir) = &opts.init {
+        settings["init"] = serde_json::json!(dir);
+        notes.push(format!("warm start from {}", dir.display()));
+    }
+    match opts.stage {
+        Stage::SsVae => {
+            let enc_cfg = ss_encoder_cfg()?;
+            let dec_cfg = spec_cfg(&arch.ss_decoder);
+            settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
+            settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
+            let enc = module("ss_encoder", &enc_cfg)?;
+            let dec = module("ss_decoder", &dec_cfg)?;
+            let f = recon_core::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
+            let res = arch.ss_flow_config()?.resolution * f;
+            obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
+            notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
+        }
+        Stage::SsFlow => {
+            let enc_cfg = ss_encoder_cfg()?;
+            let vae = opts.vae.as_ref().ok_or_else(|| {
+                Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)")
+            })?;
+            let enc_t = load_module(vae, "ss_encoder")?;
+            let dec_t = load_module(vae, "ss_decoder")?;
+            let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder")?;
+            let scan = scan(source)?;
+            notes.push(format!(
+                "{} usable samples ({} with two views), {} views without depth skipped",
+                scan.usable.len(),
+                scan.two_view.len(),
+                scan.skipped_views
+            ));
+            let stats_json = pose_stats_json(&scan.poses, arch.pose.nine_d_layout, &source.describe())?;
+            let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
+            write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
+            let dino_cfg = spec_cfg(&arch.image_cond_model);
+            let flow_cfg = spec_cfg(&arch.ss_flow);
+            settings["modules"] = serde_json::json!({"image_cond_model": dino_cfg, "ss_flow": flow_cfg, "ss_encoder": enc_cfg});
+            settings["flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "p_two_view": opts.p_two_view, "vae": vae});
+            let dino = module("image_cond_model", &dino_cfg)?;
+            let flow = module("ss_flow", &flow_cfg)?;
+            let mut fo = FlowObjective::new(source, scan, stats, dino, flow, &encoder, opts.fill, opts.flow.clone())?;
+            fo.context = opts.context;
+            fo.p_two_view = opts.p_two_view;
+            let (m, s) = fo.latent_stats()?;
+            notes.push(format!("VAE latents: mean {m:.4}, std {s:.4} (the flow starts from unit noise)"));
+            // The decoder travels with the flow so the folder runs stage 1.
+            copied.push(write_copied_module(&dec_t, vae, &opts.out, "ss_decoder")?);
+            obj = Box::new(fo);
+        }
+        Stage::SlatAe => {
+            let enc_spec = arch
+                .slat_encoder
+                .as_ref()
+                .ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
+            let cfgs = [
+                ("slat_encoder", spec_cfg(enc_spec)),
+                ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)),
+                ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs)),
+            ];
+            settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
+            let [e, m, g] = cfgs.map(|(k, c)| module(k, &c));
+            let mut so = crate::slat::SlatAeObjective::new(source, e?, m?, g?)?;
+            so.crop = opts.crop;
+            so.max_voxels = opts.max_voxels;
+            settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": crate::slat::BAND, "cubes_per_voxel_side": crate::slat::SUB});
+            notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
+            obj = Box::new(so);
+        }
+        Stage::SlatFlow => {
+            let s1 = opts.stage1.as_ref().ok_or_else(|| {
+                Error::config(
+                    "recon train slat-flow",
+                    "--stage1",
+                    "the ss-flow output folder is required (frozen image encoder, pose statistics)",
+                )
+            })?;
+            let ae = opts.slat_ae.as_ref().ok_or_else(|| {
+                Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)")
+            })?;
+            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
+                Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
+            })?;
+            let encoder =
+                registry::build_slat_encoder(&spec_cfg(enc_spec), frozen_var_builder(load_module(ae, "slat_encoder")?), "slat_encoder")?;
+            let dino = registry::build_dinov2(
+                &spec_cfg(&arch.image_cond_model),
+                frozen_var_builder(load_module(s1, "image_cond_model")?),
+                "image_cond_model",
+            )?;
+            let stats_path = s1.join("pose_stats.json");
+            let stats = PoseStats::from_json_file(&stats_path)?;
+            let scan = scan(source)?;
+            let flow_cfg = spec_cfg(&arch.slat_flow);
+            settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
+            settings["slat_flow"] =
+                serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
+            let flow = module("slat_flow", &flow_cfg)?;
+            let mut fo = crate::slat_flow::SlatFlowObjective::new(
+                source,
+                scan,
+                stats,
+                arch.pose.nine_d_layout,
+                dino,
+                flow,
+                &encoder,
+                opts.max_models,
+                opts.flow.clone(),
+            )?;
+            fo.context = opts.context;
+            let (models, pool, usable) = fo.counts();
+            notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));
+            notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
+            // The complete model folder: stage 1 and the decoders travel with the flow.
+            for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
+                copied.push(write_copied_module(&load_module(dir, key)?, dir, &opts.out, key)?);
+            }
+            std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
+            slat_norm = Some((fo.mean.clone(), fo.std.clone()));
+            obj = Box::new(fo);
+        }
+    }
+    let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.clone(), m.num_params())).collect();
+    let mut report = RunReport {
+        stage: opts.stage,
+        status: "running",
+        architecture: arch.name.clone(),
+        data: source.describe(),
+        params,
+        settings: settings.clone(),
+        summary: None,
+        eval_before: None,
+        eval_after: None,
+        files: Vec::new(),
+        notes,
+    };
+    write_json(&opts.out.join(MARKER), &report)?;
+    let eval_batch = opts.settings.batch.min(4);
+    if opts.eval_batches > 0 && resume_dir.is_none() {
+        report.eval_before = Some(fixed_eval(obj.as_ref(), EVAL_SEED, opts.eval_batches, eval_batch)?);
+    }
+    let summary = train(obj.as_ref(), &opts.settings, &settings, &opts.out, resume_dir.as_deref(), opts.progress)?;
+    if opts.eval_batches > 0 {
+        report.eval_after = Some(fixed_eval(obj.as_ref(), EVAL_SEED, opts.eval_batches, eval_batch)?);
+    }
+    let meta: BTreeMap<String, String> = [
+        ("recon.stage".to_string(), opts.stage.name().to_string()),
+        ("recon.architecture".to_string(), arch.name.clone()),
+        ("recon.steps".to_string(), summary.last_step.to_string()),
+        ("recon.seed".to_string(), seed.to_string()),
+    ]
+    .into();
+    report.files = write_weights(&opts.out, obj.as_ref(), &meta)?;
+    report.files.extend(copied);
+    if matches!(opts.stage, Stage::SsFlow | Stage::SlatFlow) {
+        // The architecture file, reading its pose statistics (and, for the complete
+        // model, the latent normalisation of this run) from this folder.
+        report.files.push(write_architecture(&opts.config, &opts.out, slat_norm.as_ref())?);
+        report.files.push(opts.out.join("pose_stats.json"));
+    }
+    report.summary = Some(summary);
+    report.status = "complete";
+    write_json(&opts.out.join(MARKER), &report)?;
+    Ok(report)
+}

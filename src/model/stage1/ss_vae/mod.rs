@@ -1,5 +1,0 @@
-//! The sparse-structure VAE: [`decoder`] (16³ latent → 64³ occupancy logits)
-//! and [`encoder`] (occupancy → latent; only training uses it).
-
-pub(crate) mod decoder;
-pub(crate) mod encoder;
