@@ -9,7 +9,9 @@
 //! let engine = Engine::load(&ModelSource::Default, &LoadOptions::default())?;
 //! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;
 //! let (objects, _skipped) = InstanceMap::open("data/sample/000001-label.png".as_ref())?.objects(None);
-//! let result = engine.reconstruct(&frame, objects, &InferOptions::default())?;
+//! // The CLI's defaults; `InferOptions` is what `recon infer`'s flags and Python's keywords set.
+//! let settings = InferOptions::default().settings()?;
+//! let result = engine.reconstruct(&frame, objects, &settings)?;
 //! for o in &result.objects { println!("{} {:?}", o.label, o.pose_camera.translation); }
 //! # Ok(()) }
 //! ```
@@ -33,6 +35,7 @@
 
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
+use crate::engine::options::{OptionError, DEFAULT_MAX_FACES, DEFAULT_SMOOTH_ITERATIONS};
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
     LoadOptions, ObjectInputs, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput,
@@ -71,9 +74,13 @@ use std::time::Instant;
 
 pub use crate::math::Similarity as RigidTransform;
 
-/// Per-frame settings.
+/// The engine's per-frame settings, derived from the user-facing
+/// [`InferOptions`](crate::engine::options::InferOptions) ([`settings`](crate::engine::options::InferOptions::settings)); library callers may set the internal ones here.
+///
+/// `Default` is the engine's plain baseline (RecGen's one-sided score, no
+/// refinement); the defaults of the CLI and Python are `InferOptions::default().settings()`.
 #[derive(Debug, Clone)]
-pub struct InferOptions {
+pub struct InferSettings {
     /// Model run settings; `run.seed` is the first sample's seed.
     pub run: RunOptions,
     /// Minimum eroded-mask pixels with valid depth for an object to run.
@@ -110,13 +117,7 @@ pub struct InferOptions {
     pub parallel_objects: NonZeroUsize,
 }
 
-/// Default face budget of an output mesh.
-pub const DEFAULT_MAX_FACES: usize = 200_000;
-
-/// Default Taubin smoothing iterations of an output mesh.
-pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
-
-impl Default for InferOptions {
+impl Default for InferSettings {
     fn default() -> Self {
         Self {
             run: RunOptions::default(),
@@ -339,7 +340,7 @@ fn object_view<'a>(
 
 /// The dominant plane of a frame's depth, facing the camera (`None` when the
 /// fit fails or the shape fit is off).
-fn support_plane(frame: &RgbdFrame, opts: &InferOptions) -> Option<Plane> {
+fn support_plane(frame: &RgbdFrame, opts: &InferSettings) -> Option<Plane> {
     if opts.shape_fit == ShapeFit::None {
         return None;
     }
@@ -349,7 +350,7 @@ fn support_plane(frame: &RgbdFrame, opts: &InferOptions) -> Option<Plane> {
 
 /// A frame's depth view for the free-space term and the shape fit (built
 /// once per frame, and only when one of them uses it).
-fn depth_view(frame: &RgbdFrame, opts: &InferOptions) -> Option<Arc<DepthView>> {
+fn depth_view(frame: &RgbdFrame, opts: &InferSettings) -> Option<Arc<DepthView>> {
     let used = opts.align.free_space_weight > 0.0 || opts.shape_fit != ShapeFit::None;
     used.then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
 }
@@ -376,7 +377,7 @@ fn fit_shape(
     views: &[ObjView],
     view_points: &[ViewPoints],
     supports: &[Option<Plane>],
-    opts: &InferOptions,
+    opts: &InferSettings,
 ) -> Result<(Fitted, Vec<[i32; 3]>)> {
     let model = Grid::from_coords(coords, r);
     let surface = Surface::from_points(&model.outer_surface_points())?;
@@ -558,7 +559,7 @@ impl Engine {
     }
 
     /// Reconstruct every object of a frame (single view).
-    pub fn reconstruct(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &InferOptions) -> Result<FrameResult> {
+    pub fn reconstruct(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &InferSettings) -> Result<FrameResult> {
         self.reconstruct_with(frame, objects, None, opts, &|_| {})
     }
 
@@ -568,7 +569,7 @@ impl Engine {
         frame: &RgbdFrame,
         objects: Vec<ObjectMask>,
         second: SecondView,
-        opts: &InferOptions,
+        opts: &InferSettings,
     ) -> Result<FrameResult> {
         self.reconstruct_with(frame, objects, Some(second), opts, &|_| {})
     }
@@ -583,11 +584,11 @@ impl Engine {
         frame: &RgbdFrame,
         objects: Vec<ObjectMask>,
         second: Option<SecondView>,
-        opts: &InferOptions,
+        opts: &InferSettings,
         progress: &(dyn Fn(Progress) + Sync),
     ) -> Result<FrameResult> {
         if opts.samples == 0 {
-            return Err(Error::input("infer options", "samples must be at least 1"));
+            return Err(OptionError::new("samples", "at least 1", opts.samples).into());
         }
         if second.is_some() && self.pipeline.max_views() < 2 {
             return Err(Error::config(
@@ -677,7 +678,7 @@ impl Engine {
         label: &str,
         id: Option<u32>,
         views: &[ObjView],
-        opts: &InferOptions,
+        opts: &InferSettings,
         progress: &(dyn Fn(Progress) + Sync),
         mut notes: Vec<String>,
     ) -> Result<std::result::Result<ObjectResult, SkipReason>> {
