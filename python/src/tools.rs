@@ -99,11 +99,7 @@ fn synth_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<SynthOptions> 
 /// `recon synth`: a BOP-format dataset; returns the summary.
 #[pyfunction]
 #[pyo3(signature = (out, **options))]
-pub fn synth<'py>(
-    py: Python<'py>,
-    out: PathBuf,
-    options: Option<&Bound<'_, PyDict>>,
-) -> PyResult<Bound<'py, PyAny>> {
+pub fn synth<'py>(py: Python<'py>, out: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<Bound<'py, PyAny>> {
     let opts = synth_options(options)?;
     let summary = py.detach(|| recon::synth::generate(&out, &opts, &|| {})).py()?;
     to_python(py, &summary)
@@ -112,11 +108,7 @@ pub fn synth<'py>(
 /// Split synth, step 1: checks `out` and makes the staging folder (returned).
 #[pyfunction]
 #[pyo3(signature = (out, **options))]
-pub fn synth_begin(
-    py: Python<'_>,
-    out: PathBuf,
-    options: Option<&Bound<'_, PyDict>>,
-) -> PyResult<PathBuf> {
+pub fn synth_begin(py: Python<'_>, out: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<PathBuf> {
     let opts = synth_options(options)?;
     py.detach(|| recon::synth::begin(&out, &opts)).py()
 }
@@ -124,10 +116,7 @@ pub fn synth_begin(
 /// Split synth, step 2: the first object id of every scene.
 #[pyfunction]
 #[pyo3(signature = (**options))]
-pub fn synth_plan(
-    py: Python<'_>,
-    options: Option<&Bound<'_, PyDict>>,
-) -> PyResult<Vec<u32>> {
+pub fn synth_plan(py: Python<'_>, options: Option<&Bound<'_, PyDict>>) -> PyResult<Vec<u32>> {
     let opts = synth_options(options)?;
     py.detach(|| recon::synth::plan(&opts)).py()
 }

@@ -38,7 +38,8 @@ use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
 use crate::engine::options::{OptionError, DEFAULT_MAX_FACES, DEFAULT_SMOOTH_ITERATIONS};
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
-    LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput,
+    LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages,
+    ViewInput,
 };
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;

@@ -145,10 +145,8 @@ impl InferOptions {
                 return Err(OptionError::Unknown { option: k.clone(), valid: Self::NAMES.join(", ") });
             }
         }
-        let o: InferOptions = serde_path_to_error::deserialize(v).map_err(|e| OptionError::Invalid {
-            option: e.path().to_string(),
-            message: e.into_inner().to_string(),
-        })?;
+        let o: InferOptions = serde_path_to_error::deserialize(v)
+            .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })?;
         o.validate()?;
         Ok(o)
     }
@@ -264,7 +262,10 @@ mod tests {
         };
         let s = o.settings().unwrap();
         assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
-        assert_eq!((s.run.ss_steps, s.run.slat_steps, s.run.ss_cfg_strength, s.run.slat_cfg_strength), (Some(4), Some(4), Some(2.5), Some(2.5)));
+        assert_eq!(
+            (s.run.ss_steps, s.run.slat_steps, s.run.ss_cfg_strength, s.run.slat_cfg_strength),
+            (Some(4), Some(4), Some(2.5), Some(2.5))
+        );
         assert_eq!((s.max_faces, s.floater_area_fraction, s.smooth_iterations), (None, 0.1, 5));
         assert_eq!((s.shape_fit, s.mesh_from, s.parallel_objects.get()), (ShapeFit::None, MeshFrom::Decoder, 2));
         assert!(!s.align.refine);
