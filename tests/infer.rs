@@ -8,7 +8,7 @@ use recon::dataset::{InstanceMap, SkipReason};
 use recon::engine::LoadOptions;
 use recon::engine::ModelSource;
 use recon::engine::{write_outputs, MARKER};
-use recon::engine::{Engine, InferOptions};
+use recon::engine::{Engine, InferSettings};
 
 #[test]
 fn sample_frame_reconstructs_in_camera_frame() {
@@ -22,7 +22,7 @@ fn sample_frame_reconstructs_in_camera_frame() {
     let engine =
         Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
-    let mut opts = InferOptions::default();
+    let mut opts = InferSettings::default();
     opts.run.ss_steps = Some(2);
     opts.run.slat_steps = Some(2);
     opts.max_faces = None; // decimating the random model's ~640k faces is slow in test builds
@@ -72,7 +72,7 @@ fn sample_frame_reconstructs_in_camera_frame() {
 /// The sample frame, its instance map and the random-weight tiny model, run
 /// with one sampler step, `samples` seeds, cross selection and no mesh decoding
 /// (the Gaussian centres are scored) to keep the tests fast.
-fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, InferOptions) {
+fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, InferSettings) {
     let frame = RgbdFrame::open(&repo().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
     let map = InstanceMap::open(&repo().join("data/sample/000001-label.png")).unwrap();
     let engine =
@@ -80,7 +80,7 @@ fn one_step_sample_setup(samples: usize) -> (RgbdFrame, InstanceMap, Engine, Inf
             .unwrap();
     // These tests are about choosing among every token's pose: the shape fit
     // (which fixes one pose per sample before stage 2) is off.
-    let mut opts = InferOptions {
+    let mut opts = InferSettings {
         samples,
         select: recon::engine::SelectMethod::Cross,
         shape_fit: recon::engine::ShapeFit::None,
@@ -106,7 +106,7 @@ fn two_views_and_samples_select_consistently() {
     use recon::math::axis_angle;
     let (frame, map, engine, opts) = one_step_sample_setup(2);
     let t = RigidTransform { rotation: axis_angle([0.0, 1.0, 0.0], 0.3), translation: [0.1, 0.0, 0.05], scale: 1.0 };
-    let run = |opts: &InferOptions| {
+    let run = |opts: &InferSettings| {
         let (o1, _) = map.objects(Some(&[8]));
         let (o2, _) = map.objects(Some(&[8, 21])); // 21 has no partner in view 1
         engine.reconstruct_two_view(&frame, o1, SecondView { frame: &frame, objects: o2, t_c1_c2: t }, opts).unwrap()
@@ -160,7 +160,7 @@ fn two_views_and_samples_select_consistently() {
     assert_eq!(again.objects[0].pose_camera, o.pose_camera);
     assert_eq!(again.objects[0].selection.candidate, o.selection.candidate);
     // `first`: view 1's pose, one sample, no spread.
-    let first = run(&InferOptions { samples: 1, select: SelectMethod::First, ..opts.clone() });
+    let first = run(&InferSettings { samples: 1, select: SelectMethod::First, ..opts.clone() });
     let f = &first.objects[0];
     assert_eq!((f.selection.view, f.candidates.len()), (1, 2));
     assert!(f.uncertainty.is_none());
@@ -178,12 +178,12 @@ fn shape_fit_keeps_the_mesh_out_of_observed_free_space() {
     let engine =
         Engine::load(&ModelSource::Random { config: Some(repo().join("models/recgen-tiny.json")), seed: 7 }, &LoadOptions::default())
             .unwrap();
-    let mut opts = InferOptions { max_faces: None, ..Default::default() };
+    let mut opts = InferSettings { max_faces: None, ..Default::default() };
     opts.run.decode_gaussians = false;
     (opts.run.ss_steps, opts.run.slat_steps) = (Some(1), Some(1));
     let run = |shape_fit: ShapeFit| {
         let (objects, _) = map.objects(Some(&[14]));
-        engine.reconstruct(&frame, objects, &InferOptions { shape_fit, ..opts.clone() }).unwrap().objects.remove(0)
+        engine.reconstruct(&frame, objects, &InferSettings { shape_fit, ..opts.clone() }).unwrap().objects.remove(0)
     };
     let fitted = run(ShapeFit::Depth);
     let report = fitted.shape_fit.clone().expect("a shape-fit report");
@@ -232,7 +232,7 @@ fn depth_pose_fit_refines_scale_and_position_only() {
     let (frame, map, engine, opts) = one_step_sample_setup(1);
     let run = |align: AlignOptions| {
         let (o1, _) = map.objects(Some(&[8]));
-        engine.reconstruct(&frame, o1, &InferOptions { align, ..opts.clone() }).unwrap().objects.remove(0)
+        engine.reconstruct(&frame, o1, &InferSettings { align, ..opts.clone() }).unwrap().objects.remove(0)
     };
     let plain = run(AlignOptions::recgen());
     let fitted = run(AlignOptions::depth());
@@ -344,7 +344,7 @@ fn objects_in_parallel_match_one_at_a_time() {
     tiny.label = "tiny".to_string();
     objects.insert(1, tiny);
     let run = |n: usize| {
-        let opts = InferOptions { parallel_objects: std::num::NonZeroUsize::new(n).unwrap(), ..opts.clone() };
+        let opts = InferSettings { parallel_objects: std::num::NonZeroUsize::new(n).unwrap(), ..opts.clone() };
         engine.reconstruct(&frame, objects.clone(), &opts).unwrap()
     };
     let (one, many) = (run(1), run(3));

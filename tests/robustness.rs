@@ -7,7 +7,7 @@ mod common;
 
 use common::{repo, tmp};
 use recon::dataset::{FrameOptions, InstanceMap, RgbdFrame};
-use recon::engine::{Engine, InferOptions, LoadOptions, ModelSource, MARKER};
+use recon::engine::{Engine, InferSettings, LoadOptions, ModelSource, MARKER};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -123,8 +123,8 @@ fn engine() -> Engine {
     Engine::load(&ModelSource::Random { config: Some(common::tiny_config()), seed: 7 }, &LoadOptions::default()).unwrap()
 }
 
-fn fast_opts() -> InferOptions {
-    let mut opts = InferOptions::default();
+fn fast_opts() -> InferSettings {
+    let mut opts = InferSettings::default();
     opts.run.ss_steps = Some(1);
     opts.run.slat_steps = Some(1);
     opts.max_faces = None;

@@ -178,7 +178,7 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
         &LoadOptions::default(),
     )
     .unwrap();
-    let mut io = recon::engine::InferOptions { max_faces: Some(2000), ..Default::default() };
+    let mut io = recon::engine::InferSettings { max_faces: Some(2000), ..Default::default() };
     io.run.ss_steps = Some(3);
     io.run.slat_steps = Some(2);
     let n_gt: usize = ds.frames.iter().map(|f| f.gt.len()).sum();

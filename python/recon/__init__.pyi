@@ -119,18 +119,19 @@ class Engine:
         *,
         depth_scale: Optional[float] = None,
         view2: Optional[Dict[str, Any]] = None,
+        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+        seed: int = 42,
         samples: int = 1,
         select: str = "cross",
         pose_fit: str = "depth",
         shape_fit: str = "depth",
         mesh_from: str = "fitted",
-        seed: int = 0,
-        max_faces: int = 200_000,
         steps: Optional[int] = None,
         cfg: Optional[float] = None,
+        max_faces: int = 200000,
         min_component_area: float = 0.02,
         smooth: int = 0,
-        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+        parallel_objects: int = 1,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
 
@@ -146,9 +147,11 @@ class Engine:
             coloured from the decoder) or "decoder" (the stage-2 mesh decoder's surface).
         smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
+        parallel_objects: objects reconstructed at once (results do not depend on it).
         progress: called with event dicts (object, sample, stage, …) from worker threads.
-        seed: 0 by default (the API as specified), while `recon infer`, `reconstruct_files`,
-        `recon.eval` and `recon.ray` default to 42: pass seed=42 for the CLI's result.
+        The per-frame keywords (seed … parallel_objects) are `recon infer`'s flags with `_`,
+        with the CLI's defaults (`infer_defaults()`); an unknown keyword is a ConfigError
+        listing them.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
         """
     def reconstruct_files(
@@ -161,23 +164,28 @@ class Engine:
         intrinsics: Optional[Union[_Path, npt.ArrayLike]] = None,
         depth_scale: Optional[float] = None,
         objects: Optional[Sequence[int]] = None,
+        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+        seed: int = 42,
         samples: int = 1,
         select: str = "cross",
         pose_fit: str = "depth",
         shape_fit: str = "depth",
         mesh_from: str = "fitted",
-        seed: int = 42,
-        max_faces: int = 200_000,
         steps: Optional[int] = None,
         cfg: Optional[float] = None,
+        max_faces: int = 200000,
         min_component_area: float = 0.02,
         smooth: int = 0,
-        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+        parallel_objects: int = 1,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
         the same masks (one instance-id PNG or several binary masks), the same output folder
         (default `<stem>_recon` beside the image). The defaults are the CLI's (seed 42).
         Returns the summary: objects (pose, score, stage seconds, files), skipped, notes."""
+
+def infer_defaults() -> Dict[str, Any]:
+    """The per-frame options of `Engine.reconstruct`, `Engine.reconstruct_files` and `eval`
+    (`recon infer`'s flags with `_`) and their defaults, from the library."""
 
 def load_frame(
     path: _Path,
@@ -278,17 +286,18 @@ def eval(
     config: Optional[_Path] = None,
     dtype: Optional[str] = None,
     threads: Optional[int] = None,
+    seed: int = 42,
     samples: int = 1,
     select: str = "cross",
     pose_fit: str = "depth",
     shape_fit: str = "depth",
     mesh_from: str = "fitted",
-    seed: int = 42,
-    max_faces: int = 200_000,
     steps: Optional[int] = None,
     cfg: Optional[float] = None,
+    max_faces: int = 200000,
     min_component_area: float = 0.02,
     smooth: int = 0,
+    parallel_objects: int = 1,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -298,8 +307,9 @@ def eval(
     surface_seed, all_frames, two_view; and for method="recgen" the model flags: either
     `engine` (a loaded Engine), or weights / config / dtype / threads, loaded as
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
-    per-frame flags of `recon infer`: samples, select, pose_fit, shape_fit, mesh_from, seed (42, as
-    the CLI), max_faces, steps, cfg, min_component_area, smooth. Returns report.json's dict."""
+    per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
+    select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
+    parallel_objects. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,

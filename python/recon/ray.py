@@ -286,8 +286,8 @@ def reconstruct_dataset(
 ) -> Dict[str, Any]:
     """Reconstruct every frame of `source` on the connected Ray cluster (`ray.init()` is
     called with defaults when none is). See the module docs; `infer_options` are those of
-    `Engine.reconstruct_files` (samples, select, pose_fit, shape_fit, seed=42, max_faces, steps, cfg,
-    min_component_area, objects). Returns counts, the results table path and seconds."""
+    `Engine.reconstruct_files`: `objects` and the per-frame options (`recon.infer_defaults()`:
+    names and defaults, the CLI's). Returns counts, the results table path and seconds."""
     import ray
 
     if num_workers < 1:

@@ -4,14 +4,14 @@
 //! every call releases the GIL for its whole computation, and with `threads=N` runs in
 //! the engine's own rayon pool.
 
-use crate::convert::{rows, to_python};
-use crate::errors::{config, input, weights_to_py, IntoPy};
+use crate::convert::{from_python, rows, to_python};
+use crate::errors::{config, input, weights_to_py, ConfigError, IntoPy};
 use clap::ValueEnum;
 use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
-use recon::engine::{Dtype, InferOptions, MeshFrom, ModelSource, ObjectResult, PoseFit, SecondView, SelectMethod, ShapeFit};
+use recon::engine::{Dtype, InferOptions, InferSettings, ModelSource, ObjectResult, SecondView};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -24,43 +24,23 @@ fn parse_enum<T: ValueEnum>(flag: &str, v: &str) -> PyResult<T> {
     })
 }
 
-/// The per-frame options, checked as `recon infer` checks its flags (`ModelArgs::infer_options`).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn infer_options(
-    samples: usize,
-    select: &str,
-    pose_fit: &str,
-    shape_fit: &str,
-    mesh_from: &str,
-    seed: u64,
-    max_faces: usize,
-    steps: Option<usize>,
-    cfg: Option<f64>,
-    min_component_area: f64,
-    smooth: usize,
-) -> PyResult<InferOptions> {
-    if samples == 0 {
-        return Err(config("samples", "must be at least 1"));
-    }
-    if !(0.0..1.0).contains(&min_component_area) {
-        return Err(config("min_component_area", format!("must be in [0, 1), got {min_component_area}")));
-    }
-    let pose_fit: PoseFit = parse_enum("pose_fit", pose_fit)?;
-    let mut opts = InferOptions {
-        samples,
-        select: parse_enum::<SelectMethod>("select", select)?,
-        align: pose_fit.options(),
-        max_faces: (max_faces > 0).then_some(max_faces),
-        floater_area_fraction: min_component_area,
-        shape_fit: parse_enum::<ShapeFit>("shape_fit", shape_fit)?,
-        mesh_from: parse_enum::<MeshFrom>("mesh_from", mesh_from)?,
-        smooth_iterations: smooth,
-        ..Default::default()
+/// The per-frame options from a call's keyword arguments: the names, defaults and checks
+/// are the library's ([`InferOptions`], `recon infer`'s flags with `_`); an unknown keyword
+/// is an error listing the valid ones.
+pub(crate) fn infer_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<(InferOptions, InferSettings)> {
+    let v = match options {
+        Some(d) => from_python(d.as_any())?,
+        None => serde_json::Value::Object(Default::default()),
     };
-    opts.run.seed = seed;
-    (opts.run.ss_steps, opts.run.slat_steps) = (steps, steps);
-    (opts.run.ss_cfg_strength, opts.run.slat_cfg_strength) = (cfg, cfg);
-    Ok(opts)
+    let opts = InferOptions::from_json(v).map_err(|e| ConfigError::new_err(e.keyword_message()))?;
+    let settings = opts.settings().map_err(|e| ConfigError::new_err(e.keyword_message()))?;
+    Ok((opts, settings))
+}
+
+/// `InferOptions::default()` as a dict: the defaults of every per-frame keyword.
+#[pyfunction]
+pub fn infer_defaults(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    to_python(py, &InferOptions::default())
 }
 
 /// Intrinsics from a 3×3 K (any float or int array-like).
@@ -280,7 +260,7 @@ impl Engine {
         format!("recon.Engine({})", self.source)
     }
 
-    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=0, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, smooth=0, progress=None))]
+    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, progress=None, **options))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn reconstruct(
         &self,
@@ -291,20 +271,10 @@ impl Engine {
         masks: &Bound<'_, PyAny>,
         depth_scale: Option<f64>,
         view2: Option<&Bound<'_, PyDict>>,
-        samples: usize,
-        select: &str,
-        pose_fit: &str,
-        shape_fit: &str,
-        mesh_from: &str,
-        seed: u64,
-        max_faces: usize,
-        steps: Option<usize>,
-        cfg: Option<f64>,
-        min_component_area: f64,
-        smooth: usize,
         progress: Option<Py<PyAny>>,
+        options: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Vec<Object>> {
-        let opts = infer_options(samples, select, pose_fit, shape_fit, mesh_from, seed, max_faces, steps, cfg, min_component_area, smooth)?;
+        let (_, opts) = infer_options(options)?;
         let frame = frame_from_arrays(rgb, depth, K, depth_scale, "<array>")?;
         let (objects, _) = masks_from(masks, "masks")?;
         let second = match view2 {
@@ -340,7 +310,7 @@ impl Engine {
     }
 
     /// `recon infer` on files: the same discovery, the same calls, the same output folder.
-    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=42, max_faces=200_000, steps=None, cfg=None, min_component_area=0.02, smooth=0, progress=None))]
+    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, progress=None, **options))]
     #[allow(clippy::too_many_arguments)]
     fn reconstruct_files<'py>(
         &self,
@@ -352,20 +322,10 @@ impl Engine {
         intrinsics: Option<&Bound<'py, PyAny>>,
         depth_scale: Option<f64>,
         objects: Option<Vec<u32>>,
-        samples: usize,
-        select: &str,
-        pose_fit: &str,
-        shape_fit: &str,
-        mesh_from: &str,
-        seed: u64,
-        max_faces: usize,
-        steps: Option<usize>,
-        cfg: Option<f64>,
-        min_component_area: f64,
-        smooth: usize,
         progress: Option<Py<PyAny>>,
+        options: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let opts = infer_options(samples, select, pose_fit, shape_fit, mesh_from, seed, max_faces, steps, cfg, min_component_area, smooth)?;
+        let (options, opts) = infer_options(options)?;
         let masks: Vec<PathBuf> = match masks.extract::<PathBuf>() {
             Ok(p) => vec![p],
             Err(_) => masks.extract()?,
@@ -399,7 +359,7 @@ impl Engine {
                 })
                 .collect();
             Ok(serde_json::json!({
-                "out": out, "seed": seed, "preprocess_s": result.preprocess_seconds, "objects": objs,
+                "out": out, "seed": options.seed, "preprocess_s": result.preprocess_seconds, "objects": objs,
                 "skipped": skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect::<Vec<_>>(),
                 "notes": result.notes,
             }))

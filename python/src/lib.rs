@@ -28,6 +28,7 @@ fn _recon(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<engine::Object>()?;
     m.add_class::<engine::Mesh>()?;
     m.add_class::<engine::Gaussians>()?;
+    m.add_function(wrap_pyfunction!(engine::infer_defaults, m)?)?;
     m.add_function(wrap_pyfunction!(tools::load_frame, m)?)?;
     m.add_function(wrap_pyfunction!(tools::load_masks, m)?)?;
     m.add_function(wrap_pyfunction!(tools::scene, m)?)?;

@@ -72,119 +72,83 @@ fn sensor(path: Option<PathBuf>) -> PyResult<SensorModel> {
     }
 }
 
-fn synth_options(
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor_path: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
-) -> PyResult<SynthOptions> {
-    let opts = SynthOptions { scenes, views, seed, width, height, parts, sensor: sensor(sensor_path)? };
-    opts.validate().py()?;
-    Ok(opts)
+/// `recon synth`'s options from keyword arguments (`scenes`, `views`, `seed`, `sensor`,
+/// `width`, `height`, `parts`, the CLI's flags); absent ones take the library's defaults
+/// ([`SynthOptions::default`], the CLI's too).
+fn synth_options(options: Option<&Bound<'_, PyDict>>) -> PyResult<SynthOptions> {
+    const NAMES: &str = "scenes, views, seed, sensor, width, height, parts";
+    let mut o = SynthOptions::default();
+    for (k, v) in options.into_iter().flat_map(|d| d.iter()) {
+        let k: String = k.extract()?;
+        let typed = |e: PyErr| config(&k, e);
+        match k.as_str() {
+            "scenes" => o.scenes = v.extract().map_err(typed)?,
+            "views" => o.views = v.extract().map_err(typed)?,
+            "seed" => o.seed = v.extract().map_err(typed)?,
+            "width" => o.width = v.extract().map_err(typed)?,
+            "height" => o.height = v.extract().map_err(typed)?,
+            "parts" => o.parts = v.extract().map_err(typed)?,
+            "sensor" => o.sensor = sensor(v.extract().map_err(typed)?)?,
+            _ => return Err(config(&k, format!("unknown option; the options are {NAMES}"))),
+        }
+    }
+    o.validate().py()?;
+    Ok(o)
 }
 
 /// `recon synth`: a BOP-format dataset; returns the summary.
 #[pyfunction]
-#[pyo3(signature = (out, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
-#[allow(clippy::too_many_arguments)]
-pub fn synth<'py>(
-    py: Python<'py>,
-    out: PathBuf,
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
-) -> PyResult<Bound<'py, PyAny>> {
-    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+#[pyo3(signature = (out, **options))]
+pub fn synth<'py>(py: Python<'py>, out: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<Bound<'py, PyAny>> {
+    let opts = synth_options(options)?;
     let summary = py.detach(|| recon::synth::generate(&out, &opts, &|| {})).py()?;
     to_python(py, &summary)
 }
 
 /// Split synth, step 1: checks `out` and makes the staging folder (returned).
 #[pyfunction]
-#[pyo3(signature = (out, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
-#[allow(clippy::too_many_arguments)]
-pub fn synth_begin(
-    py: Python<'_>,
-    out: PathBuf,
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
-) -> PyResult<PathBuf> {
-    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+#[pyo3(signature = (out, **options))]
+pub fn synth_begin(py: Python<'_>, out: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<PathBuf> {
+    let opts = synth_options(options)?;
     py.detach(|| recon::synth::begin(&out, &opts)).py()
 }
 
 /// Split synth, step 2: the first object id of every scene.
 #[pyfunction]
-#[pyo3(signature = (*, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
-#[allow(clippy::too_many_arguments)]
-pub fn synth_plan(
-    py: Python<'_>,
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
-) -> PyResult<Vec<u32>> {
-    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+#[pyo3(signature = (**options))]
+pub fn synth_plan(py: Python<'_>, options: Option<&Bound<'_, PyDict>>) -> PyResult<Vec<u32>> {
+    let opts = synth_options(options)?;
     py.detach(|| recon::synth::plan(&opts)).py()
 }
 
 /// Split synth, step 3 (one worker): scenes `start..end` into the staging folder; returns
 /// the shard record for [`synth_finish`].
 #[pyfunction]
-#[pyo3(signature = (staging, start, end, first_ids, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
-#[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (staging, start, end, first_ids, **options))]
 pub fn synth_shard<'py>(
     py: Python<'py>,
     staging: PathBuf,
     start: usize,
     end: usize,
     first_ids: Vec<u32>,
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
+    options: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    let opts = synth_options(options)?;
     let shard = py.detach(|| recon::synth::write_shard(&staging, &opts, start..end, &first_ids)).py()?;
     to_python(py, &shard)
 }
 
 /// Split synth, step 4: merges the shard records and moves the dataset into place.
 #[pyfunction]
-#[pyo3(signature = (staging, out, shards, *, scenes=10, views=1, seed=0, sensor=None, width=640, height=480, parts=false))]
-#[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (staging, out, shards, **options))]
 pub fn synth_finish<'py>(
     py: Python<'py>,
     staging: PathBuf,
     out: PathBuf,
     shards: Vec<Bound<'py, PyAny>>,
-    scenes: usize,
-    views: usize,
-    seed: u64,
-    sensor: Option<PathBuf>,
-    width: usize,
-    height: usize,
-    parts: bool,
+    options: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let opts = synth_options(scenes, views, seed, sensor, width, height, parts)?;
+    let opts = synth_options(options)?;
     let shards: Vec<recon::synth::Shard> =
         shards.iter().map(|s| serde_json::from_value(from_python(s)?).map_err(|e| input("synth shard", e))).collect::<PyResult<_>>()?;
     let summary = py.detach(|| recon::synth::finish(&staging, &out, &opts, &shards)).py()?;
@@ -427,10 +391,10 @@ impl Drop for Staging {
 /// `config`, `dtype` and `seed` as `recon eval --method recgen` loads it; the per-frame
 /// flags are `recon infer`'s. Returns the report.
 #[pyfunction]
-#[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull", f1_tau=0.05, scenes=None,
-    occlusion=None, surface_samples=10_000, surface_seed=0, all_frames=false, two_view=false, weights=None, config=None,
-    dtype=None, threads=None, samples=1, select="cross", pose_fit="depth", shape_fit="depth", mesh_from="fitted", seed=42, max_faces=200_000,
-    steps=None, cfg=None, min_component_area=0.02, smooth=0))]
+#[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull",
+    f1_tau=recon::eval::EvalOptions::default().f1_tau_rel, scenes=None, occlusion=None,
+    surface_samples=recon::eval::EvalOptions::default().n_samples, surface_seed=recon::eval::EvalOptions::default().seed, all_frames=false, two_view=false, weights=None, config=None,
+    dtype=None, threads=None, **options))]
 #[allow(clippy::too_many_arguments)]
 pub fn eval<'py>(
     py: Python<'py>,
@@ -451,17 +415,7 @@ pub fn eval<'py>(
     config: Option<PathBuf>,
     dtype: Option<&str>,
     threads: Option<usize>,
-    samples: usize,
-    select: &str,
-    pose_fit: &str,
-    shape_fit: &str,
-    mesh_from: &str,
-    seed: u64,
-    max_faces: usize,
-    steps: Option<usize>,
-    cfg: Option<f64>,
-    min_component_area: f64,
-    smooth: usize,
+    options: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     use crate::errors::config as config_err;
     use recon::engine::{begin_output, finish_output};
@@ -496,19 +450,7 @@ pub fn eval<'py>(
         return Err(config_err("two_view", "applies to method=\"recgen\" only"));
     }
     let model_given = weights.is_some() || config.is_some() || dtype.is_some() || threads.is_some();
-    let io = crate::engine::infer_options(
-        samples,
-        select,
-        pose_fit,
-        shape_fit,
-        mesh_from,
-        seed,
-        max_faces,
-        steps,
-        cfg,
-        min_component_area,
-        smooth,
-    )?;
+    let (o, io) = crate::engine::infer_options(options)?;
     let engine = match (method, engine) {
         (Some("recgen"), Some(_)) if model_given => {
             return Err(config_err("engine", "give engine= or weights/config/dtype/threads, not both"));
@@ -517,15 +459,16 @@ pub fn eval<'py>(
         // As `recon eval --method recgen`: the model loaded with the run's seed (which also
         // seeds weights="random").
         (Some("recgen"), None) => {
-            let e = crate::engine::Engine::new(py, weights, config, dtype.unwrap_or("auto"), threads, seed)?;
+            let e = crate::engine::Engine::new(py, weights, config, dtype.unwrap_or("auto"), threads, o.seed)?;
             Some(e.shared())
         }
         _ if model_given => return Err(config_err("weights", "weights/config/dtype/threads apply to method=\"recgen\" only")),
         _ => None,
     };
+    // The index file's record of the run, as before the options were one struct.
     let model = serde_json::json!({
-        "samples": samples, "select": select, "pose_fit": pose_fit, "shape_fit": shape_fit, "seed": seed,
-        "max_faces": max_faces, "steps": steps, "cfg": cfg, "min_component_area": min_component_area,
+        "samples": o.samples, "select": o.select, "pose_fit": o.pose_fit, "shape_fit": o.shape_fit, "seed": o.seed,
+        "max_faces": o.max_faces, "steps": o.steps, "cfg": o.cfg, "min_component_area": o.min_component_area,
     });
     let method = method.map(str::to_string);
     let report = py.detach(move || -> recon::Result<serde_json::Value> {

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import recon
-from conftest import INFER, assert_same_output, cli_infer, run_cli
+from conftest import INFER, REPO, assert_same_output, cli_infer, run_cli
 
 
 def frame0(ds):
@@ -46,6 +46,36 @@ def test_bad_arrays_are_input_and_config_errors(engine):
         engine.reconstruct(rgb, depth, K, ids, depth_scale=0.001)
     # No object in the mask: nothing to reconstruct, not an error.
     assert engine.reconstruct(rgb, depth, K, ids) == []
+
+
+def test_options_have_one_name_and_default_everywhere(engine, recon_cli):
+    """The per-frame options are the library's (`recon.infer_defaults()`): the stub's
+    keywords and `recon infer --help`'s flags have the same names and defaults, and an
+    unknown keyword is an error naming the valid ones."""
+    import ast
+
+    defaults = recon.infer_defaults()
+    assert defaults["seed"] == 42 and defaults["samples"] == 1 and defaults["steps"] is None
+    stub = ast.parse((REPO / "python/recon/__init__.pyi").read_text())
+    funcs = {
+        n.name: {a.arg: ast.literal_eval(d) for a, d in zip(n.args.kwonlyargs, n.args.kw_defaults) if d is not None}
+        for n in ast.walk(stub)
+        if isinstance(n, ast.FunctionDef) and n.name in ("reconstruct", "reconstruct_files", "eval")
+    }
+    assert set(funcs) == {"reconstruct", "reconstruct_files", "eval"}
+    for name, keywords in funcs.items():
+        for k, v in defaults.items():
+            assert k in keywords and keywords[k] == v, (name, k, keywords.get(k), v)
+    help = run_cli(recon_cli, "infer", "--help").stdout
+    for k, v in defaults.items():
+        block = help.split("      --" + k.replace("_", "-") + " <")[1].split("\n      -")[0]
+        assert (f"[default: {v}]" in block) if v is not None else ("[default:" not in block), (k, block)
+    rgb, depth = np.zeros((12, 16, 3), np.uint8), np.ones((12, 16), np.float32)
+    K, ids = np.array([[100.0, 0, 8], [0, 100, 6], [0, 0, 1]]), np.zeros((12, 16), np.uint16)
+    with pytest.raises(recon.ConfigError, match="unknown option `sample`.*samples"):
+        engine.reconstruct(rgb, depth, K, ids, sample=2)
+    with pytest.raises(recon.ConfigError, match="min_component_area: must be in"):
+        engine.reconstruct(rgb, depth, K, ids, min_component_area=1.0)
 
 
 def test_load_frame_follows_the_bop_layout(synth_ds):

@@ -1,6 +1,7 @@
 //! `recon eval`: score predictions (or a built-in baseline) against a BOP-format or
 //! YCB-Video dataset; prints the occlusion-binned table, writes report JSON + SVG plot.
 use crate::cli::model_args::ModelArgs;
+use recon::eval::EvalOptions;
 use std::path::PathBuf;
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -43,7 +44,7 @@ pub struct EvalArgs {
     #[arg(long)]
     json: bool,
     /// F1 distance threshold as a fraction of the GT diameter.
-    #[arg(long, default_value_t = 0.05)]
+    #[arg(long, default_value_t = EvalOptions::default().f1_tau_rel)]
     f1_tau: f64,
     /// Only these scenes (comma-separated; `48` matches `000048`).
     #[arg(long, value_delimiter = ',')]
@@ -53,10 +54,10 @@ pub struct EvalArgs {
     #[arg(long, value_name = "LO-HI", value_parser = parse_occlusion)]
     occlusion: Option<[f64; 2]>,
     /// Surface samples per mesh.
-    #[arg(long, default_value_t = 10_000)]
+    #[arg(long, default_value_t = EvalOptions::default().n_samples)]
     surface_samples: usize,
     /// Surface-sampling seed.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = EvalOptions::default().seed)]
     surface_seed: u64,
     /// Score every frame of the dataset, also frames without any prediction (always on
     /// with --method).
@@ -111,7 +112,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     use anyhow::{bail, Context};
     use recon::dataset::load_dataset;
     use recon::engine::{begin_output, finish_output};
-    use recon::eval::{evaluate, read_predictions, EvalOptions};
+    use recon::eval::{evaluate, read_predictions};
     use recon::eval::{observe_dataset, ObservedOptions, Shape};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
@@ -177,7 +178,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let source = a.model.source()?;
             let engine = recon::engine::Engine::load(&source, &a.model.load_options(&source)?)
                 .with_context(|| format!("loading the model ({source:?})"))?;
-            let io = a.model.infer_options()?;
+            let io = a.model.infer_settings()?;
             let out = a.out.clone().unwrap_or_else(|| default_out(&a.dataset, "recgen"));
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();

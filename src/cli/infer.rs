@@ -190,7 +190,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
-    let opts = a.model.infer_options()?;
+    let opts = a.model.infer_settings()?;
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
     let (objects, mut skipped) = recon::dataset::load_masks(&a.masks, a.objects.as_deref())?;
     // View 1's unreadable or unusable masks are objects that failed; view 2's only cost that view.
@@ -218,7 +218,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         eprintln!(
             "NOTE: running {} with RANDOM weights (seed {}). The plumbing is real; the shapes and poses are not meaningful.",
             config.display(),
-            a.model.seed
+            a.model.infer.seed
         );
     }
 
@@ -270,7 +270,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
             "out": out, "random_weights": random, "config": config, "dtype": load.compute.fast_parts().map_or("f32", |(p, _)| p.name()),
-            "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.pose_fit, "seed": a.model.seed,
+            "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.infer.pose_fit, "seed": a.model.infer.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
             "objects": objs, "skipped": skips, "notes": result.notes,

@@ -1,4 +1,5 @@
 //! `recon synth`: a BOP-format dataset of occluded tabletop RGB-D scenes with exact GT.
+use recon::synth::SynthOptions;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -7,19 +8,19 @@ pub struct SynthArgs {
     #[arg(long)]
     out: PathBuf,
     /// Number of scenes.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = SynthOptions::default().scenes)]
     scenes: usize,
     /// Camera views per scene (view 0 is the one whose target occlusion is aimed).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = SynthOptions::default().views)]
     views: usize,
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = SynthOptions::default().seed)]
     seed: u64,
     /// Depth sensor model JSON (see models/sensors/); default: ideal depth.
     #[arg(long)]
     sensor: Option<PathBuf>,
-    #[arg(long, default_value_t = 640)]
+    #[arg(long, default_value_t = SynthOptions::default().width)]
     width: usize,
-    #[arg(long, default_value_t = 480)]
+    #[arg(long, default_value_t = SynthOptions::default().height)]
     height: usize,
     /// Write composite objects (mug, bottle) as their rigid parts, one model and GT
     /// instance per part.
@@ -37,7 +38,7 @@ pub fn run(a: SynthArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
     use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
     use recon::sensor::SensorModel;
-    use recon::synth::{generate, SynthOptions};
+    use recon::synth::generate;
     use std::io::IsTerminal;
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;

@@ -20,7 +20,7 @@ use crate::report::Prediction;
 use recon_core::dataset::bop::{Dataset, Frame};
 use recon_core::dataset::frame::{FrameOptions, Intrinsics, RgbdFrame};
 use recon_core::dataset::masks::{InstanceMap, ObjectMask};
-use recon_core::engine::infer::{Engine, InferOptions, SecondView};
+use recon_core::engine::infer::{Engine, InferSettings, SecondView};
 use recon_core::geometry::pose::Pose;
 use recon_core::math::Similarity;
 use recon_core::mesh::Mesh;
@@ -91,7 +91,7 @@ pub fn recgen_frame(
     f: &Frame,
     second: Option<&Frame>,
     engine: &Engine,
-    opts: &InferOptions,
+    opts: &InferSettings,
     occlusion: Option<[f64; 2]>,
 ) -> Result<RecgenRun> {
     let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
@@ -180,7 +180,7 @@ pub fn recgen_frame(
 pub fn recgen_dataset(
     ds: &Dataset,
     engine: &Engine,
-    opts: &InferOptions,
+    opts: &InferSettings,
     two_view: bool,
     occlusion: Option<[f64; 2]>,
     progress: &dyn Fn(usize, usize),

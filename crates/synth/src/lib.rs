@@ -48,9 +48,10 @@ pub struct SynthOptions {
     pub sensor: SensorModel,
 }
 
+/// The defaults of `recon synth`'s flags and `recon.synth`'s keywords.
 impl Default for SynthOptions {
     fn default() -> Self {
-        SynthOptions { scenes: 1, views: 1, seed: 0, width: 640, height: 480, parts: false, sensor: SensorModel::ideal() }
+        SynthOptions { scenes: 10, views: 1, seed: 0, width: 640, height: 480, parts: false, sensor: SensorModel::ideal() }
     }
 }
 

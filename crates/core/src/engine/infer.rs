@@ -9,7 +9,9 @@
 //! let engine = Engine::load(&ModelSource::Default, &LoadOptions::default())?;
 //! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;
 //! let (objects, _skipped) = InstanceMap::open("data/sample/000001-label.png".as_ref())?.objects(None);
-//! let result = engine.reconstruct(&frame, objects, &InferOptions::default())?;
+//! // The CLI's defaults; `InferOptions` is what `recon infer`'s flags and Python's keywords set.
+//! let settings = InferOptions::default().settings()?;
+//! let result = engine.reconstruct(&frame, objects, &settings)?;
 //! for o in &result.objects { println!("{} {:?}", o.label, o.pose_camera.translation); }
 //! # Ok(()) }
 //! ```
@@ -33,9 +35,11 @@
 
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
+use crate::engine::options::{OptionError, DEFAULT_MAX_FACES, DEFAULT_SMOOTH_ITERATIONS};
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
-    LoadOptions, ObjectInputs, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages, ViewInput,
+    LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages,
+    ViewInput,
 };
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;
@@ -71,9 +75,13 @@ use std::time::Instant;
 
 pub use crate::math::Similarity as RigidTransform;
 
-/// Per-frame settings.
+/// The engine's per-frame settings, derived from the user-facing
+/// [`InferOptions`](crate::engine::options::InferOptions) ([`settings`](crate::engine::options::InferOptions::settings)); library callers may set the internal ones here.
+///
+/// `Default` is the engine's plain baseline (RecGen's one-sided score, no
+/// refinement); the defaults of the CLI and Python are `InferOptions::default().settings()`.
 #[derive(Debug, Clone)]
-pub struct InferOptions {
+pub struct InferSettings {
     /// Model run settings; `run.seed` is the first sample's seed.
     pub run: RunOptions,
     /// Minimum eroded-mask pixels with valid depth for an object to run.
@@ -110,13 +118,7 @@ pub struct InferOptions {
     pub parallel_objects: NonZeroUsize,
 }
 
-/// Default face budget of an output mesh.
-pub const DEFAULT_MAX_FACES: usize = 200_000;
-
-/// Default Taubin smoothing iterations of an output mesh.
-pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
-
-impl Default for InferOptions {
+impl Default for InferSettings {
     fn default() -> Self {
         Self {
             run: RunOptions::default(),
@@ -339,7 +341,7 @@ fn object_view<'a>(
 
 /// The dominant plane of a frame's depth, facing the camera (`None` when the
 /// fit fails or the shape fit is off).
-fn support_plane(frame: &RgbdFrame, opts: &InferOptions) -> Option<Plane> {
+fn support_plane(frame: &RgbdFrame, opts: &InferSettings) -> Option<Plane> {
     if opts.shape_fit == ShapeFit::None {
         return None;
     }
@@ -349,7 +351,7 @@ fn support_plane(frame: &RgbdFrame, opts: &InferOptions) -> Option<Plane> {
 
 /// A frame's depth view for the free-space term and the shape fit (built
 /// once per frame, and only when one of them uses it).
-fn depth_view(frame: &RgbdFrame, opts: &InferOptions) -> Option<Arc<DepthView>> {
+fn depth_view(frame: &RgbdFrame, opts: &InferSettings) -> Option<Arc<DepthView>> {
     let used = opts.align.free_space_weight > 0.0 || opts.shape_fit != ShapeFit::None;
     used.then(|| DepthView::new(&frame.depth_m, frame.width, frame.height, frame.intrinsics)).flatten()
 }
@@ -376,7 +378,7 @@ fn fit_shape(
     views: &[ObjView],
     view_points: &[ViewPoints],
     supports: &[Option<Plane>],
-    opts: &InferOptions,
+    opts: &InferSettings,
 ) -> Result<(Fitted, Vec<[i32; 3]>)> {
     let model = Grid::from_coords(coords, r);
     let surface = Surface::from_points(&model.outer_surface_points())?;
@@ -558,7 +560,7 @@ impl Engine {
     }
 
     /// Reconstruct every object of a frame (single view).
-    pub fn reconstruct(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &InferOptions) -> Result<FrameResult> {
+    pub fn reconstruct(&self, frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &InferSettings) -> Result<FrameResult> {
         self.reconstruct_with(frame, objects, None, opts, &|_| {})
     }
 
@@ -568,7 +570,7 @@ impl Engine {
         frame: &RgbdFrame,
         objects: Vec<ObjectMask>,
         second: SecondView,
-        opts: &InferOptions,
+        opts: &InferSettings,
     ) -> Result<FrameResult> {
         self.reconstruct_with(frame, objects, Some(second), opts, &|_| {})
     }
@@ -583,11 +585,11 @@ impl Engine {
         frame: &RgbdFrame,
         objects: Vec<ObjectMask>,
         second: Option<SecondView>,
-        opts: &InferOptions,
+        opts: &InferSettings,
         progress: &(dyn Fn(Progress) + Sync),
     ) -> Result<FrameResult> {
         if opts.samples == 0 {
-            return Err(Error::input("infer options", "samples must be at least 1"));
+            return Err(OptionError::new("samples", "at least 1", opts.samples).into());
         }
         if second.is_some() && self.pipeline.max_views() < 2 {
             return Err(Error::config(
@@ -677,10 +679,106 @@ impl Engine {
         label: &str,
         id: Option<u32>,
         views: &[ObjView],
-        opts: &InferOptions,
+        opts: &InferSettings,
         progress: &(dyn Fn(Progress) + Sync),
         mut notes: Vec<String>,
     ) -> Result<std::result::Result<ObjectResult, SkipReason>> {
+        let ctx = ObjectContext::new(views);
+        let mut tally = SampleTally::default();
+        let mut last_err = None;
+        for s in 0..opts.samples {
+            let seed = opts.run.seed.wrapping_add(s as u64);
+            progress(Progress::Sample { index: s, total: opts.samples, seed });
+            let (rec, fitted) = match self.run_sample(&ctx, seed, opts, progress) {
+                Ok(r) => r,
+                Err(e) => {
+                    // candle may append a backtrace; the first line says what failed.
+                    let e = e.to_string().lines().next().unwrap_or_default().to_string();
+                    notes.push(format!("seed {seed}: {e}"));
+                    last_err = Some(e);
+                    continue;
+                }
+            };
+            add_timings(&mut tally.timings, &rec.timings);
+            progress(Progress::Decimating);
+            let t = Instant::now();
+            let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
+            let mesh = finish_mesh(rec.mesh, rec.gaussians.as_ref(), fitted.as_ref(), &ctx, opts);
+            tally.post_s += t.elapsed().as_secs_f64();
+
+            progress(Progress::Selecting);
+            let t = Instant::now();
+            let first = tally.candidates.len();
+            let mine = sample_candidates(seed, mesh.as_ref(), rec.gaussians.as_ref(), &rec.pose, fitted.as_ref(), &ctx, opts);
+            tally.candidates.extend(mine);
+            let scores: Vec<CandidateScore> = tally.candidates.iter().map(|c| c.score.clone()).collect();
+            // This sample's own best, for the spread.
+            let mine = select_best(opts.select, &scores[first..]).map(|i| first + i).unwrap_or(first);
+            tally.per_sample_best.push(pose_to_similarity(&tally.candidates[mine].pose_camera));
+            let best = select_best(opts.select, &scores).unwrap_or(0);
+            if best >= first || tally.kept.is_none() {
+                tally.kept = Some(Kept {
+                    per_token: rec.pose.per_token.clone(),
+                    coords: rec.coords.len(),
+                    faces_decoded,
+                    mesh,
+                    gaussians: rec.gaussians,
+                    metadata: rec.metadata,
+                    shape_fit: fitted.map(|f| f.report),
+                });
+            }
+            tally.select_s += t.elapsed().as_secs_f64();
+        }
+        let Some(kept) = tally.kept.take() else {
+            return Ok(Err(SkipReason::Preprocessing(format!("model: {}", last_err.unwrap_or_default()))));
+        };
+        object_result(label, id, ctx, opts, tally, kept, notes).map(Ok)
+    }
+
+    /// One sample's model run (with the shape fit between the stages when it is on).
+    fn run_sample(
+        &self,
+        ctx: &ObjectContext,
+        seed: u64,
+        opts: &InferSettings,
+        progress: &(dyn Fn(Progress) + Sync),
+    ) -> Result<(ObjectReconstruction, Option<Fitted>)> {
+        let mut run = RunOptions { seed, ..opts.run.clone() };
+        // The fitted mesh takes its colours from the measured ones: the decoder's mesh is not needed.
+        if opts.shape_fit != ShapeFit::None && opts.mesh_from == MeshFrom::Fitted && run.decode_gaussians {
+            run.decode_mesh = false;
+        }
+        let mut fitted: Option<Fitted> = None;
+        let on_stage = |st| progress(Progress::Stage(st));
+        let rec = match opts.shape_fit {
+            ShapeFit::None => self.pipeline.run_observed(&ctx.inputs, &run, &on_stage),
+            ShapeFit::Depth | ShapeFit::DepthHull => {
+                let mut hook = |pose: &PredictedPose, coords: &[[i32; 3]], r: usize| {
+                    let (f, c) = fit_shape(pose, coords, r, ctx.views, &ctx.view_points, &ctx.supports, opts)?;
+                    fitted = Some(f);
+                    Ok(c)
+                };
+                self.pipeline.run_guided(&ctx.inputs, &run, &on_stage, Some(&mut hook))
+            }
+        }?;
+        Ok((rec, fitted))
+    }
+}
+
+/// What every sample of one object shares: the model's inputs and the
+/// observations its candidates are scored against.
+struct ObjectContext<'v, 'a> {
+    views: &'v [ObjView<'a>],
+    inputs: ObjectInputs,
+    view_points: Vec<ViewPoints>,
+    supports: Vec<Option<Plane>>,
+    /// Observed points (anchor frame) of every view, view 1 first, and their colours.
+    observed_points: Vec<[f32; 3]>,
+    observed_colors: Vec<[u8; 3]>,
+}
+
+impl<'v, 'a> ObjectContext<'v, 'a> {
+    fn new(views: &'v [ObjView<'a>]) -> Self {
         let inputs = ObjectInputs {
             views: views
                 .iter()
@@ -699,188 +797,171 @@ impl Engine {
             observed_points.extend(p);
             observed_colors.extend(c);
         }
-        let mut timings = StageTimings::default();
-        let (mut post_s, mut select_s) = (0.0, 0.0);
-        let mut candidates: Vec<Candidate> = Vec::new();
-        let mut per_sample_best: Vec<crate::math::Similarity> = Vec::new();
-        let mut kept: Option<Kept> = None;
-        let mut last_err = None;
-        for s in 0..opts.samples {
-            let seed = opts.run.seed.wrapping_add(s as u64);
-            progress(Progress::Sample { index: s, total: opts.samples, seed });
-            let mut run = RunOptions { seed, ..opts.run.clone() };
-            // The fitted mesh takes its colours from the measured ones: the decoder's mesh is not needed.
-            if opts.shape_fit != ShapeFit::None && opts.mesh_from == MeshFrom::Fitted && run.decode_gaussians {
-                run.decode_mesh = false;
-            }
-            let mut fitted: Option<Fitted> = None;
-            let on_stage = |st| progress(Progress::Stage(st));
-            let rec = match opts.shape_fit {
-                ShapeFit::None => self.pipeline.run_observed(&inputs, &run, &on_stage),
-                ShapeFit::Depth | ShapeFit::DepthHull => {
-                    let mut hook = |pose: &PredictedPose, coords: &[[i32; 3]], r: usize| {
-                        let (f, c) = fit_shape(pose, coords, r, views, &view_points, &supports, opts)?;
-                        fitted = Some(f);
-                        Ok(c)
-                    };
-                    self.pipeline.run_guided(&inputs, &run, &on_stage, Some(&mut hook))
-                }
-            };
-            let rec = match rec {
-                Ok(r) => r,
-                Err(e) => {
-                    // candle may append a backtrace; the first line says what failed.
-                    let e = e.to_string().lines().next().unwrap_or_default().to_string();
-                    notes.push(format!("seed {seed}: {e}"));
-                    last_err = Some(e);
-                    continue;
-                }
-            };
-            add_timings(&mut timings, &rec.timings);
-            progress(Progress::Decimating);
-            let t = Instant::now();
-            let faces_decoded = rec.mesh.as_ref().map_or(0, |m| m.faces.len());
-            let mesh = match (opts.mesh_from, &fitted) {
-                (MeshFrom::Fitted, Some(f)) => {
-                    Some(fitted_surface(f, (&observed_points, &observed_colors), rec.gaussians.as_ref(), opts.floater_area_fraction))
-                }
-                _ => rec.mesh.map(|m| drop_floaters(m, opts.floater_area_fraction)),
-            };
-            let mesh = mesh
-                .map(|m| {
-                    let mut m = taubin_smooth(&m, opts.smooth_iterations);
-                    if let Some(f) = &fitted {
-                        rest_on_supports(&mut m, &f.anchor, f.stretch, &view_points, &supports, opts.shape_fit_options.margin_m);
-                    }
-                    m
-                })
-                .map(|m| match opts.max_faces {
-                    Some(n) if m.faces.len() > n => decimate(&m, n),
-                    _ => m,
-                });
-            post_s += t.elapsed().as_secs_f64();
-
-            progress(Progress::Selecting);
-            let t = Instant::now();
-            // The mesh; without one (decode_mesh off) the Gaussian centres.
-            let surface = match (&mesh, &rec.gaussians) {
-                (Some(m), _) if !m.faces.is_empty() => Surface::from_mesh(m, opts.align.surface_samples, opts.align.seed).ok(),
-                (_, Some(g)) if !g.is_empty() => Surface::from_points(&g.positions).ok(),
-                _ => None,
-            };
-            let first = candidates.len();
-            // With the shape fit the pose was refined before the fit and stays
-            // as the fit saw it: one candidate per sample.
-            if let Some(f) = &fitted {
-                let stretched = match (&mesh, f.stretch != [1.0; 3]) {
-                    (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, f.stretch), opts.align.surface_samples, opts.align.seed).ok(),
-                    _ => None,
-                };
-                let score = match stretched.as_ref().or(surface.as_ref()) {
-                    Some(sf) => score_candidate(sf, &f.anchor, f.view, &view_points, &opts.align),
-                    None => CandidateScore { own_view: f.view, per_view_m: vec![f64::NAN; views.len()] },
-                };
-                candidates.push(Candidate {
-                    seed,
-                    view: f.view + 1,
-                    pose_camera: similarity_to_pose(&f.anchor),
-                    stretch: f.stretch,
-                    score,
-                });
-            }
-            for (k, v) in views.iter().enumerate().filter(|_| fitted.is_none()) {
-                let pose_n = rec.pose.per_token[k];
-                let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
-                let mut anchor = v.points.to_anchor.compose(&own);
-                let mut stretch = [1.0; 3];
-                if let (true, Some(sf)) = (opts.align.refine, &surface) {
-                    let r = refine_pose(sf, &anchor, &view_points, &opts.align);
-                    (anchor, stretch) = (r.pose, r.stretch);
-                }
-                // A stretched candidate is scored on its stretched mesh.
-                let stretched = match (&mesh, stretch != [1.0; 3]) {
-                    (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, stretch), opts.align.surface_samples, opts.align.seed).ok(),
-                    _ => None,
-                };
-                let score = match stretched.as_ref().or(surface.as_ref()) {
-                    Some(sf) => score_candidate(sf, &anchor, k, &view_points, &opts.align),
-                    None => CandidateScore { own_view: k, per_view_m: vec![f64::NAN; views.len()] },
-                };
-                candidates.push(Candidate { seed, view: k + 1, pose_camera: similarity_to_pose(&anchor), stretch, score });
-            }
-            let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
-            // This sample's own best, for the spread.
-            let mine = select_best(opts.select, &scores[first..]).map(|i| first + i).unwrap_or(first);
-            per_sample_best.push(pose_to_similarity(&candidates[mine].pose_camera));
-            let best = select_best(opts.select, &scores).unwrap_or(0);
-            if best >= first || kept.is_none() {
-                kept = Some(Kept {
-                    per_token: rec.pose.per_token.clone(),
-                    coords: rec.coords.len(),
-                    faces_decoded,
-                    mesh,
-                    gaussians: rec.gaussians,
-                    metadata: rec.metadata,
-                    shape_fit: fitted.map(|f| f.report),
-                });
-            }
-            select_s += t.elapsed().as_secs_f64();
-        }
-        let Some(kept) = kept else {
-            return Ok(Err(SkipReason::Preprocessing(format!("model: {}", last_err.unwrap_or_default()))));
-        };
-        let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
-        let best = select_best(opts.select, &scores).unwrap_or(0);
-        let chosen = &candidates[best];
-        if chosen.score.per_view_m.iter().all(|x| x.is_nan()) {
-            notes.push("no mesh or Gaussians to score the poses against; took the first candidate".to_string());
-        }
-        let key = opts.select.key(&chosen.score).unwrap_or(f64::NAN);
-        let selection = Selection { method: opts.select, candidate: best, seed: chosen.seed, view: chosen.view, score_m: key };
-        let anchor = pose_to_similarity(&chosen.pose_camera);
-        let (pose_camera, stretch, chosen_view) = (chosen.pose_camera, chosen.stretch, chosen.view);
-        let place = crate::math::Similarity32::new(pose_camera.rotation, pose_camera.translation, pose_camera.scale)?;
-        let vposes = views
-            .iter()
-            .enumerate()
-            .map(|(k, v)| {
-                let n: &Normaliser = &v.prepared.normaliser;
-                ViewPose {
-                    view: k + 1,
-                    frame: v.frame.rgb_path.clone(),
-                    mask: v.label.clone(),
-                    normaliser_centre_m: n.centre,
-                    normaliser_diameter_m: n.diameter,
-                    observed_points: v.points.points.len(),
-                    pose_own_token: pose_to_camera(&kept.per_token[k], n),
-                    pose_selected: similarity_to_pose(&v.points.to_anchor.inverse().compose(&anchor)),
-                }
-            })
-            .collect();
-        Ok(Ok(ObjectResult {
-            label: label.to_string(),
-            id,
-            pose_normalised: kept.per_token[chosen_view - 1],
-            pose_camera,
-            selection,
-            views: vposes,
-            uncertainty: pose_spread(&per_sample_best),
-            candidates,
-            occupied_voxels: kept.coords,
-            shape_fit: kept.shape_fit,
-            faces_decoded: kept.faces_decoded,
-            mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
-            gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),
-            observed_points,
-            observed_colors,
-            timings,
-            postprocess_seconds: post_s,
-            select_seconds: select_s,
-            metadata: kept.metadata,
-            samples: opts.samples,
-            notes,
-        }))
+        ObjectContext { views, inputs, view_points, supports, observed_points, observed_colors }
     }
+}
+
+/// What the samples of one object add up to.
+#[derive(Default)]
+struct SampleTally {
+    /// Model stages, summed over samples.
+    timings: StageTimings,
+    post_s: f64,
+    select_s: f64,
+    candidates: Vec<Candidate>,
+    /// Each sample's own best pose, for the spread.
+    per_sample_best: Vec<Similarity>,
+    /// The best sample's outputs so far.
+    kept: Option<Kept>,
+}
+
+/// A sample's output mesh: the fitted surface or the decoder's, floaters
+/// dropped, smoothed, rested on the support planes (with the shape fit) and
+/// held to the face budget.
+fn finish_mesh(
+    decoded: Option<Mesh>,
+    gaussians: Option<&Gaussians>,
+    fitted: Option<&Fitted>,
+    ctx: &ObjectContext,
+    opts: &InferSettings,
+) -> Option<Mesh> {
+    let mesh = match (opts.mesh_from, fitted) {
+        (MeshFrom::Fitted, Some(f)) => {
+            Some(fitted_surface(f, (&ctx.observed_points, &ctx.observed_colors), gaussians, opts.floater_area_fraction))
+        }
+        _ => decoded.map(|m| drop_floaters(m, opts.floater_area_fraction)),
+    };
+    mesh.map(|m| {
+        let mut m = taubin_smooth(&m, opts.smooth_iterations);
+        if let Some(f) = fitted {
+            rest_on_supports(&mut m, &f.anchor, f.stretch, &ctx.view_points, &ctx.supports, opts.shape_fit_options.margin_m);
+        }
+        m
+    })
+    .map(|m| match opts.max_faces {
+        Some(n) if m.faces.len() > n => decimate(&m, n),
+        _ => m,
+    })
+}
+
+/// One sample's candidate poses, scored: with the shape fit its one pose
+/// (refined before the fit and kept as the fit saw it), else every view's
+/// token, refined against the sample's surface when the alignment refines.
+fn sample_candidates(
+    seed: u64,
+    mesh: Option<&Mesh>,
+    gaussians: Option<&Gaussians>,
+    pose: &PredictedPose,
+    fitted: Option<&Fitted>,
+    ctx: &ObjectContext,
+    opts: &InferSettings,
+) -> Vec<Candidate> {
+    let (views, view_points) = (ctx.views, &ctx.view_points);
+    // The mesh; without one (decode_mesh off) the Gaussian centres.
+    let surface = match (mesh, gaussians) {
+        (Some(m), _) if !m.faces.is_empty() => Surface::from_mesh(m, opts.align.surface_samples, opts.align.seed).ok(),
+        (_, Some(g)) if !g.is_empty() => Surface::from_points(&g.positions).ok(),
+        _ => None,
+    };
+    let mut candidates = Vec::new();
+    if let Some(f) = fitted {
+        let stretched = match (mesh, f.stretch != [1.0; 3]) {
+            (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, f.stretch), opts.align.surface_samples, opts.align.seed).ok(),
+            _ => None,
+        };
+        let score = match stretched.as_ref().or(surface.as_ref()) {
+            Some(sf) => score_candidate(sf, &f.anchor, f.view, view_points, &opts.align),
+            None => CandidateScore { own_view: f.view, per_view_m: vec![f64::NAN; views.len()] },
+        };
+        candidates.push(Candidate { seed, view: f.view + 1, pose_camera: similarity_to_pose(&f.anchor), stretch: f.stretch, score });
+    }
+    for (k, v) in views.iter().enumerate().filter(|_| fitted.is_none()) {
+        let pose_n = pose.per_token[k];
+        let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
+        let mut anchor = v.points.to_anchor.compose(&own);
+        let mut stretch = [1.0; 3];
+        if let (true, Some(sf)) = (opts.align.refine, &surface) {
+            let r = refine_pose(sf, &anchor, view_points, &opts.align);
+            (anchor, stretch) = (r.pose, r.stretch);
+        }
+        // A stretched candidate is scored on its stretched mesh.
+        let stretched = match (mesh, stretch != [1.0; 3]) {
+            (Some(m), true) => Surface::from_mesh(&stretch_mesh(m, stretch), opts.align.surface_samples, opts.align.seed).ok(),
+            _ => None,
+        };
+        let score = match stretched.as_ref().or(surface.as_ref()) {
+            Some(sf) => score_candidate(sf, &anchor, k, view_points, &opts.align),
+            None => CandidateScore { own_view: k, per_view_m: vec![f64::NAN; views.len()] },
+        };
+        candidates.push(Candidate { seed, view: k + 1, pose_camera: similarity_to_pose(&anchor), stretch, score });
+    }
+    candidates
+}
+
+/// The object's result: the best candidate over all samples, the kept
+/// sample's mesh and Gaussians placed in the anchor camera frame.
+fn object_result(
+    label: &str,
+    id: Option<u32>,
+    ctx: ObjectContext,
+    opts: &InferSettings,
+    tally: SampleTally,
+    kept: Kept,
+    mut notes: Vec<String>,
+) -> Result<ObjectResult> {
+    let SampleTally { timings, post_s, select_s, candidates, per_sample_best, .. } = tally;
+    let views = ctx.views;
+    let scores: Vec<CandidateScore> = candidates.iter().map(|c| c.score.clone()).collect();
+    let best = select_best(opts.select, &scores).unwrap_or(0);
+    let chosen = &candidates[best];
+    if chosen.score.per_view_m.iter().all(|x| x.is_nan()) {
+        notes.push("no mesh or Gaussians to score the poses against; took the first candidate".to_string());
+    }
+    let key = opts.select.key(&chosen.score).unwrap_or(f64::NAN);
+    let selection = Selection { method: opts.select, candidate: best, seed: chosen.seed, view: chosen.view, score_m: key };
+    let anchor = pose_to_similarity(&chosen.pose_camera);
+    let (pose_camera, stretch, chosen_view) = (chosen.pose_camera, chosen.stretch, chosen.view);
+    let place = crate::math::Similarity32::new(pose_camera.rotation, pose_camera.translation, pose_camera.scale)?;
+    let vposes = views
+        .iter()
+        .enumerate()
+        .map(|(k, v)| {
+            let n: &Normaliser = &v.prepared.normaliser;
+            ViewPose {
+                view: k + 1,
+                frame: v.frame.rgb_path.clone(),
+                mask: v.label.clone(),
+                normaliser_centre_m: n.centre,
+                normaliser_diameter_m: n.diameter,
+                observed_points: v.points.points.len(),
+                pose_own_token: pose_to_camera(&kept.per_token[k], n),
+                pose_selected: similarity_to_pose(&v.points.to_anchor.inverse().compose(&anchor)),
+            }
+        })
+        .collect();
+    Ok(ObjectResult {
+        label: label.to_string(),
+        id,
+        pose_normalised: kept.per_token[chosen_view - 1],
+        pose_camera,
+        selection,
+        views: vposes,
+        uncertainty: pose_spread(&per_sample_best),
+        candidates,
+        occupied_voxels: kept.coords,
+        shape_fit: kept.shape_fit,
+        faces_decoded: kept.faces_decoded,
+        mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
+        gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),
+        observed_points: ctx.observed_points,
+        observed_colors: ctx.observed_colors,
+        timings,
+        postprocess_seconds: post_s,
+        select_seconds: select_s,
+        metadata: kept.metadata,
+        samples: opts.samples,
+        notes,
+    })
 }
 
 fn ser_pose<S: serde::Serializer>(p: &Pose, s: S) -> std::result::Result<S::Ok, S::Error> {

@@ -4,12 +4,14 @@
 //! folder (`output`).
 
 pub mod infer;
+pub mod options;
 pub mod output;
 pub mod pipeline;
 pub(crate) mod pose_fit;
 pub(crate) mod shape_fit;
 pub(crate) mod source;
 pub use self::infer::*;
+pub use self::options::*;
 pub use self::output::*;
 pub use self::pipeline::*;
 pub use self::pose_fit::{free_space, geodesic_angle, mean_rotation, refine_pose, view_score, DepthView, Refined, FREE_SPACE_SAMPLES};

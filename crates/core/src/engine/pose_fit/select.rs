@@ -19,7 +19,7 @@ use crate::spatial::{dist2, P3};
 use serde::Serialize;
 
 /// Which candidates compete and how they are scored (module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum SelectMethod {

@@ -1,0 +1,275 @@
+//! The per-frame options a user sets (`recon infer`'s flags, `Engine.reconstruct`'s
+//! keywords, JSON), defined once: their names, defaults, help text and checks.
+//!
+//! [`InferOptions`] holds exactly the user-facing settings, flat, one name per setting at
+//! every layer: the CLI flattens it (`--min-component-area`), Python and JSON take the same
+//! names with `_` (`min_component_area`). [`InferOptions::settings`] checks it and derives
+//! the engine's internal [`InferSettings`] (sampler, alignment and mesh settings).
+
+use crate::engine::infer::InferSettings;
+use crate::engine::infer::DEFAULT_PARALLEL_OBJECTS;
+use crate::engine::pose_fit::{PoseFit, SelectMethod};
+use crate::engine::shape_fit::{MeshFrom, ShapeFit};
+use serde::{Deserialize, Serialize};
+use std::num::NonZeroUsize;
+
+/// Default face budget of an output mesh.
+pub const DEFAULT_MAX_FACES: usize = 200_000;
+
+/// Default Taubin smoothing iterations of an output mesh.
+pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
+
+/// The per-frame options of `recon infer`, `recon eval --method recgen` and Python's
+/// `Engine.reconstruct`. The field docs are the CLI's `--help` text.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+#[serde(default, deny_unknown_fields)]
+pub struct InferOptions {
+    /// Model seed: sample k of an object uses seed + k (also seeds random weights).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.seed))]
+    pub seed: u64,
+    /// Samples per object (seeds seed, seed+1, …): the best pose is kept and the spread of
+    /// the per-sample poses reported as uncertainty.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.samples))]
+    pub samples: usize,
+    /// Pose selection among views and samples (score: trimmed mean, top 10 % dropped, of
+    /// observed-point-to-mesh distances, metres).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.select))]
+    pub select: SelectMethod,
+    /// How each predicted pose is checked against the measured depth.
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.pose_fit))]
+    pub pose_fit: PoseFit,
+    /// Observation-guided structure: fit the stage-1 occupancy to the depth (carve observed
+    /// free space, fill the observed surface, keep the outer shell) before stage 2.
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.shape_fit))]
+    pub shape_fit: ShapeFit,
+    /// With the shape fit: the mesh is the fitted occupancy's closed, smoothed surface
+    /// coloured from the decoder (`fitted`), or the stage-2 decoder's surface (`decoder`).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.mesh_from))]
+    pub mesh_from: MeshFrom,
+    /// Sampler steps for both stages (default: the config's).
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub steps: Option<usize>,
+    /// Classifier-free guidance strength for both stages (default: the config's).
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub cfg: Option<f64>,
+    /// Mesh face budget: larger meshes are decimated (quadric edge collapse); 0 = no limit.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.max_faces))]
+    pub max_faces: usize,
+    /// Floater removal: mesh components with less than this fraction of the total area are
+    /// dropped (the largest is always kept); 0 keeps every component.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.min_component_area))]
+    pub min_component_area: f64,
+    /// Taubin smoothing iterations on the decoded mesh (after floater removal, before
+    /// decimation); 0 keeps the decoder's surface.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.smooth))]
+    pub smooth: usize,
+    /// Objects of a frame reconstructed at once (threads sharing the loaded model and the
+    /// kernels' threads; 1: one after another). Results are the same for any value; more
+    /// than 1 pays only with cores the model leaves idle, and costs memory per object.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.parallel_objects))]
+    pub parallel_objects: NonZeroUsize,
+}
+
+impl InferOptions {
+    /// The defaults, as a constant so the CLI's `[default: …]` is read from here.
+    pub const DEFAULT: InferOptions = InferOptions {
+        seed: 42,
+        samples: 1,
+        select: SelectMethod::Cross,
+        pose_fit: PoseFit::Depth,
+        shape_fit: ShapeFit::Depth,
+        mesh_from: MeshFrom::Fitted,
+        steps: None,
+        cfg: None,
+        max_faces: DEFAULT_MAX_FACES,
+        min_component_area: 0.02,
+        smooth: DEFAULT_SMOOTH_ITERATIONS,
+        parallel_objects: DEFAULT_PARALLEL_OBJECTS,
+    };
+
+    /// The option names, in `--help` order (the JSON and Python keyword names).
+    pub const NAMES: [&'static str; 12] = [
+        "seed",
+        "samples",
+        "select",
+        "pose_fit",
+        "shape_fit",
+        "mesh_from",
+        "steps",
+        "cfg",
+        "max_faces",
+        "min_component_area",
+        "smooth",
+        "parallel_objects",
+    ];
+
+    /// Checks every option; the first one out of range is named in the error.
+    pub fn validate(&self) -> Result<(), OptionError> {
+        if self.samples == 0 {
+            return Err(OptionError::new("samples", "at least 1", self.samples));
+        }
+        if !(0.0..1.0).contains(&self.min_component_area) {
+            return Err(OptionError::new("min_component_area", "in [0, 1)", self.min_component_area));
+        }
+        Ok(())
+    }
+
+    /// The engine's settings for these options (checked first).
+    pub fn settings(&self) -> Result<InferSettings, OptionError> {
+        self.validate()?;
+        let mut s = InferSettings {
+            samples: self.samples,
+            select: self.select,
+            align: self.pose_fit.options(),
+            max_faces: (self.max_faces > 0).then_some(self.max_faces),
+            floater_area_fraction: self.min_component_area,
+            smooth_iterations: self.smooth,
+            shape_fit: self.shape_fit,
+            mesh_from: self.mesh_from,
+            parallel_objects: self.parallel_objects,
+            ..Default::default()
+        };
+        s.run.seed = self.seed;
+        // One `--steps` / `--cfg` sets both stages' samplers.
+        (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
+        (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
+        Ok(s)
+    }
+
+    /// Options from JSON (an object of option names; absent ones take their defaults),
+    /// checked. An unknown name is an error listing the valid ones.
+    pub fn from_json(v: serde_json::Value) -> Result<Self, OptionError> {
+        if let Some(map) = v.as_object() {
+            if let Some(k) = map.keys().find(|k| !Self::NAMES.contains(&k.as_str())) {
+                return Err(OptionError::Unknown { option: k.clone(), valid: Self::NAMES.join(", ") });
+            }
+        }
+        let o: InferOptions = serde_path_to_error::deserialize(v)
+            .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })?;
+        o.validate()?;
+        Ok(o)
+    }
+}
+
+impl Default for InferOptions {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
+/// A bad option, named.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum OptionError {
+    /// A value out of range: which option, what it must be, what it was.
+    #[error("{} must be {expected}, got {given}", flag(option))]
+    OutOfRange { option: String, expected: String, given: String },
+    /// A name that is no option.
+    #[error("unknown option `{option}`; the options are {valid}")]
+    Unknown { option: String, valid: String },
+    /// A value of the wrong type (`message` says what was expected).
+    #[error("{}: {message}", flag(option))]
+    Invalid { option: String, message: String },
+}
+
+impl OptionError {
+    pub fn new(option: &str, expected: &str, given: impl std::fmt::Display) -> Self {
+        OptionError::OutOfRange { option: option.to_string(), expected: expected.to_string(), given: given.to_string() }
+    }
+
+    /// The option's name (`min_component_area`).
+    pub fn option(&self) -> &str {
+        match self {
+            OptionError::OutOfRange { option, .. } | OptionError::Unknown { option, .. } | OptionError::Invalid { option, .. } => option,
+        }
+    }
+
+    /// The message with the option as a keyword (`min_component_area: must be in [0, 1),
+    /// got 1.5`), for callers outside the CLI (Python).
+    pub fn keyword_message(&self) -> String {
+        match self {
+            OptionError::OutOfRange { option, expected, given } => format!("{option}: must be {expected}, got {given}"),
+            OptionError::Unknown { .. } => self.to_string(),
+            OptionError::Invalid { option, message } => format!("{option}: {message}"),
+        }
+    }
+}
+
+/// `min_component_area` → `--min-component-area`.
+pub fn flag(option: &str) -> String {
+    format!("--{}", option.replace('_', "-"))
+}
+
+impl From<OptionError> for crate::Error {
+    fn from(e: OptionError) -> Self {
+        crate::Error::config("infer options", e.option(), e.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_the_serialised_fields_in_order() {
+        let v = serde_json::to_value(InferOptions::default()).unwrap();
+        let keys: Vec<&str> = v.as_object().unwrap().keys().map(String::as_str).collect();
+        let mut names = InferOptions::NAMES.to_vec();
+        let mut sorted = keys.clone();
+        names.sort();
+        sorted.sort();
+        assert_eq!(sorted, names);
+    }
+
+    #[test]
+    fn checks_name_the_option_the_expectation_and_the_value() {
+        let e = InferOptions { samples: 0, ..Default::default() }.validate().unwrap_err();
+        assert_eq!(e.to_string(), "--samples must be at least 1, got 0");
+        assert_eq!(e.keyword_message(), "samples: must be at least 1, got 0");
+        let e = InferOptions { min_component_area: 1.5, ..Default::default() }.settings().unwrap_err();
+        assert_eq!(e.to_string(), "--min-component-area must be in [0, 1), got 1.5");
+        assert!(InferOptions { min_component_area: 0.0, ..Default::default() }.validate().is_ok());
+    }
+
+    #[test]
+    fn json_takes_the_same_names_and_defaults() {
+        let o = InferOptions::from_json(serde_json::json!({"cfg": 3, "pose_fit": "depth-stretch", "steps": null})).unwrap();
+        assert_eq!(o, InferOptions { cfg: Some(3.0), pose_fit: PoseFit::DepthStretch, ..Default::default() });
+        assert_eq!(InferOptions::from_json(serde_json::json!({})).unwrap(), InferOptions::default());
+        let e = InferOptions::from_json(serde_json::json!({"sample": 2})).unwrap_err();
+        assert!(e.to_string().starts_with("unknown option `sample`; the options are seed, samples,"), "{e}");
+        let e = InferOptions::from_json(serde_json::json!({"samples": "two"})).unwrap_err();
+        assert!(e.keyword_message().starts_with("samples: invalid type"), "{e:?}");
+        let e = InferOptions::from_json(serde_json::json!({"samples": 0})).unwrap_err();
+        assert_eq!(e.option(), "samples");
+    }
+
+    #[test]
+    fn settings_carry_every_option() {
+        let o = InferOptions {
+            seed: 9,
+            samples: 3,
+            select: SelectMethod::First,
+            pose_fit: PoseFit::Recgen,
+            shape_fit: ShapeFit::None,
+            mesh_from: MeshFrom::Decoder,
+            steps: Some(4),
+            cfg: Some(2.5),
+            max_faces: 0,
+            min_component_area: 0.1,
+            smooth: 5,
+            parallel_objects: NonZeroUsize::new(2).unwrap(),
+        };
+        let s = o.settings().unwrap();
+        assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
+        assert_eq!(
+            (s.run.ss_steps, s.run.slat_steps, s.run.ss_cfg_strength, s.run.slat_cfg_strength),
+            (Some(4), Some(4), Some(2.5), Some(2.5))
+        );
+        assert_eq!((s.max_faces, s.floater_area_fraction, s.smooth_iterations), (None, 0.1, 5));
+        assert_eq!((s.shape_fit, s.mesh_from, s.parallel_objects.get()), (ShapeFit::None, MeshFrom::Decoder, 2));
+        assert!(!s.align.refine);
+        let d = InferOptions::default().settings().unwrap();
+        assert_eq!((d.max_faces, d.run.seed, d.align.refine), (Some(DEFAULT_MAX_FACES), 42, true));
+    }
+}
