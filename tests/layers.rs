@@ -414,3 +414,31 @@ fn the_checker_sees_planted_violations() {
     assert_eq!(strip("let x = \"crate::a\"; // crate::b\ncrate::c"), "let x = ; \ncrate::c\n");
     assert_eq!(strip("if c == '{' || c == '\\'' { x::<'a> }"), "if c ==  || c ==  { x::<'a> }\n");
 }
+
+/// A minimal engine build (`recon-core` without default features) brings no CLI, download,
+/// physics or progress-bar dependency: those are optional features of `recon-core` or
+/// dependencies of the crates above it.
+#[test]
+fn the_engine_crate_keeps_optional_weight_optional() {
+    let manifest = std::fs::read_to_string(workspace().join("crates/core/Cargo.toml")).unwrap();
+    let deps: Vec<&str> = manifest
+        .split("[dependencies]")
+        .nth(1)
+        .unwrap()
+        .split("\n[")
+        .next()
+        .unwrap()
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .collect();
+    let dep = |name: &str| deps.iter().find(|l| l.split(['=', '.', ' ']).next() == Some(name)).copied();
+    for heavy in ["rapier3d", "indicatif", "anyhow"] {
+        assert!(dep(heavy).is_none(), "recon-core must not depend on {heavy}");
+    }
+    for optional in ["hf-hub", "ureq", "clap"] {
+        let line = dep(optional).unwrap_or_else(|| panic!("recon-core lists {optional}"));
+        assert!(line.contains("optional = true"), "{optional} must be optional in recon-core: {line}");
+    }
+    assert!(manifest.contains("default = [\"hub\"]"), "the hub download is the one default feature");
+}
