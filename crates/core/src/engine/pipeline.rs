@@ -89,7 +89,7 @@ use crate::gaussians::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
 use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::nn::fast::{self, Compute, Precision};
+use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
@@ -585,7 +585,7 @@ impl Pipeline {
     }
 
     /// Build module `key` from its source with this pipeline's compute setting.
-    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>) -> Result<T> {
+    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
         let spec = self
             .config
             .modules()
@@ -599,7 +599,10 @@ impl Pipeline {
             Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed, &label)?,
             None => return Err(Error::msg(format!("pipeline: module `{key}` was not loaded (stage-1-only pipeline?)"))),
         };
-        fast::build_with(self.options.compute, || f(&spec, vb, &label))
+        let m = f(&spec, vb, &label, self.options.compute);
+        // The build's temporaries (f32 weights before packing) do not recur.
+        crate::util::release_cached_buffers();
+        m
     }
 
     /// The resident module, or one built now (counted in `loading`).
@@ -607,7 +610,7 @@ impl Pipeline {
         &'a self,
         resident: &'a Option<T>,
         key: &str,
-        f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>,
+        f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>,
         loading: &mut f64,
     ) -> Result<Held<'a, T>> {
         match resident {
