@@ -884,7 +884,6 @@ impl Pipeline {
 
     /// Steps 6–7: the stage-2 condition, then the structured latent sampled on
     /// the occupied voxels (noise from `rng`), denormalised.
-    #[allow(clippy::too_many_arguments)]
     fn sample_slat(
         &self,
         views: &[ViewInputs],
