@@ -119,8 +119,8 @@ fn main() -> recon::Result<()> {
         if env_usize("SLAT_BENCH_GS", 1) == 1 {
             reset_peak();
             let a = args(blocks, false);
-            let vb = random_var_builder(1, 0.02, |vb| SLatGaussianDecoder::new(&a, vb))?;
-            let dec = SLatGaussianDecoder::new(&a, vb)?;
+            let vb = random_var_builder(1, 0.02, |vb| SLatGaussianDecoder::new(&a, vb, recon::model::Compute::Plain))?;
+            let dec = SLatGaussianDecoder::new(&a, vb, recon::model::Compute::Plain)?;
             let t0 = Instant::now();
             let (h, t_in, tb) = trunk_times(&dec.trunk, &x)?;
             let t1 = Instant::now();
@@ -141,8 +141,8 @@ fn main() -> recon::Result<()> {
         if env_usize("SLAT_BENCH_MESH", 1) == 1 {
             reset_peak();
             let a = args(blocks, true);
-            let vb = random_var_builder(2, 0.02, |vb| SLatMeshDecoder::new(&a, vb))?;
-            let dec = SLatMeshDecoder::new(&a, vb)?;
+            let vb = random_var_builder(2, 0.02, |vb| SLatMeshDecoder::new(&a, vb, recon::model::Compute::Plain))?;
+            let dec = SLatMeshDecoder::new(&a, vb, recon::model::Compute::Plain)?;
             let t0 = Instant::now();
             let (h, t_in, tb) = trunk_times(&dec.trunk, &x)?;
             let t1 = Instant::now();

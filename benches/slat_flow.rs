@@ -31,7 +31,8 @@ fn config(blocks: usize) -> SLatFlowConfig {
 /// candle keep every intermediate alive for backprop, which is not inference.
 fn random_model(cfg: &SLatFlowConfig) -> candle_core::Result<SLatFlowModel> {
     let vm = VarMap::new();
-    SLatFlowModel::new(cfg, VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu)).map_err(candle_core::Error::wrap)?;
+    SLatFlowModel::new(cfg, VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu), recon::model::Compute::Plain)
+        .map_err(candle_core::Error::wrap)?;
     let mut weights = HashMap::new();
     {
         let data = vm.data().lock().expect("varmap lock");
@@ -42,7 +43,8 @@ fn random_model(cfg: &SLatFlowConfig) -> candle_core::Result<SLatFlowModel> {
         }
     }
     drop(vm);
-    SLatFlowModel::new(cfg, VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu)).map_err(candle_core::Error::wrap)
+    SLatFlowModel::new(cfg, VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu), recon::model::Compute::Plain)
+        .map_err(candle_core::Error::wrap)
 }
 
 /// A solid ball at the grid centre with about `target` voxels.

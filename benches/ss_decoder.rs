@@ -56,7 +56,7 @@ fn main() -> recon::Result<()> {
     let cfg = SparseStructureDecoderConfig::release();
     let vb = VarBuilder::from_backend(Box::new(RandomWeights), DType::F32, Device::Cpu);
     let t0 = Instant::now();
-    let dec = SparseStructureDecoder::new(&cfg, vb)?;
+    let dec = SparseStructureDecoder::new(&cfg, vb, recon::model::Compute::Plain)?;
     println!(
         "ss_decoder bench: channels {:?}, {} rayon threads; weights built in {:.2} s",
         cfg.channels,

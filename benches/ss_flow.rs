@@ -79,7 +79,8 @@ fn main() -> recon::Result<()> {
         Err(_) => recon::model::Compute::Plain,
     };
     println!("compute: {}", compute.describe());
-    let model = recon::model::build_with(compute, || SparseStructureFlowModel::new(&cfg, vb))?;
+    let model = SparseStructureFlowModel::new(&cfg, vb, compute)?;
+    recon::util::release_cached_buffers();
     let build_s = t0.elapsed().as_secs_f64();
     let hwm_weights = vm_hwm_kib().unwrap_or(0);
 

@@ -113,7 +113,7 @@ fn main() {
 
     recon::util::reset_peak_rss();
     let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1).unwrap();
-    let encoder = recon::weights::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder").unwrap();
+    let encoder = recon::weights::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder", recon::model::Compute::Plain).unwrap();
     let sc = scan(&src).unwrap();
     let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy").unwrap(), "toy").unwrap();
     let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 3).unwrap();

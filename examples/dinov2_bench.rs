@@ -10,7 +10,7 @@ fn main() -> anyhow::Result<()> {
     let cfg = Dinov2Config::vitl14_reg();
     let t0 = std::time::Instant::now();
     let init = RandomInit::new(0);
-    let model = Dinov2::new(&cfg, init.var_builder(&Device::Cpu))?;
+    let model = Dinov2::new(&cfg, init.var_builder(&Device::Cpu), recon::model::Compute::Plain)?;
     println!("init {:.2}s", t0.elapsed().as_secs_f64());
     let x = Tensor::randn(0f32, 1.0, (1, 3, 518, 518), &Device::Cpu)?;
     for i in 0..runs {

@@ -4,7 +4,7 @@
 //! workspace's crates so that one dependency reaches all of them:
 //!
 //! - the engine, [`recon_core`]: [`error`], [`math`], [`rng`], [`util`],
-//!   [`spatial`], [`mesh`], [`gaussians`], [`dataset`], [`sensor`], [`render`],
+//!   [`settings`], [`spatial`], [`mesh`], [`gaussians`], [`dataset`], [`sensor`], [`render`],
 //!   [`export`], [`geometry`], [`model`], [`weights`], [`engine`];
 //! - the applications: [`synth`] (`recon-synth`), [`eval`] (`recon-eval`),
 //!   [`sim`] (`recon-sim`), [`audit`] (`recon-audit`), [`train`] (`recon-train`);
@@ -16,7 +16,9 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
 
 pub use recon_audit as audit;
-pub use recon_core::{dataset, engine, error, export, gaussians, geometry, math, mesh, model, render, rng, sensor, spatial, util, weights};
+pub use recon_core::{
+    dataset, engine, error, export, gaussians, geometry, math, mesh, model, render, rng, sensor, settings, spatial, util, weights,
+};
 pub use recon_core::{Error, Result, SizeBound};
 pub use recon_eval as eval;
 pub use recon_sim as sim;

@@ -49,6 +49,8 @@ enum Cmd {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    // The environment is read here, once (see `recon::settings` for the list).
+    recon::settings::Settings::from_env()?.apply();
     let ok = match cli.cmd {
         Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,

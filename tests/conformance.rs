@@ -6,7 +6,7 @@ fn fixture(name: &str) -> PathBuf {
 }
 
 fn assert_fixture(name: &str) {
-    let checks = recon::tools::run_fixture(&fixture(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+    let checks = recon::tools::run_fixture(&fixture(name), recon::model::Compute::Plain).unwrap_or_else(|e| panic!("{name}: {e}"));
     assert!(!checks.is_empty(), "{name}: no outputs checked");
     for c in &checks {
         eprintln!("{name}: {} max_abs {:.3e} tol {:.1e}", c.output, c.max_abs, c.tol);
@@ -38,9 +38,9 @@ fixture_tests! {
 /// The same fixtures with every layer built on the fast inference kernels in
 /// f32 (packed GEMM, flash attention, fused norms): within the same tolerances.
 fn assert_fixture_fast(name: &str) {
-    use recon::model::{build_with, Compute, Precision};
-    let checks = build_with(Compute::fast(Precision::F32), || recon::tools::run_fixture(&fixture(name)))
-        .unwrap_or_else(|e| panic!("{name} (fast f32): {e}"));
+    use recon::model::{Compute, Precision};
+    let checks =
+        recon::tools::run_fixture(&fixture(name), Compute::fast(Precision::F32)).unwrap_or_else(|e| panic!("{name} (fast f32): {e}"));
     assert!(!checks.is_empty(), "{name}: no outputs checked");
     for c in &checks {
         eprintln!("{name} fast f32: {} max_abs {:.3e} tol {:.1e}", c.output, c.max_abs, c.tol);
@@ -69,11 +69,10 @@ fast_fixture_tests! {
 /// abs error within 3% of that output's largest magnitude (bf16 keeps 8
 /// mantissa bits, 0.4% per rounding; a few roundings accumulate per layer).
 fn assert_fixture_bf16(name: &str) {
-    use recon::model::{build_with, Compute, Precision};
+    use recon::model::{Compute, Precision};
     let dir = fixture(name);
     let fx = recon::tools::Fixture::load(&dir).unwrap();
-    let checks =
-        build_with(Compute::fast(Precision::Bf16), || recon::tools::run_fixture(&dir)).unwrap_or_else(|e| panic!("{name} (bf16): {e}"));
+    let checks = recon::tools::run_fixture(&dir, Compute::fast(Precision::Bf16)).unwrap_or_else(|e| panic!("{name} (bf16): {e}"));
     let mut checked = 0;
     for c in &checks {
         let Ok(want) = fx.tensor(&c.output) else { continue };

@@ -8,7 +8,7 @@ use common::{read_json, recon, tmp};
 
 #[test]
 fn observed_baseline_on_ycbv_frames_and_rescoring() {
-    let Some(root) = recon::dataset::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video baseline test") else {
+    let Some(root) = common::realdata::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video baseline test") else {
         return;
     };
     let root = root.as_path();

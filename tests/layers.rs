@@ -27,6 +27,7 @@ const CRATES: &[(&str, &str)] = &[
 /// Top-level modules of `recon-core`, bottom first (the order of `docs/ARCHITECTURE.md`).
 const LAYERS: &[&str] = &[
     "error",
+    "settings",
     "math",
     "rng",
     "util",

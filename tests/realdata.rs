@@ -2,7 +2,7 @@
 //! plumbing proof on YCB-Video ground truth.
 //!
 //! The datasets live in ../shared/realdata (not in the repository; see
-//! `recon::dataset::shared_realdata`); tests
+//! `common::realdata::shared_realdata`); tests
 //! that need them print a note and return when the folder is absent, or fail
 //! with `RECON_REQUIRE_REALDATA=1` (which `.ci/run` sets). The one YCB-Video frame shipped in `data/sample/`
 //! is always tested.
@@ -22,7 +22,7 @@ use recon::geometry::{Pose, PoseStats};
 use recon::math::Similarity32;
 
 fn realdata() -> Option<PathBuf> {
-    recon::dataset::realdata_for_test(None, "this real-data test")
+    common::realdata::realdata_for_test(None, "this real-data test")
 }
 
 fn check_ycb_frame(color: &Path) {

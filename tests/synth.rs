@@ -2,6 +2,8 @@
 //! the BOP round trip through the evaluator's reader, geometric consistency of depth,
 //! masks, intrinsics and GT poses, parts mode, and the CLI.
 
+mod common;
+
 use parry3d::math::Vector;
 use parry3d::query::PointQuery;
 use parry3d::shape::TriMesh as ParryMesh;
@@ -287,7 +289,7 @@ fn renders_real_ycbv_objects_where_the_camera_saw_them() {
     use recon::math::Similarity;
     use recon::render::render;
     use recon::synth::{Camera, Instance, RenderMesh, RenderOptions};
-    let Some(root) = recon::dataset::realdata_for_test(Some("ycbv_video_oprb"), "this real-data test") else {
+    let Some(root) = common::realdata::realdata_for_test(Some("ycbv_video_oprb"), "this real-data test") else {
         return;
     };
     let root = root.as_path();

@@ -43,7 +43,7 @@ fn save(t: &HashMap<String, Tensor>, p: &Path) {
 
 fn forward(vb: candle_nn::VarBuilder) -> Tensor {
     let cfg: Dinov2Config = serde_json::from_value(tiny_cfg().0.args).unwrap();
-    let m = Dinov2::new(&cfg, vb).unwrap();
+    let m = Dinov2::new(&cfg, vb, recon::model::Compute::Plain).unwrap();
     let x = Tensor::arange(0f32, (3 * 56 * 56) as f32, &Device::Cpu).unwrap().reshape((1, 3, 56, 56)).unwrap();
     let x = (x / 5000.0).unwrap().sin().unwrap();
     m.forward(&x).unwrap().x_prenorm
@@ -127,7 +127,7 @@ fn missing_extra_and_wrong_shape_are_named() {
     // Building the model straight from the bad file fails too (shape-checked backend).
     let vb = Checkpoint::open(&p, None).unwrap().into_var_builder(DType::F32, &Device::Cpu);
     let cfg: Dinov2Config = serde_json::from_value(tiny_cfg().0.args).unwrap();
-    assert!(Dinov2::new(&cfg, vb).is_err());
+    assert!(Dinov2::new(&cfg, vb, recon::model::Compute::Plain).is_err());
 }
 
 #[test]

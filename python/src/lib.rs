@@ -20,6 +20,8 @@ mod tools;
 #[pymodule]
 fn _recon(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
+    // The environment is read here, once, at import (see `recon::settings`).
+    recon::settings::Settings::from_env().map_err(|e| errors::ConfigError::new_err(e.to_string()))?.apply();
     m.add("ReconError", py.get_type::<errors::ReconError>())?;
     m.add("InputError", py.get_type::<errors::InputError>())?;
     m.add("WeightsError", py.get_type::<errors::WeightsError>())?;

@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
 use crate::model::config::RecGenConfig;
-use crate::model::nn::fast::{self, Compute, Precision};
+use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sparse::SparseTensor;
 use crate::rng::SeededRng;
 use crate::tools::upstream::rel_errors;
@@ -463,9 +463,12 @@ fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &Modu
     let t = Instant::now();
     let vb = registry::random_var_builder(&cfg, seed, &label)?;
     macro_rules! build {
-        ($f:path) => {
-            fast::build_with(compute, || $f(&cfg, vb, &label))?
-        };
+        ($f:path) => {{
+            let m = $f(&cfg, vb, &label, compute)?;
+            // As the engine's load: the build's temporaries do not recur.
+            crate::util::release_cached_buffers();
+            m
+        }};
     }
     let (build_s, fwd_s, out) = match key {
         "image_cond_model" => {

@@ -15,7 +15,7 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
-use crate::model::nn::fast::{self, Compute, Precision};
+use crate::model::nn::fast::{Compute, Precision};
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
@@ -204,7 +204,8 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
             let vb = crate::weights::load_validated(&st, &expected, false, DType::F32, &Device::Cpu)?;
             let (out, seconds) = match key {
                 "ss_flow" => {
-                    let m = fast::build_with(compute, || registry::build_ss_flow(&cfg, vb, &label))?;
+                    let m = registry::build_ss_flow(&cfg, vb, &label, compute)?;
+                    crate::util::release_cached_buffers();
                     let (x, tt, cond) = (
                         tensor(&t, &ref_path, "input.ss_flow.x")?,
                         tensor(&t, &ref_path, "input.ss_flow.t")?,
@@ -215,7 +216,8 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
                     (v, s.elapsed().as_secs_f64())
                 }
                 _ => {
-                    let m = fast::build_with(compute, || registry::build_ss_decoder(&cfg, vb, &label))?;
+                    let m = registry::build_ss_decoder(&cfg, vb, &label, compute)?;
+                    crate::util::release_cached_buffers();
                     let x = tensor(&t, &ref_path, "input.ss_decoder.x")?;
                     let s = Instant::now();
                     let o = m.forward(x)?;

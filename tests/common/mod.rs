@@ -3,6 +3,8 @@
 // Every test crate uses a different subset of these.
 #![allow(dead_code)]
 
+pub mod realdata;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

@@ -615,22 +615,6 @@ fn run_round(
     results.extend(fined);
     let m = cands.len();
     let fitted = results.iter().filter(|r| r.1.is_some()).count();
-    if std::env::var("AUDIT_DEBUG").is_ok() {
-        for (e, cv) in &results {
-            if cv.is_some() {
-                eprintln!(
-                    "DBG round {round} {:?} {} col{} total {:.1} p {:.4} padj {:.4} gains {:?}",
-                    e.term.target,
-                    e.term.form.name(),
-                    e.term.col,
-                    e.gain_total,
-                    e.p,
-                    e.p_adjusted,
-                    e.gains.iter().map(|g| (g * 10.0).round() / 10.0).collect::<Vec<_>>()
-                );
-            }
-        }
-    }
     let significant = |e: &Evidence| e.p_adjusted < opts.alpha && e.gain_total > 0.0;
     let mut best: Option<usize> = None;
     for (i, (e, cv)) in results.iter().enumerate() {

@@ -38,6 +38,7 @@ pub mod model;
 pub mod render;
 pub mod rng;
 pub mod sensor;
+pub mod settings;
 pub mod spatial;
 pub mod util;
 pub mod weights;

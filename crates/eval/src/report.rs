@@ -646,6 +646,13 @@ mod tests {
     use super::*;
     use recon_core::dataset::bop::tests::{tmpdir, write_bop};
 
+    /// Real-data discovery, shared with the integration tests (test support:
+    /// it reads `RECON_REALDATA` / `RECON_REQUIRE_REALDATA`, so it lives in tests/).
+    #[cfg(test)]
+    mod realdata {
+        include!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/common/realdata.rs"));
+    }
+
     #[test]
     fn evaluates_predictions_end_to_end() {
         let dir = tmpdir("report");
@@ -873,7 +880,7 @@ mod tests {
     /// folded into t: R(0.001·v_bop) + t − 0.001·R·off.
     #[test]
     fn ycbv_bop_mesh_at_gt_pose_scores_well() {
-        let Some(root) = recon_core::dataset::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video evaluation test") else {
+        let Some(root) = realdata::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video evaluation test") else {
             return;
         };
         let root = root.as_path();

@@ -2,12 +2,27 @@
 //! self-attention over 4098 tokens (fused qkv layout) and cross-attention to
 //! 1374 condition tokens.
 //! `cargo run --release -p recon-kernels --example attention_speed`
-//! (`ISA=avx512bf16 PREC=bf16` to time one combination.)
+//! (`-- --isa avx512bf16 --prec bf16` to time one combination, `--portable` to
+//! time the portable kernels too.)
 use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
 use recon_kernels::isa::Isa;
 use std::time::Instant;
 
+/// Command-line filters: `--portable`, `--isa NAME`, `--prec f32|bf16`.
+struct Filters {
+    portable: bool,
+    isa: Option<String>,
+    prec: Option<String>,
+}
+
+fn filters() -> Filters {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let value = |flag: &str| args.iter().position(|a| a == flag).and_then(|i| args.get(i + 1)).cloned();
+    Filters { portable: args.iter().any(|a| a == "--portable"), isa: value("--isa"), prec: value("--prec") }
+}
+
 fn main() {
+    let only = filters();
     let (b, h, d) = (2usize, 16usize, 64usize);
     let c = h * d;
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
@@ -18,14 +33,14 @@ fn main() {
         let segs: Vec<Segment> = (0..b).map(|i| Segment { q: i * lq..(i + 1) * lq, kv: i * lk..(i + 1) * lk }).collect();
         let mut out = vec![0f32; b * lq * c];
         for isa in Isa::all_supported() {
-            if isa == Isa::Portable && std::env::var("PORTABLE").is_err() {
+            if isa == Isa::Portable && !only.portable {
                 continue;
             }
-            if std::env::var("ISA").is_ok_and(|v| v != isa.name()) {
+            if only.isa.as_deref().is_some_and(|v| v != isa.name()) {
                 continue;
             }
             for precision in [AttnPrecision::F32, AttnPrecision::Bf16] {
-                if std::env::var("PREC").is_ok_and(|v| !v.eq_ignore_ascii_case(&format!("{precision:?}"))) {
+                if only.prec.as_deref().is_some_and(|v| !v.eq_ignore_ascii_case(&format!("{precision:?}"))) {
                     continue;
                 }
                 let spec = AttnSpec {

@@ -1,6 +1,7 @@
 //! GEMM GFLOP/s on the model's linear shapes, per ISA and weight format,
 //! against the measured FMA / vdpbf16ps peak.
-//! `cargo run --release -p recon-kernels --example gemm_speed [M]`
+//! `cargo run --release -p recon-kernels --example gemm_speed [M] [--portable]`
+//! (`--portable` times the portable kernels too).
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
 use recon_kernels::isa::Isa;
 use recon_kernels::peak::{measure_peak_gflops, PeakKind};
@@ -8,7 +9,9 @@ use recon_kernels::vecmath::Activation;
 use std::time::Instant;
 
 fn main() {
-    let m: usize = std::env::args().nth(1).and_then(|v| v.parse().ok()).unwrap_or(2 * 4098);
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let m: usize = args.iter().find_map(|v| v.parse().ok()).unwrap_or(2 * 4098);
+    let portable = args.iter().any(|a| a == "--portable");
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     println!("threads {} load {}", rayon::current_num_threads(), load.trim());
     for isa in Isa::all_supported() {
@@ -21,7 +24,7 @@ fn main() {
         let w: Vec<f32> = (0..n * k).map(|i| ((i * 104729) % 1000) as f32 * 1e-3 - 0.5).collect();
         let mut c = vec![0f32; m * n];
         for isa in Isa::all_supported() {
-            if isa == Isa::Portable && std::env::var("PORTABLE").is_err() {
+            if isa == Isa::Portable && !portable {
                 continue;
             }
             for fmt in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {

@@ -6,6 +6,7 @@
 //! AMX is not implemented: the development machine (AMD Zen 4) has no AMX
 //! unit, and untested tile code is not shipped.
 
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::OnceLock;
 
 /// A kernel family. Ordered from most portable to most specialised.
@@ -52,17 +53,49 @@ impl Isa {
         Isa::ALL.into_iter().filter(|i| i.supported()).collect()
     }
 
-    /// The family used by default: the most specialised supported one, capped
-    /// by the environment variable `RECON_ISA` (`portable`, `avx512`,
-    /// `avx512bf16`) when set. Detected once per process.
+    /// The family used by default: the most specialised supported one (detected
+    /// once per process), capped by [`set_cap`] when a program set one.
     pub fn best() -> Isa {
-        static BEST: OnceLock<Isa> = OnceLock::new();
-        *BEST.get_or_init(|| {
-            let detected = Isa::ALL.into_iter().rev().find(|i| i.supported()).unwrap_or(Isa::Portable);
-            match std::env::var("RECON_ISA").ok().and_then(|v| Isa::parse(&v)) {
-                Some(cap) => cap.min(detected),
-                None => detected,
-            }
-        })
+        static DETECTED: OnceLock<Isa> = OnceLock::new();
+        let detected = *DETECTED.get_or_init(|| Isa::ALL.into_iter().rev().find(|i| i.supported()).unwrap_or(Isa::Portable));
+        match cap() {
+            Some(cap) => cap.min(detected),
+            None => detected,
+        }
+    }
+}
+
+/// No cap set (a value no [`Isa`] has).
+const NO_CAP: u8 = u8::MAX;
+static CAP: AtomicU8 = AtomicU8::new(NO_CAP);
+
+/// Cap [`Isa::best`] at `cap` (`None`: no cap), process-wide. Programs set it
+/// once at start, from their settings (`RECON_ISA`), before any kernel runs.
+pub fn set_cap(cap: Option<Isa>) {
+    CAP.store(cap.map_or(NO_CAP, |i| i as u8), Ordering::Release);
+}
+
+/// The cap set by [`set_cap`].
+pub fn cap() -> Option<Isa> {
+    Isa::ALL.get(CAP.load(Ordering::Acquire) as usize).copied()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cap_round_trips_and_bounds_best() {
+        assert_eq!(Isa::parse(" AVX512bf16 "), Some(Isa::Avx512Bf16));
+        assert_eq!(Isa::parse("sse"), None);
+        // Capping at the current best changes nothing for tests running beside this one.
+        let best = Isa::best();
+        set_cap(Some(best));
+        assert_eq!(cap(), Some(best));
+        assert_eq!(Isa::best(), best);
+        set_cap(None);
+        assert_eq!(cap(), None);
+        assert_eq!(Isa::best(), best);
+        assert!(Isa::best().supported());
     }
 }

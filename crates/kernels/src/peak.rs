@@ -4,6 +4,7 @@
 //! (clock, SMT sharing and other load included) rather than a datasheet.
 
 use crate::isa::Isa;
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::Instant;
 
 /// Which multiply-accumulate to time.
@@ -44,11 +45,32 @@ pub fn bf16_dot_pays_given(bf16_gflops: f64, f32_gflops: f64) -> bool {
     bf16_gflops >= BF16_DOT_MIN_GAIN * f32_gflops
 }
 
+/// No override set: measure.
+const MEASURE: u8 = 0;
+const ON: u8 = 1;
+const OFF: u8 = 2;
+static BF16_DOT: AtomicU8 = AtomicU8::new(MEASURE);
+
+/// Force (`Some(true)`) or forbid (`Some(false)`) `vdpbf16ps` for bf16
+/// weights instead of measuring whether it pays (`None`), process-wide.
+/// Programs set it once at start, from their settings (`RECON_BF16_DOT`),
+/// before the first [`bf16_isa`] call fixes the choice.
+pub fn set_bf16_dot(choice: Option<bool>) {
+    BF16_DOT.store(
+        match choice {
+            None => MEASURE,
+            Some(true) => ON,
+            Some(false) => OFF,
+        },
+        Ordering::Release,
+    );
+}
+
 /// The instruction set bf16 weights run on: [`Isa::best`], except that
 /// [`Isa::Avx512Bf16`] falls back to [`Isa::Avx512`] (bf16 storage, f32
 /// FMA) where `vdpbf16ps` does not pay. Measured once per process on the
-/// calling thread (about a millisecond); `RECON_BF16_DOT=on|off` overrides
-/// the measurement.
+/// calling thread (about a millisecond); [`set_bf16_dot`] overrides the
+/// measurement.
 pub fn bf16_isa() -> Isa {
     static CHOICE: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
     *CHOICE.get_or_init(|| {
@@ -56,9 +78,9 @@ pub fn bf16_isa() -> Isa {
         if best < Isa::Avx512Bf16 {
             return best;
         }
-        let pays = match std::env::var("RECON_BF16_DOT").ok().as_deref().map(str::trim) {
-            Some("on") => true,
-            Some("off") => false,
+        let pays = match BF16_DOT.load(Ordering::Acquire) {
+            ON => true,
+            OFF => false,
             _ => {
                 let peak = |kind| (0..3).map(|_| timed(best, kind, 100_000)).fold(0f64, f64::max);
                 bf16_dot_pays_given(peak(PeakKind::Bf16), peak(PeakKind::F32))

@@ -18,6 +18,7 @@ use recon_core::model::stage1::embedders::ViewInputs;
 use recon_core::model::stage1::ss_flow::SparseStructureFlowModel;
 use recon_core::model::stage1::ss_vae::decoder::SparseStructureDecoder;
 use recon_core::model::stage1::ss_vae::encoder::{vae_loss, ReconLoss, SparseStructureEncoder};
+use recon_core::model::Compute;
 use recon_core::rng::SeededRng;
 use recon_core::weights::registry;
 use recon_core::{Error, Result};
@@ -88,8 +89,8 @@ impl VaeObjective {
         recon: ReconLoss,
         lambda_kl: f64,
     ) -> Result<Self> {
-        let enc = registry::build_ss_encoder(&encoder.config, encoder.var_builder(), "ss_encoder")?;
-        let dec = registry::build_ss_decoder(&decoder.config, decoder.var_builder(), "ss_decoder")?;
+        let enc = registry::build_ss_encoder(&encoder.config, encoder.var_builder(), "ss_encoder", Compute::Plain)?;
+        let dec = registry::build_ss_decoder(&decoder.config, decoder.var_builder(), "ss_decoder", Compute::Plain)?;
         let f = enc.config().downsample_factor();
         if !resolution.is_multiple_of(f) {
             return Err(Error::config(
@@ -165,8 +166,8 @@ impl<'a> FlowObjective<'a> {
         fill: Fill,
         fm: FlowMatching,
     ) -> Result<Self> {
-        let d = registry::build_dinov2(&dino.config, dino.var_builder(), "image_cond_model")?;
-        let f = registry::build_ss_flow(&flow.config, flow.var_builder(), "ss_flow")?;
+        let d = registry::build_dinov2(&dino.config, dino.var_builder(), "image_cond_model", Compute::Plain)?;
+        let f = registry::build_ss_flow(&flow.config, flow.var_builder(), "ss_flow", Compute::Plain)?;
         if f.cfg.pose_channels() != Some(10) {
             return Err(Error::config("ss_flow", "pose_representation", "training needs RecGen pose tokens (6d_translation_scale)"));
         }
@@ -318,7 +319,7 @@ mod tests {
         let src = ToySource::new(ToyConfig { samples: 3, models: 2, second_view: true, ..Default::default() })?;
         let enc_cfg = cfg(arch.ss_encoder.as_ref().unwrap());
         let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
-        let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "enc")?;
+        let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "enc", Compute::Plain)?;
         let scan = crate::data::scan(&src)?;
         let stats = PoseStats::from_value(&crate::data::pose_stats_json(&scan.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
         let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 2)?;

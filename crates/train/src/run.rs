@@ -26,6 +26,7 @@ use recon_core::geometry::pose::PoseStats;
 use recon_core::geometry::voxelize::Fill;
 use recon_core::model::config::{ModuleSpec, RecGenConfig};
 use recon_core::model::stage1::ss_vae::encoder::ReconLoss;
+use recon_core::model::Compute;
 use recon_core::weights::registry::{self, ModuleConfig};
 use recon_core::{Error, Result};
 
@@ -282,7 +283,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             })?;
             let enc_t = load_module(vae, "ss_encoder")?;
             let dec_t = load_module(vae, "ss_decoder")?;
-            let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder")?;
+            let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder", Compute::Plain)?;
             let scan = scan(source)?;
             notes.push(format!(
                 "{} usable samples ({} with two views), {} views without depth skipped",
@@ -341,12 +342,17 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
             let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
                 Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
             })?;
-            let encoder =
-                registry::build_slat_encoder(&spec_cfg(enc_spec), frozen_var_builder(load_module(ae, "slat_encoder")?), "slat_encoder")?;
+            let encoder = registry::build_slat_encoder(
+                &spec_cfg(enc_spec),
+                frozen_var_builder(load_module(ae, "slat_encoder")?),
+                "slat_encoder",
+                Compute::Plain,
+            )?;
             let dino = registry::build_dinov2(
                 &spec_cfg(&arch.image_cond_model),
                 frozen_var_builder(load_module(s1, "image_cond_model")?),
                 "image_cond_model",
+                Compute::Plain,
             )?;
             let stats_path = s1.join("pose_stats.json");
             let stats = PoseStats::from_json_file(&stats_path)?;

@@ -47,6 +47,7 @@ use recon_core::model::stage2::slat_vae::encoder::SLatEncoder;
 use recon_core::model::stage2::slat_vae::flexicubes::{COLOR, CUBE_CORNERS, DEFORM, SDF, WEIGHTS};
 use recon_core::model::stage2::slat_vae::gaussian::{SLatGaussianDecoder, SH_C0};
 use recon_core::model::stage2::slat_vae::mesh::{subdivide_coords, SLatMeshDecoder};
+use recon_core::model::Compute;
 use recon_core::rng::SeededRng;
 use recon_core::spatial::KdTree;
 use recon_core::weights::registry;
@@ -287,9 +288,9 @@ pub struct SlatAeObjective<'a> {
 
 impl<'a> SlatAeObjective<'a> {
     pub fn new(source: &'a dyn TrainingSource, enc: ModuleParams, mesh_dec: ModuleParams, gs_dec: ModuleParams) -> Result<Self> {
-        let e = registry::build_slat_encoder(&enc.config, enc.var_builder(), "slat_encoder")?;
-        let m = registry::build_mesh_decoder(&mesh_dec.config, mesh_dec.var_builder(), "slat_dec_mesh")?;
-        let g = registry::build_gaussian_decoder(&gs_dec.config, gs_dec.var_builder(), "slat_dec_gs")?;
+        let e = registry::build_slat_encoder(&enc.config, enc.var_builder(), "slat_encoder", Compute::Plain)?;
+        let m = registry::build_mesh_decoder(&mesh_dec.config, mesh_dec.var_builder(), "slat_dec_mesh", Compute::Plain)?;
+        let g = registry::build_gaussian_decoder(&gs_dec.config, gs_dec.var_builder(), "slat_dec_gs", Compute::Plain)?;
         let in_ch = e.trunk.cfg.in_channels;
         if in_ch != in_channels() {
             return Err(Error::config("slat_encoder", "in_channels", format!("{in_ch}; the geometry features have {}", in_channels())));

@@ -23,6 +23,7 @@ use recon_core::model::stage1::dinov2::Dinov2;
 use recon_core::model::stage1::embedders::ViewInputs;
 use recon_core::model::stage2::slat_flow::{ConvPath, SLatFlowModel};
 use recon_core::model::stage2::slat_vae::encoder::SLatEncoder;
+use recon_core::model::Compute;
 use recon_core::rng::SeededRng;
 use recon_core::weights::registry;
 use recon_core::{Error, Result};
@@ -69,7 +70,7 @@ impl<'a> SlatFlowObjective<'a> {
         max_models: usize,
         fm: FlowMatching,
     ) -> Result<Self> {
-        let mut f = registry::build_slat_flow(&flow.config, flow.var_builder(), "slat_flow")?;
+        let mut f = registry::build_slat_flow(&flow.config, flow.var_builder(), "slat_flow", Compute::Plain)?;
         f.set_conv_path(ConvPath::Differentiable);
         if f.cfg.pose_dim() != 13 {
             return Err(Error::config(

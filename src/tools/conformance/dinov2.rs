@@ -5,12 +5,13 @@
 use super::fixture::{Check, Fixture};
 use crate::dataset::image::normalize_01;
 use crate::model::stage1::dinov2::{trellis_cond, Dinov2, Dinov2Config};
+use crate::model::Compute;
 use crate::Result;
 
-pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let file = fx.dir.join("config.json").display().to_string();
     let cfg = Dinov2Config::from_hf_config(fx.field("hf_config")?, &file)?;
-    let model = Dinov2::new(&cfg, fx.var_builder().pp("hub"))?;
+    let model = Dinov2::new(&cfg, fx.var_builder().pp("hub"), compute)?;
     let tol = fx.abs_tolerance(1e-4);
 
     let pixels = fx.tensor("input.pixel_values")?;

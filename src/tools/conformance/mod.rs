@@ -17,24 +17,26 @@ mod ss_flow;
 
 pub use fixture::{Check, Fixture};
 
+use crate::model::Compute;
 use crate::{Error, Result};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// Run one fixture directory and return its checks.
-pub fn run_fixture(dir: &Path) -> Result<Vec<Check>> {
+/// Run one fixture directory with its modules built on `compute`, and
+/// return its checks.
+pub fn run_fixture(dir: &Path, compute: Compute) -> Result<Vec<Check>> {
     let fx = Fixture::load(dir)?;
     let module = fx.module().to_string();
     let first = module.split_whitespace().next().unwrap_or("");
     match first {
-        m if m.starts_with("Dinov2") => dinov2::run(&fx),
+        m if m.starts_with("Dinov2") => dinov2::run(&fx, compute),
         "SparseFeatures2Mesh" => flexicubes::run(&fx),
-        "SLatGaussianDecoder" => slat_dec::run_gs(&fx),
-        "SLatMeshDecoder" => slat_dec::run_mesh(&fx),
-        "SLatFlowModel" => slat_flow::run(&fx),
-        "SparseStructureDecoder" => ss_decoder::run(&fx),
-        "SparseStructureFlowModel" => ss_flow::run_model(&fx),
-        "FlowEulerGuidanceIntervalSampler" => ss_flow::run_sampler(&fx),
+        "SLatGaussianDecoder" => slat_dec::run_gs(&fx, compute),
+        "SLatMeshDecoder" => slat_dec::run_mesh(&fx, compute),
+        "SLatFlowModel" => slat_flow::run(&fx, compute),
+        "SparseStructureDecoder" => ss_decoder::run(&fx, compute),
+        "SparseStructureFlowModel" => ss_flow::run_model(&fx, compute),
+        "FlowEulerGuidanceIntervalSampler" => ss_flow::run_sampler(&fx, compute),
         _ => Err(Error::config(
             dir.join("config.json").display().to_string(),
             "module",
@@ -48,7 +50,7 @@ pub fn run_dirs(dirs: &[PathBuf], out: &mut dyn Write) -> Result<bool> {
     let mut all_ok = true;
     for dir in dirs {
         let name = dir.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
-        match run_fixture(dir) {
+        match run_fixture(dir, Compute::Plain) {
             Ok(checks) => {
                 for c in &checks {
                     let _ = writeln!(

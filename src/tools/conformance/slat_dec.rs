@@ -4,6 +4,7 @@ use super::fixture::{Check, Fixture};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, SLatGaussianDecoder};
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
+use crate::model::Compute;
 use crate::{Error, Result};
 use candle_core::{Device, Tensor};
 use std::collections::HashMap;
@@ -29,9 +30,9 @@ fn check_taps(fx: &Fixture, taps: &HashMap<String, Tensor>, tol: f64, checks: &m
     Ok(())
 }
 
-pub fn run_gs(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run_gs(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let args = fx.field("args")?;
-    let dec = SLatGaussianDecoder::new(args, fx.var_builder())?;
+    let dec = SLatGaussianDecoder::new(args, fx.var_builder(), compute)?;
     let x = input_sparse(fx)?;
     let tol = fx.abs_tolerance(1e-4);
     let mut checks = Vec::new();
@@ -78,9 +79,9 @@ fn coords_mismatches(got: &SparseTensor, want: &Tensor) -> Result<usize> {
     Ok(got.coords.iter().zip(&want).filter(|(a, b)| a.iter().zip(b.iter()).any(|(&x, &y)| x as i64 != y)).count())
 }
 
-pub fn run_mesh(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run_mesh(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let args = fx.field("args")?;
-    let dec = SLatMeshDecoder::new(args, fx.var_builder())?;
+    let dec = SLatMeshDecoder::new(args, fx.var_builder(), compute)?;
     let x = input_sparse(fx)?;
     // The suggested tolerance is for vertices; model features use the README's 1e-4.
     let tol = 1e-4;

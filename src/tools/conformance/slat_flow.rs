@@ -3,6 +3,7 @@
 use super::fixture::{Check, Fixture};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use crate::model::Compute;
 use crate::Result;
 
 /// Count of differing coordinate entries (`None` when the row counts differ).
@@ -14,9 +15,9 @@ fn coord_mismatches(got: &SparseTensor, want: &candle_core::Tensor) -> Result<us
     Ok(got.coords.iter().zip(&want).map(|(g, w)| (0..4).filter(|&i| g[i] as i64 != w[i]).count()).sum())
 }
 
-pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let cfg = SLatFlowConfig::from_json(fx.field("args")?)?;
-    let model = SLatFlowModel::new(&cfg, fx.var_builder())?;
+    let model = SLatFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
 
     let x = SparseTensor::from_tensors(fx.tensor("input.coords")?, fx.tensor("input.feats")?.clone())?;

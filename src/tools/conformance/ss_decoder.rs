@@ -2,11 +2,12 @@
 
 use super::fixture::{Check, Fixture};
 use crate::model::stage1::ss_vae::decoder::{occupied_coords, SparseStructureDecoder, SparseStructureDecoderConfig};
+use crate::model::Compute;
 use crate::Result;
 
-pub fn run(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let cfg = SparseStructureDecoderConfig::from_json(fx.field("args")?)?;
-    let dec = SparseStructureDecoder::new(&cfg, fx.var_builder())?;
+    let dec = SparseStructureDecoder::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let trace = dec.forward_traced(fx.tensor("input.x")?)?;
     let mut checks = vec![

@@ -4,6 +4,7 @@
 use super::fixture::{Check, Fixture};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use crate::model::Compute;
 use crate::{Error, Result};
 use candle_core::Tensor;
 
@@ -13,9 +14,9 @@ fn config_file(fx: &Fixture) -> String {
 
 /// One forward of `SparseStructureFlowModel`: `output.v`, `intermediate.t_emb`,
 /// and `intermediate.shared_mod` when the fixture has it.
-pub fn run_model(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run_model(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let cfg = SsFlowConfig::from_value(fx.field("args")?, &config_file(fx))?;
-    let model = SparseStructureFlowModel::new(&cfg, fx.var_builder())?;
+    let model = SparseStructureFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let (x, t, cond) = (fx.tensor("input.x")?, fx.tensor("input.t")?, fx.tensor("input.cond")?);
 
@@ -55,11 +56,11 @@ struct StepOut {
 
 /// A full sampling run: the time grid and per-step CFG flags exactly, then
 /// every `x_t.{i}`, `pred_x_0.{i}`, the raw velocities and the final sample.
-pub fn run_sampler(fx: &Fixture) -> Result<Vec<Check>> {
+pub fn run_sampler(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let file = config_file(fx);
     let cfg = SsFlowConfig::from_value(fx.field("flow_model_args")?, &file)?;
     let settings = SamplerSettings::from_value(fx.field("sampler")?, &file)?;
-    let model = SparseStructureFlowModel::new(&cfg, fx.var_builder())?;
+    let model = SparseStructureFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let noise = fx.tensor("input.noise")?.clone();
     let cond = fx.tensor("input.cond")?;

@@ -471,6 +471,13 @@ pub fn load_dataset(path: &Path) -> Result<Dataset> {
 pub mod tests {
     use super::*;
 
+    /// Real-data discovery, shared with the integration tests (test support:
+    /// it reads `RECON_REALDATA` / `RECON_REQUIRE_REALDATA`, so it lives in tests/).
+    #[cfg(test)]
+    mod realdata {
+        include!(concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/common/realdata.rs"));
+    }
+
     /// Writes a tiny BOP dataset (one scene, two frames, two objects) under `dir`, returns
     /// the split dir. Object 1: unit-ish box 40×20×10 mm (binary PLY), object 2: tetra
     /// (ASCII PLY) without a models_info entry.
@@ -582,7 +589,7 @@ pub mod tests {
 
     #[test]
     fn loads_ycbv_real_frames() {
-        let Some(root) = crate::dataset::realdata::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video loading test") else {
+        let Some(root) = realdata::realdata_for_test(Some("ycbv_video_oprb"), "the YCB-Video loading test") else {
             return;
         };
         let root = root.as_path();

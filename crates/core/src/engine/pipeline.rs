@@ -89,7 +89,7 @@ use crate::gaussians::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
 use crate::model::config::{ModuleSpec, RecGenConfig};
-use crate::model::nn::fast::{self, Compute, Precision};
+use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
@@ -440,6 +440,31 @@ fn secs(t: Instant) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
+/// Timings and peak memory of one run's stages, as they are measured.
+struct Meter {
+    /// Peak RSS of each stage (module building included) when set.
+    measure_memory: bool,
+    tm: StageTimings,
+    mem: StageMemory,
+}
+
+impl Meter {
+    /// Start a stage's peak-RSS window.
+    fn mark(&self) {
+        if self.measure_memory {
+            crate::util::memory::reset_peak_rss();
+        }
+    }
+    /// Peak RSS since the last [`Meter::mark`].
+    fn peak(&self) -> Option<f64> {
+        if self.measure_memory {
+            crate::util::memory::peak_rss_mib()
+        } else {
+            None
+        }
+    }
+}
+
 impl Pipeline {
     /// Build the modules of `stages` from `weights`: the one constructor.
     /// Checkpoints are validated against the architecture here, also when the
@@ -585,7 +610,7 @@ impl Pipeline {
     }
 
     /// Build module `key` from its source with this pipeline's compute setting.
-    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>) -> Result<T> {
+    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
         let spec = self
             .config
             .modules()
@@ -599,7 +624,10 @@ impl Pipeline {
             Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed, &label)?,
             None => return Err(Error::msg(format!("pipeline: module `{key}` was not loaded (stage-1-only pipeline?)"))),
         };
-        fast::build_with(self.options.compute, || f(&spec, vb, &label))
+        let m = f(&spec, vb, &label, self.options.compute);
+        // The build's temporaries (f32 weights before packing) do not recur.
+        crate::util::release_cached_buffers();
+        m
     }
 
     /// The resident module, or one built now (counted in `loading`).
@@ -607,7 +635,7 @@ impl Pipeline {
         &'a self,
         resident: &'a Option<T>,
         key: &str,
-        f: fn(&ModuleConfig, VarBuilder, &str) -> Result<T>,
+        f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>,
         loading: &mut f64,
     ) -> Result<Held<'a, T>> {
         match resident {
@@ -704,7 +732,6 @@ impl Pipeline {
     ) -> Result<ObjectReconstruction> {
         let t_all = Instant::now();
         self.check_inputs(inputs)?;
-        let dev = Device::Cpu;
         let built_stage2 = self.stages == Stages::All;
         let stage1_only = opts.stage1_only || (!opts.decode_mesh && !opts.decode_gaussians && !built_stage2);
         if !stage1_only && !built_stage2 {
@@ -712,95 +739,19 @@ impl Pipeline {
         }
         let ss_settings = Self::sampler_settings(&self.config.samplers.sparse_structure, opts.ss_steps, opts.ss_cfg_strength)?;
         let slat_settings = Self::sampler_settings(&self.config.samplers.slat, opts.slat_steps, opts.slat_cfg_strength)?;
-        let mut tm = StageTimings::default();
-        let mut mem = StageMemory::default();
-        // Peak RSS of each stage (module building included) when asked for.
-        let mark = || {
-            if opts.measure_memory {
-                crate::util::memory::reset_peak_rss();
-            }
-        };
-        let peak = || if opts.measure_memory { crate::util::memory::peak_rss_mib() } else { None };
-        let r = &self.resident;
+        let mut meter = Meter { measure_memory: opts.measure_memory, tm: StageTimings::default(), mem: StageMemory::default() };
 
         // 1. Image encoder.
-        on_stage(Stage::ImageEncoder);
-        mark();
-        let t = Instant::now();
-        let dino = self.hold(&r.dino, "image_cond_model", registry::build_dinov2, &mut tm.loading)?;
-        let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
-        drop(dino);
-        tm.image_encoder = secs(t);
-        mem.image_encoder = peak();
-        let views: Vec<ViewInputs> = inputs
-            .views
-            .iter()
-            .zip(&tokens)
-            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
-            .collect();
-
-        // 2–3. Stage 1: condition, then latent + pose sampling.
-        on_stage(Stage::SsSampling);
-        mark();
-        let t = Instant::now();
-        let ss_flow = self.hold(&r.ss_flow, "ss_flow", registry::build_ss_flow, &mut tm.loading)?;
-        let (cond, neg) = ss_flow.condition(&views)?;
-        tm.ss_condition = secs(t);
-        let t = Instant::now();
+        let views = self.encode_images(inputs, on_stage, &mut meter)?;
+        // 2–3. Stage 1: condition, then latent + pose sampling. The same
+        // generator then draws the stage-2 noise.
         let mut rng = SeededRng::new(opts.seed);
-        let noise = ss_flow.initial_state(&mut rng, 1, &dev)?;
-        let out = FlowEulerGuidanceIntervalSampler::new(ss_settings.clone()).sample(&*ss_flow, noise, &cond, Some(&neg))?;
-        drop(ss_flow);
-        let (z, pose_tok) = match out.as_slice() {
-            [z, p] => (z.clone(), p.clone()),
-            _ => return Err(Error::msg("pipeline: stage-1 sampler returned no pose tokens")),
-        };
-        tm.ss_sampling = secs(t);
-        mem.ss_flow = peak();
-
+        let (z, pose_tok) = self.sample_structure(&views, &ss_settings, &mut rng, on_stage, &mut meter)?;
         // 4. Occupancy.
-        on_stage(Stage::SsDecoder);
-        mark();
-        let t = Instant::now();
-        let ss_decoder = self.hold(&r.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut tm.loading)?;
-        let logits = ss_decoder.forward(&z)?;
-        drop(ss_decoder);
-        let ss_resolution = logits.dim(2)?;
-        let coords4 = occupied_coords(&logits)?;
-        tm.ss_decoder = secs(t);
-        mem.ss_decoder = peak();
-        if coords4.is_empty() {
-            let max = logits.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-            return Err(Error::msg(format!(
-                "stage 1 produced an empty occupancy: no SS decoder logit > 0 (max {max:.4}) with seed {}; \
-                 try another seed or more sampling steps",
-                opts.seed
-            )));
-        }
-
-        // 5. Pose.
-        let t = Instant::now();
-        let k = self.ss_cfg.num_pose_tokens.max(1);
-        let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
-        let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
-        let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
-        let slat_pose = ss_pose_to_slat_pose(&pose_tok, &self.ss_stats, &self.slat_stats, self.layout)?;
-        let slat_tokens_13d: Vec<[f32; 13]> =
-            slat_pose.reshape((k, 13))?.to_vec2::<f32>()?.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
-        let pose = PredictedPose { pose: per_token[0], per_token, tokens_10d, slat_tokens_13d };
-        tm.pose = secs(t);
-
-        let mut coords: Vec<[i32; 3]> = coords4.iter().map(|c| [c[1], c[2], c[3]]).collect();
-        let mut coords4 = coords4;
-        if let Some(fit) = fit {
-            let t = Instant::now();
-            coords = fit(&pose, &coords, ss_resolution)?;
-            tm.shape_fit = secs(t);
-            if coords.is_empty() {
-                return Err(Error::msg("the shape fit left no occupied voxel (the depth leaves no room for the object in its pose)"));
-            }
-            coords4 = coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect();
-        }
+        let (ss_resolution, coords4) = self.decode_occupancy(&z, opts.seed, on_stage, &mut meter)?;
+        // 5. Pose, then the optional shape fit.
+        let (pose, slat_pose) = self.decode_pose(&pose_tok, &mut meter)?;
+        let (coords, coords4) = Self::fit_occupancy(fit, &pose, coords4, ss_resolution, &mut meter)?;
         let mut metadata = RunMetadata {
             architecture: self.config.name.clone(),
             weights: self.weights.clone(),
@@ -814,65 +765,200 @@ impl Pipeline {
         let (mut mesh, mut gaussians) = (None, None);
 
         if !stage1_only {
-            let slat_cfg = self.slat_cfg.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
-            let res = slat_cfg.resolution;
-            if ss_resolution != res {
-                return Err(Error::config(
-                    &self.config.name,
-                    "slat_flow.args.resolution",
-                    format!("{res} differs from the SS decoder's output grid {ss_resolution}"),
-                ));
-            }
-            // 6. Stage-2 condition.
-            on_stage(Stage::SlatSampling);
-            mark();
-            let t = Instant::now();
-            let slat_flow = self.hold(&r.slat_flow, "slat_flow", registry::build_slat_flow, &mut tm.loading)?;
-            let (cond, neg) = slat_flow.condition(&views, Some(&slat_pose))?;
-            tm.slat_condition = secs(t);
-
-            // 7. Stage-2 sampling on the occupied voxels, then denormalise.
-            let t = Instant::now();
-            let noise = rng.randn(&[coords4.len(), slat_cfg.in_channels], &dev)?;
-            let model = SlatVelocity { model: &slat_flow, coords: &coords4 };
-            let out = FlowEulerGuidanceIntervalSampler::new(slat_settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
-            drop(slat_flow);
-            let feats = self.slat_norm.denormalize(&out[0])?;
-            let slat = SparseTensor::new(coords4.clone(), feats, 1)?;
-            tm.slat_sampling = secs(t);
-            mem.slat_flow = peak();
+            // 6–7. Stage 2 on the occupied voxels.
+            let slat = self.sample_slat(&views, &slat_pose, &coords4, ss_resolution, &slat_settings, &mut rng, on_stage, &mut meter)?;
             metadata.slat_sampler = Some(slat_settings);
-
             // 8. Decoders.
-            if opts.decode_mesh {
-                on_stage(Stage::MeshDecoder);
-                mark();
-                let t = Instant::now();
-                let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut tm.loading)?;
-                let feats = dec.forward_feats_fused(&slat)?;
-                tm.mesh_decoder = secs(t);
-                let t = Instant::now();
-                mesh = Some(dec.extractor.extract_sparse(&feats)?.into_iter().next().unwrap_or_default());
-                drop((dec, feats));
-                tm.flexicubes = secs(t);
-                mem.mesh_decoder = peak();
-            }
-            if opts.decode_gaussians {
-                on_stage(Stage::GaussianDecoder);
-                mark();
-                let t = Instant::now();
-                let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut tm.loading)?;
-                let g = dec.forward(&slat)?;
-                drop(dec);
-                let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
-                gaussians = Some(g.to_gaussians()?);
-                tm.gaussian_decoder = secs(t);
-                mem.gaussian_decoder = peak();
-            }
+            (mesh, gaussians) = self.decode_slat(&slat, opts, on_stage, &mut meter)?;
         }
+        let Meter { mut tm, mem, .. } = meter;
         tm.total = secs(t_all);
         let memory = opts.measure_memory.then_some(mem);
         Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, memory, metadata })
+    }
+
+    /// Step 1: DINOv2 tokens of every view, with the view's point map and mask.
+    fn encode_images(&self, inputs: &ObjectInputs, on_stage: &dyn Fn(Stage), meter: &mut Meter) -> Result<Vec<ViewInputs>> {
+        on_stage(Stage::ImageEncoder);
+        meter.mark();
+        let t = Instant::now();
+        let dino = self.hold(&self.resident.dino, "image_cond_model", registry::build_dinov2, &mut meter.tm.loading)?;
+        let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
+        drop(dino);
+        meter.tm.image_encoder = secs(t);
+        meter.mem.image_encoder = meter.peak();
+        Ok(inputs
+            .views
+            .iter()
+            .zip(&tokens)
+            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
+            .collect())
+    }
+
+    /// Steps 2–3: the stage-1 condition, then the sparse-structure latent and
+    /// the pose tokens sampled from `rng`.
+    fn sample_structure(
+        &self,
+        views: &[ViewInputs],
+        settings: &SamplerSettings,
+        rng: &mut SeededRng,
+        on_stage: &dyn Fn(Stage),
+        meter: &mut Meter,
+    ) -> Result<(Tensor, Tensor)> {
+        on_stage(Stage::SsSampling);
+        meter.mark();
+        let t = Instant::now();
+        let ss_flow = self.hold(&self.resident.ss_flow, "ss_flow", registry::build_ss_flow, &mut meter.tm.loading)?;
+        let (cond, neg) = ss_flow.condition(views)?;
+        meter.tm.ss_condition = secs(t);
+        let t = Instant::now();
+        let noise = ss_flow.initial_state(rng, 1, &Device::Cpu)?;
+        let out = FlowEulerGuidanceIntervalSampler::new(settings.clone()).sample(&*ss_flow, noise, &cond, Some(&neg))?;
+        drop(ss_flow);
+        let (z, pose_tok) = match out.as_slice() {
+            [z, p] => (z.clone(), p.clone()),
+            _ => return Err(Error::msg("pipeline: stage-1 sampler returned no pose tokens")),
+        };
+        meter.tm.ss_sampling = secs(t);
+        meter.mem.ss_flow = meter.peak();
+        Ok((z, pose_tok))
+    }
+
+    /// Step 4: the occupied voxels `[0, x, y, z]` of latent `z` and the grid
+    /// side; an empty occupancy is an error (`seed` named in it).
+    fn decode_occupancy(&self, z: &Tensor, seed: u64, on_stage: &dyn Fn(Stage), meter: &mut Meter) -> Result<(usize, Vec<[i32; 4]>)> {
+        on_stage(Stage::SsDecoder);
+        meter.mark();
+        let t = Instant::now();
+        let ss_decoder = self.hold(&self.resident.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut meter.tm.loading)?;
+        let logits = ss_decoder.forward(z)?;
+        drop(ss_decoder);
+        let ss_resolution = logits.dim(2)?;
+        let coords4 = occupied_coords(&logits)?;
+        meter.tm.ss_decoder = secs(t);
+        meter.mem.ss_decoder = meter.peak();
+        if coords4.is_empty() {
+            let max = logits.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            return Err(Error::msg(format!(
+                "stage 1 produced an empty occupancy: no SS decoder logit > 0 (max {max:.4}) with seed {seed}; \
+                 try another seed or more sampling steps"
+            )));
+        }
+        Ok((ss_resolution, coords4))
+    }
+
+    /// Step 5: the pose of every pose token, and the stage-2 pose tokens.
+    fn decode_pose(&self, pose_tok: &Tensor, meter: &mut Meter) -> Result<(PredictedPose, Tensor)> {
+        let t = Instant::now();
+        let k = self.ss_cfg.num_pose_tokens.max(1);
+        let rows = pose_tok.reshape((k, 10))?.to_vec2::<f32>()?;
+        let per_token = rows.iter().map(|r| self.ss_stats.decode_10d(r)).collect::<Result<Vec<_>>>()?;
+        let tokens_10d: Vec<[f32; 10]> = rows.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
+        let slat_pose = ss_pose_to_slat_pose(pose_tok, &self.ss_stats, &self.slat_stats, self.layout)?;
+        let slat_tokens_13d: Vec<[f32; 13]> =
+            slat_pose.reshape((k, 13))?.to_vec2::<f32>()?.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
+        let pose = PredictedPose { pose: per_token[0], per_token, tokens_10d, slat_tokens_13d };
+        meter.tm.pose = secs(t);
+        Ok((pose, slat_pose))
+    }
+
+    /// The occupied voxels as `[x, y, z]` and `[0, x, y, z]`, after `fit` when given.
+    fn fit_occupancy(
+        fit: Option<&mut OccupancyFit<'_>>,
+        pose: &PredictedPose,
+        coords4: Vec<[i32; 4]>,
+        ss_resolution: usize,
+        meter: &mut Meter,
+    ) -> Result<(Vec<[i32; 3]>, Vec<[i32; 4]>)> {
+        let coords: Vec<[i32; 3]> = coords4.iter().map(|c| [c[1], c[2], c[3]]).collect();
+        let Some(fit) = fit else { return Ok((coords, coords4)) };
+        let t = Instant::now();
+        let coords = fit(pose, &coords, ss_resolution)?;
+        meter.tm.shape_fit = secs(t);
+        if coords.is_empty() {
+            return Err(Error::msg("the shape fit left no occupied voxel (the depth leaves no room for the object in its pose)"));
+        }
+        let coords4 = coords.iter().map(|c| [0, c[0], c[1], c[2]]).collect();
+        Ok((coords, coords4))
+    }
+
+    /// Steps 6–7: the stage-2 condition, then the structured latent sampled on
+    /// the occupied voxels (noise from `rng`), denormalised.
+    fn sample_slat(
+        &self,
+        views: &[ViewInputs],
+        slat_pose: &Tensor,
+        coords4: &[[i32; 4]],
+        ss_resolution: usize,
+        settings: &SamplerSettings,
+        rng: &mut SeededRng,
+        on_stage: &dyn Fn(Stage),
+        meter: &mut Meter,
+    ) -> Result<SparseTensor> {
+        let slat_cfg = self.slat_cfg.as_ref().ok_or_else(|| Error::msg("pipeline: stage 2 not built"))?;
+        let res = slat_cfg.resolution;
+        if ss_resolution != res {
+            return Err(Error::config(
+                &self.config.name,
+                "slat_flow.args.resolution",
+                format!("{res} differs from the SS decoder's output grid {ss_resolution}"),
+            ));
+        }
+        on_stage(Stage::SlatSampling);
+        meter.mark();
+        let t = Instant::now();
+        let slat_flow = self.hold(&self.resident.slat_flow, "slat_flow", registry::build_slat_flow, &mut meter.tm.loading)?;
+        let (cond, neg) = slat_flow.condition(views, Some(slat_pose))?;
+        meter.tm.slat_condition = secs(t);
+
+        let t = Instant::now();
+        let noise = rng.randn(&[coords4.len(), slat_cfg.in_channels], &Device::Cpu)?;
+        let model = SlatVelocity { model: &slat_flow, coords: coords4 };
+        let out = FlowEulerGuidanceIntervalSampler::new(settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
+        drop(slat_flow);
+        let feats = self.slat_norm.denormalize(&out[0])?;
+        let slat = SparseTensor::new(coords4.to_vec(), feats, 1)?;
+        meter.tm.slat_sampling = secs(t);
+        meter.mem.slat_flow = meter.peak();
+        Ok(slat)
+    }
+
+    /// Step 8: the mesh and the Gaussians of `slat`, each when `opts` asks.
+    fn decode_slat(
+        &self,
+        slat: &SparseTensor,
+        opts: &RunOptions,
+        on_stage: &dyn Fn(Stage),
+        meter: &mut Meter,
+    ) -> Result<(Option<Mesh>, Option<Gaussians>)> {
+        let r = &self.resident;
+        let (mut mesh, mut gaussians) = (None, None);
+        if opts.decode_mesh {
+            on_stage(Stage::MeshDecoder);
+            meter.mark();
+            let t = Instant::now();
+            let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut meter.tm.loading)?;
+            let feats = dec.forward_feats_fused(slat)?;
+            meter.tm.mesh_decoder = secs(t);
+            let t = Instant::now();
+            mesh = Some(dec.extractor.extract_sparse(&feats)?.into_iter().next().unwrap_or_default());
+            drop((dec, feats));
+            meter.tm.flexicubes = secs(t);
+            meter.mem.mesh_decoder = meter.peak();
+        }
+        if opts.decode_gaussians {
+            on_stage(Stage::GaussianDecoder);
+            meter.mark();
+            let t = Instant::now();
+            let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut meter.tm.loading)?;
+            let g = dec.forward(slat)?;
+            drop(dec);
+            let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
+            gaussians = Some(g.to_gaussians()?);
+            meter.tm.gaussian_decoder = secs(t);
+            meter.mem.gaussian_decoder = meter.peak();
+        }
+        Ok((mesh, gaussians))
     }
 }
 

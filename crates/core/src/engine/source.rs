@@ -121,14 +121,11 @@ pub fn default_model_dir() -> Result<PathBuf> {
     embedded_model_in(&cache_root())
 }
 
-/// Where the embedded model is unpacked: `$RECON_CACHE`, else `$XDG_CACHE_HOME/recon`,
-/// else `~/.cache/recon`, else the temporary folder.
+/// Where the embedded model is unpacked: the applied settings' cache folder
+/// (`$RECON_CACHE`, else `$XDG_CACHE_HOME/recon`, else `~/.cache/recon`), else
+/// the temporary folder.
 fn cache_root() -> PathBuf {
-    let env = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
-    env("RECON_CACHE")
-        .or_else(|| env("XDG_CACHE_HOME").map(|p| p.join("recon")))
-        .or_else(|| env("HOME").map(|p| p.join(".cache/recon")))
-        .unwrap_or_else(|| std::env::temp_dir().join("recon"))
+    crate::settings::current().cache_dir.unwrap_or_else(|| std::env::temp_dir().join("recon"))
 }
 
 /// The embedded recgen-nano as a folder under `root`: unpacked once per content

@@ -21,7 +21,7 @@ pub use self::config::{ModuleSpec, RecGenConfig};
 pub use self::nn::common::layer_norm_plain;
 pub use self::nn::common::PeMode;
 pub use self::nn::dense3d::{ChannelLayerNorm, Conv3d, NormType};
-pub use self::nn::fast::{build_with, Compute, Precision};
+pub use self::nn::fast::{Compute, Precision};
 pub use self::sampler::{FlowEulerGuidanceIntervalSampler, FnVelocity, SamplerSettings, StepRecord, VelocityModel};
 pub use self::sparse::{neighbour_map, varlen_attention, varlen_attention_with, SparseConv3d};
 pub use self::sparse::{sparse_downsample, SparseTensor};

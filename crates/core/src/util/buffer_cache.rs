@@ -140,6 +140,10 @@ fn cache_on() -> bool {
 }
 
 /// `RECON_MALLOC=system`, read without allocating (we are inside the allocator).
+/// The one variable read outside `crate::settings::Settings::from_env`: the
+/// global allocator serves allocations made before `main` (and, in the Python
+/// module, before its init), so its mode cannot wait for settings to be
+/// applied. It is listed in the settings table.
 fn system_requested() -> bool {
     #[cfg(target_os = "linux")]
     {

@@ -37,10 +37,10 @@ pub const MAX_GLB_JSON_BYTES: u64 = 64 << 20;
 pub const MAX_GLTF_NODE_DEPTH: usize = 64;
 
 /// The machine's memory in bytes (`MemTotal` of /proc/meminfo), capped by
-/// `RECON_MEMORY_LIMIT_MB` when set (for clusters whose jobs get less than
-/// the node has). `None` where neither is known.
+/// the applied settings' memory limit (`RECON_MEMORY_LIMIT_MB`, for clusters
+/// whose jobs get less than the node has). `None` where neither is known.
 pub fn memory_budget_bytes() -> Option<u64> {
-    let env = std::env::var("RECON_MEMORY_LIMIT_MB").ok().and_then(|v| v.trim().parse::<u64>().ok()).map(|mb| mb << 20);
+    let env = crate::settings::current().memory_limit;
     let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|s| {
         let line = s.lines().find(|l| l.starts_with("MemTotal:"))?;
         line.split_whitespace().nth(1)?.parse::<u64>().ok().map(|kib| kib << 10)

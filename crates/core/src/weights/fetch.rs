@@ -77,13 +77,11 @@ fn fetch_hf(m: &Manifest, _: &[&crate::weights::manifest::ManifestFile], _: Opti
     )))
 }
 
-/// `$HF_HOME/hub`, else `~/.cache/huggingface/hub` (hf-hub's own default).
+/// The applied settings' Hugging Face cache: `$HF_HOME/hub`, else
+/// `~/.cache/huggingface/hub` (hf-hub's own default); `./.cache/huggingface/hub`
+/// without a home folder.
 pub fn default_hf_cache() -> PathBuf {
-    if let Ok(h) = std::env::var("HF_HOME") {
-        return PathBuf::from(h).join("hub");
-    }
-    let home = std::env::var("HOME").unwrap_or_else(|_| ".".into());
-    PathBuf::from(home).join(".cache").join("huggingface").join("hub")
+    crate::settings::current().hf_cache.unwrap_or_else(|| PathBuf::from(".").join(".cache").join("huggingface").join("hub"))
 }
 
 #[cfg(feature = "hub")]

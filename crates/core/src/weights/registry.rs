@@ -11,6 +11,7 @@
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
+use crate::model::nn::fast::Compute;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
 use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
 use crate::model::stage1::ss_vae::decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
@@ -110,50 +111,56 @@ pub fn dinov2_config(args: &serde_json::Value, file: &str) -> Result<Dinov2Confi
     Ok(c)
 }
 
-pub fn build_dinov2(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<Dinov2> {
-    Ok(Dinov2::new(&dinov2_config(&cfg.args, file)?, vb)?)
+pub fn build_dinov2(cfg: &ModuleConfig, vb: VarBuilder, file: &str, compute: Compute) -> Result<Dinov2> {
+    Ok(Dinov2::new(&dinov2_config(&cfg.args, file)?, vb, compute)?)
 }
 
-pub fn build_ss_flow(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<SparseStructureFlowModel> {
-    SparseStructureFlowModel::new(&SsFlowConfig::from_value(&cfg.args, file)?, vb)
+pub fn build_ss_flow(cfg: &ModuleConfig, vb: VarBuilder, file: &str, compute: Compute) -> Result<SparseStructureFlowModel> {
+    SparseStructureFlowModel::new(&SsFlowConfig::from_value(&cfg.args, file)?, vb, compute)
 }
 
-pub fn build_ss_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SparseStructureDecoder> {
-    SparseStructureDecoder::new(&SparseStructureDecoderConfig::from_json(&cfg.args)?, vb)
+pub fn build_ss_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SparseStructureDecoder> {
+    SparseStructureDecoder::new(&SparseStructureDecoderConfig::from_json(&cfg.args)?, vb, compute)
 }
 
-pub fn build_ss_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SparseStructureEncoder> {
-    SparseStructureEncoder::new(&SparseStructureEncoderConfig::from_json(&cfg.args)?, vb)
+pub fn build_ss_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SparseStructureEncoder> {
+    SparseStructureEncoder::new(&SparseStructureEncoderConfig::from_json(&cfg.args)?, vb, compute)
 }
 
-pub fn build_slat_flow(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatFlowModel> {
-    SLatFlowModel::new(&SLatFlowConfig::from_json(&cfg.args)?, vb)
+pub fn build_slat_flow(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatFlowModel> {
+    SLatFlowModel::new(&SLatFlowConfig::from_json(&cfg.args)?, vb, compute)
 }
 
-pub fn build_mesh_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatMeshDecoder> {
-    SLatMeshDecoder::new(&cfg.args, vb)
+pub fn build_mesh_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatMeshDecoder> {
+    SLatMeshDecoder::new(&cfg.args, vb, compute)
 }
 
-pub fn build_slat_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<crate::model::stage2::slat_vae::encoder::SLatEncoder> {
-    crate::model::stage2::slat_vae::encoder::SLatEncoder::new(&cfg.args, vb)
+pub fn build_slat_encoder(
+    cfg: &ModuleConfig,
+    vb: VarBuilder,
+    _file: &str,
+    compute: Compute,
+) -> Result<crate::model::stage2::slat_vae::encoder::SLatEncoder> {
+    crate::model::stage2::slat_vae::encoder::SLatEncoder::new(&cfg.args, vb, compute)
 }
 
-pub fn build_gaussian_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str) -> Result<SLatGaussianDecoder> {
-    SLatGaussianDecoder::new(&cfg.args, vb)
+pub fn build_gaussian_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatGaussianDecoder> {
+    SLatGaussianDecoder::new(&cfg.args, vb, compute)
 }
 
 /// Build module `cfg.name` from `cfg.args` on `vb` (the module is dropped;
-/// the point is what the builder requests from `vb`).
+/// the point is what the builder requests from `vb`, the same on every
+/// compute path, so it is built plain).
 pub fn build(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<()> {
     match kind(cfg, file)? {
-        ModuleKind::Dinov2 => drop(build_dinov2(cfg, vb, file)?),
-        ModuleKind::SsFlow => drop(build_ss_flow(cfg, vb, file)?),
-        ModuleKind::SsDecoder => drop(build_ss_decoder(cfg, vb, file)?),
-        ModuleKind::SsEncoder => drop(build_ss_encoder(cfg, vb, file)?),
-        ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file)?),
-        ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file)?),
-        ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file)?),
-        ModuleKind::SlatEncoder => drop(build_slat_encoder(cfg, vb, file)?),
+        ModuleKind::Dinov2 => drop(build_dinov2(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::SsFlow => drop(build_ss_flow(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::SsDecoder => drop(build_ss_decoder(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::SsEncoder => drop(build_ss_encoder(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file, Compute::Plain)?),
+        ModuleKind::SlatEncoder => drop(build_slat_encoder(cfg, vb, file, Compute::Plain)?),
     }
     Ok(())
 }

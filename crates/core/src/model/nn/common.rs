@@ -1,9 +1,9 @@
 //! Building blocks shared by the transformer models (TRELLIS `modules/`):
 //! norms, timestep and position embeddings, attention, MLP, and the
-//! adaLN-modulated cross-attention block. Built outside
-//! [`fast::build_with`](crate::model::nn::fast::build_with) everything is plain candle
-//! ops, differentiable for training; built inside it, the same layers run the
-//! inference kernels of `recon-kernels` (see [`crate::model::nn::fast`]).
+//! adaLN-modulated cross-attention block. Every constructor takes the
+//! [`Compute`] path of its layers: with [`Compute::Plain`] everything is plain
+//! candle ops, differentiable for training; with a fast compute the same layers
+//! run the inference kernels of `recon-kernels` (see [`crate::model::nn::fast`]).
 
 use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
 use candle_nn::VarBuilder;
@@ -11,8 +11,6 @@ use candle_nn::VarBuilder;
 pub use crate::model::nn::fast::Linear;
 use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
 
-/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
-/// `{prefix}.bias`), for the current build setting (`fast::build_compute`).
 /// Position embedding of the transformers (`pe_mode`): TRELLIS offers
 /// absolute (`ape`) and rotary (`rope`); RecGen uses `ape`, the only one here.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -23,8 +21,10 @@ pub enum PeMode {
     Rope,
 }
 
-pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Linear> {
-    Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, fast::build_compute())
+/// Linear layer with bias, named as in the checkpoint (`{prefix}.weight`,
+/// `{prefix}.bias`), on the `compute` path.
+pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder, compute: Compute) -> Result<Linear> {
+    Linear::new(candle_nn::linear(in_dim, out_dim, vb)?, compute)
 }
 
 /// LayerNorm over the last dim without affine parameters (computed in f32).
@@ -47,8 +47,8 @@ pub struct LayerNorm {
 }
 
 impl LayerNorm {
-    pub fn new(dim: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps, compute: fast::build_compute() })
+    pub fn new(dim: usize, eps: f64, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps, compute })
     }
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some((_, isa)) = self.compute.fast_parts() {
@@ -68,9 +68,13 @@ pub struct TimestepEmbedder {
 }
 
 impl TimestepEmbedder {
-    pub fn new(hidden: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(hidden: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let freq_size = 256;
-        Ok(Self { mlp0: linear(freq_size, hidden, vb.pp("mlp.0"))?, mlp2: linear(hidden, hidden, vb.pp("mlp.2"))?, freq_size })
+        Ok(Self {
+            mlp0: linear(freq_size, hidden, vb.pp("mlp.0"), compute)?,
+            mlp2: linear(hidden, hidden, vb.pp("mlp.2"), compute)?,
+            freq_size,
+        })
     }
 
     pub fn sinusoidal(t: &Tensor, dim: usize) -> Result<Tensor> {
@@ -220,9 +224,9 @@ pub struct FeedForward {
 pub const FFN_ROWS: usize = 2048;
 
 impl FeedForward {
-    pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder) -> Result<Self> {
+    pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let hidden = (channels as f64 * mlp_ratio) as usize;
-        Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"))?, fc2: linear(hidden, channels, vb.pp("mlp.2"))? })
+        Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"), compute)?, fc2: linear(hidden, channels, vb.pp("mlp.2"), compute)? })
     }
     /// GELU (tanh form) is fused into `fc1` on the fast path, which also
     /// runs [`FFN_ROWS`] rows at a time (bounded hidden activations).
@@ -251,11 +255,20 @@ pub struct MultiHeadAttention {
 
 impl MultiHeadAttention {
     /// `ctx_channels = None` builds self-attention.
-    pub fn new(channels: usize, heads: usize, ctx_channels: Option<usize>, qk_rms_norm: bool, vb: VarBuilder) -> Result<Self> {
+    pub fn new(
+        channels: usize,
+        heads: usize,
+        ctx_channels: Option<usize>,
+        qk_rms_norm: bool,
+        vb: VarBuilder,
+        compute: Compute,
+    ) -> Result<Self> {
         let head_dim = channels / heads;
         let (to_qkv, to_q, to_kv) = match ctx_channels {
-            None => (Some(linear(channels, 3 * channels, vb.pp("to_qkv"))?), None, None),
-            Some(c) => (None, Some(linear(channels, channels, vb.pp("to_q"))?), Some(linear(c, 2 * channels, vb.pp("to_kv"))?)),
+            None => (Some(linear(channels, 3 * channels, vb.pp("to_qkv"), compute)?), None, None),
+            Some(c) => {
+                (None, Some(linear(channels, channels, vb.pp("to_q"), compute)?), Some(linear(c, 2 * channels, vb.pp("to_kv"), compute)?))
+            }
         };
         let (q_norm, k_norm) = if qk_rms_norm {
             (
@@ -273,8 +286,8 @@ impl MultiHeadAttention {
             to_kv,
             q_norm,
             k_norm,
-            to_out: linear(channels, channels, vb.pp("to_out"))?,
-            compute: fast::build_compute(),
+            to_out: linear(channels, channels, vb.pp("to_out"), compute)?,
+            compute,
         })
     }
 
@@ -420,15 +433,15 @@ pub struct CrossBlockConfig {
 }
 
 impl ModulatedTransformerCrossBlock {
-    pub fn new(cfg: &CrossBlockConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &CrossBlockConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let c = cfg.channels;
         Ok(Self {
-            self_attn: MultiHeadAttention::new(c, cfg.heads, None, cfg.qk_rms_norm, vb.pp("self_attn"))?,
-            cross_attn: MultiHeadAttention::new(c, cfg.heads, Some(cfg.ctx_channels), cfg.qk_rms_norm_cross, vb.pp("cross_attn"))?,
-            norm2: LayerNorm::new(c, 1e-6, vb.pp("norm2"))?,
-            mlp: FeedForward::new(c, cfg.mlp_ratio, vb.pp("mlp"))?,
-            ada_ln: if cfg.share_mod { None } else { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) },
-            compute: fast::build_compute(),
+            self_attn: MultiHeadAttention::new(c, cfg.heads, None, cfg.qk_rms_norm, vb.pp("self_attn"), compute)?,
+            cross_attn: MultiHeadAttention::new(c, cfg.heads, Some(cfg.ctx_channels), cfg.qk_rms_norm_cross, vb.pp("cross_attn"), compute)?,
+            norm2: LayerNorm::new(c, 1e-6, vb.pp("norm2"), compute)?,
+            mlp: FeedForward::new(c, cfg.mlp_ratio, vb.pp("mlp"), compute)?,
+            ada_ln: if cfg.share_mod { None } else { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"), compute)?) },
+            compute,
         })
     }
 
@@ -500,7 +513,7 @@ mod tests {
     /// (differentiable) one: f32 tightly, bf16/f16 within their rounding.
     #[test]
     fn fast_cross_block_matches_plain() -> crate::Result<()> {
-        use crate::model::nn::fast::{build_with, Compute, Precision};
+        use crate::model::nn::fast::{Compute, Precision};
         use candle_nn::VarMap;
         let dev = Device::Cpu;
         let vm = VarMap::new();
@@ -514,7 +527,7 @@ mod tests {
             qk_rms_norm: true,
             qk_rms_norm_cross: true,
         };
-        let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"))?;
+        let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"), Compute::Plain)?;
         // Non-trivial weights (VarMap init gives zero biases / unit norms).
         let mut rng = crate::rng::SeededRng::new(3);
         for (_, var) in vm.data().lock().unwrap().iter() {
@@ -526,14 +539,14 @@ mod tests {
         let want = plain.forward(&x, &emb, &cond)?;
         let scale = want.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
         for (p, tol) in [(Precision::F32, 1e-5f32), (Precision::F16, 2e-3), (Precision::Bf16, 3e-2)] {
-            let fast = build_with(Compute::fast(p), || ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk")))?;
+            let fast = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"), Compute::fast(p))?;
             assert!(fast.self_attn.is_fast() && fast.mlp.fc1.fast().is_some());
             let got = fast.forward(&x, &emb, &cond)?;
             let d = max_diff(&got, &want);
             assert!(d <= tol * scale, "{p}: max diff {d} (output scale {scale})");
         }
         // Cross-attention to a batch-1 context is broadcast over the batch.
-        let fast = build_with(Compute::fast(Precision::F32), || MultiHeadAttention::new(64, 4, Some(24), true, vb.pp("blk.cross_attn")))?;
+        let fast = MultiHeadAttention::new(64, 4, Some(24), true, vb.pp("blk.cross_attn"), Compute::fast(Precision::F32))?;
         let c1 = cond.narrow(0, 0, 1)?;
         let a = fast.forward(&x, Some(&c1))?;
         let b = plain.cross_attn.forward(&x, Some(&c1.broadcast_as((2, 29, 24))?.contiguous()?))?;

@@ -27,7 +27,7 @@ pub enum NormType {
     Layer,
     Group,
 }
-use crate::model::nn::fast::{self, Isa, Precision};
+use crate::model::nn::fast::{Compute, Isa, Precision};
 use candle_core::{CpuStorage, DType, Device, Layout, Shape, Storage, Tensor};
 use candle_nn::VarBuilder;
 use recon_kernels::conv3d as k;
@@ -253,8 +253,8 @@ impl candle_core::CustomOp3 for Conv3dOp {
 
 /// `nn.Conv3d(cin, cout, k, padding=pad)` with bias (`{prefix}.weight`, `{prefix}.bias`).
 ///
-/// The fast path takes the precision of the build scope it was constructed in
-/// ([`fast::build_compute`]; f32 outside one). It matters for the wide
+/// The fast path takes the precision of the `compute` it is built with (f32
+/// for [`Compute::Plain`]). It matters for the wide
 /// Winograd layers (`recon_kernels::conv3d::conv3d_winograd`): at bf16 their
 /// transformed weights (transformed in f32, rounded once) and activations are
 /// rounded to bf16, products accumulated in f32, as torch's bf16 autocast
@@ -274,10 +274,10 @@ pub struct Conv3d {
 }
 
 impl Conv3d {
-    pub fn new(cin: usize, cout: usize, k: usize, pad: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cin: usize, cout: usize, k: usize, pad: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let weight = vb.get((cout, cin, k, k, k), "weight")?;
         let bias = vb.get(cout, "bias")?;
-        let (format, isa) = match fast::build_compute().fast_parts() {
+        let (format, isa) = match compute.fast_parts() {
             Some((Precision::Bf16, isa)) => (WeightFormat::Bf16, isa),
             Some((_, isa)) => (WeightFormat::F32, isa),
             None => (WeightFormat::F32, Isa::best()),
@@ -556,18 +556,17 @@ mod tests {
             let mut ws = HashMap::new();
             ws.insert("weight".to_string(), wt.clone());
             ws.insert("bias".to_string(), b.clone());
-            let conv = Conv3d::new(cin, cout, kk, pad, VarBuilder::from_tensors(ws, DType::F32, &Device::Cpu)).unwrap();
+            let conv = Conv3d::new(cin, cout, kk, pad, VarBuilder::from_tensors(ws, DType::F32, &Device::Cpu), Compute::Plain).unwrap();
             let fast = conv.forward_fast(&Volume::from_tensor(&x).unwrap(), None).unwrap().to_tensor().unwrap();
             assert!(max_abs_diff(&fast, &want).unwrap() < 1e-5, "fast path, case {i}");
             assert!(max_abs_diff(&conv.forward(&x).unwrap(), &fast).unwrap() < 1e-5);
         }
     }
 
-    /// A `Conv3d` built in a bf16 scope runs its Winograd layers on bf16
+    /// A `Conv3d` built with a bf16 compute runs its Winograd layers on bf16
     /// operands: within 1 % (relative L2) of the f32 reference, but not f32.
     #[test]
     fn conv3d_takes_the_build_precision() {
-        use crate::model::nn::fast::{build_with, Compute};
         let (cin, cout) = (64, 66);
         let x = rand(&[2, cin, 3, 4, 5], 90);
         let wt = (rand(&[cout, cin, 3, 3, 3], 91) * 0.1).unwrap();
@@ -581,7 +580,7 @@ mod tests {
         for (precision, format) in
             [(Precision::F32, WeightFormat::F32), (Precision::Bf16, WeightFormat::Bf16), (Precision::F16, WeightFormat::F32)]
         {
-            let conv = build_with(Compute::fast(precision), || Conv3d::new(cin, cout, 3, 1, vb.clone())).unwrap();
+            let conv = Conv3d::new(cin, cout, 3, 1, vb.clone(), Compute::fast(precision)).unwrap();
             assert_eq!(conv.weight_format(), format);
             let got = conv.forward_fast(&vx, None).unwrap().data;
             let num: f64 = got.iter().zip(&want).map(|(a, b)| ((a - b) as f64).powi(2)).sum();
@@ -592,8 +591,8 @@ mod tests {
                 _ => assert!(rel < 1e-5, "{precision}: relative error {rel}"),
             }
         }
-        // Outside a build scope: f32.
-        assert_eq!(Conv3d::new(cin, cout, 3, 1, vb).unwrap().weight_format(), WeightFormat::F32);
+        // Plain: f32.
+        assert_eq!(Conv3d::new(cin, cout, 3, 1, vb, Compute::Plain).unwrap().weight_format(), WeightFormat::F32);
     }
 
     #[test]

@@ -7,9 +7,9 @@
 //!   fused bias/GELU, flash attention, fused LayerNorm/modulation and gated
 //!   residuals), inference only: results carry no gradient.
 //!
-//! The path is fixed when a module is built: layers constructed inside
-//! [`build_with`] on the same thread take its [`Compute`]; outside, they are
-//! plain. Fast linear layers pack their weights once, at construction, into
+//! The path is fixed when a module is built: every module constructor takes a
+//! [`Compute`] and hands it to its sub-layers (a different path is a different
+//! constructor argument, chosen once). Fast linear layers pack their weights once, at construction, into
 //! the kernel layout and [`Precision`], and drop the f32 copy.
 //!
 //! Precision modes (weights as stored; activations between layers are f32):
@@ -21,7 +21,6 @@
 //!   activations and attention stay f32 (x86 CPUs without AVX512-FP16 have no
 //!   faster f16 arithmetic).
 
-use std::cell::Cell;
 use std::str::FromStr;
 use std::sync::Arc;
 
@@ -119,32 +118,6 @@ impl Compute {
             Compute::Fast { precision, isa } => format!("fast {precision} ({})", isa.name()),
         }
     }
-}
-
-thread_local! {
-    static BUILD: Cell<Compute> = const { Cell::new(Compute::Plain) };
-}
-
-/// Run `f` with `compute` as the construction setting of this thread: layers
-/// built inside use it. The previous setting is restored afterwards (also on
-/// panic).
-pub fn build_with<R>(compute: Compute, f: impl FnOnce() -> R) -> R {
-    struct Restore(Compute);
-    impl Drop for Restore {
-        fn drop(&mut self) {
-            BUILD.with(|b| b.set(self.0));
-        }
-    }
-    let _restore = Restore(BUILD.with(|b| b.replace(compute)));
-    let r = f();
-    // The build's temporaries (f32 weights before packing) do not recur.
-    crate::util::release_cached_buffers();
-    r
-}
-
-/// The construction setting of this thread (see [`build_with`]).
-pub fn build_compute() -> Compute {
-    BUILD.with(|b| b.get())
 }
 
 fn kerr(e: String) -> candle_core::Error {
@@ -447,19 +420,14 @@ mod tests {
     use candle_core::Module;
 
     #[test]
-    fn precision_parses_and_build_scope_restores() {
+    fn precision_parses_and_compute_parts() {
         assert_eq!("BF16".parse::<Precision>().unwrap(), Precision::Bf16);
         assert!("fp8".parse::<Precision>().unwrap_err().contains("expected f32, bf16 or f16"));
-        assert_eq!(build_compute(), Compute::Plain);
-        let inner = build_with(Compute::fast(Precision::F16), || {
-            assert!(build_compute().is_fast());
-            build_with(Compute::Plain, build_compute)
-        });
-        assert_eq!(inner, Compute::Plain);
-        assert_eq!(build_compute(), Compute::Plain);
-        let r = std::panic::catch_unwind(|| build_with(Compute::fast(Precision::Bf16), || panic!("x")));
-        assert!(r.is_err());
-        assert_eq!(build_compute(), Compute::Plain);
+        assert_eq!(Compute::default(), Compute::Plain);
+        assert_eq!(Compute::Plain.fast_parts(), None);
+        let f16 = Compute::fast(Precision::F16);
+        assert!(f16.is_fast());
+        assert_eq!(f16.fast_parts(), Some((Precision::F16, Isa::best())));
     }
 
     #[test]

@@ -240,15 +240,15 @@ mod tests {
     /// plain path's result (f32), including uneven window sizes.
     #[test]
     fn fast_sparse_attention_matches_plain() -> Result<()> {
-        use crate::model::nn::fast::{build_with, Compute, Precision};
+        use crate::model::nn::fast::{Compute, Precision};
         use candle_nn::{VarBuilder, VarMap};
         let coords = shell(14, 2);
         let n = coords.len();
         let dev = Device::Cpu;
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, candle_core::DType::F32, &dev);
-        let plain = MultiHeadAttention::new(48, 3, None, true, vb.pp("attn"))?;
-        let fast = build_with(Compute::fast(Precision::F32), || MultiHeadAttention::new(48, 3, None, true, vb.pp("attn")))?;
+        let plain = MultiHeadAttention::new(48, 3, None, true, vb.pp("attn"), Compute::Plain)?;
+        let fast = MultiHeadAttention::new(48, 3, None, true, vb.pp("attn"), Compute::fast(Precision::F32))?;
         assert!(fast.is_fast() && !plain.is_fast());
         let feats = Tensor::randn(0f32, 1.0, (n, 48), &dev)?;
         for p in [WindowPartition::new(&coords, 4, 0)?, WindowPartition::new(&coords, 4, 2)?, WindowPartition::new(&coords, 64, 0)?] {

@@ -120,8 +120,8 @@ struct Attention {
 }
 
 impl Attention {
-    fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { qkv: linear(dim, 3 * dim, vb.pp("qkv"))?, proj: linear(dim, dim, vb.pp("proj"))?, heads, compute: fast::build_compute() })
+    fn new(dim: usize, heads: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        Ok(Self { qkv: linear(dim, 3 * dim, vb.pp("qkv"), compute)?, proj: linear(dim, dim, vb.pp("proj"), compute)?, heads, compute })
     }
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let (b, n, c) = x.dims3()?;
@@ -167,17 +167,17 @@ struct Block {
 }
 
 impl Block {
-    fn new(cfg: &Dinov2Config, vb: VarBuilder) -> Result<Self> {
+    fn new(cfg: &Dinov2Config, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let d = cfg.embed_dim;
         let h = cfg.mlp_hidden();
         Ok(Self {
-            norm1: LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm1"))?,
-            attn: Attention::new(d, cfg.num_heads, vb.pp("attn"))?,
+            norm1: LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm1"), compute)?,
+            attn: Attention::new(d, cfg.num_heads, vb.pp("attn"), compute)?,
             ls1: vb.pp("ls1").get(d, "gamma")?,
-            norm2: LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm2"))?,
-            mlp: Mlp { fc1: linear(d, h, vb.pp("mlp.fc1"))?, fc2: linear(h, d, vb.pp("mlp.fc2"))? },
+            norm2: LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm2"), compute)?,
+            mlp: Mlp { fc1: linear(d, h, vb.pp("mlp.fc1"), compute)?, fc2: linear(h, d, vb.pp("mlp.fc2"), compute)? },
             ls2: vb.pp("ls2").get(d, "gamma")?,
-            compute: fast::build_compute(),
+            compute,
         })
     }
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
@@ -214,7 +214,7 @@ pub struct Dinov2 {
 
 impl Dinov2 {
     /// Build from a VarBuilder rooted at the hub checkpoint's top level.
-    pub fn new(cfg: &Dinov2Config, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &Dinov2Config, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let d = cfg.embed_dim;
         let g = cfg.grid();
         let cls_token = vb.get((1, 1, d), "cls_token")?;
@@ -226,8 +226,8 @@ impl Dinov2 {
         let _mask_token = vb.get((1, d), "mask_token")?;
         let conv_cfg = Conv2dConfig { stride: cfg.patch_size, ..Default::default() };
         let patch_embed = candle_nn::conv2d(cfg.in_chans, d, cfg.patch_size, conv_cfg, vb.pp("patch_embed.proj"))?;
-        let blocks = (0..cfg.depth).map(|i| Block::new(cfg, vb.pp(format!("blocks.{i}")))).collect::<Result<Vec<_>>>()?;
-        let norm = LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm"))?;
+        let blocks = (0..cfg.depth).map(|i| Block::new(cfg, vb.pp(format!("blocks.{i}")), compute)).collect::<Result<Vec<_>>>()?;
+        let norm = LayerNorm::new(d, cfg.layer_norm_eps, vb.pp("norm"), compute)?;
         Ok(Self { cfg: cfg.clone(), cls_token, pos_embed, register_tokens, patch_embed, blocks, norm })
     }
 
@@ -337,7 +337,7 @@ mod tests {
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
         let cfg = tiny();
-        let m = Dinov2::new(&cfg, vb)?;
+        let m = Dinov2::new(&cfg, vb, Compute::Plain)?;
         let img = Tensor::randn(0f32, 1.0, (2, 3, 28, 28), &dev)?;
         let out = m.forward(&img)?;
         assert_eq!(out.x_prenorm.dims(), &[2, 1 + 4 + 4, 16]);
@@ -358,17 +358,17 @@ mod tests {
     /// the qkv rows) matches the plain model.
     #[test]
     fn fast_model_matches_plain() -> crate::Result<()> {
-        use crate::model::nn::fast::{build_with, Compute, Precision};
+        use crate::model::nn::fast::Precision;
         let dev = Device::Cpu;
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
         let cfg = Dinov2Config { embed_dim: 32, depth: 2, ..tiny() };
-        let plain = Dinov2::new(&cfg, vb.clone())?;
+        let plain = Dinov2::new(&cfg, vb.clone(), Compute::Plain)?;
         let mut rng = crate::rng::SeededRng::new(5);
         for (_, var) in vm.data().lock().unwrap().iter() {
             var.set(&((rng.randn(var.dims(), &dev)? * 0.1)? + 0.02)?)?;
         }
-        let fast = build_with(Compute::fast(Precision::F32), || Dinov2::new(&cfg, vb))?;
+        let fast = Dinov2::new(&cfg, vb, Compute::fast(Precision::F32))?;
         assert!(fast.blocks[0].attn.qkv.fast().is_some() && fast.blocks[0].compute.is_fast());
         let img = rng.randn(&[2, 3, 28, 28], &dev)?;
         let a = plain.forward(&img)?.x_prenorm;

@@ -9,6 +9,7 @@
 //! LayerNorm (eps 1e-5) → split → `out_layer` + unpatchify, `out_layer_pose`.
 
 use crate::model::nn::common::Linear;
+use crate::model::nn::fast::Compute;
 use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
@@ -182,7 +183,7 @@ pub struct SparseStructureFlowModel {
 }
 
 impl SparseStructureFlowModel {
-    pub fn new(cfg: &SsFlowConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &SsFlowConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate("ss_flow config")?;
         let c = cfg.model_channels;
         let p3 = cfg.patch_size.pow(3);
@@ -194,8 +195,8 @@ impl SparseStructureFlowModel {
         };
         let pose = match cfg.pose_channels() {
             Some(pc) => Some(PoseIo {
-                input_layer_pose: common::linear(pc, c, vb.pp("input_layer_pose"))?,
-                out_layer_pose: common::linear(c, pc, vb.pp("out_layer_pose"))?,
+                input_layer_pose: common::linear(pc, c, vb.pp("input_layer_pose"), compute)?,
+                out_layer_pose: common::linear(c, pc, vb.pp("out_layer_pose"), compute)?,
                 pose_token_embedder: if cfg.num_pose_tokens > 1 {
                     Some(vb.get((cfg.num_pose_tokens, c), "pose_token_embedder")?)
                 } else {
@@ -206,16 +207,16 @@ impl SparseStructureFlowModel {
         };
         let bcfg = cfg.block_config();
         let blocks = (0..cfg.num_blocks)
-            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}"))))
+            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}")), compute))
             .collect::<candle_core::Result<Vec<_>>>()?;
         Ok(Self {
             cfg: cfg.clone(),
-            input_layer: common::linear(cfg.in_channels * p3, c, vb.pp("input_layer"))?,
+            input_layer: common::linear(cfg.in_channels * p3, c, vb.pp("input_layer"), compute)?,
             pos_emb,
-            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"))?,
-            share_mod: if cfg.share_mod { Some(common::linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) } else { None },
+            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"), compute)?,
+            share_mod: if cfg.share_mod { Some(common::linear(c, 6 * c, vb.pp("adaLN_modulation.1"), compute)?) } else { None },
             blocks,
-            out_layer: common::linear(c, cfg.out_channels * p3, vb.pp("out_layer"))?,
+            out_layer: common::linear(c, cfg.out_channels * p3, vb.pp("out_layer"), compute)?,
             pose,
             point_embedder: if cfg.use_point_embedder {
                 Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
@@ -436,14 +437,14 @@ mod tests {
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
         // Build once to create the variables, then fill them with seeded noise.
-        let m = SparseStructureFlowModel::new(cfg, vb.clone())?;
+        let m = SparseStructureFlowModel::new(cfg, vb.clone(), Compute::Plain)?;
         let mut rng = SeededRng::new(7);
         for (_, var) in vm.data().lock().unwrap().iter() {
             let t = (rng.randn(var.dims(), &Device::Cpu)? * 0.2)?;
             var.set(&t)?;
         }
         let _ = m;
-        SparseStructureFlowModel::new(cfg, vb)
+        SparseStructureFlowModel::new(cfg, vb, Compute::Plain)
     }
 
     #[test]
@@ -501,11 +502,11 @@ mod tests {
     /// (same weights): f32 tightly, bf16 within its rounding.
     #[test]
     fn fast_model_matches_plain() -> Result<()> {
-        use crate::model::nn::fast::{build_with, Compute, Precision};
+        use crate::model::nn::fast::Precision;
         let cfg = tiny_cfg(1, true);
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-        let plain = SparseStructureFlowModel::new(&cfg, vb.clone())?;
+        let plain = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
         let mut rng = SeededRng::new(7);
         for (_, var) in vm.data().lock().unwrap().iter() {
             var.set(&(rng.randn(var.dims(), &Device::Cpu)? * 0.2)?)?;
@@ -515,7 +516,7 @@ mod tests {
         let t = Tensor::new(&[500f32, 100.0], &Device::Cpu)?;
         let (v0, p0) = plain.forward(&state[0], Some(&state[1]), &t, &cond)?;
         for (p, tol) in [(Precision::F32, 2e-5f32), (Precision::Bf16, 5e-2)] {
-            let fast = build_with(Compute::fast(p), || SparseStructureFlowModel::new(&cfg, vb.clone()))?;
+            let fast = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::fast(p))?;
             let (v1, p1) = fast.forward(&state[0], Some(&state[1]), &t, &cond)?;
             let scale = v0.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?.max(1.0);
             let dv = (&v1 - &v0)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;

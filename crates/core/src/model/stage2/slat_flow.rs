@@ -17,6 +17,7 @@ use crate::model::nn::common::PeMode;
 use crate::model::nn::common::{
     abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder,
 };
+use crate::model::nn::fast::Compute;
 use crate::model::sampler::VelocityModel;
 use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
@@ -160,13 +161,13 @@ pub struct SparseResBlock3d {
 }
 
 impl SparseResBlock3d {
-    fn new(channels: usize, emb: usize, out: usize, updown: UpDown, vb: VarBuilder) -> Result<Self> {
+    fn new(channels: usize, emb: usize, out: usize, updown: UpDown, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self {
-            norm1: LayerNorm::new(channels, 1e-6, vb.pp("norm1"))?,
+            norm1: LayerNorm::new(channels, 1e-6, vb.pp("norm1"), compute)?,
             conv1: SparseConv3d::new(channels, out, 3, vb.pp("conv1"))?,
             conv2: SparseConv3d::new(out, out, 3, vb.pp("conv2"))?,
-            emb_layers: linear(emb, 2 * out, vb.pp("emb_layers.1"))?,
-            skip: if channels != out { Some(linear(channels, out, vb.pp("skip_connection"))?) } else { None },
+            emb_layers: linear(emb, 2 * out, vb.pp("emb_layers.1"), compute)?,
+            skip: if channels != out { Some(linear(channels, out, vb.pp("skip_connection"), compute)?) } else { None },
             updown,
         })
     }
@@ -236,7 +237,7 @@ pub struct SLatFlowModel {
 }
 
 impl SLatFlowModel {
-    pub fn new(cfg: &SLatFlowConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &SLatFlowConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let c = cfg.model_channels;
         let io = cfg.io_block_channels.clone().unwrap_or_default();
@@ -247,10 +248,10 @@ impl SLatFlowModel {
         for (s, &chs) in io.iter().enumerate() {
             let next = io.get(s + 1).copied().unwrap_or(c);
             for _ in 0..cfg.num_io_res_blocks - 1 {
-                input_blocks.push(SparseResBlock3d::new(chs, c, chs, UpDown::None, vb.pp(format!("input_blocks.{idx}")))?);
+                input_blocks.push(SparseResBlock3d::new(chs, c, chs, UpDown::None, vb.pp(format!("input_blocks.{idx}")), compute)?);
                 idx += 1;
             }
-            input_blocks.push(SparseResBlock3d::new(chs, c, next, UpDown::Down, vb.pp(format!("input_blocks.{idx}")))?);
+            input_blocks.push(SparseResBlock3d::new(chs, c, next, UpDown::Down, vb.pp(format!("input_blocks.{idx}")), compute)?);
             idx += 1;
         }
 
@@ -264,7 +265,7 @@ impl SLatFlowModel {
             qk_rms_norm_cross: cfg.qk_rms_norm_cross,
         };
         let blocks = (0..cfg.num_blocks)
-            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}"))))
+            .map(|i| ModulatedTransformerCrossBlock::new(&bcfg, vb.pp(format!("blocks.{i}")), compute))
             .collect::<candle_core::Result<Vec<_>>>()?;
 
         let mut out_blocks = Vec::new();
@@ -272,22 +273,22 @@ impl SLatFlowModel {
         let skip_mul = if cfg.use_skip_connection { 2 } else { 1 };
         for (s, &chs) in io.iter().enumerate().rev() {
             let prev = io.get(s + 1).copied().unwrap_or(c);
-            out_blocks.push(SparseResBlock3d::new(prev * skip_mul, c, chs, UpDown::Up, vb.pp(format!("out_blocks.{idx}")))?);
+            out_blocks.push(SparseResBlock3d::new(prev * skip_mul, c, chs, UpDown::Up, vb.pp(format!("out_blocks.{idx}")), compute)?);
             idx += 1;
             for _ in 0..cfg.num_io_res_blocks - 1 {
-                out_blocks.push(SparseResBlock3d::new(chs * skip_mul, c, chs, UpDown::None, vb.pp(format!("out_blocks.{idx}")))?);
+                out_blocks.push(SparseResBlock3d::new(chs * skip_mul, c, chs, UpDown::None, vb.pp(format!("out_blocks.{idx}")), compute)?);
                 idx += 1;
             }
         }
 
         Ok(Self {
-            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"))?,
-            ada_ln: if cfg.share_mod { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"))?) } else { None },
-            input_layer: linear(cfg.in_channels, first, vb.pp("input_layer"))?,
+            t_embedder: TimestepEmbedder::new(c, vb.pp("t_embedder"), compute)?,
+            ada_ln: if cfg.share_mod { Some(linear(c, 6 * c, vb.pp("adaLN_modulation.1"), compute)?) } else { None },
+            input_layer: linear(cfg.in_channels, first, vb.pp("input_layer"), compute)?,
             input_blocks,
             blocks,
             out_blocks,
-            out_layer: linear(first, cfg.out_channels, vb.pp("out_layer"))?,
+            out_layer: linear(first, cfg.out_channels, vb.pp("out_layer"), compute)?,
             point_embedder: if cfg.use_point_embedder {
                 Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
             } else {
@@ -295,7 +296,7 @@ impl SLatFlowModel {
             },
             mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
             pose_embedder: if cfg.use_pose_embedder {
-                Some(linear(cfg.pose_dim(), cfg.pose_embedder_out_channels, vb.pp("pose_embedder"))?)
+                Some(linear(cfg.pose_dim(), cfg.pose_embedder_out_channels, vb.pp("pose_embedder"), compute)?)
             } else {
                 None
             },
@@ -551,14 +552,14 @@ mod tests {
     fn random_model(cfg: &SLatFlowConfig) -> SLatFlowModel {
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
-        SLatFlowModel::new(cfg, vb.clone()).unwrap();
+        SLatFlowModel::new(cfg, vb.clone(), Compute::Plain).unwrap();
         // VarMap defaults many tensors to zero: randomise, then rebuild so the
         // conv host copies see the new values.
         for v in vm.all_vars() {
             let r = Tensor::randn(0f32, 0.2, v.shape(), &Device::Cpu).unwrap();
             v.set(&r).unwrap();
         }
-        SLatFlowModel::new(cfg, vb).unwrap()
+        SLatFlowModel::new(cfg, vb, Compute::Plain).unwrap()
     }
 
     fn blob() -> SparseTensor {

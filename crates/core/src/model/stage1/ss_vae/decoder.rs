@@ -8,6 +8,7 @@
 
 use crate::model::nn::dense3d::NormType;
 use crate::model::nn::dense3d::{pixel_shuffle_3d, pixel_shuffle_3d_fast, ChannelLayerNorm, Conv3d, Volume};
+use crate::model::nn::fast::Compute;
 use crate::{Error, Result};
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
@@ -25,7 +26,7 @@ pub struct SparseStructureDecoderConfig {
     #[serde(default)]
     pub norm_type: NormType,
     /// Upstream runs the torso in fp16; this port computes in the precision of
-    /// its build scope (bf16 for the wide convolutions at bf16, else f32; see `Conv3d`).
+    /// the compute it is built with (bf16 for the wide convolutions at bf16, else f32; see `Conv3d`).
     #[serde(default)]
     pub use_fp16: bool,
 }
@@ -80,12 +81,12 @@ pub struct ResBlock3d {
 }
 
 impl ResBlock3d {
-    pub fn new(c: usize, vb: VarBuilder) -> Result<Self> {
+    pub fn new(c: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self {
             norm1: ChannelLayerNorm::new(c, vb.pp("norm1"))?,
-            conv1: Conv3d::new(c, c, 3, 1, vb.pp("conv1"))?,
+            conv1: Conv3d::new(c, c, 3, 1, vb.pp("conv1"), compute)?,
             norm2: ChannelLayerNorm::new(c, vb.pp("norm2"))?,
-            conv2: Conv3d::new(c, c, 3, 1, vb.pp("conv2"))?,
+            conv2: Conv3d::new(c, c, 3, 1, vb.pp("conv2"), compute)?,
         })
     }
 
@@ -110,8 +111,8 @@ pub struct UpsampleBlock3d {
 }
 
 impl UpsampleBlock3d {
-    pub fn new(cin: usize, cout: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { conv: Conv3d::new(cin, cout * 8, 3, 1, vb.pp("conv"))? })
+    pub fn new(cin: usize, cout: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        Ok(Self { conv: Conv3d::new(cin, cout * 8, 3, 1, vb.pp("conv"), compute)? })
     }
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         pixel_shuffle_3d(&self.conv.forward(x)?)
@@ -146,25 +147,26 @@ pub struct SparseStructureDecoder {
 }
 
 impl SparseStructureDecoder {
-    pub fn new(cfg: &SparseStructureDecoderConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &SparseStructureDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let ch = &cfg.channels;
-        let input_layer = Conv3d::new(cfg.latent_channels, ch[0], 3, 1, vb.pp("input_layer"))?;
-        let middle_block =
-            (0..cfg.num_res_blocks_middle).map(|i| ResBlock3d::new(ch[0], vb.pp("middle_block").pp(i))).collect::<Result<Vec<_>>>()?;
+        let input_layer = Conv3d::new(cfg.latent_channels, ch[0], 3, 1, vb.pp("input_layer"), compute)?;
+        let middle_block = (0..cfg.num_res_blocks_middle)
+            .map(|i| ResBlock3d::new(ch[0], vb.pp("middle_block").pp(i), compute))
+            .collect::<Result<Vec<_>>>()?;
         let mut blocks = Vec::new();
         let vbb = vb.pp("blocks");
         for (i, &c) in ch.iter().enumerate() {
             for _ in 0..cfg.num_res_blocks {
-                blocks.push(Block::Res(ResBlock3d::new(c, vbb.pp(blocks.len()))?));
+                blocks.push(Block::Res(ResBlock3d::new(c, vbb.pp(blocks.len()), compute)?));
             }
             if let Some(&next) = ch.get(i + 1) {
-                blocks.push(Block::Up(UpsampleBlock3d::new(c, next, vbb.pp(blocks.len()))?));
+                blocks.push(Block::Up(UpsampleBlock3d::new(c, next, vbb.pp(blocks.len()), compute)?));
             }
         }
         let last = *ch.last().expect("validated non-empty");
         let out_norm = ChannelLayerNorm::new(last, vb.pp("out_layer.0"))?;
-        let out_conv = Conv3d::new(last, cfg.out_channels, 3, 1, vb.pp("out_layer.2"))?;
+        let out_conv = Conv3d::new(last, cfg.out_channels, 3, 1, vb.pp("out_layer.2"), compute)?;
         Ok(Self { cfg: cfg.clone(), input_layer, middle_block, blocks, out_norm, out_conv })
     }
 
@@ -274,7 +276,7 @@ mod tests {
     fn random_vb(cfg: &SparseStructureDecoderConfig) -> VarBuilder<'static> {
         let probe = candle_nn::VarMap::new();
         let vb = VarBuilder::from_varmap(&probe, DType::F32, &Device::Cpu);
-        SparseStructureDecoder::new(cfg, vb).unwrap();
+        SparseStructureDecoder::new(cfg, vb, Compute::Plain).unwrap();
         let mut ws = HashMap::new();
         for (name, var) in probe.data().lock().unwrap().iter() {
             let t = var.as_tensor();
@@ -288,7 +290,7 @@ mod tests {
     #[test]
     fn fast_and_differentiable_paths_agree() {
         let cfg = small_cfg();
-        let dec = SparseStructureDecoder::new(&cfg, random_vb(&cfg)).unwrap();
+        let dec = SparseStructureDecoder::new(&cfg, random_vb(&cfg), Compute::Plain).unwrap();
         let x = Tensor::randn(0f32, 1.0, (2, 3, 3, 4, 2), &Device::Cpu).unwrap();
         let fast = dec.forward(&x).unwrap();
         assert_eq!(fast.dims(), &[2, 2, 6, 8, 4]);
@@ -301,7 +303,7 @@ mod tests {
     fn fast_path_agrees_at_winograd_widths() {
         // 64 channels and a 64→8·8 upsample conv select the Winograd kernel.
         let cfg = SparseStructureDecoderConfig { channels: vec![64, 8], ..small_cfg() };
-        let dec = SparseStructureDecoder::new(&cfg, random_vb(&cfg)).unwrap();
+        let dec = SparseStructureDecoder::new(&cfg, random_vb(&cfg), Compute::Plain).unwrap();
         let x = Tensor::randn(0f32, 1.0, (1, 3, 3, 2, 3), &Device::Cpu).unwrap();
         let d = max_abs_diff(&dec.forward(&x).unwrap(), &dec.forward_differentiable(&x).unwrap()).unwrap();
         assert!(d < 1e-4, "max diff {d}");
@@ -311,7 +313,7 @@ mod tests {
     fn tensor_names_follow_upstream() {
         let cfg = SparseStructureDecoderConfig { channels: vec![8, 8, 8], num_res_blocks: 2, num_res_blocks_middle: 2, ..small_cfg() };
         let probe = candle_nn::VarMap::new();
-        SparseStructureDecoder::new(&cfg, VarBuilder::from_varmap(&probe, DType::F32, &Device::Cpu)).unwrap();
+        SparseStructureDecoder::new(&cfg, VarBuilder::from_varmap(&probe, DType::F32, &Device::Cpu), Compute::Plain).unwrap();
         let data = probe.data().lock().unwrap();
         for name in [
             "input_layer.weight",

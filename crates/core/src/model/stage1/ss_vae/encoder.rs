@@ -17,6 +17,7 @@
 
 use crate::model::nn::dense3d::NormType;
 use crate::model::nn::dense3d::{ChannelLayerNorm, Conv3d};
+use crate::model::nn::fast::Compute;
 use crate::model::stage1::ss_vae::decoder::ResBlock3d;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
@@ -159,25 +160,26 @@ pub struct SparseStructureEncoder {
 }
 
 impl SparseStructureEncoder {
-    pub fn new(cfg: &SparseStructureEncoderConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &SparseStructureEncoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let ch = &cfg.channels;
-        let input_layer = Conv3d::new(cfg.in_channels, ch[0], 3, 1, vb.pp("input_layer"))?;
+        let input_layer = Conv3d::new(cfg.in_channels, ch[0], 3, 1, vb.pp("input_layer"), compute)?;
         let mut blocks = Vec::new();
         let vbb = vb.pp("blocks");
         for (i, &c) in ch.iter().enumerate() {
             for _ in 0..cfg.num_res_blocks {
-                blocks.push(Block::Res(ResBlock3d::new(c, vbb.pp(blocks.len()))?));
+                blocks.push(Block::Res(ResBlock3d::new(c, vbb.pp(blocks.len()), compute)?));
             }
             if let Some(&next) = ch.get(i + 1) {
                 blocks.push(Block::Down(DownsampleBlock3d::new(c, next, vbb.pp(blocks.len()))?));
             }
         }
         let last = *ch.last().expect("validated non-empty");
-        let middle_block =
-            (0..cfg.num_res_blocks_middle).map(|i| ResBlock3d::new(last, vb.pp("middle_block").pp(i))).collect::<Result<Vec<_>>>()?;
+        let middle_block = (0..cfg.num_res_blocks_middle)
+            .map(|i| ResBlock3d::new(last, vb.pp("middle_block").pp(i), compute))
+            .collect::<Result<Vec<_>>>()?;
         let out_norm = ChannelLayerNorm::new(last, vb.pp("out_layer.0"))?;
-        let out_conv = Conv3d::new(last, 2 * cfg.latent_channels, 3, 1, vb.pp("out_layer.2"))?;
+        let out_conv = Conv3d::new(last, 2 * cfg.latent_channels, 3, 1, vb.pp("out_layer.2"), compute)?;
         Ok(Self { cfg: cfg.clone(), input_layer, blocks, middle_block, out_norm, out_conv })
     }
 
@@ -300,7 +302,7 @@ mod tests {
     fn tensor_names_and_shapes_follow_upstream() {
         let cfg = SparseStructureEncoderConfig { channels: vec![8, 16, 32], num_res_blocks: 2, num_res_blocks_middle: 2, ..small_cfg() };
         let vm = VarMap::new();
-        SparseStructureEncoder::new(&cfg, VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu)).unwrap();
+        SparseStructureEncoder::new(&cfg, VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu), Compute::Plain).unwrap();
         let data = vm.data().lock().unwrap();
         // blocks: res, res, down(8→16), res, res, down(16→32), res, res.
         for (name, shape) in [
@@ -360,7 +362,7 @@ mod tests {
         let dev = Device::Cpu;
         let cfg = small_cfg();
         let vm = VarMap::new();
-        let enc = SparseStructureEncoder::new(&cfg, VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
+        let enc = SparseStructureEncoder::new(&cfg, VarBuilder::from_varmap(&vm, DType::F32, &dev), Compute::Plain)?;
         randomised(&vm, 1);
         let x = SeededRng::new(2).randn(&[2, 1, 8, 8, 8], &dev)?.gt(0.5)?.to_dtype(DType::F32)?;
         let post = enc.forward(&x)?;
@@ -422,7 +424,7 @@ mod tests {
         let dev = Device::Cpu;
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
-        let enc = SparseStructureEncoder::new(&small_cfg(), vb.pp("encoder"))?;
+        let enc = SparseStructureEncoder::new(&small_cfg(), vb.pp("encoder"), Compute::Plain)?;
         let dcfg = SparseStructureDecoderConfig {
             out_channels: 1,
             latent_channels: 2,
@@ -432,7 +434,7 @@ mod tests {
             norm_type: NormType::Layer,
             use_fp16: false,
         };
-        let dec = SparseStructureDecoder::new(&dcfg, vb.pp("decoder"))?;
+        let dec = SparseStructureDecoder::new(&dcfg, vb.pp("decoder"), Compute::Plain)?;
         randomised(&vm, 5);
         let x = SeededRng::new(6).randn(&[1, 1, 4, 4, 4], &dev)?.gt(0.0)?.to_dtype(DType::F32)?;
         let noise = SeededRng::new(7).randn(&[1, 2, 2, 2, 2], &dev)?;

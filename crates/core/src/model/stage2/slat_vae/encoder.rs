@@ -11,6 +11,7 @@ use candle_core::{Module, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::model::nn::common::{layer_norm_plain, linear, Linear};
+use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::{Error, Result};
@@ -30,13 +31,13 @@ pub struct SLatPosterior {
 impl SLatEncoder {
     /// `args`: upstream's (`in_channels`, `model_channels`, `latent_channels`,
     /// `num_blocks`, `num_heads`, `mlp_ratio`, `attn_mode`, `window_size`, `pe_mode`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
+    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let mut tcfg = TrunkConfig::from_args(args)?;
         let latent_channels = tcfg.in_channels;
         tcfg.in_channels =
             args.get("in_channels").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: in_channels missing"))? as usize;
-        let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
-        let out_layer = linear(tcfg.model_channels, 2 * latent_channels, vb.pp("out_layer"))?;
+        let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
+        let out_layer = linear(tcfg.model_channels, 2 * latent_channels, vb.pp("out_layer"), compute)?;
         Ok(Self { trunk, out_layer, latent_channels })
     }
 

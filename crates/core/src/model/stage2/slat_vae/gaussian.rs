@@ -8,6 +8,7 @@
 
 use crate::model::nn::common::Linear;
 use crate::model::nn::common::{layer_norm_plain, linear};
+use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
 use crate::{Error, Result};
@@ -179,11 +180,11 @@ pub struct SLatGaussianDecoder {
 
 impl SLatGaussianDecoder {
     /// `args` are the upstream constructor args (trunk + `representation_config`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
+    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let tcfg = TrunkConfig::from_args(args)?;
         let cfg = GaussianConfig::from_args(args)?;
-        let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
-        let out_layer = linear(tcfg.model_channels, cfg.out_channels(), vb.pp("out_layer"))?;
+        let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
+        let out_layer = linear(tcfg.model_channels, cfg.out_channels(), vb.pp("out_layer"), compute)?;
         // The buffer ships in checkpoints; recompute it when absent.
         let offset_perturbation = if vb.contains_tensor("offset_perturbation") {
             vb.get((cfg.num_gaussians, 3), "offset_perturbation")?
@@ -259,8 +260,9 @@ mod tests {
                 "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
             }
         });
-        let vb = crate::model::stage2::slat_vae::mesh::random_var_builder(3, 0.1, |vb| SLatGaussianDecoder::new(&args, vb))?;
-        let dec = SLatGaussianDecoder::new(&args, vb)?;
+        let vb =
+            crate::model::stage2::slat_vae::mesh::random_var_builder(3, 0.1, |vb| SLatGaussianDecoder::new(&args, vb, Compute::Plain))?;
+        let dec = SLatGaussianDecoder::new(&args, vb, Compute::Plain)?;
         let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
         let x = SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
         let reps = dec.forward(&x)?;

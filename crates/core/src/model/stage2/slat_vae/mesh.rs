@@ -12,6 +12,7 @@
 use crate::mesh::Mesh;
 use crate::model::nn::common::linear;
 use crate::model::nn::common::Linear;
+use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::flexicubes::SparseFeatures2Mesh;
 use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
@@ -323,18 +324,18 @@ pub struct SLatMeshDecoder {
 impl SLatMeshDecoder {
     /// `args`: the upstream constructor args (`resolution`, trunk args,
     /// `representation_config.use_color`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder) -> Result<Self> {
+    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let tcfg = TrunkConfig::from_args(args)?;
         let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
         let use_color = args.get("representation_config").and_then(|r| r.get("use_color")).and_then(|v| v.as_bool()).unwrap_or(false);
         let c = tcfg.model_channels;
-        let trunk = SparseTransformerBase::new(&tcfg, vb.clone())?;
+        let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let upsample = vec![
             SparseSubdivideBlock3d::new(c, c / 4, vb.pp("upsample.0"))?,
             SparseSubdivideBlock3d::new(c / 4, c / 8, vb.pp("upsample.1"))?,
         ];
         let extractor = SparseFeatures2Mesh::new(resolution * 4, use_color);
-        let out_layer = linear(c / 8, extractor.channels(), vb.pp("out_layer"))?;
+        let out_layer = linear(c / 8, extractor.channels(), vb.pp("out_layer"), compute)?;
         Ok(Self { trunk, upsample, out_layer, extractor, resolution })
     }
 
@@ -448,8 +449,8 @@ mod tests {
             "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
             "num_heads": 2, "mlp_ratio": 1, "window_size": 4, "representation_config": {"use_color": true}
         });
-        let vb = random_var_builder(7, 0.05, |vb| SLatMeshDecoder::new(&args, vb))?;
-        let dec = SLatMeshDecoder::new(&args, vb)?;
+        let vb = random_var_builder(7, 0.05, |vb| SLatMeshDecoder::new(&args, vb, Compute::Plain))?;
+        let dec = SLatMeshDecoder::new(&args, vb, Compute::Plain)?;
         let coords: Vec<[i32; 4]> = (0..20).map(|i| [0, 2 + i % 4, 3 + (i / 4) % 3, 1 + i / 12]).collect();
         let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
         let x = SparseTensor::new(coords, feats, 1)?;

@@ -5,6 +5,7 @@
 
 use crate::model::nn::common::Linear;
 use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention};
+use crate::model::nn::fast::Compute;
 use crate::model::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
@@ -90,15 +91,15 @@ pub struct SparseTransformerBase {
 }
 
 impl SparseTransformerBase {
-    pub fn new(cfg: &TrunkConfig, vb: VarBuilder) -> Result<Self> {
+    pub fn new(cfg: &TrunkConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let c = cfg.model_channels;
-        let input_layer = linear(cfg.in_channels, c, vb.pp("input_layer"))?;
+        let input_layer = linear(cfg.in_channels, c, vb.pp("input_layer"), compute)?;
         let mut blocks = Vec::with_capacity(cfg.num_blocks);
         for j in 0..cfg.num_blocks {
             let b = vb.pp(format!("blocks.{j}"));
             blocks.push(SparseTransformerBlock {
-                attn: MultiHeadAttention::new(c, cfg.num_heads, None, false, b.pp("attn"))?,
-                mlp: FeedForward::new(c, cfg.mlp_ratio, b.pp("mlp"))?,
+                attn: MultiHeadAttention::new(c, cfg.num_heads, None, false, b.pp("attn"), compute)?,
+                mlp: FeedForward::new(c, cfg.mlp_ratio, b.pp("mlp"), compute)?,
                 shift: if j % 2 == 1 { cfg.window_size / 2 } else { 0 },
             });
         }
