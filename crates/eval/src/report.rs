@@ -644,7 +644,7 @@ impl Report {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use recon_core::dataset::bop::tests::{tmpdir, write_bop};
+    use recon_testkit::{tmp as tmpdir, write_bop};
 
     #[test]
     fn evaluates_predictions_end_to_end() {
