@@ -27,7 +27,7 @@ enum Cmd {
     Eval(cli::eval::EvalArgs),
     /// Reconstruct every masked object of an RGB-D frame: posed mesh, Gaussians and pose per object.
     Infer(cli::infer::InferArgs),
-    /// Benchmarks: kernel GFLOP/s vs measured peak, per-module time and memory at full size, precision errors, end to end.
+    /// Benchmarks: kernel GFLOP/s vs measured peak, per-module time and memory at full size, precision errors, end to end, shape fit, synth, training steps.
     Bench(cli::bench::BenchArgs),
     /// Train a stage-1 model (SS VAE, SS flow with pose tokens) on BOP-format synthetic data.
     Train(cli::train::TrainArgs),

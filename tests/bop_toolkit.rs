@@ -106,7 +106,7 @@ fn add_and_add_s_match_the_bop_toolkit() {
     let json = serde_json::json!({ "cases": cs.iter().map(|c| serde_json::json!({
         "pts": c.pts, "R_gt": c.gt.rotation, "t_gt": c.gt.translation, "R_e": c.est.rotation, "t_e": c.est.translation
     })).collect::<Vec<_>>() });
-    let file = std::env::temp_dir().join(format!("recon-bop-cross-{}.json", std::process::id()));
+    let file = recon_testkit::tmp("bop-cross").join("cases.json");
     std::fs::write(&file, json.to_string()).unwrap();
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scripts/bop_cross_check.py");
     let o = python().arg(&script).arg(&file).output().unwrap();

@@ -116,7 +116,7 @@ fn fuzz_target(t: Target) {
     let worker = std::thread::spawn(move || {
         let mut tally = Tally::default();
         let found = |what: &str, data: &[u8], why: String| {
-            let out = std::env::temp_dir().join(format!("recon-fuzz-finding-{}-{}", t.name(), std::process::id()));
+            let out = common::tmp(&format!("fuzz-finding-{}", t.name())).join("input");
             std::fs::write(&out, data).unwrap();
             panic!("{}: {what}: {why} (input saved to {})", t.name(), out.display());
         };

@@ -48,8 +48,7 @@ fn sample_frame_reconstructs_in_camera_frame() {
     assert!(mesh.vertices.iter().all(|v| v.iter().all(|x| x.is_finite())));
 
     // Outputs: complete folder with the marker; an unrelated folder is never overwritten.
-    let tmp = std::env::temp_dir().join(format!("recon-infer-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
+    let tmp = common::tmp("infer-outputs");
     let out = tmp.join("out");
     let written = write_outputs(&r, &out).unwrap();
     assert!(out.join(MARKER).exists() && out.join("scene.glb").exists() && out.join("observed_points.ply").exists());
@@ -264,9 +263,7 @@ fn objects_of_two_views_pair_by_id_or_order() {
 /// work, name the flag and leave no output behind.
 #[test]
 fn cli_rejects_bad_two_view_and_weights_arguments() {
-    let tmp = std::env::temp_dir().join(format!("recon-infer-cli-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp).unwrap();
+    let tmp = common::tmp("infer-cli");
     let out = tmp.join("out");
     let out_s = out.to_str().unwrap();
     let base = ["infer", "--rgbd", "data/sample/000001-color.png", "--masks", "data/sample/000001-label.png", "--out", out_s];

@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 const CRATES: &[(&str, &str)] = &[
     ("recon-kernels", "crates/kernels"),
     ("recon-core", "crates/core"),
+    ("recon-testkit", "crates/testkit"),
     ("recon-synth", "crates/synth"),
     ("recon-eval", "crates/eval"),
     ("recon-sim", "crates/sim"),

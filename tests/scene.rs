@@ -9,53 +9,21 @@ mod common;
 
 use common::tmp;
 use recon::export::{save_mesh_ply, PlyOptions};
-use recon::mesh::Mesh;
+use recon::mesh::{box_between, Mesh};
 use recon::sim::MaterialTable;
 use recon::sim::SceneFile;
 use recon::sim::{build_scene, write_outputs, SceneOptions, MARKER};
+use recon_testkit::meshes::plain_cylinder;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn box_mesh(h: [f32; 3]) -> Mesh {
-    let vertices = (0..8)
-        .map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }])
-        .collect();
-    let faces = vec![
-        [0, 2, 1],
-        [1, 2, 3],
-        [4, 5, 6],
-        [5, 7, 6],
-        [0, 1, 4],
-        [1, 5, 4],
-        [2, 6, 3],
-        [3, 6, 7],
-        [0, 4, 2],
-        [2, 4, 6],
-        [1, 3, 5],
-        [3, 7, 5],
-    ];
-    Mesh { vertices, faces, vertex_attrs: None }
-}
-
-/// Closed z-axis cylinder centred at the origin.
-fn cylinder_mesh(r: f32, h: f32, seg: u32) -> Mesh {
-    let mut vertices = vec![[0.0, 0.0, -h / 2.0], [0.0, 0.0, h / 2.0]];
-    for i in 0..seg {
-        let a = std::f32::consts::TAU * i as f32 / seg as f32;
-        vertices.push([r * a.cos(), r * a.sin(), -h / 2.0]);
-        vertices.push([r * a.cos(), r * a.sin(), h / 2.0]);
-    }
-    let mut faces = Vec::new();
-    for i in 0..seg {
-        let (b0, t0, b1, t1) = (2 + 2 * i, 3 + 2 * i, 2 + 2 * ((i + 1) % seg), 3 + 2 * ((i + 1) % seg));
-        faces.extend([[0, b1, b0], [1, t0, t1], [b0, b1, t1], [b0, t1, t0]]);
-    }
-    Mesh { vertices, faces, vertex_attrs: None }
+    box_between(h.map(|x| -x), h)
 }
 
 /// Open bowl-like cup: a cylinder without its top cap.
 fn cup_mesh(r: f32, h: f32, seg: u32) -> Mesh {
-    let mut m = cylinder_mesh(r, h, seg);
+    let mut m = plain_cylinder(r, h, seg);
     m.faces.retain(|f| f[0] != 1);
     m
 }
@@ -69,7 +37,7 @@ fn write_ply(m: &Mesh, p: &Path) {
 fn make_scene(dir: &Path, overlap_m: f64) -> PathBuf {
     let mm = box_mesh([30.0, 20.0, 15.0]);
     write_ply(&mm, &dir.join("box_mm.ply"));
-    write_ply(&cylinder_mesh(0.03, 0.1, 32), &dir.join("can.ply"));
+    write_ply(&plain_cylinder(0.03, 0.1, 32), &dir.join("can.ply"));
     write_ply(&cup_mesh(0.04, 0.06, 32), &dir.join("cup.ply"));
     // Box 6 cm long in x at x = 0; can (r 3 cm) to its right: touching at
     // x = 0.06 when overlap is 0.
@@ -284,7 +252,7 @@ fn bad_inputs_fail_cleanly_without_partial_output() {
     // A foreign non-empty output folder is never replaced.
     std::fs::create_dir_all(&out).unwrap();
     std::fs::write(out.join("keep.txt"), "mine").unwrap();
-    write_ply(&cylinder_mesh(0.03, 0.1, 32), &dir.join("can.ply"));
+    write_ply(&plain_cylinder(0.03, 0.1, 32), &dir.join("can.ply"));
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["scene", "--input", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--collision", "hull"])
         .output()
@@ -326,7 +294,7 @@ fn infer_output_on_the_sample_frame_settles_on_the_fitted_table() {
     let infer = dir.join("frame_recon");
     let mut entries = Vec::new();
     for (label, mesh, at) in [
-        ("025_mug", cylinder_mesh(0.04, 0.09, 32), [0.0, 0.0, 0.045 + 0.002]),
+        ("025_mug", plain_cylinder(0.04, 0.09, 32), [0.0, 0.0, 0.045 + 0.002]),
         ("003_cracker_box", box_mesh([0.03, 0.08, 0.1]), [0.15, 0.05, 0.1 - 0.001]),
     ] {
         let placed = Mesh { vertices: mesh.vertices.iter().map(|v| cam([v[0] + at[0], v[1] + at[1], v[2] + at[2]])).collect(), ..mesh };

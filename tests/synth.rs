@@ -15,9 +15,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-synth-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    recon_testkit::tmp(&format!("synth-{tag}"))
 }
 
 fn tiny(seed: u64) -> SynthOptions {
@@ -265,7 +263,7 @@ fn cli_writes_a_dataset_and_reports_bad_sensor_files() {
     assert!(out.join(MARKER).is_file());
     let marker = json(&out.join(MARKER));
     assert_eq!(marker["sensor_model"]["name"], "gaussian");
-    let bad = tmp("badsensor.json");
+    let bad = tmp("badsensor").join("badsensor.json");
     std::fs::write(&bad, r#"{"version": 1, "base": {"kind": "stereo", "focal_px": 0, "baseline_m": 0.05, "disparity_sigma_px": 0.1}}"#)
         .unwrap();
     let o = std::process::Command::new(exe)

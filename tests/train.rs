@@ -15,15 +15,11 @@ use recon::train::{micro_architecture, ToyConfig, ToySource};
 use recon::train::{run, Resume, Stage, TrainOptions};
 use recon::train::{BopOptions, BopSource};
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+use recon_testkit::repo;
 
 /// A fresh temp folder holding the micro architecture file and its pose stats.
 fn workdir(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-train-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
+    let d = recon_testkit::tmp(&format!("train-{tag}"));
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo().join("models/recgen-nano.json")).unwrap()).unwrap();
     std::fs::write(d.join("recgen-micro.json"), serde_json::to_string_pretty(&micro_architecture(&v)).unwrap()).unwrap();
     for f in ["stereo_pose_stats.example.json", "slat_pose_stats.example.json"] {

@@ -13,16 +13,7 @@ use recon::Error;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-weights-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+use recon_testkit::{repo as root, tmp};
 
 fn tiny_cfg() -> (ModuleConfig, Vec<recon::weights::TensorSpec>) {
     let cfg = ModuleConfig::read(&root().join("models/dinov2_tiny.json")).unwrap();

@@ -1,8 +1,9 @@
-//! Benchmarks shared by `recon bench` and `benches/`: kernel throughput
-//! against the measured peak of each instruction set, per-module forward time
-//! and peak memory at full size on random weights, an end-to-end object, and
-//! the bf16/f16-versus-f32 error of each stage. Results are plain rows
-//! (serialisable to JSON); the CLI prints them as tables.
+//! The benchmarks of `recon bench`: kernel throughput against the measured
+//! peak of each instruction set, per-module forward time and peak memory at
+//! full size on random weights, an end-to-end object, the bf16/f16-versus-f32
+//! error of each stage, the shape fit, `recon synth` throughput and the cost
+//! of a training step. Results are plain rows (serialisable to JSON); the CLI
+//! prints them as tables.
 //!
 //! Timings on a shared machine are noisy: every row records the 1-minute
 //! load average at the time it was taken.
@@ -821,6 +822,184 @@ pub fn bench_shape_fit(resolutions: &[usize], reps: usize) -> Result<Vec<ShapeFi
     Ok(rows)
 }
 
+/// `recon synth` throughput: one dataset of `scenes` one-view 640×480 scenes with
+/// the stereo sensor model, then the bare renderer on one scene's view.
+#[derive(Debug, Clone, Serialize)]
+pub struct SynthRow {
+    pub scenes: usize,
+    pub width: usize,
+    pub height: usize,
+    pub threads: usize,
+    /// The whole dataset (generation, rendering, sensor model, files).
+    pub seconds: f64,
+    pub instances: usize,
+    pub models: usize,
+    /// Target occlusion histogram: 0–3 %, 3–20 %, 20–40 %, 40–70 %, > 70 %.
+    pub target_occlusion_bins: [usize; 5],
+    /// One view of one scene rendered again, mean of the repetitions.
+    pub render_seconds: f64,
+    pub render_units: usize,
+    pub peak_rss_mib: Option<f64>,
+    pub load_average: Option<f64>,
+}
+
+/// Generate a `scenes`-scene dataset under `dir` (removed afterwards) and time
+/// the renderer alone on scene 7's first view `reps` times.
+pub fn bench_synth(dir: &Path, scenes: usize, reps: usize) -> Result<SynthRow> {
+    use crate::sensor::SensorModel;
+    use crate::synth::{generate, Scene, SceneConfig, SynthOptions};
+    let (width, height) = (640, 480);
+    reset_peak_rss();
+    let opts = SynthOptions { scenes, views: 1, seed: 1, width, height, parts: false, sensor: SensorModel::stereo_default() };
+    let t = Instant::now();
+    let s = generate(dir, &opts, &|| {})?;
+    let seconds = t.elapsed().as_secs_f64();
+    std::fs::remove_dir_all(dir).ok();
+    let scene = Scene::generate(7, &SceneConfig::default())?;
+    let units = scene.units(false)?;
+    let ids: Vec<i64> = (0..units.len() as i64).collect();
+    let t = Instant::now();
+    for _ in 0..reps.max(1) {
+        scene.render_view(&units, &ids, 0)?;
+    }
+    Ok(SynthRow {
+        scenes,
+        width,
+        height,
+        threads: rayon::current_num_threads(),
+        seconds,
+        instances: s.instances,
+        models: s.models,
+        target_occlusion_bins: s.target_occlusion_bins,
+        render_seconds: t.elapsed().as_secs_f64() / reps.max(1) as f64,
+        render_units: units.len(),
+        peak_rss_mib: peak_rss_mib(),
+        load_average: load_average(),
+    })
+}
+
+/// Parameters of one module of an architecture (`ss_encoder` is trained only).
+#[derive(Debug, Clone, Serialize)]
+pub struct ParamRow {
+    pub module: String,
+    pub parameters: usize,
+    pub shipped: bool,
+}
+
+/// Seconds per training step of one objective on toy data (mean over the
+/// timed steps after one warm-up step).
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainStepRow {
+    pub objective: String,
+    pub batch: usize,
+    pub steps: usize,
+    /// Toy data and the forward pass.
+    pub forward_seconds: f64,
+    pub backward_seconds: f64,
+    /// Gradient clipping and the AdamW update.
+    pub update_seconds: f64,
+    pub peak_rss_mib: Option<f64>,
+    pub load_average: Option<f64>,
+}
+
+/// The parameters of every module of the architecture at `arch_path`.
+pub fn train_params(arch_path: &Path) -> Result<Vec<ParamRow>> {
+    let arch = RecGenConfig::load(arch_path)?;
+    let mut modules: Vec<(&str, ModuleConfig, bool)> = arch.modules().into_iter().map(|(k, s)| (k, module_config(s), true)).collect();
+    if let Some(e) = &arch.ss_encoder {
+        modules.push(("ss_encoder", module_config(e), false));
+    }
+    modules
+        .into_iter()
+        .map(|(key, c, shipped)| {
+            let parameters = registry::expected_tensors(&c, key)?.iter().map(|s| s.shape.iter().product::<usize>()).sum();
+            Ok(ParamRow { module: key.to_string(), parameters, shipped })
+        })
+        .collect()
+}
+
+fn module_config(s: &crate::model::config::ModuleSpec) -> ModuleConfig {
+    ModuleConfig { name: s.name.clone(), args: s.args.clone() }
+}
+
+/// One warm-up step, then `steps` timed ones: (data + forward, backward, update) seconds per step.
+fn time_train_steps(obj: &dyn crate::train::Objective, batch: usize, steps: usize) -> Result<(f64, f64, f64)> {
+    use crate::train::{clip_grad_norm, AdamW};
+    let vars: Vec<_> =
+        obj.trainable().iter().flat_map(|m| m.vars.iter().map(move |(n, v)| (format!("{}/{n}", m.key), v.clone()))).collect();
+    let mut opt = AdamW::new(&vars, candle_nn::ParamsAdamW { lr: 1e-4, weight_decay: 0.0, ..Default::default() })?;
+    let mut rng = SeededRng::new(1);
+    let (mut f, mut b, mut u) = (0.0, 0.0, 0.0);
+    for i in 0..=steps {
+        let t = Instant::now();
+        let l = obj.loss(&mut rng, batch)?;
+        let tf = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let mut g = l.total.backward()?;
+        let tb = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        clip_grad_norm(&mut g, &vars, Some(1.0))?;
+        opt.step(&g)?;
+        let tu = t.elapsed().as_secs_f64();
+        if i > 0 {
+            f += tf;
+            b += tb;
+            u += tu;
+        }
+    }
+    let n = steps.max(1) as f64;
+    Ok((f / n, b / n, u / n))
+}
+
+/// Seconds per training step of the SS VAE and of the SS flow (one and two
+/// views) of the architecture at `arch_path` on toy data.
+pub fn bench_train(arch_path: &Path, batch: usize, steps: usize, mut each: impl FnMut(&TrainStepRow)) -> Result<Vec<TrainStepRow>> {
+    use crate::geometry::{Fill, PoseStats};
+    use crate::model::ReconLoss;
+    use crate::train::{pose_stats_json, scan, FlowMatching, FlowObjective, ModuleParams, ToyConfig, ToySource, VaeObjective};
+    let arch = RecGenConfig::load(arch_path)?;
+    let src = ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true })?;
+    let enc_cfg = module_config(arch.ss_encoder.as_ref().ok_or_else(|| crate::Error::msg("the architecture needs an ss_encoder section"))?);
+    let mut rows = Vec::new();
+    let mut row = |objective: String, (f, b, u): (f64, f64, f64)| {
+        let r = TrainStepRow {
+            objective,
+            batch,
+            steps,
+            forward_seconds: f,
+            backward_seconds: b,
+            update_seconds: u,
+            peak_rss_mib: peak_rss_mib(),
+            load_average: load_average(),
+        };
+        each(&r);
+        rows.push(r);
+    };
+
+    reset_peak_rss();
+    let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
+    let dec = ModuleParams::init("ss_decoder", &module_config(&arch.ss_decoder), 2)?;
+    let f = crate::model::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
+    let res = arch.ss_flow_config()?.resolution * f;
+    let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3)?;
+    row(format!("ss-vae ({res}³)"), time_train_steps(&vae, batch, steps)?);
+    drop(vae);
+
+    reset_peak_rss();
+    let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
+    let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder", Compute::Plain)?;
+    let sc = scan(&src)?;
+    let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
+    let dino = ModuleParams::init("image_cond_model", &module_config(&arch.image_cond_model), 3)?;
+    let flow = ModuleParams::init("ss_flow", &module_config(&arch.ss_flow), 4)?;
+    let mut obj = FlowObjective::new(&src, sc, stats, dino, flow, &encoder, Fill::Solid, FlowMatching::default())?;
+    for (label, p) in [("1 view", 0.0), ("2 views", 1.0)] {
+        obj.p_two_view = p;
+        row(format!("ss-flow ({label})"), time_train_steps(&obj, batch, steps)?);
+    }
+    Ok(rows)
+}
+
 /// The upstream PyTorch figures of issue 8 (Intel Xeon, 2 cores, AVX-512 +
 /// AMX), for ratios: GEMM GFLOP/s, and seconds / peak GB per module.
 pub mod upstream {
@@ -848,6 +1027,9 @@ pub struct BenchReport {
     pub occupancy: Vec<OccupancyRow>,
     pub end_to_end: Vec<EndToEndRow>,
     pub shape_fit: Vec<ShapeFitRow>,
+    pub synth: Option<SynthRow>,
+    pub train_params: Vec<ParamRow>,
+    pub train: Vec<TrainStepRow>,
     /// recon against an upstream report from the same machine (`--compare`).
     pub compare: Vec<crate::tools::upstream::CompareRow>,
     /// recon on released-layout checkpoints against upstream's outputs (`--released`).
@@ -893,6 +1075,33 @@ mod tests {
         assert_eq!(reference_peak(&peaks, Isa::Avx512Bf16, WeightFormat::Bf16), Some(200.0));
         assert_eq!(reference_peak(&peaks, Isa::Avx512Bf16, WeightFormat::F16), Some(100.0));
         assert_eq!(reference_peak(&peaks, Isa::Avx512, WeightFormat::F32), None);
+    }
+
+    /// The synth section makes and removes its dataset; the train section counts
+    /// every module's parameters and times both objectives (micro architecture).
+    #[test]
+    fn synth_and_train_sections_run() {
+        let dir = recon_testkit::tmp("bench-synth").join("out");
+        let r = bench_synth(&dir, 1, 1).unwrap();
+        assert!(r.instances > 0 && r.render_units > 0 && r.render_seconds > 0.0, "{r:?}");
+        assert!(!dir.exists());
+
+        let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let nano = train_params(&repo.join("models/recgen-nano.json")).unwrap();
+        assert!(nano.iter().any(|p| p.module == "ss_encoder" && !p.shipped && p.parameters > 0));
+        assert!(nano.iter().filter(|p| p.shipped).count() >= 5 && nano.iter().all(|p| p.parameters > 0));
+
+        let work = recon_testkit::tmp("bench-train");
+        let v: serde_json::Value = crate::util::read_json(&repo.join("models/recgen-nano.json")).unwrap();
+        let micro = work.join("recgen-micro.json");
+        std::fs::write(&micro, serde_json::to_string(&crate::train::micro_architecture(&v)).unwrap()).unwrap();
+        for f in ["stereo_pose_stats.example.json", "slat_pose_stats.example.json"] {
+            std::fs::copy(repo.join("models").join(f), work.join(f)).unwrap();
+        }
+        let mut seen = 0;
+        let rows = bench_train(&micro, 1, 1, |_| seen += 1).unwrap();
+        assert_eq!((rows.len(), seen), (3, 3));
+        assert!(rows.iter().all(|r| r.forward_seconds > 0.0 && r.backward_seconds > 0.0 && r.update_seconds > 0.0));
     }
 
     /// The module bench runs every module of the tiny architecture on both paths.

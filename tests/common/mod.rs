@@ -1,29 +1,18 @@
 //! Helpers the integration tests share (each test file is its own crate and
 //! includes this module with `mod common;`).
 // Every test crate uses a different subset of these.
-#![allow(dead_code)]
+#![allow(dead_code, unused_imports)]
 
 pub mod realdata;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-/// The repository root (models/, data/sample/, tests/fixtures/).
-pub fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+pub use recon_testkit::{repo, tmp};
 
 /// The tiny architecture every plumbing test runs.
 pub fn tiny_config() -> PathBuf {
     repo().join("models/recgen-tiny.json")
-}
-
-/// A fresh, empty temporary folder unique to this process and `tag`.
-pub fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("recon-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 /// Run the `recon` binary built for these tests, from the repository root.

@@ -939,8 +939,7 @@ pub(crate) mod tests {
     #[test]
     fn table_audit_finds_a_categorical_offset_with_rows_as_units() {
         // Weighed vs annotated masses: metal parts weigh 50 g more than annotated.
-        let dir = std::env::temp_dir().join(format!("recon-audit-table-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = recon_testkit::tmp("audit-table");
         let mut rng = SeededRng::new(5);
         let mut csv = String::from("id,annotated_kg,weighed_kg,material,volume_l\n");
         for i in 0..400 {

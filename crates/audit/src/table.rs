@@ -286,8 +286,7 @@ mod tests {
 
     #[test]
     fn reads_csv_with_categories_missing_and_units() {
-        let dir = std::env::temp_dir().join(format!("recon-audit-csv-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = recon_testkit::tmp("audit-csv");
         let p = dir.join("t.csv");
         std::fs::write(
             &p,

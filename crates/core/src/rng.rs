@@ -4,6 +4,17 @@
 use crate::Result;
 use candle_core::{DType, Device, Tensor};
 
+/// Two independent standard normals from two uniforms in (0, 1] and [0, 1)
+/// (Box–Muller): `(r·cos a, r·sin a)` with `r = √(−2 ln u1)`, `a = 2π·u2`.
+/// Every generator of the crate goes through this one arithmetic, so a value
+/// drawn from the same uniforms is the same bits wherever it is drawn.
+#[inline]
+pub fn box_muller(u1: f64, u2: f64) -> (f64, f64) {
+    let r = (-2.0 * u1.ln()).sqrt();
+    let a = std::f64::consts::TAU * u2;
+    (r * a.cos(), r * a.sin())
+}
+
 /// Deterministic standard-normal noise from a 64-bit seed (xoshiro256++
 /// seeded by SplitMix64, Box–Muller). candle's CPU `randn` is not seedable, and
 /// a fixed seed must give identical samples on every run and platform.
@@ -58,11 +69,9 @@ impl SeededRng {
         if let Some(v) = self.spare.take() {
             return v;
         }
-        let (u1, u2) = (self.uniform(), self.uniform());
-        let r = (-2.0 * u1.ln()).sqrt();
-        let a = std::f64::consts::TAU * u2;
-        self.spare = Some(r * a.sin());
-        r * a.cos()
+        let (z0, z1) = box_muller(self.uniform(), self.uniform());
+        self.spare = Some(z1);
+        z0
     }
 
     /// An f32 tensor of standard-normal values.
@@ -95,5 +104,23 @@ mod tests {
         let var = a.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / a.len() as f64;
         assert!(mean.abs() < 0.05 && (var - 1.0).abs() < 0.05, "mean {mean} var {var}");
         Ok(())
+    }
+
+    /// `box_muller` is the arithmetic the generators spelled out before it
+    /// existed (with 2π as `TAU` and as `2.0 * PI`), bit for bit.
+    #[test]
+    fn box_muller_keeps_the_written_out_bits() {
+        let mut r = SeededRng::new(5);
+        for _ in 0..1000 {
+            let (u1, u2) = (r.uniform(), r.uniform());
+            let (z0, z1) = box_muller(u1, u2);
+            let rad = (-2.0 * u1.ln()).sqrt();
+            assert_eq!(z0.to_bits(), (rad * (std::f64::consts::TAU * u2).cos()).to_bits());
+            assert_eq!(z1.to_bits(), (rad * (2.0 * std::f64::consts::PI * u2).sin()).to_bits());
+        }
+        // The pair's second value is the generator's next draw.
+        let (mut a, mut b) = (SeededRng::new(8), SeededRng::new(8));
+        let want = box_muller(b.uniform(), b.uniform());
+        assert_eq!((a.normal().to_bits(), a.normal().to_bits()), (want.0.to_bits(), want.1.to_bits()));
     }
 }

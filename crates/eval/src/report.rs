@@ -644,7 +644,7 @@ impl Report {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use recon_core::dataset::bop::tests::{tmpdir, write_bop};
+    use recon_testkit::{tmp as tmpdir, write_bop};
 
     /// Real-data discovery, shared with the integration tests (test support:
     /// it reads `RECON_REALDATA` / `RECON_REQUIRE_REALDATA`, so it lives in tests/).

@@ -788,27 +788,8 @@ fn circumcircle(a: [f64; 2], b: [f64; 2], c: [f64; 2]) -> Option<([f64; 2], f64)
 mod tests {
     use super::*;
     use crate::physics::check_mesh;
-    use crate::physics::tests::{box_mesh, sphere_mesh, tray_mesh};
-
-    /// Closed cylinder along `axis` (unit), `seg` sides.
-    pub fn cylinder_mesh(r: f32, h: f32, seg: u32) -> Mesh {
-        let mut vertices = vec![[0.0, 0.0, -h / 2.0], [0.0, 0.0, h / 2.0]];
-        for i in 0..seg {
-            let a = std::f32::consts::TAU * i as f32 / seg as f32;
-            vertices.push([r * a.cos(), r * a.sin(), -h / 2.0]);
-            vertices.push([r * a.cos(), r * a.sin(), h / 2.0]);
-        }
-        let mut faces = Vec::new();
-        for i in 0..seg {
-            let (b0, t0) = (2 + 2 * i, 3 + 2 * i);
-            let (b1, t1) = (2 + 2 * ((i + 1) % seg), 3 + 2 * ((i + 1) % seg));
-            faces.push([0, b1, b0]);
-            faces.push([1, t0, t1]);
-            faces.push([b0, b1, t1]);
-            faces.push([b0, t1, t0]);
-        }
-        Mesh { vertices, faces, vertex_attrs: None }
-    }
+    use crate::physics::tests::{box_at, sphere_mesh, tray_mesh};
+    use recon_testkit::meshes::plain_cylinder;
 
     /// L-shaped solid: two boxes fused (a non-convex closed mesh).
     pub fn l_mesh() -> Mesh {
@@ -847,7 +828,7 @@ mod tests {
             vertices: m.vertices.iter().map(|v| [0, 1, 2].map(|i| (0..3).map(|k| rot[i][k] as f32 * v[k]).sum::<f32>() + 0.1)).collect(),
             ..m
         };
-        let c = build(&rotate(box_mesh([0.05, 0.03, 0.08], [0.0; 3])), CollisionMethod::Primitive);
+        let c = build(&rotate(box_at([0.05, 0.03, 0.08], [0.0; 3])), CollisionMethod::Primitive);
         assert_eq!(c.report.used, "box", "{:?}", c.report.primitive_fit);
         let Part::Primitive(Primitive::Box { half_extents, .. }) = c.parts[0] else { panic!() };
         let mut h = half_extents;
@@ -855,7 +836,7 @@ mod tests {
         assert!((h[0] - 0.03).abs() < 1e-4 && (h[1] - 0.05).abs() < 1e-4 && (h[2] - 0.08).abs() < 1e-4, "{h:?}");
         assert!(c.report.volume.relative_error.unwrap().abs() < 0.05);
 
-        let c = build(&rotate(cylinder_mesh(0.04, 0.12, 48)), CollisionMethod::Primitive);
+        let c = build(&rotate(plain_cylinder(0.04, 0.12, 48)), CollisionMethod::Primitive);
         assert_eq!(c.report.used, "cylinder", "{:?}", c.report.primitive_fit);
         let Part::Primitive(Primitive::Cylinder { radius, half_height, .. }) = c.parts[0] else { panic!() };
         assert!((radius - 0.04).abs() < 2e-4 && (half_height - 0.06).abs() < 2e-4, "{radius} {half_height}");

@@ -296,7 +296,7 @@ mod tests {
         for v in &mut mesh.vertices {
             v[2] += 0.6;
         }
-        let dir = std::env::temp_dir().join(format!("recon-scene-meshes-{}", std::process::id()));
+        let dir = recon_testkit::tmp("scene-meshes");
         let table = MaterialTable::builtin();
         let plane = PlaneFitOptions::default();
         let objects = vec![("025_mug".to_string(), mesh.clone())];

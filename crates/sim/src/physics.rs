@@ -306,33 +306,11 @@ pub fn shell_mass_properties(mesh: &Mesh, sigma: f64) -> (f64, [f64; 3], [[f64; 
 pub(crate) mod tests {
     use super::*;
 
-    /// Axis-aligned closed box centred at `c`, outward faces.
-    pub fn box_mesh(half: [f32; 3], c: [f32; 3]) -> Mesh {
-        let mut vertices = Vec::new();
-        for i in 0..8 {
-            let s = [(i & 1) as f32 * 2.0 - 1.0, ((i >> 1) & 1) as f32 * 2.0 - 1.0, ((i >> 2) & 1) as f32 * 2.0 - 1.0];
-            vertices.push([c[0] + s[0] * half[0], c[1] + s[1] * half[1], c[2] + s[2] * half[2]]);
-        }
-        let faces = vec![
-            [0, 2, 1],
-            [1, 2, 3], // z-
-            [4, 5, 6],
-            [5, 7, 6], // z+
-            [0, 1, 4],
-            [1, 5, 4], // y-
-            [2, 6, 3],
-            [3, 6, 7], // y+
-            [0, 4, 2],
-            [2, 4, 6], // x-
-            [1, 3, 5],
-            [3, 7, 5], // x+
-        ];
-        Mesh { vertices, faces, vertex_attrs: None }
-    }
+    pub use recon_testkit::meshes::box_at;
 
     /// The box without its top (z+) faces: an open tray.
     pub fn tray_mesh(half: [f32; 3]) -> Mesh {
-        let mut m = box_mesh(half, [0.0; 3]);
+        let mut m = box_at(half, [0.0; 3]);
         m.faces.drain(2..4);
         m
     }
@@ -376,7 +354,7 @@ pub(crate) mod tests {
     #[test]
     fn solid_box_matches_analytic_mass_and_inertia() {
         let (hx, hy, hz) = (0.05f32, 0.03, 0.1);
-        let m = box_mesh([hx, hy, hz], [0.2, -0.1, 0.3]);
+        let m = box_at([hx, hy, hz], [0.2, -0.1, 0.3]);
         let (mesh, rep) = check_mesh(&m, "box").unwrap();
         assert!(rep.closed && rep.repairs.is_empty());
         assert!(close(rep.volume_m3.unwrap(), 8.0 * (hx * hy * hz) as f64, 1e-5));
@@ -432,7 +410,7 @@ pub(crate) mod tests {
     #[test]
     fn repairs_are_explicit_and_bad_meshes_refused() {
         // Inside-out box with split (duplicated) vertices and a degenerate face.
-        let b = box_mesh([0.1; 3], [0.0; 3]);
+        let b = box_at([0.1; 3], [0.0; 3]);
         let mut split = Mesh::default();
         for f in &b.faces {
             let base = split.vertices.len() as u32;
@@ -449,7 +427,7 @@ pub(crate) mod tests {
         assert!(joined.contains("welded 28") && joined.contains("degenerate") && joined.contains("flipped"), "{joined}");
 
         // Non-manifold: a third face on an edge.
-        let mut nm = box_mesh([0.1; 3], [0.0; 3]);
+        let mut nm = box_at([0.1; 3], [0.0; 3]);
         nm.vertices.push([0.5, 0.5, 0.5]);
         nm.faces.push([0, 1, 8]);
         let e = check_mesh(&nm, "nm.ply").unwrap_err().to_string();
@@ -465,11 +443,11 @@ pub(crate) mod tests {
         assert!(e.contains("flat.ply") && e.contains("no volume"), "{e}");
 
         // Misoriented: one face of the box reversed.
-        let mut mo = box_mesh([0.1; 3], [0.0; 3]);
+        let mut mo = box_at([0.1; 3], [0.0; 3]);
         mo.faces[0].swap(1, 2);
         let e = check_mesh(&mo, "mo.ply").unwrap_err().to_string();
         assert!(e.contains("oriented inconsistently"), "{e}");
-        let mut nan = box_mesh([0.1; 3], [0.0; 3]);
+        let mut nan = box_at([0.1; 3], [0.0; 3]);
         nan.vertices[3][1] = f32::NAN;
         assert!(check_mesh(&nan, "nan.ply").unwrap_err().to_string().contains("non-finite"));
     }

@@ -419,8 +419,7 @@ mod tests {
 
     #[test]
     fn load_resolves_meshes_and_checks_they_exist() {
-        let dir = std::env::temp_dir().join(format!("recon-scene-file-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = recon_testkit::tmp("scene-file");
         std::fs::write(dir.join("scene.json"), GOOD).unwrap();
         let e = SceneFile::load(&dir.join("scene.json")).unwrap_err().to_string();
         assert!(e.contains("objects[0].mesh") && e.contains("does not exist"), "{e}");

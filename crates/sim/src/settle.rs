@@ -513,11 +513,11 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
 mod tests {
     use super::*;
     use crate::collision::{build_collision, CollisionMethod, CollisionOptions};
-    use crate::physics::tests::box_mesh;
+    use crate::physics::tests::box_at;
     use crate::physics::{annotate, check_mesh, TreatmentChoice};
 
     fn cube_body(name: &str, half: f32, at: [f32; 3], method: CollisionMethod) -> Body {
-        let (m, rep) = check_mesh(&box_mesh([half; 3], [0.0; 3]), name).unwrap();
+        let (m, rep) = check_mesh(&box_at([half; 3], [0.0; 3]), name).unwrap();
         let i = annotate(&m, &rep, TreatmentChoice::Auto, 500.0, 0.002, None, name).unwrap();
         let c = build_collision(&m, rep.volume_m3, method, &CollisionOptions::new(), name).unwrap();
         Body {

@@ -197,8 +197,7 @@ mod tests {
         m[13] = true;
         assert_eq!(bbox(&m, 5), [1, 1, 3, 2]);
         assert_eq!(bbox(&[false; 4], 2), [-1, -1, -1, -1]);
-        let dir = std::env::temp_dir().join(format!("recon-synth-depth-{}", std::process::id()));
-        mkdir(&dir).unwrap();
+        let dir = recon_testkit::tmp("synth-depth");
         let p = dir.join("d.png");
         let clipped = write_depth(&p, &[0.0, 1.23456, 7.0, 0.00004], 2, 2).unwrap();
         assert_eq!(clipped, 1);

@@ -154,8 +154,7 @@ mod tests {
 
     #[test]
     fn log_round_trip_truncate_and_plot() -> Result<()> {
-        let dir = std::env::temp_dir().join(format!("recon-log-test-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        let dir = recon_testkit::tmp("train-log");
         let p = dir.join("loss.jsonl");
         let _ = std::fs::remove_file(&p);
         for step in 1..=5 {

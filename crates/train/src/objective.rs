@@ -343,7 +343,7 @@ mod tests {
             if p_two == 0.0 {
                 unused.push("ss_flow/frame_token_embedder");
             }
-            recon_core::model::nn::gradcheck::directional_check(&vars, &unused, loss, 5, 2e-2)?;
+            recon_testkit::gradcheck::directional_check(&vars, &unused, loss, 5, 2e-2)?;
         }
         // Two-view batches supervise both pose tokens.
         obj.p_two_view = 1.0;

@@ -16,6 +16,7 @@ use std::sync::Arc;
 use crate::data::{ModelEntry, ObjectSample, ObjectView, TrainingSource};
 use recon_core::dataset::frame::{Intrinsics, RgbdFrame};
 use recon_core::math::axis_angle;
+use recon_core::mesh::primitives::{box_corners, BOX_FACES};
 use recon_core::mesh::trimesh::TriMesh;
 use recon_core::rng::SeededRng;
 use recon_core::Result;
@@ -45,26 +46,7 @@ pub fn primitive(kind: usize, dims: [f64; 3], offset: [f64; 3]) -> TriMesh {
     let (mut v, f): (Vec<[f64; 3]>, Vec<[u32; 3]>) = match kind % 4 {
         0 => {
             let h = dims.map(|d| d / 2.0);
-            let v = (0..8)
-                .map(|i| {
-                    [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }]
-                })
-                .collect();
-            let f = vec![
-                [0, 2, 1],
-                [1, 2, 3],
-                [4, 5, 6],
-                [5, 7, 6],
-                [0, 1, 4],
-                [1, 5, 4],
-                [2, 6, 3],
-                [3, 6, 7],
-                [0, 4, 2],
-                [2, 4, 6],
-                [1, 3, 5],
-                [3, 7, 5],
-            ];
-            (v, f)
+            (box_corners(h.map(|x| -x), h), BOX_FACES.to_vec())
         }
         k @ (1 | 3) => {
             // Cylinder (k = 1) or cone (k = 3) along z: radius dims[0], height dims[2].

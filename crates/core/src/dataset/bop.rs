@@ -486,23 +486,8 @@ pub mod tests {
         let scene = dir.join("test").join("000048");
         std::fs::create_dir_all(&models).unwrap();
         std::fs::create_dir_all(&scene).unwrap();
-        let bx: Vec<[f32; 3]> = (0..8)
-            .map(|i| [if i & 1 == 1 { 20.0 } else { -20.0 }, if i & 2 == 2 { 10.0 } else { -10.0 }, if i & 4 == 4 { 5.0 } else { -5.0 }])
-            .collect();
-        let faces: [[i32; 3]; 12] = [
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
+        let bx = crate::mesh::primitives::box_corners([-20.0f32, -10.0, -5.0], [20.0, 10.0, 5.0]);
+        let faces = crate::mesh::primitives::BOX_FACES.map(|f| f.map(|i| i as i32));
         let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 8\nproperty float x\nproperty float y\nproperty float z\nelement face 12\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
         for v in &bx {
             for c in v {
@@ -539,16 +524,9 @@ pub mod tests {
         dir.join("test")
     }
 
-    pub fn tmpdir(tag: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("recon-eval-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        std::fs::create_dir_all(&d).unwrap();
-        d
-    }
-
     #[test]
     fn loads_small_bop_dataset() {
-        let dir = tmpdir("bop");
+        let dir = crate::util::testing::tmp("bop-load");
         let split = write_bop(&dir);
         let ds = load_dataset(&dir).unwrap();
         assert_eq!(ds.frames.len(), 2);

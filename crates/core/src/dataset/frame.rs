@@ -481,13 +481,6 @@ impl RgbdFrame {
 mod tests {
     use super::*;
 
-    pub(crate) fn tmpdir(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("recon-frame-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        std::fs::create_dir_all(&d).unwrap();
-        d
-    }
-
     fn write_rgb(p: &Path, w: u32, h: u32) {
         let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, 7]));
         img.save(p).unwrap();
@@ -500,7 +493,7 @@ mod tests {
 
     #[test]
     fn generic_layout_with_json() {
-        let d = tmpdir("generic");
+        let d = crate::util::testing::tmp("frame-generic");
         write_rgb(&d.join("shot.png"), 8, 6);
         write_depth(&d.join("shot.depth.png"), 8, 6, 1500);
         std::fs::write(d.join("shot.json"), r#"{"fx": 500, "fy": 501, "cx": 3.5, "cy": 2.5}"#).unwrap();
@@ -518,7 +511,7 @@ mod tests {
 
     #[test]
     fn bop_and_linemod_layouts() {
-        let d = tmpdir("bop");
+        let d = crate::util::testing::tmp("frame-bop");
         std::fs::create_dir_all(d.join("rgb")).unwrap();
         std::fs::create_dir_all(d.join("depth")).unwrap();
         write_rgb(&d.join("rgb/000007.png"), 4, 4);
@@ -529,7 +522,7 @@ mod tests {
         // 1000 units × 0.1 mm = 0.1 m.
         assert!((f.depth_at(1, 1) - 0.1).abs() < 1e-6);
 
-        let d = tmpdir("lm");
+        let d = crate::util::testing::tmp("frame-lm");
         write_rgb(&d.join("rgb.png"), 4, 4);
         write_depth(&d.join("depth.png"), 4, 4, 900);
         std::fs::write(d.join("camera.json"), r#"{"cam_K": [572.4, 0, 325.2, 0, 573.5, 242.0, 0, 0, 1], "depth_scale": 1.0}"#).unwrap();
@@ -540,7 +533,7 @@ mod tests {
 
     #[test]
     fn ycb_layout_with_mat_and_yaml() {
-        let d = tmpdir("ycb");
+        let d = crate::util::testing::tmp("frame-ycb");
         write_rgb(&d.join("000001-color.png"), 4, 4);
         write_depth(&d.join("000001-depth.png"), 4, 4, 10000);
         let k = vec![1066.778, 0.0, 0.0, 0.0, 1067.487, 0.0, 312.9869, 241.3109, 1.0];
@@ -555,7 +548,7 @@ mod tests {
         assert!((f.depth_at(2, 2) - 1.0).abs() < 1e-6);
 
         // PoseCNN demo: meta.yml in the folder, depth in mm.
-        let d = tmpdir("rs");
+        let d = crate::util::testing::tmp("frame-rs");
         write_rgb(&d.join("000000-color.png"), 4, 4);
         write_depth(&d.join("000000-depth.png"), 4, 4, 700);
         std::fs::write(d.join("meta.yml"), "INTRINSICS: [618.0, 0.0, 312.3,\n  0.0, 618.1, 232.3, 0.0, 0.0, 1.0]\n").unwrap();
@@ -579,7 +572,7 @@ mod tests {
 
     #[test]
     fn missing_and_bad_files_are_reported() {
-        let d = tmpdir("missing");
+        let d = crate::util::testing::tmp("frame-missing");
         write_rgb(&d.join("000001-color.png"), 4, 4);
         let e = RgbdFrame::open(&d.join("000001-color.png"), &FrameOptions::default()).unwrap_err().to_string();
         assert!(e.contains("000001-depth.png") && e.contains("000001-color.depth.png"), "{e}");

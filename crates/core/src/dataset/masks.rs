@@ -330,8 +330,7 @@ mod tests {
 
     #[test]
     fn load_masks_reads_a_map_or_binary_files() {
-        let d = std::env::temp_dir().join(format!("recon-load-masks-{}", std::process::id()));
-        std::fs::create_dir_all(&d).unwrap();
+        let d = crate::util::testing::tmp("load-masks");
         let ids = image::GrayImage::from_fn(4, 3, |x, _| image::Luma([if x < 2 { 3 } else { 9 }]));
         ids.save(d.join("ids.png")).unwrap();
         let one = image::GrayImage::from_fn(4, 3, |x, y| image::Luma([if x == y { 255 } else { 0 }]));
@@ -418,8 +417,7 @@ mod tests {
 
     #[test]
     fn instance_map_selection_and_validation() {
-        let dir = std::env::temp_dir().join(format!("recon-masks-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::util::testing::tmp("masks");
         let (w, h) = (40u32, 30u32);
         // id 3: big block with depth; id 5: 2-px thin line; id 700 (16-bit): block without depth.
         let lab = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {

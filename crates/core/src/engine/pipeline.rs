@@ -972,8 +972,7 @@ mod tests {
     #[test]
     fn manifest_files_resolve_from_a_cache() {
         use crate::model::config::RecGenConfig;
-        let root = std::env::temp_dir().join(format!("recon-manifest-resolve-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&root);
+        let root = crate::util::testing::tmp("manifest-resolve");
         let cfg_path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
         let cfg = RecGenConfig::load(&cfg_path).unwrap();
         let files: Vec<serde_json::Value> = cfg

@@ -170,8 +170,7 @@ mod tests {
 
     #[test]
     fn embedded_model_unpacks_the_shipped_files_once() {
-        let root = std::env::temp_dir().join(format!("recon-embedded-test-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&root);
+        let root = crate::util::testing::tmp("embedded");
         let dir = embedded_model_in(&root).unwrap();
         let shipped = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano");
         for (name, _) in EMBEDDED_NANO {

@@ -164,26 +164,7 @@ mod tests {
 
     /// Axis-aligned box `[lo, hi]` as 12 outward-facing triangles.
     pub(crate) fn box_mesh(lo: [f64; 3], hi: [f64; 3]) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
-        let v: Vec<[f64; 3]> = (0..8)
-            .map(|i| {
-                [if i & 1 == 0 { lo[0] } else { hi[0] }, if i & 2 == 0 { lo[1] } else { hi[1] }, if i & 4 == 0 { lo[2] } else { hi[2] }]
-            })
-            .collect();
-        let f = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        (v, f)
+        (crate::mesh::primitives::box_corners(lo, hi), crate::mesh::primitives::BOX_FACES.to_vec())
     }
 
     fn count(o: &[bool]) -> usize {

@@ -13,5 +13,7 @@ pub use self::post::{
     decimate, drop_floaters, face_components, keep_largest_component, mesh_quality, remove_small_components, remove_unreferenced_vertices,
     taubin_smooth, to_u8, transfer_colors, vertex_colors_u8, MeshQuality,
 };
-pub use self::primitives::{bowl_mesh, box_mesh, cuboid, cup_mesh, cylinder_mesh, flat_grid, sphere_mesh, tetrahedron, torus_mesh};
+pub use self::primitives::{
+    bowl_mesh, box_between, box_corners, box_mesh, cuboid, cup_mesh, cylinder_mesh, flat_grid, sphere_mesh, tetrahedron, torus_mesh,
+};
 pub use self::trimesh::TriMesh;

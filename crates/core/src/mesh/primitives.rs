@@ -36,26 +36,27 @@ pub fn tetrahedron() -> Mesh {
     }
 }
 
+/// The 12 outward-facing triangles of a box over its corners as [`box_corners`]
+/// numbers them (corner `i` is on the high side of axis `k` where bit `k` of `i` is
+/// set): two per side, in the order z−, z+, y−, y+, x−, x+.
+pub const BOX_FACES: [[u32; 3]; 12] =
+    [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]];
+
+/// The 8 corners of the axis-aligned box `[lo, hi]`, numbered for [`BOX_FACES`].
+pub fn box_corners<T: Copy>(lo: [T; 3], hi: [T; 3]) -> Vec<[T; 3]> {
+    (0..8)
+        .map(|i| [if i & 1 == 1 { hi[0] } else { lo[0] }, if i & 2 == 2 { hi[1] } else { lo[1] }, if i & 4 == 4 { hi[2] } else { lo[2] }])
+        .collect()
+}
+
 /// A closed box mesh `[-h, h]`, outward-facing triangles.
 pub fn cuboid(h: P3) -> TriMesh {
-    let vertices = (0..8)
-        .map(|i| [if i & 1 == 1 { h[0] } else { -h[0] }, if i & 2 == 2 { h[1] } else { -h[1] }, if i & 4 == 4 { h[2] } else { -h[2] }])
-        .collect();
-    let faces = vec![
-        [0, 2, 1],
-        [1, 2, 3],
-        [4, 5, 6],
-        [5, 7, 6],
-        [0, 1, 4],
-        [1, 5, 4],
-        [2, 6, 3],
-        [3, 6, 7],
-        [0, 4, 2],
-        [2, 4, 6],
-        [1, 3, 5],
-        [3, 7, 5],
-    ];
-    TriMesh { vertices, faces }
+    TriMesh { vertices: box_corners(h.map(|x| -x), h), faces: BOX_FACES.to_vec() }
+}
+
+/// The closed box `[lo, hi]` as an f32 [`Mesh`], outward-facing triangles.
+pub fn box_between(lo: [f32; 3], hi: [f32; 3]) -> Mesh {
+    Mesh { vertices: box_corners(lo, hi), faces: BOX_FACES.to_vec(), vertex_attrs: None }
 }
 
 /// Ring resolution of revolved surfaces (a multiple of 4 keeps the bounding box, and

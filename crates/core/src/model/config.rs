@@ -275,8 +275,7 @@ mod tests {
         assert!(need > 500_000_000 && need < 2_000_000_000, "{need}");
         let mut v: serde_json::Value = crate::util::json::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
         v["ss_flow"]["args"]["resolution"] = 100_000.into();
-        let dir = std::env::temp_dir().join(format!("recon-cfg-big-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::util::testing::tmp("cfg-big");
         let p = dir.join("big.json");
         std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
         let e = RecGenConfig::load(&p).unwrap_err();
@@ -294,8 +293,7 @@ mod tests {
     fn inconsistent_config_is_rejected() {
         let mut v: serde_json::Value = crate::util::json::read_json(&models_dir().join("recgen-tiny.json")).unwrap();
         v["pose"]["ss_representation"] = "9d_translation_scale".into();
-        let dir = std::env::temp_dir().join(format!("recon-cfg-test-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::util::testing::tmp("cfg-bad");
         let p = dir.join("bad.json");
         std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
         assert!(RecGenConfig::load(&p).is_err());

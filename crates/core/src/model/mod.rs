@@ -33,5 +33,5 @@ pub use self::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
 pub use self::stage2::slat_flow::{SLatNormalization, SlatVelocity};
 pub use self::stage2::slat_vae::gaussian::sh0_to_rgb;
 pub use self::stage2::slat_vae::gaussian::SLatGaussianDecoder;
-pub use self::stage2::slat_vae::mesh::{random_var_builder, SLatMeshDecoder};
+pub use self::stage2::slat_vae::mesh::SLatMeshDecoder;
 pub use self::stage2::slat_vae::trunk::SparseTransformerBase;

@@ -81,24 +81,7 @@ mod tests {
             depth_scale_m: 1.0,
         };
         let s = 0.05f32;
-        let v: Vec<[f32; 3]> = (0..8)
-            .map(|i| [if i & 1 == 0 { -s } else { s }, if i & 2 == 0 { -s } else { s }, 0.5 + if i & 4 == 0 { -s } else { s }])
-            .collect();
-        let f = vec![
-            [0, 2, 1],
-            [1, 2, 3],
-            [4, 5, 6],
-            [5, 7, 6],
-            [0, 1, 4],
-            [1, 5, 4],
-            [2, 6, 3],
-            [3, 6, 7],
-            [0, 4, 2],
-            [2, 4, 6],
-            [1, 3, 5],
-            [3, 7, 5],
-        ];
-        let mesh = Mesh { vertices: v, faces: f, vertex_attrs: None };
+        let mesh = crate::mesh::primitives::box_between([-s, -s, 0.5 - s], [s, s, 0.5 + s]);
         let (rgb, pw, ph) = preview_rgb(&frame, &[&mesh])?;
         assert_eq!((pw, ph), (2 * w, h));
         let px = |x: usize, y: usize| &rgb[(y * pw + x) * 3..(y * pw + x) * 3 + 3];

@@ -1,11 +1,14 @@
 //! Small shared helpers: JSON files with errors that name them (`json`),
 //! resource bounds for hostile inputs (`limits`), peak memory (`memory`), the
-//! large-buffer allocator (`buffer_cache`), and the statistics several layers use.
+//! large-buffer allocator (`buffer_cache`), temporary folders for tests (`testing`),
+//! and the statistics several layers use.
 
 pub(crate) mod buffer_cache;
 pub mod json;
 pub mod limits;
 pub mod memory;
+#[cfg(any(test, feature = "testkit"))]
+pub mod testing;
 
 pub use self::buffer_cache::{buffer_cache_active, cached_buffer_bytes, release_cached_buffers, LargeBufferCache};
 pub use self::memory::{freed_memory_kept, keep_freed_memory, peak_rss_mib, reset_peak_rss};

@@ -125,11 +125,10 @@ pub fn random_values(seed: u64, name: &str, n: usize) -> Vec<f32> {
                 for pair in chunk.chunks_mut(2) {
                     let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
                     let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
-                    let r = (-2.0 * u1.ln()).sqrt();
-                    let a = 2.0 * std::f64::consts::PI * u2;
-                    pair[0] = (r * a.cos()) as f32 * std;
+                    let (z0, z1) = crate::rng::box_muller(u1, u2);
+                    pair[0] = z0 as f32 * std;
                     if pair.len() > 1 {
-                        pair[1] = (r * a.sin()) as f32 * std;
+                        pair[1] = z1 as f32 * std;
                     }
                 }
             });
@@ -267,10 +266,10 @@ mod tests {
         while want.len() < n {
             let u1 = ((splitmix(&mut st) >> 11) as f64 + 1.0) / (1u64 << 53) as f64;
             let u2 = (splitmix(&mut st) >> 11) as f64 / (1u64 << 53) as f64;
-            let (r, a) = ((-2.0 * u1.ln()).sqrt(), 2.0 * std::f64::consts::PI * u2);
-            want.push((r * a.cos()) as f32 * 0.02);
+            let (z0, z1) = crate::rng::box_muller(u1, u2);
+            want.push(z0 as f32 * 0.02);
             if want.len() < n {
-                want.push((r * a.sin()) as f32 * 0.02);
+                want.push(z1 as f32 * 0.02);
             }
         }
         assert_eq!(got, want);

@@ -254,6 +254,60 @@ mod tests {
     use super::*;
     use crate::model::config::RecGenConfig;
 
+    /// The SLat mesh decoder on the random weights benchmarks and `Source::Random` use:
+    /// its fused output layer gives the unfused result.
+    #[test]
+    fn slat_mesh_decoder_fused_output_layer_matches_unfused() -> Result<()> {
+        let args = serde_json::json!({
+            "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
+            "num_heads": 2, "mlp_ratio": 1, "window_size": 4, "representation_config": {"use_color": true}
+        });
+        let vb = random_var_builder(&ModuleConfig { name: "SLatMeshDecoder".into(), args: args.clone() }, 7, "slat_dec_mesh")?;
+        let dec = SLatMeshDecoder::new(&args, vb, Compute::Plain)?;
+        let coords: Vec<[i32; 4]> = (0..20).map(|i| [0, 2 + i % 4, 3 + (i / 4) % 3, 1 + i / 12]).collect();
+        let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
+        let x = crate::model::sparse::SparseTensor::new(coords, feats, 1)?;
+        let a = dec.forward_feats(&x, &mut |_, _| {})?;
+        let b = dec.forward_feats_fused(&x)?;
+        assert_eq!(a.coords, b.coords);
+        assert_eq!(a.feats.dims(), &[20 * 64, 101]);
+        let d = (a.feats - b.feats)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(d < 1e-5, "fused vs unfused {d}");
+        Ok(())
+    }
+
+    #[test]
+    fn slat_gaussian_decoder_splats_are_well_formed() -> Result<()> {
+        let args = serde_json::json!({
+            "resolution": 16, "model_channels": 32, "latent_channels": 8, "num_blocks": 2, "num_heads": 2,
+            "window_size": 4, "representation_config": {
+                "num_gaussians": 4, "perturb_offset": true, "voxel_size": 1.5, "lr": {"_rotation": 0.1},
+                "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
+            }
+        });
+        let vb = random_var_builder(&ModuleConfig { name: "SLatGaussianDecoder".into(), args: args.clone() }, 3, "slat_dec_gs")?;
+        let dec = SLatGaussianDecoder::new(&args, vb, Compute::Plain)?;
+        let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
+        let x = crate::model::sparse::SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
+        let reps = dec.forward(&x)?;
+        assert_eq!(reps.len(), 2);
+        let g = reps[0].to_gaussians()?;
+        g.validate()?;
+        assert_eq!(g.len(), 6 * 4);
+        for (i, p) in g.positions.iter().enumerate() {
+            // Within 0.75 voxel of its voxel centre (tanh bound · voxel_size / 2).
+            let c = coords[i / 4];
+            for a in 0..3 {
+                let centre = (c[a + 1] as f32 + 0.5) / 16.0 - 0.5;
+                assert!((p[a] - centre).abs() <= 0.75 / 16.0 + 1e-6);
+            }
+        }
+        assert!(g.rotations.iter().all(|q| (q.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5));
+        assert!(g.scales.iter().flatten().all(|&s| s >= 9e-4));
+        assert!(g.opacities.iter().all(|&o| o > 0.0 && o < 1.0));
+        Ok(())
+    }
+
     /// Every module of the tiny architecture builds on the recorder and on
     /// random weights, norm weights are 1, and buffers are computed values.
     #[test]

@@ -129,9 +129,7 @@ mod tests {
     /// list its module config implies.
     #[test]
     fn tensor_list_derived_from_module_config() -> Result<()> {
-        let dir = std::env::temp_dir().join(format!("recon-verify-derive-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).map_err(|e| crate::Error::io(&dir, e))?;
+        let dir = crate::util::testing::tmp("verify-derive");
         let cfg = serde_json::json!({"name": "SparseStructureDecoder", "args": {
             "out_channels": 1, "latent_channels": 4, "num_res_blocks": 1, "num_res_blocks_middle": 1, "channels": [16, 8]}});
         let cfg_path = dir.join("ss_dec.json");

@@ -224,17 +224,8 @@ mod tests {
     use crate::engine::pose_fit::select::{pose_spread, select_best, SelectMethod};
     use crate::geometry::camera_pose::parse_rel_pose;
     use crate::math::axis_angle;
+    use crate::mesh::primitives::cuboid;
     use crate::rng::SeededRng;
-
-    /// Axis-aligned box with half extents `h`, centred at the origin, 12 triangles.
-    fn cuboid(h: [f64; 3]) -> TriMesh {
-        let v: Vec<P3> = (0..8)
-            .map(|i| [if i & 1 == 0 { -h[0] } else { h[0] }, if i & 2 == 0 { -h[1] } else { h[1] }, if i & 4 == 0 { -h[2] } else { h[2] }])
-            .collect();
-        let q = [[0, 2, 6, 4], [1, 5, 7, 3], [0, 4, 5, 1], [2, 3, 7, 6], [0, 1, 3, 2], [4, 6, 7, 5]];
-        let faces = q.iter().flat_map(|f| [[f[0], f[1], f[2]], [f[0], f[2], f[3]]]).collect();
-        TriMesh { vertices: v, faces }
-    }
 
     trait Mm {
         fn map_mm(&self) -> Vec<f64>;
@@ -439,8 +430,7 @@ mod tests {
             let e = parse_rel_pose(bad).unwrap_err().to_string();
             assert!(e.contains("rel-pose") || e.contains("T_c1_c2"), "{bad}: {e}");
         }
-        let dir = std::env::temp_dir().join(format!("recon-relpose-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::util::testing::tmp("relpose");
         let f = dir.join("rel.json");
         std::fs::write(&f, r#"{"T_c1_c2": [[1,0,0,0.5],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}"#).unwrap();
         assert_eq!(parse_rel_pose(f.to_str().unwrap()).unwrap().translation, [0.5, 0.0, 0.0]);

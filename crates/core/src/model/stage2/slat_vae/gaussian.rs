@@ -252,37 +252,8 @@ mod tests {
     use super::*;
 
     #[test]
-    fn decoded_splats_are_well_formed() -> Result<()> {
-        let args = serde_json::json!({
-            "resolution": 16, "model_channels": 32, "latent_channels": 8, "num_blocks": 2, "num_heads": 2,
-            "window_size": 4, "representation_config": {
-                "num_gaussians": 4, "perturb_offset": true, "voxel_size": 1.5, "lr": {"_rotation": 0.1},
-                "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
-            }
-        });
-        let vb =
-            crate::model::stage2::slat_vae::mesh::random_var_builder(3, 0.1, |vb| SLatGaussianDecoder::new(&args, vb, Compute::Plain))?;
-        let dec = SLatGaussianDecoder::new(&args, vb, Compute::Plain)?;
-        let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
-        let x = SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
-        let reps = dec.forward(&x)?;
-        assert_eq!(reps.len(), 2);
-        let g = reps[0].to_gaussians()?;
-        g.validate()?;
-        assert_eq!(g.len(), 6 * 4);
-        for (i, p) in g.positions.iter().enumerate() {
-            // Within 0.75 voxel of its voxel centre (tanh bound · voxel_size / 2).
-            let c = coords[i / 4];
-            for a in 0..3 {
-                let centre = (c[a + 1] as f32 + 0.5) / 16.0 - 0.5;
-                assert!((p[a] - centre).abs() <= 0.75 / 16.0 + 1e-6);
-            }
-        }
-        assert!(g.rotations.iter().all(|q| (q.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-5));
-        assert!(g.scales.iter().flatten().all(|&s| s >= 9e-4));
-        assert!(g.opacities.iter().all(|&o| o > 0.0 && o < 1.0));
+    fn sh0_to_rgb_values() {
         assert_eq!(sh0_to_rgb([0.0, -10.0, 1.0]), [0.5, 0.0, SH_C0 + 0.5]);
-        Ok(())
     }
 
     #[test]

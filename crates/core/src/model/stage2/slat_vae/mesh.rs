@@ -378,36 +378,6 @@ impl SLatMeshDecoder {
     }
 }
 
-/// Random-weight VarBuilder for a model built by `build` (every parameter
-/// ~ N(0, std²), norm weights 1 + N(0, std²)); for tests and benchmarks.
-pub fn random_var_builder<T>(seed: u64, std: f64, build: impl Fn(VarBuilder<'static>) -> Result<T>) -> Result<VarBuilder<'static>> {
-    let vm = candle_nn::VarMap::new();
-    let dev = candle_core::Device::Cpu;
-    build(VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
-    let mut rng = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
-    let mut next = move || {
-        // xorshift64* → uniform in (0, 1)
-        rng ^= rng >> 12;
-        rng ^= rng << 25;
-        rng ^= rng >> 27;
-        ((rng.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-    };
-    let mut weights = std::collections::HashMap::new();
-    let mut names: Vec<(String, candle_core::Var)> = vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-    names.sort_by(|a, b| a.0.cmp(&b.0)); // fixed order: deterministic draws
-    for (name, var) in names {
-        // Box–Muller normals from the seeded generator (candle's CPU RNG cannot be seeded).
-        let v: Vec<f32> =
-            (0..var.elem_count()).map(|_| ((-2.0 * next().ln()).sqrt() * (std::f64::consts::TAU * next()).cos() * std) as f32).collect();
-        let t = Tensor::from_vec(v, var.shape(), &dev)?;
-        let is_norm_weight = name.ends_with(".weight") && var.rank() == 1;
-        weights.insert(name, if is_norm_weight { (t + 1.0)? } else { t });
-    }
-    // Plain tensors, not `Var`s: ops on `Var`s record the autograd graph,
-    // which would keep every intermediate alive.
-    Ok(VarBuilder::from_tensors(weights, DType::F32, &dev))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -440,26 +410,6 @@ mod tests {
         let got = subdiv_conv(&SubdivGrid::new(&parents), &xc, false, &w_t, &b)?.flatten_all()?.to_vec1::<f32>()?;
         let d = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(d < 1e-4, "subdivide conv vs kernel: {d}");
-        Ok(())
-    }
-
-    #[test]
-    fn fused_output_layer_matches_unfused() -> Result<()> {
-        let args = serde_json::json!({
-            "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
-            "num_heads": 2, "mlp_ratio": 1, "window_size": 4, "representation_config": {"use_color": true}
-        });
-        let vb = random_var_builder(7, 0.05, |vb| SLatMeshDecoder::new(&args, vb, Compute::Plain))?;
-        let dec = SLatMeshDecoder::new(&args, vb, Compute::Plain)?;
-        let coords: Vec<[i32; 4]> = (0..20).map(|i| [0, 2 + i % 4, 3 + (i / 4) % 3, 1 + i / 12]).collect();
-        let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
-        let x = SparseTensor::new(coords, feats, 1)?;
-        let a = dec.forward_feats(&x, &mut |_, _| {})?;
-        let b = dec.forward_feats_fused(&x)?;
-        assert_eq!(a.coords, b.coords);
-        assert_eq!(a.feats.dims(), &[20 * 64, 101]);
-        let d = (a.feats - b.feats)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-        assert!(d < 1e-5, "fused vs unfused {d}");
         Ok(())
     }
 
