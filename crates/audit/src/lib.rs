@@ -11,6 +11,7 @@
 
 // Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+#![warn(missing_docs)]
 pub(crate) mod cause;
 pub(crate) mod depth;
 pub(crate) mod fit;
@@ -32,8 +33,11 @@ use std::path::{Path, PathBuf};
 /// A finished audit: the report, the extended sensor model (depth audits) and the plots
 /// (file name, SVG text).
 pub struct Audit {
+    /// The report (serialised to `report.json`).
     pub report: Report,
+    /// The sensor model extended with the selected effects (depth audits only).
     pub extended: Option<SensorModel>,
+    /// Plots as (file name, SVG text).
     pub plots: Vec<(String, String)>,
 }
 

@@ -25,8 +25,11 @@
 // - too_many_arguments: kernel and fitting entry points take their shapes and buffers explicitly;
 // - type_complexity: tuples returned by internal helpers, used once each.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+#![warn(missing_docs)]
 
 pub mod dataset;
+// documented after the options/keys refactor lands
+#[allow(missing_docs)]
 pub mod engine;
 pub mod error;
 pub mod export;
@@ -34,12 +37,18 @@ pub mod gaussians;
 pub mod geometry;
 pub mod math;
 pub mod mesh;
+// documented after the options/keys refactor lands
+#[allow(missing_docs)]
 pub mod model;
 pub mod render;
 pub mod rng;
 pub mod sensor;
 pub mod spatial;
+// documented after the options/keys refactor lands
+#[allow(missing_docs)]
 pub mod util;
+// documented after the options/keys refactor lands
+#[allow(missing_docs)]
 pub mod weights;
 
 pub use error::{Error, Result, SizeBound};

@@ -88,14 +88,19 @@ impl SettleOptions {
 /// One rigid body: frame origin at its centre of mass.
 #[derive(Debug, Clone)]
 pub struct Body {
+    /// Body name (for reports).
     pub name: String,
     /// Body frame → world at the start (scale 1).
     pub pose: Similarity32,
+    /// Mass in kilograms.
     pub mass_kg: f64,
     /// About the body origin, body axes.
     pub inertia: [[f64; 3]; 3],
+    /// Coulomb friction coefficient.
     pub friction: f64,
+    /// Restitution coefficient.
     pub restitution: f64,
+    /// Collision parts in the body frame.
     pub parts: Vec<Part>,
 }
 

@@ -33,13 +33,18 @@ use recon_core::{Error, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
+    /// Sparse-structure VAE (stage 1).
     SsVae,
+    /// Sparse-structure flow with pose tokens (stage 1).
     SsFlow,
+    /// Structured-latent encoder and decoders (stage 2).
     SlatAe,
+    /// Structured-latent flow (stage 2).
     SlatFlow,
 }
 
 impl Stage {
+    /// Kebab-case name, as on the command line (`ss-vae`, ...).
     pub fn name(self) -> &'static str {
         match self {
             Stage::SsVae => "ss-vae",
@@ -55,28 +60,40 @@ impl Stage {
 pub enum Resume {
     /// The newest checkpoint under `<out>/checkpoints`.
     Latest,
+    /// A given checkpoint folder.
     Dir(PathBuf),
 }
 
 /// Everything a run needs besides its data.
 #[derive(Debug, Clone)]
 pub struct TrainOptions {
+    /// Which model to train.
     pub stage: Stage,
     /// Architecture file (`models/recgen-nano.json`).
     pub config: PathBuf,
+    /// Output folder (weights, checkpoints, logs).
     pub out: PathBuf,
+    /// Resume from a checkpoint (`None`: start fresh).
     pub resume: Option<Resume>,
+    /// Optimisation settings (steps, batch, learning rate, ...).
     pub settings: LoopSettings,
+    /// How the model meshes are voxelised (surface or solid).
     pub fill: Fill,
+    /// ss-vae: reconstruction loss.
     pub recon_loss: ReconLoss,
+    /// ss-vae: weight of the KL term.
     pub lambda_kl: f64,
+    /// ss-flow, slat-flow: flow-matching hyper-parameters.
     pub flow: FlowMatching,
+    /// ss-flow: crop context factor range (inference uses 1.2).
     pub context: [f64; 2],
+    /// ss-flow: probability of a two-view batch.
     pub p_two_view: f64,
     /// ss-flow: the ss-vae output folder (`ss_encoder.safetensors`, `ss_decoder.safetensors`).
     pub vae: Option<PathBuf>,
     /// slat-ae: crop side in voxels (0: whole objects) and most voxels per crop.
     pub crop: usize,
+    /// slat-ae: most voxels per crop.
     pub max_voxels: usize,
     /// slat-flow: the ss-flow output folder (frozen image encoder, pose
     /// statistics, stage-1 modules copied into the complete model folder).
@@ -89,12 +106,14 @@ pub struct TrainOptions {
     /// `<key>.safetensors` (a finished run of the same stage) instead of
     /// random; the optimiser starts afresh, so settings may differ.
     pub init: Option<PathBuf>,
+    /// Show a progress bar.
     pub progress: bool,
     /// Batches of the fixed evaluation before and after training (0: skip).
     pub eval_batches: usize,
 }
 
 impl TrainOptions {
+    /// Defaults for `stage`, reading the architecture from `config` and writing to `out`.
     pub fn new(stage: Stage, config: PathBuf, out: PathBuf) -> Self {
         Self {
             stage,
