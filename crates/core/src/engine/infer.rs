@@ -2,9 +2,9 @@
 //! mesh and Gaussians in the metric camera frame.
 //!
 //! ```no_run
-//! use recon::dataset::{FrameOptions, InstanceMap, RgbdFrame};
-//! use recon::engine::{Engine, InferOptions, LoadOptions, ModelSource};
-//! # fn main() -> recon::Result<()> {
+//! use recon_core::dataset::{FrameOptions, InstanceMap, RgbdFrame};
+//! use recon_core::engine::{Engine, InferOptions, LoadOptions, ModelSource};
+//! # fn main() -> recon_core::Result<()> {
 //! // The shipped recgen-nano; or ModelSource::Dir { .. }, ::Manifest { .. }, ::Random { .. }.
 //! let engine = Engine::load(&ModelSource::Default, &LoadOptions::default())?;
 //! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;

@@ -3,8 +3,8 @@
 //! # API
 //!
 //! ```no_run
-//! use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
-//! # fn main() -> recon::Result<()> {
+//! use recon_core::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
+//! # fn main() -> recon_core::Result<()> {
 //! // Trained (or `recon weights init`) weights: `<dir>/<key>.safetensors` per module.
 //! let p = Pipeline::load("models/recgen-large.json".as_ref(), Weights::Dir("weights/".as_ref()), Stages::All, &LoadOptions::default())?;
 //! // Or in-memory random weights (labelled as such in the output metadata):
