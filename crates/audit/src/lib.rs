@@ -1,13 +1,13 @@
 //! `recon audit`: compare measured with simulated data, find what the simulation
 //! gets wrong, name the cause, extend the sensor model and measure the gain.
 //!
-//! - [`table`]: the residual table (measured, simulated, missing, unit, covariates);
-//! - [`depth`]: building it from a BOP / YCB-Video dataset and a sensor model;
-//! - [`fit`]: the residual model and its maximum-likelihood fit;
-//! - [`search`]: candidate effects, held-out testing by unit, greedy selection;
-//! - [`outliers`]: is the fit's outlier component structured (rate and sign by covariate)?
-//! - [`report`]: report JSON (schema in its docs), summary, plots; [`cause`]: the words;
-//! - [`stats`]: t / χ² tails, robust statistics, a small SPD solver.
+//! - `table`: the residual table (measured, simulated, missing, unit, covariates);
+//! - `depth`: building it from a BOP / YCB-Video dataset and a sensor model;
+//! - `fit`: the residual model and its maximum-likelihood fit;
+//! - `search`: candidate effects, held-out testing by unit, greedy selection;
+//! - `outliers`: is the fit's outlier component structured (rate and sign by covariate)?
+//! - `report`: report JSON (schema in its docs), summary, plots; `cause`: the words;
+//! - `stats`: t / χ² tails, robust statistics, a small SPD solver.
 
 // Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]

@@ -244,7 +244,7 @@ fn im2col_rows(xb: &[f32], s: &Conv3dShape, (oh, ow): (usize, usize), r0: usize,
 /// chunk (64 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
 const WINO_BUDGET: usize = 16 << 20;
 
-/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³) ([`winograd`] module docs):
+/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³) (the `winograd` module docs):
 /// 3.4× fewer multiplies than direct, as 64 `[tiles, Cin] × [Cin, Cout]`
 /// GEMMs on recon's packed GEMM. `format` is the storage of the transformed
 /// weights (bf16: they and the transformed activations are rounded to bf16,

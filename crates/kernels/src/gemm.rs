@@ -29,7 +29,7 @@ use rayon::prelude::*;
 pub const MR: usize = 14;
 /// Columns of the register tile (two 16-lane vectors).
 pub const NR: usize = 32;
-/// Cache blocking of [`gemm`]: rows of `C` per task (`mc`, rounded up to a
+/// Cache blocking of [`gemm()`]: rows of `C` per task (`mc`, rounded up to a
 /// multiple of `MR`) and k values per slice (`kc`, even).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Blocking {
@@ -625,7 +625,7 @@ pub fn gemm(
     gemm_blocked(isa, a, m, lda, b, bias, act, c, ldc, Blocking::for_format(b.format))
 }
 
-/// [`gemm`] with explicit cache blocking (for tuning).
+/// [`gemm()`] with explicit cache blocking (for tuning).
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_blocked(
     isa: Isa,

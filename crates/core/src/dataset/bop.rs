@@ -37,7 +37,7 @@ pub struct GtInstance {
     /// Metres.
     pub t: P3,
     /// Fraction of the object's projected silhouette that is visible, if the dataset says
-    /// (or, with `visib_estimated`, as estimated by [`crate::dataset::visibility`]).
+    /// (or, with `visib_estimated`, as estimated by [`crate::dataset::visible_fraction`]).
     pub visib_fract: Option<f64>,
     /// `visib_fract` is our estimate, not the dataset's annotation (YCB-Video).
     pub visib_estimated: bool,

@@ -27,7 +27,7 @@
 //! **Samples and selection**: with `samples > 1` the object is run with
 //! seeds `seed, seed + 1, …`. Every (sample, view) pose is a candidate,
 //! scored by the trimmed-mean distance of the observed points to its posed
-//! mesh ([`crate::engine::pose_fit::score`]); the winner gives the reported
+//! mesh ([`crate::engine::score_candidate`]); the winner gives the reported
 //! pose, mesh and Gaussians, and the spread of the per-sample winners is the
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
@@ -96,7 +96,7 @@ pub struct InferOptions {
     /// and before decimation (0: the decoder's surface as it is).
     pub smooth_iterations: usize,
     /// Whether the stage-1 occupancy is fitted to the depth before stage 2
-    /// ([`crate::engine::shape_fit`]); the pose is then refined before the
+    /// ([`crate::engine::fit_in_pose`]); the pose is then refined before the
     /// fit and not after it, so the fit sees the final pose.
     pub shape_fit: ShapeFit,
     pub shape_fit_options: ShapeFitOptions,

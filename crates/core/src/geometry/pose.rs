@@ -12,7 +12,7 @@
 //! - The training data / `parse_pose_output` treat r9 as R flattened
 //!   **row-major** (`reshape(3, 3)`). The released stats confirm it:
 //!   `9d_rotation.mean = [m0, m3, ·, m1, m4, ·, m2, m5, ·]` in terms of the 6D
-//!   mean `m`, i.e. r9[3i + j] = R[i][j] with r6 holding columns.
+//!   mean `m`, i.e. `r9[3i + j] = R[i][j]` with r6 holding columns.
 //! - `RecGenPipeline._convert_pose_representation`, which turns the stage-1
 //!   pose into the stage-2 pose token at inference, concatenates the columns
 //!   `[b1, b2, b3]` = R flattened column-major (= Rᵀ row-major), and then

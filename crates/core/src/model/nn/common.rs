@@ -1,7 +1,7 @@
 //! Building blocks shared by the transformer models (TRELLIS `modules/`):
 //! norms, timestep and position embeddings, attention, MLP, and the
 //! adaLN-modulated cross-attention block. Built outside
-//! [`fast::build_with`](crate::model::nn::fast::build_with) everything is plain candle
+//! [`crate::model::nn::fast::build_with`] everything is plain candle
 //! ops, differentiable for training; built inside it, the same layers run the
 //! inference kernels of `recon-kernels` (see [`crate::model::nn::fast`]).
 

@@ -6,7 +6,7 @@
 //! an occupied corner (sdf < 0) can be surface cubes, and only corners of
 //! active cubes can be occupied (untouched vertices default to sdf = +1), so
 //! this port visits just the cubes around occupied vertices, with sorted
-//! lattice ids and a dense per-column table ([`ColumnIndex`]) standing in for
+//! lattice ids and a dense per-column table (`ColumnIndex`) standing in for
 //! the dense grids. Cubes outside the active set get the
 //! dense defaults: raw weights 0, deform 0, colour 0.
 //!
