@@ -484,6 +484,7 @@ pub fn load_dataset(path: &Path) -> Result<Dataset> {
     load_bop(&split, models)
 }
 
+/// Tiny BOP datasets written to disk, for tests (other crates' with the `testkit` feature).
 #[cfg(any(test, feature = "testkit"))]
 pub mod tests {
     use super::*;
@@ -549,6 +550,7 @@ pub mod tests {
         dir.join("test")
     }
 
+    /// A fresh, empty folder under the temp dir, named by `tag` and the process id.
     pub fn tmpdir(tag: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("recon-eval-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&d);
