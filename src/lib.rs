@@ -10,12 +10,16 @@
 //!   [`sim`] (`recon-sim`), [`audit`] (`recon-audit`), [`train`] (`recon-train`);
 //! - [`tools`]: bench, conformance, fuzz targets.
 //!
+//! `use recon::prelude::*;` brings in what reconstructing a frame needs
+//! (the engine, its options, frames, masks, results, [`Error`] and [`Result`]).
+//!
 //! A program that only reconstructs objects depends on `recon-core` alone
 //! (with `default-features = false` it leaves out the hub download too).
 
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
 
 pub use recon_audit as audit;
+pub use recon_core::prelude;
 pub use recon_core::{
     dataset, engine, error, export, gaussians, geometry, math, mesh, model, render, rng, sensor, settings, spatial, util, weights,
 };

@@ -1,6 +1,6 @@
 //! Fuzz targets: one entry point per parser recon implements itself, shared by
 //! the coverage-guided fuzzer (`fuzz/`, cargo-fuzz) and the bounded
-//! stable-toolchain pass the tests run ([`mutations`] over the corpus in
+//! stable-toolchain pass the tests run ([`mutate`]d inputs from the corpus in
 //! `fuzz/corpus/<target>/`). A target returns the parser's `Result`; what
 //! the fuzzers check is that it returns at all: no panic, no hang, no
 //! allocation beyond [`alloc_bound`].

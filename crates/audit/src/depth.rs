@@ -7,7 +7,9 @@ use recon_core::sensor::{Base, Covariate, PixelCovariates, SensorModel, Target};
 /// (0 or non-finite = missing).
 #[derive(Clone, Copy, Debug)]
 pub struct PixelSample {
+    /// Covariates of the pixel, as the simulator sees them.
     pub cov: PixelCovariates,
+    /// Measured depth in metres (0 or non-finite: missing).
     pub measured: f64,
 }
 
@@ -61,6 +63,7 @@ pub fn residual_table(model: &SensorModel, pixels: &[PixelSample], source: &str)
 pub struct DepthOptions {
     /// Object pixels kept per frame (a seeded random subset; all when fewer).
     pub max_pixels_per_frame: usize,
+    /// Seed of the per-frame pixel subsets.
     pub seed: u64,
     /// Use only the first N frames (all when None).
     pub max_frames: Option<usize>,

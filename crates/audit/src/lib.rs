@@ -1,16 +1,17 @@
 //! `recon audit`: compare measured with simulated data, find what the simulation
 //! gets wrong, name the cause, extend the sensor model and measure the gain.
 //!
-//! - [`table`]: the residual table (measured, simulated, missing, unit, covariates);
-//! - [`depth`]: building it from a BOP / YCB-Video dataset and a sensor model;
-//! - [`fit`]: the residual model and its maximum-likelihood fit;
-//! - [`search`]: candidate effects, held-out testing by unit, greedy selection;
-//! - [`outliers`]: is the fit's outlier component structured (rate and sign by covariate)?
-//! - [`report`]: report JSON (schema in its docs), summary, plots; [`cause`]: the words;
-//! - [`stats`]: t / χ² tails, robust statistics, a small SPD solver.
+//! - `table`: the residual table (measured, simulated, missing, unit, covariates);
+//! - `depth`: building it from a BOP / YCB-Video dataset and a sensor model;
+//! - `fit`: the residual model and its maximum-likelihood fit;
+//! - `search`: candidate effects, held-out testing by unit, greedy selection;
+//! - `outliers`: is the fit's outlier component structured (rate and sign by covariate)?
+//! - `report`: report JSON (schema in its docs), summary, plots; `cause`: the words;
+//! - `stats`: t / χ² tails, robust statistics, a small SPD solver.
 
 // Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+#![warn(missing_docs)]
 pub(crate) mod cause;
 pub(crate) mod depth;
 pub(crate) mod fit;
@@ -32,8 +33,11 @@ use std::path::{Path, PathBuf};
 /// A finished audit: the report, the extended sensor model (depth audits) and the plots
 /// (file name, SVG text).
 pub struct Audit {
+    /// The report (serialised to `report.json`).
     pub report: Report,
+    /// The sensor model extended with the selected effects (depth audits only).
     pub extended: Option<SensorModel>,
+    /// Plots as (file name, SVG text).
     pub plots: Vec<(String, String)>,
 }
 

@@ -75,6 +75,7 @@ use recon_core::{Error, Result};
 use std::collections::BTreeMap;
 
 #[derive(Clone, Debug)]
+/// Settings of the effect search (levels, limits, robustness).
 pub struct SearchOptions {
     /// Family-wise level of each selection round (randomisation max statistic).
     pub alpha: f64,
@@ -82,6 +83,7 @@ pub struct SearchOptions {
     pub screen_alpha: f64,
     /// A more complex form must beat the linear one at this level (paired, held out).
     pub parsimony_alpha: f64,
+    /// Stop after this many accepted terms.
     pub max_findings: usize,
     /// Outlier-robust Gaussian part (uniform contamination component).
     pub robust: bool,
@@ -345,6 +347,7 @@ pub struct Evidence {
 /// One accepted term.
 #[derive(Clone, Debug)]
 pub struct Selected {
+    /// Its held-out evidence in the round that accepted it.
     pub evidence: Evidence,
     /// Family-wise p-value (max-statistic randomisation test over the round's candidates).
     pub p_adjusted: f64,
@@ -352,23 +355,34 @@ pub struct Selected {
     pub candidates: usize,
     /// Candidates fitted after the screen.
     pub fitted: usize,
+    /// Selection round that accepted it (0-based).
     pub round: usize,
 }
 
 #[derive(Clone, Debug)]
+/// What one selection round tried and what it accepted.
 pub struct Round {
+    /// Candidates in the round.
     pub candidates: usize,
+    /// Candidates fitted after the score screen.
     pub fitted: usize,
     /// Fitted candidates, best held-out gain first (at most 12 kept).
     pub top: Vec<Evidence>,
+    /// The accepted term, if any was significant.
     pub selected: Option<Term>,
 }
 
+/// Outcome of the search: the folds, the models before and after, and every round.
 pub struct SearchResult {
+    /// Row sets of the cross-fitting folds (by unit).
     pub folds: Folds,
+    /// The starting model (no added terms), cross-fitted.
     pub baseline: Cv,
+    /// The final model (all selected terms), cross-fitted.
     pub final_cv: Cv,
+    /// Accepted terms, in order of acceptance.
     pub selected: Vec<Selected>,
+    /// Every round, in order.
     pub rounds: Vec<Round>,
 }
 
@@ -740,7 +754,9 @@ pub fn globals(ctx: &Ctx, m: &Model) -> BTreeMap<String, f64> {
 /// Standard errors of a model's parameters from a bootstrap over units (frames).
 #[derive(Clone, Debug, Default)]
 pub struct Uncertainty {
+    /// Bootstrap resamples drawn.
     pub resamples: usize,
+    /// Standard error of each global parameter, by name.
     pub globals: BTreeMap<String, f64>,
     /// Per term, by parameter name (`form_params` names).
     pub terms: Vec<BTreeMap<String, f64>>,

@@ -40,7 +40,9 @@ impl Column {
 /// spread and the missing rate (see `audit::fit`); they are 0 for plain tables.
 #[derive(Clone, Debug, Default)]
 pub struct ResidualTable {
+    /// Measured value per row (non-finite: missing).
     pub measured: Vec<f64>,
+    /// Simulated value per row.
     pub simulated: Vec<f64>,
     /// Noise floor combined in quadrature with the fitted global noise (sensor base + quantisation).
     pub sd_floor: Vec<f64>,
@@ -54,7 +56,9 @@ pub struct ResidualTable {
     pub p_offset: Vec<f64>,
     /// Unit (frame) index of each row, into `unit_names`.
     pub unit: Vec<usize>,
+    /// Name of each unit (frame).
     pub unit_names: Vec<String>,
+    /// Covariate columns.
     pub columns: Vec<Column>,
     /// Where the table came from (for error messages and the report).
     pub source: String,
@@ -63,21 +67,27 @@ pub struct ResidualTable {
 }
 
 impl ResidualTable {
+    /// Number of rows.
     pub fn len(&self) -> usize {
         self.measured.len()
     }
+    /// Whether the table has no rows.
     pub fn is_empty(&self) -> bool {
         self.measured.is_empty()
     }
+    /// Whether row `i`'s measurement is missing (non-finite).
     pub fn missing(&self, i: usize) -> bool {
         !self.measured[i].is_finite()
     }
+    /// Measured minus simulated value of row `i`.
     pub fn residual(&self, i: usize) -> f64 {
         self.measured[i] - self.simulated[i]
     }
+    /// Index of the column named `name`.
     pub fn column(&self, name: &str) -> Option<usize> {
         self.columns.iter().position(|c| c.name == name)
     }
+    /// Number of units (frames).
     pub fn n_units(&self) -> usize {
         self.unit_names.len()
     }

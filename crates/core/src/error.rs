@@ -2,42 +2,90 @@
 
 use std::path::PathBuf;
 
+/// Every error the recon crates return.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
+    /// Reading or writing a file failed.
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The operating system's error.
+        source: std::io::Error,
+    },
 
+    /// A JSON file does not parse or does not match its schema.
     #[error("{path}: invalid JSON: {source}")]
-    Json { path: PathBuf, source: serde_json::Error },
+    Json {
+        /// The file.
+        path: PathBuf,
+        /// The parser's error.
+        source: serde_json::Error,
+    },
 
     /// A configuration value is missing or out of range.
     #[error("config {file}: field `{field}`: {msg}")]
-    Config { file: String, field: String, msg: String },
+    Config {
+        /// The configuration file (or the command, for flags).
+        file: String,
+        /// The field (or flag).
+        field: String,
+        /// What is wrong.
+        msg: String,
+    },
 
     /// A tensor required by the architecture is absent from the checkpoint.
     #[error("weights {file}: missing tensor `{name}` (expected shape {expected:?})")]
-    MissingTensor { file: String, name: String, expected: Vec<usize> },
+    MissingTensor {
+        /// The checkpoint file.
+        file: String,
+        /// The tensor's name.
+        name: String,
+        /// The shape the architecture expects.
+        expected: Vec<usize>,
+    },
 
     /// A checkpoint tensor does not match the shape the config implies.
     #[error("weights {file}: tensor `{name}` has shape {found:?}, expected {expected:?}")]
-    ShapeMismatch { file: String, name: String, found: Vec<usize>, expected: Vec<usize> },
+    ShapeMismatch {
+        /// The checkpoint file.
+        file: String,
+        /// The tensor's name.
+        name: String,
+        /// The shape in the checkpoint.
+        found: Vec<usize>,
+        /// The shape the architecture expects.
+        expected: Vec<usize>,
+    },
 
     /// The checkpoint holds tensors the architecture does not use.
     #[error("weights {file}: unexpected tensor(s) {names:?}")]
-    UnexpectedTensors { file: String, names: Vec<String> },
+    UnexpectedTensors {
+        /// The checkpoint file.
+        file: String,
+        /// The unused tensors' names.
+        names: Vec<String>,
+    },
 
     /// User input (images, masks, depth, JSON) is not what was expected.
     #[error("{file}: {msg}")]
-    Input { file: String, msg: String },
+    Input {
+        /// The input file (or what names the input).
+        file: String,
+        /// What is wrong.
+        msg: String,
+    },
 
     /// An input claims a size beyond a stated bound; raised before anything
     /// of that size is allocated.
     #[error("{0}")]
     TooLarge(Box<SizeBound>),
 
+    /// A tensor operation failed.
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 
+    /// Anything else, in words.
     #[error("{0}")]
     Msg(String),
 }
@@ -46,11 +94,17 @@ pub enum Error {
 /// refused, the claimed size and the bound it exceeds.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SizeBound {
+    /// The input file.
     pub file: String,
+    /// The field whose claim was refused.
     pub field: String,
+    /// The size the input claims.
     pub claimed: u128,
+    /// The largest size accepted.
     pub limit: u128,
+    /// Unit of both sizes (`bytes`, `elements`, ...).
     pub unit: &'static str,
+    /// Why the bound is what it is.
     pub why: String,
 }
 
@@ -61,18 +115,23 @@ impl std::fmt::Display for SizeBound {
     }
 }
 
+/// `Result` with recon's [`Error`].
 pub type Result<T> = std::result::Result<T, Error>;
 
 impl Error {
+    /// An [`Error::Msg`].
     pub fn msg(m: impl Into<String>) -> Self {
         Error::Msg(m.into())
     }
+    /// An [`Error::Io`] for `path`.
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
     }
+    /// An [`Error::Input`] for `file`.
     pub fn input(file: impl Into<String>, msg: impl Into<String>) -> Self {
         Error::Input { file: file.into(), msg: msg.into() }
     }
+    /// An [`Error::TooLarge`]: `field` of `file` claims `claimed` `unit`, over `limit`, because `why`.
     pub fn too_large(
         file: impl Into<String>,
         field: impl Into<String>,
@@ -83,6 +142,7 @@ impl Error {
     ) -> Self {
         Error::TooLarge(Box::new(SizeBound { file: file.into(), field: field.into(), claimed, limit, unit, why: why.into() }))
     }
+    /// An [`Error::Config`] for `field` of `file`.
     pub fn config(file: impl Into<String>, field: impl Into<String>, msg: impl Into<String>) -> Self {
         Error::Config { file: file.into(), field: field.into(), msg: msg.into() }
     }

@@ -11,6 +11,7 @@ pub const SH_C0: f32 = 0.282_094_79;
 /// type directly (`decoders::gaussian::GaussianModel::to_gaussians`).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Gaussians {
+    /// Centres.
     pub positions: Vec<[f32; 3]>,
     /// Standard deviations along the local axes (linear, > 0).
     pub scales: Vec<[f32; 3]>,
@@ -23,14 +24,17 @@ pub struct Gaussians {
 }
 
 impl Gaussians {
+    /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.positions.len()
     }
 
+    /// Whether there are no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.positions.is_empty()
     }
 
+    /// Checks that every field has one entry per Gaussian.
     pub fn validate(&self) -> Result<()> {
         let n = self.positions.len();
         if [self.scales.len(), self.rotations.len(), self.opacities.len(), self.dc.len()].iter().any(|&l| l != n) {

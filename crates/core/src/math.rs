@@ -19,7 +19,9 @@ impl<T: nalgebra::RealField + Copy + std::iter::Sum + std::fmt::Debug> Real for 
 pub struct Similarity<T = f64> {
     /// Proper rotation acting on column vectors.
     pub rotation: [[T; 3]; 3],
+    /// Translation.
     pub translation: [T; 3],
+    /// Uniform scale (> 0).
     pub scale: T,
 }
 
@@ -33,6 +35,7 @@ impl<T: Real> Default for Similarity<T> {
 }
 
 impl<T: Real> Similarity<T> {
+    /// The identity transform.
     pub fn identity() -> Self {
         let (o, z) = (T::one(), T::zero());
         Similarity { rotation: [[o, z, z], [z, o, z], [z, z, o]], translation: [z; 3], scale: o }
@@ -67,11 +70,13 @@ impl<T: Real> Similarity<T> {
     }
 
     #[inline]
+    /// `s·R·p + t`.
     pub fn apply(&self, p: &[T; 3]) -> [T; 3] {
         let r = &self.rotation;
         [0, 1, 2].map(|i| self.scale * (r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2]) + self.translation[i])
     }
 
+    /// The transform of every point.
     pub fn apply_all(&self, pts: &[[T; 3]]) -> Vec<[T; 3]> {
         pts.iter().map(|p| self.apply(p)).collect()
     }
@@ -94,6 +99,7 @@ impl<T: Real> Similarity<T> {
 }
 
 impl Similarity<f32> {
+    /// A checked similarity from a (w, x, y, z) quaternion (need not be unit), translation and scale.
     pub fn from_quaternion(q: [f32; 4], translation: [f32; 3], scale: f32) -> Result<Self> {
         Self::new(quat_to_matrix(q), translation, scale)
     }
@@ -117,26 +123,31 @@ pub fn axis_angle(axis: [f64; 3], angle: f64) -> [[f64; 3]; 3] {
     ]
 }
 
+/// Determinant of a 3×3 matrix.
 pub fn det<T: Real>(m: &[[T; 3]; 3]) -> T {
     m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
 }
 
+/// Matrix product `a·b`.
 pub fn matmul<T: Real>(a: &[[T; 3]; 3], b: &[[T; 3]; 3]) -> [[T; 3]; 3] {
     std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
 }
 
 #[inline]
+/// Difference `a − b`.
 pub fn sub<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 #[inline]
+/// Dot product.
 pub fn dot<T: Real>(a: [T; 3], b: [T; 3]) -> T {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 #[inline]
+/// Euclidean length.
 pub fn norm<T: Real>(a: [T; 3]) -> T {
     dot(a, a).sqrt()
 }
@@ -153,6 +164,7 @@ pub fn normalize<T: Real>(v: [T; 3]) -> [T; 3] {
 }
 
 #[inline]
+/// Cross product `a × b`.
 pub fn cross<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
@@ -167,6 +179,7 @@ pub fn quat_mul(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
     ]
 }
 
+/// Unit quaternion in the direction of `q` (identity for the zero quaternion).
 pub fn normalize_quat(q: [f32; 4]) -> [f32; 4] {
     let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
     if n > 0.0 {

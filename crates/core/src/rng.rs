@@ -25,6 +25,7 @@ pub struct SeededRng {
 }
 
 impl SeededRng {
+    /// A generator seeded from `seed` (SplitMix64 expansion).
     pub fn new(seed: u64) -> Self {
         let mut z = seed;
         let mut next = || {
@@ -43,10 +44,12 @@ impl SeededRng {
         (self.s, self.spare.map(f64::to_bits))
     }
 
+    /// A generator continuing from a saved [`Self::state`].
     pub fn from_state(s: [u64; 4], spare_bits: Option<u64>) -> Self {
         Self { s, spare: spare_bits.map(f64::from_bits) }
     }
 
+    /// Next 64 random bits (xoshiro256++).
     pub fn next_u64(&mut self) -> u64 {
         let s = &mut self.s;
         let result = s[0].wrapping_add(s[3]).rotate_left(23).wrapping_add(s[0]);
@@ -65,6 +68,7 @@ impl SeededRng {
         ((self.next_u64() >> 11) as f64 + 0.5) * (1.0 / (1u64 << 53) as f64)
     }
 
+    /// A standard-normal sample (Box–Muller, the second value cached).
     pub fn normal(&mut self) -> f64 {
         if let Some(v) = self.spare.take() {
             return v;

@@ -45,8 +45,11 @@ pub const VARIABLES: &[(&str, &str)] = &[
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("environment variable {name}={value:?}: {expected}")]
 pub struct SettingsError {
+    /// The variable's name.
     pub name: &'static str,
+    /// Its value as set.
     pub value: String,
+    /// What the value should be.
     pub expected: &'static str,
 }
 

@@ -5,11 +5,13 @@
 
 use rayon::prelude::*;
 
+/// A 3D point.
 pub type P3 = [f64; 3];
 
 const LEAF: usize = 12;
 
 #[inline]
+/// Squared Euclidean distance.
 pub fn dist2(a: &P3, b: &P3) -> f64 {
     let (x, y, z) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
     x * x + y * y + z * z
@@ -29,6 +31,7 @@ pub struct KdTree {
 }
 
 impl KdTree {
+    /// A tree over `points` (copied).
     pub fn new(points: &[P3]) -> Self {
         let mut order: Vec<usize> = (0..points.len()).collect();
         let mut nodes = Vec::new();
@@ -39,10 +42,12 @@ impl KdTree {
         KdTree { pts, idx: order, nodes }
     }
 
+    /// Number of points.
     pub fn len(&self) -> usize {
         self.pts.len()
     }
 
+    /// Whether the tree holds no points.
     pub fn is_empty(&self) -> bool {
         self.pts.is_empty()
     }

@@ -57,7 +57,9 @@ pub enum Shape {
 }
 
 #[derive(Debug, Clone, Copy)]
+/// Settings of the `observed` baseline.
 pub struct ObservedOptions {
+    /// Output shape: convex hull or oriented box.
     pub shape: Shape,
     /// Mask erosion before back-projection (`None`: use the mask as is).
     pub erosion: Option<Erosion>,

@@ -23,12 +23,15 @@ impl Default for IcpOptions {
 }
 
 #[derive(Debug, Clone)]
+/// Outcome of an ICP alignment.
 pub struct IcpResult {
     /// Maps source points onto the target.
     pub transform: Similarity,
     /// Mean source→target nearest distance after the final transform.
     pub mean_dist: f64,
+    /// Iterations run.
     pub iters: usize,
+    /// Whether the mean distance stopped changing (relative tolerance) before the iteration limit.
     pub converged: bool,
 }
 

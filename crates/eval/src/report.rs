@@ -42,25 +42,35 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
+/// A predictions file (format in the module docs).
 pub struct PredictionsFile {
+    /// All predictions, any order.
     pub predictions: Vec<Prediction>,
 }
 
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
+/// One predicted object in one frame: pose, scale and optional mesh.
 pub struct Prediction {
+    /// BOP scene id (e.g. `"000048"`).
     pub scene: String,
+    /// Frame (image) id within the scene.
     pub frame: u32,
+    /// BOP object id.
     pub obj_id: u32,
     #[serde(default)]
+    /// Position of the GT instance in the frame's annotation list (needed when `obj_id` repeats).
     pub gt_index: Option<usize>,
     #[serde(rename = "R")]
+    /// Rotation, row-major (JSON key `R`).
     pub r: [[f64; 3]; 3],
     /// Metres.
     pub t: [f64; 3],
     #[serde(default = "one")]
+    /// Uniform scale of the mesh (unitless, > 0, default 1).
     pub scale: f64,
     #[serde(default)]
+    /// Predicted mesh (PLY; relative to the predictions file); `None`: pose only, GT model used.
     pub mesh: Option<PathBuf>,
     /// Whether `(R, t)` maps the GT model frame (module docs).
     #[serde(default = "yes")]
@@ -110,6 +120,7 @@ pub fn read_predictions(path: &Path) -> Result<PredictionsFile> {
 }
 
 #[derive(Debug, Clone, Copy, Serialize)]
+/// Settings of an evaluation (recorded in the report).
 pub struct EvalOptions {
     /// Surface samples per mesh (GT point-cloud models use their points, up to this many).
     pub n_samples: usize,
@@ -124,6 +135,7 @@ pub struct EvalOptions {
     /// instances without a visibility annotation are left out too.
     pub occlusion: Option<[f64; 2]>,
     #[serde(skip)]
+    /// ICP settings of the aligned metrics (not serialised).
     pub icp: IcpOptions,
 }
 
@@ -280,13 +292,19 @@ impl Summary {
 }
 
 #[derive(Debug, Clone, Serialize)]
+/// An evaluation report: settings, overall and per-occlusion summaries, per-object rows.
 pub struct Report {
+    /// Dataset folder evaluated.
     pub dataset: String,
+    /// Predictions file evaluated.
     pub predictions: String,
+    /// Settings used.
     pub options: EvalOptions,
+    /// Summary over every evaluated GT instance.
     pub overall: Summary,
     /// One row per occlusion bin, then `>70%` and `unknown` rows when non-empty.
     pub by_occlusion: Vec<Summary>,
+    /// Metrics of every evaluated GT instance.
     pub objects: Vec<ObjectResult>,
 }
 
@@ -506,6 +524,7 @@ impl Report {
         Ok(())
     }
 
+    /// The report as pretty JSON (NaN written as null).
     pub fn to_json(&self) -> Result<String> {
         // NaN (empty means) is not JSON: serde_json writes it as null.
         serde_json::to_string_pretty(self).map_err(|e| Error::msg(format!("serialising report: {e}")))

@@ -31,7 +31,9 @@ const QCHUNK: usize = NR * 4;
 /// Arithmetic of the two products.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum AttnPrecision {
+    /// Both products in f32.
     F32,
+    /// Q, K, V and P rounded to bf16, products accumulated in f32.
     Bf16,
 }
 
@@ -54,6 +56,7 @@ pub struct HeadLayout {
 }
 
 impl HeadLayout {
+    /// A layout with `stride` elements between rows and head 0 at element `offset`.
     pub fn new(stride: usize, offset: usize) -> Self {
         Self { stride, offset }
     }
@@ -66,21 +69,30 @@ impl HeadLayout {
 /// Query rows `q` attend to key/value rows `kv`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Segment {
+    /// Query rows of the segment.
     pub q: Range<usize>,
+    /// Key/value rows the queries attend to.
     pub kv: Range<usize>,
 }
 
 /// Shapes and layouts of one attention call.
 #[derive(Debug, Clone, Copy)]
 pub struct AttnSpec {
+    /// Number of heads.
     pub heads: usize,
+    /// Elements per head (`d`).
     pub head_dim: usize,
     /// Multiplies the scores (usually `1/√d`).
     pub scale: f32,
+    /// Layout of the queries.
     pub q: HeadLayout,
+    /// Layout of the keys.
     pub k: HeadLayout,
+    /// Layout of the values.
     pub v: HeadLayout,
+    /// Layout of the output.
     pub out: HeadLayout,
+    /// Arithmetic of the two products.
     pub precision: AttnPrecision,
 }
 

@@ -7,6 +7,7 @@ use std::alloc::{alloc_zeroed, dealloc, Layout};
 /// heap's holes anyway, and a mapping costs a system call and whole pages.
 const MAPPED_MIN_BYTES: usize = 1 << 20;
 
+/// A 64-byte aligned, zero-initialised buffer of `T` (large long-lived ones get their own mapping).
 pub struct AlignedBuf<T: Copy> {
     ptr: *mut T,
     len: usize,
@@ -73,10 +74,12 @@ impl<T: Copy> AlignedBuf<T> {
         self.mapped > 0
     }
 
+    /// Number of elements.
     pub fn len(&self) -> usize {
         self.len
     }
 
+    /// Whether the buffer holds no elements.
     pub fn is_empty(&self) -> bool {
         self.len == 0
     }
@@ -88,10 +91,12 @@ impl<T: Copy> AlignedBuf<T> {
         }
     }
 
+    /// Pointer to the first element (64-byte aligned).
     pub fn as_ptr(&self) -> *const T {
         self.ptr
     }
 
+    /// Mutable pointer to the first element (64-byte aligned).
     pub fn as_mut_ptr(&mut self) -> *mut T {
         self.ptr
     }

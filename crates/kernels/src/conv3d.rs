@@ -27,12 +27,17 @@ const MIN_COLS: usize = 128;
 /// Shape of a stride-1 3D convolution on an NCDHW volume.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Conv3dShape {
+    /// Batch size (N).
     pub batch: usize,
+    /// Input channels.
     pub cin: usize,
+    /// Output channels.
     pub cout: usize,
     /// Input depth, height, width.
     pub d: usize,
+    /// Input height.
     pub h: usize,
+    /// Input width.
     pub w: usize,
     /// Cubic kernel size.
     pub k: usize,
@@ -46,12 +51,15 @@ impl Conv3dShape {
         let f = |n: usize| (n + 2 * self.pad + 1).checked_sub(self.k).filter(|&o| o > 0);
         Some((f(self.d)?, f(self.h)?, f(self.w)?))
     }
+    /// Elements of the NCDHW input.
     pub fn input_len(&self) -> usize {
         self.batch * self.cin * self.d * self.h * self.w
     }
+    /// Elements of the `[cout, cin, k, k, k]` weight.
     pub fn weight_len(&self) -> usize {
         self.cout * self.cin * self.k * self.k * self.k
     }
+    /// Elements of the NCDHW output (0 when the output would be empty).
     pub fn output_len(&self) -> usize {
         let (od, oh, ow) = self.out_dims().unwrap_or((0, 0, 0));
         self.batch * self.cout * od * oh * ow
@@ -236,7 +244,7 @@ fn im2col_rows(xb: &[f32], s: &Conv3dShape, (oh, ow): (usize, usize), r0: usize,
 /// chunk (64 MiB): narrow layers get more tiles per GEMM, wide ones fewer.
 const WINO_BUDGET: usize = 16 << 20;
 
-/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³) ([`winograd`] module docs):
+/// 3×3×3, pad-1 convolution by Winograd F(2³, 3³) (the `winograd` module docs):
 /// 3.4× fewer multiplies than direct, as 64 `[tiles, Cin] × [Cin, Cout]`
 /// GEMMs on recon's packed GEMM. `format` is the storage of the transformed
 /// weights (bf16: they and the transformed activations are rounded to bf16,

@@ -29,11 +29,13 @@ use rayon::prelude::*;
 pub const MR: usize = 14;
 /// Columns of the register tile (two 16-lane vectors).
 pub const NR: usize = 32;
-/// Cache blocking of [`gemm`]: rows of `C` per task (`mc`, rounded up to a
+/// Cache blocking of [`gemm()`]: rows of `C` per task (`mc`, rounded up to a
 /// multiple of `MR`) and k values per slice (`kc`, even).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Blocking {
+    /// Rows of `A` per block (a multiple of `MR`).
     pub mc: usize,
+    /// k values per slice (even).
     pub kc: usize,
 }
 
@@ -90,12 +92,16 @@ fn parse_cache_size(s: &str) -> Option<usize> {
 /// Storage format of a packed `B` operand.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum WeightFormat {
+    /// 32-bit floats.
     F32,
+    /// bfloat16 (8-bit exponent, 7-bit mantissa).
     Bf16,
+    /// IEEE half precision.
     F16,
 }
 
 impl WeightFormat {
+    /// Lower-case name (`"f32"`, `"bf16"`, `"f16"`).
     pub fn name(self) -> &'static str {
         match self {
             WeightFormat::F32 => "f32",
@@ -103,6 +109,7 @@ impl WeightFormat {
             WeightFormat::F16 => "f16",
         }
     }
+    /// Bytes per stored element.
     pub fn bytes_per_element(self) -> usize {
         match self {
             WeightFormat::F32 => 4,
@@ -130,6 +137,7 @@ pub fn f32_to_bf16(x: f32) -> u16 {
     }
 }
 #[inline(always)]
+/// Widens bf16 bits to f32 (exact).
 pub fn bf16_to_f32(b: u16) -> f32 {
     f32::from_bits((b as u32) << 16)
 }
@@ -187,10 +195,12 @@ pub(crate) fn bf16_pairs_down_column(x: &[f32], scale: f32, dst: &mut [u32], str
 }
 
 #[inline(always)]
+/// Rounds an f32 to f16 bits (round to nearest even).
 pub fn f32_to_f16(x: f32) -> u16 {
     half::f16::from_f32(x).to_bits()
 }
 #[inline(always)]
+/// Widens f16 bits to f32 (exact).
 pub fn f16_to_f32(b: u16) -> f32 {
     half::f16::from_bits(b).to_f32()
 }
@@ -345,12 +355,15 @@ impl PackedMatrix {
         Ok(Self::pack_with(k, n, format, |kk, nn| b[kk * n + nn]))
     }
 
+    /// Rows of the packed matrix (the GEMM's k).
     pub fn k(&self) -> usize {
         self.k
     }
+    /// Columns of the packed matrix (the GEMM's n).
     pub fn n(&self) -> usize {
         self.n
     }
+    /// Storage format of the packed values.
     pub fn format(&self) -> WeightFormat {
         self.format
     }
@@ -612,7 +625,7 @@ pub fn gemm(
     gemm_blocked(isa, a, m, lda, b, bias, act, c, ldc, Blocking::for_format(b.format))
 }
 
-/// [`gemm`] with explicit cache blocking (for tuning).
+/// [`gemm()`] with explicit cache blocking (for tuning).
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_blocked(
     isa: Isa,

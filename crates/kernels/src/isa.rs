@@ -21,8 +21,10 @@ pub enum Isa {
 }
 
 impl Isa {
+    /// Every family, most portable first.
     pub const ALL: [Isa; 3] = [Isa::Portable, Isa::Avx512, Isa::Avx512Bf16];
 
+    /// Lower-case name, as accepted by [`Isa::parse`].
     pub fn name(self) -> &'static str {
         match self {
             Isa::Portable => "portable",
@@ -31,6 +33,7 @@ impl Isa {
         }
     }
 
+    /// The family named `s` (case-insensitive, surrounding space ignored).
     pub fn parse(s: &str) -> Option<Isa> {
         Isa::ALL.into_iter().find(|i| i.name() == s.trim().to_ascii_lowercase())
     }

@@ -9,6 +9,7 @@
 // - needless_range_loop: register-tile loops index several accumulators with one counter;
 // - too_many_arguments: kernels take their shapes, strides and buffers explicitly.
 #![allow(clippy::needless_range_loop, clippy::too_many_arguments)]
+#![warn(missing_docs)]
 
 pub mod attention;
 pub mod buf;

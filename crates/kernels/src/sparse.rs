@@ -76,10 +76,12 @@ impl CoordHash {
         self.map.get(&pack(c)).copied()
     }
 
+    /// Number of active coordinates.
     pub fn len(&self) -> usize {
         self.map.len()
     }
 
+    /// Whether no coordinate is active.
     pub fn is_empty(&self) -> bool {
         self.map.is_empty()
     }
@@ -89,7 +91,9 @@ impl CoordHash {
 /// `(out_row, in_row)` pairs, sorted by `out_row`.
 #[derive(Debug, Clone)]
 pub struct NeighbourMap {
+    /// Cubic kernel size `k`.
     pub kernel_size: usize,
+    /// Number of active rows (input and output).
     pub num_rows: usize,
     /// `pairs[o]` for offset index `o = (i·k + j)·k + l`.
     pub pairs: Vec<Vec<(u32, u32)>>,
@@ -125,6 +129,7 @@ impl NeighbourMap {
         Ok(NeighbourMap { kernel_size, num_rows: coords.len(), pairs })
     }
 
+    /// Number of kernel offsets (`k³`).
     pub fn kernel_volume(&self) -> usize {
         self.pairs.len()
     }

@@ -12,6 +12,7 @@ use crate::isa::Isa;
 /// Element-wise function applied after a GEMM (in its epilogue).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Activation {
+    /// Identity.
     None,
     /// `0.5·x·(1 + tanh(√(2/π)(x + 0.044715x³)))` (PyTorch `approximate="tanh"`; TRELLIS MLPs).
     GeluTanh,

@@ -35,6 +35,7 @@ pub enum CollisionMethod {
 }
 
 impl CollisionMethod {
+    /// The method named `s` (`convex` or `vhacd`, `hull`, `primitive`).
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "convex" | "vhacd" => Some(Self::Convex),
@@ -52,8 +53,11 @@ pub struct VhacdOptions {
     pub resolution: u32,
     /// Maximum concavity of a part (relative to the mesh size).
     pub concavity: f32,
+    /// Most convex parts.
     pub max_convex_hulls: u32,
+    /// Plane downsampling of the split search (VHACD).
     pub plane_downsampling: u32,
+    /// Downsampling of the hull computation during the search (VHACD).
     pub convex_hull_downsampling: u32,
     /// Bias toward clipping along symmetry planes.
     pub alpha: f32,

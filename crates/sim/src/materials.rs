@@ -28,12 +28,18 @@ pub struct Material {
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+/// The material table (`models/materials.json`): materials and the category → material map.
 pub struct MaterialTable {
+    /// File format version (1).
     pub version: u32,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    /// Free-text notes (sources of the values).
     pub notes: Vec<String>,
+    /// Material of objects whose category is not in the table.
     pub default_material: String,
+    /// Material of the support plane.
     pub support_plane_material: String,
+    /// Materials by name.
     pub materials: BTreeMap<String, Material>,
     /// Category → material name.
     pub categories: BTreeMap<String, String>,
@@ -72,12 +78,14 @@ pub fn check_rgba(c: [f64; 4], file: &str, field: &str) -> Result<()> {
 }
 
 impl MaterialTable {
+    /// Reads and validates a table from a JSON file.
     pub fn load(path: &Path) -> Result<Self> {
         let t: MaterialTable = recon_core::util::json::read_json(path)?;
         t.validate(&path.display().to_string())?;
         Ok(t)
     }
 
+    /// Parses and validates a table from JSON text; `file` names it in errors.
     pub fn from_json_str(s: &str, file: &str) -> Result<Self> {
         let t: MaterialTable = serde_json::from_str(s).map_err(|e| Error::config(file, "<root>", e.to_string()))?;
         t.validate(file)?;
@@ -90,6 +98,7 @@ impl MaterialTable {
             .expect("the shipped material table is valid (tested)")
     }
 
+    /// Checks the version, the values' ranges and that every named material exists.
     pub fn validate(&self, file: &str) -> Result<()> {
         if self.version != 1 {
             return Err(Error::config(file, "version", format!("unsupported version {} (this build reads version 1)", self.version)));
@@ -118,6 +127,7 @@ impl MaterialTable {
         self.materials.keys().cloned().collect::<Vec<_>>().join(", ")
     }
 
+    /// The material named `name`.
     pub fn get(&self, name: &str) -> Option<&Material> {
         self.materials.get(name)
     }

@@ -16,8 +16,11 @@ use std::path::PathBuf;
 /// Everything `recon scene` can be told.
 #[derive(Debug, Clone)]
 pub struct SceneOptions {
+    /// How collision geometry is built.
     pub collision: CollisionMethod,
+    /// Parameters of the collision builders (VHACD, primitive fits).
     pub collision_opts: CollisionOptions,
+    /// Settling parameters.
     pub settle: SettleOptions,
 }
 
@@ -30,8 +33,11 @@ impl Default for SceneOptions {
 /// Friction and restitution of the support plane.
 #[derive(Debug, Clone, Serialize)]
 pub struct PlaneMaterial {
+    /// Material name.
     pub material: String,
+    /// Coulomb friction coefficient.
     pub friction: f64,
+    /// Restitution coefficient.
     pub restitution: f64,
 }
 
@@ -39,27 +45,41 @@ pub struct PlaneMaterial {
 /// the centre of mass, axes of the mesh file (scaled to metres).
 #[derive(Debug, Clone)]
 pub struct SimObject {
+    /// Object name (from the scene file).
     pub name: String,
     /// File and prim name.
     pub id: String,
+    /// Category (selects the default material).
     pub category: String,
+    /// Material name.
     pub material: String,
+    /// Where the material came from (explicit, category or default).
     pub material_source: MaterialSource,
+    /// Coulomb friction coefficient.
     pub friction: f64,
+    /// Restitution coefficient.
     pub restitution: f64,
     /// Display colour (linear RGBA): the object's own, else its material's.
     pub color_rgba: Option<[f32; 4]>,
+    /// The mesh file it was loaded from.
     pub mesh_file: PathBuf,
+    /// Visual mesh in the body frame (metres).
     pub visual: Mesh,
+    /// Mesh checks (closed, oriented, ...) and the treatment chosen.
     pub mesh_report: MeshReport,
     /// `com` is in the scaled mesh file frame; the inertia is about it.
     pub inertial: Inertial,
+    /// Collision geometry in the body frame.
     pub collision: Collision,
+    /// Body → world before settling.
     pub start: Similarity32,
+    /// Body → world after settling.
     pub end: Similarity32,
+    /// Settling outcome of the body (motion, contacts, flags).
     pub settle: BodySettle,
     /// Lowest visual-mesh point above the plane after settling (metres).
     pub bottom_z_m: f64,
+    /// The object's entry in the input scene file.
     pub spec: ObjectSpec,
 }
 
@@ -87,19 +107,30 @@ pub fn principal(i: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 #[derive(Debug, Clone, Serialize, Default)]
+/// Wall-clock time of each phase of `recon scene`, in seconds.
 pub struct Timings {
+    /// Physics annotation and collision geometry.
     pub annotate_and_collision_s: f64,
+    /// Settling.
     pub settle_s: f64,
+    /// Writing the outputs.
     pub export_s: f64,
 }
 
 #[derive(Debug, Clone)]
+/// A built, settled scene: what [`crate::write_outputs`] writes.
 pub struct SimScene {
+    /// The scene file it was built from.
     pub input: SceneFile,
+    /// The support plane's material.
     pub plane: PlaneMaterial,
+    /// The objects, in input order.
     pub objects: Vec<SimObject>,
+    /// Outcome of the settle.
     pub settle: SettleResult,
+    /// Options it was built with.
     pub options: SceneOptions,
+    /// Wall-clock times of the phases.
     pub timings: Timings,
 }
 
@@ -254,35 +285,55 @@ pub(crate) fn prepare_mesh(
 /// Per-object summary row (also the displacement table printed by the CLI).
 #[derive(Debug, Clone, Serialize)]
 pub struct ObjectSummary<'a> {
+    /// Object name.
     pub name: &'a str,
+    /// Category.
     pub category: &'a str,
+    /// Material name.
     pub material: &'a str,
+    /// Where the material came from.
     pub material_source: MaterialSource,
+    /// Mesh file, as written.
     pub mesh: String,
+    /// Mesh checks.
     pub mesh_check: &'a MeshReport,
+    /// Mass, centre of mass and inertia.
     pub physics: &'a Inertial,
+    /// Coulomb friction coefficient.
     pub friction: f64,
+    /// Restitution coefficient.
     pub restitution: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
+    /// Display colour (linear RGBA), if any.
     pub color_rgba: Option<[f32; 4]>,
+    /// How the collision geometry was built and what it is.
     pub collision: &'a crate::collision::CollisionReport,
+    /// Pose before settling.
     pub start_pose: PoseSpec,
+    /// Pose after settling.
     pub settled_pose: PoseSpec,
     /// Deepest overlap at the start pose (with the plane or another object), and what with.
     pub start_penetration_mm: f64,
+    /// What the deepest start overlap was with (`None`: no overlap).
     pub start_penetration_with: Option<&'a str>,
     /// Deepest overlap left after settling.
     pub end_penetration_mm: f64,
+    /// Translation of the body origin (centre of mass) during settling (mm).
     pub displacement_mm: f64,
+    /// Rotation during settling (degrees).
     pub rotation_deg: f64,
     /// Lowest mesh point above the plane after settling.
     pub bottom_above_plane_mm: f64,
+    /// Bodies (or "plane") in contact after settling.
     pub touching: &'a [String],
+    /// Whether settling raised a concern (large motion, overlap left, still moving).
     pub flagged: bool,
+    /// Why it was flagged.
     pub flag_reasons: &'a [String],
 }
 
 impl SimScene {
+    /// One summary row per object, in input order.
     pub fn summaries(&self) -> Vec<ObjectSummary<'_>> {
         self.objects
             .iter()

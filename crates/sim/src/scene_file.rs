@@ -194,15 +194,20 @@ pub struct ObjectSpec {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+/// A scene description file (module docs).
 pub struct SceneFile {
+    /// File format version (1).
     pub version: u32,
     /// Free text: where the scene came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// The camera, if known (frames the directional predicates and the outputs).
     pub camera: Option<CameraSpec>,
     #[serde(default)]
+    /// The support plane (material; z = 0 in the world frame).
     pub support_plane: SupportPlaneSpec,
+    /// The objects.
     pub objects: Vec<ObjectSpec>,
 }
 
@@ -352,6 +357,7 @@ impl SceneFile {
         Ok(())
     }
 
+    /// The scene file as pretty JSON.
     pub fn to_json(&self) -> Result<String> {
         serde_json::to_string_pretty(self).map_err(|e| Error::msg(format!("scene file: {e}")))
     }

@@ -88,14 +88,19 @@ impl SettleOptions {
 /// One rigid body: frame origin at its centre of mass.
 #[derive(Debug, Clone)]
 pub struct Body {
+    /// Body name (for reports).
     pub name: String,
     /// Body frame → world at the start (scale 1).
     pub pose: Similarity32,
+    /// Mass in kilograms.
     pub mass_kg: f64,
     /// About the body origin, body axes.
     pub inertia: [[f64; 3]; 3],
+    /// Coulomb friction coefficient.
     pub friction: f64,
+    /// Restitution coefficient.
     pub restitution: f64,
+    /// Collision parts in the body frame.
     pub parts: Vec<Part>,
 }
 
@@ -313,6 +318,42 @@ pub fn rotation_angle_deg(a: &[[f32; 3]; 3], b: &[[f32; 3]; 3]) -> f64 {
 /// Run the settling simulation; `plane_friction`/`plane_restitution` for z = 0.
 pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts: &SettleOptions) -> Result<SettleResult> {
     opts.validate()?;
+    let (mut world, handles, owner) = build_world(bodies, plane_friction, plane_restitution, opts)?;
+    let start_pen = penetrations(&world, &owner, bodies, &handles);
+    let depen_steps =
+        if start_pen.iter().any(|(p, _)| *p > opts.depenetrated_m) { depenetrate(&mut world, &owner, bodies, &handles, opts) } else { 0 };
+    let run = run_to_rest(&mut world, &handles, depen_steps, opts);
+    // Collider poses follow their bodies at the next step; refresh them so the
+    // end-state overlap query sees the settled poses.
+    world.integration_parameters.dt = 0.0;
+    world.step();
+    let end_pen = penetrations(&world, &owner, bodies, &handles);
+    let mut out = Vec::new();
+    for (((b, h), start), (end_pen, _)) in bodies.iter().zip(&handles).zip(start_pen).zip(end_pen) {
+        let k = out.len();
+        out.push(body_outcome(&world, &owner, b, *h, k, start, end_pen, &run, opts));
+    }
+    let steps = run.steps;
+    Ok(SettleResult {
+        simulated_s: steps as f64 * opts.dt_s,
+        depenetration_s: depen_steps as f64 * opts.dt_s,
+        steps,
+        at_rest: run.at_rest,
+        bodies: out,
+    })
+}
+
+/// Collider → name of the body owning it (`PLANE` for the ground).
+type Owners = std::collections::HashMap<ColliderHandle, String>;
+
+/// The world with its solver settings, the ground and every body with its
+/// colliders; body handles in input order.
+fn build_world(
+    bodies: &[Body],
+    plane_friction: f64,
+    plane_restitution: f64,
+    opts: &SettleOptions,
+) -> Result<(PhysicsWorld, Vec<RigidBodyHandle>, Owners)> {
     let mut world = PhysicsWorld::new();
     world.gravity = Vector::new(0.0, 0.0, -9.81);
     let ip = &mut world.integration_parameters;
@@ -338,88 +379,103 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
         None,
     );
     let mut handles = Vec::new();
-    let mut owner = std::collections::HashMap::new();
+    let mut owner = Owners::new();
     owner.insert(ground, PLANE.to_string());
     for b in bodies {
-        let i = b.inertia.map(|r| r.map(|x| x as f32));
-        let inertia = parry3d::math::Mat3::from_cols_array_2d(&[
-            [i[0][0], i[1][0], i[2][0]],
-            [i[0][1], i[1][1], i[2][1]],
-            [i[0][2], i[1][2], i[2][2]],
-        ]);
-        let mp = MassProperties::with_inertia_matrix(Vector::ZERO, b.mass_kg as f32, inertia);
-        let h = world.insert_body(
-            RigidBodyBuilder::dynamic()
-                .pose(to_pose(&b.pose))
-                .additional_mass_properties(mp)
-                .angular_damping(opts.angular_damping as f32)
-                .can_sleep(false),
-        );
-        for p in &b.parts {
-            let degenerate = || Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name));
-            let mut builders = vec![];
-            match p {
-                Part::Hull(m) => {
-                    builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT)));
-                    let v: Vec<Vector> = m.vertices.iter().map(|v| Vector::new(v[0], v[1], v[2])).collect();
-                    let foot = ColliderBuilder::trimesh(v, m.faces.clone()).map_err(|_| degenerate())?;
-                    builders.push(foot.collision_groups(groups(FOOT, GROUND)));
-                }
-                Part::Primitive(_) => {
-                    builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT.union(GROUND))))
-                }
+        handles.push(insert_body(&mut world, &mut owner, b, opts)?);
+    }
+    Ok((world, handles, owner))
+}
+
+/// One dynamic body with its mass properties and its parts' colliders.
+fn insert_body(world: &mut PhysicsWorld, owner: &mut Owners, b: &Body, opts: &SettleOptions) -> Result<RigidBodyHandle> {
+    let i = b.inertia.map(|r| r.map(|x| x as f32));
+    let inertia =
+        parry3d::math::Mat3::from_cols_array_2d(&[[i[0][0], i[1][0], i[2][0]], [i[0][1], i[1][1], i[2][1]], [i[0][2], i[1][2], i[2][2]]]);
+    let mp = MassProperties::with_inertia_matrix(Vector::ZERO, b.mass_kg as f32, inertia);
+    let h = world.insert_body(
+        RigidBodyBuilder::dynamic()
+            .pose(to_pose(&b.pose))
+            .additional_mass_properties(mp)
+            .angular_damping(opts.angular_damping as f32)
+            .can_sleep(false),
+    );
+    for p in &b.parts {
+        let degenerate = || Error::msg(format!("{}: a collision part is degenerate (no convex hull)", b.name));
+        let mut builders = vec![];
+        match p {
+            Part::Hull(m) => {
+                builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT)));
+                let v: Vec<Vector> = m.vertices.iter().map(|v| Vector::new(v[0], v[1], v[2])).collect();
+                let foot = ColliderBuilder::trimesh(v, m.faces.clone()).map_err(|_| degenerate())?;
+                builders.push(foot.collision_groups(groups(FOOT, GROUND)));
             }
-            for c in builders {
-                let ch = world.insert_collider(c.density(0.0).friction(b.friction as f32).restitution(b.restitution as f32), Some(h));
-                owner.insert(ch, b.name.clone());
+            Part::Primitive(_) => {
+                builders.push(part_collider(p).ok_or_else(degenerate)?.collision_groups(groups(OBJECT, OBJECT.union(GROUND))))
             }
         }
-        handles.push(h);
+        for c in builders {
+            let ch = world.insert_collider(c.density(0.0).friction(b.friction as f32).restitution(b.restitution as f32), Some(h));
+            owner.insert(ch, b.name.clone());
+        }
     }
-    let start_pen = penetrations(&world, &owner, bodies, &handles);
-    // Depenetration: overlaps are pushed apart at the bounded corrective speed
-    // while every velocity is cleared after each step, so the push moves objects
-    // without giving them momentum (a sphere pushed out of the table would
-    // otherwise keep rolling: nothing on a flat plane stops it).
+    Ok(h)
+}
+
+/// Depenetration: overlaps are pushed apart at the bounded corrective speed
+/// while every velocity is cleared after each step, so the push moves objects
+/// without giving them momentum (a sphere pushed out of the table would
+/// otherwise keep rolling: nothing on a flat plane stops it). Returns the steps taken.
+fn depenetrate(world: &mut PhysicsWorld, owner: &Owners, bodies: &[Body], handles: &[RigidBodyHandle], opts: &SettleOptions) -> usize {
     let mut depen_steps = 0;
-    if start_pen.iter().any(|(p, _)| *p > opts.depenetrated_m) {
-        let max_steps = (opts.max_depenetration_s / opts.dt_s).ceil() as usize;
-        let check_every = (0.025 / opts.dt_s).ceil().max(1.0) as usize;
-        // Translations only: the reconstructed orientations are kept (an
-        // off-centre push would otherwise tip a sphere off its resting facet).
-        for h in &handles {
-            if let Some(b) = world.bodies.get_mut(*h) {
-                b.lock_rotations(true, true);
-            }
-        }
-        while depen_steps < max_steps {
-            world.step();
-            depen_steps += 1;
-            for h in &handles {
-                if let Some(b) = world.bodies.get_mut(*h) {
-                    b.set_linvel(Vector::ZERO, true);
-                    b.set_angvel(Vector::ZERO, true);
-                }
-            }
-            if depen_steps % check_every == 0
-                && penetrations(&world, &owner, bodies, &handles).iter().all(|(p, _)| *p <= opts.depenetrated_m)
-            {
-                break;
-            }
-        }
-        for h in &handles {
-            if let Some(b) = world.bodies.get_mut(*h) {
-                b.lock_rotations(false, true);
-            }
+    let max_steps = (opts.max_depenetration_s / opts.dt_s).ceil() as usize;
+    let check_every = (0.025 / opts.dt_s).ceil().max(1.0) as usize;
+    // Translations only: the reconstructed orientations are kept (an
+    // off-centre push would otherwise tip a sphere off its resting facet).
+    for h in handles {
+        if let Some(b) = world.bodies.get_mut(*h) {
+            b.lock_rotations(true, true);
         }
     }
+    while depen_steps < max_steps {
+        world.step();
+        depen_steps += 1;
+        for h in handles {
+            if let Some(b) = world.bodies.get_mut(*h) {
+                b.set_linvel(Vector::ZERO, true);
+                b.set_angvel(Vector::ZERO, true);
+            }
+        }
+        if depen_steps % check_every == 0 && penetrations(world, owner, bodies, handles).iter().all(|(p, _)| *p <= opts.depenetrated_m) {
+            break;
+        }
+    }
+    for h in handles {
+        if let Some(b) = world.bodies.get_mut(*h) {
+            b.lock_rotations(false, true);
+        }
+    }
+    depen_steps
+}
+
+/// How the dynamic settle ended.
+struct RestRun {
+    /// Steps taken in all, depenetration included.
+    steps: usize,
+    at_rest: bool,
+    /// Body poses over the last rest window, for the position-based rest bound.
+    recent: std::collections::VecDeque<Vec<Pose>>,
+}
+
+/// The dynamic settle: steps until every body has been still for the rest
+/// duration (and at least 0.1 s has passed) or the time limit is reached.
+fn run_to_rest(world: &mut PhysicsWorld, handles: &[RigidBodyHandle], depen_steps: usize, opts: &SettleOptions) -> RestRun {
     let steps_max = (opts.max_time_s / opts.dt_s).ceil() as usize + depen_steps;
     let rest_steps = (opts.rest_duration_s / opts.dt_s).ceil() as usize;
     let min_steps = (0.1 / opts.dt_s).ceil() as usize;
     let mut calm = 0;
     let mut steps = depen_steps;
     let mut at_rest = false;
-    // Poses over the last rest window, for the position-based rest bound.
     let mut recent: std::collections::VecDeque<Vec<Pose>> = std::collections::VecDeque::with_capacity(rest_steps + 1);
     while steps < steps_max {
         world.step();
@@ -438,75 +494,89 @@ pub fn settle(bodies: &[Body], plane_friction: f64, plane_restitution: f64, opts
             break;
         }
     }
-    // Collider poses follow their bodies at the next step; refresh them so the
-    // end-state overlap query sees the settled poses.
-    world.integration_parameters.dt = 0.0;
-    world.step();
-    let end_pen = penetrations(&world, &owner, bodies, &handles);
-    let mut out = Vec::new();
-    for (((b, h), (pen, pen_with)), (end_pen, _)) in bodies.iter().zip(&handles).zip(start_pen).zip(end_pen) {
-        let rb = &world.bodies[*h];
-        let end = from_pose(rb.position());
-        let d = (0..3).map(|k| ((end.translation[k] - b.pose.translation[k]) as f64).powi(2)).sum::<f64>().sqrt();
-        let rot = rotation_angle_deg(&b.pose.rotation, &end.rotation);
-        let mut touching: Vec<String> = Vec::new();
-        for ch in rb.colliders() {
-            for pair in world.narrow_phase.contact_pairs_with(*ch) {
-                if !pair.has_any_active_contact() {
-                    continue;
-                }
-                let other = if pair.collider1 == *ch { pair.collider2 } else { pair.collider1 };
-                if let Some(name) = owner.get(&other).filter(|n| **n != b.name) {
-                    if !touching.contains(name) {
-                        touching.push(name.clone());
-                    }
+    RestRun { steps, at_rest, recent }
+}
+
+/// Names of the bodies (or the plane) in active contact with body `rb`, sorted.
+fn touching(world: &PhysicsWorld, owner: &Owners, rb: &RigidBody, name: &str) -> Vec<String> {
+    let mut touching: Vec<String> = Vec::new();
+    for ch in rb.colliders() {
+        for pair in world.narrow_phase.contact_pairs_with(*ch) {
+            if !pair.has_any_active_contact() {
+                continue;
+            }
+            let other = if pair.collider1 == *ch { pair.collider2 } else { pair.collider1 };
+            if let Some(other) = owner.get(&other).filter(|n| **n != name) {
+                if !touching.contains(other) {
+                    touching.push(other.clone());
                 }
             }
         }
-        touching.sort();
-        let reach = b
-            .parts
-            .iter()
-            .flat_map(|p| p.surface_mesh().vertices)
-            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
-            .fold(0.0f32, f32::max);
-        let k = out.len();
-        let rest_motion = recent
-            .iter()
-            .map(|poses| {
-                let p = from_pose(&poses[k]);
-                let dt = (0..3).map(|a| ((p.translation[a] - end.translation[a]) as f64).powi(2)).sum::<f64>().sqrt();
-                dt + rotation_angle_deg(&p.rotation, &end.rotation).to_radians() * reach as f64
-            })
-            .fold(0.0, f64::max);
-        let speed = rb.linvel().length() as f64;
-        let mut reasons = Vec::new();
-        if d > opts.flag_displacement_m {
-            reasons.push(format!("moved {:.1} mm (> {:.1} mm)", d * 1e3, opts.flag_displacement_m * 1e3));
-        }
-        if rot > opts.flag_rotation_deg {
-            reasons.push(format!("rotated {rot:.1}° (> {:.1}°)", opts.flag_rotation_deg));
-        }
-        if !at_rest && speed >= opts.rest_linear_m_s {
-            reasons.push(format!("still moving at {:.1} mm/s when the time limit was reached", speed * 1e3));
-        }
-        out.push(BodySettle {
-            name: b.name.clone(),
-            rotation: end.rotation,
-            translation_m: end.translation,
-            start_penetration_m: pen,
-            start_penetration_with: pen_with,
-            end_penetration_m: end_pen,
-            displacement_m: d,
-            rotation_deg: rot,
-            final_speed_m_s: speed,
-            touching,
-            flagged: !reasons.is_empty(),
-            flag_reasons: reasons,
-            rest_motion_m: rest_motion,
-        });
     }
-    Ok(SettleResult { simulated_s: steps as f64 * opts.dt_s, depenetration_s: depen_steps as f64 * opts.dt_s, steps, at_rest, bodies: out })
+    touching.sort();
+    touching
+}
+
+/// The settled state of body `b` (index `k`, handle `h`): its motion, contacts,
+/// overlaps (`start`: deepest at the start pose and with what) and flags.
+fn body_outcome(
+    world: &PhysicsWorld,
+    owner: &Owners,
+    b: &Body,
+    h: RigidBodyHandle,
+    k: usize,
+    start: (f64, Option<String>),
+    end_pen: f64,
+    run: &RestRun,
+    opts: &SettleOptions,
+) -> BodySettle {
+    let (pen, pen_with) = start;
+    let rb = &world.bodies[h];
+    let end = from_pose(rb.position());
+    let d = (0..3).map(|k| ((end.translation[k] - b.pose.translation[k]) as f64).powi(2)).sum::<f64>().sqrt();
+    let rot = rotation_angle_deg(&b.pose.rotation, &end.rotation);
+    let touching = touching(world, owner, rb, &b.name);
+    let reach = b
+        .parts
+        .iter()
+        .flat_map(|p| p.surface_mesh().vertices)
+        .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+        .fold(0.0f32, f32::max);
+    let rest_motion = run
+        .recent
+        .iter()
+        .map(|poses| {
+            let p = from_pose(&poses[k]);
+            let dt = (0..3).map(|a| ((p.translation[a] - end.translation[a]) as f64).powi(2)).sum::<f64>().sqrt();
+            dt + rotation_angle_deg(&p.rotation, &end.rotation).to_radians() * reach as f64
+        })
+        .fold(0.0, f64::max);
+    let speed = rb.linvel().length() as f64;
+    let mut reasons = Vec::new();
+    if d > opts.flag_displacement_m {
+        reasons.push(format!("moved {:.1} mm (> {:.1} mm)", d * 1e3, opts.flag_displacement_m * 1e3));
+    }
+    if rot > opts.flag_rotation_deg {
+        reasons.push(format!("rotated {rot:.1}° (> {:.1}°)", opts.flag_rotation_deg));
+    }
+    if !run.at_rest && speed >= opts.rest_linear_m_s {
+        reasons.push(format!("still moving at {:.1} mm/s when the time limit was reached", speed * 1e3));
+    }
+    BodySettle {
+        name: b.name.clone(),
+        rotation: end.rotation,
+        translation_m: end.translation,
+        start_penetration_m: pen,
+        start_penetration_with: pen_with,
+        end_penetration_m: end_pen,
+        displacement_m: d,
+        rotation_deg: rot,
+        final_speed_m_s: speed,
+        touching,
+        flagged: !reasons.is_empty(),
+        flag_reasons: reasons,
+        rest_motion_m: rest_motion,
+    }
 }
 
 #[cfg(test)]

@@ -14,11 +14,17 @@ pub const MARKER: &str = "recon-scene.json";
 /// Paths of what [`write_outputs`] wrote, relative to the output folder.
 #[derive(Debug, Clone, Serialize)]
 pub struct Written {
+    /// The scene file (`scene.json`).
     pub scene_json: &'static str,
+    /// The URDF world.
     pub urdf_scene: &'static str,
+    /// One URDF per object.
     pub urdf_objects: Vec<String>,
+    /// The MJCF (MuJoCo) scene.
     pub mjcf: &'static str,
+    /// The USD scene.
     pub usd: &'static str,
+    /// The GLB of the settled scene.
     pub glb: &'static str,
     /// Absent for outputs written without wall-clock timings.
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -10,6 +10,7 @@
 
 // Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+#![warn(missing_docs)]
 
 pub(crate) mod bop_writer;
 pub mod objects;
@@ -37,14 +38,21 @@ pub const MARKER: &str = "recon-synth.json";
 pub const SPLIT: &str = "test";
 
 #[derive(Clone, Debug)]
+/// Settings of a `recon synth` run.
 pub struct SynthOptions {
+    /// Number of scenes.
     pub scenes: usize,
+    /// Camera views per scene.
     pub views: usize,
+    /// Seed of the whole dataset (scene `i` derives its own from it).
     pub seed: u64,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
     /// Write composite objects as their rigid parts (one model and GT instance each).
     pub parts: bool,
+    /// Depth sensor model applied to the rendered depth.
     pub sensor: SensorModel,
 }
 
@@ -56,6 +64,7 @@ impl Default for SynthOptions {
 }
 
 impl SynthOptions {
+    /// Checks the ranges (scenes, views, image size, sensor); the error names the CLI flag.
     pub fn validate(&self) -> Result<()> {
         let bad = |field: &str, msg: String| Err(Error::config("recon synth", field, msg));
         if self.scenes == 0 || self.scenes > 1_000_000 {
@@ -74,10 +83,13 @@ impl SynthOptions {
 /// What a run produced (also stored in `recon-synth.json`).
 #[derive(Serialize, Clone, Debug, Default)]
 pub struct Summary {
+    /// Scenes written.
     pub scenes: usize,
+    /// Images written (scenes × views).
     pub images: usize,
     /// GT instances over all images (objects, or parts in parts mode).
     pub instances: usize,
+    /// Object models written.
     pub models: usize,
     /// Objects per kind over all scenes.
     pub objects_by_kind: BTreeMap<String, usize>,
@@ -176,16 +188,21 @@ pub fn write_shard(staging: &Path, opts: &SynthOptions, range: std::ops::Range<u
 /// one ulp), so a split run's files are bit-identical to a single run's.
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct Shard {
+    /// Index of the shard's first scene.
     pub first_scene: usize,
+    /// The shard's scenes, in order.
     pub scenes: Vec<ShardScene>,
 }
 
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
+/// What one scene of a shard contributes.
 pub struct ShardScene {
     /// `(obj_id, models_info entry)`; serialised with every float as its bit pattern.
     #[serde(with = "exact_floats")]
     pub models_info: Vec<(u32, Value)>,
+    /// GT instances over the scene's images.
     pub instances: usize,
+    /// Depth pixels beyond the 16-bit range, written as missing.
     pub clipped: usize,
     /// `f64::to_bits` of each view's target occlusion.
     pub target_occlusion_bits: Vec<u64>,

@@ -21,19 +21,30 @@ use std::f64::consts::{FRAC_PI_2, PI};
 
 #[derive(Serialize, Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[serde(rename_all = "snake_case")]
+/// Procedural object kinds.
 pub enum Kind {
+    /// A rectangular box.
     Box,
+    /// A closed cylinder (a can).
     Cylinder,
+    /// A bottle: body and cap.
     Bottle,
+    /// An open bowl.
     Bowl,
+    /// A mug: body and handle.
     Mug,
+    /// A sphere.
     Sphere,
+    /// A torus.
     Torus,
+    /// An L-shaped solid.
     LShape,
 }
 
 impl Kind {
+    /// Every kind, in declaration order.
     pub const ALL: [Kind; 8] = [Kind::Box, Kind::Cylinder, Kind::Bottle, Kind::Bowl, Kind::Mug, Kind::Sphere, Kind::Torus, Kind::LShape];
+    /// Snake-case name (as serialised).
     pub fn name(self) -> &'static str {
         match self {
             Kind::Box => "box",
@@ -55,7 +66,10 @@ pub enum Shell {
     /// A closed solid.
     Solid,
     /// An open container with walls of this thickness (the mesh is closed).
-    Walled { wall_thickness_m: f64 },
+    Walled {
+        /// Wall thickness in metres.
+        wall_thickness_m: f64,
+    },
 }
 
 /// Geometric symmetries in the canonical frame (BOP `models_info.json` style).
@@ -71,18 +85,26 @@ pub struct Symmetry {
 /// object frame (`X_object = R · X_part + t`).
 #[derive(Clone, Debug)]
 pub struct Part {
+    /// Part name (e.g. `body`, `handle`).
     pub name: &'static str,
+    /// Closed mesh in the part's canonical frame (metres).
     pub mesh: Mesh,
+    /// Part → object frame.
     pub pose: Similarity,
+    /// Symmetries of the part alone.
     pub symmetry: Symmetry,
 }
 
 #[derive(Clone, Debug)]
+/// A procedural object: its rigid parts, shell and symmetries.
 pub struct Object {
+    /// What kind of object.
     pub kind: Kind,
+    /// Solid or walled container.
     pub shell: Shell,
     /// One part for primitives; body + handle (mug), body + cap (bottle).
     pub parts: Vec<Part>,
+    /// Symmetries of the whole object.
     pub symmetry: Symmetry,
     /// The randomised dimensions (metres), for the record.
     pub dims: Vec<(&'static str, f64)>,

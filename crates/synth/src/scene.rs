@@ -21,12 +21,17 @@ use recon_core::Result;
 use std::f64::consts::{PI, TAU};
 
 #[derive(Clone, Debug)]
+/// Settings of scene generation.
 pub struct SceneConfig {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Camera views per scene.
     pub views: usize,
     /// Distractor count range (inclusive).
     pub min_distractors: usize,
+    /// Most distractors (inclusive).
     pub max_distractors: usize,
     /// Upper end of the target occlusion goal of the first view.
     pub max_occlusion: f64,
@@ -55,17 +60,23 @@ pub struct View {
 }
 
 #[derive(Clone, Debug)]
+/// A generated scene: objects on a table, views, and the occlusion aimed at.
 pub struct Scene {
+    /// Seed the scene was generated from.
     pub seed: u64,
     /// Index 0 is the target.
     pub objects: Vec<Placed>,
     /// The table: a thin slab whose top face is z = 0.
     pub support: Mesh,
+    /// Support slab → world.
     pub support_pose: Similarity,
+    /// Appearance of the table.
     pub support_material: Material,
+    /// Camera and light of each view.
     pub views: Vec<View>,
     /// Target occlusion aimed at in view 0, and what the low-resolution trial achieved.
     pub occlusion_goal: f64,
+    /// Target occlusion the low-resolution trial achieved.
     pub occlusion_trial: f64,
 }
 

@@ -22,8 +22,11 @@ use recon_core::dataset::masks::load_binary_mask;
 use recon_core::{Error, Result};
 
 #[derive(Debug, Clone)]
+/// Which annotated instances of a BOP folder become samples.
 pub struct BopOptions {
+    /// Smallest visible fraction of an instance (when annotated).
     pub min_visib_fract: f64,
+    /// Give each sample a second view (the next frame of the scene showing the object once).
     pub second_view: bool,
 }
 
@@ -39,6 +42,7 @@ struct InstanceRef {
     gt: usize,
 }
 
+/// Training data read from a BOP-format folder (module docs).
 pub struct BopSource {
     root: PathBuf,
     ds: Dataset,

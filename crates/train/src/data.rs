@@ -66,9 +66,13 @@ pub struct ObjectSample {
 pub trait TrainingSource: Sync {
     /// One line naming the data (for logs and the run record).
     fn describe(&self) -> String;
+    /// Number of object models.
     fn num_models(&self) -> usize;
+    /// Model `i`: its key, mesh and (when known) vertex colours.
     fn model(&self, i: usize) -> Result<ModelEntry>;
+    /// Number of samples.
     fn num_samples(&self) -> usize;
+    /// Sample `i`: an object and one or two views of it.
     fn sample(&self, i: usize) -> Result<ObjectSample>;
 }
 
@@ -123,6 +127,7 @@ pub struct TrainView {
     pub pose: Pose,
 }
 
+/// Turns one view into model inputs (crop of `size` pixels with `context`) and its pose target.
 pub fn prepare_train_view(view: &ObjectView, canon: &CanonicalFrame, size: usize, context: f64) -> Result<TrainView> {
     let p = prepare_object_with(&view.frame, &view.mask, size, &train_prepare_options(context), &Device::Cpu)?;
     let pose = pose_to_normalised(&camera_pose(view, canon), &p.normaliser);

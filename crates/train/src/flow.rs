@@ -25,9 +25,11 @@ use recon_core::{Error, Result};
 /// Flow-matching hyper-parameters (upstream defaults in [`Default`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FlowMatching {
+    /// Smallest noise scale σ_min of the interpolation path.
     pub sigma_min: f64,
     /// Logit-normal time distribution.
     pub t_mean: f64,
+    /// Standard deviation of the logit-normal time distribution.
     pub t_std: f64,
     /// Probability of dropping the condition (CFG training).
     pub p_uncond: f64,

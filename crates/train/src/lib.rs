@@ -28,6 +28,7 @@
 
 // Clippy lints allowed crate-wide, for the reasons given in recon-core's lib.rs.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord, clippy::too_many_arguments, clippy::type_complexity)]
+#![warn(missing_docs)]
 
 pub(crate) mod bop;
 pub(crate) mod data;

@@ -40,6 +40,7 @@ pub struct BatchLoss {
 pub trait Objective {
     /// `ss-vae` or `ss-flow`.
     fn name(&self) -> &'static str;
+    /// Parameters the optimiser updates.
     fn trainable(&self) -> &[ModuleParams];
     /// Loss of one random batch of `batch` samples drawn from `rng`.
     fn loss(&self, rng: &mut SeededRng, batch: usize) -> Result<BatchLoss>;
@@ -73,7 +74,9 @@ pub struct VaeObjective {
     decoder: SparseStructureDecoder,
     /// Occupancy per model `[1, r, r, r]`.
     occupancy: Vec<Tensor>,
+    /// Reconstruction loss of the decoded occupancy.
     pub recon: ReconLoss,
+    /// Weight of the KL term.
     pub lambda_kl: f64,
 }
 
@@ -143,6 +146,7 @@ pub struct FlowObjective<'a> {
     /// Frozen-encoder latent mean per model `[C, R, R, R]`.
     latents: Vec<Tensor>,
     stats: PoseStats,
+    /// Flow-matching hyper-parameters.
     pub fm: FlowMatching,
     /// Crop context factor range (inference uses 1.2).
     pub context: [f64; 2],

@@ -15,6 +15,7 @@ use recon_core::{Error, Result};
 
 /// AdamW over a fixed, ordered list of named variables.
 pub struct AdamW {
+    /// Learning rate, betas, epsilon and weight decay.
     pub params: ParamsAdamW,
     /// Steps taken (bias correction uses it).
     pub step_t: usize,
@@ -22,6 +23,7 @@ pub struct AdamW {
 }
 
 impl AdamW {
+    /// An optimiser over `vars` (in this order), with zeroed moments.
     pub fn new(vars: &[(String, Var)], params: ParamsAdamW) -> Result<Self> {
         let vars = vars
             .iter()

@@ -29,7 +29,9 @@ pub enum Init {
 pub struct ModuleParams {
     /// Module key (`ss_flow`, `ss_encoder`, ...), used in file names.
     pub key: String,
+    /// Architecture of the module.
     pub config: ModuleConfig,
+    /// The variables, as candle's `VarBuilder` reads them.
     pub varmap: VarMap,
     /// `(name, var)` sorted by name.
     pub vars: Vec<(String, Var)>,
@@ -105,6 +107,7 @@ impl ModuleParams {
         VarBuilder::from_varmap(&self.varmap, DType::F32, &Device::Cpu)
     }
 
+    /// Number of scalar parameters.
     pub fn num_params(&self) -> usize {
         self.vars.iter().map(|(_, v)| v.elem_count()).sum()
     }

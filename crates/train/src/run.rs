@@ -34,13 +34,18 @@ use recon_core::{Error, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
+    /// Sparse-structure VAE (stage 1).
     SsVae,
+    /// Sparse-structure flow with pose tokens (stage 1).
     SsFlow,
+    /// Structured-latent encoder and decoders (stage 2).
     SlatAe,
+    /// Structured-latent flow (stage 2).
     SlatFlow,
 }
 
 impl Stage {
+    /// Kebab-case name, as on the command line (`ss-vae`, ...).
     pub fn name(self) -> &'static str {
         match self {
             Stage::SsVae => "ss-vae",
@@ -56,28 +61,40 @@ impl Stage {
 pub enum Resume {
     /// The newest checkpoint under `<out>/checkpoints`.
     Latest,
+    /// A given checkpoint folder.
     Dir(PathBuf),
 }
 
 /// Everything a run needs besides its data.
 #[derive(Debug, Clone)]
 pub struct TrainOptions {
+    /// Which model to train.
     pub stage: Stage,
     /// Architecture file (`models/recgen-nano.json`).
     pub config: PathBuf,
+    /// Output folder (weights, checkpoints, logs).
     pub out: PathBuf,
+    /// Resume from a checkpoint (`None`: start fresh).
     pub resume: Option<Resume>,
+    /// Optimisation settings (steps, batch, learning rate, ...).
     pub settings: LoopSettings,
+    /// How the model meshes are voxelised (surface or solid).
     pub fill: Fill,
+    /// ss-vae: reconstruction loss.
     pub recon_loss: ReconLoss,
+    /// ss-vae: weight of the KL term.
     pub lambda_kl: f64,
+    /// ss-flow, slat-flow: flow-matching hyper-parameters.
     pub flow: FlowMatching,
+    /// ss-flow: crop context factor range (inference uses 1.2).
     pub context: [f64; 2],
+    /// ss-flow: probability of a two-view batch.
     pub p_two_view: f64,
     /// ss-flow: the ss-vae output folder (`ss_encoder.safetensors`, `ss_decoder.safetensors`).
     pub vae: Option<PathBuf>,
     /// slat-ae: crop side in voxels (0: whole objects) and most voxels per crop.
     pub crop: usize,
+    /// slat-ae: most voxels per crop.
     pub max_voxels: usize,
     /// slat-flow: the ss-flow output folder (frozen image encoder, pose
     /// statistics, stage-1 modules copied into the complete model folder).
@@ -90,12 +107,14 @@ pub struct TrainOptions {
     /// `<key>.safetensors` (a finished run of the same stage) instead of
     /// random; the optimiser starts afresh, so settings may differ.
     pub init: Option<PathBuf>,
+    /// Show a progress bar.
     pub progress: bool,
     /// Batches of the fixed evaluation before and after training (0: skip).
     pub eval_batches: usize,
 }
 
 impl TrainOptions {
+    /// Defaults for `stage`, reading the architecture from `config` and writing to `out`.
     pub fn new(stage: Stage, config: PathBuf, out: PathBuf) -> Self {
         Self {
             stage,
@@ -222,170 +241,223 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     let cfile = opts.config.display().to_string();
     check_out(&opts.out, opts.resume.is_some())?;
     std::fs::create_dir_all(&opts.out).map_err(|e| Error::io(&opts.out, e))?;
-    let resume_dir = match &opts.resume {
+    let resume_dir = resume_dir(opts)?;
+    let mut setup = Setup::new(source, opts, &arch, &cfile);
+    let obj = match opts.stage {
+        Stage::SsVae => setup.ss_vae(source)?,
+        Stage::SsFlow => setup.ss_flow(source)?,
+        Stage::SlatAe => setup.slat_ae(source)?,
+        Stage::SlatFlow => setup.slat_flow(source)?,
+    };
+    train_and_write(source, opts, setup, obj.as_ref(), resume_dir)
+}
+
+/// The checkpoint folder `--resume` names (`None`: a fresh run).
+fn resume_dir(opts: &TrainOptions) -> Result<Option<PathBuf>> {
+    Ok(match &opts.resume {
         None => None,
         Some(Resume::Dir(d)) => Some(d.clone()),
         Some(Resume::Latest) => Some(
             latest_checkpoint(&opts.out)?
                 .ok_or_else(|| Error::input(opts.out.display().to_string(), "--resume: no checkpoint in <out>/checkpoints"))?,
         ),
-    };
-    let seed = opts.settings.seed;
-    let mut notes = Vec::new();
-    let ss_encoder_cfg = || -> Result<ModuleConfig> {
-        let spec = arch
+    })
+}
+
+/// What building a stage's objective records besides the objective itself:
+/// the run record's settings and notes, the modules copied into the output
+/// folder and (slat-flow) the latent normalisation.
+struct Setup<'o> {
+    opts: &'o TrainOptions,
+    arch: &'o RecGenConfig,
+    /// The architecture file's name, for errors.
+    cfile: &'o str,
+    settings: serde_json::Value,
+    notes: Vec<String>,
+    /// Modules copied into the output folder (reported after the trained ones).
+    copied: Vec<PathBuf>,
+    slat_norm: Option<(Vec<f32>, Vec<f32>)>,
+}
+
+impl<'o> Setup<'o> {
+    /// The settings every stage records (and the warm start, if any).
+    fn new(source: &dyn TrainingSource, opts: &'o TrainOptions, arch: &'o RecGenConfig, cfile: &'o str) -> Self {
+        let mut notes = Vec::new();
+        let mut settings = serde_json::json!({
+            "loop": opts.settings,
+            "architecture": arch.name,
+            "data": source.describe(),
+            "fill": opts.fill,
+        });
+        if let Some(dir) = &opts.init {
+            settings["init"] = serde_json::json!(dir);
+            notes.push(format!("warm start from {}", dir.display()));
+        }
+        Self { opts, arch, cfile, settings, notes, copied: Vec::new(), slat_norm: None }
+    }
+
+    fn ss_encoder_cfg(&self) -> Result<ModuleConfig> {
+        let spec = self
+            .arch
             .ss_encoder
             .as_ref()
-            .ok_or_else(|| Error::config(&cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
+            .ok_or_else(|| Error::config(self.cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
         Ok(spec_cfg(spec))
-    };
-    // A trained module: random for the seed, or the --init folder's weights.
-    let module = |key: &str, cfg: &ModuleConfig| -> Result<ModuleParams> {
-        match &opts.init {
-            None => ModuleParams::init(key, cfg, registry::module_seed(seed, key)),
+    }
+
+    /// A trained module: random for the seed, or the --init folder's weights.
+    fn module(&self, key: &str, cfg: &ModuleConfig) -> Result<ModuleParams> {
+        match &self.opts.init {
+            None => ModuleParams::init(key, cfg, registry::module_seed(self.opts.settings.seed, key)),
             Some(dir) => {
                 let file = dir.join(format!("{key}.safetensors"));
                 ModuleParams::from_tensors(key, cfg, &load_module(dir, key)?, &file.display().to_string())
             }
         }
-    };
-    let obj: Box<dyn Objective + '_>;
-    let mut slat_norm: Option<(Vec<f32>, Vec<f32>)> = None;
-    // Modules copied into the output folder (reported after the trained ones).
-    let mut copied: Vec<PathBuf> = Vec::new();
-    let mut settings = serde_json::json!({
-        "loop": opts.settings,
-        "architecture": arch.name,
-        "data": source.describe(),
-        "fill": opts.fill,
-    });
-    if let Some(dir) = &opts.init {
-        settings["init"] = serde_json::json!(dir);
-        notes.push(format!("warm start from {}", dir.display()));
     }
-    match opts.stage {
-        Stage::SsVae => {
-            let enc_cfg = ss_encoder_cfg()?;
-            let dec_cfg = spec_cfg(&arch.ss_decoder);
-            settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
-            settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
-            let enc = module("ss_encoder", &enc_cfg)?;
-            let dec = module("ss_decoder", &dec_cfg)?;
-            let f = recon_core::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
-            let res = arch.ss_flow_config()?.resolution * f;
-            obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
-            notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
-        }
-        Stage::SsFlow => {
-            let enc_cfg = ss_encoder_cfg()?;
-            let vae = opts.vae.as_ref().ok_or_else(|| {
-                Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)")
-            })?;
-            let enc_t = load_module(vae, "ss_encoder")?;
-            let dec_t = load_module(vae, "ss_decoder")?;
-            let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder", Compute::Plain)?;
-            let scan = scan(source)?;
-            notes.push(format!(
-                "{} usable samples ({} with two views), {} views without depth skipped",
-                scan.usable.len(),
-                scan.two_view.len(),
-                scan.skipped_views
-            ));
-            let stats_json = pose_stats_json(&scan.poses, arch.pose.nine_d_layout, &source.describe())?;
-            let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
-            write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
-            let dino_cfg = spec_cfg(&arch.image_cond_model);
-            let flow_cfg = spec_cfg(&arch.ss_flow);
-            settings["modules"] = serde_json::json!({"image_cond_model": dino_cfg, "ss_flow": flow_cfg, "ss_encoder": enc_cfg});
-            settings["flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "p_two_view": opts.p_two_view, "vae": vae});
-            let dino = module("image_cond_model", &dino_cfg)?;
-            let flow = module("ss_flow", &flow_cfg)?;
-            let mut fo = FlowObjective::new(source, scan, stats, dino, flow, &encoder, opts.fill, opts.flow.clone())?;
-            fo.context = opts.context;
-            fo.p_two_view = opts.p_two_view;
-            let (m, s) = fo.latent_stats()?;
-            notes.push(format!("VAE latents: mean {m:.4}, std {s:.4} (the flow starts from unit noise)"));
-            // The decoder travels with the flow so the folder runs stage 1.
-            copied.push(write_copied_module(&dec_t, vae, &opts.out, "ss_decoder")?);
-            obj = Box::new(fo);
-        }
-        Stage::SlatAe => {
-            let enc_spec = arch
-                .slat_encoder
-                .as_ref()
-                .ok_or_else(|| Error::config(&cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
-            let cfgs = [
-                ("slat_encoder", spec_cfg(enc_spec)),
-                ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)),
-                ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs)),
-            ];
-            settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
-            let [e, m, g] = cfgs.map(|(k, c)| module(k, &c));
-            let mut so = crate::slat::SlatAeObjective::new(source, e?, m?, g?)?;
-            so.crop = opts.crop;
-            so.max_voxels = opts.max_voxels;
-            settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": crate::slat::BAND, "cubes_per_voxel_side": crate::slat::SUB});
-            notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
-            obj = Box::new(so);
-        }
-        Stage::SlatFlow => {
-            let s1 = opts.stage1.as_ref().ok_or_else(|| {
-                Error::config(
-                    "recon train slat-flow",
-                    "--stage1",
-                    "the ss-flow output folder is required (frozen image encoder, pose statistics)",
-                )
-            })?;
-            let ae = opts.slat_ae.as_ref().ok_or_else(|| {
-                Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)")
-            })?;
-            let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
-                Error::config(&cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
-            })?;
-            let encoder = registry::build_slat_encoder(
-                &spec_cfg(enc_spec),
-                frozen_var_builder(load_module(ae, "slat_encoder")?),
-                "slat_encoder",
-                Compute::Plain,
-            )?;
-            let dino = registry::build_dinov2(
-                &spec_cfg(&arch.image_cond_model),
-                frozen_var_builder(load_module(s1, "image_cond_model")?),
-                "image_cond_model",
-                Compute::Plain,
-            )?;
-            let stats_path = s1.join("pose_stats.json");
-            let stats = PoseStats::from_json_file(&stats_path)?;
-            let scan = scan(source)?;
-            let flow_cfg = spec_cfg(&arch.slat_flow);
-            settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
-            settings["slat_flow"] =
-                serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
-            let flow = module("slat_flow", &flow_cfg)?;
-            let mut fo = crate::slat_flow::SlatFlowObjective::new(
-                source,
-                scan,
-                stats,
-                arch.pose.nine_d_layout,
-                dino,
-                flow,
-                &encoder,
-                opts.max_models,
-                opts.flow.clone(),
-            )?;
-            fo.context = opts.context;
-            let (models, pool, usable) = fo.counts();
-            notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));
-            notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
-            // The complete model folder: stage 1 and the decoders travel with the flow.
-            for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
-                copied.push(write_copied_module(&load_module(dir, key)?, dir, &opts.out, key)?);
-            }
-            std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
-            slat_norm = Some((fo.mean.clone(), fo.std.clone()));
-            obj = Box::new(fo);
-        }
+
+    fn ss_vae<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
+        let (opts, arch) = (self.opts, self.arch);
+        let enc_cfg = self.ss_encoder_cfg()?;
+        let dec_cfg = spec_cfg(&arch.ss_decoder);
+        self.settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
+        self.settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
+        let enc = self.module("ss_encoder", &enc_cfg)?;
+        let dec = self.module("ss_decoder", &dec_cfg)?;
+        let f = recon_core::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
+        let res = arch.ss_flow_config()?.resolution * f;
+        let obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
+        self.notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
+        Ok(obj)
     }
+
+    fn ss_flow<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
+        let (opts, arch) = (self.opts, self.arch);
+        let enc_cfg = self.ss_encoder_cfg()?;
+        let vae = opts.vae.as_ref().ok_or_else(|| {
+            Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)")
+        })?;
+        let enc_t = load_module(vae, "ss_encoder")?;
+        let dec_t = load_module(vae, "ss_decoder")?;
+        let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder", Compute::Plain)?;
+        let scan = scan(source)?;
+        self.notes.push(format!(
+            "{} usable samples ({} with two views), {} views without depth skipped",
+            scan.usable.len(),
+            scan.two_view.len(),
+            scan.skipped_views
+        ));
+        let stats_json = pose_stats_json(&scan.poses, arch.pose.nine_d_layout, &source.describe())?;
+        let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
+        write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
+        let dino_cfg = spec_cfg(&arch.image_cond_model);
+        let flow_cfg = spec_cfg(&arch.ss_flow);
+        self.settings["modules"] = serde_json::json!({"image_cond_model": dino_cfg, "ss_flow": flow_cfg, "ss_encoder": enc_cfg});
+        self.settings["flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "p_two_view": opts.p_two_view, "vae": vae});
+        let dino = self.module("image_cond_model", &dino_cfg)?;
+        let flow = self.module("ss_flow", &flow_cfg)?;
+        let mut fo = FlowObjective::new(source, scan, stats, dino, flow, &encoder, opts.fill, opts.flow.clone())?;
+        fo.context = opts.context;
+        fo.p_two_view = opts.p_two_view;
+        let (m, s) = fo.latent_stats()?;
+        self.notes.push(format!("VAE latents: mean {m:.4}, std {s:.4} (the flow starts from unit noise)"));
+        // The decoder travels with the flow so the folder runs stage 1.
+        self.copied.push(write_copied_module(&dec_t, vae, &opts.out, "ss_decoder")?);
+        Ok(Box::new(fo))
+    }
+
+    fn slat_ae<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
+        let (opts, arch) = (self.opts, self.arch);
+        let enc_spec = arch
+            .slat_encoder
+            .as_ref()
+            .ok_or_else(|| Error::config(self.cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
+        let cfgs = [
+            ("slat_encoder", spec_cfg(enc_spec)),
+            ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)),
+            ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs)),
+        ];
+        self.settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
+        let [e, m, g] = cfgs.map(|(k, c)| self.module(k, &c));
+        let mut so = crate::slat::SlatAeObjective::new(source, e?, m?, g?)?;
+        so.crop = opts.crop;
+        so.max_voxels = opts.max_voxels;
+        self.settings["slat_ae"] = serde_json::json!({"crop": so.crop, "max_voxels": so.max_voxels, "weights": so.weights, "sdf_band_fine_voxels": crate::slat::BAND, "cubes_per_voxel_side": crate::slat::SUB});
+        self.notes.push(format!("surface voxels at {}³, crops of {} voxels (≤ {})", so.res, so.crop, so.max_voxels));
+        Ok(Box::new(so))
+    }
+
+    fn slat_flow<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
+        let (opts, arch) = (self.opts, self.arch);
+        let s1 = opts.stage1.as_ref().ok_or_else(|| {
+            Error::config(
+                "recon train slat-flow",
+                "--stage1",
+                "the ss-flow output folder is required (frozen image encoder, pose statistics)",
+            )
+        })?;
+        let ae = opts.slat_ae.as_ref().ok_or_else(|| {
+            Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)")
+        })?;
+        let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
+            Error::config(self.cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
+        })?;
+        let encoder = registry::build_slat_encoder(
+            &spec_cfg(enc_spec),
+            frozen_var_builder(load_module(ae, "slat_encoder")?),
+            "slat_encoder",
+            Compute::Plain,
+        )?;
+        let dino = registry::build_dinov2(
+            &spec_cfg(&arch.image_cond_model),
+            frozen_var_builder(load_module(s1, "image_cond_model")?),
+            "image_cond_model",
+            Compute::Plain,
+        )?;
+        let stats_path = s1.join("pose_stats.json");
+        let stats = PoseStats::from_json_file(&stats_path)?;
+        let scan = scan(source)?;
+        let flow_cfg = spec_cfg(&arch.slat_flow);
+        self.settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
+        self.settings["slat_flow"] =
+            serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
+        let flow = self.module("slat_flow", &flow_cfg)?;
+        let mut fo = crate::slat_flow::SlatFlowObjective::new(
+            source,
+            scan,
+            stats,
+            arch.pose.nine_d_layout,
+            dino,
+            flow,
+            &encoder,
+            opts.max_models,
+            opts.flow.clone(),
+        )?;
+        fo.context = opts.context;
+        let (models, pool, usable) = fo.counts();
+        self.notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));
+        self.notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
+        // The complete model folder: stage 1 and the decoders travel with the flow.
+        for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
+            self.copied.push(write_copied_module(&load_module(dir, key)?, dir, &opts.out, key)?);
+        }
+        std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
+        self.slat_norm = Some((fo.mean.clone(), fo.std.clone()));
+        Ok(Box::new(fo))
+    }
+}
+
+/// The run record, the fixed evaluations around training, the training loop
+/// and the output folder's files.
+fn train_and_write(
+    source: &dyn TrainingSource,
+    opts: &TrainOptions,
+    setup: Setup<'_>,
+    obj: &dyn Objective,
+    resume_dir: Option<PathBuf>,
+) -> Result<RunReport> {
+    let Setup { arch, settings, notes, copied, slat_norm, .. } = setup;
+    let seed = opts.settings.seed;
     let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.clone(), m.num_params())).collect();
     let mut report = RunReport {
         stage: opts.stage,
@@ -403,11 +475,11 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
     write_json(&opts.out.join(MARKER), &report)?;
     let eval_batch = opts.settings.batch.min(4);
     if opts.eval_batches > 0 && resume_dir.is_none() {
-        report.eval_before = Some(fixed_eval(obj.as_ref(), EVAL_SEED, opts.eval_batches, eval_batch)?);
+        report.eval_before = Some(fixed_eval(obj, EVAL_SEED, opts.eval_batches, eval_batch)?);
     }
-    let summary = train(obj.as_ref(), &opts.settings, &settings, &opts.out, resume_dir.as_deref(), opts.progress)?;
+    let summary = train(obj, &opts.settings, &settings, &opts.out, resume_dir.as_deref(), opts.progress)?;
     if opts.eval_batches > 0 {
-        report.eval_after = Some(fixed_eval(obj.as_ref(), EVAL_SEED, opts.eval_batches, eval_batch)?);
+        report.eval_after = Some(fixed_eval(obj, EVAL_SEED, opts.eval_batches, eval_batch)?);
     }
     let meta: BTreeMap<String, String> = [
         ("recon.stage".to_string(), opts.stage.name().to_string()),
@@ -416,7 +488,7 @@ pub fn run(source: &dyn TrainingSource, opts: &TrainOptions) -> Result<RunReport
         ("recon.seed".to_string(), seed.to_string()),
     ]
     .into();
-    report.files = write_weights(&opts.out, obj.as_ref(), &meta)?;
+    report.files = write_weights(&opts.out, obj, &meta)?;
     report.files.extend(copied);
     if matches!(opts.stage, Stage::SsFlow | Stage::SlatFlow) {
         // The architecture file, reading its pose statistics (and, for the complete

@@ -24,10 +24,15 @@ use recon_core::Result;
 /// What to generate.
 #[derive(Debug, Clone)]
 pub struct ToyConfig {
+    /// Number of object models.
     pub models: usize,
+    /// Number of samples.
     pub samples: usize,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Seed of everything generated.
     pub seed: u64,
     /// Put a second primitive in front of half the objects.
     pub occluders: bool,
@@ -170,6 +175,7 @@ pub fn rasterize(meshes: &[(TriMesh, u32, [f32; 3])], k: &Intrinsics, w: usize, 
 
 /// The generated dataset (everything rendered up front).
 pub struct ToySource {
+    /// What was generated.
     pub config: ToyConfig,
     models: Vec<ModelEntry>,
     colours: Vec<[f32; 3]>,
@@ -187,6 +193,7 @@ fn transform(mesh: &TriMesh, r: &[[f64; 3]; 3], t: [f64; 3]) -> TriMesh {
 }
 
 impl ToySource {
+    /// Renders the whole dataset up front.
     pub fn new(config: ToyConfig) -> Result<Self> {
         let mut rng = SeededRng::new(config.seed);
         let models: Vec<ModelEntry> = (0..config.models.max(1))

@@ -15,10 +15,13 @@ use std::path::{Path, PathBuf};
 /// An object model in metres.
 #[derive(Debug, Clone)]
 pub struct Model {
+    /// Model name (file stem or YCB-Video folder name).
     pub name: String,
+    /// File it was read from.
     pub path: PathBuf,
     /// Mesh, or a point cloud (no faces) for YCB-Video `points.xyz`.
     pub mesh: TriMesh,
+    /// Largest distance between two model points, metres.
     pub diameter: f64,
     /// `"models_info.json"` when taken from the dataset, else how it was computed.
     pub diameter_source: String,
@@ -27,12 +30,14 @@ pub struct Model {
 /// One annotated object instance in a frame.
 #[derive(Debug, Clone)]
 pub struct GtInstance {
+    /// Object (model) id.
     pub obj_id: u32,
+    /// Model → camera rotation, row-major.
     pub r: [[f64; 3]; 3],
     /// Metres.
     pub t: P3,
     /// Fraction of the object's projected silhouette that is visible, if the dataset says
-    /// (or, with `visib_estimated`, as estimated by [`crate::dataset::visibility`]).
+    /// (or, with `visib_estimated`, as estimated by [`crate::dataset::visible_fraction`]).
     pub visib_fract: Option<f64>,
     /// `visib_fract` is our estimate, not the dataset's annotation (YCB-Video).
     pub visib_estimated: bool,
@@ -41,14 +46,18 @@ pub struct GtInstance {
 }
 
 #[derive(Debug, Clone)]
+/// One annotated frame of a dataset.
 pub struct Frame {
+    /// Scene (BOP) or sequence (YCB-Video) folder name.
     pub scene: String,
+    /// Frame (image) id within the scene.
     pub frame: u32,
     /// Pinhole intrinsics in pixels.
     pub k: [[f64; 3]; 3],
     /// Metres per raw depth unit: BOP's `depth_scale` (millimetres per unit) / 1000;
     /// YCB-Video: 1 / factor_depth. Metres end to end, as `RgbdFrame::depth_scale_m`.
     pub depth_scale_m: f64,
+    /// Annotated object instances, in annotation order.
     pub gt: Vec<GtInstance>,
     /// World → camera (`x_cam = R·x_w + t`, metres) when the dataset gives it
     /// (BOP `cam_R_w2c` / `cam_t_w2c`): relates frames of a scene.
@@ -66,14 +75,20 @@ pub enum Layout {
 }
 
 #[derive(Debug, Clone, Default)]
+/// A loaded ground-truth dataset: models (metres) and annotated frames.
 pub struct Dataset {
+    /// Root folder it was loaded from.
     pub root: PathBuf,
+    /// BOP or YCB-Video layout.
     pub layout: Layout,
+    /// Object models by id.
     pub models: BTreeMap<u32, Model>,
+    /// Annotated frames, in load order.
     pub frames: Vec<Frame>,
 }
 
 impl Dataset {
+    /// The frame `frame` of scene `scene`.
     pub fn frame(&self, scene: &str, frame: u32) -> Option<&Frame> {
         self.frames.iter().find(|f| f.scene == scene && f.frame == frame)
     }
@@ -131,7 +146,9 @@ impl Dataset {
 /// A visible-mask file: a binary mask, or a label map and the value that marks the object.
 #[derive(Debug, Clone, PartialEq)]
 pub enum MaskSource {
+    /// A binary mask PNG (non-zero = object).
     Binary(PathBuf),
+    /// A label map PNG and the value marking the object.
     Label(PathBuf, u32),
 }
 
@@ -467,6 +484,7 @@ pub fn load_dataset(path: &Path) -> Result<Dataset> {
     load_bop(&split, models)
 }
 
+/// Tiny BOP datasets written to disk, for tests (other crates' with the `testkit` feature).
 #[cfg(any(test, feature = "testkit"))]
 pub mod tests {
     use super::*;

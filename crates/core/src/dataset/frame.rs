@@ -34,13 +34,18 @@ use crate::{Error, Result};
 /// `u = fx·x/z + cx`, `v = fy·y/z + cy`, integer `(u, v)` being pixel centres.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Intrinsics {
+    /// Focal length along x, pixels.
     pub fx: f64,
+    /// Focal length along y, pixels.
     pub fy: f64,
+    /// Principal point x, pixels.
     pub cx: f64,
+    /// Principal point y, pixels.
     pub cy: f64,
 }
 
 impl Intrinsics {
+    /// Checked intrinsics (finite, `fx`, `fy` > 0).
     pub fn new(fx: f64, fy: f64, cx: f64, cy: f64) -> Result<Self> {
         let k = Intrinsics { fx, fy, cx, cy };
         k.validate("intrinsics")?;
@@ -83,14 +88,19 @@ pub struct FrameOptions {
 /// One RGB-D frame in memory.
 #[derive(Debug, Clone)]
 pub struct RgbdFrame {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
     /// Interleaved 8-bit RGB, row-major, `height·width·3`.
     pub rgb: Vec<u8>,
     /// Depth in metres, row-major `height·width`; `0.0` or non-finite = invalid.
     pub depth_m: Vec<f32>,
+    /// Pinhole intrinsics of the colour and depth images (registered).
     pub intrinsics: Intrinsics,
+    /// The colour image file.
     pub rgb_path: PathBuf,
+    /// The depth image file.
     pub depth_path: PathBuf,
     /// Where the intrinsics came from (a path, or "explicit").
     pub intrinsics_source: String,
@@ -190,8 +200,11 @@ fn camera_from_mat(m: &MatFile, file: &str) -> Result<CameraInfo> {
 /// The camera file formats [`intrinsics_from_bytes`] reads.
 #[derive(Clone, Copy, Debug)]
 pub enum CameraFormat {
+    /// JSON (BOP `scene_camera.json` entry or a plain K).
     Json,
+    /// YAML (ROS `camera_info`).
     Yaml,
+    /// MATLAB v5 `.mat` (YCB-Video `meta.mat`).
     Mat,
 }
 

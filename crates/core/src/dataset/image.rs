@@ -13,6 +13,7 @@ use candle_core::{Device, Tensor};
 
 /// ImageNet normalisation used by DINOv2 (`torchvision.transforms.Normalize`).
 pub const DINO_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+/// ImageNet standard deviations used by DINOv2 (with [`DINO_MEAN`]).
 pub const DINO_STD: [f32; 3] = [0.229, 0.224, 0.225];
 /// Side of the square DINOv2 input (37×37 patches of 14 px).
 pub const DINO_SIZE: usize = 518;
@@ -226,9 +227,13 @@ pub fn pointmap_to_tensor(xyz: &[f32], w: usize, h: usize, size: usize, dev: &De
 /// past the image (those pixels are zero, as with PIL `crop`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct CropBox {
+    /// Left edge (inclusive).
     pub x0: i64,
+    /// Top edge (inclusive).
     pub y0: i64,
+    /// Right edge (exclusive).
     pub x1: i64,
+    /// Bottom edge (exclusive).
     pub y1: i64,
 }
 

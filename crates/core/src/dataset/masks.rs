@@ -29,13 +29,16 @@ pub struct ObjectMask {
     pub id: Option<u32>,
     /// Human-readable name for reports (`id 8`, or the file name).
     pub label: String,
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
     /// Row-major `height·width`, `true` = object.
     pub mask: Vec<bool>,
 }
 
 impl ObjectMask {
+    /// Number of object pixels.
     pub fn pixel_count(&self) -> usize {
         self.mask.iter().filter(|&&m| m).count()
     }
@@ -49,7 +52,9 @@ impl ObjectMask {
 /// Square binary erosion parameters (RecGen defaults: 5, 1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Erosion {
+    /// Side of the square structuring element, pixels.
     pub kernel: usize,
+    /// Number of erosion passes.
     pub iterations: usize,
 }
 
@@ -106,9 +111,13 @@ pub fn erode(mask: &[bool], w: usize, h: usize, e: Erosion) -> Vec<bool> {
 /// A per-instance label map (0 = background).
 #[derive(Debug, Clone)]
 pub struct InstanceMap {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// Instance id per pixel, row-major (0 = background).
     pub ids: Vec<u32>,
+    /// The file it was read from.
     pub path: PathBuf,
 }
 
@@ -225,11 +234,24 @@ pub enum SkipReason {
     /// No pixel is set.
     Empty,
     /// The mask's size differs from the frame's.
-    WrongSize { mask: (usize, usize), frame: (usize, usize) },
+    WrongSize {
+        /// The mask's (width, height).
+        mask: (usize, usize),
+        /// The frame's (width, height).
+        frame: (usize, usize),
+    },
     /// Erosion removed every pixel (object thinner than the kernel).
-    EmptyAfterErosion { before: usize },
+    EmptyAfterErosion {
+        /// Mask pixels before erosion.
+        before: usize,
+    },
     /// Too few pixels under the eroded mask have a valid depth reading.
-    TooFewValidDepth { valid: usize, min: usize },
+    TooFewValidDepth {
+        /// Eroded-mask pixels with valid depth.
+        valid: usize,
+        /// The minimum required.
+        min: usize,
+    },
     /// Point-map preprocessing failed (message).
     Preprocessing(String),
     /// The mask file could not be read (message).
@@ -256,8 +278,11 @@ impl std::fmt::Display for SkipReason {
 }
 
 #[derive(Debug, Clone, PartialEq)]
+/// An object left out of reconstruction, and why.
 pub struct MaskSkip {
+    /// The object's label (as in [`ObjectMask::label`]).
     pub label: String,
+    /// Why it was left out.
     pub reason: SkipReason,
 }
 
@@ -285,6 +310,7 @@ impl Default for MaskOptions {
 /// An object that passed validation.
 #[derive(Debug, Clone)]
 pub struct ValidObject {
+    /// The object's mask (not eroded).
     pub mask: ObjectMask,
     /// Pixels under the eroded mask with valid depth.
     pub valid_depth_pixels: usize,

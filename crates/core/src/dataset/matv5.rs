@@ -26,7 +26,9 @@ use crate::{Error, Result};
 /// A numeric MATLAB array: `dims` as stored (column-major), values as f64.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatArray {
+    /// Dimensions as stored (column-major).
     pub dims: Vec<usize>,
+    /// Values, column-major, converted to f64.
     pub data: Vec<f64>,
 }
 
@@ -56,6 +58,7 @@ impl MatArray {
         self.data.len()
     }
 
+    /// Whether the array holds no values.
     pub fn is_empty(&self) -> bool {
         self.data.is_empty()
     }
@@ -77,6 +80,7 @@ impl MatArray {
 /// The numeric variables of a MAT file, by name.
 #[derive(Debug, Clone, Default)]
 pub struct MatFile {
+    /// Variables by name.
     pub vars: BTreeMap<String, MatArray>,
 }
 
@@ -246,6 +250,7 @@ fn parse_elements(buf: &[u8], big_endian: bool, file: &str, out: &mut MatFile, d
 }
 
 impl MatFile {
+    /// Reads and parses a MAT v5 file.
     pub fn open(path: &Path) -> Result<Self> {
         let buf = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         Self::parse(&buf, &path.display().to_string())
@@ -266,6 +271,7 @@ impl MatFile {
         Ok(out)
     }
 
+    /// The variable named `name`.
     pub fn get(&self, name: &str) -> Option<&MatArray> {
         self.vars.get(name)
     }

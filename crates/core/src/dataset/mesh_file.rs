@@ -11,7 +11,9 @@ use std::path::Path;
 pub enum MeshFormat {
     /// Binary glTF 2.0 (y up by the glTF convention).
     Glb,
+    /// Wavefront OBJ.
     Obj,
+    /// PLY (ASCII or binary).
     Ply,
 }
 

@@ -85,6 +85,7 @@ enum Format {
     Binary { le: bool },
 }
 
+/// Reads a PLY mesh (ASCII or binary; polygons split into triangles).
 pub fn read_ply(path: &Path) -> Result<TriMesh> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     parse_ply(&bytes, &path.display().to_string())

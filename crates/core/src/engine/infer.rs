@@ -2,9 +2,9 @@
 //! mesh and Gaussians in the metric camera frame.
 //!
 //! ```no_run
-//! use recon::dataset::{FrameOptions, InstanceMap, RgbdFrame};
-//! use recon::engine::{Engine, InferOptions, LoadOptions, ModelSource};
-//! # fn main() -> recon::Result<()> {
+//! use recon_core::dataset::{FrameOptions, InstanceMap, RgbdFrame};
+//! use recon_core::engine::{Engine, InferOptions, LoadOptions, ModelSource};
+//! # fn main() -> recon_core::Result<()> {
 //! // The shipped recgen-nano; or ModelSource::Dir { .. }, ::Manifest { .. }, ::Random { .. }.
 //! let engine = Engine::load(&ModelSource::Default, &LoadOptions::default())?;
 //! let frame = RgbdFrame::open("data/sample/000001-color.png".as_ref(), &FrameOptions::default())?;
@@ -29,7 +29,7 @@
 //! **Samples and selection**: with `samples > 1` the object is run with
 //! seeds `seed, seed + 1, …`. Every (sample, view) pose is a candidate,
 //! scored by the trimmed-mean distance of the observed points to its posed
-//! mesh ([`crate::engine::pose_fit::score`]); the winner gives the reported
+//! mesh ([`crate::engine::score_candidate`]); the winner gives the reported
 //! pose, mesh and Gaussians, and the spread of the per-sample winners is the
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
@@ -104,7 +104,7 @@ pub struct InferSettings {
     /// and before decimation (0: the decoder's surface as it is).
     pub smooth_iterations: usize,
     /// Whether the stage-1 occupancy is fitted to the depth before stage 2
-    /// ([`crate::engine::shape_fit`]); the pose is then refined before the
+    /// ([`crate::engine::fit_in_pose`]); the pose is then refined before the
     /// fit and not after it, so the fit sees the final pose.
     pub shape_fit: ShapeFit,
     pub shape_fit_options: ShapeFitOptions,

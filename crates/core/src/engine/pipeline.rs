@@ -3,8 +3,8 @@
 //! # API
 //!
 //! ```no_run
-//! use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
-//! # fn main() -> recon::Result<()> {
+//! use recon_core::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
+//! # fn main() -> recon_core::Result<()> {
 //! // Trained (or `recon weights init`) weights: `<dir>/<key>.safetensors` per module.
 //! let p = Pipeline::load("models/recgen-large.json".as_ref(), Weights::Dir("weights/".as_ref()), Stages::All, &LoadOptions::default())?;
 //! // Or in-memory random weights (labelled as such in the output metadata):
@@ -29,8 +29,8 @@
 //!
 //! Producing them from RGB-D frames is the job of the preprocessing code.
 //!
-//! **Kernels, precision, memory** ([`LoadOptions`], [`Pipeline::load_with`],
-//! [`Pipeline::random_with`]): by default every layer runs the fast
+//! **Kernels, precision, memory** ([`LoadOptions`], given to
+//! [`Pipeline::load`]): by default every layer runs the fast
 //! inference kernels in f32 and all modules stay resident. `compute:
 //! Compute::fast(Precision::Bf16 | F16)` stores weights in bf16/f16 (half
 //! the memory; bf16 also computes in bf16 with f32 accumulation, see

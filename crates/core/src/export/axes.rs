@@ -8,11 +8,14 @@ use std::path::Path;
 /// (x, y, z) ↦ (x, z, −y).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Axes {
+    /// As the decoders work: z up (identity).
     ZUp,
+    /// y up, as TRELLIS exports: (x, y, z) ↦ (x, z, −y).
     YUp,
 }
 
 impl Axes {
+    /// The point `v` in these axes.
     pub fn apply(self, v: [f32; 3]) -> [f32; 3] {
         match self {
             Axes::ZUp => v,

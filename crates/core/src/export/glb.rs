@@ -17,6 +17,7 @@ const FLOAT: u32 = 5126;
 const UNSIGNED_INT: u32 = 5125;
 
 #[derive(Debug, Clone, Copy)]
+/// Settings of the GLB writer.
 pub struct GlbOptions {
     /// Output axes (TRELLIS exports y-up).
     pub axes: Axes,
@@ -165,7 +166,9 @@ pub fn save_glb(mesh: &Mesh, path: &Path, opts: &GlbOptions) -> Result<()> {
 
 /// A coloured point cloud for a scene file.
 pub struct PointCloud<'a> {
+    /// Node name.
     pub name: &'a str,
+    /// Positions.
     pub points: &'a [[f32; 3]],
     /// Per-point sRGB colour.
     pub colors: &'a [[u8; 3]],

@@ -6,6 +6,7 @@ use crate::Result;
 use std::fmt::Write as _;
 use std::path::Path;
 
+/// The mesh as OBJ text, optionally with vertex colours and normals.
 pub fn mesh_obj_string(mesh: &Mesh, axes: Axes, vertex_colors: bool, normals: bool) -> Result<String> {
     mesh.validate()?;
     let colors = if vertex_colors { mesh.vertex_colors() } else { None };
@@ -33,6 +34,7 @@ pub fn mesh_obj_string(mesh: &Mesh, axes: Axes, vertex_colors: bool, normals: bo
     Ok(s)
 }
 
+/// Writes the mesh as an OBJ file (with normals).
 pub fn save_obj(mesh: &Mesh, path: &Path, axes: Axes, vertex_colors: bool) -> Result<()> {
     write_file(path, mesh_obj_string(mesh, axes, vertex_colors, true)?.as_bytes())
 }

@@ -7,8 +7,11 @@ use crate::Result;
 use std::path::Path;
 
 #[derive(Debug, Clone, Copy)]
+/// Settings of the mesh PLY writer.
 pub struct PlyOptions {
+    /// Output axes.
     pub axes: Axes,
+    /// Write per-vertex normals.
     pub normals: bool,
     /// Write `red green blue` (uchar) from the vertex attributes when present.
     pub vertex_colors: bool,
@@ -20,6 +23,7 @@ impl Default for PlyOptions {
     }
 }
 
+/// The mesh as binary little-endian PLY bytes.
 pub fn mesh_ply_bytes(mesh: &Mesh, opts: &PlyOptions) -> Result<Vec<u8>> {
     mesh.validate()?;
     let colors = if opts.vertex_colors { mesh.vertex_colors() } else { None };
@@ -56,6 +60,7 @@ pub fn mesh_ply_bytes(mesh: &Mesh, opts: &PlyOptions) -> Result<Vec<u8>> {
     Ok(out)
 }
 
+/// Writes the mesh as a binary PLY file.
 pub fn save_mesh_ply(mesh: &Mesh, path: &Path, opts: &PlyOptions) -> Result<()> {
     write_file(path, &mesh_ply_bytes(mesh, opts)?)
 }

@@ -65,6 +65,7 @@ pub fn splat_ply_bytes(g: &Gaussians, axes: Axes) -> Result<Vec<u8>> {
     Ok(out)
 }
 
+/// Writes the Gaussians as a 3D Gaussian splatting PLY file.
 pub fn save_splat_ply(g: &Gaussians, path: &Path, axes: Axes) -> Result<()> {
     write_file(path, &splat_ply_bytes(g, axes)?)
 }

@@ -12,11 +12,14 @@ use serde::Serialize;
 /// Plane `normal · x + offset = 0` with a unit normal.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Plane {
+    /// Unit normal.
     pub normal: [f64; 3],
+    /// Offset along the normal (`−normal · x` for any point `x` on the plane).
     pub offset: f64,
 }
 
 impl Plane {
+    /// Signed distance of `p` from the plane (positive on the normal's side).
     pub fn signed_distance(&self, p: &[f64; 3]) -> f64 {
         dot(self.normal, *p) + self.offset
     }
@@ -32,6 +35,7 @@ impl Plane {
 }
 
 #[derive(Debug, Clone)]
+/// Settings of [`fit_plane`].
 pub struct PlaneFitOptions {
     /// Inlier distance (metres).
     pub threshold_m: f64,
@@ -43,6 +47,7 @@ pub struct PlaneFitOptions {
     pub max_score_points: usize,
     /// A plane explaining fewer of the points than this fails.
     pub min_inlier_fraction: f64,
+    /// Seed of the RANSAC hypotheses and the scoring subset.
     pub seed: u64,
 }
 
@@ -56,15 +61,23 @@ impl Default for PlaneFitOptions {
 /// final inliers.
 #[derive(Debug, Clone, Serialize)]
 pub struct PlaneFit {
+    /// The fitted plane.
     pub plane: Plane,
+    /// Points given.
     pub points: usize,
+    /// Final inliers.
     pub inliers: usize,
+    /// `inliers / points`.
     pub inlier_fraction: f64,
+    /// RANSAC inlier distance used (metres).
     pub threshold_m: f64,
     /// Final inlier band after refinement.
     pub band_m: f64,
+    /// Root-mean-square inlier residual (metres).
     pub rms_residual_m: f64,
+    /// Median absolute inlier residual (metres).
     pub median_abs_residual_m: f64,
+    /// RANSAC hypotheses tried.
     pub ransac_iterations: usize,
 }
 

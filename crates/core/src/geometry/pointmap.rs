@@ -131,10 +131,12 @@ impl Normaliser {
         1.0 / self.diameter
     }
 
+    /// Camera-frame point → normalised frame.
     pub fn to_normalised(&self, p: [f64; 3]) -> [f64; 3] {
         std::array::from_fn(|a| (p[a] - self.centre[a]) / self.diameter + NORMALISED_CENTRE)
     }
 
+    /// Normalised-frame point → camera frame.
     pub fn to_camera(&self, q: [f64; 3]) -> [f64; 3] {
         std::array::from_fn(|a| (q[a] - NORMALISED_CENTRE) * self.diameter + self.centre[a])
     }
@@ -246,6 +248,7 @@ pub struct PreparedView {
     pub pointmap: Tensor,
     /// `[1, 1, S, S]` eroded mask of the crop in {0, 1}.
     pub mask: Tensor,
+    /// Maps the crop's normalised frame back to the camera frame.
     pub normaliser: Normaliser,
     /// Crop box in frame pixels (may extend past the image).
     pub crop: CropBox,
@@ -255,6 +258,7 @@ pub struct PreparedView {
     pub num_points: usize,
     /// The resized colour crop, interleaved RGB `S·S·3` (for previews).
     pub rgb_crop: Vec<u8>,
+    /// Side `S` of the square crop, pixels.
     pub size: usize,
 }
 
@@ -311,6 +315,7 @@ pub fn masked_points(depth_m: &[f32], w: usize, h: usize, k: &Intrinsics, mask: 
     Ok(pts)
 }
 
+/// [`prepare_object`] with explicit options and device.
 pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: &PrepareOptions, dev: &Device) -> Result<PreparedView> {
     let (w, h) = (frame.width, frame.height);
     if size == 0 {
@@ -374,7 +379,9 @@ pub fn prepare_object_with(frame: &RgbdFrame, mask: &[bool], size: usize, opts: 
 /// One object ready for the pipeline.
 #[derive(Debug, Clone)]
 pub struct PreparedObject {
+    /// The object's mask.
     pub object: crate::dataset::masks::ObjectMask,
+    /// Its prepared view.
     pub view: PreparedView,
 }
 

@@ -12,7 +12,7 @@
 //! - The training data / `parse_pose_output` treat r9 as R flattened
 //!   **row-major** (`reshape(3, 3)`). The released stats confirm it:
 //!   `9d_rotation.mean = [m0, m3, ·, m1, m4, ·, m2, m5, ·]` in terms of the 6D
-//!   mean `m`, i.e. r9[3i + j] = R[i][j] with r6 holding columns.
+//!   mean `m`, i.e. `r9[3i + j] = R[i][j]` with r6 holding columns.
 //! - `RecGenPipeline._convert_pose_representation`, which turns the stage-1
 //!   pose into the stage-2 pose token at inference, concatenates the columns
 //!   `[b1, b2, b3]` = R flattened column-major (= Rᵀ row-major), and then
@@ -36,8 +36,11 @@ pub type Mat3 = [[f32; 3]; 3];
 /// An object pose: `x_world = scale · R · x_object + translation`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose {
+    /// Rotation, row-major.
     pub rotation: Mat3,
+    /// Translation.
     pub translation: [f32; 3],
+    /// Uniform scale.
     pub scale: f32,
 }
 
@@ -57,10 +60,13 @@ pub enum NineDLayout {
 #[allow(clippy::enum_variant_names)] // the upstream names: rotation form + translation + scale
 pub enum PoseRepresentation {
     #[serde(rename = "quaternion_translation_scale")]
+    /// Quaternion (4), translation (3), scale (1).
     QuaternionTranslationScale,
     #[serde(rename = "6d_translation_scale")]
+    /// 6D rotation (two columns), translation, scale.
     SixDTranslationScale,
     #[serde(rename = "9d_translation_scale")]
+    /// 9D rotation (the full matrix), translation, scale.
     NineDTranslationScale,
 }
 
@@ -239,11 +245,13 @@ pub struct PoseStats {
 }
 
 impl PoseStats {
+    /// Reads the statistics from a JSON file.
     pub fn from_json_file(path: &Path) -> Result<Self> {
         let v: serde_json::Value = crate::util::json::read_json(path)?;
         Self::from_value(&v, &path.display().to_string())
     }
 
+    /// The statistics from parsed JSON; `file` names it in errors.
     pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
         let g = v.get("global_statistics").unwrap_or(v);
         let stats: GlobalStats = serde_json::from_value(g.clone()).map_err(|e| Error::config(file, "global_statistics", e.to_string()))?;
@@ -340,6 +348,7 @@ pub fn pose_to_similarity(p: &Pose) -> Similarity {
     }
 }
 
+/// The [`Pose`] of a similarity (rounded to f32).
 pub fn similarity_to_pose(s: &Similarity) -> Pose {
     Pose { rotation: s.rotation.map(|row| row.map(|x| x as f32)), translation: s.translation.map(|x| x as f32), scale: s.scale as f32 }
 }

@@ -26,7 +26,9 @@ use crate::{Error, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Fill {
+    /// Voxels the surface passes through.
     Surface,
+    /// Surface voxels and the interior (parity rule along z).
     Solid,
 }
 
@@ -68,6 +70,7 @@ impl CanonicalFrame {
         Ok(Self { centre: std::array::from_fn(|a| 0.5 * (lo[a] + hi[a])), extent })
     }
 
+    /// Mesh point → canonical frame.
     pub fn to_canonical(self, p: [f64; 3]) -> [f64; 3] {
         std::array::from_fn(|a| (p[a] - self.centre[a]) / self.extent)
     }

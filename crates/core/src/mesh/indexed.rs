@@ -7,7 +7,9 @@ use crate::{Error, Result};
 /// ([-0.5, 0.5]³, z up) unless a transform was applied.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Mesh {
+    /// Vertex positions.
     pub vertices: Vec<[f32; 3]>,
+    /// Triangles as vertex indices (counter-clockwise seen from outside).
     pub faces: Vec<[u32; 3]>,
     /// Per-vertex attributes in [0, 1]: TRELLIS's 6 colour channels
     /// (RGB then a normal-map triple).
@@ -15,6 +17,7 @@ pub struct Mesh {
 }
 
 impl Mesh {
+    /// Whether the mesh has no faces.
     pub fn is_empty(&self) -> bool {
         self.faces.is_empty()
     }
@@ -79,6 +82,7 @@ impl Mesh {
     }
 }
 
+/// Area of triangle `f` over vertices `v`.
 pub fn face_area(v: &[[f32; 3]], f: &[u32; 3]) -> f64 {
     let [a, b, c] = f.map(|i| v[i as usize].map(|x| x as f64));
     let u = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
@@ -90,8 +94,11 @@ pub fn face_area(v: &[[f32; 3]], f: &[u32; 3]) -> f64 {
 /// Edge/orientation statistics of a triangle mesh (over referenced vertices).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Topology {
+    /// Vertices referenced by a face.
     pub vertices: usize,
+    /// Distinct undirected edges.
     pub edges: usize,
+    /// Faces.
     pub faces: usize,
     /// Edges used by one face.
     pub boundary_edges: usize,
@@ -118,6 +125,7 @@ impl Topology {
 }
 
 impl Mesh {
+    /// Edge, orientation and component statistics of the mesh.
     pub fn topology(&self) -> Topology {
         use std::collections::HashMap;
         // Directed edge counts per undirected edge: (a→b uses, b→a uses) with a < b.
@@ -195,6 +203,7 @@ impl UnionFind {
 }
 
 impl Similarity32 {
+    /// The mesh with every vertex transformed (attributes kept).
     pub fn apply_mesh(&self, mesh: &Mesh) -> Mesh {
         Mesh {
             vertices: mesh.vertices.iter().map(|&v| self.apply(&v)).collect(),

@@ -10,7 +10,9 @@ use std::collections::HashMap;
 
 /// A scalar field sampled on a regular grid, flat index `(x·ny + y)·nz + z`.
 pub struct ScalarGrid<'a> {
+    /// Samples, flat index `(x·ny + y)·nz + z`.
     pub values: &'a [f32],
+    /// Samples along x, y, z.
     pub dims: [usize; 3],
     /// Position of sample (0, 0, 0).
     pub origin: [f32; 3],

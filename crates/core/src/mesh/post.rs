@@ -70,6 +70,7 @@ fn component_stats(mesh: &Mesh) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
 /// no boundary edges and a small mean dihedral angle.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct MeshQuality {
+    /// Connected components.
     pub components: usize,
     /// The largest component's share of the area.
     pub largest_area_fraction: f64,

@@ -8,7 +8,6 @@ use crate::mesh::trimesh::TriMesh;
 use crate::spatial::P3;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
-/// A closed, outward-oriented tetrahedron.
 /// The unit square in z = 0 as an `n`×`n` grid of cells, two triangles each
 /// (an open mesh with a boundary, all faces coplanar).
 pub fn flat_grid(n: u32) -> Mesh {
@@ -28,6 +27,7 @@ pub fn flat_grid(n: u32) -> Mesh {
     mesh
 }
 
+/// A closed, outward-oriented tetrahedron.
 pub fn tetrahedron() -> Mesh {
     Mesh {
         vertices: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -81,6 +81,7 @@ pub fn centre_of(m: &Mesh) -> [f64; 3] {
     [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, (lo[2] + hi[2]) / 2.0]
 }
 
+/// Axis-aligned bounding box `(lo, hi)` of the vertices (f64).
 pub fn bounds(m: &Mesh) -> ([f64; 3], [f64; 3]) {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
@@ -157,6 +158,7 @@ pub fn extrude(poly: &[[f64; 2]], tris: &[[u32; 3]], h: f64) -> Mesh {
     mesh_from(verts, faces)
 }
 
+/// A closed box of sides `x`, `y`, `z`, centred on the origin.
 pub fn box_mesh(x: f64, y: f64, z: f64) -> Mesh {
     let poly = [[-x / 2.0, -y / 2.0], [x / 2.0, -y / 2.0], [x / 2.0, y / 2.0], [-x / 2.0, y / 2.0]];
     centred(extrude(&poly, &[[0, 1, 2], [0, 2, 3]], z))
@@ -175,6 +177,7 @@ pub fn cylinder_mesh(r: f64, h: f64, bevel: f64) -> Mesh {
     centred(revolve(&p, false, SEGMENTS))
 }
 
+/// A closed sphere of radius `r`, centred on the origin.
 pub fn sphere_mesh(r: f64) -> Mesh {
     let m = SEGMENTS / 2;
     let p: Vec<[f64; 2]> = (0..=m)
@@ -188,6 +191,7 @@ pub fn sphere_mesh(r: f64) -> Mesh {
     centred(revolve(&p, false, SEGMENTS))
 }
 
+/// A closed torus about z: ring radius `big`, tube radius `small`, centred.
 pub fn torus_mesh(big: f64, small: f64) -> Mesh {
     let m = 16;
     let p: Vec<[f64; 2]> = (0..m)
@@ -276,6 +280,7 @@ pub fn signed_volume(m: &Mesh) -> f64 {
         / 6.0
 }
 
+/// The mesh with every face's orientation reversed.
 pub fn flip(mut m: Mesh) -> Mesh {
     for f in &mut m.faces {
         f.swap(1, 2);

@@ -10,7 +10,9 @@ use rayon::prelude::*;
 /// "surface samples" are its vertices.
 #[derive(Debug, Clone, Default)]
 pub struct TriMesh {
+    /// Vertex positions (or the points of a point cloud).
     pub vertices: Vec<P3>,
+    /// Triangles as vertex indices (empty for a point cloud).
     pub faces: Vec<[u32; 3]>,
 }
 
@@ -33,6 +35,7 @@ impl From<&TriMesh> for crate::mesh::indexed::Mesh {
 }
 
 impl TriMesh {
+    /// The mesh with every vertex transformed by `tf`.
     pub fn transformed(&self, tf: &Similarity) -> TriMesh {
         TriMesh { vertices: tf.apply_all(&self.vertices), faces: self.faces.clone() }
     }
@@ -54,6 +57,7 @@ impl TriMesh {
         self.vertices.iter().zip(used).filter(|(_, u)| *u).map(|(p, _)| *p).collect()
     }
 
+    /// Total triangle area.
     pub fn surface_area(&self) -> f64 {
         self.faces.iter().map(|f| tri_area(&self.tri(f))).sum()
     }

@@ -80,6 +80,7 @@ impl RenderMesh {
         Ok(RenderMesh { bvh, normals, lo, hi })
     }
 
+    /// A ray-casting mesh from a [`Mesh`] (f32 vertices); `name` labels errors.
     pub fn from_mesh(m: &Mesh, name: &str) -> Result<Self> {
         let v: Vec<[f64; 3]> = m.vertices.iter().map(|v| v.map(|x| x as f64)).collect();
         Self::new(&v, &m.faces, name)
@@ -90,6 +91,7 @@ impl RenderMesh {
         Self::new(&m.vertices, &m.faces, name)
     }
 
+    /// Number of triangles.
     pub fn num_triangles(&self) -> usize {
         self.normals.len()
     }
@@ -105,25 +107,31 @@ impl RenderMesh {
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 #[serde(tag = "pattern", rename_all = "snake_case")]
 pub enum Pattern {
+    /// One colour (`color`).
     Solid,
     /// 3D checkerboard of cubes with side `cell` (mesh units).
     Checker {
+        /// Cube side, mesh units.
         cell: f64,
     },
     /// Slabs of width `period / 2` across mesh axis `axis` (0 = x, 1 = y, 2 = z).
     Stripes {
+        /// Mesh axis across the stripes (0 = x, 1 = y, 2 = z).
         axis: usize,
+        /// Period of the stripes, mesh units.
         period: f64,
     },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+/// Surface colours and pattern of an instance.
 pub struct Material {
     /// Linear RGB in [0, 1].
     pub color: [f32; 3],
     /// Second colour of the pattern.
     pub color2: [f32; 3],
     #[serde(flatten)]
+    /// How the two colours are laid out.
     pub pattern: Pattern,
 }
 
@@ -151,15 +159,18 @@ impl Material {
 /// One object to draw.
 #[derive(Clone, Copy)]
 pub struct Instance<'a> {
+    /// The mesh drawn.
     pub mesh: &'a RenderMesh,
     /// Mesh → world (`X_world = s·R·X_mesh + t`, s > 0).
     pub pose: Similarity,
     /// Reported in [`Rendered::ids`] and the `object` covariate.
     pub id: i64,
+    /// Surface appearance.
     pub material: Material,
 }
 
 impl<'a> Instance<'a> {
+    /// An instance of `mesh` at `pose` with the default material.
     pub fn new(mesh: &'a RenderMesh, pose: Similarity, id: i64) -> Self {
         Instance { mesh, pose, id, material: Material::default() }
     }
@@ -169,13 +180,18 @@ impl<'a> Instance<'a> {
 /// the camera frame (BOP `cam_R_m2c`, `cam_t_m2c`).
 #[derive(Clone, Copy, Debug)]
 pub struct Camera {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Pinhole intrinsics.
     pub k: Intrinsics,
+    /// World → camera transform.
     pub world_to_cam: Similarity,
 }
 
 impl Camera {
+    /// A camera at the world origin (`world_to_cam` identity).
     pub fn new(width: usize, height: usize, k: Intrinsics) -> Self {
         Camera { width, height, k, world_to_cam: Similarity::identity() }
     }
@@ -204,8 +220,11 @@ impl Camera {
 /// light, in the camera frame.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Light {
+    /// Unit direction from the surface to the light, camera frame.
     pub direction_cam: [f64; 3],
+    /// Ambient intensity.
     pub ambient: f32,
+    /// Diffuse (Lambertian) intensity.
     pub diffuse: f32,
 }
 
@@ -217,7 +236,9 @@ impl Default for Light {
 }
 
 #[derive(Clone, Copy, Debug)]
+/// Lighting and background of a render.
 pub struct RenderOptions {
+    /// The light.
     pub light: Light,
     /// RGB of pixels that hit nothing.
     pub background: [u8; 3],
@@ -236,8 +257,11 @@ pub const EDGE_JUMP_REL: f64 = 0.02;
 /// Everything rendered for one view; images are row-major `width × height`.
 #[derive(Clone, Debug)]
 pub struct Rendered {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Pinhole intrinsics.
     pub k: Intrinsics,
     /// z-depth along the optical axis (0 = no surface).
     pub depth: Vec<f32>,
@@ -247,6 +271,7 @@ pub struct Rendered {
     pub ids: Vec<i64>,
     /// Hit triangle's unit face normal (as the mesh orients it) in the camera / world frame; 0 where no hit.
     pub normal_cam: Vec<[f32; 3]>,
+    /// Face normal of the hit triangle in the world frame (0 where no hit).
     pub normal_world: Vec<[f32; 3]>,
     /// Angle between the viewing ray and the hit face normal, degrees in [0, 90].
     pub incidence: Vec<f32>,

@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
 
+/// Version of the sensor model file format.
 pub const VERSION: u32 = 1;
 
 /// The per-pixel quantities effects can depend on. Names are the audit's column names.
@@ -44,11 +45,14 @@ pub enum Covariate {
     Object,
     /// Frame index.
     Frame,
+    /// Pixel column (0 at the left).
     U,
+    /// Pixel row (0 at the top).
     V,
 }
 
 impl Covariate {
+    /// Every covariate, in declaration order.
     pub const ALL: [Covariate; 9] = [
         Covariate::Depth,
         Covariate::Radius,
@@ -60,6 +64,7 @@ impl Covariate {
         Covariate::U,
         Covariate::V,
     ];
+    /// Snake-case name (the audit's column name).
     pub fn name(self) -> &'static str {
         match self {
             Covariate::Depth => "depth",
@@ -73,6 +78,7 @@ impl Covariate {
             Covariate::V => "v",
         }
     }
+    /// The covariate named `s`.
     pub fn from_name(s: &str) -> Option<Self> {
         Self::ALL.iter().copied().find(|c| c.name() == s)
     }
@@ -85,18 +91,28 @@ impl Covariate {
 /// Covariate values of one pixel.
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, Default, PartialEq)]
 pub struct PixelCovariates {
+    /// Simulated z-depth, metres.
     pub depth: f64,
+    /// Distance from the principal point over the image half-diagonal.
     pub radius: f64,
+    /// Angle between the viewing ray and the surface normal, degrees.
     pub incidence: f64,
+    /// Pixels to the nearest depth discontinuity.
     pub edge_distance: f64,
+    /// Luminance of the RGB pixel, 0–1.
     pub intensity: f64,
+    /// Object id (-1: background).
     pub object: i64,
+    /// Frame index.
     pub frame: i64,
+    /// Pixel column.
     pub u: f64,
+    /// Pixel row.
     pub v: f64,
 }
 
 impl PixelCovariates {
+    /// The value of covariate `c` (categorical ones as numbers).
     pub fn get(&self, c: Covariate) -> f64 {
         match c {
             Covariate::Depth => self.depth,
@@ -125,6 +141,7 @@ pub enum Target {
 }
 
 impl Target {
+    /// Snake-case name (`bias`, `noise`, `dropout`).
     pub fn name(self) -> &'static str {
         match self {
             Target::Bias => "bias",
@@ -140,16 +157,33 @@ impl Target {
 #[serde(tag = "form", rename_all = "snake_case")]
 pub enum Form {
     /// `slope·x`
-    Linear { slope: f64 },
+    Linear {
+        /// Change per unit of the covariate.
+        slope: f64,
+    },
     /// `linear·x + quadratic·x²`
-    Quadratic { linear: f64, quadratic: f64 },
+    Quadratic {
+        /// Coefficient of `x`.
+        linear: f64,
+        /// Coefficient of `x²`.
+        quadratic: f64,
+    },
     /// `delta` where `x > threshold`, else 0.
-    Step { threshold: f64, delta: f64 },
+    Step {
+        /// Where the step is.
+        threshold: f64,
+        /// Value above the threshold.
+        delta: f64,
+    },
     /// A value per category (key: the category as an integer string); unlisted ones 0.
-    Group { values: BTreeMap<String, f64> },
+    Group {
+        /// Value per category.
+        values: BTreeMap<String, f64>,
+    },
 }
 
 impl Form {
+    /// Snake-case name (`linear`, `quadratic`, `step`, `group`).
     pub fn name(&self) -> &'static str {
         match self {
             Form::Linear { .. } => "linear",
@@ -158,6 +192,7 @@ impl Form {
             Form::Group { .. } => "group",
         }
     }
+    /// The form's value at `x`.
     pub fn eval(&self, x: f64) -> f64 {
         match self {
             Form::Linear { slope } => slope * x,
@@ -177,9 +212,12 @@ impl Form {
 /// One term: `target += form(covariate) [· by]`.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct Effect {
+    /// What the effect changes.
     pub target: Target,
+    /// The covariate it depends on.
     pub covariate: Covariate,
     #[serde(flatten)]
+    /// Its shape in the covariate.
     pub form: Form,
     /// Interaction: the term is multiplied by this second covariate's value.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -190,6 +228,7 @@ pub struct Effect {
 }
 
 impl Effect {
+    /// The effect's value at a pixel (times the `by` covariate when set).
     pub fn eval(&self, c: &PixelCovariates) -> f64 {
         let f = self.form.eval(c.get(self.covariate));
         match self.by {
@@ -206,23 +245,34 @@ pub enum Base {
     /// Exact depth.
     Ideal,
     /// Constant standard deviation.
-    Gaussian { sigma_m: f64 },
+    Gaussian {
+        /// Standard deviation in metres.
+        sigma_m: f64,
+    },
     /// Stereo / structured light: z = f·B/d, disparity noise `disparity_sigma_px` so
     /// sd(z) = z²·σ_d/(f·B); disparity quantised to `subpixel` px (0 = off).
     Stereo {
+        /// Focal length in pixels.
         focal_px: f64,
+        /// Stereo baseline in metres.
         baseline_m: f64,
+        /// Disparity noise standard deviation in pixels.
         disparity_sigma_px: f64,
         #[serde(default)]
+        /// Disparity quantisation step in pixels (0: off).
         subpixel: f64,
     },
 }
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+/// A depth sensor model (module docs): base noise, global terms and effects.
 pub struct SensorModel {
+    /// File format version ([`VERSION`]).
     pub version: u32,
     #[serde(default)]
+    /// Free-text name.
     pub name: String,
+    /// Noise floor of the sensor type.
     pub base: Base,
     /// Global bias, metres.
     #[serde(default)]
@@ -240,8 +290,10 @@ pub struct SensorModel {
     #[serde(default)]
     pub min_depth_m: f64,
     #[serde(default)]
+    /// Farthest valid return in metres (0: no limit).
     pub max_depth_m: f64,
     #[serde(default)]
+    /// Covariate-dependent effects (bias, noise, dropout).
     pub effects: Vec<Effect>,
 }
 
@@ -252,6 +304,7 @@ impl Default for SensorModel {
 }
 
 impl SensorModel {
+    /// Exact depth: no noise, bias or dropout.
     pub fn ideal() -> Self {
         SensorModel {
             version: VERSION,
@@ -280,22 +333,26 @@ impl SensorModel {
         }
     }
 
+    /// Parses and validates a model from JSON text; `file` names it in errors.
     pub fn from_json_str(s: &str, file: &str) -> Result<Self> {
         let m: SensorModel = serde_json::from_str(s).map_err(|e| Error::config(file, "(json)", e.to_string()))?;
         m.validate(file)?;
         Ok(m)
     }
 
+    /// Reads and validates a model from a JSON file.
     pub fn load(path: &Path) -> Result<Self> {
         let s = std::fs::read_to_string(path).map_err(|e| Error::Io { path: path.to_path_buf(), source: e })?;
         Self::from_json_str(&s, &path.display().to_string())
     }
 
+    /// Writes the model as pretty JSON.
     pub fn save(&self, path: &Path) -> Result<()> {
         let s = serde_json::to_string_pretty(self).expect("sensor model serialises");
         std::fs::write(path, s).map_err(|e| Error::Io { path: path.to_path_buf(), source: e })
     }
 
+    /// Checks the version, ranges and effect forms; `file` names the model in errors.
     pub fn validate(&self, file: &str) -> Result<()> {
         let bad = |field: &str, msg: String| Err(Error::config(file, field, msg));
         if self.version != VERSION {
@@ -371,15 +428,18 @@ impl SensorModel {
         self.effects.iter().filter(|e| e.target == t).map(|e| e.eval(c)).sum()
     }
 
+    /// Expected bias (measured − true depth) at a pixel, metres.
     pub fn bias(&self, c: &PixelCovariates) -> f64 {
         self.bias_m + self.sum(Target::Bias, c)
     }
 
+    /// Noise standard deviation at a pixel, metres.
     pub fn sd(&self, c: &PixelCovariates) -> f64 {
         let b = self.base_sd(c.depth);
         ((b * b + self.noise_m * self.noise_m).sqrt() + self.sum(Target::Noise, c)).max(0.0)
     }
 
+    /// Probability that the pixel's return is missing.
     pub fn p_missing(&self, c: &PixelCovariates) -> f64 {
         (self.dropout + self.sum(Target::Dropout, c)).clamp(0.0, 1.0)
     }

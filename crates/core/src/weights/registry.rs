@@ -1,7 +1,7 @@
 //! Module configs by name: `{"name": ClassName, "args": {...}}` files (the
 //! TRELLIS `ckpts/<name>.json` format) map to a builder that constructs the
-//! module on any VarBuilder. Building on a [`Recorder`](crate::weights::record::Recorder)
-//! yields the expected tensor list; on [`RandomInit`](crate::weights::record::RandomInit)
+//! module on any VarBuilder. Building on a `Recorder` (`weights::record`)
+//! yields the expected tensor list; on a [`crate::weights::RandomInit`]
 //! random weights. New modules plug in by adding a match arm to [`build`].
 //!
 //! Every module of the architecture file (`models/recgen-*.json`) is known:

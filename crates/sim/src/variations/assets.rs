@@ -40,7 +40,9 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum UpAxis {
+    /// Y up (converted to z up on load).
     Y,
+    /// Z up.
     Z,
 }
 
@@ -48,24 +50,34 @@ pub enum UpAxis {
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AssetPhysics {
+    /// File format version (1).
     pub version: u32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Category (selects the default material).
     pub category: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Metres per mesh unit.
     pub units_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// The mesh's up axis.
     pub up_axis: Option<UpAxis>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Material name.
     pub material: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Mass in kilograms (overrides the density).
     pub mass_kg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Density in kg/m³.
     pub density_kg_m3: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Coulomb friction coefficient.
     pub friction: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Restitution coefficient.
     pub restitution: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Display colour (linear RGBA in [0, 1]).
     pub color_rgba: Option<[f64; 4]>,
 }
 
@@ -119,9 +131,13 @@ impl AssetPhysics {
 pub struct Asset {
     /// Path relative to the asset folder (recorded in the manifest).
     pub rel: String,
+    /// Category (from its physics file, else the folder's default).
     pub category: String,
+    /// Mesh in metres, z up.
     pub mesh: Mesh,
+    /// Physics overrides from its physics file.
     pub physics: PhysicsOverrides,
+    /// Display colour (linear RGBA), if given.
     pub color_rgba: Option<[f64; 4]>,
     /// Largest side of the mesh's bounding box (m).
     pub extent_m: f64,
@@ -130,6 +146,7 @@ pub struct Asset {
 /// The assets of one folder that a spec may draw from.
 #[derive(Debug, Clone)]
 pub struct AssetLibrary {
+    /// The asset folder.
     pub dir: PathBuf,
     /// Sorted by path.
     pub assets: Vec<Asset>,

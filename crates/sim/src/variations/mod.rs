@@ -55,6 +55,7 @@ pub struct VariationOptions {
     pub count: usize,
     /// Every variant's seed derives from it: the same seed gives byte-identical files.
     pub seed: u64,
+    /// Predicates, region, distractors and object variants.
     pub spec: VariationSpec,
     /// Names the spec in errors.
     pub spec_file: String,
@@ -153,27 +154,43 @@ pub struct RegionRecord {
 }
 
 #[derive(Debug, Clone, Serialize)]
+/// The `manifest.json` of a variations run.
 pub struct Manifest {
+    /// File format version.
     pub version: u32,
+    /// Seed of the run.
     pub seed: u64,
+    /// Variants asked for.
     pub requested: usize,
+    /// Variants kept (settled at rest).
     pub kept: usize,
     /// Kept variants whose every predicate holds after settling, over kept variants.
     pub predicate_pass_rate: f64,
+    /// Predicates that held, over all kept variants.
     pub predicates_held: usize,
+    /// Predicates judged, over all kept variants.
     pub predicates_total: usize,
+    /// Where the input scene came from (its `source`).
     pub source: Option<String>,
+    /// The spec used.
     pub spec: VariationSpec,
+    /// Frame of the directional predicates.
     pub frame: FrameRecord,
+    /// Region objects were placed in.
     pub region: RegionRecord,
+    /// The rest test a variant had to pass, in words.
     pub rest_test: String,
+    /// Names of the scene objects.
     pub objects: Vec<String>,
+    /// One record per variant kept.
     pub variants: Vec<VariantRecord>,
 }
 
 /// What [`run_variations`] returns: the manifest it wrote and the wall time (not written).
 pub struct RunSummary {
+    /// The manifest written.
     pub manifest: Manifest,
+    /// Wall time of the run in seconds (not written).
     pub seconds: f64,
 }
 

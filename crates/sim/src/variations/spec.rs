@@ -34,41 +34,60 @@ pub const SPEC_VERSION: u32 = 1;
 pub enum Predicate {
     /// `a` rests on `b`'s top surface (not on the plane).
     OnTop {
+        /// The object on top.
         a: String,
+        /// The object below.
         b: String,
     },
     /// Directions in the spec's `frame`, centre of mass to centre of mass,
     /// within 45° of the direction and at least 1 cm apart along it.
     LeftOf {
+        /// The object placed.
         a: String,
+        /// The reference object.
         b: String,
     },
+    /// `a` to the right of `b` (see [`Predicate::LeftOf`]).
     RightOf {
+        /// The object placed.
         a: String,
+        /// The reference object.
         b: String,
     },
+    /// `a` in front of `b` (nearer the camera; see [`Predicate::LeftOf`]).
     InFrontOf {
+        /// The object placed.
         a: String,
+        /// The reference object.
         b: String,
     },
+    /// `a` behind `b` (see [`Predicate::LeftOf`]).
     Behind {
+        /// The object placed.
         a: String,
+        /// The reference object.
         b: String,
     },
     /// Collision geometries at most `distance_m` apart.
     Near {
+        /// The object placed.
         a: String,
+        /// The reference object.
         b: String,
+        /// Largest gap between the collision geometries (metres).
         distance_m: f64,
     },
     /// `a`'s centre of mass over `b`'s cavity and its lowest point below `b`'s rim.
     Inside {
+        /// The object inside.
         a: String,
+        /// The container.
         b: String,
     },
 }
 
 impl Predicate {
+    /// Snake-case name, as in the spec file (`on_top`, `left_of`, ...).
     pub fn name(&self) -> &'static str {
         match self {
             Predicate::OnTop { .. } => "on_top",
@@ -80,6 +99,7 @@ impl Predicate {
             Predicate::Inside { .. } => "inside",
         }
     }
+    /// The two objects `(a, b)`.
     pub fn objects(&self) -> (&str, &str) {
         match self {
             Predicate::OnTop { a, b }
@@ -131,17 +151,26 @@ pub enum DirFrame {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Category {
+    /// A rectangular box.
     Box,
+    /// A closed cylinder (a can).
     Cylinder,
+    /// A bottle: body and cap.
     Bottle,
+    /// An open bowl.
     Bowl,
+    /// A mug: body and handle.
     Mug,
+    /// A sphere.
     Sphere,
+    /// A torus.
     Torus,
+    /// An L-shaped solid.
     LShape,
 }
 
 impl Category {
+    /// Every category, in declaration order.
     pub const ALL: [Category; 8] = [
         Category::Box,
         Category::Cylinder,
@@ -152,6 +181,7 @@ impl Category {
         Category::Torus,
         Category::LShape,
     ];
+    /// The procedural object kind it draws from.
     pub fn kind(self) -> Kind {
         match self {
             Category::Box => Kind::Box,
@@ -258,21 +288,27 @@ pub struct Region {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
+/// A variations spec file: predicates, placement region, distractors, object variants.
 pub struct VariationSpec {
+    /// File format version (1).
     pub version: u32,
     #[serde(default)]
+    /// Frame of the directional predicates.
     pub frame: DirFrame,
     /// Held by every variant; when empty, `sampled_predicates` are drawn per variant.
     #[serde(default)]
     pub predicates: Vec<Predicate>,
     #[serde(default = "default_sampled")]
+    /// Predicates drawn per variant when `predicates` is empty.
     pub sampled_predicates: usize,
     /// Where objects may be placed on the plane (world frame; default: around the scene's objects).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<Region>,
     #[serde(default)]
+    /// Distractors added to each variant.
     pub distractors: DistractorSpec,
     #[serde(default)]
+    /// Rescaling, stretching and material/colour changes of the scene objects.
     pub object_variants: ObjectVariantSpec,
 }
 

@@ -1,6 +1,6 @@
 //! Shared layers: [`common`] (linear, norms, attention, feed-forward, adaLN
 //! blocks), [`fast`] (the packed-weight inference kernels behind them),
-//! [`dense3d`] (3D convolutions of the SS VAE) and [`gradcheck`] (directional
+//! `dense3d` (3D convolutions of the SS VAE) and `gradcheck` (directional
 //! gradient checks for training).
 
 pub mod common;

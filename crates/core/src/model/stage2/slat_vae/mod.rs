@@ -1,5 +1,5 @@
 //! The structured-latent VAE: [`encoder`] (training only), the shared sparse
-//! transformer [`trunk`], the [`mesh`] decoder with [`flexicubes`] extraction,
+//! transformer `trunk`, the [`mesh`] decoder with [`flexicubes`] extraction,
 //! and the [`gaussian`] decoder.
 
 pub mod encoder;

@@ -6,7 +6,7 @@
 //! an occupied corner (sdf < 0) can be surface cubes, and only corners of
 //! active cubes can be occupied (untouched vertices default to sdf = +1), so
 //! this port visits just the cubes around occupied vertices, with sorted
-//! lattice ids and a dense per-column table ([`ColumnIndex`]) standing in for
+//! lattice ids and a dense per-column table (`ColumnIndex`) standing in for
 //! the dense grids. Cubes outside the active set get the
 //! dense defaults: raw weights 0, deform 0, colour 0.
 //!
@@ -299,58 +299,101 @@ fn offset(c: [u32; 3], o: [u32; 3]) -> [u32; 3] {
 
 /// FlexiCubes (training = false) over the sparse grid.
 pub fn flexicubes(g: &SparseGrid) -> Mesh {
-    let res = g.res;
-    let r = res as i64;
-    let field = &g.field;
-    let nv = res as u64 + 1;
-    let vkey = |v: [u32; 3]| (v[0] as u64 * nv + v[1] as u64) * nv + v[2] as u64;
-    let ckey = |c: [u32; 3]| (c[0] as u64 * res as u64 + c[1] as u64) * res as u64 + c[2] as u64;
-    let decode = |k: u64| [(k / (res as u64 * res as u64)) as u32, ((k / res as u64) % res as u64) as u32, (k % res as u64) as u32];
+    let lattice = Lattice::new(g.res);
+    let surf = surface_cubes(g, &lattice);
+    if surf.is_empty() {
+        return Mesh { vertices: vec![], faces: vec![], vertex_attrs: g.use_color.then(Vec::new) };
+    }
+    let cases = resolve_ambiguity(&surf, &lattice);
+    let edges = surface_edges(&surf, &lattice);
+    let duals = dual_vertices(g, &surf, &cases);
+    let faces = quad_faces(g, &lattice, &edges, &duals);
+    let DualVertices { vertices, colors, .. } = duals;
+    Mesh { vertices, faces, vertex_attrs: g.use_color.then_some(colors) }
+}
 
-    // 1. Surface cubes: every cube around an occupied vertex, in cube-id order.
+/// Ids on the `res³` cube grid and its `(res + 1)³` vertex grid.
+struct Lattice {
+    res: usize,
+    /// Vertices per side (`res + 1`).
+    nv: u64,
+}
+
+impl Lattice {
+    fn new(res: usize) -> Self {
+        Self { res, nv: res as u64 + 1 }
+    }
+
+    /// Vertex id `(x·nv + y)·nv + z`.
+    fn vkey(&self, v: [u32; 3]) -> u64 {
+        let nv = self.nv;
+        (v[0] as u64 * nv + v[1] as u64) * nv + v[2] as u64
+    }
+
+    /// Cube id `(x·res + y)·res + z`.
+    fn ckey(&self, c: [u32; 3]) -> u64 {
+        let res = self.res;
+        (c[0] as u64 * res as u64 + c[1] as u64) * res as u64 + c[2] as u64
+    }
+
+    /// The cube of a cube id.
+    fn decode(&self, k: u64) -> [u32; 3] {
+        let res = self.res;
+        [(k / (res as u64 * res as u64)) as u32, ((k / res as u64) % res as u64) as u32, (k % res as u64) as u32]
+    }
+
+    /// Whether a signed cube coordinate lies on the grid.
+    fn contains(&self, c: &[i64; 3]) -> bool {
+        let r = self.res as i64;
+        c.iter().all(|&x| (0..r).contains(&x))
+    }
+}
+
+/// 1. Surface cubes: every cube around an occupied vertex whose corners' signs
+///    differ, in cube-id order.
+fn surface_cubes(g: &SparseGrid, lattice: &Lattice) -> Vec<SurfCube> {
+    let field = &g.field;
+    let nv = lattice.nv;
     let mut cand: Vec<u64> = Vec::new();
     for (&k, &sdf) in field.index.keys.iter().zip(&field.sdf) {
         if sdf < 0.0 {
             let v = [(k / (nv * nv)) as i64, ((k / nv) % nv) as i64, (k % nv) as i64];
             for o in CUBE_CORNERS {
                 let c = [v[0] - o[0] as i64, v[1] - o[1] as i64, v[2] - o[2] as i64];
-                if c.iter().all(|&x| (0..r).contains(&x)) {
-                    cand.push(ckey([c[0] as u32, c[1] as u32, c[2] as u32]));
+                if lattice.contains(&c) {
+                    cand.push(lattice.ckey([c[0] as u32, c[1] as u32, c[2] as u32]));
                 }
             }
         }
     }
     cand.par_sort_unstable();
     cand.dedup();
-    let surf: Vec<SurfCube> = cand
-        .par_iter()
+    cand.par_iter()
         .filter_map(|&k| {
-            let c = decode(k);
+            let c = lattice.decode(k);
             let slots = CUBE_CORNERS.map(|o| field.slot(offset(c, o)).map(|i| i as u32));
             let s = slots.map(|i| i.map_or(1.0, |i| field.sdf[i as usize]));
             let case = s.iter().enumerate().fold(0u32, |acc, (i, &v)| acc | ((v < 0.0) as u32) << i);
             (case != 0 && case != 255).then_some(SurfCube { c, case: case as u8, s, slots })
         })
-        .collect();
-    if surf.is_empty() {
-        return Mesh { vertices: vec![], faces: vec![], vertex_attrs: g.use_color.then(Vec::new) };
-    }
-    // In cube-id order, as the candidates were.
-    let surf_keys: Vec<u64> = surf.iter().map(|sc| ckey(sc.c)).collect();
+        .collect()
+}
 
-    // 2. Ambiguity resolution: a problem case whose neighbour in the table's
-    //    direction is also a problem case is inverted (original cases decide).
+/// 2. Ambiguity resolution: a problem case whose neighbour in the table's
+///    direction is also a problem case is inverted (original cases decide).
+fn resolve_ambiguity(surf: &[SurfCube], lattice: &Lattice) -> Vec<u8> {
+    // In cube-id order, as the candidates were.
+    let surf_keys: Vec<u64> = surf.iter().map(|sc| lattice.ckey(sc.c)).collect();
     let is_problem = |case: u8| CHECK_TABLE[case as usize][0] == 1;
-    let cases: Vec<u8> = surf
-        .par_iter()
+    surf.par_iter()
         .map(|sc| {
             let row = CHECK_TABLE[sc.case as usize];
             if row[0] != 1 {
                 return sc.case;
             }
             let n = [sc.c[0] as i64 + row[1] as i64, sc.c[1] as i64 + row[2] as i64, sc.c[2] as i64 + row[3] as i64];
-            if n.iter().all(|&x| (0..r).contains(&x)) {
-                let nk = ckey([n[0] as u32, n[1] as u32, n[2] as u32]);
+            if lattice.contains(&n) {
+                let nk = lattice.ckey([n[0] as u32, n[1] as u32, n[2] as u32]);
                 if let Ok(j) = surf_keys.binary_search(&nk) {
                     if is_problem(surf[j].case) {
                         return row[4] as u8;
@@ -359,27 +402,36 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
             }
             sc.case
         })
-        .collect();
+        .collect()
+}
 
-    // 3. Surface edges: unique sign-changing edges of surface cubes, sorted by
-    //    (first vertex id, second vertex id) like torch.unique(dim=0).
-    //    Each carries where it came from (cube · 12 + edge slot), so the ids
-    //    are handed back without searching for them.
+/// The unique sign-changing edges of the surface cubes.
+struct SurfaceEdges {
+    /// (first vertex id, second vertex id), sorted.
+    uniq: Vec<(u64, u64)>,
+    /// Surface cubes sharing each edge.
+    counts: Vec<u32>,
+    /// Surface-edge id of each (cube, edge slot), -1 without a sign change.
+    edge_ids: Vec<[i64; 12]>,
+}
+
+/// 3. Surface edges: unique sign-changing edges of surface cubes, sorted by
+///    (first vertex id, second vertex id) like torch.unique(dim=0).
+///    Each carries where it came from (cube · 12 + edge slot), so the ids
+///    are handed back without searching for them.
+fn surface_edges(surf: &[SurfCube], lattice: &Lattice) -> SurfaceEdges {
     let mut edges: Vec<(u64, u64, usize)> = surf
         .par_iter()
         .enumerate()
         .flat_map_iter(|(i, sc)| {
-            CUBE_EDGES
-                .iter()
-                .enumerate()
-                .filter(move |&(_, &[a, b])| (sc.s[a] < 0.0) != (sc.s[b] < 0.0))
-                .map(move |(e, &[a, b])| (vkey(offset(sc.c, CUBE_CORNERS[a])), vkey(offset(sc.c, CUBE_CORNERS[b])), i * 12 + e))
+            CUBE_EDGES.iter().enumerate().filter(move |&(_, &[a, b])| (sc.s[a] < 0.0) != (sc.s[b] < 0.0)).map(move |(e, &[a, b])| {
+                (lattice.vkey(offset(sc.c, CUBE_CORNERS[a])), lattice.vkey(offset(sc.c, CUBE_CORNERS[b])), i * 12 + e)
+            })
         })
         .collect();
     edges.par_sort_unstable();
     let mut uniq: Vec<(u64, u64)> = Vec::with_capacity(edges.len() / 3);
     let mut counts: Vec<u32> = Vec::with_capacity(edges.len() / 3);
-    // Surface-edge id of each (cube, edge slot), -1 without a sign change.
     let mut edge_ids: Vec<[i64; 12]> = vec![[-1i64; 12]; surf.len()];
     for run in edges.chunk_by(|x, y| (x.0, x.1) == (y.0, y.1)) {
         let id = uniq.len() as i64;
@@ -389,9 +441,23 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
         uniq.push((run[0].0, run[0].1));
         counts.push(run.len() as u32);
     }
-    drop(edges);
+    SurfaceEdges { uniq, counts, edge_ids }
+}
 
-    // 4. Dual vertices, numbered by (vertex count of the cube, cube, group).
+/// The dual vertices and what the faces need of them.
+struct DualVertices {
+    vertices: Vec<[f32; 3]>,
+    /// Per vertex with colour, else empty.
+    colors: Vec<[f32; 6]>,
+    /// γ of each vertex's cube (splits the quads).
+    vd_gamma: Vec<f32>,
+    /// Per surface cube: the dual vertex of each edge slot.
+    vd_of_slot: Vec<[u32; 12]>,
+}
+
+/// 4. Dual vertices, numbered by (vertex count of the cube, cube, group).
+fn dual_vertices(g: &SparseGrid, surf: &[SurfCube], cases: &[u8]) -> DualVertices {
+    let field = &g.field;
     let num_vd: Vec<usize> = cases.iter().map(|&c| NUM_VD_TABLE[c as usize] as usize).collect();
     let mut first_vd = vec![0u32; surf.len()];
     let mut total = 0u32;
@@ -471,14 +537,19 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
             }
         }
     }
+    let vd_of_slot = per_cube.iter().map(|cv| cv.vd_of_slot).collect();
+    DualVertices { vertices, colors, vd_gamma, vd_of_slot }
+}
 
-    // 5. Quads around interior surface edges (shared by 4 cubes), their 4
-    //    dual vertices in cube order; triangles split along the larger γ product.
+/// 5. Quads around interior surface edges (shared by 4 cubes), their 4
+///    dual vertices in cube order; triangles split along the larger γ product.
+fn quad_faces(g: &SparseGrid, lattice: &Lattice, edges: &SurfaceEdges, duals: &DualVertices) -> Vec<[u32; 3]> {
+    let nv = lattice.nv;
     let mut group: Vec<(u32, u32)> = Vec::new();
-    for (i, ids) in edge_ids.iter().enumerate() {
+    for (i, ids) in edges.edge_ids.iter().enumerate() {
         for (e, &id) in ids.iter().enumerate() {
-            if id >= 0 && counts[id as usize] == 4 {
-                group.push((id as u32, per_cube[i].vd_of_slot[e]));
+            if id >= 0 && edges.counts[id as usize] == 4 {
+                group.push((id as u32, duals.vd_of_slot[i][e]));
             }
         }
     }
@@ -486,17 +557,18 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
     let mut flipped: Vec<[u32; 4]> = Vec::new();
     let mut kept: Vec<[u32; 4]> = Vec::new();
     for q in group.chunks_exact(4) {
-        let (ka, _) = uniq[q[0].0 as usize];
+        let (ka, _) = edges.uniq[q[0].0 as usize];
         let nn = nv * nv;
         let v0 = [(ka / nn) as u32, ((ka / nv) % nv) as u32, (ka % nv) as u32];
         let quad = [q[0].1, q[1].1, q[2].1, q[3].1];
         // Wind every face towards positive sdf.
-        if field.sdf(v0) > 0.0 {
+        if g.field.sdf(v0) > 0.0 {
             flipped.push([quad[0], quad[1], quad[3], quad[2]]);
         } else {
             kept.push([quad[2], quad[3], quad[1], quad[0]]);
         }
     }
+    let vd_gamma = &duals.vd_gamma;
     let mut faces = Vec::with_capacity(2 * (flipped.len() + kept.len()));
     for q in flipped.iter().chain(kept.iter()) {
         let g02 = vd_gamma[q[0] as usize] * vd_gamma[q[2] as usize];
@@ -509,7 +581,7 @@ pub fn flexicubes(g: &SparseGrid) -> Mesh {
             faces.push([q[3], q[1], q[2]]);
         }
     }
-    Mesh { vertices, faces, vertex_attrs: g.use_color.then_some(colors) }
+    faces
 }
 
 #[cfg(test)]
