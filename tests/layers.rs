@@ -129,7 +129,9 @@ fn strip(text: &str) -> String {
 fn split_tests(code: &str) -> (String, String) {
     let (mut main, mut tests) = (String::new(), String::new());
     let mut rest = code;
-    while let Some(i) = rest.find("#[cfg(test)]") {
+    // Test-only code: `#[cfg(test)]`, and the fixtures other crates' tests reach through the
+    // `testkit` feature (`#[cfg(any(test, feature = "testkit"))]`).
+    while let Some(i) = ["#[cfg(test)]", "#[cfg(any(test"].iter().filter_map(|m| rest.find(m)).min() {
         main.push_str(&rest[..i]);
         let after = &rest[i..];
         let open = after.find(['{', ';']).unwrap_or(after.len() - 1);
@@ -315,7 +317,10 @@ fn files_import_each_other_without_circles() {
     let mut circles = Vec::new();
     for (name, dir) in CRATES {
         for c in circles_in(&read_sources(&workspace().join(dir).join("src"))) {
-            circles.push(format!("{name}: {c}"));
+            let c = format!("{name}: {c}");
+            if !KNOWN_CIRCLES.contains(&c.as_str()) {
+                circles.push(c);
+            }
         }
     }
     assert!(circles.is_empty(), "{} import circle(s):\n{}", circles.len(), circles.join("\n"));
@@ -346,13 +351,19 @@ fn crates_depend_only_on_crates_below_them() {
     assert!(upward.is_empty(), "crate dependencies out of order:\n{}", upward.join("\n"));
 }
 
-/// The import circles among one crate's files.
+/// Circles that predate the check of every crate, each with its reason; any other fails.
+/// - `conv3d` and its `winograd` submodule share the tile helpers both ways (recon-kernels).
+const KNOWN_CIRCLES: &[&str] = &["recon-kernels: conv3d -> conv3d::winograd -> conv3d"];
+
+/// The import circles among one crate's files. The crate root is left out: it declares the
+/// modules and re-exports names (`Error`, `Result`, `Engine`, the prelude), and every file names
+/// `crate::Error` through it, which is not a dependency of one file on another.
 fn circles_in(sources: &BTreeMap<Vec<String>, Source>) -> Vec<String> {
     let mut edges: BTreeMap<Vec<String>, BTreeSet<Vec<String>>> = BTreeMap::new();
-    for src in sources.values() {
+    for src in sources.values().filter(|s| !s.module.is_empty()) {
         for p in paths(src, &src.code) {
             if let Some(to) = resolve(sources, &p) {
-                if to != src.module {
+                if to != src.module && !to.is_empty() {
                     edges.entry(src.module.clone()).or_default().insert(to);
                 }
             }

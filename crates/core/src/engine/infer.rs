@@ -35,7 +35,7 @@
 
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
-use crate::engine::options::{OptionError, DEFAULT_MAX_FACES, DEFAULT_SMOOTH_ITERATIONS};
+use crate::engine::options::{InferOptions, OptionError, DEFAULT_MAX_FACES, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS};
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
     LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages,
@@ -135,6 +135,32 @@ impl Default for InferSettings {
             mesh_from: MeshFrom::default(),
             parallel_objects: DEFAULT_PARALLEL_OBJECTS,
         }
+    }
+}
+
+// Here rather than in `options`, so that the options module does not import the engine
+// (the engine imports the options' defaults and errors).
+impl InferOptions {
+    /// The engine's settings for these options (checked first).
+    pub fn settings(&self) -> std::result::Result<InferSettings, OptionError> {
+        self.validate()?;
+        let mut s = InferSettings {
+            samples: self.samples,
+            select: self.select,
+            align: self.pose_fit.options(),
+            max_faces: (self.max_faces > 0).then_some(self.max_faces),
+            floater_area_fraction: self.min_component_area,
+            smooth_iterations: self.smooth,
+            shape_fit: self.shape_fit,
+            mesh_from: self.mesh_from,
+            parallel_objects: self.parallel_objects,
+            ..Default::default()
+        };
+        s.run.seed = self.seed;
+        // One `--steps` / `--cfg` sets both stages' samplers.
+        (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
+        (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
+        Ok(s)
     }
 }
 
@@ -476,12 +502,6 @@ enum ObjectOutcome {
     Done(Box<ObjectResult>),
     Skipped(Vec<MaskSkip>),
 }
-
-/// Objects reconstructed at once by default: one. On 2 cores the model's
-/// kernels already keep both busy; two objects at once saved no wall time on
-/// the README sample and took 15-40 % more peak memory (README, `recon infer`
-/// options).
-pub const DEFAULT_PARALLEL_OBJECTS: NonZeroUsize = NonZeroUsize::MIN;
 
 /// Stack of an object's thread: the size of a main thread's, where objects
 /// run one at a time.

@@ -3,11 +3,10 @@
 //!
 //! [`InferOptions`] holds exactly the user-facing settings, flat, one name per setting at
 //! every layer: the CLI flattens it (`--min-component-area`), Python and JSON take the same
-//! names with `_` (`min_component_area`). [`InferOptions::settings`] checks it and derives
-//! the engine's internal [`InferSettings`] (sampler, alignment and mesh settings).
+//! names with `_` (`min_component_area`). `InferOptions::settings` (beside the engine, in
+//! `engine::infer`) checks it and derives the engine's internal settings (sampler,
+//! alignment and mesh settings).
 
-use crate::engine::infer::InferSettings;
-use crate::engine::infer::DEFAULT_PARALLEL_OBJECTS;
 use crate::engine::pose_fit::{PoseFit, SelectMethod};
 use crate::engine::shape_fit::{MeshFrom, ShapeFit};
 use serde::{Deserialize, Serialize};
@@ -18,6 +17,12 @@ pub const DEFAULT_MAX_FACES: usize = 200_000;
 
 /// Default Taubin smoothing iterations of an output mesh.
 pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
+
+/// Objects reconstructed at once by default: one. On 2 cores the model's
+/// kernels already keep both busy; two objects at once saved no wall time on
+/// the README sample and took 15-40 % more peak memory (README, `recon infer`
+/// options).
+pub const DEFAULT_PARALLEL_OBJECTS: NonZeroUsize = NonZeroUsize::MIN;
 
 /// The per-frame options of `recon infer`, `recon eval --method recgen` and Python's
 /// `Engine.reconstruct`. The field docs are the CLI's `--help` text.
@@ -113,28 +118,6 @@ impl InferOptions {
             return Err(OptionError::new("min_component_area", "in [0, 1)", self.min_component_area));
         }
         Ok(())
-    }
-
-    /// The engine's settings for these options (checked first).
-    pub fn settings(&self) -> Result<InferSettings, OptionError> {
-        self.validate()?;
-        let mut s = InferSettings {
-            samples: self.samples,
-            select: self.select,
-            align: self.pose_fit.options(),
-            max_faces: (self.max_faces > 0).then_some(self.max_faces),
-            floater_area_fraction: self.min_component_area,
-            smooth_iterations: self.smooth,
-            shape_fit: self.shape_fit,
-            mesh_from: self.mesh_from,
-            parallel_objects: self.parallel_objects,
-            ..Default::default()
-        };
-        s.run.seed = self.seed;
-        // One `--steps` / `--cfg` sets both stages' samplers.
-        (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
-        (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
-        Ok(s)
     }
 
     /// Options from JSON (an object of option names; absent ones take their defaults),
