@@ -42,7 +42,7 @@
 //! let (objects, skipped) = labels.objects(Some(&[8]));
 //! assert!(skipped.is_empty());
 //!
-//! let result: FrameResult = engine.reconstruct(&frame, objects, &InferOptions::default())?;
+//! let result: FrameResult = engine.reconstruct(&frame, objects, &InferOptions::default().settings()?)?;
 //! let box_8: &ObjectResult = &result.objects[0];
 //! // Pose: canonical object frame → camera frame, metres; the box is about 0.7 m away.
 //! let [x, y, z] = box_8.pose_camera.translation;
