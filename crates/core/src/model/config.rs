@@ -248,7 +248,7 @@ mod tests {
             assert_eq!((ss.model_channels, ss.num_blocks), (c, blocks), "{file}");
             assert_eq!(ss.num_pose_tokens, 2);
             assert_eq!(ss.pose_channels(), Some(10));
-            assert!(ss.use_point_embedder && ss.use_mask_embedder && ss.use_frame_token_embedder);
+            assert!(ss.embedders.use_point_embedder && ss.embedders.use_mask_embedder && ss.use_frame_token_embedder);
             assert_eq!(cfg.slat_normalization.mean.len(), 8);
             assert_eq!(cfg.pose.nine_d_layout, NineDLayout::PipelineColumns);
             cfg.ss_pose_stats()?;

@@ -46,6 +46,28 @@ impl PatchEmbedder {
     }
 }
 
+/// The point-map and mask embedder settings both flow transformers share (RecGen
+/// `SparseStructureFlowModel` and `SLatCondFlowModel` args, flattened into each config).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CondEmbedderConfig {
+    /// Whether the point-map embedder adds its tokens to the condition.
+    #[serde(default)]
+    pub use_point_embedder: bool,
+    /// Width of the point-map embedder's tokens.
+    #[serde(default = "default_embed_channels")]
+    pub point_embedder_out_channels: usize,
+    /// Whether the mask embedder adds its tokens to the condition.
+    #[serde(default)]
+    pub use_mask_embedder: bool,
+    /// Width of the mask embedder's tokens.
+    #[serde(default = "default_embed_channels")]
+    pub mask_embedder_out_channels: usize,
+}
+
+fn default_embed_channels() -> usize {
+    1024
+}
+
 /// `point_embedder`: Conv2d(3→C, 14/14) over the normalised pointmap.
 #[derive(Debug, Clone)]
 pub struct PointmapEmbedder(pub PatchEmbedder);

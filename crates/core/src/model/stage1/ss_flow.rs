@@ -18,7 +18,9 @@ use crate::geometry::pose::PoseRepresentation;
 use crate::model::nn::common::PeMode;
 use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
 use crate::model::sampler::VelocityModel;
-use crate::model::stage1::embedders::{build_condition, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::model::stage1::embedders::{
+    build_condition, CondEmbedderConfig, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs,
+};
 use crate::rng::SeededRng;
 use crate::{Error, Result};
 
@@ -55,14 +57,9 @@ pub struct SsFlowConfig {
     pub qk_rms_norm: bool,
     #[serde(default)]
     pub qk_rms_norm_cross: bool,
-    #[serde(default)]
-    pub use_point_embedder: bool,
-    #[serde(default = "default_embed_channels")]
-    pub point_embedder_out_channels: usize,
-    #[serde(default)]
-    pub use_mask_embedder: bool,
-    #[serde(default = "default_embed_channels")]
-    pub mask_embedder_out_channels: usize,
+    /// Point-map and mask embedders (their args, flattened).
+    #[serde(flatten)]
+    pub embedders: CondEmbedderConfig,
     #[serde(default)]
     pub use_frame_token_embedder: bool,
     #[serde(default)]
@@ -81,9 +78,6 @@ fn default_mlp_ratio() -> f64 {
 }
 fn default_patch_size() -> usize {
     2
-}
-fn default_embed_channels() -> usize {
-    1024
 }
 fn default_pose_tokens() -> usize {
     1
@@ -132,10 +126,10 @@ impl SsFlowConfig {
         if self.pose_representation.is_some() && self.num_pose_tokens == 0 {
             return err("num_pose_tokens", "must be ≥ 1".into());
         }
-        if self.use_point_embedder && self.point_embedder_out_channels != self.cond_channels {
+        if self.embedders.use_point_embedder && self.embedders.point_embedder_out_channels != self.cond_channels {
             return err("point_embedder_out_channels", "must equal cond_channels (its tokens are added to the condition)".into());
         }
-        if self.use_mask_embedder && self.mask_embedder_out_channels != self.cond_channels {
+        if self.embedders.use_mask_embedder && self.embedders.mask_embedder_out_channels != self.cond_channels {
             return err("mask_embedder_out_channels", "must equal cond_channels (its tokens are added to the condition)".into());
         }
         if self.mlp_ratio <= 0.0 || !self.mlp_ratio.is_finite() {
@@ -218,12 +212,16 @@ impl SparseStructureFlowModel {
             blocks,
             out_layer: common::linear(c, cfg.out_channels * p3, vb.pp("out_layer"), compute)?,
             pose,
-            point_embedder: if cfg.use_point_embedder {
-                Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
+            point_embedder: if cfg.embedders.use_point_embedder {
+                Some(PointmapEmbedder::new(cfg.embedders.point_embedder_out_channels, vb.clone())?)
             } else {
                 None
             },
-            mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
+            mask_embedder: if cfg.embedders.use_mask_embedder {
+                Some(MaskEmbedder::new(cfg.embedders.mask_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
             frame_token_embedder: if cfg.use_frame_token_embedder {
                 Some(FrameTokenEmbedder::new(cfg.cond_channels, vb.clone())?)
             } else {

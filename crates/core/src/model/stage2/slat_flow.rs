@@ -22,7 +22,7 @@ use crate::model::sampler::VelocityModel;
 use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
-use crate::model::stage1::embedders::{build_condition, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::model::stage1::embedders::{build_condition, CondEmbedderConfig, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use candle_nn::VarBuilder;
@@ -83,14 +83,9 @@ pub struct SLatFlowConfig {
     #[serde(default)]
     pub qk_rms_norm_cross: bool,
     // RecGen `SLatCondFlowModel` extras.
-    #[serde(default)]
-    pub use_point_embedder: bool,
-    #[serde(default = "default_embed_channels")]
-    pub point_embedder_out_channels: usize,
-    #[serde(default)]
-    pub use_mask_embedder: bool,
-    #[serde(default = "default_embed_channels")]
-    pub mask_embedder_out_channels: usize,
+    /// Point-map and mask embedders (their args, flattened).
+    #[serde(flatten)]
+    pub embedders: CondEmbedderConfig,
     #[serde(default)]
     pub use_pose_embedder: bool,
     #[serde(default = "default_embed_channels")]
@@ -289,12 +284,16 @@ impl SLatFlowModel {
             blocks,
             out_blocks,
             out_layer: linear(first, cfg.out_channels, vb.pp("out_layer"), compute)?,
-            point_embedder: if cfg.use_point_embedder {
-                Some(PointmapEmbedder::new(cfg.point_embedder_out_channels, vb.clone())?)
+            point_embedder: if cfg.embedders.use_point_embedder {
+                Some(PointmapEmbedder::new(cfg.embedders.point_embedder_out_channels, vb.clone())?)
             } else {
                 None
             },
-            mask_embedder: if cfg.use_mask_embedder { Some(MaskEmbedder::new(cfg.mask_embedder_out_channels, vb.clone())?) } else { None },
+            mask_embedder: if cfg.embedders.use_mask_embedder {
+                Some(MaskEmbedder::new(cfg.embedders.mask_embedder_out_channels, vb.clone())?)
+            } else {
+                None
+            },
             pose_embedder: if cfg.use_pose_embedder {
                 Some(linear(cfg.pose_dim(), cfg.pose_embedder_out_channels, vb.pp("pose_embedder"), compute)?)
             } else {
