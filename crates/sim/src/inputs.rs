@@ -290,7 +290,7 @@ mod tests {
 
     #[test]
     fn in_memory_meshes_become_a_scene_of_their_files() {
-        let color = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("data/sample/000001-color.png");
+        let color = recon_testkit::repo().join("data/sample/000001-color.png");
         let frame = RgbdFrame::open(&color, &Default::default()).unwrap();
         let mut mesh = recon_core::mesh::box_mesh(0.05, 0.04, 0.03);
         for v in &mut mesh.vertices {
@@ -319,7 +319,7 @@ mod tests {
 
     #[test]
     fn ycb_sample_table_plane() {
-        let color = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("data/sample/000001-color.png");
+        let color = recon_testkit::repo().join("data/sample/000001-color.png");
         let frame = RgbdFrame::open(&color, &Default::default()).unwrap();
         let (fit, world, rec) = support_plane_from_frame(&frame, &PlaneFitOptions::default()).unwrap();
         // The YCB-Video table fills much of the view; real Xtion depth noise is a few mm.

@@ -165,7 +165,7 @@ mod tests {
 
     #[test]
     fn shipped_table_is_valid_and_resolves() {
-        let t = MaterialTable::load(&Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join(DEFAULT_TABLE)).unwrap();
+        let t = MaterialTable::load(&recon_testkit::repo().join(DEFAULT_TABLE)).unwrap();
         let (m, src) = t.resolve(None, "mug", "s.json", "objects[0]").unwrap();
         assert_eq!((m.as_str(), src), ("ceramic", MaterialSource::Category));
         let (m, src) = t.resolve(None, "spaceship", "s.json", "objects[0]").unwrap();

@@ -303,7 +303,7 @@ mod tests {
     use recon_core::model::config::RecGenConfig;
 
     fn micro() -> RecGenConfig {
-        let p = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano.json");
+        let p = recon_testkit::repo().join("models/recgen-nano.json");
         let v: serde_json::Value = recon_core::util::json::read_json(&p).unwrap();
         serde_json::from_value(micro_architecture(&v)).unwrap()
     }

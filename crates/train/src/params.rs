@@ -213,7 +213,7 @@ mod tests {
 
     #[test]
     fn init_is_seeded_by_name_and_follows_rules() -> Result<()> {
-        let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
+        let path = recon_testkit::repo().join("models/recgen-tiny.json");
         let arch = recon_core::model::config::RecGenConfig::load(&path)?;
         let cfg = ModuleConfig { name: arch.ss_flow.name.clone(), args: arch.ss_flow.args.clone() };
         let a = ModuleParams::init("ss_flow", &cfg, 3)?;

@@ -973,7 +973,7 @@ mod tests {
     fn manifest_files_resolve_from_a_cache() {
         use crate::model::config::RecGenConfig;
         let root = crate::util::testing::tmp("manifest-resolve");
-        let cfg_path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
+        let cfg_path = crate::util::testing::repo().join("models/recgen-tiny.json");
         let cfg = RecGenConfig::load(&cfg_path).unwrap();
         let files: Vec<serde_json::Value> = cfg
             .modules()

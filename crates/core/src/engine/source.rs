@@ -172,7 +172,7 @@ mod tests {
     fn embedded_model_unpacks_the_shipped_files_once() {
         let root = crate::util::testing::tmp("embedded");
         let dir = embedded_model_in(&root).unwrap();
-        let shipped = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano");
+        let shipped = crate::util::testing::repo().join("models/recgen-nano");
         for (name, _) in EMBEDDED_NANO {
             assert_eq!(std::fs::read(dir.join(name)).unwrap(), std::fs::read(shipped.join(name)).unwrap(), "{name}");
         }
@@ -187,10 +187,10 @@ mod tests {
     fn weights_arguments_map_to_sources() {
         assert_eq!(ModelSource::parse(None, None, 1).unwrap(), ModelSource::Default);
         assert_eq!(ModelSource::parse(Some("random"), None, 7).unwrap(), ModelSource::Random { config: None, seed: 7 });
-        let tiny = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
+        let tiny = crate::util::testing::repo().join("models/recgen-tiny.json");
         let r = ModelSource::parse(Some("random"), Some(&tiny), 7).unwrap();
         assert_eq!(r.architecture().unwrap(), tiny);
-        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-nano");
+        let dir = crate::util::testing::repo().join("models/recgen-nano");
         let d = ModelSource::parse(dir.to_str(), None, 0).unwrap();
         assert_eq!(d, ModelSource::Dir { dir: dir.clone(), config: None });
         assert_eq!(d.architecture().unwrap(), dir.join("recgen-nano.json"));

@@ -237,7 +237,7 @@ mod tests {
     use super::*;
 
     fn models_dir() -> PathBuf {
-        Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models")
+        crate::util::testing::repo().join("models")
     }
 
     #[test]
