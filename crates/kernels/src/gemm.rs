@@ -13,15 +13,16 @@
 //! summation order, so results do not depend on the thread count.
 //!
 //! Kernels, chosen by [`Isa`] at run time:
-//! - f32 weights: AVX-512 FMA `14×32` tile / portable;
+//! - f32 weights: AVX-512 FMA `14×32` tile; AVX2 FMA covers the same tile
+//!   in sub-tiles of up to `6×16` (its 16 registers hold no more); portable;
 //! - bf16 weights: `vdpbf16ps` on bf16 pairs of A and B (A rounded to bf16,
 //!   f32 accumulation) with AVX512-BF16; otherwise B is widened to f32 in
 //!   registers and A rounded to bf16 first, so every ISA computes the same
 //!   products;
-//! - f16 weights: widened with `vcvtph2ps` (AVX-512) / in software; A stays f32.
+//! - f16 weights: widened with `vcvtph2ps` (AVX-512, F16C) / in software; A stays f32.
 
 use crate::buf::{AlignedBuf, SendPtr};
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 use crate::vecmath::{self, Activation};
 use rayon::prelude::*;
 
@@ -156,13 +157,23 @@ fn avx512_bw() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     false
 }
+/// Whether the AVX2 conversions below may run (a CPU check std caches).
+#[inline]
+fn avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
 
 /// Floats converted per pass of [`bf16_pairs_down_column`] (its stack buffer).
 const PAIRS_CHUNK: usize = 128;
 
 /// `out[k] = bf16(x[2k]·scale) | bf16(x[2k+1]·scale) << 16`, rounded as
 /// [`f32_to_bf16`] (a zero high half past an odd end); 16 floats at a time
-/// with AVX-512 where the CPU has it, bit for bit the same.
+/// with AVX-512 or AVX2 where the CPU has it, bit for bit the same.
 pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
     let out = &mut out[..x.len().div_ceil(2)];
     #[allow(unused_mut)]
@@ -171,6 +182,9 @@ pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
     if avx512_bw() {
         // SAFETY: AVX-512 F/BW checked; `out` holds x.len()/2 words.
         done = unsafe { x86::bf16_pairs_of_row(x, scale, out) };
+    } else if avx2() {
+        // SAFETY: AVX2 checked; as above.
+        done = unsafe { avx2::bf16_pairs_of_row(x, scale, out) };
     }
     for k in done / 2..out.len() {
         let lo = f32_to_bf16(x[2 * k] * scale) as u32;
@@ -410,7 +424,7 @@ pub(crate) enum AFormat {
 pub(crate) fn a_format(isa: Isa, format: WeightFormat) -> AFormat {
     match format {
         WeightFormat::F32 | WeightFormat::F16 => AFormat::F32,
-        WeightFormat::Bf16 if isa >= Isa::Avx512Bf16 => AFormat::Bf16Pairs,
+        WeightFormat::Bf16 if isa == Isa::Avx512Bf16 => AFormat::Bf16Pairs,
         WeightFormat::Bf16 => AFormat::F32Bf16,
     }
 }
@@ -530,7 +544,13 @@ pub(crate) unsafe fn microkernel(
     load: bool,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
+    match isa.simd() {
+        Simd::Avx512 => {}
+        Simd::Avx2 => return avx2::tile(format, kc, a, b, c, ldc, rows, cols, load),
+        Simd::Scalar => return portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load),
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
         // A short tile (the last rows of M, or a head dim that is not a
         // multiple of MR) runs a kernel that computes only those rows: the
         // full one would spend MR rows of FMAs on it. Each row's sum is the
@@ -552,10 +572,12 @@ pub(crate) unsafe fn microkernel(
             5..=8 => rows!(8),
             _ => rows!(MR),
         }
-        return;
     }
-    let _ = isa;
-    portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = isa;
+        portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -953,6 +975,208 @@ pub(crate) mod x86 {
     }
 }
 
+/// AVX2 + FMA kernels over the same packed layouts. The 16 ymm registers
+/// hold at most `6×16` of the `MR×NR` tile (12 accumulators, two B vectors,
+/// one broadcast), so a tile runs as sub-tiles: each 16-column half of the
+/// panel in turn (kept in L1 across the row groups), row groups of at most
+/// [`RMAX`] rows, sized evenly (14 rows: 5, 5, 4). Every row's sum runs in
+/// k order, as in the AVX-512 kernels.
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2 {
+    use super::{WeightFormat, MR, NR};
+    use std::arch::x86_64::*;
+
+    /// Columns of a sub-tile: two 8-lane vectors.
+    const NH: usize = 16;
+    /// Rows of the largest sub-tile.
+    pub(crate) const RMAX: usize = 6;
+
+    /// The first `min(n, 8)` lanes set, as `vmaskmovps` wants.
+    #[inline(always)]
+    pub(crate) unsafe fn lane_mask(n: usize) -> __m256i {
+        _mm256_cmpgt_epi32(_mm256_set1_epi32(n.min(8) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+    }
+
+    /// bf16 bits (round to nearest even, NaN → 0x7fc0, as [`super::f32_to_bf16`])
+    /// in the low half of each lane.
+    #[inline(always)]
+    pub(crate) unsafe fn bf16_bits(v: __m256) -> __m256i {
+        let b = _mm256_castps_si256(v);
+        let lsb = _mm256_and_si256(_mm256_srli_epi32::<16>(b), _mm256_set1_epi32(1));
+        let r = _mm256_srli_epi32::<16>(_mm256_add_epi32(_mm256_add_epi32(b, _mm256_set1_epi32(0x7fff)), lsb));
+        let nan = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
+        _mm256_blendv_epi8(r, _mm256_set1_epi32(0x7fc0), nan)
+    }
+
+    /// Words `bf16(lo) | bf16(hi) << 16`, lane by lane.
+    #[inline(always)]
+    pub(crate) unsafe fn bf16_pairs(lo: __m256, hi: __m256) -> __m256i {
+        _mm256_or_si256(bf16_bits(lo), _mm256_slli_epi32::<16>(bf16_bits(hi)))
+    }
+
+    /// The whole 16-float blocks of [`super::bf16_pairs_of_row`]; returns
+    /// the floats done.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) -> usize {
+        let s = _mm256_set1_ps(scale);
+        let n = x.len() / 16 * 16;
+        for i in (0..n).step_by(16) {
+            let v0 = bf16_bits(_mm256_mul_ps(_mm256_loadu_ps(x.as_ptr().add(i)), s));
+            let v1 = bf16_bits(_mm256_mul_ps(_mm256_loadu_ps(x.as_ptr().add(i + 8)), s));
+            // packus interleaves the 128-bit halves: put them back in order.
+            let w = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi32(v0, v1));
+            _mm256_storeu_si256(out.as_mut_ptr().add(i / 2) as *mut __m256i, w);
+        }
+        n
+    }
+
+    /// `C[R rows, cols ≤ 16] (+)= acc`.
+    #[inline(always)]
+    unsafe fn store<const R: usize>(acc: &[[__m256; 2]; R], c: *mut f32, ldc: usize, cols: usize, load: bool) {
+        if cols == NH {
+            for i in 0..R {
+                let p = c.add(i * ldc);
+                let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
+                if load {
+                    v0 = _mm256_add_ps(v0, _mm256_loadu_ps(p));
+                    v1 = _mm256_add_ps(v1, _mm256_loadu_ps(p.add(8)));
+                }
+                _mm256_storeu_ps(p, v0);
+                _mm256_storeu_ps(p.add(8), v1);
+            }
+        } else {
+            let m = [lane_mask(cols), lane_mask(cols.saturating_sub(8))];
+            for i in 0..R {
+                for h in 0..2 {
+                    let p = c.add(i * ldc + 8 * h);
+                    let mut v = acc[i][h];
+                    if load {
+                        v = _mm256_add_ps(v, _mm256_maskload_ps(p, m[h]));
+                    }
+                    _mm256_maskstore_ps(p, m[h], v);
+                }
+            }
+        }
+    }
+
+    /// f32 B: `a` at the sub-tile's first row (stride `MR` per k), `b` at its
+    /// first column (stride `NR` per k).
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn kern_f32<const R: usize>(kc: usize, a: *const f32, b: *const f32, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc {
+            let b0 = _mm256_load_ps(b);
+            let b1 = _mm256_load_ps(b.add(8));
+            for i in 0..R {
+                let ai = _mm256_set1_ps(*a.add(i));
+                acc[i][0] = _mm256_fmadd_ps(ai, b0, acc[i][0]);
+                acc[i][1] = _mm256_fmadd_ps(ai, b1, acc[i][1]);
+            }
+            a = a.add(MR);
+            b = b.add(NR);
+        }
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// f16 B, widened by F16C.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    unsafe fn kern_f16<const R: usize>(kc: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc {
+            let b0 = _mm256_cvtph_ps(_mm_load_si128(b as *const __m128i));
+            let b1 = _mm256_cvtph_ps(_mm_load_si128(b.add(8) as *const __m128i));
+            for i in 0..R {
+                let ai = _mm256_set1_ps(*a.add(i));
+                acc[i][0] = _mm256_fmadd_ps(ai, b0, acc[i][0]);
+                acc[i][1] = _mm256_fmadd_ps(ai, b1, acc[i][1]);
+            }
+            a = a.add(MR);
+            b = b.add(NR);
+        }
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// bf16 pairs of B widened in registers (`b` at the sub-tile's first
+    /// word, `NR` words per k pair): the even k of every row, then the odd k
+    /// (B reloaded, so six rows still fit the registers).
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn kern_bf16<const R: usize>(kc2: usize, a: *const f32, b: *const u32, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        let hi_mask = _mm256_set1_epi32(0xffff_0000u32 as i32);
+        let (mut a, mut b) = (a, b);
+        for _ in 0..kc2 {
+            let e0 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b as *const __m256i)));
+            let e1 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b.add(8) as *const __m256i)));
+            for i in 0..R {
+                let ae = _mm256_set1_ps(*a.add(i));
+                acc[i][0] = _mm256_fmadd_ps(ae, e0, acc[i][0]);
+                acc[i][1] = _mm256_fmadd_ps(ae, e1, acc[i][1]);
+            }
+            let o0 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b as *const __m256i), hi_mask));
+            let o1 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b.add(8) as *const __m256i), hi_mask));
+            for i in 0..R {
+                let ao = _mm256_set1_ps(*a.add(MR + i));
+                acc[i][0] = _mm256_fmadd_ps(ao, o0, acc[i][0]);
+                acc[i][1] = _mm256_fmadd_ps(ao, o1, acc[i][1]);
+            }
+            a = a.add(2 * MR);
+            b = b.add(NR);
+        }
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// Row groups of a tile of `rows ≤ MR` rows: `(first row, rows)`, at
+    /// most [`RMAX`] rows each, as even as possible.
+    #[inline(always)]
+    pub(crate) fn row_groups(rows: usize) -> impl Iterator<Item = (usize, usize)> {
+        let g = rows.div_ceil(RMAX);
+        let (base, extra) = (rows / g, rows % g);
+        (0..g).map(move |i| (i * base + i.min(extra), base + usize::from(i < extra)))
+    }
+
+    /// One register tile, as [`super::microkernel`] (same contract), for
+    /// an `Isa` whose [`crate::isa::Simd`] is AVX2.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub(crate) unsafe fn tile(
+        format: WeightFormat,
+        kc: usize,
+        a: *const u32,
+        b: *const u8,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        for h in 0..cols.div_ceil(NH) {
+            let nc = NH.min(cols - h * NH);
+            for (r0, nr) in row_groups(rows) {
+                let a = (a as *const f32).add(r0);
+                let c = c.add(r0 * ldc + h * NH);
+                macro_rules! rows {
+                    ($r:literal) => {
+                        match format {
+                            WeightFormat::F32 => kern_f32::<$r>(kc, a, (b as *const f32).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::F16 => kern_f16::<$r>(kc, a, (b as *const u16).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::Bf16 => kern_bf16::<$r>(kc / 2, a, (b as *const u32).add(h * NH), c, ldc, nc, load),
+                        }
+                    };
+                }
+                match nr {
+                    1 => rows!(1),
+                    2 => rows!(2),
+                    3 => rows!(3),
+                    4 => rows!(4),
+                    5 => rows!(5),
+                    _ => rows!(6),
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -998,6 +1222,21 @@ mod tests {
                 for (s, &(m, k, n)) in shapes.iter().enumerate() {
                     let act = [Activation::None, Activation::GeluTanh, Activation::GeluErf][s % 3];
                     check(isa, format, m, k, n, k + (s % 2) * 5, act, s as u64 + 1);
+                }
+            }
+        }
+    }
+
+    /// Every tile height (each AVX2 row grouping) and the panel widths
+    /// around the 8- and 16-column vector boundaries.
+    #[test]
+    fn every_tile_height_and_panel_width_matches_reference() {
+        for isa in Isa::all_supported() {
+            for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+                for m in 1..=2 * MR {
+                    for n in [1, 7, 8, 9, 15, 16, 17, 24, 25, 31, NR + 16] {
+                        check(isa, format, m, 37, n, 40, Activation::None, (m * 100 + n) as u64);
+                    }
                 }
             }
         }
@@ -1108,6 +1347,17 @@ mod tests {
                 bf16_pairs_of_row(x, scale, &mut got);
                 for (k, &g) in got.iter().enumerate() {
                     assert_eq!(g, want_pair(x, k, scale), "len {len} scale {scale} word {k}");
+                }
+                // The AVX2 blocks, which this function uses only on CPUs without AVX-512.
+                #[cfg(target_arch = "x86_64")]
+                if Isa::Avx2.supported() {
+                    let mut got = vec![u32::MAX; len.div_ceil(2)];
+                    // SAFETY: AVX2 checked.
+                    let done = unsafe { avx2::bf16_pairs_of_row(x, scale, &mut got) };
+                    assert_eq!(done, len / 16 * 16);
+                    for (k, &g) in got[..done / 2].iter().enumerate() {
+                        assert_eq!(g, want_pair(x, k, scale), "AVX2: len {len} scale {scale} word {k}");
+                    }
                 }
             }
         }
