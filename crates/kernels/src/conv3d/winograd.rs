@@ -494,7 +494,7 @@ fn gemm_taps(isa: Isa, format: WeightFormat, u: &[PackedMatrix], g: &Geom, ap: &
     assert!(v.len() >= ap.offset(64, 0, 0) && m.len() >= tc * 64 * g.coutp && u.len() == 64);
     let panels = g.cout.div_ceil(NR);
     let nrt = tc.div_ceil(MR);
-    let rb_tiles = (Blocking::for_format(format).mc / MR).max(1);
+    let rb_tiles = (Blocking::for_isa(isa, format).mc / MR).max(1);
     let nrb = nrt.div_ceil(rb_tiles);
     let ldc = 64 * g.coutp;
     debug_assert!(g.coutp.is_multiple_of(NR));
@@ -626,7 +626,7 @@ pub(super) fn winograd(
     let tc_max = tiles_per_chunk.clamp(1, ntiles);
     let afmt = a_format(isa, format);
     // k slices as the GEMM blocks them (B's micro-panel in L1), whole vectors.
-    let kc = kc.unwrap_or(Blocking::for_format(format).kc).max(L) / L * L;
+    let kc = kc.unwrap_or(Blocking::for_isa(isa, format).kc).max(L) / L * L;
     let ap = APack { afmt, kc, nks: s.cin.div_ceil(kc), nrt: tc_max.div_ceil(MR), aw: a_tile_words(afmt, kc) };
     let mut xp = vec![0f32; g.padded_len()];
     let mut v = vec![0u32; ap.offset(64, 0, 0)];
