@@ -1,8 +1,9 @@
 //! GEMM GFLOP/s on the model's linear shapes (or square ones), per ISA and
 //! weight format, against the measured FMA / vdpbf16ps peak.
 //! `cargo run --release -p recon-kernels --example gemm_speed -- [M] [--portable]
-//! [--isa avx2,avx512] [--formats f32,bf16] [--square 1024,2048] [--threads T] [--reps R]`
-//! (`--portable` times the portable kernels too; `--square` times M = K = N).
+//! [--isa avx2,avx512] [--formats f32,bf16] [--square 1024,2048] [--threads T] [--reps R] [--peak-reps R]`
+//! (`--portable` times the portable kernels too; `--square` times M = K = N;
+//! more repetitions find a quiet moment on a shared machine).
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
 use recon_kernels::isa::Isa;
 use recon_kernels::peak::{measure_peak_gflops, PeakKind};
@@ -16,6 +17,7 @@ fn main() {
     let m: usize = args.first().and_then(|v| v.parse().ok()).unwrap_or(2 * 4098);
     let portable = args.iter().any(|a| a == "--portable");
     let reps: usize = value("--reps").and_then(|v| v.parse().ok()).unwrap_or(3);
+    let peak_reps: usize = value("--peak-reps").and_then(|v| v.parse().ok()).unwrap_or(3);
     if let Some(t) = value("--threads").and_then(|v| v.parse().ok()) {
         rayon::ThreadPoolBuilder::new().num_threads(t).build_global().unwrap();
     }
@@ -36,8 +38,8 @@ fn main() {
     println!("threads {} load {}", rayon::current_num_threads(), load.trim());
     let mut peaks = Vec::new();
     for &isa in &isas {
-        let f = measure_peak_gflops(isa, PeakKind::F32, 2_000_000, 3).unwrap();
-        let b = measure_peak_gflops(isa, PeakKind::Bf16, 2_000_000, 3);
+        let f = measure_peak_gflops(isa, PeakKind::F32, 2_000_000, peak_reps).unwrap();
+        let b = measure_peak_gflops(isa, PeakKind::Bf16, 2_000_000, peak_reps);
         println!("peak {}: f32 {f:.0} GFLOP/s, bf16 {:?}", isa.name(), b.map(|v| v.round()));
         peaks.push((isa, f, b));
     }
