@@ -164,6 +164,18 @@ pub fn bf16_to_f32(b: u16) -> f32 {
 pub fn round_bf16(x: f32) -> f32 {
     bf16_to_f32(f32_to_bf16(x))
 }
+
+/// [`round_bf16`] on f32 bits, without branches (so loops of it vectorise).
+#[inline(always)]
+fn round_bf16_bits(b: u32) -> u32 {
+    let r = b.wrapping_add(0x7fff + ((b >> 16) & 1)) & 0xffff_0000;
+    let nan = (b & 0x7fff_ffff) > 0x7f80_0000;
+    if nan {
+        0x7fc0_0000
+    } else {
+        r
+    }
+}
 /// Whether the AVX-512 conversions below may run (a CPU check std caches).
 #[inline]
 fn avx512_bw() -> bool {
@@ -448,10 +460,28 @@ pub(crate) fn a_format(isa: Isa, format: WeightFormat) -> AFormat {
 
 /// u32 words of one packed `A` tile of `kc` k values.
 pub(crate) fn a_tile_words(afmt: AFormat, kc: usize) -> usize {
+    a_tile_words_mr(afmt, kc, MR)
+}
+
+/// [`a_tile_words`] for a tile of `mr` rows.
+pub(crate) fn a_tile_words_mr(afmt: AFormat, kc: usize, mr: usize) -> usize {
     match afmt {
-        AFormat::F32 => kc * MR,
-        AFormat::F32Bf16 => kc.div_ceil(2) * 2 * MR,
-        AFormat::Bf16Pairs => kc.div_ceil(2) * MR,
+        AFormat::F32 => kc * mr,
+        AFormat::F32Bf16 => kc.div_ceil(2) * 2 * mr,
+        AFormat::Bf16Pairs => kc.div_ceil(2) * mr,
+    }
+}
+
+/// Rows of the `A` tiles [`gemm()`] packs for the kernels of `isa` on B in
+/// `format`: `MR`, except 12 for AVX2 on f32 and bf16, whose row groups of
+/// up to six split 12 rows evenly and `MR` only as 5, 5, 4 (a 4-row group
+/// has too few independent FMA chains). The f16 kernel runs faster in 5-row
+/// groups (its conversions need the registers), so it keeps `MR`, as do
+/// attention and Winograd for every ISA.
+pub(crate) fn gemm_tile_rows(isa: Isa, format: WeightFormat) -> usize {
+    match (isa.simd(), format) {
+        (Simd::Avx2, WeightFormat::F32 | WeightFormat::Bf16) => 12,
+        _ => MR,
     }
 }
 
@@ -505,35 +535,46 @@ pub(crate) fn pack_a_tile_cols<'a>(afmt: AFormat, dst: &mut [u32], rows: usize, 
 /// Pack an `A` tile from row-major f32 rows (`a[i·lda + k]`), the hot case.
 #[inline]
 pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize, rows: usize, kc: usize) {
+    pack_a_rows_mr(afmt, dst, a, lda, rows, kc, MR)
+}
+
+/// [`pack_a_rows`] into a tile of `mr ≥ rows` rows.
+#[inline]
+pub(crate) fn pack_a_rows_mr(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize, rows: usize, kc: usize, mr: usize) {
     match afmt {
         AFormat::F32 => {
-            if rows < MR {
-                dst[..kc * MR].fill(0);
+            if rows < mr {
+                dst[..kc * mr].fill(0);
             }
             for i in 0..rows {
                 let src = &a[i * lda..i * lda + kc];
                 for (k, &v) in src.iter().enumerate() {
-                    dst[k * MR + i] = v.to_bits();
+                    dst[k * mr + i] = v.to_bits();
                 }
             }
         }
         AFormat::F32Bf16 => {
             let kp = kc.div_ceil(2) * 2;
-            if rows < MR || kp != kc {
-                dst[..kp * MR].fill(0);
+            if rows < mr || kp != kc {
+                dst[..kp * mr].fill(0);
             }
             for i in 0..rows {
                 for (k, &v) in a[i * lda..i * lda + kc].iter().enumerate() {
-                    dst[k * MR + i] = round_bf16(v).to_bits();
+                    dst[k * mr + i] = v.to_bits();
                 }
+            }
+            // Rounded in a separate contiguous pass, which vectorises (the
+            // transposing copy above cannot).
+            for w in dst[..kp * mr].iter_mut() {
+                *w = round_bf16_bits(*w);
             }
         }
         AFormat::Bf16Pairs => {
-            if rows < MR {
-                dst[..kc.div_ceil(2) * MR].fill(0);
+            if rows < mr {
+                dst[..kc.div_ceil(2) * mr].fill(0);
             }
             for i in 0..rows {
-                bf16_pairs_down_column(&a[i * lda..i * lda + kc], 1.0, dst, MR, i);
+                bf16_pairs_down_column(&a[i * lda..i * lda + kc], 1.0, dst, mr, i);
             }
         }
     }
@@ -563,7 +604,7 @@ pub(crate) unsafe fn microkernel(
     #[cfg(target_arch = "x86_64")]
     match isa.simd() {
         Simd::Avx512 => {}
-        Simd::Avx2 => return avx2::tile(format, kc, a, b, c, ldc, rows, cols, load),
+        Simd::Avx2 => return avx2::tile::<MR>(format, kc, a, b, c, ldc, rows, cols, load),
         Simd::Scalar => return portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load),
     }
     #[cfg(target_arch = "x86_64")]
@@ -595,6 +636,32 @@ pub(crate) unsafe fn microkernel(
         let _ = isa;
         portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
     }
+}
+
+/// [`microkernel`] on a tile of [`gemm_tile_rows`] rows (`rows` of them).
+///
+/// # Safety
+/// As [`microkernel`], with `a` packed in tiles of `gemm_tile_rows(isa, format)` rows.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+unsafe fn microkernel_gemm(
+    isa: Isa,
+    format: WeightFormat,
+    kc: usize,
+    a: *const u32,
+    b: *const u8,
+    c: *mut f32,
+    ldc: usize,
+    rows: usize,
+    cols: usize,
+    load: bool,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if gemm_tile_rows(isa, format) == 12 {
+        return avx2::tile::<12>(format, kc, a, b, c, ldc, rows, cols, load);
+    }
+    debug_assert_eq!(gemm_tile_rows(isa, format), MR);
+    microkernel(isa, format, kc, a, b, c, ldc, rows, cols, load)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -679,7 +746,8 @@ pub fn gemm_blocked(
     blocking: Blocking,
 ) -> Result<(), String> {
     let (k, n) = (b.k, b.n);
-    let mc = blocking.mc.div_ceil(MR).max(1) * MR;
+    let mr = gemm_tile_rows(isa, b.format);
+    let mc = blocking.mc.div_ceil(mr).max(1) * mr;
     let kc_blk = (blocking.kc.div_ceil(2) * 2).max(2);
     if !isa.supported() {
         return Err(format!("gemm: instruction set {} is not supported by this CPU", isa.name()));
@@ -707,12 +775,12 @@ pub fn gemm_blocked(
     let ngroups = (4 * threads).div_ceil(mblocks).clamp(1, panels);
     let cptr = SendPtr(c.as_mut_ptr());
     (0..mblocks * ngroups).into_par_iter().for_each_init(
-        || AlignedBuf::<u32>::zeroed(mc.div_ceil(MR) * a_tile_words(afmt, kc_max)),
+        || AlignedBuf::<u32>::zeroed(mc.div_ceil(mr) * a_tile_words_mr(afmt, kc_max, mr)),
         |abuf, task| {
             let (mb, ng) = (task / ngroups, task % ngroups);
             let m0 = mb * mc;
             let rows = mc.min(m - m0);
-            let tiles = rows.div_ceil(MR);
+            let tiles = rows.div_ceil(mr);
             let (p0, p1) = (ng * panels / ngroups, (ng + 1) * panels / ngroups);
             if k == 0 {
                 for i in 0..rows {
@@ -731,24 +799,24 @@ pub fn gemm_blocked(
             while k0 < k {
                 let kc = kc_max.min(k - k0);
                 let kc_step = b.format.k_padded(kc);
-                let tw = a_tile_words(afmt, kc);
+                let tw = a_tile_words_mr(afmt, kc, mr);
                 for t in 0..tiles {
-                    let r0 = t * MR;
-                    let tr = MR.min(rows - r0);
-                    pack_a_rows(afmt, &mut abuf[t * tw..(t + 1) * tw], &a[(m0 + r0) * lda + k0..], lda, tr, kc);
+                    let r0 = t * mr;
+                    let tr = mr.min(rows - r0);
+                    pack_a_rows_mr(afmt, &mut abuf[t * tw..(t + 1) * tw], &a[(m0 + r0) * lda + k0..], lda, tr, kc, mr);
                 }
                 let last = k0 + kc >= k;
                 for p in p0..p1 {
                     let bp = b.panel_ptr(p, k0);
                     let cols = NR.min(n - p * NR);
                     for t in 0..tiles {
-                        let r0 = t * MR;
-                        let tr = MR.min(rows - r0);
+                        let r0 = t * mr;
+                        let tr = mr.min(rows - r0);
                         // SAFETY: the tile lies inside this task's rows and panel range; the
                         // packed operands hold kc_step values (zero padded).
                         unsafe {
                             let cp = cptr.get().add((m0 + r0) * ldc + p * NR);
-                            microkernel(isa, b.format, kc_step, abuf.as_ptr().add(t * tw), bp, cp, ldc, tr, cols, k0 > 0);
+                            microkernel_gemm(isa, b.format, kc_step, abuf.as_ptr().add(t * tw), bp, cp, ldc, tr, cols, k0 > 0);
                             if last && (bias.is_some() || act != Activation::None) {
                                 for i in 0..tr {
                                     let row = std::slice::from_raw_parts_mut(cp.add(i * ldc), cols);
@@ -992,16 +1060,16 @@ pub(crate) mod x86 {
     }
 }
 
-/// AVX2 + FMA kernels over the same packed layouts. The 16 ymm registers
-/// hold at most `6×16` of the `MR×NR` tile (12 accumulators, two B vectors,
-/// one broadcast), so a tile runs as sub-tiles: each 16-column half of the
+/// AVX2 + FMA kernels over the same packed B panels. The 16 ymm registers
+/// hold at most `6×16` of a tile (12 accumulators, two B vectors, one
+/// broadcast), so a tile runs as sub-tiles: each 16-column half of the
 /// panel in turn, in row groups of at most [`RMAX`] rows sized evenly
-/// (14 rows: 5, 5, 4, which measured faster than 6, 6, 2: a 2-row group
-/// has too few independent FMA chains). Every row's sum runs in k order,
-/// as in the AVX-512 kernels.
+/// (`MR` rows: 5, 5, 4, faster than 6, 6, 2; [`super::gemm()`] packs 12-row
+/// A tiles for f32 and bf16, see [`super::gemm_tile_rows`]). Every row's
+/// sum runs in k order, as in the AVX-512 kernels.
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
-    use super::{WeightFormat, MR, NR};
+    use super::{WeightFormat, NR};
     use std::arch::x86_64::*;
 
     /// Columns of a sub-tile: two 8-lane vectors.
@@ -1118,51 +1186,88 @@ pub(crate) mod avx2 {
         }
     }
 
-    /// f32 B: `a` at the sub-tile's first row (stride `MR` per k), `b` at its
-    /// first column (stride `NR` per k).
+    /// f32 B: `a` at the sub-tile's first row of an A tile of `S` rows
+    /// (stride `S` per k), `b` at its first column (stride `NR` per k).
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn kern_f32<const R: usize>(kc: usize, a: *const f32, b: *const f32, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+    unsafe fn kern_f32<const R: usize, const S: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const f32,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
         let mut acc = [[_mm256_setzero_ps(); 2]; R];
         k_loop::<R>(kc, c, ldc, |k| {
             let b = b.add(k * NR);
-            fma_rows(&mut acc, a.add(k * MR), _mm256_load_ps(b), _mm256_load_ps(b.add(8)));
+            fma_rows(&mut acc, a.add(k * S), _mm256_load_ps(b), _mm256_load_ps(b.add(8)));
         });
         store(&acc, c, ldc, cols, load);
     }
 
     /// f16 B, widened by F16C.
     #[target_feature(enable = "avx2,fma,f16c")]
-    unsafe fn kern_f16<const R: usize>(kc: usize, a: *const f32, b: *const u16, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+    unsafe fn kern_f16<const R: usize, const S: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const u16,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
         let mut acc = [[_mm256_setzero_ps(); 2]; R];
         k_loop::<R>(kc, c, ldc, |k| {
             let b = b.add(k * NR);
             let b0 = _mm256_cvtph_ps(_mm_load_si128(b as *const __m128i));
             let b1 = _mm256_cvtph_ps(_mm_load_si128(b.add(8) as *const __m128i));
-            fma_rows(&mut acc, a.add(k * MR), b0, b1);
+            fma_rows(&mut acc, a.add(k * S), b0, b1);
         });
         store(&acc, c, ldc, cols, load);
+    }
+
+    /// `p`, as a value the compiler cannot tell equal to `p`: loads through
+    /// it are not merged with earlier loads through `p`, so their values need
+    /// not stay in registers meanwhile (no instruction is emitted).
+    #[inline(always)]
+    #[allow(clippy::pointers_in_nomem_asm_block)] // the template reads no memory: it only hides the value
+    fn reload<T>(mut p: *const T) -> *const T {
+        // SAFETY: an empty template; the pointer is passed through unchanged.
+        unsafe { std::arch::asm!("/* {0} */", inout(reg) p, options(pure, nomem, nostack, preserves_flags)) };
+        p
     }
 
     /// bf16 pairs of B widened in registers (`b` at the sub-tile's first
     /// word, `NR` words per k pair): the even k of every row, then the odd k
     /// (B reloaded, so six rows still fit the registers).
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn kern_bf16<const R: usize>(kc2: usize, a: *const f32, b: *const u32, c: *mut f32, ldc: usize, cols: usize, load: bool) {
+    unsafe fn kern_bf16<const R: usize, const S: usize>(
+        kc2: usize,
+        a: *const f32,
+        b: *const u32,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
         let mut acc = [[_mm256_setzero_ps(); 2]; R];
         let hi_mask = _mm256_set1_epi32(0xffff_0000u32 as i32);
         k_loop::<R>(kc2, c, ldc, |k2| {
-            let (a, b) = (a.add(2 * k2 * MR), b.add(k2 * NR) as *const __m256i);
+            let (a, b) = (a.add(2 * k2 * S), b.add(k2 * NR) as *const __m256i);
             let e0 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b)));
             let e1 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b.add(1))));
             fma_rows(&mut acc, a, e0, e1);
+            // Six rows leave no register for the raw pairs: read them again.
+            let b = if R == RMAX { reload(b) } else { b };
             let o0 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b), hi_mask));
             let o1 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b.add(1)), hi_mask));
-            fma_rows(&mut acc, a.add(MR), o0, o1);
+            fma_rows(&mut acc, a.add(S), o0, o1);
         });
         store(&acc, c, ldc, cols, load);
     }
 
-    /// Row groups of a tile of `rows ≤ MR` rows: `(first row, rows)`, at
+    /// Row groups of a tile of `rows` rows: `(first row, rows)`, at
     /// most [`RMAX`] rows each, as even as possible.
     #[inline(always)]
     pub(crate) fn row_groups(rows: usize) -> impl Iterator<Item = (usize, usize)> {
@@ -1171,10 +1276,11 @@ pub(crate) mod avx2 {
         (0..g).map(move |i| (i * base + i.min(extra), base + usize::from(i < extra)))
     }
 
-    /// One register tile, as [`super::microkernel`] (same contract), for
-    /// an `Isa` whose [`crate::isa::Simd`] is AVX2.
+    /// One register tile, as [`super::microkernel`] (same contract) but
+    /// with A in tiles of `S` rows, for an `Isa` whose
+    /// [`crate::isa::Simd`] is AVX2.
     #[target_feature(enable = "avx2,fma,f16c")]
-    pub(crate) unsafe fn tile(
+    pub(crate) unsafe fn tile<const S: usize>(
         format: WeightFormat,
         kc: usize,
         a: *const u32,
@@ -1193,9 +1299,9 @@ pub(crate) mod avx2 {
                 macro_rules! rows {
                     ($r:literal) => {
                         match format {
-                            WeightFormat::F32 => kern_f32::<$r>(kc, a, (b as *const f32).add(h * NH), c, ldc, nc, load),
-                            WeightFormat::F16 => kern_f16::<$r>(kc, a, (b as *const u16).add(h * NH), c, ldc, nc, load),
-                            WeightFormat::Bf16 => kern_bf16::<$r>(kc / 2, a, (b as *const u32).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::F32 => kern_f32::<$r, S>(kc, a, (b as *const f32).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::F16 => kern_f16::<$r, S>(kc, a, (b as *const u16).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::Bf16 => kern_bf16::<$r, S>(kc / 2, a, (b as *const u32).add(h * NH), c, ldc, nc, load),
                         }
                     };
                 }
@@ -1409,6 +1515,17 @@ mod tests {
                 pack_a_rows(AFormat::Bf16Pairs, &mut got, a, lda, rows, kc);
                 let mut cols = vec![7u32; got.len()];
                 pack_a_tile_cols(AFormat::Bf16Pairs, &mut cols, rows, kc, |k| &vals[k * MR..k * MR + MR]);
+                // The f32 tiles of bf16-rounded values (tiles of MR and of 12 rows).
+                for mr in [MR, 12] {
+                    let mut f = vec![7u32; a_tile_words_mr(AFormat::F32Bf16, kc, mr)];
+                    pack_a_rows_mr(AFormat::F32Bf16, &mut f, a, lda, rows.min(mr), kc, mr);
+                    for k in 0..kc.div_ceil(2) * 2 {
+                        for i in 0..mr {
+                            let want = if i < rows.min(mr) && k < kc { round_bf16(a[i * lda + k]).to_bits() } else { 0 };
+                            assert_eq!(f[k * mr + i], want, "rows {rows} kc {kc} mr {mr}: F32Bf16 ({k}, {i})");
+                        }
+                    }
+                }
                 for k2 in 0..kc.div_ceil(2) {
                     for i in 0..MR {
                         let (w, wc) = if i < rows {
