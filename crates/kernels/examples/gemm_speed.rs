@@ -3,7 +3,9 @@
 //! `cargo run --release -p recon-kernels --example gemm_speed -- [M] [--portable]
 //! [--isa avx2,avx512] [--formats f32,bf16] [--square 1024,2048] [--threads T] [--reps R] [--peak-reps R]`
 //! (`--portable` times the portable kernels too; `--square` times M = K = N;
-//! more repetitions find a quiet moment on a shared machine).
+//! more repetitions find a quiet moment on a shared machine). `cpu`: the
+//! rate over the process's CPU time per thread, which time other programs
+//! take from the cores does not lower.
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
 use recon_kernels::isa::Isa;
 use recon_kernels::peak::{measure_peak_gflops, PeakKind};
@@ -52,20 +54,33 @@ fn main() {
                 let b = PackedMatrix::from_linear_weight(&w, n, k, fmt).unwrap();
                 gemm(isa, &a, m, k, &b, None, Activation::None, &mut c, n).unwrap();
                 let mut dt = f64::INFINITY;
+                let c0 = cpu_seconds();
                 for _ in 0..reps {
                     let t = Instant::now();
                     gemm(isa, &a, m, k, &b, None, Activation::None, &mut c, n).unwrap();
                     dt = dt.min(t.elapsed().as_secs_f64());
                 }
+                let cpu = (cpu_seconds() - c0) / reps as f64 / rayon::current_num_threads() as f64;
                 let gf = 2.0 * (m * n * k) as f64 / dt / 1e9;
+                let cpu_gf = 2.0 * (m * n * k) as f64 / cpu / 1e9;
                 let peak = if fmt == WeightFormat::Bf16 && isa == Isa::Avx512Bf16 { bf16_peak.unwrap_or(f32_peak) } else { f32_peak };
                 println!(
-                    "M {m} K {k:4} N {n:4} {:<10} {:<4}: {dt:.3} s {gf:6.1} GFLOP/s {:5.1} % of peak",
+                    "M {m} K {k:4} N {n:4} {:<10} {:<4}: {dt:.3} s {gf:6.1} GFLOP/s {:5.1} % of peak; cpu {cpu_gf:6.1} GFLOP/s {:5.1} %",
                     isa.name(),
                     fmt.name(),
-                    100.0 * gf / peak
+                    100.0 * gf / peak,
+                    100.0 * cpu_gf / peak
                 );
             }
         }
     }
+}
+
+/// User + system CPU seconds of this process (from /proc/self/stat, 100 Hz ticks; 0 elsewhere).
+fn cpu_seconds() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = s.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (tick(11) + tick(12)) / 100.0
 }
