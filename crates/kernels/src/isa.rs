@@ -5,9 +5,10 @@
 //!
 //! Kernels dispatch on [`Isa::simd`], matched exhaustively, so a new vector
 //! family (e.g. ARM NEON) makes the compiler list every place that needs a
-//! version of it. All families share the packed GEMM layouts (`MR`-row
-//! tiles of A, `NR`-column panels of B): a narrower unit covers a register
-//! tile in several sub-tiles, as AVX2 does.
+//! version of it. All families read the same packed weights (`NR`-column
+//! panels of B, packed once at load time); a narrower vector unit covers a
+//! register tile in several sub-tiles, as AVX2 does, and may ask for A
+//! tiles of another height (A is packed per call).
 //!
 //! AMX is not implemented: the development machine (AMD Zen 4) has no AMX
 //! unit, and untested tile code is not shipped.

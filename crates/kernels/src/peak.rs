@@ -1,7 +1,8 @@
 //! Measured arithmetic peak of each instruction set: independent
-//! register-only FMA (ymm for AVX2, zmm for AVX-512, or `vdpbf16ps`) chains on every pool thread, so GEMM
-//! efficiency can be reported against what this machine actually sustains
-//! (clock, SMT sharing and other load included) rather than a datasheet.
+//! register-only FMA (ymm for AVX2, zmm for AVX-512) or `vdpbf16ps` chains
+//! on every pool thread, so GEMM efficiency can be reported against what
+//! this machine actually sustains (clock, SMT sharing and other load
+//! included) rather than a datasheet.
 
 use crate::isa::{Isa, Simd};
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -199,6 +200,11 @@ mod tests {
         assert!(!bf16_dot_pays_given(470.0, 470.0));
         let isa = bf16_isa();
         assert!(isa <= Isa::best() && isa.supported());
+        // Every family has an f32 peak; only AVX512-BF16 a bf16 one.
+        for isa in Isa::all_supported() {
+            assert!(measure_peak_gflops(isa, PeakKind::F32, 1000, 1).is_some_and(|g| g > 0.0), "{isa:?}");
+            assert_eq!(measure_peak_gflops(isa, PeakKind::Bf16, 1000, 1).is_some(), isa == Isa::Avx512Bf16, "{isa:?}");
+        }
         if Isa::best() != Isa::Avx512Bf16 {
             assert_eq!(isa, Isa::best());
         }
