@@ -156,8 +156,8 @@ mod x86 {
         (iters * CHAINS * 32) as f64
     }
 
-    /// Chains of the AVX2 loop: two FMA pipes × latency (4 to 5 cycles)
-    /// in flight, within the 16 ymm registers.
+    /// Chains of the AVX2 loop: enough to keep both FMA pipes busy through
+    /// their latency, few enough for the 16 ymm registers.
     const CHAINS_YMM: usize = 12;
 
     #[target_feature(enable = "avx2,fma")]
