@@ -187,7 +187,8 @@ pub fn run(target: Target, data: &[u8]) -> Result<()> {
             let p = write(&scratch()?, "arch.json", data)?;
             let c = crate::model::RecGenConfig::load(&p)?;
             c.min_memory_bytes();
-            c.ss_flow_config().map(|_| ())
+            c.ss_flow_config();
+            Ok(())
         }
         Target::Sensor => crate::sensor::SensorModel::from_json_str(&text(), "sensor.json").map(|_| ()),
         Target::Materials => crate::sim::MaterialTable::from_json_str(&text(), "materials.json").map(|_| ()),

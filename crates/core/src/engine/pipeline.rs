@@ -88,7 +88,7 @@ use serde::Serialize;
 use crate::gaussians::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
-use crate::model::config::{ModuleSpec, RecGenConfig};
+use crate::model::config::{ModuleArgs, ModuleKey, RecGenConfig};
 use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::sparse::SparseTensor;
@@ -101,7 +101,7 @@ use crate::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::rng::SeededRng;
 use crate::weights::load::Checkpoint;
-use crate::weights::registry::{self, ModuleConfig};
+use crate::weights::registry;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};
 
@@ -353,7 +353,7 @@ impl Dtype {
             Dtype::Bf16 => Precision::Bf16,
             Dtype::F16 => Precision::F16,
             Dtype::Auto => {
-                let width = arch.ss_flow_config()?.model_channels;
+                let width = arch.ss_flow_config().model_channels;
                 if width >= AUTO_BF16_MIN_CHANNELS {
                     Precision::Bf16
                 } else {
@@ -414,7 +414,7 @@ pub struct Pipeline {
     pub config: RecGenConfig,
     options: LoadOptions,
     stages: Stages,
-    sources: HashMap<&'static str, Source>,
+    sources: HashMap<ModuleKey, Source>,
     resident: Resident,
     dino_cfg: Dinov2Config,
     ss_cfg: SsFlowConfig,
@@ -427,14 +427,6 @@ pub struct Pipeline {
 }
 
 const NOISE_ORDER: &str = "SeededRng(seed): ss latent [1,Cin,R,R,R], ss pose tokens [1,K,P], slat feats [N,Cin]";
-
-fn module_cfg(spec: &ModuleSpec) -> ModuleConfig {
-    ModuleConfig { name: spec.name.clone(), args: spec.args.clone() }
-}
-
-fn is_stage1(key: &str) -> bool {
-    matches!(key, "image_cond_model" | "ss_flow" | "ss_decoder")
-}
 
 fn secs(t: Instant) -> f64 {
     t.elapsed().as_secs_f64()
@@ -481,7 +473,7 @@ impl Pipeline {
         let config = RecGenConfig::load(config_path)?;
         let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
             let path = ["safetensors", "pt", "pth"]
@@ -494,7 +486,7 @@ impl Pipeline {
                         format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
                     )
                 })?;
-            files.modules.insert(key.to_string(), path);
+            files.modules.insert(key, path);
         }
         Self::from_files(config_path, &files, stages, options)
     }
@@ -505,14 +497,14 @@ impl Pipeline {
         let mut files = Vec::new();
         let mut random_init = false;
         for (key, spec) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
-            let path = weight_files.modules.get(key).cloned().ok_or_else(|| {
+            let path = weight_files.modules.get(&key).cloned().ok_or_else(|| {
                 Error::input(weight_files.dir.display().to_string(), format!("no checkpoint file for module `{key}` ({})", spec.name))
             })?;
             let label = format!("{}: {key}", config_path.display());
-            let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
+            let expected = registry::expected_tensors(&config.module_args(key)?, &label)?;
             let ck = Checkpoint::open(&path, None)?;
             crate::weights::validate_checkpoint(&ck, &expected, true)?;
             if path.extension().is_some_and(|e| e == "safetensors") {
@@ -538,24 +530,23 @@ impl Pipeline {
         let config = RecGenConfig::load(config_path)?;
         let mut sources = HashMap::new();
         for (key, _) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
-            sources.insert(key, Source::Random(registry::module_seed(seed, key)));
+            sources.insert(key, Source::Random(registry::module_seed(seed, key.name())));
         }
         Self::build(config, sources, WeightsSource::Random { seed }, stages, *options)
     }
 
     fn build(
         config: RecGenConfig,
-        sources: HashMap<&'static str, Source>,
+        sources: HashMap<ModuleKey, Source>,
         weights: WeightsSource,
         stages: Stages,
         options: LoadOptions,
     ) -> Result<Self> {
-        let label = |key: &str| format!("{}: {key}", config.name);
-        let dino_cfg = registry::dinov2_config(&config.image_cond_model.args, &label("image_cond_model"))?;
-        let ss_cfg = SsFlowConfig::from_value(&config.ss_flow.args, &label("ss_flow"))?;
+        let dino_cfg = config.args.image_cond_model.clone();
+        let ss_cfg = config.args.ss_flow.clone();
         if ss_cfg.pose_channels() != Some(10) {
             return Err(Error::config(
                 &config.name,
@@ -566,7 +557,7 @@ impl Pipeline {
         let slat_cfg = match stages {
             Stages::SparseStructure => None,
             Stages::All => {
-                let c = SLatFlowConfig::from_json(&config.slat_flow.args)?;
+                let c = config.args.slat_flow.clone();
                 if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim() != 13 {
                     return Err(Error::config(
                         &config.name,
@@ -597,31 +588,25 @@ impl Pipeline {
             config,
         };
         if !options.per_stage {
-            p.resident.dino = Some(p.build_module("image_cond_model", registry::build_dinov2)?);
-            p.resident.ss_flow = Some(p.build_module("ss_flow", registry::build_ss_flow)?);
-            p.resident.ss_decoder = Some(p.build_module("ss_decoder", registry::build_ss_decoder)?);
+            p.resident.dino = Some(p.build_module(ModuleKey::ImageCondModel, registry::build_dinov2)?);
+            p.resident.ss_flow = Some(p.build_module(ModuleKey::SsFlow, registry::build_ss_flow)?);
+            p.resident.ss_decoder = Some(p.build_module(ModuleKey::SsDecoder, registry::build_ss_decoder)?);
             if stages == Stages::All {
-                p.resident.slat_flow = Some(p.build_module("slat_flow", registry::build_slat_flow)?);
-                p.resident.mesh_decoder = Some(p.build_module("slat_dec_mesh", registry::build_mesh_decoder)?);
-                p.resident.gs_decoder = Some(p.build_module("slat_dec_gs", registry::build_gaussian_decoder)?);
+                p.resident.slat_flow = Some(p.build_module(ModuleKey::SlatFlow, registry::build_slat_flow)?);
+                p.resident.mesh_decoder = Some(p.build_module(ModuleKey::SlatDecMesh, registry::build_mesh_decoder)?);
+                p.resident.gs_decoder = Some(p.build_module(ModuleKey::SlatDecGs, registry::build_gaussian_decoder)?);
             }
         }
         Ok(p)
     }
 
     /// Build module `key` from its source with this pipeline's compute setting.
-    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
-        let spec = self
-            .config
-            .modules()
-            .into_iter()
-            .find(|(k, _)| *k == key)
-            .map(|(_, s)| module_cfg(s))
-            .ok_or_else(|| Error::msg(format!("pipeline: no module `{key}` in {}", self.config.name)))?;
+    fn build_module<T>(&self, key: ModuleKey, f: fn(&ModuleArgs, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
+        let spec = self.config.module_args(key)?;
         let label = format!("{}: {key}", self.config.name);
-        let vb = match self.sources.get(key) {
+        let vb = match self.sources.get(&key) {
             Some(Source::File(path)) => Checkpoint::open(path, None)?.into_var_builder(DType::F32, &Device::Cpu),
-            Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed, &label)?,
+            Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed)?,
             None => return Err(Error::msg(format!("pipeline: module `{key}` was not loaded (stage-1-only pipeline?)"))),
         };
         let m = f(&spec, vb, &label, self.options.compute);
@@ -634,8 +619,8 @@ impl Pipeline {
     fn hold<'a, T>(
         &'a self,
         resident: &'a Option<T>,
-        key: &str,
-        f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>,
+        key: ModuleKey,
+        f: fn(&ModuleArgs, VarBuilder, &str, Compute) -> Result<T>,
         loading: &mut f64,
     ) -> Result<Held<'a, T>> {
         match resident {
@@ -782,7 +767,7 @@ impl Pipeline {
         on_stage(Stage::ImageEncoder);
         meter.mark();
         let t = Instant::now();
-        let dino = self.hold(&self.resident.dino, "image_cond_model", registry::build_dinov2, &mut meter.tm.loading)?;
+        let dino = self.hold(&self.resident.dino, ModuleKey::ImageCondModel, registry::build_dinov2, &mut meter.tm.loading)?;
         let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
         drop(dino);
         meter.tm.image_encoder = secs(t);
@@ -808,7 +793,7 @@ impl Pipeline {
         on_stage(Stage::SsSampling);
         meter.mark();
         let t = Instant::now();
-        let ss_flow = self.hold(&self.resident.ss_flow, "ss_flow", registry::build_ss_flow, &mut meter.tm.loading)?;
+        let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
         let (cond, neg) = ss_flow.condition(views)?;
         meter.tm.ss_condition = secs(t);
         let t = Instant::now();
@@ -830,7 +815,7 @@ impl Pipeline {
         on_stage(Stage::SsDecoder);
         meter.mark();
         let t = Instant::now();
-        let ss_decoder = self.hold(&self.resident.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut meter.tm.loading)?;
+        let ss_decoder = self.hold(&self.resident.ss_decoder, ModuleKey::SsDecoder, registry::build_ss_decoder, &mut meter.tm.loading)?;
         let logits = ss_decoder.forward(z)?;
         drop(ss_decoder);
         let ss_resolution = logits.dim(2)?;
@@ -907,7 +892,7 @@ impl Pipeline {
         on_stage(Stage::SlatSampling);
         meter.mark();
         let t = Instant::now();
-        let slat_flow = self.hold(&self.resident.slat_flow, "slat_flow", registry::build_slat_flow, &mut meter.tm.loading)?;
+        let slat_flow = self.hold(&self.resident.slat_flow, ModuleKey::SlatFlow, registry::build_slat_flow, &mut meter.tm.loading)?;
         let (cond, neg) = slat_flow.condition(views, Some(slat_pose))?;
         meter.tm.slat_condition = secs(t);
 
@@ -937,7 +922,7 @@ impl Pipeline {
             on_stage(Stage::MeshDecoder);
             meter.mark();
             let t = Instant::now();
-            let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut meter.tm.loading)?;
+            let dec = self.hold(&r.mesh_decoder, ModuleKey::SlatDecMesh, registry::build_mesh_decoder, &mut meter.tm.loading)?;
             let feats = dec.forward_feats_fused(slat)?;
             meter.tm.mesh_decoder = secs(t);
             let t = Instant::now();
@@ -950,7 +935,7 @@ impl Pipeline {
             on_stage(Stage::GaussianDecoder);
             meter.mark();
             let t = Instant::now();
-            let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut meter.tm.loading)?;
+            let dec = self.hold(&r.gs_decoder, ModuleKey::SlatDecGs, registry::build_gaussian_decoder, &mut meter.tm.loading)?;
             let g = dec.forward(slat)?;
             drop(dec);
             let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
@@ -993,7 +978,7 @@ mod tests {
         crate::weights::init::write_random_architecture(&cfg_path, &snap, 3).unwrap();
         let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
         assert_eq!(wf.modules.len(), 6);
-        assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
+        assert!(wf.modules[&ModuleKey::SlatDecGs].ends_with("sub/slat_dec_gs.safetensors"));
         let p = Pipeline::load(&cfg_path, Weights::Files(&wf), Stages::All, &LoadOptions::default()).unwrap();
         assert!(p.weights().is_random());
         let _ = std::fs::remove_dir_all(&root);

@@ -85,7 +85,7 @@ pub fn find_architecture(dir: &Path) -> Result<PathBuf> {
         let p = e.map_err(|e| Error::io(dir, e))?.path();
         if p.extension().is_some_and(|x| x == "json") {
             let v: Option<serde_json::Value> = std::fs::read_to_string(&p).ok().and_then(|s| serde_json::from_str(&s).ok());
-            if v.is_some_and(|v| v.get("ss_flow").is_some()) {
+            if v.is_some_and(|v| v.get(crate::model::key::ModuleKey::SsFlow.name()).is_some()) {
                 found.push(p);
             }
         }

@@ -85,7 +85,7 @@ impl Default for SamplerSettings {
 
 impl SamplerSettings {
     /// Parse from JSON (unknown keys such as `class` are ignored), then validate.
-    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
         let s: Self = serde_json::from_value(v.clone()).map_err(|e| Error::config(file, "sampler", e.to_string()))?;
         s.validate(file)?;
         Ok(s)
@@ -268,11 +268,11 @@ mod tests {
 
     #[test]
     fn settings_defaults_and_json() {
-        let s = SamplerSettings::from_value(&serde_json::json!({"class": "X", "steps": 4}), "t").unwrap();
+        let s = SamplerSettings::from_json(&serde_json::json!({"class": "X", "steps": 4}), "t").unwrap();
         assert_eq!(s.steps, 4);
         assert_eq!(s.cfg_strength, 5.0);
         assert_eq!(s.cfg_interval, [0.5, 1.0]);
-        assert!(SamplerSettings::from_value(&serde_json::json!({"steps": 0}), "t").is_err());
+        assert!(SamplerSettings::from_json(&serde_json::json!({"steps": 0}), "t").is_err());
     }
 
     /// With v(x) = x − target (cond) and v = x (uncond), the integrator must

@@ -149,7 +149,7 @@ pub fn resolve_module_files(name_or_path: &str, config: &crate::model::config::R
         };
         let path = m.resolve_dir(cache).join(&f.path);
         if path.is_file() {
-            out.modules.insert(key.to_string(), path);
+            out.modules.insert(key, path);
         } else {
             missing.push(format!("{key}: {}", path.display()));
             if !fetch.contains(&m.name) {
@@ -196,7 +196,7 @@ pub struct WeightFiles {
     /// Reported as the weights' origin.
     pub dir: PathBuf,
     /// Module key ([`crate::model::config::RecGenConfig::modules`]) → checkpoint file.
-    pub modules: HashMap<String, PathBuf>,
+    pub modules: HashMap<crate::model::key::ModuleKey, PathBuf>,
     /// Pose statistics to use instead of the files the architecture names.
     pub ss_stats: Option<PathBuf>,
     pub slat_stats: Option<PathBuf>,
@@ -225,10 +225,7 @@ mod tests {
     fn dinov2_manifest_matches_the_model() {
         let m = Manifest::load("dinov2-vitl14-reg").unwrap();
         let f = &m.files[0];
-        let cfg = crate::weights::registry::ModuleConfig {
-            name: "DinoVisionTransformer".into(),
-            args: serde_json::to_value(crate::model::stage1::dinov2::Dinov2Config::vitl14_reg()).unwrap(),
-        };
+        let cfg = crate::model::config::ModuleArgs::Dinov2(crate::model::stage1::dinov2::Dinov2Config::vitl14_reg());
         let want = crate::weights::registry::expected_tensors(&cfg, "vitl14").unwrap();
         assert_eq!(f.tensors.as_ref().unwrap(), &want);
         // 24 blocks × 14 tensors + cls, pos, registers, mask, patch w/b, norm w/b.

@@ -1,6 +1,7 @@
 //! `recon weights verify DIR`: check that a directory holds a manifest's
 //! files and that every checkpoint with a known tensor list matches it.
 
+use crate::model::config::ModuleArgs;
 use crate::weights::load::Checkpoint;
 use crate::weights::manifest::Manifest;
 use crate::weights::registry::{expected_tensors, ModuleConfig, ModuleKind};
@@ -109,7 +110,8 @@ fn derive_expected(module: &str, config: &Path) -> Option<Vec<crate::weights::re
         v.get("models")?.as_object()?.values().find(|m| m.get("name").and_then(|n| n.as_str()).and_then(ModuleKind::of).is_some())?.clone()
     };
     let cfg: ModuleConfig = serde_json::from_value(spec).ok()?;
-    expected_tensors(&cfg, &config.display().to_string()).ok()
+    let file = config.display().to_string();
+    expected_tensors(&ModuleArgs::from_spec(&cfg, &file).ok()?, &file).ok()
 }
 
 pub fn print_table(m: &Manifest, dir: &Path, rows: &[VerifyRow], out: &mut dyn Write) {

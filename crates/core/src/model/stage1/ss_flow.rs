@@ -85,7 +85,7 @@ fn default_pose_tokens() -> usize {
 
 impl SsFlowConfig {
     /// Deserialise from an `args` object and check consistency; `file` names the source in errors.
-    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
         let cfg: Self = crate::util::json::from_value(v, file)?;
         cfg.validate(file)?;
         Ok(cfg)
@@ -428,7 +428,7 @@ mod tests {
             v["pose_representation"] = "6d_translation_scale".into();
             v["num_pose_tokens"] = 2.into();
         }
-        SsFlowConfig::from_value(&v, "test").unwrap()
+        SsFlowConfig::from_json(&v, "test").unwrap()
     }
 
     fn random_model(cfg: &SsFlowConfig) -> Result<SparseStructureFlowModel> {
@@ -528,9 +528,9 @@ mod tests {
     fn config_validation() {
         let mut v = serde_json::to_value(tiny_cfg(1, true)).unwrap();
         v["pose_representation"] = "euler".into();
-        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+        assert!(SsFlowConfig::from_json(&v, "t").is_err());
         let mut v = serde_json::to_value(tiny_cfg(1, false)).unwrap();
         v["num_heads"] = 5.into();
-        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+        assert!(SsFlowConfig::from_json(&v, "t").is_err());
     }
 }

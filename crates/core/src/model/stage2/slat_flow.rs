@@ -95,8 +95,10 @@ pub struct SLatFlowConfig {
 }
 
 impl SLatFlowConfig {
-    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
-        serde_json::from_value(v.clone()).map_err(|e| Error::msg(format!("SLat flow args: {e}")))
+    /// Parse an `args` object; errors name `file` and the field. Checked
+    /// when the model is built ([`SLatFlowModel::new`]).
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::util::json::from_value(v, file)
     }
 
     pub fn heads(&self) -> usize {
@@ -459,19 +461,16 @@ pub struct SLatNormalization {
 }
 
 impl SLatNormalization {
-    /// From a JSON object `{"mean": [...], "std": [...]}`.
-    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
-        let get = |k: &str| -> Result<Vec<f32>> {
-            v.get(k)
-                .and_then(|a| a.as_array())
-                .ok_or_else(|| Error::msg(format!("SLat normalization: missing `{k}` array")))?
-                .iter()
-                .map(|x| x.as_f64().map(|f| f as f32).ok_or_else(|| Error::msg(format!("SLat normalization: `{k}` must hold numbers"))))
-                .collect()
-        };
-        let (mean, std) = (get("mean")?, get("std")?);
+    /// From a JSON object `{"mean": [...], "std": [...]}`; errors name `file`.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        #[derive(Deserialize)]
+        struct Stats {
+            mean: Vec<f32>,
+            std: Vec<f32>,
+        }
+        let Stats { mean, std } = crate::util::json::from_value(v, file)?;
         if mean.len() != std.len() || mean.is_empty() {
-            return Err(Error::msg("SLat normalization: mean and std must be non-empty and of equal length"));
+            return Err(Error::config(file, "mean", "mean and std must be non-empty and of equal length"));
         }
         Ok(Self { mean, std })
     }
@@ -537,14 +536,17 @@ mod tests {
     use candle_nn::VarMap;
 
     fn tiny_cfg() -> SLatFlowConfig {
-        SLatFlowConfig::from_json(&serde_json::json!({
-            "resolution": 8, "in_channels": 4, "out_channels": 4, "model_channels": 32, "cond_channels": 16,
-            "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": 2, "num_io_res_blocks": 2,
-            "io_block_channels": [8], "qk_rms_norm": true,
-            "use_point_embedder": true, "point_embedder_out_channels": 16,
-            "use_mask_embedder": true, "mask_embedder_out_channels": 16,
-            "use_pose_embedder": true, "pose_embedder_out_channels": 16, "pose_representation": "9d_translation_scale"
-        }))
+        SLatFlowConfig::from_json(
+            &serde_json::json!({
+                "resolution": 8, "in_channels": 4, "out_channels": 4, "model_channels": 32, "cond_channels": 16,
+                "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": 2, "num_io_res_blocks": 2,
+                "io_block_channels": [8], "qk_rms_norm": true,
+                "use_point_embedder": true, "point_embedder_out_channels": 16,
+                "use_mask_embedder": true, "mask_embedder_out_channels": 16,
+                "use_pose_embedder": true, "pose_embedder_out_channels": 16, "pose_representation": "9d_translation_scale"
+            }),
+            "t",
+        )
         .unwrap()
     }
 
@@ -642,7 +644,7 @@ mod tests {
 
     #[test]
     fn normalization_round_trips() -> Result<()> {
-        let n = SLatNormalization::from_json(&serde_json::json!({"mean": [1.0, -2.0], "std": [2.0, 0.5]}))?;
+        let n = SLatNormalization::from_json(&serde_json::json!({"mean": [1.0, -2.0], "std": [2.0, 0.5]}), "t")?;
         let x = Tensor::new(&[[3f32, -1.0]], &Device::Cpu)?;
         let y = n.normalize(&x)?;
         assert_eq!(y.to_vec2::<f32>()?, vec![vec![1.0, 2.0]]);

@@ -49,9 +49,9 @@ impl SparseStructureDecoderConfig {
         }
     }
 
-    pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self =
-            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureDecoder args", "args", e.to_string()))?;
+    /// Parse an `args` object and validate it; errors name `file` and the field.
+    pub fn from_json(args: &serde_json::Value, file: &str) -> Result<Self> {
+        let cfg: Self = crate::util::json::from_value(args, file)?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -335,7 +335,7 @@ mod tests {
     fn rejects_unsupported_norm_type() {
         let args =
             serde_json::json!({"out_channels": 1, "latent_channels": 8, "num_res_blocks": 2, "channels": [32], "norm_type": "group"});
-        let e = SparseStructureDecoderConfig::from_json(&args).unwrap_err().to_string();
+        let e = SparseStructureDecoderConfig::from_json(&args, "t").unwrap_err().to_string();
         assert!(e.contains("norm_type"), "{e}");
     }
 

@@ -58,9 +58,9 @@ impl SparseStructureEncoderConfig {
         }
     }
 
-    pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self =
-            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureEncoder args", "args", e.to_string()))?;
+    /// Parse an `args` object and validate it; errors name `file` and the field.
+    pub fn from_json(args: &serde_json::Value, file: &str) -> Result<Self> {
+        let cfg: Self = crate::util::json::from_value(args, file)?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -377,7 +377,8 @@ mod tests {
         // Grids that do not divide into latent cells are refused.
         assert!(enc.forward(&Tensor::zeros((1, 1, 5, 8, 8), DType::F32, &dev)?).is_err());
         assert!(SparseStructureEncoderConfig::from_json(
-            &serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []})
+            &serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []}),
+            "t"
         )
         .is_err());
         Ok(())

@@ -10,10 +10,11 @@ use crate::model::nn::common::Linear;
 use crate::model::nn::common::{layer_norm_plain, linear};
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
-use crate::{Error, Result};
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkArgs, TrunkConfig};
+use crate::Result;
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
 
 pub use crate::gaussians::SH_C0;
 
@@ -33,30 +34,106 @@ pub struct GaussianConfig {
     pub softplus_scaling: bool,
 }
 
+/// Constructor args of `SLatGaussianDecoder` (checkpoint `args`): the trunk's
+/// plus `resolution` and `representation_config`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GaussianDecoderConfig {
+    #[serde(flatten)]
+    pub trunk: TrunkArgs,
+    pub resolution: usize,
+    pub representation_config: GaussianRepresentationConfig,
+}
+
+/// `representation_config` of the Gaussian decoder; absent keys take
+/// upstream's defaults, unknown ones (`2d_filter_kernel_size`) are ignored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GaussianRepresentationConfig {
+    #[serde(default = "default_num_gaussians")]
+    pub num_gaussians: usize,
+    #[serde(default = "default_voxel_size")]
+    pub voxel_size: f64,
+    #[serde(default)]
+    pub perturb_offset: bool,
+    #[serde(default)]
+    pub lr: GaussianLr,
+    #[serde(rename = "3d_filter_kernel_size", default)]
+    pub filter_3d_kernel_size: f64,
+    #[serde(default = "default_scaling_bias")]
+    pub scaling_bias: f64,
+    #[serde(default = "default_opacity_bias")]
+    pub opacity_bias: f64,
+    #[serde(default)]
+    pub scaling_activation: ScalingActivation,
+}
+
+/// Per-field learning-rate multipliers (default 1 each).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GaussianLr {
+    #[serde(rename = "_xyz", default = "one")]
+    pub xyz: f64,
+    #[serde(rename = "_features_dc", default = "one")]
+    pub features_dc: f64,
+    #[serde(rename = "_scaling", default = "one")]
+    pub scaling: f64,
+    #[serde(rename = "_rotation", default = "one")]
+    pub rotation: f64,
+    #[serde(rename = "_opacity", default = "one")]
+    pub opacity: f64,
+}
+
+impl Default for GaussianLr {
+    fn default() -> Self {
+        Self { xyz: 1.0, features_dc: 1.0, scaling: 1.0, rotation: 1.0, opacity: 1.0 }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ScalingActivation {
+    #[default]
+    Exp,
+    Softplus,
+}
+
+fn default_num_gaussians() -> usize {
+    32
+}
+fn default_voxel_size() -> f64 {
+    1.5
+}
+fn default_scaling_bias() -> f64 {
+    0.01
+}
+fn default_opacity_bias() -> f64 {
+    0.1
+}
+fn one() -> f64 {
+    1.0
+}
+
+impl GaussianDecoderConfig {
+    /// Parse the decoder's `args`; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::util::json::from_value(v, file)
+    }
+}
+
 impl GaussianConfig {
-    /// From the decoder args (`resolution`, `representation_config`).
-    pub fn from_args(args: &serde_json::Value) -> Result<Self> {
-        let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
-        let rc = args.get("representation_config").ok_or_else(|| Error::msg("args: representation_config missing"))?;
-        let f = |k: &str, d: f64| rc.get(k).and_then(|v| v.as_f64()).unwrap_or(d);
-        let lr = rc.get("lr");
-        let l = |k: &str| lr.and_then(|m| m.get(k)).and_then(|v| v.as_f64()).unwrap_or(1.0);
-        let softplus_scaling = match rc.get("scaling_activation").and_then(|v| v.as_str()).unwrap_or("exp") {
-            "softplus" => true,
-            "exp" => false,
-            m => return Err(Error::msg(format!("representation_config: scaling_activation `{m}` unknown"))),
-        };
-        Ok(Self {
-            resolution,
-            num_gaussians: rc.get("num_gaussians").and_then(|v| v.as_u64()).unwrap_or(32) as usize,
-            voxel_size: f("voxel_size", 1.5),
-            perturb_offset: rc.get("perturb_offset").and_then(|v| v.as_bool()).unwrap_or(false),
-            lr: [l("_xyz"), l("_features_dc"), l("_scaling"), l("_rotation"), l("_opacity")],
-            min_kernel_size: f("3d_filter_kernel_size", 0.0),
-            scaling_bias: f("scaling_bias", 0.01),
-            opacity_bias: f("opacity_bias", 0.1),
-            softplus_scaling,
-        })
+    /// The representation settings of a decoder config.
+    pub fn new(cfg: &GaussianDecoderConfig) -> Self {
+        let rc = &cfg.representation_config;
+        let lr = rc.lr;
+        Self {
+            resolution: cfg.resolution,
+            num_gaussians: rc.num_gaussians,
+            voxel_size: rc.voxel_size,
+            perturb_offset: rc.perturb_offset,
+            lr: [lr.xyz, lr.features_dc, lr.scaling, lr.rotation, lr.opacity],
+            min_kernel_size: rc.filter_3d_kernel_size,
+            scaling_bias: rc.scaling_bias,
+            opacity_bias: rc.opacity_bias,
+            softplus_scaling: rc.scaling_activation == ScalingActivation::Softplus,
+        }
     }
 
     /// Channels of the output layer: G·(3 + 3 + 3 + 4 + 1).
@@ -179,10 +256,10 @@ pub struct SLatGaussianDecoder {
 }
 
 impl SLatGaussianDecoder {
-    /// `args` are the upstream constructor args (trunk + `representation_config`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
-        let tcfg = TrunkConfig::from_args(args)?;
-        let cfg = GaussianConfig::from_args(args)?;
+    /// Built from its config (upstream's args: trunk + `representation_config`).
+    pub fn new(args: &GaussianDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        let tcfg = TrunkConfig::new(&args.trunk)?;
+        let cfg = GaussianConfig::new(args);
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let out_layer = linear(tcfg.model_channels, cfg.out_channels(), vb.pp("out_layer"), compute)?;
         // The buffer ships in checkpoints; recompute it when absent.

@@ -15,11 +15,12 @@ use crate::model::nn::common::Linear;
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::flexicubes::SparseFeatures2Mesh;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkArgs, TrunkConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Module, Tensor};
 use candle_nn::VarBuilder;
 use recon_kernels::sparse::CoordHash;
+use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// im2col elements per conv chunk (`rows · 27 · C_in`): bounds scratch memory.
@@ -313,6 +314,31 @@ impl SparseSubdivideBlock3d {
     }
 }
 
+/// Constructor args of `SLatMeshDecoder` (checkpoint `args`): the trunk's
+/// plus `resolution` and `representation_config.use_color`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeshDecoderConfig {
+    #[serde(flatten)]
+    pub trunk: TrunkArgs,
+    pub resolution: usize,
+    #[serde(default)]
+    pub representation_config: MeshRepresentationConfig,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MeshRepresentationConfig {
+    /// Vertex colours as extra FlexiCubes channels.
+    #[serde(default)]
+    pub use_color: bool,
+}
+
+impl MeshDecoderConfig {
+    /// Parse the decoder's `args`; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::util::json::from_value(v, file)
+    }
+}
+
 pub struct SLatMeshDecoder {
     pub trunk: SparseTransformerBase,
     pub upsample: Vec<SparseSubdivideBlock3d>,
@@ -322,12 +348,11 @@ pub struct SLatMeshDecoder {
 }
 
 impl SLatMeshDecoder {
-    /// `args`: the upstream constructor args (`resolution`, trunk args,
+    /// Built from its config (upstream's args: `resolution`, trunk args,
     /// `representation_config.use_color`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
-        let tcfg = TrunkConfig::from_args(args)?;
-        let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
-        let use_color = args.get("representation_config").and_then(|r| r.get("use_color")).and_then(|v| v.as_bool()).unwrap_or(false);
+    pub fn new(args: &MeshDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        let tcfg = TrunkConfig::new(&args.trunk)?;
+        let (resolution, use_color) = (args.resolution, args.representation_config.use_color);
         let c = tcfg.model_channels;
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let upsample = vec![

@@ -4,20 +4,49 @@
 //! window) or full self-attention over sparse voxels.
 
 use crate::model::nn::common::Linear;
-use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention};
+use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention, PeMode};
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor};
 use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum AttnMode {
     /// Window `window_size`, shift `window_size/2` on odd blocks.
+    #[default]
     Swin,
     /// All voxels of a batch item attend to each other.
     Full,
+}
+
+/// The trunk's upstream constructor args, shared by the SLat decoders and
+/// the SLat encoder (flattened into their configs). Unknown keys
+/// (`use_fp16`, `qk_rms_norm`, ...) are ignored, as upstream's are.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrunkArgs {
+    pub model_channels: usize,
+    pub latent_channels: usize,
+    pub num_blocks: usize,
+    /// `None`: `model_channels / num_head_channels`.
+    #[serde(default)]
+    pub num_heads: Option<usize>,
+    /// Default 64.
+    #[serde(default)]
+    pub num_head_channels: Option<usize>,
+    /// Default 4.
+    #[serde(default)]
+    pub mlp_ratio: Option<f64>,
+    #[serde(default)]
+    pub attn_mode: AttnMode,
+    /// Default 8.
+    #[serde(default)]
+    pub window_size: Option<usize>,
+    #[serde(default)]
+    pub pe_mode: PeMode,
 }
 
 #[derive(Debug, Clone)]
@@ -34,33 +63,31 @@ pub struct TrunkConfig {
 }
 
 impl TrunkConfig {
-    /// Parse the upstream constructor args (`model_channels`, `latent_channels`,
-    /// `num_blocks`, `num_heads` or `num_head_channels`, `mlp_ratio`,
-    /// `attn_mode`, `window_size`, `pe_mode`).
-    pub fn from_args(args: &serde_json::Value) -> Result<Self> {
-        let get = |k: &str| args.get(k).and_then(|v| v.as_u64()).map(|v| v as usize);
-        let model_channels = get("model_channels").ok_or_else(|| Error::msg("args: model_channels missing"))?;
-        let in_channels = get("latent_channels").ok_or_else(|| Error::msg("args: latent_channels missing"))?;
-        let num_blocks = get("num_blocks").ok_or_else(|| Error::msg("args: num_blocks missing"))?;
-        let num_heads = match get("num_heads") {
+    /// The trunk the args describe, its input being `latent_channels` wide
+    /// (the decoders; the encoder sets its own `in_channels`).
+    pub fn new(args: &TrunkArgs) -> Result<Self> {
+        let model_channels = args.model_channels;
+        let num_heads = match args.num_heads {
             Some(h) => h,
-            None => model_channels / get("num_head_channels").unwrap_or(64),
+            None => model_channels / args.num_head_channels.unwrap_or(64).max(1),
         };
-        let mlp_ratio = args.get("mlp_ratio").and_then(|v| v.as_f64()).unwrap_or(4.0);
-        let attn_mode = match args.get("attn_mode").and_then(|v| v.as_str()).unwrap_or("swin") {
-            "swin" => AttnMode::Swin,
-            "full" => AttnMode::Full,
-            m => return Err(Error::msg(format!("args: attn_mode `{m}` not supported (swin, full)"))),
+        let ape = match args.pe_mode {
+            PeMode::Ape => true,
+            PeMode::Rope => return Err(Error::msg("args: pe_mode `rope` not supported (ape)")),
         };
-        let window_size = get("window_size").unwrap_or(8);
-        let ape = match args.get("pe_mode").and_then(|v| v.as_str()).unwrap_or("ape") {
-            "ape" => true,
-            m => return Err(Error::msg(format!("args: pe_mode `{m}` not supported (ape)"))),
-        };
-        if num_heads == 0 || model_channels % num_heads != 0 {
+        if num_heads == 0 || !model_channels.is_multiple_of(num_heads) {
             return Err(Error::msg("args: model_channels must be a multiple of num_heads"));
         }
-        Ok(Self { in_channels, model_channels, num_blocks, num_heads, mlp_ratio, attn_mode, window_size, ape })
+        Ok(Self {
+            in_channels: args.latent_channels,
+            model_channels,
+            num_blocks: args.num_blocks,
+            num_heads,
+            mlp_ratio: args.mlp_ratio.unwrap_or(4.0),
+            attn_mode: args.attn_mode,
+            window_size: args.window_size.unwrap_or(8),
+            ape,
+        })
     }
 }
 
