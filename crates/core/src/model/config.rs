@@ -27,7 +27,9 @@ use crate::{Error, Result};
 /// settings) are written back unchanged. [`ModuleArgs::from_spec`] parses them.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ModuleSpec {
+    /// Upstream class name (e.g. `SparseStructureFlowModel`); selects the [`ModuleKind`].
     pub name: String,
+    /// Constructor args, kept as JSON (null when the section has none).
     #[serde(default)]
     pub args: serde_json::Value,
 }
@@ -54,13 +56,21 @@ impl ModuleSpec {
 /// A module's constructor args, parsed into the typed config of its kind.
 #[derive(Debug, Clone)]
 pub enum ModuleArgs {
+    /// DINOv2 image encoder args.
     Dinov2(Dinov2Config),
+    /// Sparse-structure (stage-1) flow transformer args.
     SsFlow(SsFlowConfig),
+    /// SS VAE decoder args.
     SsDecoder(SparseStructureDecoderConfig),
+    /// SS VAE encoder args (training only).
     SsEncoder(SparseStructureEncoderConfig),
+    /// Structured-latent (stage-2) flow transformer args.
     SlatFlow(SLatFlowConfig),
+    /// SLat VAE mesh decoder args.
     MeshDecoder(MeshDecoderConfig),
+    /// SLat VAE Gaussian decoder args.
     GaussianDecoder(GaussianDecoderConfig),
+    /// SLat VAE encoder args (training only).
     SlatEncoder(SLatEncoderConfig),
 }
 
@@ -69,6 +79,7 @@ pub enum ModuleArgs {
 macro_rules! typed_getter {
     ($($fn:ident: $variant:ident => $ty:ty),* $(,)?) => {
         $(
+            /// The typed config when the args are of this kind, else an error naming `file`.
             pub fn $fn(&self, file: &str) -> Result<&$ty> {
                 match self {
                     Self::$variant(c) => Ok(c),
@@ -100,6 +111,7 @@ impl ModuleArgs {
         })
     }
 
+    /// The module family these args belong to.
     pub fn kind(&self) -> ModuleKind {
         match self {
             Self::Dinov2(_) => ModuleKind::Dinov2,
@@ -128,13 +140,21 @@ impl ModuleArgs {
 /// Every module section of an architecture file, parsed.
 #[derive(Debug, Clone)]
 pub struct ArchArgs {
+    /// `image_cond_model`: the DINOv2 image encoder.
     pub image_cond_model: Dinov2Config,
+    /// `ss_flow`: the sparse-structure flow transformer.
     pub ss_flow: SsFlowConfig,
+    /// `ss_decoder`: the SS VAE decoder.
     pub ss_decoder: SparseStructureDecoderConfig,
+    /// `slat_flow`: the structured-latent flow transformer.
     pub slat_flow: SLatFlowConfig,
+    /// `slat_dec_mesh`: the SLat VAE mesh decoder.
     pub slat_dec_mesh: MeshDecoderConfig,
+    /// `slat_dec_gs`: the SLat VAE Gaussian decoder.
     pub slat_dec_gs: GaussianDecoderConfig,
+    /// `ss_encoder`: the SS VAE encoder (training only; None when the file lacks it).
     pub ss_encoder: Option<SparseStructureEncoderConfig>,
+    /// `slat_encoder`: the SLat VAE encoder (training only; None when the file lacks it).
     pub slat_encoder: Option<SLatEncoderConfig>,
 }
 
@@ -154,22 +174,30 @@ impl ArchArgs {
     }
 }
 
+/// The `samplers` section: one sampler setting per flow.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SamplerSpecs {
+    /// Stage-1 (sparse-structure flow) sampler.
     pub sparse_structure: SamplerSettings,
+    /// Stage-2 (structured-latent flow) sampler.
     pub slat: SamplerSettings,
 }
 
 /// Per-channel mean/std of the SLat latent (`slat = x·std + mean` after sampling).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SlatNormalization {
+    /// Per-channel mean, one per SLat latent channel.
     pub mean: Vec<f32>,
+    /// Per-channel standard deviation (positive), one per SLat latent channel.
     pub std: Vec<f32>,
 }
 
+/// The `pose` section: pose representations and z-score stats of both stages.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PoseSpec {
+    /// Pose representation of the stage-1 pose tokens (must match `ss_flow.args.pose_representation`).
     pub ss_representation: PoseRepresentation,
+    /// Pose representation of the stage-2 pose condition (must match `slat_flow.args.pose_representation`).
     pub slat_representation: PoseRepresentation,
     /// Stage-1 z-score stats file, relative to the config file's folder.
     pub ss_stats: String,
@@ -201,14 +229,22 @@ struct RecGenFile {
     pub pose: PoseSpec,
 }
 
+/// A parsed and validated architecture file (`models/recgen-*.json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct RecGenConfig {
+    /// Architecture name (e.g. `recgen-tiny`).
     pub name: String,
+    /// DINOv2 image encoder section.
     pub image_cond_model: ModuleSpec,
+    /// Sparse-structure flow transformer section.
     pub ss_flow: ModuleSpec,
+    /// SS VAE decoder section.
     pub ss_decoder: ModuleSpec,
+    /// Structured-latent flow transformer section.
     pub slat_flow: ModuleSpec,
+    /// SLat VAE mesh decoder section.
     pub slat_dec_mesh: ModuleSpec,
+    /// SLat VAE Gaussian decoder section.
     pub slat_dec_gs: ModuleSpec,
     /// SS VAE encoder: only training needs it (`recon train ss-vae`), so it
     /// is optional and not one of [`Self::modules`].
@@ -217,8 +253,11 @@ pub struct RecGenConfig {
     /// SLat VAE encoder: only training needs it (`recon train slat-ae`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub slat_encoder: Option<ModuleSpec>,
+    /// Sampler settings of both flows.
     pub samplers: SamplerSpecs,
+    /// Per-channel SLat latent normalisation.
     pub slat_normalization: SlatNormalization,
+    /// Pose representations and stats files.
     pub pose: PoseSpec,
     /// Folder of the file, for resolving relative paths (not serialised).
     #[serde(skip)]
@@ -356,10 +395,12 @@ impl RecGenConfig {
         &self.args.ss_flow
     }
 
+    /// Load the stage-1 pose z-score stats (`pose.ss_stats`, relative to [`Self::base_dir`]).
     pub fn ss_pose_stats(&self) -> Result<PoseStats> {
         PoseStats::from_json_file(&self.base_dir.join(&self.pose.ss_stats))
     }
 
+    /// Load the stage-2 pose z-score stats (`pose.slat_stats`, relative to [`Self::base_dir`]).
     pub fn slat_pose_stats(&self) -> Result<PoseStats> {
         PoseStats::from_json_file(&self.base_dir.join(&self.pose.slat_stats))
     }

@@ -12,11 +12,17 @@ use crate::Error;
 /// One module of the model. [`ModuleKey::name`] is the checkpoint/file name.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum ModuleKey {
+    /// `image_cond_model`: the DINOv2 image encoder.
     ImageCondModel,
+    /// `ss_flow`: the sparse-structure flow transformer.
     SsFlow,
+    /// `ss_decoder`: the SS VAE decoder.
     SsDecoder,
+    /// `slat_flow`: the structured-latent flow transformer.
     SlatFlow,
+    /// `slat_dec_mesh`: the SLat VAE mesh decoder.
     SlatDecMesh,
+    /// `slat_dec_gs`: the SLat VAE Gaussian decoder.
     SlatDecGs,
     /// SS VAE encoder: training only (`recon train ss-vae`).
     SsEncoder,
@@ -67,13 +73,21 @@ impl ModuleKey {
 /// Module families, by upstream class name.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ModuleKind {
+    /// DINOv2 image encoder (`DinoVisionTransformer`, `dinov2_*`).
     Dinov2,
+    /// Sparse-structure flow (`SparseStructureFlowModel`, `SparseStructurePoseFlowModel`).
     SsFlow,
+    /// SS VAE decoder (`SparseStructureDecoder`).
     SsDecoder,
+    /// SS VAE encoder (`SparseStructureEncoder`).
     SsEncoder,
+    /// Structured-latent flow (`SLatFlowModel`, `SLatCondFlowModel` and their `Elastic*` forms).
     SlatFlow,
+    /// SLat VAE mesh decoder (`SLatMeshDecoder`, `ElasticSLatMeshDecoder`).
     MeshDecoder,
+    /// SLat VAE Gaussian decoder (`SLatGaussianDecoder`, `ElasticSLatGaussianDecoder`).
     GaussianDecoder,
+    /// SLat VAE encoder (`SLatEncoder`, `ElasticSLatEncoder`).
     SlatEncoder,
 }
 
@@ -94,9 +108,11 @@ pub const KNOWN_MODULES: &[&str] = &[
     "SLatGaussianDecoder",
     "ElasticSLatGaussianDecoder",
     "SLatEncoder",
+    "ElasticSLatEncoder",
 ];
 
 impl ModuleKind {
+    /// The kind an upstream class name names, or None for an unknown class.
     pub fn of(name: &str) -> Option<Self> {
         Some(match name {
             "DinoVisionTransformer" | "Dinov2" => Self::Dinov2,

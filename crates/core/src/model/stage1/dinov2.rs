@@ -16,16 +16,24 @@ use serde::{Deserialize, Serialize};
 /// Hyper-parameters of a DINOv2 ViT with registers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Dinov2Config {
+    /// Token width D (hub `embed_dim`, HF `hidden_size`).
     pub embed_dim: usize,
+    /// Number of transformer blocks (hub `depth`, HF `num_hidden_layers`).
     pub depth: usize,
+    /// Attention heads (hub `num_heads`, HF `num_attention_heads`).
     pub num_heads: usize,
+    /// MLP hidden width as a multiple of D (`mlp_ratio`).
     pub mlp_ratio: f64,
+    /// Patch side in pixels (`patch_size`).
     pub patch_size: usize,
     /// Image side the position embedding was trained for (518 for the hub models).
     pub img_size: usize,
+    /// Register tokens R (`num_register_tokens`).
     pub num_register_tokens: usize,
+    /// Image channels (hub `in_chans`, HF `num_channels`; default 3).
     #[serde(default = "default_in_chans")]
     pub in_chans: usize,
+    /// Epsilon of every LayerNorm (`layer_norm_eps`; default 1e-6).
     #[serde(default = "default_eps")]
     pub layer_norm_eps: f64,
 }
@@ -115,6 +123,7 @@ impl Dinov2Config {
         })
     }
 
+    /// Check that `embed_dim` is a multiple of `num_heads` and `img_size` of `patch_size`; errors name `file`.
     pub fn validate(&self, file: &str) -> crate::Result<()> {
         if self.num_heads == 0 || !self.embed_dim.is_multiple_of(self.num_heads) {
             return Err(crate::Error::config(file, "num_heads", "embed_dim must be a positive multiple of num_heads"));
@@ -129,6 +138,7 @@ impl Dinov2Config {
     pub fn grid(&self) -> usize {
         self.img_size / self.patch_size
     }
+    /// MLP hidden width, `embed_dim · mlp_ratio` (truncated).
     pub fn mlp_hidden(&self) -> usize {
         (self.embed_dim as f64 * self.mlp_ratio) as usize
     }
@@ -228,8 +238,10 @@ pub struct Dinov2Output {
     pub last_hidden_state: Tensor,
 }
 
+/// DINOv2 ViT with register tokens (torch.hub `DinoVisionTransformer`).
 #[derive(Debug, Clone)]
 pub struct Dinov2 {
+    /// The hyper-parameters it was built with.
     pub cfg: Dinov2Config,
     cls_token: Tensor,
     pos_embed: Tensor,

@@ -21,8 +21,10 @@ use serde::{Deserialize, Serialize};
 /// `in_channels` (the per-voxel input features).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SLatEncoderConfig {
+    /// The trunk's args (flattened).
     #[serde(flatten)]
     pub trunk: TrunkArgs,
+    /// Width of the per-voxel input features (upstream `in_channels`).
     pub in_channels: usize,
 }
 
@@ -33,15 +35,20 @@ impl SLatEncoderConfig {
     }
 }
 
+/// The structured-latent encoder (TRELLIS `SLatEncoder`).
 pub struct SLatEncoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
     out_layer: Linear,
+    /// Latent channels per voxel.
     pub latent_channels: usize,
 }
 
 /// The posterior of each voxel's latent.
 pub struct SLatPosterior {
+    /// Mean `[N, latent_channels]`.
     pub mean: Tensor,
+    /// Log-variance `[N, latent_channels]`, clamped to [-30, 20].
     pub logvar: Tensor,
 }
 
@@ -56,6 +63,7 @@ impl SLatEncoder {
         Ok(Self { trunk, out_layer, latent_channels })
     }
 
+    /// The posterior of each voxel's latent, for input voxels `x` (feats `[N, in_channels]`).
     pub fn forward(&self, x: &SparseTensor) -> Result<SLatPosterior> {
         let h = layer_norm_plain(&self.trunk.forward(x)?, 1e-5)?;
         let h = self.out_layer.forward(&h)?;

@@ -18,17 +18,24 @@ use serde::{Deserialize, Serialize};
 
 pub use crate::gaussians::SH_C0;
 
+/// Resolved settings of the Gaussian representation (from a [`GaussianDecoderConfig`]).
 #[derive(Debug, Clone)]
 pub struct GaussianConfig {
+    /// Side of the decoder's voxel grid.
     pub resolution: usize,
+    /// Gaussians per voxel, `G`.
     pub num_gaussians: usize,
+    /// Offset range: Gaussians lie within `voxel_size / 2` voxel widths of their voxel centre, per axis.
     pub voxel_size: f64,
+    /// Add the fixed [`offset_perturbation`] to the raw offsets.
     pub perturb_offset: bool,
     /// Per-field learning-rate multipliers, order: xyz, features_dc, scaling, rotation, opacity.
     pub lr: [f64; 5],
     /// `3d_filter_kernel_size` (minimum kernel size).
     pub min_kernel_size: f64,
+    /// Activated scale at raw 0, before the `min_kernel_size` floor.
     pub scaling_bias: f64,
+    /// Opacity at raw 0.
     pub opacity_bias: f64,
     /// `softplus` (true) or `exp` (false) scaling activation.
     pub softplus_scaling: bool,
@@ -38,9 +45,12 @@ pub struct GaussianConfig {
 /// plus `resolution` and `representation_config`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GaussianDecoderConfig {
+    /// The trunk's args (flattened).
     #[serde(flatten)]
     pub trunk: TrunkArgs,
+    /// Side of the latent voxel grid (upstream `resolution`).
     pub resolution: usize,
+    /// Representation settings (upstream `representation_config`).
     pub representation_config: GaussianRepresentationConfig,
 }
 
@@ -48,20 +58,28 @@ pub struct GaussianDecoderConfig {
 /// upstream's defaults, unknown ones (`2d_filter_kernel_size`) are ignored.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GaussianRepresentationConfig {
+    /// Gaussians per voxel (upstream `num_gaussians`, default 32).
     #[serde(default = "default_num_gaussians")]
     pub num_gaussians: usize,
+    /// Offset range in voxel widths (upstream `voxel_size`, default 1.5).
     #[serde(default = "default_voxel_size")]
     pub voxel_size: f64,
+    /// Add the fixed offset perturbation (upstream `perturb_offset`, default false).
     #[serde(default)]
     pub perturb_offset: bool,
+    /// Per-field multipliers of the network output (upstream `lr`).
     #[serde(default)]
     pub lr: GaussianLr,
+    /// Minimum Gaussian scale, added in quadrature (upstream `3d_filter_kernel_size`, default 0).
     #[serde(rename = "3d_filter_kernel_size", default)]
     pub filter_3d_kernel_size: f64,
+    /// Activated scale at raw 0 (upstream `scaling_bias`, default 0.01).
     #[serde(default = "default_scaling_bias")]
     pub scaling_bias: f64,
+    /// Opacity at raw 0 (upstream `opacity_bias`, default 0.1).
     #[serde(default = "default_opacity_bias")]
     pub opacity_bias: f64,
+    /// Scale activation (upstream `scaling_activation`, default `exp`).
     #[serde(default)]
     pub scaling_activation: ScalingActivation,
 }
@@ -69,14 +87,19 @@ pub struct GaussianRepresentationConfig {
 /// Per-field learning-rate multipliers (default 1 each).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GaussianLr {
+    /// Multiplier of the raw position offsets (`_xyz`).
     #[serde(rename = "_xyz", default = "one")]
     pub xyz: f64,
+    /// Multiplier of the SH degree-0 coefficients (`_features_dc`).
     #[serde(rename = "_features_dc", default = "one")]
     pub features_dc: f64,
+    /// Multiplier of the raw scales (`_scaling`).
     #[serde(rename = "_scaling", default = "one")]
     pub scaling: f64,
+    /// Multiplier of the raw quaternions (`_rotation`).
     #[serde(rename = "_rotation", default = "one")]
     pub rotation: f64,
+    /// Multiplier of the raw opacities (`_opacity`).
     #[serde(rename = "_opacity", default = "one")]
     pub opacity: f64,
 }
@@ -87,11 +110,14 @@ impl Default for GaussianLr {
     }
 }
 
+/// Activation from raw to actual Gaussian scales (upstream `scaling_activation`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ScalingActivation {
+    /// `exp(raw + ln(scaling_bias))`.
     #[default]
     Exp,
+    /// `softplus(raw + softplus⁻¹(scaling_bias))`.
     Softplus,
 }
 
@@ -188,6 +214,7 @@ impl GaussianModel {
         Ok((&self.xyz - 0.5)?)
     }
 
+    /// Activated scales `[M, 3]`: `sqrt(act(raw + bias)² + min_kernel_size²)`.
     pub fn get_scaling(&self) -> Result<Tensor> {
         let c = &self.cfg;
         let s = if c.softplus_scaling {
@@ -201,6 +228,7 @@ impl GaussianModel {
         Ok((s.sqr()? + c.min_kernel_size * c.min_kernel_size)?.sqrt()?)
     }
 
+    /// Opacities `[M, 1]` in (0, 1): `sigmoid(raw + logit(opacity_bias))`.
     pub fn get_opacity(&self) -> Result<Tensor> {
         let p = self.cfg.opacity_bias;
         let bias = (p / (1.0 - p)).ln();
@@ -248,10 +276,13 @@ pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
 /// output, transforms and the splat PLY writer).
 pub use crate::gaussians::Gaussians;
 
+/// The structured-latent Gaussian decoder (TRELLIS `SLatGaussianDecoder`).
 pub struct SLatGaussianDecoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
     out_layer: Linear,
     offset_perturbation: Tensor,
+    /// Representation settings.
     pub cfg: GaussianConfig,
 }
 
@@ -318,6 +349,7 @@ impl SLatGaussianDecoder {
         Ok(reps)
     }
 
+    /// One Gaussian model per batch item of the latents `x` (feats `[N, latent_channels]`).
     pub fn forward(&self, x: &SparseTensor) -> Result<Vec<GaussianModel>> {
         let h = self.forward_feats(x, &mut |_, _| {})?;
         self.to_representation(x, &h)

@@ -55,6 +55,7 @@ pub struct SubdivGrid {
 }
 
 impl SubdivGrid {
+    /// The grid of the children of `parents` (coords `(b, x, y, z)`, rows in order).
     pub fn new(parents: &[[i32; 4]]) -> Self {
         let hash = CoordHash::new(parents);
         let mut parent_nbr = vec![u32::MAX; parents.len() * 27];
@@ -69,6 +70,7 @@ impl SubdivGrid {
         Self { n_parent: parents.len(), parent_nbr }
     }
 
+    /// Number of child voxels, `8 · N_parent`.
     pub fn num_children(&self) -> usize {
         self.n_parent * 8
     }
@@ -177,6 +179,7 @@ pub struct SparseGroupNorm {
 }
 
 impl SparseGroupNorm {
+    /// `groups` groups over `channels`, affine `weight` and `bias` under `vb`; `channels` must be a multiple of `groups`.
     pub fn new(groups: usize, channels: usize, vb: VarBuilder) -> Result<Self> {
         if groups == 0 || !channels.is_multiple_of(groups) {
             return Err(Error::msg(format!("group norm: {channels} channels not divisible into {groups} groups")));
@@ -259,10 +262,12 @@ pub struct SparseSubdivideBlock3d {
     out_norm: SparseGroupNorm,
     conv3: ConvParams,
     skip: Option<ConvParams>,
+    /// Output channels `C_out`.
     pub out_channels: usize,
 }
 
 impl SparseSubdivideBlock3d {
+    /// Block `channels → out_channels` with weights under `vb` (`act_layers.0`, `out_layers.{0,1,3}`, `skip_connection`).
     pub fn new(channels: usize, out_channels: usize, vb: VarBuilder) -> Result<Self> {
         let skip =
             if out_channels != channels { Some(ConvParams::new(channels, out_channels, 1, vb.pp("skip_connection"))?) } else { None };
@@ -318,13 +323,17 @@ impl SparseSubdivideBlock3d {
 /// plus `resolution` and `representation_config.use_color`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MeshDecoderConfig {
+    /// The trunk's args (flattened).
     #[serde(flatten)]
     pub trunk: TrunkArgs,
+    /// Side of the latent voxel grid (upstream `resolution`); meshes are extracted at `4·resolution`.
     pub resolution: usize,
+    /// Representation settings (upstream `representation_config`; only `use_color` is read).
     #[serde(default)]
     pub representation_config: MeshRepresentationConfig,
 }
 
+/// `representation_config` of the mesh decoder; other keys are ignored.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct MeshRepresentationConfig {
     /// Vertex colours as extra FlexiCubes channels.
@@ -339,11 +348,17 @@ impl MeshDecoderConfig {
     }
 }
 
+/// The structured-latent mesh decoder (TRELLIS `SLatMeshDecoder`).
 pub struct SLatMeshDecoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
+    /// The two subdivide blocks: `model_channels` → `model_channels / 4` → `model_channels / 8` channels.
     pub upsample: Vec<SparseSubdivideBlock3d>,
+    /// Linear from `model_channels / 8` to the FlexiCubes features per cube.
     pub out_layer: Linear,
+    /// FlexiCubes extraction at `4·resolution`.
     pub extractor: SparseFeatures2Mesh,
+    /// Side of the latent voxel grid.
     pub resolution: usize,
 }
 

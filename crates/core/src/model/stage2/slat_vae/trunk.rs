@@ -13,6 +13,7 @@ use candle_core::{Module, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
+/// Self-attention pattern of the trunk's blocks (upstream `attn_mode`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AttnMode {
@@ -28,8 +29,11 @@ pub enum AttnMode {
 /// (`use_fp16`, `qk_rms_norm`, ...) are ignored, as upstream's are.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrunkArgs {
+    /// Transformer width (upstream `model_channels`).
     pub model_channels: usize,
+    /// Latent channels per voxel (upstream `latent_channels`): the decoders' input, the encoder's output.
     pub latent_channels: usize,
+    /// Number of transformer blocks (upstream `num_blocks`).
     pub num_blocks: usize,
     /// `None`: `model_channels / num_head_channels`.
     #[serde(default)]
@@ -40,23 +44,33 @@ pub struct TrunkArgs {
     /// Default 4.
     #[serde(default)]
     pub mlp_ratio: Option<f64>,
+    /// Self-attention pattern (upstream `attn_mode`, default `swin`).
     #[serde(default)]
     pub attn_mode: AttnMode,
     /// Default 8.
     #[serde(default)]
     pub window_size: Option<usize>,
+    /// Position embedding (upstream `pe_mode`); only `ape` is supported.
     #[serde(default)]
     pub pe_mode: PeMode,
 }
 
+/// Resolved trunk settings: [`TrunkArgs`] with defaults filled in and the head count computed.
 #[derive(Debug, Clone)]
 pub struct TrunkConfig {
+    /// Width of the per-voxel input features.
     pub in_channels: usize,
+    /// Transformer width.
     pub model_channels: usize,
+    /// Number of transformer blocks.
     pub num_blocks: usize,
+    /// Attention heads.
     pub num_heads: usize,
+    /// Feed-forward hidden width over `model_channels`.
     pub mlp_ratio: f64,
+    /// Self-attention pattern.
     pub attn_mode: AttnMode,
+    /// Window side in voxels (swin mode).
     pub window_size: usize,
     /// Absolute position embedding (`pe_mode = "ape"`); otherwise none.
     pub ape: bool,
@@ -95,13 +109,16 @@ impl TrunkConfig {
 /// affine, eps 1e-6.
 #[derive(Debug, Clone)]
 pub struct SparseTransformerBlock {
+    /// Self-attention.
     pub attn: MultiHeadAttention,
+    /// Feed-forward.
     pub mlp: FeedForward,
     /// Window shift (swin mode).
     pub shift: usize,
 }
 
 impl SparseTransformerBlock {
+    /// Apply the block to `feats` `[N, C]`, attention within the windows of `part`.
     pub fn forward(&self, feats: &Tensor, part: &WindowPartition) -> Result<Tensor> {
         let h = sparse_self_attention(&self.attn, &layer_norm_plain(feats, 1e-6)?, part)?;
         let x = (feats + h)?;
@@ -110,14 +127,18 @@ impl SparseTransformerBlock {
     }
 }
 
+/// The shared trunk (TRELLIS `SparseTransformerBase`): input linear, optional APE, transformer blocks.
 #[derive(Debug, Clone)]
 pub struct SparseTransformerBase {
+    /// Its resolved settings.
     pub cfg: TrunkConfig,
     input_layer: Linear,
+    /// The transformer blocks, in order.
     pub blocks: Vec<SparseTransformerBlock>,
 }
 
 impl SparseTransformerBase {
+    /// Build the trunk with weights under `vb` (`input_layer.*`, `blocks.{j}.*`).
     pub fn new(cfg: &TrunkConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let c = cfg.model_channels;
         let input_layer = linear(cfg.in_channels, c, vb.pp("input_layer"), compute)?;
@@ -160,6 +181,7 @@ impl SparseTransformerBase {
         Ok(h)
     }
 
+    /// Run the trunk on `x` (feats `[N, in_channels]`): output feats `[N, model_channels]`.
     pub fn forward(&self, x: &SparseTensor) -> Result<Tensor> {
         self.forward_with(x, &mut |_, _| {})
     }
