@@ -144,7 +144,7 @@ class Engine:
         select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
         mesh_from: with the shape fit, "fitted" (the fitted occupancy's closed, smoothed surface,
-            coloured from the decoder) or "decoder" (the stage-2 mesh decoder's surface).
+            coloured from the observed points) or "decoder" (the stage-2 mesh decoder's surface).
         smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         parallel_objects: objects reconstructed at once (results do not depend on it).
