@@ -207,13 +207,15 @@ def scene(
     objects: Union[_Path, Sequence[Object]],
     frame: Optional[Union[_Path, Dict[str, Any]]] = None,
     out: Optional[_Path] = None,
-    collision: str = "convex",
     *,
     view: Optional[int] = None,
     depth: Optional[_Path] = None,
     depth_scale: Optional[float] = None,
-    plane_threshold_mm: float = 10.0,
     materials: Optional[_Path] = None,
+    variations: Optional[int] = None,
+    spec: Optional[Union[_Path, Dict[str, Any]]] = None,
+    plane_threshold_mm: float = 10.0,
+    collision: str = "convex",
     vhacd_resolution: int = 64,
     vhacd_concavity: float = 0.01,
     vhacd_max_hulls: int = 16,
@@ -223,8 +225,6 @@ def scene(
     flag_mm: float = 10.0,
     flag_deg: float = 10.0,
     seed: int = 0,
-    variations: Optional[int] = None,
-    spec: Optional[Union[_Path, Dict[str, Any]]] = None,
 ) -> Dict[str, Any]:
     """`recon scene`: settle the objects on the support plane seen in the frame's depth and
     export a simulator-ready scene (URDF, MJCF, USD, GLB, scene.json) into `out`.

@@ -122,13 +122,7 @@ impl InferOptions {
     /// Options from JSON (an object of option names; absent ones take their defaults),
     /// checked. An unknown name is an error listing the valid ones.
     pub fn from_json(v: serde_json::Value) -> Result<Self, OptionError> {
-        if let Some(map) = v.as_object() {
-            if let Some(k) = map.keys().find(|k| !Self::NAMES.contains(&k.as_str())) {
-                return Err(OptionError::Unknown { option: k.clone(), valid: Self::NAMES.join(", ") });
-            }
-        }
-        let o: InferOptions = serde_path_to_error::deserialize(v)
-            .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })?;
+        let o: InferOptions = options_from_json(v, &Self::NAMES)?;
         o.validate()?;
         Ok(o)
     }
@@ -193,6 +187,17 @@ impl OptionError {
             OptionError::Invalid { option, message } => format!("{option}: {message}"),
         }
     }
+}
+
+/// Options of type `T` from JSON: an object of the option `names` (absent ones take their
+/// defaults, through `T`'s `#[serde(default)]`). An unknown name is an error listing the
+/// valid ones; a value of the wrong type names its option. Range checks are `T`'s.
+pub fn options_from_json<T: serde::de::DeserializeOwned>(v: serde_json::Value, names: &[&str]) -> Result<T, OptionError> {
+    if let Some(k) = v.as_object().and_then(|m| m.keys().find(|k| !names.contains(&k.as_str()))) {
+        return Err(OptionError::Unknown { option: k.clone(), valid: names.join(", ") });
+    }
+    serde_path_to_error::deserialize(v)
+        .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })
 }
 
 /// `min_component_area` → `--min-component-area`.
