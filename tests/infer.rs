@@ -310,7 +310,7 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
 fn shipped_recgen_nano_is_trained_and_loads() {
     let dir = repo().join("models/recgen-nano");
     let mut bytes = 0u64;
-    for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
+    for key in recon::model::ModuleKey::ALL {
         let p = dir.join(format!("{key}.safetensors"));
         assert!(!recon::weights::is_random_init(&p).unwrap(), "{key} is labelled random");
         bytes += std::fs::metadata(&p).unwrap().len();

@@ -164,10 +164,7 @@ fn load_from_initialised_files() {
     let dir = tmp("load");
     // `recon weights init --config <architecture>` goes through write_random_init.
     assert_eq!(recon::weights::write_random_init(&tiny_config(), &dir, 5).unwrap(), dir);
-    let files: Vec<PathBuf> = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"]
-        .iter()
-        .map(|k| dir.join(format!("{k}.safetensors")))
-        .collect();
+    let files: Vec<PathBuf> = recon::model::ModuleKey::ALL.iter().map(|k| dir.join(format!("{k}.safetensors"))).collect();
     assert!(dir.join("stereo_pose_stats.example.json").exists() && dir.join("slat_pose_stats.example.json").exists());
     for f in &files {
         assert!(recon::weights::is_random_init(f).unwrap());

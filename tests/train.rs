@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Device;
 use recon::engine::ModelSource;
 use recon::engine::{LoadOptions, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
+use recon::model::ModuleKey;
 use recon::train::{canonical_frame, prepare_train_view, TrainingSource};
 use recon::train::{micro_architecture, ToyConfig, ToySource};
 use recon::train::{run, Resume, Stage, TrainOptions};
@@ -81,7 +82,7 @@ fn smoke_training_reduces_loss_and_output_runs_stage1() {
     // The folder is a stage-1 model: trained weights (not labelled random),
     // the architecture copy reading the training-set pose stats.
     let out = dir.join("flow");
-    for key in ["image_cond_model", "ss_flow", "ss_decoder"] {
+    for key in ModuleKey::STAGE1 {
         assert!(!recon::weights::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap());
     }
     let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::SparseStructure, &LoadOptions::default()).unwrap();
@@ -119,12 +120,9 @@ fn slat_autoencoder_smoke_training_reduces_loss() {
         assert!(log.contains(term), "{term} missing from the log");
     }
     let arch = recon::model::RecGenConfig::load(&dir.join("recgen-micro.json")).unwrap();
-    for (key, spec) in
-        [("slat_dec_mesh", &arch.slat_dec_mesh), ("slat_dec_gs", &arch.slat_dec_gs), ("slat_encoder", arch.slat_encoder.as_ref().unwrap())]
-    {
+    for key in [ModuleKey::SlatDecMesh, ModuleKey::SlatDecGs, ModuleKey::SlatEncoder] {
         let t = tensors(&dir.join(format!("slat/{key}.safetensors")));
-        let cfg = recon::weights::ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-        let want = recon::weights::expected_tensors(&cfg, key).unwrap();
+        let want = recon::weights::expected_tensors(&arch.module_args(key).unwrap(), key.name()).unwrap();
         assert_eq!(t.len(), want.len(), "{key}");
         assert!(want.iter().all(|s| t.get(&s.name).is_some_and(|v| v.len() == s.shape.iter().product::<usize>())), "{key}");
     }
@@ -160,7 +158,7 @@ fn slat_flow_smoke_training_writes_a_complete_model() {
     let std: Vec<f64> = arch["slat_normalization"]["std"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     assert_eq!(std.len(), 8);
     assert!(std.iter().all(|s| s.is_finite() && *s > 0.0), "{std:?}");
-    for key in ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"] {
+    for key in ModuleKey::ALL {
         assert!(!recon::weights::is_random_init(&out.join(format!("{key}.safetensors"))).unwrap(), "{key}");
     }
     let p = Pipeline::load(&out.join("recgen-micro.json"), Weights::Dir(&out), Stages::All, &LoadOptions::default()).unwrap();
@@ -211,9 +209,9 @@ fn training_is_deterministic_and_resume_is_bit_identical() {
     };
     for stage in [Stage::SsVae, Stage::SsFlow, Stage::SlatAe] {
         let (n, key) = match stage {
-            Stage::SsVae => ("vae", "ss_encoder"),
-            Stage::SsFlow => ("flow", "ss_flow"),
-            Stage::SlatAe => ("slat", "slat_dec_mesh"),
+            Stage::SsVae => ("vae", ModuleKey::SsEncoder),
+            Stage::SsFlow => ("flow", ModuleKey::SsFlow),
+            Stage::SlatAe => ("slat", ModuleKey::SlatDecMesh),
             Stage::SlatFlow => unreachable!("covered by slat_flow_smoke_training_writes_a_complete_model"),
         };
         run(&src, &mk(stage, &format!("{n}-a"), 4, 1)).unwrap();

@@ -4,7 +4,7 @@
 //! tests/fixtures/weights/make_pt.py), manifest verification and offline fetch.
 
 use candle_core::{DType, Device, Tensor};
-use recon::model::{Dinov2, Dinov2Config};
+use recon::model::{Dinov2, Dinov2Config, ModuleArgs};
 use recon::weights::Manifest;
 use recon::weights::{expected_tensors, ModuleConfig};
 use recon::weights::{is_random_init, print_table, validate_checkpoint, verify_dir, write_random_init};
@@ -15,10 +15,11 @@ use std::path::{Path, PathBuf};
 
 use recon_testkit::{repo as root, tmp};
 
-fn tiny_cfg() -> (ModuleConfig, Vec<recon::weights::TensorSpec>) {
-    let cfg = ModuleConfig::read(&root().join("models/dinov2_tiny.json")).unwrap();
-    let specs = expected_tensors(&cfg, "dinov2_tiny.json").unwrap();
-    (cfg, specs)
+fn tiny_cfg() -> (Dinov2Config, Vec<recon::weights::TensorSpec>) {
+    let spec = ModuleConfig::read(&root().join("models/dinov2_tiny.json")).unwrap();
+    let args = ModuleArgs::from_spec(&spec, "dinov2_tiny.json").unwrap();
+    let specs = expected_tensors(&args, "dinov2_tiny.json").unwrap();
+    (args.dinov2("dinov2_tiny.json").unwrap().clone(), specs)
 }
 
 /// Random-init tiny DINOv2 weights in `dir`; returns (path, tensors).
@@ -33,7 +34,7 @@ fn save(t: &HashMap<String, Tensor>, p: &Path) {
 }
 
 fn forward(vb: candle_nn::VarBuilder) -> Tensor {
-    let cfg: Dinov2Config = serde_json::from_value(tiny_cfg().0.args).unwrap();
+    let cfg = tiny_cfg().0;
     let m = Dinov2::new(&cfg, vb, recon::model::Compute::Plain).unwrap();
     let x = Tensor::arange(0f32, (3 * 56 * 56) as f32, &Device::Cpu).unwrap().reshape((1, 3, 56, 56)).unwrap();
     let x = (x / 5000.0).unwrap().sin().unwrap();
@@ -117,7 +118,7 @@ fn missing_extra_and_wrong_shape_are_named() {
     assert!(msg.contains("pos_embed") && msg.contains("[1, 10, 64]") && msg.contains("[1, 17, 64]"), "{msg}");
     // Building the model straight from the bad file fails too (shape-checked backend).
     let vb = Checkpoint::open(&p, None).unwrap().into_var_builder(DType::F32, &Device::Cpu);
-    let cfg: Dinov2Config = serde_json::from_value(tiny_cfg().0.args).unwrap();
+    let cfg = tiny_cfg().0;
     assert!(Dinov2::new(&cfg, vb, recon::model::Compute::Plain).is_err());
 }
 

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use recon::model::{Compute, Precision};
+use recon::model::{Compute, ModuleKey, Precision};
 use recon::tools::bench::{self, BenchReport};
 use recon::tools::upstream;
 
@@ -129,13 +129,16 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
 }
 
 /// `--modules` checked against the known modules, in their order (default: all).
-fn selected_modules(a: &BenchArgs) -> anyhow::Result<Vec<&'static str>> {
+fn selected_modules(a: &BenchArgs) -> anyhow::Result<Vec<ModuleKey>> {
     Ok(match &a.modules {
         Some(m) => {
-            if let Some(bad) = m.iter().find(|k| !bench::MODULES.contains(&k.as_str())) {
-                anyhow::bail!("--modules: unknown module `{bad}` (known: {})", bench::MODULES.join(", "));
-            }
-            bench::MODULES.iter().copied().filter(|k| m.iter().any(|x| x == k)).collect()
+            let known = || bench::MODULES.map(ModuleKey::name).join(", ");
+            let asked = m.iter().map(|k| match k.parse::<ModuleKey>() {
+                Ok(key) if bench::MODULES.contains(&key) => Ok(key),
+                _ => Err(anyhow::anyhow!("--modules: unknown module `{k}` (known: {})", known())),
+            });
+            let asked = asked.collect::<anyhow::Result<Vec<_>>>()?;
+            bench::MODULES.into_iter().filter(|k| asked.contains(k)).collect()
         }
         None => bench::MODULES.to_vec(),
     })
@@ -222,7 +225,7 @@ fn kernels(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
 }
 
 /// Per-module build and forward time and peak memory.
-fn module_rows(a: &BenchArgs, modules: &[&str], report: &mut BenchReport) -> anyhow::Result<()> {
+fn module_rows(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> anyhow::Result<()> {
     let mut computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
     if a.plain {
         computes.push(Compute::Plain);
@@ -244,9 +247,9 @@ fn module_rows(a: &BenchArgs, modules: &[&str], report: &mut BenchReport) -> any
 }
 
 /// Each module's output error in bf16 / f16 against fast f32.
-fn precision(a: &BenchArgs, modules: &[&str], report: &mut BenchReport) -> anyhow::Result<()> {
+fn precision(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> anyhow::Result<()> {
     println!("\n{:<17} {:<6} {:<9} {:>10} {:>10}", "module", "dtype", "vs", "max rel", "mean rel");
-    let cmp_modules: Vec<&str> = modules.iter().copied().filter(|m| *m != "ss_decoder").collect();
+    let cmp_modules: Vec<ModuleKey> = modules.iter().copied().filter(|m| *m != ModuleKey::SsDecoder).collect();
     report.precision = bench::compare_precisions(&a.config, &cmp_modules, &a.dtype, |r| {
         println!("{:<17} {:<6} {:<9} {:>10.2e} {:>10.2e}", r.module, r.precision, r.reference, r.max_rel, r.mean_rel);
     })?;
@@ -372,7 +375,7 @@ fn shape_fit(a: &BenchArgs, arch: &recon::model::RecGenConfig, report: &mut Benc
     // Against stage-1 sampling: the config's steps × one guided SS-flow forward.
     let steps = arch.samplers.sparse_structure.steps;
     let full = report.shape_fit.iter().find(|r| r.resolution == 64);
-    for m in report.modules.iter().filter(|m| m.module == "ss_flow") {
+    for m in report.modules.iter().filter(|m| m.module == ModuleKey::SsFlow.name()) {
         if let Some(f) = full {
             let stage1 = steps as f64 * m.forward_seconds;
             let added = f.seconds + f.surface_seconds;
@@ -537,11 +540,12 @@ fn print_ratios(r: &BenchReport) {
             lines.push(format!("GEMM 4096³ f32 here: recon {g:.0} vs stock candle {:.0} GFLOP/s ({:.2}×)", c.gflops, g / c.gflops));
         }
     }
-    let module = |key: &str, prec: &str| r.modules.iter().find(|m| m.module == key && m.precision.starts_with(&format!("fast {prec}")));
+    let module =
+        |key: ModuleKey, prec: &str| r.modules.iter().find(|m| m.module == key.name() && m.precision.starts_with(&format!("fast {prec}")));
     for (key, prec, up_s, up_gb) in [
-        ("ss_flow", "f32", bench::upstream::SS_FLOW_F32_S, bench::upstream::SS_FLOW_F32_GB),
-        ("ss_flow", "bf16", bench::upstream::SS_FLOW_BF16_S, bench::upstream::SS_FLOW_BF16_GB),
-        ("ss_decoder", "f32", bench::upstream::SS_DECODER_F32_S, bench::upstream::SS_DECODER_F32_GB),
+        (ModuleKey::SsFlow, "f32", bench::upstream::SS_FLOW_F32_S, bench::upstream::SS_FLOW_F32_GB),
+        (ModuleKey::SsFlow, "bf16", bench::upstream::SS_FLOW_BF16_S, bench::upstream::SS_FLOW_BF16_GB),
+        (ModuleKey::SsDecoder, "f32", bench::upstream::SS_DECODER_F32_S, bench::upstream::SS_DECODER_F32_GB),
     ] {
         if let Some(m) = module(key, prec) {
             lines.push(format!(

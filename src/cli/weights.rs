@@ -77,8 +77,9 @@ pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
             Ok(true)
         }
         WeightsCmd::Expected { config } => {
-            let cfg = recon::weights::ModuleConfig::read(&config)?;
-            let specs = recon::weights::expected_tensors(&cfg, &config.display().to_string())?;
+            let file = config.display().to_string();
+            let cfg = recon::model::ModuleArgs::from_spec(&recon::weights::ModuleConfig::read(&config)?, &file)?;
+            let specs = recon::weights::expected_tensors(&cfg, &file)?;
             println!("{}", serde_json::to_string(&specs)?);
             Ok(true)
         }

@@ -15,13 +15,13 @@ use candle_core::{DType, Device, Tensor};
 use serde::Serialize;
 
 use crate::engine::pipeline::{ObjectInputs, Pipeline, RunOptions, Stages, ViewInput, Weights};
-use crate::model::config::RecGenConfig;
+use crate::model::config::{ModuleKey, RecGenConfig};
 use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sparse::SparseTensor;
 use crate::rng::SeededRng;
 use crate::tools::upstream::rel_errors;
 use crate::util::memory::{peak_rss_mib, reset_peak_rss};
-use crate::weights::registry::{self, ModuleConfig};
+use crate::weights::registry;
 use crate::Result;
 use recon_kernels::attention::{flash_attention, AttnPrecision, AttnSpec, HeadLayout, Segment};
 use recon_kernels::gemm::{gemm, PackedMatrix, WeightFormat};
@@ -382,7 +382,7 @@ pub fn disc_view(s: usize, shift: f32, colour: impl Fn(f32, f32, usize) -> f32) 
 }
 
 /// Which full-size modules [`bench_modules`] runs.
-pub const MODULES: [&str; 6] = ["image_cond_model", "ss_flow", "ss_decoder", "slat_flow", "slat_dec_mesh", "slat_dec_gs"];
+pub const MODULES: [ModuleKey; 6] = ModuleKey::ALL;
 
 /// Deterministic inputs of one module's forward, as upstream's shapes: DINOv2
 /// one 518² view; SS flow batch 2 (a guided step) with 4096 + 2 pose tokens
@@ -405,8 +405,8 @@ impl ModuleInputs {
     pub fn new(arch: &RecGenConfig) -> Result<Self> {
         let dev = Device::Cpu;
         let mut rng = SeededRng::new(11);
-        let dino = registry::dinov2_config(&arch.image_cond_model.args, "bench")?;
-        let ss = arch.ss_flow_config()?;
+        let dino = &arch.args.image_cond_model;
+        let ss = arch.ss_flow_config();
         let s = dino.img_size;
         let pixels = rng.randn(&[1, 3, s, s], &dev)?;
         let r = ss.resolution;
@@ -417,7 +417,7 @@ impl ModuleInputs {
         }
         let ss_cond = (rng.randn(&[2, 1374, ss.cond_channels], &dev)? * 0.5)?;
         let ss_latent = rng.randn(&[1, ss.in_channels, r, r, r], &dev)?;
-        let slat_cfg = crate::model::stage2::slat_flow::SLatFlowConfig::from_json(&arch.slat_flow.args)?;
+        let slat_cfg = &arch.args.slat_flow;
         let res = slat_cfg.resolution as i32;
         let one = shell_coords(res, res as f64 * 0.375, 0);
         let n = one.len();
@@ -439,30 +439,28 @@ impl ModuleInputs {
         })
     }
 
-    fn describe(&self, key: &str) -> String {
+    fn describe(&self, key: ModuleKey) -> String {
         match key {
-            "image_cond_model" => format!("1 view {:?}", self.pixels.dims()),
-            "ss_flow" => format!(
+            ModuleKey::ImageCondModel => format!("1 view {:?}", self.pixels.dims()),
+            ModuleKey::SsFlow => format!(
                 "batch 2 (guided step), {} + pose tokens, cond {:?}",
                 self.ss_state[0].elem_count() / self.ss_state[0].dims()[0] / self.ss_state[0].dims()[1],
                 self.ss_cond.dims()
             ),
-            "ss_decoder" => format!("latent {:?}", self.ss_latent.dims()),
-            "slat_flow" => format!("batch 2 (guided step), {} voxels each, cond {:?}", self.slat.len(), self.slat_cond.dims()),
+            ModuleKey::SsDecoder => format!("latent {:?}", self.ss_latent.dims()),
+            ModuleKey::SlatFlow => format!("batch 2 (guided step), {} voxels each, cond {:?}", self.slat.len(), self.slat_cond.dims()),
             _ => format!("{} voxels", self.slat.len()),
         }
     }
 }
 
 /// Build module `key` of `arch` with random weights for `compute`.
-fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &ModuleInputs) -> Result<(f64, f64, Vec<Tensor>)> {
-    let spec =
-        arch.modules().into_iter().find(|(k, _)| *k == key).map(|(_, s)| ModuleConfig { name: s.name.clone(), args: s.args.clone() });
-    let cfg = spec.ok_or_else(|| crate::Error::msg(format!("bench: no module `{key}`")))?;
+fn build_and_run(arch: &RecGenConfig, key: ModuleKey, compute: Compute, inputs: &ModuleInputs) -> Result<(f64, f64, Vec<Tensor>)> {
+    let cfg = arch.module_args(key)?;
     let label = format!("{}: {key}", arch.name);
-    let seed = registry::module_seed(0, key);
+    let seed = registry::module_seed(0, key.name());
     let t = Instant::now();
-    let vb = registry::random_var_builder(&cfg, seed, &label)?;
+    let vb = registry::random_var_builder(&cfg, seed)?;
     macro_rules! build {
         ($f:path) => {{
             let m = $f(&cfg, vb, &label, compute)?;
@@ -472,49 +470,49 @@ fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &Modu
         }};
     }
     let (build_s, fwd_s, out) = match key {
-        "image_cond_model" => {
+        ModuleKey::ImageCondModel => {
             let m = build!(registry::build_dinov2);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let o = m.recgen_cond(&inputs.pixels)?;
             (b, t.elapsed().as_secs_f64(), vec![o])
         }
-        "ss_flow" => {
+        ModuleKey::SsFlow => {
             let m = build!(registry::build_ss_flow);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let (v, vp) = m.forward(&inputs.ss_state[0], inputs.ss_state.get(1), &inputs.ss_t, &inputs.ss_cond)?;
             (b, t.elapsed().as_secs_f64(), std::iter::once(v).chain(vp).collect())
         }
-        "ss_decoder" => {
+        ModuleKey::SsDecoder => {
             let m = build!(registry::build_ss_decoder);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let o = m.forward(&inputs.ss_latent)?;
             (b, t.elapsed().as_secs_f64(), vec![o])
         }
-        "slat_flow" => {
+        ModuleKey::SlatFlow => {
             let m = build!(registry::build_slat_flow);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let o = m.forward(&inputs.slat_x, &inputs.slat_t, &inputs.slat_cond)?;
             (b, t.elapsed().as_secs_f64(), vec![o.feats])
         }
-        "slat_dec_mesh" => {
+        ModuleKey::SlatDecMesh => {
             let m = build!(registry::build_mesh_decoder);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let o = m.forward_feats_fused(&inputs.slat)?;
             (b, t.elapsed().as_secs_f64(), vec![o.feats])
         }
-        "slat_dec_gs" => {
+        ModuleKey::SlatDecGs => {
             let m = build!(registry::build_gaussian_decoder);
             let b = t.elapsed().as_secs_f64();
             let t = Instant::now();
             let o = m.forward_feats(&inputs.slat, &mut |_, _| {})?;
             (b, t.elapsed().as_secs_f64(), vec![o])
         }
-        other => return Err(crate::Error::msg(format!("bench: unknown module `{other}`"))),
+        other => return Err(crate::Error::msg(format!("bench: `{other}` is a training-only module"))),
     };
     Ok((build_s, fwd_s, out))
 }
@@ -522,14 +520,14 @@ fn build_and_run(arch: &RecGenConfig, key: &str, compute: Compute, inputs: &Modu
 /// Build and run each of `modules` once per compute; peak RSS per row.
 pub fn bench_modules(
     arch_path: &Path,
-    modules: &[&str],
+    modules: &[ModuleKey],
     computes: &[Compute],
     mut on_row: impl FnMut(&ModuleRow),
 ) -> Result<Vec<ModuleRow>> {
     let arch = RecGenConfig::load(arch_path)?;
     let inputs = ModuleInputs::new(&arch)?;
     let mut rows = Vec::new();
-    for key in modules {
+    for &key in modules {
         for &compute in computes {
             reset_peak_rss();
             let base = peak_rss_mib();
@@ -576,14 +574,14 @@ pub struct PrecisionRow {
 /// Each module's output in `precisions` against fast f32, full size.
 pub fn compare_precisions(
     arch_path: &Path,
-    modules: &[&str],
+    modules: &[ModuleKey],
     precisions: &[Precision],
     mut on_row: impl FnMut(&PrecisionRow),
 ) -> Result<Vec<PrecisionRow>> {
     let arch = RecGenConfig::load(arch_path)?;
     let inputs = ModuleInputs::new(&arch)?;
     let mut rows = Vec::new();
-    for key in modules {
+    for &key in modules {
         let (_, _, reference) = build_and_run(&arch, key, Compute::fast(Precision::F32), &inputs)?;
         for &p in precisions {
             if p == Precision::F32 {
@@ -591,7 +589,7 @@ pub fn compare_precisions(
             }
             let (_, _, out) = build_and_run(&arch, key, Compute::fast(p), &inputs)?;
             let (max_rel, mean_rel) = rel_errors(&out[0], &reference[0])?;
-            let (flips, occ) = if *key == "ss_decoder" {
+            let (flips, occ) = if key == ModuleKey::SsDecoder {
                 let a = out[0].flatten_all()?.to_vec1::<f32>()?;
                 let b = reference[0].flatten_all()?.to_vec1::<f32>()?;
                 let flips = a.iter().zip(&b).filter(|(x, y)| (**x > 0.0) != (**y > 0.0)).count();
@@ -905,21 +903,17 @@ pub struct TrainStepRow {
 /// The parameters of every module of the architecture at `arch_path`.
 pub fn train_params(arch_path: &Path) -> Result<Vec<ParamRow>> {
     let arch = RecGenConfig::load(arch_path)?;
-    let mut modules: Vec<(&str, ModuleConfig, bool)> = arch.modules().into_iter().map(|(k, s)| (k, module_config(s), true)).collect();
-    if let Some(e) = &arch.ss_encoder {
-        modules.push(("ss_encoder", module_config(e), false));
+    let mut keys: Vec<(ModuleKey, bool)> = arch.modules().into_iter().map(|(k, _)| (k, true)).collect();
+    if arch.ss_encoder.is_some() {
+        keys.push((ModuleKey::SsEncoder, false));
     }
-    modules
-        .into_iter()
-        .map(|(key, c, shipped)| {
-            let parameters = registry::expected_tensors(&c, key)?.iter().map(|s| s.shape.iter().product::<usize>()).sum();
+    keys.into_iter()
+        .map(|(key, shipped)| {
+            let args = arch.module_args(key)?;
+            let parameters = registry::expected_tensors(&args, key.name())?.iter().map(|s| s.shape.iter().product::<usize>()).sum();
             Ok(ParamRow { module: key.to_string(), parameters, shipped })
         })
         .collect()
-}
-
-fn module_config(s: &crate::model::config::ModuleSpec) -> ModuleConfig {
-    ModuleConfig { name: s.name.clone(), args: s.args.clone() }
 }
 
 /// One warm-up step, then `steps` timed ones: (data + forward, backward, update) seconds per step.
@@ -959,7 +953,7 @@ pub fn bench_train(arch_path: &Path, batch: usize, steps: usize, mut each: impl 
     use crate::train::{pose_stats_json, scan, FlowMatching, FlowObjective, ModuleParams, ToyConfig, ToySource, VaeObjective};
     let arch = RecGenConfig::load(arch_path)?;
     let src = ToySource::new(ToyConfig { models: 8, samples: 16, width: 320, height: 240, seed: 1, occluders: true, second_view: true })?;
-    let enc_cfg = module_config(arch.ss_encoder.as_ref().ok_or_else(|| crate::Error::msg("the architecture needs an ss_encoder section"))?);
+    let enc_cfg = arch.ss_encoder.clone().ok_or_else(|| crate::Error::msg("the architecture needs an ss_encoder section"))?;
     let mut rows = Vec::new();
     let mut row = |objective: String, (f, b, u): (f64, f64, f64)| {
         let r = TrainStepRow {
@@ -977,21 +971,21 @@ pub fn bench_train(arch_path: &Path, batch: usize, steps: usize, mut each: impl 
     };
 
     reset_peak_rss();
-    let enc = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
-    let dec = ModuleParams::init("ss_decoder", &module_config(&arch.ss_decoder), 2)?;
-    let f = crate::model::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
-    let res = arch.ss_flow_config()?.resolution * f;
+    let enc = ModuleParams::init(ModuleKey::SsEncoder, &enc_cfg, 1)?;
+    let dec = ModuleParams::init(ModuleKey::SsDecoder, &arch.ss_decoder, 2)?;
+    let f = enc.args.ss_encoder("ss_encoder")?.downsample_factor();
+    let res = arch.ss_flow_config().resolution * f;
     let vae = VaeObjective::new(&src, enc, dec, res, Fill::Solid, ReconLoss::Dice, 1e-3)?;
     row(format!("ss-vae ({res}³)"), time_train_steps(&vae, batch, steps)?);
     drop(vae);
 
     reset_peak_rss();
-    let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
-    let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "ss_encoder", Compute::Plain)?;
+    let enc_p = ModuleParams::init(ModuleKey::SsEncoder, &enc_cfg, 1)?;
+    let encoder = registry::build_ss_encoder(&enc_p.args, enc_p.var_builder(), "ss_encoder", Compute::Plain)?;
     let sc = scan(&src)?;
-    let stats = PoseStats::from_value(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
-    let dino = ModuleParams::init("image_cond_model", &module_config(&arch.image_cond_model), 3)?;
-    let flow = ModuleParams::init("ss_flow", &module_config(&arch.ss_flow), 4)?;
+    let stats = PoseStats::from_json(&pose_stats_json(&sc.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
+    let dino = ModuleParams::init(ModuleKey::ImageCondModel, &arch.image_cond_model, 3)?;
+    let flow = ModuleParams::init(ModuleKey::SsFlow, &arch.ss_flow, 4)?;
     let mut obj = FlowObjective::new(&src, sc, stats, dino, flow, &encoder, Fill::Solid, FlowMatching::default())?;
     for (label, p) in [("1 view", 0.0), ("2 views", 1.0)] {
         obj.p_two_view = p;
@@ -1108,11 +1102,16 @@ mod tests {
     #[test]
     fn module_bench_runs_tiny_modules() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
-        let rows =
-            bench_modules(&path, &["image_cond_model", "ss_flow", "slat_dec_gs"], &[Compute::fast(Precision::Bf16)], |_| {}).unwrap();
+        let rows = bench_modules(
+            &path,
+            &[ModuleKey::ImageCondModel, ModuleKey::SsFlow, ModuleKey::SlatDecGs],
+            &[Compute::fast(Precision::Bf16)],
+            |_| {},
+        )
+        .unwrap();
         assert_eq!(rows.len(), 3);
         assert!(rows.iter().all(|r| r.forward_seconds > 0.0));
-        let cmp = compare_precisions(&path, &["ss_flow"], &[Precision::Bf16], |_| {}).unwrap();
+        let cmp = compare_precisions(&path, &[ModuleKey::SsFlow], &[Precision::Bf16], |_| {}).unwrap();
         assert_eq!(cmp.len(), 1);
         assert!(cmp[0].max_rel > 0.0 && cmp[0].max_rel < 0.5, "bf16 vs f32 {}", cmp[0].max_rel);
         let occ = compare_occupancy(&path, Precision::Bf16, 2, 0).unwrap();

@@ -15,13 +15,15 @@ use std::time::Instant;
 use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
 
+use crate::model::config::{ModuleArgs, ModuleKey};
 use crate::model::nn::fast::{Compute, Precision};
 use crate::weights::registry::{self, ModuleConfig};
 use crate::{Error, Result};
 
 /// The released TRELLIS-image-large file stems of the modules the harness
 /// can build on a CPU (the sparse ones need spconv and CUDA).
-pub const RELEASED: [(&str, &str); 2] = [("ss_flow", "ss_flow_img_dit_L_16l8_fp16"), ("ss_decoder", "ss_dec_conv3d_16l8_fp16")];
+pub const RELEASED: [(ModuleKey, &str); 2] =
+    [(ModuleKey::SsFlow, "ss_flow_img_dit_L_16l8_fp16"), (ModuleKey::SsDecoder, "ss_dec_conv3d_16l8_fp16")];
 
 /// One module timing: a row of an upstream report, or recon's
 /// module rows reduced to what the comparison reads.
@@ -197,13 +199,13 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
         if !json.is_file() || !st.is_file() {
             continue;
         }
-        let cfg = ModuleConfig::read(&json)?;
         let label = json.display().to_string();
+        let cfg = ModuleArgs::from_spec(&ModuleConfig::read(&json)?, &label)?;
         let expected = registry::expected_tensors(&cfg, &label)?;
         for &compute in computes {
             let vb = crate::weights::load_validated(&st, &expected, false, DType::F32, &Device::Cpu)?;
             let (out, seconds) = match key {
-                "ss_flow" => {
+                ModuleKey::SsFlow => {
                     let m = registry::build_ss_flow(&cfg, vb, &label, compute)?;
                     crate::util::release_cached_buffers();
                     let (x, tt, cond) = (
@@ -234,7 +236,7 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
                 }
                 let (max_rel, mean_rel) = rel_errors(&out, want)?;
                 rows.push(ReleasedRow {
-                    module: key.into(),
+                    module: key.to_string(),
                     file: st.display().to_string(),
                     compute: compute.describe(),
                     reference: reference.into(),
@@ -248,7 +250,7 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
         let (a, b) = (tensor(&t, &ref_path, &format!("output.{key}.bf16"))?, tensor(&t, &ref_path, &format!("output.{key}.f32"))?);
         let (max_rel, mean_rel) = rel_errors(a, b)?;
         rows.push(ReleasedRow {
-            module: key.into(),
+            module: key.to_string(),
             file: ref_path.display().to_string(),
             compute: "upstream bf16 autocast".into(),
             reference: "upstream f32".into(),

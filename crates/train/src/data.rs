@@ -256,7 +256,7 @@ pub fn pose_stats_json(poses: &[Pose], layout: NineDLayout, source: &str) -> Res
             "scale": {"mean": ms[0], "std": ss[0]},
         }
     });
-    PoseStats::from_value(&v, source)?;
+    PoseStats::from_json(&v, source)?;
     Ok(v)
 }
 
@@ -296,7 +296,7 @@ mod tests {
         let scan = scan(&src)?;
         assert_eq!(scan.usable.len(), 4);
         let v = pose_stats_json(&scan.poses, NineDLayout::PipelineColumns, "toy")?;
-        let stats = PoseStats::from_value(&v, "toy")?;
+        let stats = PoseStats::from_json(&v, "toy")?;
         let mean10: Vec<f32> = (0..10).map(|k| scan.poses.iter().map(|p| p.to_10d()[k]).sum::<f32>() / scan.poses.len() as f32).collect();
         assert!(stats.normalize(&mean10)?.iter().all(|x| x.abs() < 1e-4));
         assert!(pose_stats_json(&[], NineDLayout::RowMajor, "none").is_err());

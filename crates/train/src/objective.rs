@@ -13,6 +13,7 @@ use crate::flow::{drop_condition, masked_pose_mse, FlowMatching};
 use crate::params::ModuleParams;
 use recon_core::geometry::pose::PoseStats;
 use recon_core::geometry::voxelize::{CanonicalFrame, Fill};
+use recon_core::model::config::ModuleKey;
 use recon_core::model::stage1::dinov2::Dinov2;
 use recon_core::model::stage1::embedders::ViewInputs;
 use recon_core::model::stage1::ss_flow::SparseStructureFlowModel;
@@ -92,12 +93,12 @@ impl VaeObjective {
         recon: ReconLoss,
         lambda_kl: f64,
     ) -> Result<Self> {
-        let enc = registry::build_ss_encoder(&encoder.config, encoder.var_builder(), "ss_encoder", Compute::Plain)?;
-        let dec = registry::build_ss_decoder(&decoder.config, decoder.var_builder(), "ss_decoder", Compute::Plain)?;
+        let enc = registry::build_ss_encoder(&encoder.args, encoder.var_builder(), encoder.key.name(), Compute::Plain)?;
+        let dec = registry::build_ss_decoder(&decoder.args, decoder.var_builder(), decoder.key.name(), Compute::Plain)?;
         let f = enc.config().downsample_factor();
         if !resolution.is_multiple_of(f) {
             return Err(Error::config(
-                "ss_encoder",
+                ModuleKey::SsEncoder.name(),
                 "channels",
                 format!("occupancy resolution {resolution} is not a multiple of the encoder's downsampling {f}"),
             ));
@@ -170,14 +171,18 @@ impl<'a> FlowObjective<'a> {
         fill: Fill,
         fm: FlowMatching,
     ) -> Result<Self> {
-        let d = registry::build_dinov2(&dino.config, dino.var_builder(), "image_cond_model", Compute::Plain)?;
-        let f = registry::build_ss_flow(&flow.config, flow.var_builder(), "ss_flow", Compute::Plain)?;
+        let d = registry::build_dinov2(&dino.args, dino.var_builder(), dino.key.name(), Compute::Plain)?;
+        let f = registry::build_ss_flow(&flow.args, flow.var_builder(), flow.key.name(), Compute::Plain)?;
         if f.cfg.pose_channels() != Some(10) {
-            return Err(Error::config("ss_flow", "pose_representation", "training needs RecGen pose tokens (6d_translation_scale)"));
+            return Err(Error::config(
+                ModuleKey::SsFlow.name(),
+                "pose_representation",
+                "training needs RecGen pose tokens (6d_translation_scale)",
+            ));
         }
         if encoder.config().latent_channels != f.cfg.in_channels {
             return Err(Error::config(
-                "ss_encoder",
+                ModuleKey::SsEncoder.name(),
                 "latent_channels",
                 format!("{} differs from ss_flow in_channels {}", encoder.config().latent_channels, f.cfg.in_channels),
             ));
@@ -193,7 +198,7 @@ impl<'a> FlowObjective<'a> {
             let m = encoder.forward(&Tensor::stack(chunk, 0)?)?.mean.detach();
             if m.dims()[2..] != [f.cfg.resolution; 3] {
                 return Err(Error::config(
-                    "ss_flow",
+                    ModuleKey::SsFlow.name(),
                     "resolution",
                     format!("encoder latents are {:?}, the flow expects {}³", &m.dims()[2..], f.cfg.resolution),
                 ));
@@ -305,11 +310,7 @@ mod tests {
     fn micro() -> RecGenConfig {
         let p = recon_testkit::repo().join("models/recgen-nano.json");
         let v: serde_json::Value = recon_core::util::json::read_json(&p).unwrap();
-        serde_json::from_value(micro_architecture(&v)).unwrap()
-    }
-
-    fn cfg(s: &recon_core::model::config::ModuleSpec) -> registry::ModuleConfig {
-        registry::ModuleConfig { name: s.name.clone(), args: s.args.clone() }
+        RecGenConfig::from_json(&micro_architecture(&v), "micro").unwrap()
     }
 
     /// The whole stage-1 flow objective (image encoder, embedders, flow
@@ -321,13 +322,12 @@ mod tests {
     fn flow_objective_gradient_matches_finite_difference() -> Result<()> {
         let arch = micro();
         let src = ToySource::new(ToyConfig { samples: 3, models: 2, second_view: true, ..Default::default() })?;
-        let enc_cfg = cfg(arch.ss_encoder.as_ref().unwrap());
-        let enc_p = ModuleParams::init("ss_encoder", &enc_cfg, 1)?;
-        let encoder = registry::build_ss_encoder(&enc_cfg, enc_p.var_builder(), "enc", Compute::Plain)?;
+        let enc_p = ModuleParams::init(ModuleKey::SsEncoder, arch.ss_encoder.as_ref().unwrap(), 1)?;
+        let encoder = registry::build_ss_encoder(&enc_p.args, enc_p.var_builder(), enc_p.key.name(), Compute::Plain)?;
         let scan = crate::data::scan(&src)?;
-        let stats = PoseStats::from_value(&crate::data::pose_stats_json(&scan.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
-        let dino = ModuleParams::init("image_cond_model", &cfg(&arch.image_cond_model), 2)?;
-        let flow = ModuleParams::init("ss_flow", &cfg(&arch.ss_flow), 3)?;
+        let stats = PoseStats::from_json(&crate::data::pose_stats_json(&scan.poses, arch.pose.nine_d_layout, "toy")?, "toy")?;
+        let dino = ModuleParams::init(ModuleKey::ImageCondModel, &arch.image_cond_model, 2)?;
+        let flow = ModuleParams::init(ModuleKey::SsFlow, &arch.ss_flow, 3)?;
         // Zero-initialised output layers would hide every upstream gradient: perturb them.
         let mut r = SeededRng::new(9);
         for (n, v) in &flow.vars {

@@ -13,7 +13,8 @@ use std::collections::BTreeMap;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 
-use recon_core::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
+use recon_core::model::config::{ModuleArgs, ModuleKey};
+use recon_core::model::stage1::ss_flow::SparseStructureFlowModel;
 use recon_core::rng::SeededRng;
 use recon_core::weights::registry::{self, ModuleConfig, ModuleKind};
 use recon_core::{Error, Result};
@@ -27,10 +28,12 @@ pub enum Init {
 
 /// The trainable parameters of one module.
 pub struct ModuleParams {
-    /// Module key (`ss_flow`, `ss_encoder`, ...), used in file names.
-    pub key: String,
-    /// Architecture of the module.
+    /// Module key, used in file names.
+    pub key: ModuleKey,
+    /// The section as written (recorded in run settings).
     pub config: ModuleConfig,
+    /// Its args, parsed (what the module is built from).
+    pub args: ModuleArgs,
     /// The variables, as candle's `VarBuilder` reads them.
     pub varmap: VarMap,
     /// `(name, var)` sorted by name.
@@ -39,9 +42,10 @@ pub struct ModuleParams {
 
 impl ModuleParams {
     /// Fresh parameters for `config` (module kind from its class name).
-    pub fn init(key: &str, config: &ModuleConfig, seed: u64) -> Result<Self> {
-        let kind = ModuleKind::of(&config.name).ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
-        let specs = registry::expected_tensors(config, key)?;
+    pub fn init(key: ModuleKey, config: &ModuleConfig, seed: u64) -> Result<Self> {
+        let args = ModuleArgs::from_spec(config, key.name())?;
+        let kind = args.kind();
+        let specs = registry::expected_tensors(&args, key.name())?;
         let varmap = VarMap::new();
         {
             let mut data = varmap.data().lock().map_err(|_| Error::msg("varmap poisoned"))?;
@@ -62,17 +66,18 @@ impl ModuleParams {
                 data.insert(s.name.clone(), Var::from_tensor(&t)?);
             }
         }
-        Self::from_varmap(key, config, varmap)
+        Self::from_varmap(key, config, args, varmap)
     }
 
     /// Parameters from stored tensors (a checkpoint); buffers are ignored,
     /// every trainable tensor the config implies must be present.
-    pub fn from_tensors(key: &str, config: &ModuleConfig, tensors: &BTreeMap<String, Tensor>, file: &str) -> Result<Self> {
-        let kind = ModuleKind::of(&config.name).ok_or_else(|| Error::config(key, "name", format!("unknown module `{}`", config.name)))?;
+    pub fn from_tensors(key: ModuleKey, config: &ModuleConfig, tensors: &BTreeMap<String, Tensor>, file: &str) -> Result<Self> {
+        let args = ModuleArgs::from_spec(config, key.name())?;
+        let kind = args.kind();
         let varmap = VarMap::new();
         {
             let mut data = varmap.data().lock().map_err(|_| Error::msg("varmap poisoned"))?;
-            for s in registry::expected_tensors(config, key)? {
+            for s in registry::expected_tensors(&args, key.name())? {
                 if is_buffer(kind, &s.name) {
                     continue;
                 }
@@ -92,14 +97,14 @@ impl ModuleParams {
                 data.insert(s.name.clone(), Var::from_tensor(&t.to_dtype(DType::F32)?.to_device(&Device::Cpu)?)?);
             }
         }
-        Self::from_varmap(key, config, varmap)
+        Self::from_varmap(key, config, args, varmap)
     }
 
-    fn from_varmap(key: &str, config: &ModuleConfig, varmap: VarMap) -> Result<Self> {
+    fn from_varmap(key: ModuleKey, config: &ModuleConfig, args: ModuleArgs, varmap: VarMap) -> Result<Self> {
         let mut vars: Vec<(String, Var)> =
             varmap.data().lock().map_err(|_| Error::msg("varmap poisoned"))?.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         vars.sort_by(|a, b| a.0.cmp(&b.0));
-        Ok(Self { key: key.to_string(), config: config.clone(), varmap, vars })
+        Ok(Self { key, config: config.clone(), args, varmap, vars })
     }
 
     /// A VarBuilder handing out these variables (build the model on it).
@@ -120,12 +125,11 @@ impl ModuleParams {
         for (k, v) in &self.vars {
             out.insert(k.clone(), v.as_tensor().copy()?.detach());
         }
-        let kind = ModuleKind::of(&self.config.name).ok_or_else(|| Error::msg("unknown module"))?;
-        for s in registry::expected_tensors(&self.config, &self.key)? {
+        for s in registry::expected_tensors(&self.args, self.key.name())? {
             if out.contains_key(&s.name) {
                 continue;
             }
-            let t = buffer_value(kind, &s.name, &self.config, &self.key)?;
+            let t = buffer_value(&s.name, &self.args, self.key.name())?;
             out.insert(s.name.clone(), t);
         }
         Ok(out)
@@ -137,14 +141,13 @@ fn is_buffer(kind: ModuleKind, name: &str) -> bool {
     matches!((kind, name), (ModuleKind::SsFlow, "pos_emb") | (ModuleKind::GaussianDecoder, "offset_perturbation"))
 }
 
-fn buffer_value(kind: ModuleKind, name: &str, cfg: &ModuleConfig, file: &str) -> Result<Tensor> {
-    match (kind, name) {
-        (ModuleKind::SsFlow, "pos_emb") => {
-            let c = SsFlowConfig::from_value(&cfg.args, file)?;
+fn buffer_value(name: &str, cfg: &ModuleArgs, file: &str) -> Result<Tensor> {
+    match (cfg, name) {
+        (ModuleArgs::SsFlow(c), "pos_emb") => {
             SparseStructureFlowModel::grid_position_embedding(c.resolution / c.patch_size, c.model_channels, &Device::Cpu)
         }
-        (ModuleKind::GaussianDecoder, "offset_perturbation") => {
-            let g = recon_core::model::stage2::slat_vae::gaussian::GaussianConfig::from_args(&cfg.args)?;
+        (ModuleArgs::GaussianDecoder(c), "offset_perturbation") => {
+            let g = recon_core::model::stage2::slat_vae::gaussian::GaussianConfig::new(c);
             recon_core::model::stage2::slat_vae::gaussian::offset_perturbation(g.num_gaussians, g.voxel_size, &Device::Cpu)
         }
         _ => Err(Error::msg(format!("{file}: tensor `{name}` is neither trained nor a known buffer"))),
@@ -215,10 +218,10 @@ mod tests {
     fn init_is_seeded_by_name_and_follows_rules() -> Result<()> {
         let path = recon_testkit::repo().join("models/recgen-tiny.json");
         let arch = recon_core::model::config::RecGenConfig::load(&path)?;
-        let cfg = ModuleConfig { name: arch.ss_flow.name.clone(), args: arch.ss_flow.args.clone() };
-        let a = ModuleParams::init("ss_flow", &cfg, 3)?;
-        let b = ModuleParams::init("ss_flow", &cfg, 3)?;
-        let c = ModuleParams::init("ss_flow", &cfg, 4)?;
+        let cfg = arch.ss_flow.clone();
+        let a = ModuleParams::init(ModuleKey::SsFlow, &cfg, 3)?;
+        let b = ModuleParams::init(ModuleKey::SsFlow, &cfg, 3)?;
+        let c = ModuleParams::init(ModuleKey::SsFlow, &cfg, 4)?;
         let get = |p: &ModuleParams, n: &str| {
             p.vars.iter().find(|(k, _)| k == n).unwrap().1.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap()
         };
@@ -237,16 +240,16 @@ mod tests {
         let ex = a.export()?;
         let want = SparseStructureFlowModel::grid_position_embedding(8, 64, &Device::Cpu)?;
         assert_eq!(recon_core::util::max_abs_diff(&ex["pos_emb"], &want)?, 0.0);
-        let expected = registry::expected_tensors(&cfg, "ss_flow")?;
+        let expected = registry::expected_tensors(&arch.module_args(ModuleKey::SsFlow)?, "ss_flow")?;
         assert_eq!(ex.len(), expected.len());
         // Names are sorted.
         assert!(a.vars.windows(2).all(|w| w[0].0 < w[1].0));
         // Round trip through exported tensors.
-        let r = ModuleParams::from_tensors("ss_flow", &cfg, &ex, "mem")?;
+        let r = ModuleParams::from_tensors(ModuleKey::SsFlow, &cfg, &ex, "mem")?;
         assert_eq!(get(&r, w), get(&a, w));
         let mut broken = ex.clone();
         broken.remove(w);
-        assert!(matches!(ModuleParams::from_tensors("ss_flow", &cfg, &broken, "mem"), Err(Error::MissingTensor { .. })));
+        assert!(matches!(ModuleParams::from_tensors(ModuleKey::SsFlow, &cfg, &broken, "mem"), Err(Error::MissingTensor { .. })));
         Ok(())
     }
 }

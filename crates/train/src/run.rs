@@ -24,7 +24,7 @@ use crate::params::ModuleParams;
 use crate::trainer::{latest_checkpoint, train, write_weights, LoopSettings, RunSummary};
 use recon_core::geometry::pose::PoseStats;
 use recon_core::geometry::voxelize::Fill;
-use recon_core::model::config::{ModuleSpec, RecGenConfig};
+use recon_core::model::config::{ModuleKey, RecGenConfig};
 use recon_core::model::stage1::ss_vae::encoder::ReconLoss;
 use recon_core::model::Compute;
 use recon_core::weights::registry::{self, ModuleConfig};
@@ -162,10 +162,6 @@ pub struct RunReport {
 const MARKER: &str = "recon-train.json";
 const EVAL_SEED: u64 = 0x5EED_E7A1;
 
-fn spec_cfg(s: &ModuleSpec) -> ModuleConfig {
-    ModuleConfig { name: s.name.clone(), args: s.args.clone() }
-}
-
 /// Refuse folders that are not ours, and finished-or-started runs without `--resume`.
 fn check_out(out: &Path, resume: bool) -> Result<()> {
     if !out.exists() {
@@ -197,7 +193,7 @@ fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
 
-fn load_module(dir: &Path, key: &str) -> Result<BTreeMap<String, candle_core::Tensor>> {
+fn load_module(dir: &Path, key: ModuleKey) -> Result<BTreeMap<String, candle_core::Tensor>> {
     let p = dir.join(format!("{key}.safetensors"));
     if !p.is_file() {
         return Err(Error::input(
@@ -212,7 +208,7 @@ fn load_module(dir: &Path, key: &str) -> Result<BTreeMap<String, candle_core::Te
 
 /// Write `tensors` as `<out>/<key>.safetensors`, labelled trained and copied from `from`
 /// (the modules a run's folder carries beside its own, so the folder runs a pipeline).
-fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &Path, out: &Path, key: &str) -> Result<PathBuf> {
+fn write_copied_module(tensors: &BTreeMap<String, candle_core::Tensor>, from: &Path, out: &Path, key: ModuleKey) -> Result<PathBuf> {
     let meta: BTreeMap<String, String> =
         [("recon.trained".to_string(), "true".to_string()), ("recon.copied_from".to_string(), from.display().to_string())].into();
     let path = out.join(format!("{key}.safetensors"));
@@ -297,18 +293,16 @@ impl<'o> Setup<'o> {
     }
 
     fn ss_encoder_cfg(&self) -> Result<ModuleConfig> {
-        let spec = self
-            .arch
-            .ss_encoder
-            .as_ref()
-            .ok_or_else(|| Error::config(self.cfile, "ss_encoder", "missing: training needs the SS VAE encoder's section"))?;
-        Ok(spec_cfg(spec))
+        let spec = self.arch.ss_encoder.as_ref().ok_or_else(|| {
+            Error::config(self.cfile, ModuleKey::SsEncoder.name(), "missing: training needs the SS VAE encoder's section")
+        })?;
+        Ok(spec.clone())
     }
 
     /// A trained module: random for the seed, or the --init folder's weights.
-    fn module(&self, key: &str, cfg: &ModuleConfig) -> Result<ModuleParams> {
+    fn module(&self, key: ModuleKey, cfg: &ModuleConfig) -> Result<ModuleParams> {
         match &self.opts.init {
-            None => ModuleParams::init(key, cfg, registry::module_seed(self.opts.settings.seed, key)),
+            None => ModuleParams::init(key, cfg, registry::module_seed(self.opts.settings.seed, key.name())),
             Some(dir) => {
                 let file = dir.join(format!("{key}.safetensors"));
                 ModuleParams::from_tensors(key, cfg, &load_module(dir, key)?, &file.display().to_string())
@@ -319,13 +313,13 @@ impl<'o> Setup<'o> {
     fn ss_vae<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
         let (opts, arch) = (self.opts, self.arch);
         let enc_cfg = self.ss_encoder_cfg()?;
-        let dec_cfg = spec_cfg(&arch.ss_decoder);
+        let dec_cfg = arch.ss_decoder.clone();
         self.settings["modules"] = serde_json::json!({"ss_encoder": enc_cfg, "ss_decoder": dec_cfg});
         self.settings["vae"] = serde_json::json!({"recon_loss": opts.recon_loss, "lambda_kl": opts.lambda_kl});
-        let enc = self.module("ss_encoder", &enc_cfg)?;
-        let dec = self.module("ss_decoder", &dec_cfg)?;
-        let f = recon_core::model::stage1::ss_vae::encoder::SparseStructureEncoderConfig::from_json(&enc_cfg.args)?.downsample_factor();
-        let res = arch.ss_flow_config()?.resolution * f;
+        let enc = self.module(ModuleKey::SsEncoder, &enc_cfg)?;
+        let dec = self.module(ModuleKey::SsDecoder, &dec_cfg)?;
+        let f = enc.args.ss_encoder(self.cfile)?.downsample_factor();
+        let res = arch.ss_flow_config().resolution * f;
         let obj = Box::new(VaeObjective::new(source, enc, dec, res, opts.fill, opts.recon_loss, opts.lambda_kl)?);
         self.notes.push(format!("occupancy {res}³ ({:?} fill) of {} models", opts.fill, source.num_models()));
         Ok(obj)
@@ -337,9 +331,10 @@ impl<'o> Setup<'o> {
         let vae = opts.vae.as_ref().ok_or_else(|| {
             Error::config("recon train ss-flow", "--vae", "the ss-vae output folder is required (its encoder makes the latents)")
         })?;
-        let enc_t = load_module(vae, "ss_encoder")?;
-        let dec_t = load_module(vae, "ss_decoder")?;
-        let encoder = registry::build_ss_encoder(&enc_cfg, frozen_var_builder(enc_t), "ss_encoder", Compute::Plain)?;
+        let enc_t = load_module(vae, ModuleKey::SsEncoder)?;
+        let dec_t = load_module(vae, ModuleKey::SsDecoder)?;
+        let encoder =
+            registry::build_ss_encoder(&arch.module_args(ModuleKey::SsEncoder)?, frozen_var_builder(enc_t), "ss_encoder", Compute::Plain)?;
         let scan = scan(source)?;
         self.notes.push(format!(
             "{} usable samples ({} with two views), {} views without depth skipped",
@@ -348,34 +343,33 @@ impl<'o> Setup<'o> {
             scan.skipped_views
         ));
         let stats_json = pose_stats_json(&scan.poses, arch.pose.nine_d_layout, &source.describe())?;
-        let stats = PoseStats::from_value(&stats_json, "pose_stats.json")?;
+        let stats = PoseStats::from_json(&stats_json, "pose_stats.json")?;
         write_json(&opts.out.join("pose_stats.json"), &stats_json)?;
-        let dino_cfg = spec_cfg(&arch.image_cond_model);
-        let flow_cfg = spec_cfg(&arch.ss_flow);
+        let dino_cfg = arch.image_cond_model.clone();
+        let flow_cfg = arch.ss_flow.clone();
         self.settings["modules"] = serde_json::json!({"image_cond_model": dino_cfg, "ss_flow": flow_cfg, "ss_encoder": enc_cfg});
         self.settings["flow"] = serde_json::json!({"fm": opts.flow, "context": opts.context, "p_two_view": opts.p_two_view, "vae": vae});
-        let dino = self.module("image_cond_model", &dino_cfg)?;
-        let flow = self.module("ss_flow", &flow_cfg)?;
+        let dino = self.module(ModuleKey::ImageCondModel, &dino_cfg)?;
+        let flow = self.module(ModuleKey::SsFlow, &flow_cfg)?;
         let mut fo = FlowObjective::new(source, scan, stats, dino, flow, &encoder, opts.fill, opts.flow.clone())?;
         fo.context = opts.context;
         fo.p_two_view = opts.p_two_view;
         let (m, s) = fo.latent_stats()?;
         self.notes.push(format!("VAE latents: mean {m:.4}, std {s:.4} (the flow starts from unit noise)"));
         // The decoder travels with the flow so the folder runs stage 1.
-        self.copied.push(write_copied_module(&dec_t, vae, &opts.out, "ss_decoder")?);
+        self.copied.push(write_copied_module(&dec_t, vae, &opts.out, ModuleKey::SsDecoder)?);
         Ok(Box::new(fo))
     }
 
     fn slat_ae<'a>(&mut self, source: &'a dyn TrainingSource) -> Result<Box<dyn Objective + 'a>> {
         let (opts, arch) = (self.opts, self.arch);
-        let enc_spec = arch
-            .slat_encoder
-            .as_ref()
-            .ok_or_else(|| Error::config(self.cfile, "slat_encoder", "missing: training needs the SLat VAE encoder's section"))?;
+        let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
+            Error::config(self.cfile, ModuleKey::SlatEncoder.name(), "missing: training needs the SLat VAE encoder's section")
+        })?;
         let cfgs = [
-            ("slat_encoder", spec_cfg(enc_spec)),
-            ("slat_dec_mesh", spec_cfg(&arch.slat_dec_mesh)),
-            ("slat_dec_gs", spec_cfg(&arch.slat_dec_gs)),
+            (ModuleKey::SlatEncoder, enc_spec.clone()),
+            (ModuleKey::SlatDecMesh, arch.slat_dec_mesh.clone()),
+            (ModuleKey::SlatDecGs, arch.slat_dec_gs.clone()),
         ];
         self.settings["modules"] = serde_json::json!({"slat_encoder": cfgs[0].1, "slat_dec_mesh": cfgs[1].1, "slat_dec_gs": cfgs[2].1});
         let [e, m, g] = cfgs.map(|(k, c)| self.module(k, &c));
@@ -399,29 +393,29 @@ impl<'o> Setup<'o> {
         let ae = opts.slat_ae.as_ref().ok_or_else(|| {
             Error::config("recon train slat-flow", "--slat-ae", "the slat-ae output folder is required (frozen SLat encoder)")
         })?;
-        let enc_spec = arch.slat_encoder.as_ref().ok_or_else(|| {
-            Error::config(self.cfile, "slat_encoder", "missing: the SLat encoder's section is needed to encode the latents")
+        arch.slat_encoder.as_ref().ok_or_else(|| {
+            Error::config(self.cfile, ModuleKey::SlatEncoder.name(), "missing: the SLat encoder's section is needed to encode the latents")
         })?;
         let encoder = registry::build_slat_encoder(
-            &spec_cfg(enc_spec),
-            frozen_var_builder(load_module(ae, "slat_encoder")?),
+            &arch.module_args(ModuleKey::SlatEncoder)?,
+            frozen_var_builder(load_module(ae, ModuleKey::SlatEncoder)?),
             "slat_encoder",
             Compute::Plain,
         )?;
         let dino = registry::build_dinov2(
-            &spec_cfg(&arch.image_cond_model),
-            frozen_var_builder(load_module(s1, "image_cond_model")?),
+            &arch.module_args(ModuleKey::ImageCondModel)?,
+            frozen_var_builder(load_module(s1, ModuleKey::ImageCondModel)?),
             "image_cond_model",
             Compute::Plain,
         )?;
         let stats_path = s1.join("pose_stats.json");
         let stats = PoseStats::from_json_file(&stats_path)?;
         let scan = scan(source)?;
-        let flow_cfg = spec_cfg(&arch.slat_flow);
+        let flow_cfg = arch.slat_flow.clone();
         self.settings["modules"] = serde_json::json!({"slat_flow": flow_cfg});
         self.settings["slat_flow"] =
             serde_json::json!({"fm": opts.flow, "context": opts.context, "stage1": s1, "slat_ae": ae, "max_models": opts.max_models});
-        let flow = self.module("slat_flow", &flow_cfg)?;
+        let flow = self.module(ModuleKey::SlatFlow, &flow_cfg)?;
         let mut fo = crate::slat_flow::SlatFlowObjective::new(
             source,
             scan,
@@ -438,7 +432,13 @@ impl<'o> Setup<'o> {
         self.notes.push(format!("{models} models encoded; {pool} of {usable} usable samples use them"));
         self.notes.push(format!("latent mean {:?}, std {:?}", fo.mean, fo.std));
         // The complete model folder: stage 1 and the decoders travel with the flow.
-        for (dir, key) in [(s1, "image_cond_model"), (s1, "ss_flow"), (s1, "ss_decoder"), (ae, "slat_dec_mesh"), (ae, "slat_dec_gs")] {
+        for (dir, key) in [
+            (s1, ModuleKey::ImageCondModel),
+            (s1, ModuleKey::SsFlow),
+            (s1, ModuleKey::SsDecoder),
+            (ae, ModuleKey::SlatDecMesh),
+            (ae, ModuleKey::SlatDecGs),
+        ] {
             self.copied.push(write_copied_module(&load_module(dir, key)?, dir, &opts.out, key)?);
         }
         std::fs::copy(&stats_path, opts.out.join("pose_stats.json")).map_err(|e| Error::io(&stats_path, e))?;
@@ -458,7 +458,7 @@ fn train_and_write(
 ) -> Result<RunReport> {
     let Setup { arch, settings, notes, copied, slat_norm, .. } = setup;
     let seed = opts.settings.seed;
-    let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.clone(), m.num_params())).collect();
+    let params: BTreeMap<String, usize> = obj.trainable().iter().map(|m| (m.key.to_string(), m.num_params())).collect();
     let mut report = RunReport {
         stage: opts.stage,
         status: "running",

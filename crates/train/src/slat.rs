@@ -42,6 +42,7 @@ use crate::objective::{BatchLoss, Objective, Terms};
 use crate::params::ModuleParams;
 use recon_core::geometry::voxelize::{voxelize, CanonicalFrame, Fill};
 use recon_core::mesh::trimesh::TriMesh;
+use recon_core::model::config::ModuleKey;
 use recon_core::model::sparse::SparseTensor;
 use recon_core::model::stage2::slat_vae::encoder::SLatEncoder;
 use recon_core::model::stage2::slat_vae::flexicubes::{COLOR, CUBE_CORNERS, DEFORM, SDF, WEIGHTS};
@@ -288,21 +289,26 @@ pub struct SlatAeObjective<'a> {
 
 impl<'a> SlatAeObjective<'a> {
     pub fn new(source: &'a dyn TrainingSource, enc: ModuleParams, mesh_dec: ModuleParams, gs_dec: ModuleParams) -> Result<Self> {
-        let e = registry::build_slat_encoder(&enc.config, enc.var_builder(), "slat_encoder", Compute::Plain)?;
-        let m = registry::build_mesh_decoder(&mesh_dec.config, mesh_dec.var_builder(), "slat_dec_mesh", Compute::Plain)?;
-        let g = registry::build_gaussian_decoder(&gs_dec.config, gs_dec.var_builder(), "slat_dec_gs", Compute::Plain)?;
+        let e = registry::build_slat_encoder(&enc.args, enc.var_builder(), enc.key.name(), Compute::Plain)?;
+        let m = registry::build_mesh_decoder(&mesh_dec.args, mesh_dec.var_builder(), mesh_dec.key.name(), Compute::Plain)?;
+        let g = registry::build_gaussian_decoder(&gs_dec.args, gs_dec.var_builder(), gs_dec.key.name(), Compute::Plain)?;
         let in_ch = e.trunk.cfg.in_channels;
         if in_ch != in_channels() {
-            return Err(Error::config("slat_encoder", "in_channels", format!("{in_ch}; the geometry features have {}", in_channels())));
+            return Err(Error::config(
+                ModuleKey::SlatEncoder.name(),
+                "in_channels",
+                format!("{in_ch}; the geometry features have {}", in_channels()),
+            ));
         }
-        for (name, lc) in [("slat_dec_mesh", m.trunk.cfg.in_channels), ("slat_dec_gs", g.trunk.cfg.in_channels)] {
+        for (name, lc) in [(ModuleKey::SlatDecMesh.name(), m.trunk.cfg.in_channels), (ModuleKey::SlatDecGs.name(), g.trunk.cfg.in_channels)]
+        {
             if lc != e.latent_channels {
                 return Err(Error::config(name, "latent_channels", format!("{lc} differs from the encoder's {}", e.latent_channels)));
             }
         }
         if g.cfg.resolution != m.resolution {
             return Err(Error::config(
-                "slat_dec_gs",
+                ModuleKey::SlatDecGs.name(),
                 "resolution",
                 format!("{} differs from the mesh decoder's {}", g.cfg.resolution, m.resolution),
             ));

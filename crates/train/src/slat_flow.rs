@@ -18,6 +18,7 @@ use crate::params::ModuleParams;
 use crate::slat::{in_channels, SlatGeometry};
 use recon_core::geometry::pose::{NineDLayout, PoseStats};
 use recon_core::geometry::voxelize::CanonicalFrame;
+use recon_core::model::config::ModuleKey;
 use recon_core::model::sparse::SparseTensor;
 use recon_core::model::stage1::dinov2::Dinov2;
 use recon_core::model::stage1::embedders::ViewInputs;
@@ -70,18 +71,18 @@ impl<'a> SlatFlowObjective<'a> {
         max_models: usize,
         fm: FlowMatching,
     ) -> Result<Self> {
-        let mut f = registry::build_slat_flow(&flow.config, flow.var_builder(), "slat_flow", Compute::Plain)?;
+        let mut f = registry::build_slat_flow(&flow.args, flow.var_builder(), flow.key.name(), Compute::Plain)?;
         f.set_conv_path(ConvPath::Differentiable);
         if f.cfg.pose_dim() != 13 {
             return Err(Error::config(
-                "slat_flow",
+                ModuleKey::SlatFlow.name(),
                 "pose_representation",
                 "training needs RecGen pose conditioning (9d_translation_scale)",
             ));
         }
         if f.cfg.in_channels != encoder.latent_channels {
             return Err(Error::config(
-                "slat_flow",
+                ModuleKey::SlatFlow.name(),
                 "in_channels",
                 format!("{} differs from the SLat encoder's latent_channels {}", f.cfg.in_channels, encoder.latent_channels),
             ));

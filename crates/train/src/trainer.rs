@@ -327,7 +327,7 @@ pub fn write_weights(out: &Path, obj: &dyn Objective, extra_meta: &BTreeMap<Stri
         let mut meta = extra_meta.clone();
         meta.insert("recon.trained".into(), "true".into());
         meta.insert("recon.module".into(), m.config.name.clone());
-        meta.insert("recon.key".into(), m.key.clone());
+        meta.insert("recon.key".into(), m.key.to_string());
         let path = out.join(format!("{}.safetensors", m.key));
         let tmp = out.join(format!(".{}.safetensors.partial", m.key));
         write_safetensors(&m.export()?, &meta, &tmp)?;

@@ -10,7 +10,7 @@ use crate::Result;
 
 pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let file = fx.dir.join("config.json").display().to_string();
-    let cfg = Dinov2Config::from_hf_config(fx.field("hf_config")?, &file)?;
+    let cfg = Dinov2Config::from_json(fx.field("hf_config")?, &file)?;
     let model = Dinov2::new(&cfg, fx.var_builder().pp("hub"), compute)?;
     let tol = fx.abs_tolerance(1e-4);
 

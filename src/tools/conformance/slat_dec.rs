@@ -2,8 +2,8 @@
 
 use super::fixture::{Check, Fixture};
 use crate::model::sparse::SparseTensor;
-use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, SLatGaussianDecoder};
-use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
+use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, GaussianDecoderConfig, SLatGaussianDecoder};
+use crate::model::stage2::slat_vae::mesh::{MeshDecoderConfig, SLatMeshDecoder};
 use crate::model::Compute;
 use crate::{Error, Result};
 use candle_core::{Device, Tensor};
@@ -31,8 +31,9 @@ fn check_taps(fx: &Fixture, taps: &HashMap<String, Tensor>, tol: f64, checks: &m
 }
 
 pub fn run_gs(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
-    let args = fx.field("args")?;
-    let dec = SLatGaussianDecoder::new(args, fx.var_builder(), compute)?;
+    let file = fx.dir.join("config.json").display().to_string();
+    let args = GaussianDecoderConfig::from_json(fx.field("args")?, &file)?;
+    let dec = SLatGaussianDecoder::new(&args, fx.var_builder(), compute)?;
     let x = input_sparse(fx)?;
     let tol = fx.abs_tolerance(1e-4);
     let mut checks = Vec::new();
@@ -80,8 +81,9 @@ fn coords_mismatches(got: &SparseTensor, want: &Tensor) -> Result<usize> {
 }
 
 pub fn run_mesh(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
-    let args = fx.field("args")?;
-    let dec = SLatMeshDecoder::new(args, fx.var_builder(), compute)?;
+    let file = fx.dir.join("config.json").display().to_string();
+    let args = MeshDecoderConfig::from_json(fx.field("args")?, &file)?;
+    let dec = SLatMeshDecoder::new(&args, fx.var_builder(), compute)?;
     let x = input_sparse(fx)?;
     // The suggested tolerance is for vertices; model features use the README's 1e-4.
     let tol = 1e-4;

@@ -16,7 +16,7 @@ fn coord_mismatches(got: &SparseTensor, want: &candle_core::Tensor) -> Result<us
 }
 
 pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
-    let cfg = SLatFlowConfig::from_json(fx.field("args")?)?;
+    let cfg = SLatFlowConfig::from_json(fx.field("args")?, &fx.dir.join("config.json").display().to_string())?;
     let model = SLatFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
 

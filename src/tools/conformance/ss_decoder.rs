@@ -6,7 +6,7 @@ use crate::model::Compute;
 use crate::Result;
 
 pub fn run(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
-    let cfg = SparseStructureDecoderConfig::from_json(fx.field("args")?)?;
+    let cfg = SparseStructureDecoderConfig::from_json(fx.field("args")?, &fx.dir.join("config.json").display().to_string())?;
     let dec = SparseStructureDecoder::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let trace = dec.forward_traced(fx.tensor("input.x")?)?;

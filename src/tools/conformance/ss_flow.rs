@@ -15,7 +15,7 @@ fn config_file(fx: &Fixture) -> String {
 /// One forward of `SparseStructureFlowModel`: `output.v`, `intermediate.t_emb`,
 /// and `intermediate.shared_mod` when the fixture has it.
 pub fn run_model(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
-    let cfg = SsFlowConfig::from_value(fx.field("args")?, &config_file(fx))?;
+    let cfg = SsFlowConfig::from_json(fx.field("args")?, &config_file(fx))?;
     let model = SparseStructureFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let (x, t, cond) = (fx.tensor("input.x")?, fx.tensor("input.t")?, fx.tensor("input.cond")?);
@@ -58,8 +58,8 @@ struct StepOut {
 /// every `x_t.{i}`, `pred_x_0.{i}`, the raw velocities and the final sample.
 pub fn run_sampler(fx: &Fixture, compute: Compute) -> Result<Vec<Check>> {
     let file = config_file(fx);
-    let cfg = SsFlowConfig::from_value(fx.field("flow_model_args")?, &file)?;
-    let settings = SamplerSettings::from_value(fx.field("sampler")?, &file)?;
+    let cfg = SsFlowConfig::from_json(fx.field("flow_model_args")?, &file)?;
+    let settings = SamplerSettings::from_json(fx.field("sampler")?, &file)?;
     let model = SparseStructureFlowModel::new(&cfg, fx.var_builder(), compute)?;
     let tol = fx.abs_tolerance(1e-4);
     let noise = fx.tensor("input.noise")?.clone();

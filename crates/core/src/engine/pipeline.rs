@@ -88,7 +88,7 @@ use serde::Serialize;
 use crate::gaussians::Gaussians;
 use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
-use crate::model::config::{ModuleSpec, RecGenConfig};
+use crate::model::config::{ModuleArgs, ModuleKey, RecGenConfig};
 use crate::model::nn::fast::{Compute, Precision};
 use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
 use crate::model::sparse::SparseTensor;
@@ -101,7 +101,7 @@ use crate::model::stage2::slat_vae::gaussian::SLatGaussianDecoder;
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::rng::SeededRng;
 use crate::weights::load::Checkpoint;
-use crate::weights::registry::{self, ModuleConfig};
+use crate::weights::registry;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};
 
@@ -119,6 +119,7 @@ pub struct ViewInput {
 /// All views of one object; view 0 is the anchor whose pose is reported.
 #[derive(Debug, Clone)]
 pub struct ObjectInputs {
+    /// The views, anchor first: 1 to [`Pipeline::max_views`].
     pub views: Vec<ViewInput>,
 }
 
@@ -126,14 +127,21 @@ pub struct ObjectInputs {
 /// architecture file's `samplers` section.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RunOptions {
+    /// Seed of all the run's noise (module docs, **Noise order**).
     pub seed: u64,
+    /// Stage-1 sampler steps (`None`: the architecture file's).
     pub ss_steps: Option<usize>,
+    /// Stage-1 classifier-free guidance strength (`None`: the architecture file's).
     pub ss_cfg_strength: Option<f64>,
+    /// Stage-2 sampler steps (`None`: the architecture file's).
     pub slat_steps: Option<usize>,
+    /// Stage-2 classifier-free guidance strength (`None`: the architecture file's).
     pub slat_cfg_strength: Option<f64>,
     /// Stop after stage 1 (occupancy + pose): no stage-2 sampling, no decoding.
     pub stage1_only: bool,
+    /// Decode the mesh (mesh decoder and FlexiCubes) after stage 2.
     pub decode_mesh: bool,
+    /// Decode the Gaussians after stage 2.
     pub decode_gaussians: bool,
     /// Record the peak resident memory of each stage in
     /// [`ObjectReconstruction::memory`]. Resets the process-wide high-water
@@ -161,23 +169,32 @@ impl Default for RunOptions {
 /// Wall-clock seconds per stage (0 for stages that did not run).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct StageTimings {
+    /// DINOv2 on every view.
     pub image_encoder: f64,
+    /// The stage-1 condition (`ss_flow.condition`).
     pub ss_condition: f64,
+    /// Stage-1 sampling of the latent and the pose tokens.
     pub ss_sampling: f64,
+    /// The SS decoder (occupied voxels).
     pub ss_decoder: f64,
+    /// Decoding the pose tokens.
     pub pose: f64,
     /// The occupancy hook of [`Pipeline::run_guided`] (the shape fit).
     pub shape_fit: f64,
+    /// The stage-2 condition (`slat_flow.condition`).
     pub slat_condition: f64,
+    /// Stage-2 sampling on the occupied voxels.
     pub slat_sampling: f64,
     /// The mesh decoder's network (FlexiCubes features per cube).
     pub mesh_decoder: f64,
     /// FlexiCubes surface extraction from those features.
     pub flexicubes: f64,
+    /// The Gaussian decoder.
     pub gaussian_decoder: f64,
     /// Building modules during the run ([`LoadOptions::per_stage`]); also
     /// counted in the stage it belongs to.
     pub loading: f64,
+    /// The whole run.
     pub total: f64,
 }
 
@@ -185,11 +202,17 @@ pub struct StageTimings {
 /// included; `None` for stages that did not run or where unavailable.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct StageMemory {
+    /// The image encoder.
     pub image_encoder: Option<f64>,
+    /// Stage-1 condition and sampling.
     pub ss_flow: Option<f64>,
+    /// The SS decoder.
     pub ss_decoder: Option<f64>,
+    /// Stage-2 condition and sampling.
     pub slat_flow: Option<f64>,
+    /// The mesh decoder and FlexiCubes extraction.
     pub mesh_decoder: Option<f64>,
+    /// The Gaussian decoder.
     pub gaussian_decoder: Option<f64>,
 }
 
@@ -197,15 +220,22 @@ pub struct StageMemory {
 /// ([`Pipeline::run_observed`]), e.g. to drive a progress bar.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stage {
+    /// DINOv2 on every view.
     ImageEncoder,
+    /// Stage-1 condition and sampling (occupancy latent and pose tokens).
     SsSampling,
+    /// The SS decoder: occupied voxels.
     SsDecoder,
+    /// Stage-2 condition and sampling on the occupied voxels.
     SlatSampling,
+    /// The mesh decoder and FlexiCubes extraction.
     MeshDecoder,
+    /// The Gaussian decoder.
     GaussianDecoder,
 }
 
 impl Stage {
+    /// Lower-case name for progress displays (`"ss sampling"`).
     pub fn name(self) -> &'static str {
         match self {
             Stage::ImageEncoder => "image encoder",
@@ -237,10 +267,20 @@ pub struct PredictedPose {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum WeightsSource {
-    /// In-memory random weights (`Pipeline::random`): NOT a trained model.
-    Random { seed: u64 },
+    /// In-memory random weights ([`Weights::Random`]): NOT a trained model.
+    Random {
+        /// The seed the weights were generated from.
+        seed: u64,
+    },
     /// Files per module; `random_init` when any carries `recon.random_init`.
-    Files { dir: PathBuf, files: Vec<PathBuf>, random_init: bool },
+    Files {
+        /// The weights folder ([`WeightFiles::dir`]).
+        dir: PathBuf,
+        /// The checkpoint file of every loaded module.
+        files: Vec<PathBuf>,
+        /// Whether any safetensors file carries the random-init label.
+        random_init: bool,
+    },
 }
 
 impl WeightsSource {
@@ -256,14 +296,21 @@ impl WeightsSource {
 /// What produced a result.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RunMetadata {
+    /// The architecture's name (the config's `name`).
     pub architecture: String,
+    /// Where the weights came from.
     pub weights: WeightsSource,
     /// Same as `weights.is_random()`, spelled out for readers of the JSON.
     pub random_weights: bool,
+    /// The run's seed ([`RunOptions::seed`]).
     pub seed: u64,
+    /// Views the run was conditioned on.
     pub num_views: usize,
+    /// Stage-1 sampler settings as run.
     pub ss_sampler: SamplerSettings,
+    /// Stage-2 sampler settings as run (`None`: stage 1 only).
     pub slat_sampler: Option<SamplerSettings>,
+    /// The order the seeded noise is drawn in (module docs, **Noise order**).
     pub noise_order: &'static str,
 }
 
@@ -273,24 +320,29 @@ pub type OccupancyFit<'a> = dyn FnMut(&PredictedPose, &[[i32; 3]], usize) -> Res
 /// Everything one run produces.
 #[derive(Debug, Clone)]
 pub struct ObjectReconstruction {
+    /// The stage-1 pose prediction.
     pub pose: PredictedPose,
     /// Occupied voxels `(x, y, z)` of the SS decoder grid (resolution
     /// `ss_resolution`), in argwhere order.
     pub coords: Vec<[i32; 3]>,
+    /// Side of the SS decoder grid, in voxels.
     pub ss_resolution: usize,
     /// Mesh in the object frame with vertex colours (`vertex_attrs`).
     pub mesh: Option<Mesh>,
     /// Activated Gaussians in the object frame.
     pub gaussians: Option<Gaussians>,
+    /// Wall-clock seconds per stage.
     pub timings: StageTimings,
     /// Filled when [`RunOptions::measure_memory`] is set.
     pub memory: Option<StageMemory>,
+    /// What produced this result.
     pub metadata: RunMetadata,
 }
 
 /// Which modules to build.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stages {
+    /// Every module: both stages and both decoders.
     All,
     /// Image encoder, stage-1 flow and SS decoder only (occupancy + pose).
     SparseStructure,
@@ -331,8 +383,11 @@ pub enum Dtype {
     /// The fastest precision within the stated budget for this model (see [`Dtype::resolve`]).
     #[default]
     Auto,
+    /// f32 weights and arithmetic.
     F32,
+    /// bf16 weights, bf16-rounded GEMM and attention inputs, f32 accumulation.
     Bf16,
+    /// f16 weights widened to f32 for the arithmetic.
     F16,
 }
 
@@ -353,7 +408,7 @@ impl Dtype {
             Dtype::Bf16 => Precision::Bf16,
             Dtype::F16 => Precision::F16,
             Dtype::Auto => {
-                let width = arch.ss_flow_config()?.model_channels;
+                let width = arch.ss_flow_config().model_channels;
                 if width >= AUTO_BF16_MIN_CHANNELS {
                     Precision::Bf16
                 } else {
@@ -411,10 +466,11 @@ pub enum Weights<'a> {
 
 /// All modules of one architecture file with their weights.
 pub struct Pipeline {
+    /// The architecture file, parsed.
     pub config: RecGenConfig,
     options: LoadOptions,
     stages: Stages,
-    sources: HashMap<&'static str, Source>,
+    sources: HashMap<ModuleKey, Source>,
     resident: Resident,
     dino_cfg: Dinov2Config,
     ss_cfg: SsFlowConfig,
@@ -427,14 +483,6 @@ pub struct Pipeline {
 }
 
 const NOISE_ORDER: &str = "SeededRng(seed): ss latent [1,Cin,R,R,R], ss pose tokens [1,K,P], slat feats [N,Cin]";
-
-fn module_cfg(spec: &ModuleSpec) -> ModuleConfig {
-    ModuleConfig { name: spec.name.clone(), args: spec.args.clone() }
-}
-
-fn is_stage1(key: &str) -> bool {
-    matches!(key, "image_cond_model" | "ss_flow" | "ss_decoder")
-}
 
 fn secs(t: Instant) -> f64 {
     t.elapsed().as_secs_f64()
@@ -481,7 +529,7 @@ impl Pipeline {
         let config = RecGenConfig::load(config_path)?;
         let mut files = WeightFiles { dir: weights_dir.to_path_buf(), ..Default::default() };
         for (key, spec) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
             let path = ["safetensors", "pt", "pth"]
@@ -494,7 +542,7 @@ impl Pipeline {
                         format!("no weights for module `{key}` ({}): expected {key}.safetensors (or .pt/.pth) in this folder", spec.name),
                     )
                 })?;
-            files.modules.insert(key.to_string(), path);
+            files.modules.insert(key, path);
         }
         Self::from_files(config_path, &files, stages, options)
     }
@@ -505,14 +553,14 @@ impl Pipeline {
         let mut files = Vec::new();
         let mut random_init = false;
         for (key, spec) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
-            let path = weight_files.modules.get(key).cloned().ok_or_else(|| {
+            let path = weight_files.modules.get(&key).cloned().ok_or_else(|| {
                 Error::input(weight_files.dir.display().to_string(), format!("no checkpoint file for module `{key}` ({})", spec.name))
             })?;
             let label = format!("{}: {key}", config_path.display());
-            let expected = registry::expected_tensors(&module_cfg(spec), &label)?;
+            let expected = registry::expected_tensors(&config.module_args(key)?, &label)?;
             let ck = Checkpoint::open(&path, None)?;
             crate::weights::validate_checkpoint(&ck, &expected, true)?;
             if path.extension().is_some_and(|e| e == "safetensors") {
@@ -538,24 +586,23 @@ impl Pipeline {
         let config = RecGenConfig::load(config_path)?;
         let mut sources = HashMap::new();
         for (key, _) in config.modules() {
-            if stages == Stages::SparseStructure && !is_stage1(key) {
+            if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
             }
-            sources.insert(key, Source::Random(registry::module_seed(seed, key)));
+            sources.insert(key, Source::Random(registry::module_seed(seed, key.name())));
         }
         Self::build(config, sources, WeightsSource::Random { seed }, stages, *options)
     }
 
     fn build(
         config: RecGenConfig,
-        sources: HashMap<&'static str, Source>,
+        sources: HashMap<ModuleKey, Source>,
         weights: WeightsSource,
         stages: Stages,
         options: LoadOptions,
     ) -> Result<Self> {
-        let label = |key: &str| format!("{}: {key}", config.name);
-        let dino_cfg = registry::dinov2_config(&config.image_cond_model.args, &label("image_cond_model"))?;
-        let ss_cfg = SsFlowConfig::from_value(&config.ss_flow.args, &label("ss_flow"))?;
+        let dino_cfg = config.args.image_cond_model.clone();
+        let ss_cfg = config.args.ss_flow.clone();
         if ss_cfg.pose_channels() != Some(10) {
             return Err(Error::config(
                 &config.name,
@@ -566,7 +613,7 @@ impl Pipeline {
         let slat_cfg = match stages {
             Stages::SparseStructure => None,
             Stages::All => {
-                let c = SLatFlowConfig::from_json(&config.slat_flow.args)?;
+                let c = config.args.slat_flow.clone();
                 if c.cond_channels != ss_cfg.cond_channels || !c.use_pose_embedder || c.pose_dim() != 13 {
                     return Err(Error::config(
                         &config.name,
@@ -597,31 +644,25 @@ impl Pipeline {
             config,
         };
         if !options.per_stage {
-            p.resident.dino = Some(p.build_module("image_cond_model", registry::build_dinov2)?);
-            p.resident.ss_flow = Some(p.build_module("ss_flow", registry::build_ss_flow)?);
-            p.resident.ss_decoder = Some(p.build_module("ss_decoder", registry::build_ss_decoder)?);
+            p.resident.dino = Some(p.build_module(ModuleKey::ImageCondModel, registry::build_dinov2)?);
+            p.resident.ss_flow = Some(p.build_module(ModuleKey::SsFlow, registry::build_ss_flow)?);
+            p.resident.ss_decoder = Some(p.build_module(ModuleKey::SsDecoder, registry::build_ss_decoder)?);
             if stages == Stages::All {
-                p.resident.slat_flow = Some(p.build_module("slat_flow", registry::build_slat_flow)?);
-                p.resident.mesh_decoder = Some(p.build_module("slat_dec_mesh", registry::build_mesh_decoder)?);
-                p.resident.gs_decoder = Some(p.build_module("slat_dec_gs", registry::build_gaussian_decoder)?);
+                p.resident.slat_flow = Some(p.build_module(ModuleKey::SlatFlow, registry::build_slat_flow)?);
+                p.resident.mesh_decoder = Some(p.build_module(ModuleKey::SlatDecMesh, registry::build_mesh_decoder)?);
+                p.resident.gs_decoder = Some(p.build_module(ModuleKey::SlatDecGs, registry::build_gaussian_decoder)?);
             }
         }
         Ok(p)
     }
 
     /// Build module `key` from its source with this pipeline's compute setting.
-    fn build_module<T>(&self, key: &str, f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
-        let spec = self
-            .config
-            .modules()
-            .into_iter()
-            .find(|(k, _)| *k == key)
-            .map(|(_, s)| module_cfg(s))
-            .ok_or_else(|| Error::msg(format!("pipeline: no module `{key}` in {}", self.config.name)))?;
+    fn build_module<T>(&self, key: ModuleKey, f: fn(&ModuleArgs, VarBuilder, &str, Compute) -> Result<T>) -> Result<T> {
+        let spec = self.config.module_args(key)?;
         let label = format!("{}: {key}", self.config.name);
-        let vb = match self.sources.get(key) {
+        let vb = match self.sources.get(&key) {
             Some(Source::File(path)) => Checkpoint::open(path, None)?.into_var_builder(DType::F32, &Device::Cpu),
-            Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed, &label)?,
+            Some(Source::Random(seed)) => registry::random_var_builder(&spec, *seed)?,
             None => return Err(Error::msg(format!("pipeline: module `{key}` was not loaded (stage-1-only pipeline?)"))),
         };
         let m = f(&spec, vb, &label, self.options.compute);
@@ -634,8 +675,8 @@ impl Pipeline {
     fn hold<'a, T>(
         &'a self,
         resident: &'a Option<T>,
-        key: &str,
-        f: fn(&ModuleConfig, VarBuilder, &str, Compute) -> Result<T>,
+        key: ModuleKey,
+        f: fn(&ModuleArgs, VarBuilder, &str, Compute) -> Result<T>,
         loading: &mut f64,
     ) -> Result<Held<'a, T>> {
         match resident {
@@ -782,7 +823,7 @@ impl Pipeline {
         on_stage(Stage::ImageEncoder);
         meter.mark();
         let t = Instant::now();
-        let dino = self.hold(&self.resident.dino, "image_cond_model", registry::build_dinov2, &mut meter.tm.loading)?;
+        let dino = self.hold(&self.resident.dino, ModuleKey::ImageCondModel, registry::build_dinov2, &mut meter.tm.loading)?;
         let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
         drop(dino);
         meter.tm.image_encoder = secs(t);
@@ -808,7 +849,7 @@ impl Pipeline {
         on_stage(Stage::SsSampling);
         meter.mark();
         let t = Instant::now();
-        let ss_flow = self.hold(&self.resident.ss_flow, "ss_flow", registry::build_ss_flow, &mut meter.tm.loading)?;
+        let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
         let (cond, neg) = ss_flow.condition(views)?;
         meter.tm.ss_condition = secs(t);
         let t = Instant::now();
@@ -830,7 +871,7 @@ impl Pipeline {
         on_stage(Stage::SsDecoder);
         meter.mark();
         let t = Instant::now();
-        let ss_decoder = self.hold(&self.resident.ss_decoder, "ss_decoder", registry::build_ss_decoder, &mut meter.tm.loading)?;
+        let ss_decoder = self.hold(&self.resident.ss_decoder, ModuleKey::SsDecoder, registry::build_ss_decoder, &mut meter.tm.loading)?;
         let logits = ss_decoder.forward(z)?;
         drop(ss_decoder);
         let ss_resolution = logits.dim(2)?;
@@ -907,7 +948,7 @@ impl Pipeline {
         on_stage(Stage::SlatSampling);
         meter.mark();
         let t = Instant::now();
-        let slat_flow = self.hold(&self.resident.slat_flow, "slat_flow", registry::build_slat_flow, &mut meter.tm.loading)?;
+        let slat_flow = self.hold(&self.resident.slat_flow, ModuleKey::SlatFlow, registry::build_slat_flow, &mut meter.tm.loading)?;
         let (cond, neg) = slat_flow.condition(views, Some(slat_pose))?;
         meter.tm.slat_condition = secs(t);
 
@@ -937,7 +978,7 @@ impl Pipeline {
             on_stage(Stage::MeshDecoder);
             meter.mark();
             let t = Instant::now();
-            let dec = self.hold(&r.mesh_decoder, "slat_dec_mesh", registry::build_mesh_decoder, &mut meter.tm.loading)?;
+            let dec = self.hold(&r.mesh_decoder, ModuleKey::SlatDecMesh, registry::build_mesh_decoder, &mut meter.tm.loading)?;
             let feats = dec.forward_feats_fused(slat)?;
             meter.tm.mesh_decoder = secs(t);
             let t = Instant::now();
@@ -950,7 +991,7 @@ impl Pipeline {
             on_stage(Stage::GaussianDecoder);
             meter.mark();
             let t = Instant::now();
-            let dec = self.hold(&r.gs_decoder, "slat_dec_gs", registry::build_gaussian_decoder, &mut meter.tm.loading)?;
+            let dec = self.hold(&r.gs_decoder, ModuleKey::SlatDecGs, registry::build_gaussian_decoder, &mut meter.tm.loading)?;
             let g = dec.forward(slat)?;
             drop(dec);
             let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
@@ -993,7 +1034,7 @@ mod tests {
         crate::weights::init::write_random_architecture(&cfg_path, &snap, 3).unwrap();
         let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache).unwrap();
         assert_eq!(wf.modules.len(), 6);
-        assert!(wf.modules["slat_dec_gs"].ends_with("sub/slat_dec_gs.safetensors"));
+        assert!(wf.modules[&ModuleKey::SlatDecGs].ends_with("sub/slat_dec_gs.safetensors"));
         let p = Pipeline::load(&cfg_path, Weights::Files(&wf), Stages::All, &LoadOptions::default()).unwrap();
         assert!(p.weights().is_random());
         let _ = std::fs::remove_dir_all(&root);

@@ -18,14 +18,31 @@ pub enum ModelSource {
     /// `<module>.safetensors` per module; the architecture file is the JSON in
     /// the folder holding an `ss_flow` section unless `config` names one
     /// (`models/recgen-tiny.json` when the folder holds none).
-    Dir { dir: PathBuf, config: Option<PathBuf> },
+    Dir {
+        /// The folder holding the weights.
+        dir: PathBuf,
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+    },
     /// A weights manifest (`recgen`, or a manifest file) resolved in the
     /// Hugging Face cache after `recon weights fetch`; architecture
     /// `models/recgen-large.json` unless `config` names one.
-    Manifest { name: String, config: Option<PathBuf>, cache: PathBuf },
+    Manifest {
+        /// An embedded manifest's name or a manifest file's path.
+        name: String,
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+        /// The Hugging Face cache (`hub` folder) the files are looked up in.
+        cache: PathBuf,
+    },
     /// Random weights (`models/recgen-tiny.json` unless `config` names an
     /// architecture): the plumbing is real, the shapes and poses are not.
-    Random { config: Option<PathBuf>, seed: u64 },
+    Random {
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+        /// Seed of the random weights.
+        seed: u64,
+    },
 }
 
 impl ModelSource {
@@ -85,7 +102,7 @@ pub fn find_architecture(dir: &Path) -> Result<PathBuf> {
         let p = e.map_err(|e| Error::io(dir, e))?.path();
         if p.extension().is_some_and(|x| x == "json") {
             let v: Option<serde_json::Value> = std::fs::read_to_string(&p).ok().and_then(|s| serde_json::from_str(&s).ok());
-            if v.is_some_and(|v| v.get("ss_flow").is_some()) {
+            if v.is_some_and(|v| v.get(crate::model::key::ModuleKey::SsFlow.name()).is_some()) {
                 found.push(p);
             }
         }

@@ -248,11 +248,11 @@ impl PoseStats {
     /// Reads the statistics from a JSON file.
     pub fn from_json_file(path: &Path) -> Result<Self> {
         let v: serde_json::Value = crate::util::json::read_json(path)?;
-        Self::from_value(&v, &path.display().to_string())
+        Self::from_json(&v, &path.display().to_string())
     }
 
     /// The statistics from parsed JSON; `file` names it in errors.
-    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
         let g = v.get("global_statistics").unwrap_or(v);
         let stats: GlobalStats = serde_json::from_value(g.clone()).map_err(|e| Error::config(file, "global_statistics", e.to_string()))?;
         let mut stds: Vec<f64> = stats.rot6d.std.to_vec();
@@ -472,9 +472,9 @@ mod tests {
     fn bad_stats_are_rejected() {
         let v = serde_json::json!({"6d_rotation": {"mean": [0,0,0,0,0,0], "std": [1,1,1,1,1,0]},
             "translation": {"mean": [0,0,0], "std": [1,1,1]}, "scale": {"mean": 1, "std": 1}});
-        assert!(PoseStats::from_value(&v, "t").is_err());
+        assert!(PoseStats::from_json(&v, "t").is_err());
         let v = serde_json::json!({"6d_rotation": {"mean": [0,0,0], "std": [1,1,1]},
             "translation": {"mean": [0,0,0], "std": [1,1,1]}, "scale": {"mean": 1, "std": 1}});
-        assert!(PoseStats::from_value(&v, "t").is_err());
+        assert!(PoseStats::from_json(&v, "t").is_err());
     }
 }

@@ -9,15 +9,18 @@
 //!   sparse-structure flow with pose tokens, and the SS VAE;
 //! - `stage2`: the structured-latent flow and the SLat VAE (encoder, mesh
 //!   and Gaussian decoders, FlexiCubes);
+//! - `key`: the modules by key (`ss_flow`, ...) and by kind (class);
 //! - `config`: the architecture file that names every module.
 
 pub mod config;
+pub mod key;
 pub mod nn;
 pub mod sampler;
 pub mod sparse;
 pub mod stage1;
 pub mod stage2;
-pub use self::config::{ModuleSpec, RecGenConfig};
+pub use self::config::{ArchArgs, ModuleArgs, ModuleSpec, RecGenConfig};
+pub use self::key::{ModuleKey, ModuleKind};
 pub use self::nn::common::layer_norm_plain;
 pub use self::nn::common::PeMode;
 pub use self::nn::dense3d::{ChannelLayerNorm, Conv3d, NormType};

@@ -43,14 +43,19 @@ use crate::{Error, Result};
 /// explicitly, so the choice is visible and overridable.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SamplerSettings {
+    /// Number of Euler steps (≥ 1).
     #[serde(default = "default_steps")]
     pub steps: usize,
+    /// Classifier-free guidance strength `s` in `v = (1+s)·v(cond) − s·v(neg_cond)`.
     #[serde(default = "default_cfg_strength")]
     pub cfg_strength: f64,
+    /// `[lo, hi]`: guidance applies when `lo ≤ t ≤ hi`.
     #[serde(default = "default_cfg_interval")]
     pub cfg_interval: [f64; 2],
+    /// Time-grid rescale `r`: `t ↦ r·t / (1 + (r−1)·t)` (1 keeps the linear grid).
     #[serde(default = "default_rescale_t")]
     pub rescale_t: f64,
+    /// σ_min of the flow, used only for the reported `x₀` prediction; in [0, 1).
     #[serde(default = "default_sigma_min")]
     pub sigma_min: f64,
 }
@@ -85,12 +90,13 @@ impl Default for SamplerSettings {
 
 impl SamplerSettings {
     /// Parse from JSON (unknown keys such as `class` are ignored), then validate.
-    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
         let s: Self = serde_json::from_value(v.clone()).map_err(|e| Error::config(file, "sampler", e.to_string()))?;
         s.validate(file)?;
         Ok(s)
     }
 
+    /// Check the ranges (steps ≥ 1, rescale_t > 0, σ_min in [0, 1), finite CFG values); `file` labels errors.
     pub fn validate(&self, file: &str) -> Result<()> {
         if self.steps == 0 {
             return Err(Error::config(file, "steps", "must be ≥ 1"));
@@ -153,15 +159,23 @@ where
 
 /// Everything about one step, for tracing and conformance.
 pub struct StepRecord<'a> {
+    /// Step index, from 0.
     pub step: usize,
+    /// Time at the start of the step (1 = noise).
     pub t: f64,
+    /// Time at the end of the step.
     pub t_prev: f64,
+    /// Time the model sees, `f32(1000·t)`.
     pub model_t: f32,
+    /// Whether guidance was applied at this step.
     pub cfg_applied: bool,
+    /// Conditional velocity, one per state tensor.
     pub v_cond: &'a [Tensor],
+    /// Unconditional velocity, one per state tensor (None when guidance was off).
     pub v_uncond: Option<&'a [Tensor]>,
     /// The guided velocity actually used.
     pub v: &'a [Tensor],
+    /// Predicted clean state `x₀ = (1−σ)·x − (σ + (1−σ)·t)·v`, one per state tensor.
     pub pred_x0: &'a [Tensor],
     /// State after the step.
     pub x_prev: &'a [Tensor],
@@ -170,10 +184,12 @@ pub struct StepRecord<'a> {
 /// TRELLIS `FlowEulerGuidanceIntervalSampler`.
 #[derive(Debug, Clone, Default)]
 pub struct FlowEulerGuidanceIntervalSampler {
+    /// Steps, guidance and time-grid settings.
     pub settings: SamplerSettings,
 }
 
 impl FlowEulerGuidanceIntervalSampler {
+    /// A sampler with these settings.
     pub fn new(settings: SamplerSettings) -> Self {
         Self { settings }
     }
@@ -268,11 +284,11 @@ mod tests {
 
     #[test]
     fn settings_defaults_and_json() {
-        let s = SamplerSettings::from_value(&serde_json::json!({"class": "X", "steps": 4}), "t").unwrap();
+        let s = SamplerSettings::from_json(&serde_json::json!({"class": "X", "steps": 4}), "t").unwrap();
         assert_eq!(s.steps, 4);
         assert_eq!(s.cfg_strength, 5.0);
         assert_eq!(s.cfg_interval, [0.5, 1.0]);
-        assert!(SamplerSettings::from_value(&serde_json::json!({"steps": 0}), "t").is_err());
+        assert!(SamplerSettings::from_json(&serde_json::json!({"steps": 0}), "t").is_err());
     }
 
     /// With v(x) = x − target (cond) and v = x (uncond), the integrator must

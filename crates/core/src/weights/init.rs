@@ -8,12 +8,14 @@
 //! with a copy of the architecture file and its pose-stat files, so that
 //! `Pipeline::load(<out>/<arch file>, Weights::Dir(<out>), Stages::All, &LoadOptions::default())` runs it.
 
+use crate::model::config::{ModuleArgs, ModuleKey};
 use crate::weights::registry::{random_weights, ModuleConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// Safetensors metadata key whose value `"true"` labels random-initialised weights.
 pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 
 /// Write `<out>/<config stem>.safetensors` and a copy of the config as
@@ -21,13 +23,13 @@ pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 /// file see `write_random_architecture` (returns `out`).
 pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
     let v: serde_json::Value = crate::util::json::read_json(config)?;
-    if v.get("ss_flow").is_some() && v.get("args").is_none() {
+    if v.get(ModuleKey::SsFlow.name()).is_some() && v.get("args").is_none() {
         write_random_architecture(config, out, seed)?;
         return Ok(out.to_path_buf());
     }
     let cfg = ModuleConfig::read(config)?;
     let file = config.display().to_string();
-    let tensors = random_weights(&cfg, seed, &file)?;
+    let tensors = random_weights(&ModuleArgs::from_spec(&cfg, &file)?, seed, &file)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let stem = config.file_stem().and_then(|s| s.to_str()).unwrap_or("model");
     let path = out.join(format!("{stem}.safetensors"));
@@ -57,14 +59,13 @@ pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let mut written = Vec::new();
     for (key, spec) in arch.modules() {
-        let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-        let mseed = crate::weights::registry::module_seed(seed, key);
-        let tensors = random_weights(&cfg, mseed, &format!("{}: {key}", config.display()))?;
+        let mseed = crate::weights::registry::module_seed(seed, key.name());
+        let tensors = random_weights(&arch.module_args(key)?, mseed, &format!("{}: {key}", config.display()))?;
         let meta: BTreeMap<String, String> = [
             (RANDOM_INIT_KEY, "true".to_string()),
             ("recon.seed", seed.to_string()),
             ("recon.module_seed", mseed.to_string()),
-            ("recon.module", cfg.name.clone()),
+            ("recon.module", spec.name.clone()),
             ("recon.key", key.to_string()),
             ("recon.architecture", arch.name.clone()),
             ("recon.note", "random weights for tests and plumbing; NOT a trained model".to_string()),

@@ -11,12 +11,14 @@
 //! stage-2 flow (`SLatFlowModel`, RecGen `SLatCondFlowModel`, and their
 //! `Elastic*` checkpoint aliases), `SLatMeshDecoder`, `SLatGaussianDecoder`.
 
+use crate::model::config::{ModuleArgs, ModuleSpec};
 use crate::model::nn::fast::Compute;
-use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
-use crate::model::stage1::ss_flow::{SparseStructureFlowModel, SsFlowConfig};
-use crate::model::stage1::ss_vae::decoder::{SparseStructureDecoder, SparseStructureDecoderConfig};
-use crate::model::stage1::ss_vae::encoder::{SparseStructureEncoder, SparseStructureEncoderConfig};
-use crate::model::stage2::slat_flow::{SLatFlowConfig, SLatFlowModel};
+use crate::model::stage1::dinov2::Dinov2;
+use crate::model::stage1::ss_flow::SparseStructureFlowModel;
+use crate::model::stage1::ss_vae::decoder::SparseStructureDecoder;
+use crate::model::stage1::ss_vae::encoder::SparseStructureEncoder;
+use crate::model::stage2::slat_flow::SLatFlowModel;
+use crate::model::stage2::slat_vae::encoder::SLatEncoder;
 use crate::model::stage2::slat_vae::gaussian::{offset_perturbation, GaussianConfig, SLatGaussianDecoder};
 use crate::model::stage2::slat_vae::mesh::SLatMeshDecoder;
 use crate::weights::record::{RandomInit, RandomStream, Recorder, TensorSpec};
@@ -24,149 +26,73 @@ use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use std::collections::BTreeMap;
-use std::path::Path;
 
-/// A module config file: upstream class name plus constructor args.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-pub struct ModuleConfig {
-    pub name: String,
-    #[serde(default)]
-    pub args: serde_json::Value,
+/// A module config file (`{"name", "args"}`, args as written); parse it with
+/// [`ModuleArgs::from_spec`].
+pub type ModuleConfig = ModuleSpec;
+
+pub use crate::model::key::{ModuleKind, KNOWN_MODULES};
+
+/// The DINOv2 image encoder of `cfg`.
+pub fn build_dinov2(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<Dinov2> {
+    Ok(Dinov2::new(cfg.dinov2(file)?, vb, compute)?)
 }
 
-impl ModuleConfig {
-    pub fn read(path: &Path) -> Result<Self> {
-        crate::util::json::read_json(path)
-    }
+/// The stage-1 flow of `cfg`.
+pub fn build_ss_flow(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SparseStructureFlowModel> {
+    SparseStructureFlowModel::new(cfg.ss_flow(file)?, vb, compute)
 }
 
-/// Names accepted by [`build`] (upstream class names; `dinov2_*` hub names
-/// are accepted for the image encoder as the architecture file uses them).
-pub const KNOWN_MODULES: &[&str] = &[
-    "DinoVisionTransformer",
-    "SparseStructureFlowModel",
-    "SparseStructurePoseFlowModel",
-    "SparseStructureDecoder",
-    "SparseStructureEncoder",
-    "SLatFlowModel",
-    "ElasticSLatFlowModel",
-    "SLatCondFlowModel",
-    "ElasticSLatCondFlowModel",
-    "SLatMeshDecoder",
-    "ElasticSLatMeshDecoder",
-    "SLatGaussianDecoder",
-    "ElasticSLatGaussianDecoder",
-    "SLatEncoder",
-];
-
-/// Module families, by class name.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ModuleKind {
-    Dinov2,
-    SsFlow,
-    SsDecoder,
-    SsEncoder,
-    SlatFlow,
-    MeshDecoder,
-    GaussianDecoder,
-    SlatEncoder,
+/// The SS VAE decoder of `cfg`.
+pub fn build_ss_decoder(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SparseStructureDecoder> {
+    SparseStructureDecoder::new(cfg.ss_decoder(file)?, vb, compute)
 }
 
-impl ModuleKind {
-    pub fn of(name: &str) -> Option<Self> {
-        Some(match name {
-            "DinoVisionTransformer" | "Dinov2" => Self::Dinov2,
-            n if n.starts_with("dinov2_") => Self::Dinov2,
-            "SparseStructureFlowModel" | "SparseStructurePoseFlowModel" => Self::SsFlow,
-            "SparseStructureDecoder" => Self::SsDecoder,
-            "SparseStructureEncoder" => Self::SsEncoder,
-            "SLatFlowModel" | "ElasticSLatFlowModel" | "SLatCondFlowModel" | "ElasticSLatCondFlowModel" => Self::SlatFlow,
-            "SLatMeshDecoder" | "ElasticSLatMeshDecoder" => Self::MeshDecoder,
-            "SLatGaussianDecoder" | "ElasticSLatGaussianDecoder" => Self::GaussianDecoder,
-            "SLatEncoder" | "ElasticSLatEncoder" => Self::SlatEncoder,
-            _ => return None,
-        })
-    }
+/// The SS VAE encoder of `cfg` (training only).
+pub fn build_ss_encoder(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SparseStructureEncoder> {
+    SparseStructureEncoder::new(cfg.ss_encoder(file)?, vb, compute)
 }
 
-fn kind(cfg: &ModuleConfig, file: &str) -> Result<ModuleKind> {
-    ModuleKind::of(&cfg.name).ok_or_else(|| {
-        let hint = if cfg.args.is_null() {
-            "; an architecture file (models/recgen-*.json) holds several modules: its sections are module configs"
-        } else {
-            ""
-        };
-        Error::config(file, "name", format!("module `{}` is not available in this build (known: {KNOWN_MODULES:?}){hint}", cfg.name))
-    })
+/// The stage-2 flow of `cfg`.
+pub fn build_slat_flow(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SLatFlowModel> {
+    SLatFlowModel::new(cfg.slat_flow(file)?, vb, compute)
 }
 
-/// DINOv2 args in either form: hub (`embed_dim`, `depth`, ...) or HF
-/// (`hidden_size`, `num_hidden_layers`, ..., as in the architecture file).
-pub fn dinov2_config(args: &serde_json::Value, file: &str) -> Result<Dinov2Config> {
-    if args.get("hidden_size").is_some() {
-        return Dinov2Config::from_hf_config(args, file);
-    }
-    let c: Dinov2Config = crate::util::json::from_value(args, file)?;
-    c.validate(file)?;
-    Ok(c)
+/// The SLat mesh decoder of `cfg`.
+pub fn build_mesh_decoder(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SLatMeshDecoder> {
+    SLatMeshDecoder::new(cfg.mesh_decoder(file)?, vb, compute)
 }
 
-pub fn build_dinov2(cfg: &ModuleConfig, vb: VarBuilder, file: &str, compute: Compute) -> Result<Dinov2> {
-    Ok(Dinov2::new(&dinov2_config(&cfg.args, file)?, vb, compute)?)
+/// The SLat VAE encoder of `cfg` (training only).
+pub fn build_slat_encoder(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SLatEncoder> {
+    SLatEncoder::new(cfg.slat_encoder(file)?, vb, compute)
 }
 
-pub fn build_ss_flow(cfg: &ModuleConfig, vb: VarBuilder, file: &str, compute: Compute) -> Result<SparseStructureFlowModel> {
-    SparseStructureFlowModel::new(&SsFlowConfig::from_value(&cfg.args, file)?, vb, compute)
+/// The SLat Gaussian decoder of `cfg`.
+pub fn build_gaussian_decoder(cfg: &ModuleArgs, vb: VarBuilder, file: &str, compute: Compute) -> Result<SLatGaussianDecoder> {
+    SLatGaussianDecoder::new(cfg.gaussian_decoder(file)?, vb, compute)
 }
 
-pub fn build_ss_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SparseStructureDecoder> {
-    SparseStructureDecoder::new(&SparseStructureDecoderConfig::from_json(&cfg.args)?, vb, compute)
-}
-
-pub fn build_ss_encoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SparseStructureEncoder> {
-    SparseStructureEncoder::new(&SparseStructureEncoderConfig::from_json(&cfg.args)?, vb, compute)
-}
-
-pub fn build_slat_flow(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatFlowModel> {
-    SLatFlowModel::new(&SLatFlowConfig::from_json(&cfg.args)?, vb, compute)
-}
-
-pub fn build_mesh_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatMeshDecoder> {
-    SLatMeshDecoder::new(&cfg.args, vb, compute)
-}
-
-pub fn build_slat_encoder(
-    cfg: &ModuleConfig,
-    vb: VarBuilder,
-    _file: &str,
-    compute: Compute,
-) -> Result<crate::model::stage2::slat_vae::encoder::SLatEncoder> {
-    crate::model::stage2::slat_vae::encoder::SLatEncoder::new(&cfg.args, vb, compute)
-}
-
-pub fn build_gaussian_decoder(cfg: &ModuleConfig, vb: VarBuilder, _file: &str, compute: Compute) -> Result<SLatGaussianDecoder> {
-    SLatGaussianDecoder::new(&cfg.args, vb, compute)
-}
-
-/// Build module `cfg.name` from `cfg.args` on `vb` (the module is dropped;
-/// the point is what the builder requests from `vb`, the same on every
-/// compute path, so it is built plain).
-pub fn build(cfg: &ModuleConfig, vb: VarBuilder, file: &str) -> Result<()> {
-    match kind(cfg, file)? {
-        ModuleKind::Dinov2 => drop(build_dinov2(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::SsFlow => drop(build_ss_flow(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::SsDecoder => drop(build_ss_decoder(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::SsEncoder => drop(build_ss_encoder(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file, Compute::Plain)?),
-        ModuleKind::SlatEncoder => drop(build_slat_encoder(cfg, vb, file, Compute::Plain)?),
+/// Build the module `cfg` describes on `vb` (the module is dropped; the
+/// point is what the builder requests from `vb`, the same on every compute
+/// path, so it is built plain).
+pub fn build(cfg: &ModuleArgs, vb: VarBuilder, file: &str) -> Result<()> {
+    let c = Compute::Plain;
+    match cfg.kind() {
+        ModuleKind::Dinov2 => drop(build_dinov2(cfg, vb, file, c)?),
+        ModuleKind::SsFlow => drop(build_ss_flow(cfg, vb, file, c)?),
+        ModuleKind::SsDecoder => drop(build_ss_decoder(cfg, vb, file, c)?),
+        ModuleKind::SsEncoder => drop(build_ss_encoder(cfg, vb, file, c)?),
+        ModuleKind::SlatFlow => drop(build_slat_flow(cfg, vb, file, c)?),
+        ModuleKind::MeshDecoder => drop(build_mesh_decoder(cfg, vb, file, c)?),
+        ModuleKind::GaussianDecoder => drop(build_gaussian_decoder(cfg, vb, file, c)?),
+        ModuleKind::SlatEncoder => drop(build_slat_encoder(cfg, vb, file, c)?),
     }
     Ok(())
 }
 
 /// The expected (name, shape) list of a module, sorted by name.
-pub fn expected_tensors(cfg: &ModuleConfig, file: &str) -> Result<Vec<TensorSpec>> {
+pub fn expected_tensors(cfg: &ModuleArgs, file: &str) -> Result<Vec<TensorSpec>> {
     let r = Recorder::new();
     build(cfg, r.var_builder(DType::F32, &Device::Cpu), file)?;
     Ok(r.specs())
@@ -179,12 +105,11 @@ pub fn expected_tensors(cfg: &ModuleConfig, file: &str) -> Result<Vec<TensorSpec
 /// One deliberate prior: the SS decoder's output bias (`out_layer.2.bias`) is
 /// [`SS_DECODER_OCCUPANCY_PRIOR`] · σ below zero, where σ = 0.01·√(27·C) is
 /// the logit std this init gives (weight std 0.02 × √fan-in × ≈½ for the
-/// SiLU of a unit-variance LayerNorm output; measured 0.15 for recgen-tiny).
-/// With a zero bias about a third of the grid is "occupied", which no
-/// trained decoder produces and which makes stage 2 and the mesh needlessly
-/// big; with the prior a few hundred voxels are (123 of 32³ for
-/// recgen-tiny, seed 0), the sparse shell a real object gives.
-pub fn random_weights(cfg: &ModuleConfig, seed: u64, file: &str) -> Result<BTreeMap<String, Tensor>> {
+/// SiLU of a unit-variance LayerNorm output). With a zero bias about a third
+/// of the grid is "occupied", which no trained decoder produces and which
+/// makes stage 2 and the mesh needlessly big; with the prior a few hundred
+/// voxels are, the sparse shell a real object gives.
+pub fn random_weights(cfg: &ModuleArgs, seed: u64, file: &str) -> Result<BTreeMap<String, Tensor>> {
     let init = RandomInit::new(seed);
     build(cfg, init.var_builder(&Device::Cpu), file)?;
     let mut t = init.tensors();
@@ -198,8 +123,8 @@ pub const SS_DECODER_OCCUPANCY_PRIOR: f64 = 2.0;
 
 /// Replace random values of deterministic buffers by what upstream registers,
 /// and set the random-init occupancy prior.
-fn fill_buffers(cfg: &ModuleConfig, t: &mut BTreeMap<String, Tensor>, file: &str) -> Result<()> {
-    for (name, v) in buffer_overrides(cfg, file)? {
+fn fill_buffers(cfg: &ModuleArgs, t: &mut BTreeMap<String, Tensor>, file: &str) -> Result<()> {
+    for (name, v) in buffer_overrides(cfg)? {
         if let Some(old) = t.get(&name) {
             if old.dims() != v.dims() {
                 return Err(Error::msg(format!("{file}: buffer `{name}` has shape {:?}, computed {:?}", old.dims(), v.dims())));
@@ -211,24 +136,22 @@ fn fill_buffers(cfg: &ModuleConfig, t: &mut BTreeMap<String, Tensor>, file: &str
 }
 
 /// Computed values of the module's deterministic buffers (see [`random_weights`]).
-fn buffer_overrides(cfg: &ModuleConfig, file: &str) -> Result<BTreeMap<String, Tensor>> {
+fn buffer_overrides(cfg: &ModuleArgs) -> Result<BTreeMap<String, Tensor>> {
     let dev = Device::Cpu;
     let mut t = BTreeMap::new();
-    match kind(cfg, file)? {
-        ModuleKind::SsFlow => {
-            let c = SsFlowConfig::from_value(&cfg.args, file)?;
+    match cfg {
+        ModuleArgs::SsFlow(c) => {
             let pe = SparseStructureFlowModel::grid_position_embedding(c.resolution / c.patch_size, c.model_channels, &dev)?;
             t.insert("pos_emb".into(), pe.to_dtype(DType::F32)?);
         }
-        ModuleKind::SsDecoder => {
-            let c = SparseStructureDecoderConfig::from_json(&cfg.args)?;
+        ModuleArgs::SsDecoder(c) => {
             let last = *c.channels.last().unwrap_or(&1) as f64;
             let sigma = 0.01 * (27.0 * last).sqrt();
             let prior = Tensor::full((-SS_DECODER_OCCUPANCY_PRIOR * sigma) as f32, c.out_channels, &dev)?;
             t.insert("out_layer.2.bias".into(), prior);
         }
-        ModuleKind::GaussianDecoder => {
-            let g = GaussianConfig::from_args(&cfg.args)?;
+        ModuleArgs::GaussianDecoder(c) => {
+            let g = GaussianConfig::new(c);
             t.insert("offset_perturbation".into(), offset_perturbation(g.num_gaussians, g.voxel_size, &dev)?);
         }
         _ => {}
@@ -238,12 +161,13 @@ fn buffer_overrides(cfg: &ModuleConfig, file: &str) -> Result<BTreeMap<String, T
 
 /// A VarBuilder giving exactly the tensors of [`random_weights`], generated
 /// one at a time when the module asks for them (nothing is kept).
-pub fn random_var_builder(cfg: &ModuleConfig, seed: u64, file: &str) -> Result<VarBuilder<'static>> {
-    Ok(RandomStream::new(seed, buffer_overrides(cfg, file)?).var_builder(&Device::Cpu))
+pub fn random_var_builder(cfg: &ModuleArgs, seed: u64) -> Result<VarBuilder<'static>> {
+    Ok(RandomStream::new(seed, buffer_overrides(cfg)?).var_builder(&Device::Cpu))
 }
 
 /// Per-module seed derived from a run seed and the module's key, so modules
-/// with equal parameter names (`blocks.0.*`) do not get equal values.
+/// with equal parameter names (`blocks.0.*`) do not get equal values. (Also
+/// used with tensor names, hence `&str`; pass `key.name()` for a module.)
 pub fn module_seed(seed: u64, key: &str) -> u64 {
     key.bytes()
         .fold(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
@@ -253,6 +177,7 @@ pub fn module_seed(seed: u64, key: &str) -> u64 {
 mod tests {
     use super::*;
     use crate::model::config::RecGenConfig;
+    use crate::model::key::ModuleKey;
 
     /// The SLat mesh decoder on the random weights benchmarks and `Source::Random` use:
     /// its fused output layer gives the unfused result.
@@ -262,8 +187,9 @@ mod tests {
             "resolution": 8, "model_channels": 256, "latent_channels": 8, "num_blocks": 1,
             "num_heads": 2, "mlp_ratio": 1, "window_size": 4, "representation_config": {"use_color": true}
         });
-        let vb = random_var_builder(&ModuleConfig { name: "SLatMeshDecoder".into(), args: args.clone() }, 7, "slat_dec_mesh")?;
-        let dec = SLatMeshDecoder::new(&args, vb, Compute::Plain)?;
+        let cfg = ModuleArgs::from_spec(&ModuleConfig { name: "SLatMeshDecoder".into(), args }, "slat_dec_mesh")?;
+        let vb = random_var_builder(&cfg, 7)?;
+        let dec = build_mesh_decoder(&cfg, vb, "slat_dec_mesh", Compute::Plain)?;
         let coords: Vec<[i32; 4]> = (0..20).map(|i| [0, 2 + i % 4, 3 + (i / 4) % 3, 1 + i / 12]).collect();
         let feats = Tensor::randn(0f32, 1.0, (coords.len(), 8), &Device::Cpu)?;
         let x = crate::model::sparse::SparseTensor::new(coords, feats, 1)?;
@@ -285,8 +211,9 @@ mod tests {
                 "3d_filter_kernel_size": 9e-4, "scaling_bias": 4e-3, "opacity_bias": 0.1, "scaling_activation": "softplus"
             }
         });
-        let vb = random_var_builder(&ModuleConfig { name: "SLatGaussianDecoder".into(), args: args.clone() }, 3, "slat_dec_gs")?;
-        let dec = SLatGaussianDecoder::new(&args, vb, Compute::Plain)?;
+        let cfg = ModuleArgs::from_spec(&ModuleConfig { name: "SLatGaussianDecoder".into(), args }, "slat_dec_gs")?;
+        let vb = random_var_builder(&cfg, 3)?;
+        let dec = build_gaussian_decoder(&cfg, vb, "slat_dec_gs", Compute::Plain)?;
         let coords: Vec<[i32; 4]> = (0..10).map(|i| [i / 6, i % 5, 3, 15 - i]).collect();
         let x = crate::model::sparse::SparseTensor::new(coords.clone(), Tensor::randn(0f32, 1.0, (10, 8), &Device::Cpu)?, 2)?;
         let reps = dec.forward(&x)?;
@@ -312,34 +239,41 @@ mod tests {
     /// random weights, norm weights are 1, and buffers are computed values.
     #[test]
     fn tiny_architecture_modules_are_registered() -> Result<()> {
-        let path = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
+        let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")).join("models/recgen-tiny.json");
         let arch = RecGenConfig::load(&path)?;
-        for (key, spec) in arch.modules() {
-            let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-            let specs = expected_tensors(&cfg, key)?;
+        for (key, _) in arch.modules() {
+            let cfg = arch.module_args(key)?;
+            let specs = expected_tensors(&cfg, key.name())?;
             assert!(!specs.is_empty(), "{key}");
-            let w = random_weights(&cfg, 1, key)?;
+            let w = random_weights(&cfg, 1, key.name())?;
             assert_eq!(w.len(), specs.len(), "{key}");
             for s in &specs {
                 assert_eq!(w[&s.name].dims(), s.shape.as_slice(), "{key} {}", s.name);
             }
         }
-        let ss = arch.modules().into_iter().find(|(k, _)| *k == "ss_flow").unwrap().1;
-        let w = random_weights(&ModuleConfig { name: ss.name.clone(), args: ss.args.clone() }, 1, "ss")?;
+        let w = random_weights(&arch.module_args(ModuleKey::SsFlow)?, 1, "ss")?;
         let want = SparseStructureFlowModel::grid_position_embedding(8, 64, &Device::Cpu)?;
         assert_eq!(crate::util::max_abs_diff(&w["pos_emb"], &want)?, 0.0);
         assert!(ModuleKind::of("NoSuchModel").is_none());
         // The streaming builder hands out the same tensors.
-        for (key, spec) in arch.modules() {
-            let cfg = ModuleConfig { name: spec.name.clone(), args: spec.args.clone() };
-            let w = random_weights(&cfg, 3, key)?;
-            let vb = random_var_builder(&cfg, 3, key)?;
-            for s in expected_tensors(&cfg, key)? {
+        for (key, _) in arch.modules() {
+            let cfg = arch.module_args(key)?;
+            let w = random_weights(&cfg, 3, key.name())?;
+            let vb = random_var_builder(&cfg, 3)?;
+            for s in expected_tensors(&cfg, key.name())? {
                 let got = vb.get(s.shape.as_slice(), &s.name)?;
                 assert_eq!(crate::util::max_abs_diff(&got, &w[&s.name])?, 0.0, "{key} {}", s.name);
             }
         }
-        assert_ne!(module_seed(1, "ss_flow"), module_seed(1, "slat_flow"));
+        assert_ne!(module_seed(1, ModuleKey::SsFlow.name()), module_seed(1, ModuleKey::SlatFlow.name()));
+        // A builder handed another kind's config says so.
+        let e = build_ss_flow(
+            &arch.module_args(ModuleKey::SsDecoder)?,
+            Recorder::new().var_builder(DType::F32, &Device::Cpu),
+            "x",
+            Compute::Plain,
+        );
+        assert!(e.is_err_and(|e| e.to_string().contains("SsFlow")));
         Ok(())
     }
 }

@@ -16,8 +16,10 @@ use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute}
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum PeMode {
+    /// Absolute sin/cos position embedding (`ape`), see [`abs_position_embedding`].
     #[default]
     Ape,
+    /// Rotary position embedding (`rope`); parsed, but the models here refuse it.
     Rope,
 }
 
@@ -47,9 +49,11 @@ pub struct LayerNorm {
 }
 
 impl LayerNorm {
+    /// Load `{prefix}.weight` and `{prefix}.bias`, both `[dim]`, with epsilon `eps`.
     pub fn new(dim: usize, eps: f64, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self { weight: vb.get(dim, "weight")?, bias: vb.get(dim, "bias")?, eps, compute })
     }
+    /// Normalise `x` `[..., dim]` over its last dim, then scale and shift.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         if let Some((_, isa)) = self.compute.fast_parts() {
             return fast::layer_norm(isa, x, self.eps, Some(&self.weight), Some(&self.bias));
@@ -68,6 +72,7 @@ pub struct TimestepEmbedder {
 }
 
 impl TimestepEmbedder {
+    /// A 256-frequency embedder with MLP `256 → hidden → hidden` (`mlp.0`, `mlp.2`).
     pub fn new(hidden: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let freq_size = 256;
         Ok(Self {
@@ -77,6 +82,7 @@ impl TimestepEmbedder {
         })
     }
 
+    /// `t` `[N]` → `[N, 2·(dim/2)]` f32: `[cos(t·f_k), sin(t·f_k)]` with `f_k = 10000^(−k/(dim/2))`.
     pub fn sinusoidal(t: &Tensor, dim: usize) -> Result<Tensor> {
         let half = dim / 2;
         let freqs: Vec<f32> = (0..half).map(|k| (-(10000f64.ln()) * k as f64 / half as f64).exp() as f32).collect();
@@ -85,6 +91,7 @@ impl TimestepEmbedder {
         Tensor::cat(&[args.cos()?, args.sin()?], 1)
     }
 
+    /// Timesteps `t` `[N]` (model scale) → embeddings `[N, hidden]` (MLP with SiLU).
     pub fn forward(&self, t: &Tensor) -> Result<Tensor> {
         let e = Self::sinusoidal(t, self.freq_size)?;
         self.mlp2.forward(&self.mlp0.forward(&e)?.silu()?)
@@ -120,6 +127,7 @@ pub struct MultiHeadRmsNorm {
 }
 
 impl MultiHeadRmsNorm {
+    /// Load `{prefix}.gamma` `[heads, head_dim]`.
     pub fn new(heads: usize, head_dim: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self { gamma: vb.get((heads, head_dim), "gamma")?, scale: (head_dim as f64).sqrt() })
     }
@@ -224,6 +232,7 @@ pub struct FeedForward {
 pub const FFN_ROWS: usize = 2048;
 
 impl FeedForward {
+    /// `channels → channels·mlp_ratio → channels` (`mlp.0`, `mlp.2`).
     pub fn new(channels: usize, mlp_ratio: f64, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let hidden = (channels as f64 * mlp_ratio) as usize;
         Ok(Self { fc1: linear(channels, hidden, vb.pp("mlp.0"), compute)?, fc2: linear(hidden, channels, vb.pp("mlp.2"), compute)? })
@@ -242,7 +251,9 @@ impl FeedForward {
 /// with optional QK RMS-norm.
 #[derive(Debug, Clone)]
 pub struct MultiHeadAttention {
+    /// Number of attention heads.
     pub heads: usize,
+    /// Channels per head (`channels / heads`).
     pub head_dim: usize,
     to_qkv: Option<Linear>,
     to_q: Option<Linear>,
@@ -412,7 +423,9 @@ impl MultiHeadAttention {
 /// un-modulated cross-attention (affine norm2), modulated MLP.
 #[derive(Debug, Clone)]
 pub struct ModulatedTransformerCrossBlock {
+    /// Self-attention (`self_attn`).
     pub self_attn: MultiHeadAttention,
+    /// Cross-attention to the condition tokens (`cross_attn`).
     pub cross_attn: MultiHeadAttention,
     norm2: LayerNorm,
     mlp: FeedForward,
@@ -423,16 +436,24 @@ pub struct ModulatedTransformerCrossBlock {
 /// Hyper-parameters of a modulated cross block.
 #[derive(Debug, Clone, Copy)]
 pub struct CrossBlockConfig {
+    /// Token width C (upstream `channels`).
     pub channels: usize,
+    /// Condition token width Cc (upstream `ctx_channels`).
     pub ctx_channels: usize,
+    /// Attention heads (upstream `num_heads`).
     pub heads: usize,
+    /// MLP hidden width as a multiple of C (upstream `mlp_ratio`).
     pub mlp_ratio: f64,
+    /// Take the shared `[B, 6C]` modulation instead of a per-block adaLN layer (upstream `share_mod`).
     pub share_mod: bool,
+    /// RMS-normalise q and k in self-attention (upstream `qk_rms_norm`).
     pub qk_rms_norm: bool,
+    /// RMS-normalise q and k in cross-attention (upstream `qk_rms_norm_cross`).
     pub qk_rms_norm_cross: bool,
 }
 
 impl ModulatedTransformerCrossBlock {
+    /// Load the block's layers (`self_attn`, `cross_attn`, `norm2`, `mlp`, and `adaLN_modulation.1` unless `share_mod`).
     pub fn new(cfg: &CrossBlockConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let c = cfg.channels;
         Ok(Self {

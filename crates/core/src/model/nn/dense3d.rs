@@ -11,8 +11,7 @@
 //! gradient is one GEMM per kernel tap. The plain-ops composition
 //! [`conv3d_candle`] (2D convolutions over depth slices) is its reference;
 //! its backward goes through candle's CPU `conv_transpose2d`, a direct loop
-//! too slow to train with (about 1.3 s for one 8-channel 16³ layer of batch
-//! 4), which is why the custom op exists. Tests check values and gradients
+//! too slow to train with, which is why the custom op exists. Tests check values and gradients
 //! of the two agree.
 
 use crate::{Error, Result};
@@ -23,8 +22,10 @@ use crate::{Error, Result};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum NormType {
+    /// Channel LayerNorm (`layer`, TRELLIS `ChannelLayerNorm32`), see [`ChannelLayerNorm`].
     #[default]
     Layer,
+    /// GroupNorm (`group`); parsed, but the SS VAE configs refuse it.
     Group,
 }
 use crate::model::nn::fast::{Compute, Isa, Precision};
@@ -36,17 +37,20 @@ use recon_kernels::gemm::WeightFormat;
 /// An NCDHW `f32` volume in a plain buffer, the currency of the fast path.
 #[derive(Debug, Clone)]
 pub struct Volume {
+    /// The values, row-major in `dims` order (`B·C·D·H·W` of them).
     pub data: Vec<f32>,
     /// `[B, C, D, H, W]`
     pub dims: [usize; 5],
 }
 
 impl Volume {
+    /// Copy a `[B, C, D, H, W]` tensor (any device and dtype) into an f32 CPU volume.
     pub fn from_tensor(t: &Tensor) -> Result<Self> {
         let (b, c, d, h, w) = t.dims5()?;
         let data = t.to_device(&Device::Cpu)?.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
         Ok(Volume { data, dims: [b, c, d, h, w] })
     }
+    /// The volume as a `[B, C, D, H, W]` f32 CPU tensor (a copy).
     pub fn to_tensor(&self) -> Result<Tensor> {
         Ok(Tensor::from_slice(&self.data, &self.dims[..], &Device::Cpu)?)
     }
@@ -274,6 +278,7 @@ pub struct Conv3d {
 }
 
 impl Conv3d {
+    /// Load `{prefix}.weight` `[cout, cin, k, k, k]` and `{prefix}.bias` `[cout]`; zero padding `pad` on every side.
     pub fn new(cin: usize, cout: usize, k: usize, pad: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let weight = vb.get((cout, cin, k, k, k), "weight")?;
         let bias = vb.get(cout, "bias")?;
@@ -328,6 +333,7 @@ pub struct ChannelLayerNorm {
 }
 
 impl ChannelLayerNorm {
+    /// Load `{prefix}.weight` and `{prefix}.bias`, both `[channels]`.
     pub fn new(channels: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self { weight: vb.get(channels, "weight")?, bias: vb.get(channels, "bias")?, channels, eps: 1e-5 })
     }

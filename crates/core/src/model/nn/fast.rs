@@ -37,15 +37,20 @@ pub use recon_kernels::vecmath::Activation;
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Precision {
+    /// f32 weights and arithmetic (`f32`).
     #[default]
     F32,
+    /// bf16 weights, bf16-rounded GEMM/attention inputs, f32 accumulation (`bf16`).
     Bf16,
+    /// f16 weights widened to f32 in registers; f32 activations and attention (`f16`).
     F16,
 }
 
 impl Precision {
+    /// Every precision, in the order f32, bf16, f16.
     pub const ALL: [Precision; 3] = [Precision::F32, Precision::Bf16, Precision::F16];
 
+    /// Lower-case name (`f32`, `bf16`, `f16`), as parsed and printed.
     pub fn name(self) -> &'static str {
         match self {
             Precision::F32 => "f32",
@@ -53,6 +58,7 @@ impl Precision {
             Precision::F16 => "f16",
         }
     }
+    /// Storage format of packed GEMM weights at this precision.
     pub fn weight_format(self) -> WeightFormat {
         match self {
             Precision::F32 => WeightFormat::F32,
@@ -60,6 +66,7 @@ impl Precision {
             Precision::F16 => WeightFormat::F16,
         }
     }
+    /// Flash-attention precision: bf16 inputs for [`Precision::Bf16`], f32 otherwise.
     pub fn attention(self) -> AttnPrecision {
         match self {
             Precision::Bf16 => AttnPrecision::Bf16,
@@ -91,7 +98,12 @@ pub enum Compute {
     #[default]
     Plain,
     /// recon-kernels at `precision`, with the kernels of `isa` (inference only).
-    Fast { precision: Precision, isa: Isa },
+    Fast {
+        /// Weight storage and arithmetic precision.
+        precision: Precision,
+        /// Instruction set the kernels are dispatched for.
+        isa: Isa,
+    },
 }
 
 impl Compute {
@@ -102,6 +114,7 @@ impl Compute {
         let isa = if precision == Precision::Bf16 { recon_kernels::peak::bf16_isa() } else { Isa::best() };
         Compute::Fast { precision, isa }
     }
+    /// Whether this is [`Compute::Fast`].
     pub fn is_fast(&self) -> bool {
         matches!(self, Compute::Fast { .. })
     }
@@ -112,6 +125,7 @@ impl Compute {
             Compute::Plain => None,
         }
     }
+    /// Human-readable label, e.g. `plain candle f32` or `fast bf16 (<isa>)`.
     pub fn describe(&self) -> String {
         match self {
             Compute::Plain => "plain candle f32".into(),
@@ -162,9 +176,11 @@ impl FastLinear {
         }
         Ok(Self { w, bias, isa })
     }
+    /// Input features K.
     pub fn in_dim(&self) -> usize {
         self.w.k()
     }
+    /// Output features N.
     pub fn out_dim(&self) -> usize {
         self.w.n()
     }

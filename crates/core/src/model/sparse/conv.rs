@@ -20,13 +20,18 @@ pub fn neighbour_map(x: &SparseTensor, kernel_size: usize) -> Result<NeighbourMa
     NeighbourMap::submanifold(&x.coords, kernel_size).map_err(Error::msg)
 }
 
+/// Submanifold sparse 3D convolution with odd kernel size k: outputs only at the input's active voxels.
 #[derive(Debug, Clone)]
 pub struct SparseConv3d {
     /// `[C_out, k, k, k, C_in]`.
     pub weight: Tensor,
+    /// `[C_out]`, if any.
     pub bias: Option<Tensor>,
+    /// Input channels `C_in`.
     pub in_channels: usize,
+    /// Output channels `C_out`.
     pub out_channels: usize,
+    /// Kernel side k (odd).
     pub kernel_size: usize,
     // Host copies for the fast kernel, made once at load time.
     weight_host: Vec<f32>,

@@ -15,8 +15,11 @@ use candle_core::{DType, Tensor};
 /// What a downsample remembers for its paired upsample.
 #[derive(Debug, Clone)]
 pub struct DownsampleCache {
+    /// Downsampling factor f.
     pub factor: i32,
+    /// Coordinates of the fine (input) tensor, in its row order.
     pub fine_coords: Vec<[i32; 4]>,
+    /// Batch size of the fine tensor.
     pub fine_batch_size: usize,
     /// Coarse row of every fine row.
     pub inverse: Vec<u32>,

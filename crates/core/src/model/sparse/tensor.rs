@@ -4,6 +4,7 @@ use crate::{Error, Result};
 use candle_core::{DType, Device, Tensor};
 use std::ops::Range;
 
+/// A batch of sparse voxel sets: one coordinate row and one feature row per active voxel (TRELLIS `SparseTensor`).
 #[derive(Debug, Clone)]
 pub struct SparseTensor {
     /// `(batch, x, y, z)` per row; rows of one batch item are contiguous.
@@ -15,6 +16,7 @@ pub struct SparseTensor {
 }
 
 impl SparseTensor {
+    /// Check that `feats` has one row per coord and batch indices are ascending and `< batch_size`.
     pub fn new(coords: Vec<[i32; 4]>, feats: Tensor, batch_size: usize) -> Result<Self> {
         if feats.dim(0)? != coords.len() {
             return Err(Error::msg(format!("sparse tensor: {} coords but {} feature rows", coords.len(), feats.dim(0)?)));
@@ -43,10 +45,12 @@ impl SparseTensor {
         Ok(Tensor::from_vec(flat, (self.coords.len(), 4), device)?)
     }
 
+    /// Number of rows (active voxels over all batch items).
     pub fn len(&self) -> usize {
         self.coords.len()
     }
 
+    /// Whether there are no rows.
     pub fn is_empty(&self) -> bool {
         self.coords.is_empty()
     }

@@ -16,7 +16,9 @@ use candle_core::Tensor;
 /// `seq_lens[w]` rows per window (in `order`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct WindowPartition {
+    /// Row indices, grouped window by window.
     pub order: Vec<usize>,
+    /// Rows per non-empty window, in `order`'s window order.
     pub seq_lens: Vec<usize>,
 }
 

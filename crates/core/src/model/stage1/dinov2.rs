@@ -16,16 +16,24 @@ use serde::{Deserialize, Serialize};
 /// Hyper-parameters of a DINOv2 ViT with registers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Dinov2Config {
+    /// Token width D (hub `embed_dim`, HF `hidden_size`).
     pub embed_dim: usize,
+    /// Number of transformer blocks (hub `depth`, HF `num_hidden_layers`).
     pub depth: usize,
+    /// Attention heads (hub `num_heads`, HF `num_attention_heads`).
     pub num_heads: usize,
+    /// MLP hidden width as a multiple of D (`mlp_ratio`).
     pub mlp_ratio: f64,
+    /// Patch side in pixels (`patch_size`).
     pub patch_size: usize,
     /// Image side the position embedding was trained for (518 for the hub models).
     pub img_size: usize,
+    /// Register tokens R (`num_register_tokens`).
     pub num_register_tokens: usize,
+    /// Image channels (hub `in_chans`, HF `num_channels`; default 3).
     #[serde(default = "default_in_chans")]
     pub in_chans: usize,
+    /// Epsilon of every LayerNorm (`layer_norm_eps`; default 1e-6).
     #[serde(default = "default_eps")]
     pub layer_norm_eps: f64,
 }
@@ -35,6 +43,30 @@ fn default_in_chans() -> usize {
 }
 fn default_eps() -> f64 {
     1e-6
+}
+
+/// The HF `Dinov2WithRegistersConfig` fields this port reads (others, such
+/// as `layerscale_value`, are ignored).
+#[derive(Debug, Clone, Deserialize)]
+struct Dinov2HfConfig {
+    hidden_size: usize,
+    num_hidden_layers: usize,
+    num_attention_heads: usize,
+    #[serde(default)]
+    mlp_ratio: Option<f64>,
+    patch_size: usize,
+    image_size: usize,
+    num_register_tokens: usize,
+    #[serde(default)]
+    num_channels: Option<usize>,
+    #[serde(default)]
+    layer_norm_eps: Option<f64>,
+    #[serde(default)]
+    use_swiglu_ffn: Option<bool>,
+    #[serde(default)]
+    hidden_act: Option<String>,
+    #[serde(default)]
+    qkv_bias: Option<bool>,
 }
 
 impl Dinov2Config {
@@ -53,41 +85,45 @@ impl Dinov2Config {
         }
     }
 
-    /// From a HF `Dinov2WithRegistersConfig` JSON object (as in the conformance fixture).
-    /// Only the variant used upstream is supported (GELU MLP, qkv bias, layer scale).
-    pub fn from_hf_config(v: &serde_json::Value, file: &str) -> crate::Result<Self> {
-        let usize_of = |k: &str| -> crate::Result<usize> {
-            v.get(k)
-                .and_then(|x| x.as_u64())
-                .map(|x| x as usize)
-                .ok_or_else(|| crate::Error::config(file, k, "missing or not a non-negative integer"))
-        };
-        if v.get("use_swiglu_ffn").and_then(|x| x.as_bool()).unwrap_or(false) {
-            return Err(crate::Error::config(file, "use_swiglu_ffn", "SwiGLU FFN is not supported (vitl14 uses an MLP)"));
-        }
-        if let Some(act) = v.get("hidden_act").and_then(|x| x.as_str()) {
-            if act != "gelu" {
-                return Err(crate::Error::config(file, "hidden_act", format!("only exact `gelu` is supported, got `{act}`")));
-            }
-        }
-        if v.get("qkv_bias").and_then(|x| x.as_bool()) == Some(false) {
-            return Err(crate::Error::config(file, "qkv_bias", "qkv without bias is not supported"));
-        }
-        let cfg = Self {
-            embed_dim: usize_of("hidden_size")?,
-            depth: usize_of("num_hidden_layers")?,
-            num_heads: usize_of("num_attention_heads")?,
-            mlp_ratio: v.get("mlp_ratio").and_then(|x| x.as_f64()).unwrap_or(4.0),
-            patch_size: usize_of("patch_size")?,
-            img_size: usize_of("image_size")?,
-            num_register_tokens: usize_of("num_register_tokens")?,
-            in_chans: v.get("num_channels").and_then(|x| x.as_u64()).map(|x| x as usize).unwrap_or(3),
-            layer_norm_eps: v.get("layer_norm_eps").and_then(|x| x.as_f64()).unwrap_or(1e-6),
+    /// DINOv2 args in either form: hub (`embed_dim`, `depth`, ...) or HF
+    /// `Dinov2WithRegistersConfig` (`hidden_size`, `num_hidden_layers`, ...,
+    /// as in the architecture file and the conformance fixture), then
+    /// validated; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> crate::Result<Self> {
+        let cfg = if v.get("hidden_size").is_some() {
+            Self::from_hf(crate::util::json::from_value(v, file)?, file)?
+        } else {
+            crate::util::json::from_value(v, file)?
         };
         cfg.validate(file)?;
         Ok(cfg)
     }
 
+    /// Only the variant used upstream is supported (GELU MLP, qkv bias, layer scale).
+    fn from_hf(hf: Dinov2HfConfig, file: &str) -> crate::Result<Self> {
+        if hf.use_swiglu_ffn == Some(true) {
+            return Err(crate::Error::config(file, "use_swiglu_ffn", "SwiGLU FFN is not supported (vitl14 uses an MLP)"));
+        }
+        if let Some(act) = hf.hidden_act.filter(|a| a != "gelu") {
+            return Err(crate::Error::config(file, "hidden_act", format!("only exact `gelu` is supported, got `{act}`")));
+        }
+        if hf.qkv_bias == Some(false) {
+            return Err(crate::Error::config(file, "qkv_bias", "qkv without bias is not supported"));
+        }
+        Ok(Self {
+            embed_dim: hf.hidden_size,
+            depth: hf.num_hidden_layers,
+            num_heads: hf.num_attention_heads,
+            mlp_ratio: hf.mlp_ratio.unwrap_or(4.0),
+            patch_size: hf.patch_size,
+            img_size: hf.image_size,
+            num_register_tokens: hf.num_register_tokens,
+            in_chans: hf.num_channels.unwrap_or(3),
+            layer_norm_eps: hf.layer_norm_eps.unwrap_or(1e-6),
+        })
+    }
+
+    /// Check that `embed_dim` is a multiple of `num_heads` and `img_size` of `patch_size`; errors name `file`.
     pub fn validate(&self, file: &str) -> crate::Result<()> {
         if self.num_heads == 0 || !self.embed_dim.is_multiple_of(self.num_heads) {
             return Err(crate::Error::config(file, "num_heads", "embed_dim must be a positive multiple of num_heads"));
@@ -102,6 +138,7 @@ impl Dinov2Config {
     pub fn grid(&self) -> usize {
         self.img_size / self.patch_size
     }
+    /// MLP hidden width, `embed_dim · mlp_ratio` (truncated).
     pub fn mlp_hidden(&self) -> usize {
         (self.embed_dim as f64 * self.mlp_ratio) as usize
     }
@@ -201,8 +238,10 @@ pub struct Dinov2Output {
     pub last_hidden_state: Tensor,
 }
 
+/// DINOv2 ViT with register tokens (torch.hub `DinoVisionTransformer`).
 #[derive(Debug, Clone)]
 pub struct Dinov2 {
+    /// The hyper-parameters it was built with.
     pub cfg: Dinov2Config,
     cls_token: Tensor,
     pos_embed: Tensor,

@@ -41,6 +41,7 @@ impl PatchEmbedder {
         f.flatten_from(2)?.transpose(1, 2)?.contiguous()
     }
 
+    /// Token width C.
     pub fn out_channels(&self) -> usize {
         self.out_channels
     }
@@ -106,6 +107,7 @@ pub struct FrameTokenEmbedder {
 }
 
 impl FrameTokenEmbedder {
+    /// `vb` is the model root; the `[2, channels]` parameter is `frame_token_embedder`.
     pub fn new(channels: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self { weight: vb.get((2, channels), "frame_token_embedder")? })
     }
@@ -135,8 +137,11 @@ pub struct ViewInputs {
 /// The embedders a model owns (any may be absent).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CondEmbedders<'a> {
+    /// Point-map embedder, if the model has one.
     pub point: Option<&'a PointmapEmbedder>,
+    /// Mask embedder, if the model has one.
     pub mask: Option<&'a MaskEmbedder>,
+    /// Frame-token embedder, if the model has one.
     pub frame: Option<&'a FrameTokenEmbedder>,
 }
 

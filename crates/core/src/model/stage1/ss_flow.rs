@@ -29,20 +29,31 @@ use crate::{Error, Result};
 /// it this is the plain TRELLIS model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SsFlowConfig {
+    /// Side R of the dense latent grid (upstream `resolution`).
     pub resolution: usize,
+    /// Latent channels Cin of the input (upstream `in_channels`).
     pub in_channels: usize,
+    /// Channels Cout of the predicted velocity (upstream `out_channels`).
     pub out_channels: usize,
+    /// Transformer width C (upstream `model_channels`).
     pub model_channels: usize,
+    /// Condition token width Cc (upstream `cond_channels`).
     pub cond_channels: usize,
+    /// Number of transformer blocks (upstream `num_blocks`).
     pub num_blocks: usize,
+    /// Attention heads (upstream `num_heads`); None derives them from `num_head_channels`.
     #[serde(default)]
     pub num_heads: Option<usize>,
+    /// Channels per head when `num_heads` is unset (upstream `num_head_channels`; default 64).
     #[serde(default = "default_head_channels")]
     pub num_head_channels: usize,
+    /// MLP hidden width as a multiple of C (upstream `mlp_ratio`; default 4).
     #[serde(default = "default_mlp_ratio")]
     pub mlp_ratio: f64,
+    /// Patch side p of the voxel patchify (upstream `patch_size`; default 2).
     #[serde(default = "default_patch_size")]
     pub patch_size: usize,
+    /// Position embedding (upstream `pe_mode`); only `ape` is accepted.
     #[serde(default)]
     pub pe_mode: PeMode,
     /// Upstream runs the torso in fp16; this port computes in f32 (ignored).
@@ -51,21 +62,28 @@ pub struct SsFlowConfig {
     /// Gradient checkpointing; no effect on values (ignored).
     #[serde(default)]
     pub use_checkpoint: bool,
+    /// One model-level adaLN modulation shared by all blocks (upstream `share_mod`).
     #[serde(default)]
     pub share_mod: bool,
+    /// RMS-normalise q and k in self-attention (upstream `qk_rms_norm`).
     #[serde(default)]
     pub qk_rms_norm: bool,
+    /// RMS-normalise q and k in cross-attention (upstream `qk_rms_norm_cross`).
     #[serde(default)]
     pub qk_rms_norm_cross: bool,
     /// Point-map and mask embedders (their args, flattened).
     #[serde(flatten)]
     pub embedders: CondEmbedderConfig,
+    /// Build the `frame_token_embedder` (`[2, cond_channels]` per-view embedding; RecGen `use_frame_token_embedder`).
     #[serde(default)]
     pub use_frame_token_embedder: bool,
+    /// RecGen `use_asymmetric_mask`: not supported, must be false.
     #[serde(default)]
     pub use_asymmetric_mask: bool,
+    /// Pose vector layout of the pose tokens (RecGen `pose_representation`); None: no pose tokens.
     #[serde(default)]
     pub pose_representation: Option<PoseRepresentation>,
+    /// Pose tokens K (RecGen `num_pose_tokens`; default 1); K > 1 adds a `[K, C]` `pose_token_embedder`.
     #[serde(default = "default_pose_tokens")]
     pub num_pose_tokens: usize,
 }
@@ -85,12 +103,13 @@ fn default_pose_tokens() -> usize {
 
 impl SsFlowConfig {
     /// Deserialise from an `args` object and check consistency; `file` names the source in errors.
-    pub fn from_value(v: &serde_json::Value, file: &str) -> Result<Self> {
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
         let cfg: Self = crate::util::json::from_value(v, file)?;
         cfg.validate(file)?;
         Ok(cfg)
     }
 
+    /// Attention heads: `num_heads`, else `model_channels / num_head_channels`.
     pub fn heads(&self) -> usize {
         self.num_heads.unwrap_or(self.model_channels / self.num_head_channels.max(1))
     }
@@ -105,6 +124,7 @@ impl SsFlowConfig {
         (self.resolution / self.patch_size).pow(3)
     }
 
+    /// Check the args are consistent and supported; `file` names the source in errors.
     pub fn validate(&self, file: &str) -> Result<()> {
         let err = |f: &str, m: String| Err(Error::config(file, f, m));
         if self.patch_size == 0 || self.resolution == 0 || !self.resolution.is_multiple_of(self.patch_size) {
@@ -160,8 +180,10 @@ struct PoseIo {
     pose_token_embedder: Option<Tensor>,
 }
 
+/// The stage-1 flow transformer over the dense `[B, Cin, R, R, R]` latent, with RecGen's optional pose tokens.
 #[derive(Debug, Clone)]
 pub struct SparseStructureFlowModel {
+    /// The args it was built with.
     pub cfg: SsFlowConfig,
     input_layer: Linear,
     pos_emb: Tensor,
@@ -171,12 +193,16 @@ pub struct SparseStructureFlowModel {
     blocks: Vec<ModulatedTransformerCrossBlock>,
     out_layer: Linear,
     pose: Option<PoseIo>,
+    /// `point_embedder`, when `use_point_embedder` is set.
     pub point_embedder: Option<PointmapEmbedder>,
+    /// `mask_embedder`, when `use_mask_embedder` is set.
     pub mask_embedder: Option<MaskEmbedder>,
+    /// `frame_token_embedder`, when `use_frame_token_embedder` is set.
     pub frame_token_embedder: Option<FrameTokenEmbedder>,
 }
 
 impl SparseStructureFlowModel {
+    /// Validate `cfg` and load the weights under `vb` (upstream names); a missing `pos_emb` is computed.
     pub fn new(cfg: &SsFlowConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate("ss_flow config")?;
         let c = cfg.model_channels;
@@ -428,7 +454,7 @@ mod tests {
             v["pose_representation"] = "6d_translation_scale".into();
             v["num_pose_tokens"] = 2.into();
         }
-        SsFlowConfig::from_value(&v, "test").unwrap()
+        SsFlowConfig::from_json(&v, "test").unwrap()
     }
 
     fn random_model(cfg: &SsFlowConfig) -> Result<SparseStructureFlowModel> {
@@ -528,9 +554,9 @@ mod tests {
     fn config_validation() {
         let mut v = serde_json::to_value(tiny_cfg(1, true)).unwrap();
         v["pose_representation"] = "euler".into();
-        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+        assert!(SsFlowConfig::from_json(&v, "t").is_err());
         let mut v = serde_json::to_value(tiny_cfg(1, false)).unwrap();
         v["num_heads"] = 5.into();
-        assert!(SsFlowConfig::from_value(&v, "t").is_err());
+        assert!(SsFlowConfig::from_json(&v, "t").is_err());
     }
 }

@@ -54,51 +54,79 @@ fn default_pose_repr() -> PoseRepresentation {
 /// `args`). Unknown fields (`use_fp16`, `use_checkpoint`) are ignored.
 #[derive(Debug, Clone, Deserialize)]
 pub struct SLatFlowConfig {
+    /// Side of the sparse voxel grid the latents live on (upstream `resolution`); the forward pass does not read it.
     pub resolution: usize,
+    /// Latent channels per input voxel (upstream `in_channels`).
     pub in_channels: usize,
+    /// Channels of the predicted velocity per voxel (upstream `out_channels`).
     pub out_channels: usize,
+    /// Transformer width (upstream `model_channels`).
     pub model_channels: usize,
+    /// Width of the condition tokens (upstream `cond_channels`).
     pub cond_channels: usize,
+    /// Number of transformer blocks (upstream `num_blocks`).
     pub num_blocks: usize,
+    /// Attention heads (upstream `num_heads`); `None`: `model_channels / num_head_channels`.
     #[serde(default)]
     pub num_heads: Option<usize>,
+    /// Channels per head when `num_heads` is unset (upstream `num_head_channels`, default 64).
     #[serde(default = "default_head_channels")]
     pub num_head_channels: usize,
+    /// Feed-forward hidden width over `model_channels` (upstream `mlp_ratio`, default 4).
     #[serde(default = "default_mlp_ratio")]
     pub mlp_ratio: f64,
+    /// Total downsampling of the io stages (upstream `patch_size`, default 2): `log2(patch_size)` must equal
+    /// the number of `io_block_channels`.
     #[serde(default = "default_patch")]
     pub patch_size: usize,
+    /// ResBlocks per io stage on each side, the last input one downsampling and the first output one
+    /// upsampling (upstream `num_io_res_blocks`, default 2).
     #[serde(default = "default_io_blocks")]
     pub num_io_res_blocks: usize,
+    /// Width of each io stage, finest first (upstream `io_block_channels`); `None`: no io stages.
     #[serde(default)]
     pub io_block_channels: Option<Vec<usize>>,
+    /// Position embedding (upstream `pe_mode`); only `ape` is supported.
     #[serde(default)]
     pub pe_mode: PeMode,
+    /// Concatenate each input block's output to the matching output block's input (upstream
+    /// `use_skip_connection`, default true).
     #[serde(default = "default_true")]
     pub use_skip_connection: bool,
+    /// One adaLN modulation shared by all transformer blocks (upstream `share_mod`).
     #[serde(default)]
     pub share_mod: bool,
+    /// RMS-normalise queries and keys in self-attention (upstream `qk_rms_norm`).
     #[serde(default)]
     pub qk_rms_norm: bool,
+    /// RMS-normalise queries and keys in cross-attention (upstream `qk_rms_norm_cross`).
     #[serde(default)]
     pub qk_rms_norm_cross: bool,
     // RecGen `SLatCondFlowModel` extras.
     /// Point-map and mask embedders (their args, flattened).
     #[serde(flatten)]
     pub embedders: CondEmbedderConfig,
+    /// Build the pose embedder, a Linear(`pose_dim` → `pose_embedder_out_channels`) whose tokens join the
+    /// context (RecGen `use_pose_embedder`).
     #[serde(default)]
     pub use_pose_embedder: bool,
+    /// Width of the pose tokens (RecGen `pose_embedder_out_channels`, default 1024); must equal
+    /// `cond_channels` for them to join the context.
     #[serde(default = "default_embed_channels")]
     pub pose_embedder_out_channels: usize,
+    /// Layout of the pose vectors (RecGen `pose_representation`, default `quaternion_translation_scale`).
     #[serde(default = "default_pose_repr")]
     pub pose_representation: PoseRepresentation,
 }
 
 impl SLatFlowConfig {
-    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
-        serde_json::from_value(v.clone()).map_err(|e| Error::msg(format!("SLat flow args: {e}")))
+    /// Parse an `args` object; errors name `file` and the field. Checked
+    /// when the model is built ([`SLatFlowModel::new`]).
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::util::json::from_value(v, file)
     }
 
+    /// Attention heads: `num_heads`, else `model_channels / num_head_channels`.
     pub fn heads(&self) -> usize {
         self.num_heads.unwrap_or(self.model_channels / self.num_head_channels.max(1))
     }
@@ -207,6 +235,7 @@ impl SparseResBlock3d {
 /// Intermediate values recorded by [`SLatFlowModel::forward_with_taps`].
 #[derive(Debug, Clone, Default)]
 pub struct SLatFlowTaps {
+    /// Timestep embedding `[B, model_channels]` (before the shared adaLN, if any).
     pub t_emb: Option<Tensor>,
     /// Output of each input block.
     pub input_blocks: Vec<SparseTensor>,
@@ -214,8 +243,10 @@ pub struct SLatFlowTaps {
     pub blocks: Vec<Tensor>,
 }
 
+/// The stage-2 structured-latent flow transformer (TRELLIS `SLatFlowModel`, RecGen `SLatCondFlowModel`).
 #[derive(Debug, Clone)]
 pub struct SLatFlowModel {
+    /// The config it was built from.
     pub cfg: SLatFlowConfig,
     t_embedder: TimestepEmbedder,
     ada_ln: Option<Linear>,
@@ -226,12 +257,14 @@ pub struct SLatFlowModel {
     out_layer: Linear,
     /// Shared Conv2d(k14, s14) patch embedders (`point_embedder.*`, `mask_embedder.*`).
     pub point_embedder: Option<PointmapEmbedder>,
+    /// Mask embedder (`mask_embedder.*`); `None` unless `use_mask_embedder`.
     pub mask_embedder: Option<MaskEmbedder>,
     pose_embedder: Option<Linear>,
     conv_path: ConvPath,
 }
 
 impl SLatFlowModel {
+    /// Build the model from `cfg` (validated first) with the checkpoint weights under `vb`.
     pub fn new(cfg: &SLatFlowConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let c = cfg.model_channels;
@@ -454,24 +487,23 @@ impl SLatFlowModel {
 /// Per-channel SLat normalisation (`slat_config … normalization`: mean/std).
 #[derive(Debug, Clone)]
 pub struct SLatNormalization {
+    /// Per-channel mean `[C]`.
     pub mean: Vec<f32>,
+    /// Per-channel standard deviation `[C]`.
     pub std: Vec<f32>,
 }
 
 impl SLatNormalization {
-    /// From a JSON object `{"mean": [...], "std": [...]}`.
-    pub fn from_json(v: &serde_json::Value) -> Result<Self> {
-        let get = |k: &str| -> Result<Vec<f32>> {
-            v.get(k)
-                .and_then(|a| a.as_array())
-                .ok_or_else(|| Error::msg(format!("SLat normalization: missing `{k}` array")))?
-                .iter()
-                .map(|x| x.as_f64().map(|f| f as f32).ok_or_else(|| Error::msg(format!("SLat normalization: `{k}` must hold numbers"))))
-                .collect()
-        };
-        let (mean, std) = (get("mean")?, get("std")?);
+    /// From a JSON object `{"mean": [...], "std": [...]}`; errors name `file`.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        #[derive(Deserialize)]
+        struct Stats {
+            mean: Vec<f32>,
+            std: Vec<f32>,
+        }
+        let Stats { mean, std } = crate::util::json::from_value(v, file)?;
         if mean.len() != std.len() || mean.is_empty() {
-            return Err(Error::msg("SLat normalization: mean and std must be non-empty and of equal length"));
+            return Err(Error::config(file, "mean", "mean and std must be non-empty and of equal length"));
         }
         Ok(Self { mean, std })
     }
@@ -502,7 +534,9 @@ impl SLatNormalization {
 /// The stage-2 flow as a sampler model: the state is the `[N, C]` feature
 /// tensor of a batch-1 sparse tensor on fixed coordinates.
 pub struct SlatVelocity<'a> {
+    /// The flow model.
     pub model: &'a SLatFlowModel,
+    /// Voxel coordinates `(b, x, y, z)` of the state's rows, batch index 0.
     pub coords: &'a [[i32; 4]],
 }
 
@@ -537,14 +571,17 @@ mod tests {
     use candle_nn::VarMap;
 
     fn tiny_cfg() -> SLatFlowConfig {
-        SLatFlowConfig::from_json(&serde_json::json!({
-            "resolution": 8, "in_channels": 4, "out_channels": 4, "model_channels": 32, "cond_channels": 16,
-            "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": 2, "num_io_res_blocks": 2,
-            "io_block_channels": [8], "qk_rms_norm": true,
-            "use_point_embedder": true, "point_embedder_out_channels": 16,
-            "use_mask_embedder": true, "mask_embedder_out_channels": 16,
-            "use_pose_embedder": true, "pose_embedder_out_channels": 16, "pose_representation": "9d_translation_scale"
-        }))
+        SLatFlowConfig::from_json(
+            &serde_json::json!({
+                "resolution": 8, "in_channels": 4, "out_channels": 4, "model_channels": 32, "cond_channels": 16,
+                "num_blocks": 1, "num_heads": 2, "mlp_ratio": 2, "patch_size": 2, "num_io_res_blocks": 2,
+                "io_block_channels": [8], "qk_rms_norm": true,
+                "use_point_embedder": true, "point_embedder_out_channels": 16,
+                "use_mask_embedder": true, "mask_embedder_out_channels": 16,
+                "use_pose_embedder": true, "pose_embedder_out_channels": 16, "pose_representation": "9d_translation_scale"
+            }),
+            "t",
+        )
         .unwrap()
     }
 
@@ -642,7 +679,7 @@ mod tests {
 
     #[test]
     fn normalization_round_trips() -> Result<()> {
-        let n = SLatNormalization::from_json(&serde_json::json!({"mean": [1.0, -2.0], "std": [2.0, 0.5]}))?;
+        let n = SLatNormalization::from_json(&serde_json::json!({"mean": [1.0, -2.0], "std": [2.0, 0.5]}), "t")?;
         let x = Tensor::new(&[[3f32, -1.0]], &Device::Cpu)?;
         let y = n.normalize(&x)?;
         assert_eq!(y.to_vec2::<f32>()?, vec![vec![1.0, 2.0]]);

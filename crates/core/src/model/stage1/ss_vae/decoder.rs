@@ -17,12 +17,18 @@ use serde::Deserialize;
 /// Constructor args as stored in the checkpoint JSON / fixture `args`.
 #[derive(Debug, Clone, Deserialize)]
 pub struct SparseStructureDecoderConfig {
+    /// Channels of the output logits (upstream `out_channels`; 1 = occupancy).
     pub out_channels: usize,
+    /// Channels of the input latent (upstream `latent_channels`).
     pub latent_channels: usize,
+    /// ResBlock3d per resolution level (upstream `num_res_blocks`).
     pub num_res_blocks: usize,
+    /// Width of each resolution level, coarse to fine; each step up doubles the side (upstream `channels`).
     pub channels: Vec<usize>,
+    /// ResBlock3d in the middle block, at the coarsest level (upstream `num_res_blocks_middle`; default 2).
     #[serde(default = "default_middle")]
     pub num_res_blocks_middle: usize,
+    /// Normalisation of the blocks (upstream `norm_type`); only `layer` is accepted.
     #[serde(default)]
     pub norm_type: NormType,
     /// Upstream runs the torso in fp16; this port computes in the precision of
@@ -49,13 +55,14 @@ impl SparseStructureDecoderConfig {
         }
     }
 
-    pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self =
-            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureDecoder args", "args", e.to_string()))?;
+    /// Parse an `args` object and validate it; errors name `file` and the field.
+    pub fn from_json(args: &serde_json::Value, file: &str) -> Result<Self> {
+        let cfg: Self = crate::util::json::from_value(args, file)?;
         cfg.validate()?;
         Ok(cfg)
     }
 
+    /// Check the args are supported: `layer` norm, non-empty positive `channels`, positive channel counts.
     pub fn validate(&self) -> Result<()> {
         let err = |field: &str, msg: String| Err(Error::config("SparseStructureDecoder args", field, msg));
         if self.norm_type != NormType::Layer {
@@ -81,6 +88,7 @@ pub struct ResBlock3d {
 }
 
 impl ResBlock3d {
+    /// Load `norm1`, `conv1`, `norm2`, `conv2` (3³ convolutions, C → C) under `vb`.
     pub fn new(c: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self {
             norm1: ChannelLayerNorm::new(c, vb.pp("norm1"))?,
@@ -90,6 +98,7 @@ impl ResBlock3d {
         })
     }
 
+    /// Differentiable path: `x` `[B, C, D, H, W]` → same shape.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let h = self.conv1.forward(&candle_nn::ops::silu(&self.norm1.forward(x)?)?)?;
         let h = self.conv2.forward(&candle_nn::ops::silu(&self.norm2.forward(&h)?)?)?;
@@ -111,12 +120,15 @@ pub struct UpsampleBlock3d {
 }
 
 impl UpsampleBlock3d {
+    /// Load the 3³ convolution `conv` (`cin → cout·8`) under `vb`.
     pub fn new(cin: usize, cout: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self { conv: Conv3d::new(cin, cout * 8, 3, 1, vb.pp("conv"), compute)? })
     }
+    /// Differentiable path: `[B, Cin, D, H, W]` → `[B, Cout, 2D, 2H, 2W]`.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         pixel_shuffle_3d(&self.conv.forward(x)?)
     }
+    /// Fast path of [`Self::forward`].
     pub fn forward_fast(&self, x: &Volume) -> Result<Volume> {
         pixel_shuffle_3d_fast(&self.conv.forward_fast(x, None)?)
     }
@@ -131,11 +143,15 @@ enum Block {
 /// Decoder outputs plus the intermediates the conformance fixture records.
 #[derive(Debug, Clone)]
 pub struct DecoderTrace {
+    /// Output of `input_layer`: `[B, channels[0], R, R, R]`.
     pub input_layer: Tensor,
+    /// Output of the middle block: `[B, channels[0], R, R, R]`.
     pub middle_block: Tensor,
+    /// Final occupancy logits `[B, out_channels, R', R', R']`, `R' = R·2^(channels.len()−1)`.
     pub logits: Tensor,
 }
 
+/// The SS VAE decoder: dense latent `[B, latent_channels, R, R, R]` → occupancy logits.
 #[derive(Debug, Clone)]
 pub struct SparseStructureDecoder {
     cfg: SparseStructureDecoderConfig,
@@ -147,6 +163,7 @@ pub struct SparseStructureDecoder {
 }
 
 impl SparseStructureDecoder {
+    /// Validate `cfg` and load the weights under `vb` (upstream names).
     pub fn new(cfg: &SparseStructureDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let ch = &cfg.channels;
@@ -170,6 +187,7 @@ impl SparseStructureDecoder {
         Ok(Self { cfg: cfg.clone(), input_layer, middle_block, blocks, out_norm, out_conv })
     }
 
+    /// The args it was built with.
     pub fn config(&self) -> &SparseStructureDecoderConfig {
         &self.cfg
     }
@@ -335,7 +353,7 @@ mod tests {
     fn rejects_unsupported_norm_type() {
         let args =
             serde_json::json!({"out_channels": 1, "latent_channels": 8, "num_res_blocks": 2, "channels": [32], "norm_type": "group"});
-        let e = SparseStructureDecoderConfig::from_json(&args).unwrap_err().to_string();
+        let e = SparseStructureDecoderConfig::from_json(&args, "t").unwrap_err().to_string();
         assert!(e.contains("norm_type"), "{e}");
     }
 

@@ -27,12 +27,18 @@ use serde::{Deserialize, Serialize};
 /// Constructor args as in the TRELLIS VAE config (`models.encoder.args`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SparseStructureEncoderConfig {
+    /// Channels of the input occupancy grid (upstream `in_channels`).
     pub in_channels: usize,
+    /// Channels of the latent (upstream `latent_channels`); the last conv outputs twice as many (mean, logvar).
     pub latent_channels: usize,
+    /// ResBlock3d per resolution level (upstream `num_res_blocks`).
     pub num_res_blocks: usize,
+    /// Width of each resolution level, fine to coarse; each step down halves the side (upstream `channels`).
     pub channels: Vec<usize>,
+    /// ResBlock3d in the middle block, at the coarsest level (upstream `num_res_blocks_middle`; default 2).
     #[serde(default = "default_middle")]
     pub num_res_blocks_middle: usize,
+    /// Normalisation of the blocks (upstream `norm_type`); only `layer` is accepted.
     #[serde(default)]
     pub norm_type: NormType,
     /// Upstream runs the torso in fp16; this port computes in f32 throughout.
@@ -58,13 +64,14 @@ impl SparseStructureEncoderConfig {
         }
     }
 
-    pub fn from_json(args: &serde_json::Value) -> Result<Self> {
-        let cfg: Self =
-            serde_json::from_value(args.clone()).map_err(|e| Error::config("SparseStructureEncoder args", "args", e.to_string()))?;
+    /// Parse an `args` object and validate it; errors name `file` and the field.
+    pub fn from_json(args: &serde_json::Value, file: &str) -> Result<Self> {
+        let cfg: Self = crate::util::json::from_value(args, file)?;
         cfg.validate()?;
         Ok(cfg)
     }
 
+    /// Check the args are supported: `layer` norm, non-empty positive `channels`, positive channel counts.
     pub fn validate(&self) -> Result<()> {
         let err = |field: &str, msg: String| Err(Error::config("SparseStructureEncoder args", field, msg));
         if self.norm_type != NormType::Layer {
@@ -98,6 +105,7 @@ pub struct DownsampleBlock3d {
 }
 
 impl DownsampleBlock3d {
+    /// Load `conv.weight` `[cout, cin, 2, 2, 2]` and `conv.bias` `[cout]` under `vb`.
     pub fn new(cin: usize, cout: usize, vb: VarBuilder) -> Result<Self> {
         let vb = vb.pp("conv");
         Ok(Self { weight: vb.get((cout, cin, 2, 2, 2), "weight")?, bias: vb.get(cout, "bias")?, cin, cout })
@@ -149,6 +157,7 @@ impl Posterior {
     }
 }
 
+/// The SS VAE encoder: occupancy `[B, in_channels, S, S, S]` → [`Posterior`] over the latent.
 #[derive(Debug, Clone)]
 pub struct SparseStructureEncoder {
     cfg: SparseStructureEncoderConfig,
@@ -160,6 +169,7 @@ pub struct SparseStructureEncoder {
 }
 
 impl SparseStructureEncoder {
+    /// Validate `cfg` and load the weights under `vb` (upstream names).
     pub fn new(cfg: &SparseStructureEncoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         cfg.validate()?;
         let ch = &cfg.channels;
@@ -183,6 +193,7 @@ impl SparseStructureEncoder {
         Ok(Self { cfg: cfg.clone(), input_layer, blocks, middle_block, out_norm, out_conv })
     }
 
+    /// The args it was built with.
     pub fn config(&self) -> &SparseStructureEncoderConfig {
         &self.cfg
     }
@@ -231,8 +242,11 @@ pub enum ReconLoss {
 /// The terms of one VAE loss evaluation (scalars; `total` is differentiable).
 #[derive(Debug, Clone)]
 pub struct VaeLossTerms {
+    /// `recon + lambda_kl · kl`.
     pub total: Tensor,
+    /// The reconstruction term ([`ReconLoss`]).
     pub recon: Tensor,
+    /// The KL term `½·mean(μ² + e^{logvar} − logvar − 1)`, before `lambda_kl`.
     pub kl: Tensor,
 }
 
@@ -377,7 +391,8 @@ mod tests {
         // Grids that do not divide into latent cells are refused.
         assert!(enc.forward(&Tensor::zeros((1, 1, 5, 8, 8), DType::F32, &dev)?).is_err());
         assert!(SparseStructureEncoderConfig::from_json(
-            &serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []})
+            &serde_json::json!({"in_channels": 1, "latent_channels": 8, "num_res_blocks": 1, "channels": []}),
+            "t"
         )
         .is_err());
         Ok(())

@@ -13,34 +13,57 @@ use candle_nn::VarBuilder;
 use crate::model::nn::common::{layer_norm_plain, linear, Linear};
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
-use crate::{Error, Result};
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkArgs, TrunkConfig};
+use crate::Result;
+use serde::{Deserialize, Serialize};
 
+/// Constructor args of `SLatEncoder` (checkpoint `args`): the trunk's plus
+/// `in_channels` (the per-voxel input features).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SLatEncoderConfig {
+    /// The trunk's args (flattened).
+    #[serde(flatten)]
+    pub trunk: TrunkArgs,
+    /// Width of the per-voxel input features (upstream `in_channels`).
+    pub in_channels: usize,
+}
+
+impl SLatEncoderConfig {
+    /// Parse the encoder's `args`; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::model::stage2::slat_vae::trunk::from_json_with_trunk(v, file)
+    }
+}
+
+/// The structured-latent encoder (TRELLIS `SLatEncoder`).
 pub struct SLatEncoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
     out_layer: Linear,
+    /// Latent channels per voxel.
     pub latent_channels: usize,
 }
 
 /// The posterior of each voxel's latent.
 pub struct SLatPosterior {
+    /// Mean `[N, latent_channels]`.
     pub mean: Tensor,
+    /// Log-variance `[N, latent_channels]`, clamped to [-30, 20].
     pub logvar: Tensor,
 }
 
 impl SLatEncoder {
-    /// `args`: upstream's (`in_channels`, `model_channels`, `latent_channels`,
-    /// `num_blocks`, `num_heads`, `mlp_ratio`, `attn_mode`, `window_size`, `pe_mode`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
-        let mut tcfg = TrunkConfig::from_args(args)?;
+    /// Built from its config (upstream's `args`).
+    pub fn new(args: &SLatEncoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        let mut tcfg = TrunkConfig::new(&args.trunk)?;
         let latent_channels = tcfg.in_channels;
-        tcfg.in_channels =
-            args.get("in_channels").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: in_channels missing"))? as usize;
+        tcfg.in_channels = args.in_channels;
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let out_layer = linear(tcfg.model_channels, 2 * latent_channels, vb.pp("out_layer"), compute)?;
         Ok(Self { trunk, out_layer, latent_channels })
     }
 
+    /// The posterior of each voxel's latent, for input voxels `x` (feats `[N, in_channels]`).
     pub fn forward(&self, x: &SparseTensor) -> Result<SLatPosterior> {
         let h = layer_norm_plain(&self.trunk.forward(x)?, 1e-5)?;
         let h = self.out_layer.forward(&h)?;

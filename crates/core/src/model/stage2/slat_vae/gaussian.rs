@@ -10,53 +10,156 @@ use crate::model::nn::common::Linear;
 use crate::model::nn::common::{layer_norm_plain, linear};
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
-use crate::{Error, Result};
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkArgs, TrunkConfig};
+use crate::Result;
 use candle_core::{DType, Device, Module, Tensor, D};
 use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
 
 pub use crate::gaussians::SH_C0;
 
+/// Resolved settings of the Gaussian representation (from a [`GaussianDecoderConfig`]).
 #[derive(Debug, Clone)]
 pub struct GaussianConfig {
+    /// Side of the decoder's voxel grid.
     pub resolution: usize,
+    /// Gaussians per voxel, `G`.
     pub num_gaussians: usize,
+    /// Offset range: Gaussians lie within `voxel_size / 2` voxel widths of their voxel centre, per axis.
     pub voxel_size: f64,
+    /// Add the fixed [`offset_perturbation`] to the raw offsets.
     pub perturb_offset: bool,
     /// Per-field learning-rate multipliers, order: xyz, features_dc, scaling, rotation, opacity.
     pub lr: [f64; 5],
     /// `3d_filter_kernel_size` (minimum kernel size).
     pub min_kernel_size: f64,
+    /// Activated scale at raw 0, before the `min_kernel_size` floor.
     pub scaling_bias: f64,
+    /// Opacity at raw 0.
     pub opacity_bias: f64,
     /// `softplus` (true) or `exp` (false) scaling activation.
     pub softplus_scaling: bool,
 }
 
+/// Constructor args of `SLatGaussianDecoder` (checkpoint `args`): the trunk's
+/// plus `resolution` and `representation_config`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GaussianDecoderConfig {
+    /// The trunk's args (flattened).
+    #[serde(flatten)]
+    pub trunk: TrunkArgs,
+    /// Side of the latent voxel grid (upstream `resolution`).
+    pub resolution: usize,
+    /// Representation settings (upstream `representation_config`).
+    pub representation_config: GaussianRepresentationConfig,
+}
+
+/// `representation_config` of the Gaussian decoder; absent keys take
+/// upstream's defaults, unknown ones (`2d_filter_kernel_size`) are ignored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GaussianRepresentationConfig {
+    /// Gaussians per voxel (upstream `num_gaussians`, default 32).
+    #[serde(default = "default_num_gaussians")]
+    pub num_gaussians: usize,
+    /// Offset range in voxel widths (upstream `voxel_size`, default 1.5).
+    #[serde(default = "default_voxel_size")]
+    pub voxel_size: f64,
+    /// Add the fixed offset perturbation (upstream `perturb_offset`, default false).
+    #[serde(default)]
+    pub perturb_offset: bool,
+    /// Per-field multipliers of the network output (upstream `lr`).
+    #[serde(default)]
+    pub lr: GaussianLr,
+    /// Minimum Gaussian scale, added in quadrature (upstream `3d_filter_kernel_size`, default 0).
+    #[serde(rename = "3d_filter_kernel_size", default)]
+    pub filter_3d_kernel_size: f64,
+    /// Activated scale at raw 0 (upstream `scaling_bias`, default 0.01).
+    #[serde(default = "default_scaling_bias")]
+    pub scaling_bias: f64,
+    /// Opacity at raw 0 (upstream `opacity_bias`, default 0.1).
+    #[serde(default = "default_opacity_bias")]
+    pub opacity_bias: f64,
+    /// Scale activation (upstream `scaling_activation`, default `exp`).
+    #[serde(default)]
+    pub scaling_activation: ScalingActivation,
+}
+
+/// Per-field learning-rate multipliers (default 1 each).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct GaussianLr {
+    /// Multiplier of the raw position offsets (`_xyz`).
+    #[serde(rename = "_xyz", default = "one")]
+    pub xyz: f64,
+    /// Multiplier of the SH degree-0 coefficients (`_features_dc`).
+    #[serde(rename = "_features_dc", default = "one")]
+    pub features_dc: f64,
+    /// Multiplier of the raw scales (`_scaling`).
+    #[serde(rename = "_scaling", default = "one")]
+    pub scaling: f64,
+    /// Multiplier of the raw quaternions (`_rotation`).
+    #[serde(rename = "_rotation", default = "one")]
+    pub rotation: f64,
+    /// Multiplier of the raw opacities (`_opacity`).
+    #[serde(rename = "_opacity", default = "one")]
+    pub opacity: f64,
+}
+
+impl Default for GaussianLr {
+    fn default() -> Self {
+        Self { xyz: 1.0, features_dc: 1.0, scaling: 1.0, rotation: 1.0, opacity: 1.0 }
+    }
+}
+
+/// Activation from raw to actual Gaussian scales (upstream `scaling_activation`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ScalingActivation {
+    /// `exp(raw + ln(scaling_bias))`.
+    #[default]
+    Exp,
+    /// `softplus(raw + softplus⁻¹(scaling_bias))`.
+    Softplus,
+}
+
+fn default_num_gaussians() -> usize {
+    32
+}
+fn default_voxel_size() -> f64 {
+    1.5
+}
+fn default_scaling_bias() -> f64 {
+    0.01
+}
+fn default_opacity_bias() -> f64 {
+    0.1
+}
+fn one() -> f64 {
+    1.0
+}
+
+impl GaussianDecoderConfig {
+    /// Parse the decoder's `args`; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::model::stage2::slat_vae::trunk::from_json_with_trunk(v, file)
+    }
+}
+
 impl GaussianConfig {
-    /// From the decoder args (`resolution`, `representation_config`).
-    pub fn from_args(args: &serde_json::Value) -> Result<Self> {
-        let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
-        let rc = args.get("representation_config").ok_or_else(|| Error::msg("args: representation_config missing"))?;
-        let f = |k: &str, d: f64| rc.get(k).and_then(|v| v.as_f64()).unwrap_or(d);
-        let lr = rc.get("lr");
-        let l = |k: &str| lr.and_then(|m| m.get(k)).and_then(|v| v.as_f64()).unwrap_or(1.0);
-        let softplus_scaling = match rc.get("scaling_activation").and_then(|v| v.as_str()).unwrap_or("exp") {
-            "softplus" => true,
-            "exp" => false,
-            m => return Err(Error::msg(format!("representation_config: scaling_activation `{m}` unknown"))),
-        };
-        Ok(Self {
-            resolution,
-            num_gaussians: rc.get("num_gaussians").and_then(|v| v.as_u64()).unwrap_or(32) as usize,
-            voxel_size: f("voxel_size", 1.5),
-            perturb_offset: rc.get("perturb_offset").and_then(|v| v.as_bool()).unwrap_or(false),
-            lr: [l("_xyz"), l("_features_dc"), l("_scaling"), l("_rotation"), l("_opacity")],
-            min_kernel_size: f("3d_filter_kernel_size", 0.0),
-            scaling_bias: f("scaling_bias", 0.01),
-            opacity_bias: f("opacity_bias", 0.1),
-            softplus_scaling,
-        })
+    /// The representation settings of a decoder config.
+    pub fn new(cfg: &GaussianDecoderConfig) -> Self {
+        let rc = &cfg.representation_config;
+        let lr = rc.lr;
+        Self {
+            resolution: cfg.resolution,
+            num_gaussians: rc.num_gaussians,
+            voxel_size: rc.voxel_size,
+            perturb_offset: rc.perturb_offset,
+            lr: [lr.xyz, lr.features_dc, lr.scaling, lr.rotation, lr.opacity],
+            min_kernel_size: rc.filter_3d_kernel_size,
+            scaling_bias: rc.scaling_bias,
+            opacity_bias: rc.opacity_bias,
+            softplus_scaling: rc.scaling_activation == ScalingActivation::Softplus,
+        }
     }
 
     /// Channels of the output layer: G·(3 + 3 + 3 + 4 + 1).
@@ -111,6 +214,7 @@ impl GaussianModel {
         Ok((&self.xyz - 0.5)?)
     }
 
+    /// Activated scales `[M, 3]`: `sqrt(act(raw + bias)² + min_kernel_size²)`.
     pub fn get_scaling(&self) -> Result<Tensor> {
         let c = &self.cfg;
         let s = if c.softplus_scaling {
@@ -124,6 +228,7 @@ impl GaussianModel {
         Ok((s.sqr()? + c.min_kernel_size * c.min_kernel_size)?.sqrt()?)
     }
 
+    /// Opacities `[M, 1]` in (0, 1): `sigmoid(raw + logit(opacity_bias))`.
     pub fn get_opacity(&self) -> Result<Tensor> {
         let p = self.cfg.opacity_bias;
         let bias = (p / (1.0 - p)).ln();
@@ -171,18 +276,21 @@ pub fn sh0_to_rgb(dc: [f32; 3]) -> [f32; 3] {
 /// output, transforms and the splat PLY writer).
 pub use crate::gaussians::Gaussians;
 
+/// The structured-latent Gaussian decoder (TRELLIS `SLatGaussianDecoder`).
 pub struct SLatGaussianDecoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
     out_layer: Linear,
     offset_perturbation: Tensor,
+    /// Representation settings.
     pub cfg: GaussianConfig,
 }
 
 impl SLatGaussianDecoder {
-    /// `args` are the upstream constructor args (trunk + `representation_config`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
-        let tcfg = TrunkConfig::from_args(args)?;
-        let cfg = GaussianConfig::from_args(args)?;
+    /// Built from its config (upstream's args: trunk + `representation_config`).
+    pub fn new(args: &GaussianDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        let tcfg = TrunkConfig::new(&args.trunk)?;
+        let cfg = GaussianConfig::new(args);
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let out_layer = linear(tcfg.model_channels, cfg.out_channels(), vb.pp("out_layer"), compute)?;
         // The buffer ships in checkpoints; recompute it when absent.
@@ -241,6 +349,7 @@ impl SLatGaussianDecoder {
         Ok(reps)
     }
 
+    /// One Gaussian model per batch item of the latents `x` (feats `[N, latent_channels]`).
     pub fn forward(&self, x: &SparseTensor) -> Result<Vec<GaussianModel>> {
         let h = self.forward_feats(x, &mut |_, _| {})?;
         self.to_representation(x, &h)

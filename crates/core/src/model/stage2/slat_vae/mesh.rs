@@ -15,11 +15,12 @@ use crate::model::nn::common::Linear;
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::SparseTensor;
 use crate::model::stage2::slat_vae::flexicubes::SparseFeatures2Mesh;
-use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkConfig};
+use crate::model::stage2::slat_vae::trunk::{SparseTransformerBase, TrunkArgs, TrunkConfig};
 use crate::{Error, Result};
 use candle_core::{DType, Module, Tensor};
 use candle_nn::VarBuilder;
 use recon_kernels::sparse::CoordHash;
+use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
 /// im2col elements per conv chunk (`rows · 27 · C_in`): bounds scratch memory.
@@ -54,6 +55,7 @@ pub struct SubdivGrid {
 }
 
 impl SubdivGrid {
+    /// The grid of the children of `parents` (coords `(b, x, y, z)`, rows in order).
     pub fn new(parents: &[[i32; 4]]) -> Self {
         let hash = CoordHash::new(parents);
         let mut parent_nbr = vec![u32::MAX; parents.len() * 27];
@@ -68,6 +70,7 @@ impl SubdivGrid {
         Self { n_parent: parents.len(), parent_nbr }
     }
 
+    /// Number of child voxels, `8 · N_parent`.
     pub fn num_children(&self) -> usize {
         self.n_parent * 8
     }
@@ -176,6 +179,7 @@ pub struct SparseGroupNorm {
 }
 
 impl SparseGroupNorm {
+    /// `groups` groups over `channels`, affine `weight` and `bias` under `vb`; `channels` must be a multiple of `groups`.
     pub fn new(groups: usize, channels: usize, vb: VarBuilder) -> Result<Self> {
         if groups == 0 || !channels.is_multiple_of(groups) {
             return Err(Error::msg(format!("group norm: {channels} channels not divisible into {groups} groups")));
@@ -258,10 +262,12 @@ pub struct SparseSubdivideBlock3d {
     out_norm: SparseGroupNorm,
     conv3: ConvParams,
     skip: Option<ConvParams>,
+    /// Output channels `C_out`.
     pub out_channels: usize,
 }
 
 impl SparseSubdivideBlock3d {
+    /// Block `channels → out_channels` with weights under `vb` (`act_layers.0`, `out_layers.{0,1,3}`, `skip_connection`).
     pub fn new(channels: usize, out_channels: usize, vb: VarBuilder) -> Result<Self> {
         let skip =
             if out_channels != channels { Some(ConvParams::new(channels, out_channels, 1, vb.pp("skip_connection"))?) } else { None };
@@ -313,21 +319,55 @@ impl SparseSubdivideBlock3d {
     }
 }
 
+/// Constructor args of `SLatMeshDecoder` (checkpoint `args`): the trunk's
+/// plus `resolution` and `representation_config.use_color`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeshDecoderConfig {
+    /// The trunk's args (flattened).
+    #[serde(flatten)]
+    pub trunk: TrunkArgs,
+    /// Side of the latent voxel grid (upstream `resolution`); meshes are extracted at `4·resolution`.
+    pub resolution: usize,
+    /// Representation settings (upstream `representation_config`; only `use_color` is read).
+    #[serde(default)]
+    pub representation_config: MeshRepresentationConfig,
+}
+
+/// `representation_config` of the mesh decoder; other keys are ignored.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MeshRepresentationConfig {
+    /// Vertex colours as extra FlexiCubes channels.
+    #[serde(default)]
+    pub use_color: bool,
+}
+
+impl MeshDecoderConfig {
+    /// Parse the decoder's `args`; errors name `file` and the field.
+    pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
+        crate::model::stage2::slat_vae::trunk::from_json_with_trunk(v, file)
+    }
+}
+
+/// The structured-latent mesh decoder (TRELLIS `SLatMeshDecoder`).
 pub struct SLatMeshDecoder {
+    /// The sparse transformer trunk.
     pub trunk: SparseTransformerBase,
+    /// The two subdivide blocks: `model_channels` → `model_channels / 4` → `model_channels / 8` channels.
     pub upsample: Vec<SparseSubdivideBlock3d>,
+    /// Linear from `model_channels / 8` to the FlexiCubes features per cube.
     pub out_layer: Linear,
+    /// FlexiCubes extraction at `4·resolution`.
     pub extractor: SparseFeatures2Mesh,
+    /// Side of the latent voxel grid.
     pub resolution: usize,
 }
 
 impl SLatMeshDecoder {
-    /// `args`: the upstream constructor args (`resolution`, trunk args,
+    /// Built from its config (upstream's args: `resolution`, trunk args,
     /// `representation_config.use_color`).
-    pub fn new(args: &serde_json::Value, vb: VarBuilder, compute: Compute) -> Result<Self> {
-        let tcfg = TrunkConfig::from_args(args)?;
-        let resolution = args.get("resolution").and_then(|v| v.as_u64()).ok_or_else(|| Error::msg("args: resolution missing"))? as usize;
-        let use_color = args.get("representation_config").and_then(|r| r.get("use_color")).and_then(|v| v.as_bool()).unwrap_or(false);
+    pub fn new(args: &MeshDecoderConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
+        let tcfg = TrunkConfig::new(&args.trunk)?;
+        let (resolution, use_color) = (args.resolution, args.representation_config.use_color);
         let c = tcfg.model_channels;
         let trunk = SparseTransformerBase::new(&tcfg, vb.clone(), compute)?;
         let upsample = vec![

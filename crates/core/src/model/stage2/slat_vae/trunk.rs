@@ -4,63 +4,112 @@
 //! window) or full self-attention over sparse voxels.
 
 use crate::model::nn::common::Linear;
-use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention};
+use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention, PeMode};
 use crate::model::nn::fast::Compute;
 use crate::model::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
 use candle_core::{Module, Tensor};
 use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Self-attention pattern of the trunk's blocks (upstream `attn_mode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum AttnMode {
     /// Window `window_size`, shift `window_size/2` on odd blocks.
+    #[default]
     Swin,
     /// All voxels of a batch item attend to each other.
     Full,
 }
 
+/// A config with [`TrunkArgs`] flattened in, from an `args` object. serde loses the
+/// field path inside a flattened struct, so the trunk's fields are parsed on their own
+/// first: a bad `model_channels` is named as such, not as "`args`".
+pub(crate) fn from_json_with_trunk<T: serde::de::DeserializeOwned>(v: &serde_json::Value, file: &str) -> Result<T> {
+    crate::util::json::from_value::<TrunkArgs>(v, file)?;
+    crate::util::json::from_value(v, file)
+}
+
+/// The trunk's upstream constructor args, shared by the SLat decoders and
+/// the SLat encoder (flattened into their configs). Unknown keys
+/// (`use_fp16`, `qk_rms_norm`, ...) are ignored, as upstream's are.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrunkArgs {
+    /// Transformer width (upstream `model_channels`).
+    pub model_channels: usize,
+    /// Latent channels per voxel (upstream `latent_channels`): the decoders' input, the encoder's output.
+    pub latent_channels: usize,
+    /// Number of transformer blocks (upstream `num_blocks`).
+    pub num_blocks: usize,
+    /// `None`: `model_channels / num_head_channels`.
+    #[serde(default)]
+    pub num_heads: Option<usize>,
+    /// Default 64.
+    #[serde(default)]
+    pub num_head_channels: Option<usize>,
+    /// Default 4.
+    #[serde(default)]
+    pub mlp_ratio: Option<f64>,
+    /// Self-attention pattern (upstream `attn_mode`, default `swin`).
+    #[serde(default)]
+    pub attn_mode: AttnMode,
+    /// Default 8.
+    #[serde(default)]
+    pub window_size: Option<usize>,
+    /// Position embedding (upstream `pe_mode`); only `ape` is supported.
+    #[serde(default)]
+    pub pe_mode: PeMode,
+}
+
+/// Resolved trunk settings: [`TrunkArgs`] with defaults filled in and the head count computed.
 #[derive(Debug, Clone)]
 pub struct TrunkConfig {
+    /// Width of the per-voxel input features.
     pub in_channels: usize,
+    /// Transformer width.
     pub model_channels: usize,
+    /// Number of transformer blocks.
     pub num_blocks: usize,
+    /// Attention heads.
     pub num_heads: usize,
+    /// Feed-forward hidden width over `model_channels`.
     pub mlp_ratio: f64,
+    /// Self-attention pattern.
     pub attn_mode: AttnMode,
+    /// Window side in voxels (swin mode).
     pub window_size: usize,
     /// Absolute position embedding (`pe_mode = "ape"`); otherwise none.
     pub ape: bool,
 }
 
 impl TrunkConfig {
-    /// Parse the upstream constructor args (`model_channels`, `latent_channels`,
-    /// `num_blocks`, `num_heads` or `num_head_channels`, `mlp_ratio`,
-    /// `attn_mode`, `window_size`, `pe_mode`).
-    pub fn from_args(args: &serde_json::Value) -> Result<Self> {
-        let get = |k: &str| args.get(k).and_then(|v| v.as_u64()).map(|v| v as usize);
-        let model_channels = get("model_channels").ok_or_else(|| Error::msg("args: model_channels missing"))?;
-        let in_channels = get("latent_channels").ok_or_else(|| Error::msg("args: latent_channels missing"))?;
-        let num_blocks = get("num_blocks").ok_or_else(|| Error::msg("args: num_blocks missing"))?;
-        let num_heads = match get("num_heads") {
+    /// The trunk the args describe, its input being `latent_channels` wide
+    /// (the decoders; the encoder sets its own `in_channels`).
+    pub fn new(args: &TrunkArgs) -> Result<Self> {
+        let model_channels = args.model_channels;
+        let num_heads = match args.num_heads {
             Some(h) => h,
-            None => model_channels / get("num_head_channels").unwrap_or(64),
+            None => model_channels / args.num_head_channels.unwrap_or(64).max(1),
         };
-        let mlp_ratio = args.get("mlp_ratio").and_then(|v| v.as_f64()).unwrap_or(4.0);
-        let attn_mode = match args.get("attn_mode").and_then(|v| v.as_str()).unwrap_or("swin") {
-            "swin" => AttnMode::Swin,
-            "full" => AttnMode::Full,
-            m => return Err(Error::msg(format!("args: attn_mode `{m}` not supported (swin, full)"))),
+        let ape = match args.pe_mode {
+            PeMode::Ape => true,
+            PeMode::Rope => return Err(Error::msg("args: pe_mode `rope` not supported (ape)")),
         };
-        let window_size = get("window_size").unwrap_or(8);
-        let ape = match args.get("pe_mode").and_then(|v| v.as_str()).unwrap_or("ape") {
-            "ape" => true,
-            m => return Err(Error::msg(format!("args: pe_mode `{m}` not supported (ape)"))),
-        };
-        if num_heads == 0 || model_channels % num_heads != 0 {
+        if num_heads == 0 || !model_channels.is_multiple_of(num_heads) {
             return Err(Error::msg("args: model_channels must be a multiple of num_heads"));
         }
-        Ok(Self { in_channels, model_channels, num_blocks, num_heads, mlp_ratio, attn_mode, window_size, ape })
+        Ok(Self {
+            in_channels: args.latent_channels,
+            model_channels,
+            num_blocks: args.num_blocks,
+            num_heads,
+            mlp_ratio: args.mlp_ratio.unwrap_or(4.0),
+            attn_mode: args.attn_mode,
+            window_size: args.window_size.unwrap_or(8),
+            ape,
+        })
     }
 }
 
@@ -68,13 +117,16 @@ impl TrunkConfig {
 /// affine, eps 1e-6.
 #[derive(Debug, Clone)]
 pub struct SparseTransformerBlock {
+    /// Self-attention.
     pub attn: MultiHeadAttention,
+    /// Feed-forward.
     pub mlp: FeedForward,
     /// Window shift (swin mode).
     pub shift: usize,
 }
 
 impl SparseTransformerBlock {
+    /// Apply the block to `feats` `[N, C]`, attention within the windows of `part`.
     pub fn forward(&self, feats: &Tensor, part: &WindowPartition) -> Result<Tensor> {
         let h = sparse_self_attention(&self.attn, &layer_norm_plain(feats, 1e-6)?, part)?;
         let x = (feats + h)?;
@@ -83,14 +135,18 @@ impl SparseTransformerBlock {
     }
 }
 
+/// The shared trunk (TRELLIS `SparseTransformerBase`): input linear, optional APE, transformer blocks.
 #[derive(Debug, Clone)]
 pub struct SparseTransformerBase {
+    /// Its resolved settings.
     pub cfg: TrunkConfig,
     input_layer: Linear,
+    /// The transformer blocks, in order.
     pub blocks: Vec<SparseTransformerBlock>,
 }
 
 impl SparseTransformerBase {
+    /// Build the trunk with weights under `vb` (`input_layer.*`, `blocks.{j}.*`).
     pub fn new(cfg: &TrunkConfig, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let c = cfg.model_channels;
         let input_layer = linear(cfg.in_channels, c, vb.pp("input_layer"), compute)?;
@@ -133,6 +189,7 @@ impl SparseTransformerBase {
         Ok(h)
     }
 
+    /// Run the trunk on `x` (feats `[N, in_channels]`): output feats `[N, model_channels]`.
     pub fn forward(&self, x: &SparseTensor) -> Result<Tensor> {
         self.forward_with(x, &mut |_, _| {})
     }

@@ -27,8 +27,11 @@ use tables::{CHECK_TABLE, CUBE_EDGES, DMC_TABLE, NUM_VD_TABLE};
 
 /// Channel ranges of the per-cube feature vector (dict order of upstream `_calc_layout`).
 pub const SDF: std::ops::Range<usize> = 0..8;
+/// Per-corner vertex deformation: 8 corners × 3.
 pub const DEFORM: std::ops::Range<usize> = 8..32;
+/// FlexiCubes weights: β (12 edges), α (8 corners), γ (1).
 pub const WEIGHTS: std::ops::Range<usize> = 32..53;
+/// Per-corner raw colour: 8 corners × 6 (only with colour).
 pub const COLOR: std::ops::Range<usize> = 53..101;
 
 const WEIGHT_SCALE: f32 = 0.99;
@@ -67,7 +70,9 @@ impl ColumnIndex {
 /// `SparseFeatures2Mesh(res, use_color)`.
 #[derive(Debug, Clone, Copy)]
 pub struct SparseFeatures2Mesh {
+    /// Cube grid side `R`.
     pub res: usize,
+    /// Whether the features carry vertex colours (101 channels instead of 53).
     pub use_color: bool,
 }
 
@@ -128,6 +133,7 @@ impl VertexField {
         self.sdf.len()
     }
 
+    /// Whether no lattice vertex is touched.
     pub fn is_empty(&self) -> bool {
         self.sdf.is_empty()
     }
@@ -135,8 +141,11 @@ impl VertexField {
 
 /// The sparse stand-in for upstream's dense FlexiCubes inputs.
 pub struct SparseGrid {
+    /// Cube grid side `R`.
     pub res: usize,
+    /// Whether the vertices carry colour.
     pub use_color: bool,
+    /// Per-vertex attributes on the touched lattice vertices.
     pub field: VertexField,
     /// Active cubes; a cube's row of `weight_rows` is its position here.
     weights: ColumnIndex,
@@ -164,6 +173,7 @@ struct SurfCube {
 }
 
 impl SparseFeatures2Mesh {
+    /// The extractor for an `R = res` cube grid, with or without colour.
     pub fn new(res: usize, use_color: bool) -> Self {
         Self { res, use_color }
     }
