@@ -206,8 +206,8 @@ pub struct SparseStructureFlowModel {
     pub mask_embedder: Option<MaskEmbedder>,
     /// `frame_token_embedder`, when `use_frame_token_embedder` is set.
     pub frame_token_embedder: Option<FrameTokenEmbedder>,
-    /// Whether prepared conditions take the constant-context shortcut.
-    constant_context: bool,
+    /// Whether the constant-context shortcut is on (see [`SparseStructureFlowModel::set_shortcuts`]).
+    shortcuts: bool,
 }
 
 impl SparseStructureFlowModel {
@@ -262,18 +262,18 @@ impl SparseStructureFlowModel {
             } else {
                 None
             },
-            constant_context: true,
+            shortcuts: true,
         })
     }
 
-    /// Turn the constant-context shortcut on (the default) or off: with it, a
-    /// condition item whose rows are all equal (the all-zero `neg_cond`)
-    /// gives each block's cross-attention output directly instead of through
-    /// the query projection, scores and weighted sum, which equal it up to
-    /// float rounding. Off, the fast path computes everything (as the plain
-    /// path always does).
-    pub fn set_constant_context_shortcut(&mut self, on: bool) {
-        self.constant_context = on;
+    /// Turn on (the default) or off the fast path's shortcut whose results
+    /// equal the full computation's up to float rounding: the constant-context
+    /// shortcut (a condition item whose rows are all equal, such as the
+    /// all-zero `neg_cond`, gives each block's cross-attention output without
+    /// the query projection, scores and weighted sum). Off, the fast path
+    /// computes everything, as the plain path always does.
+    pub fn set_shortcuts(&mut self, on: bool) {
+        self.shortcuts = on;
     }
 
     /// Every block's cross-attention keys and values for `cond` `[B, L, Cc]`,
@@ -287,7 +287,7 @@ impl SparseStructureFlowModel {
         if self.input_layer.fast().is_none() {
             return Err(Error::msg("ss_flow: prepared conditions are for the fast path"));
         }
-        Ok(PreparedCondition::new(&self.blocks, cond, self.constant_context)?)
+        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
     }
 
     /// APE of the `g³` token grid, coordinates in meshgrid-`ij` order (z fastest),
@@ -686,7 +686,7 @@ mod tests {
             }
             let fast = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
             let mut full = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
-            full.set_constant_context_shortcut(false);
+            full.set_shortcuts(false);
             let plain = SparseStructureFlowModel::new(&cfg, vb, Compute::Plain)?;
             let state = fast.initial_state(&mut rng, 1, &dev)?;
             let cond = rng.randn(&[1, 5, 16], &dev)?;

@@ -262,8 +262,8 @@ pub struct SLatFlowModel {
     pub mask_embedder: Option<MaskEmbedder>,
     pose_embedder: Option<Linear>,
     conv_path: ConvPath,
-    /// Whether prepared conditions take the constant-context shortcut.
-    constant_context: bool,
+    /// Whether the shortcuts that round differently are on (see [`SLatFlowModel::set_shortcuts`]).
+    shortcuts: bool,
 }
 
 /// The condition of one forward: a tensor (plain path), or prepared once for many (fast path).
@@ -344,18 +344,19 @@ impl SLatFlowModel {
             },
             cfg: cfg.clone(),
             conv_path: ConvPath::Fast,
-            constant_context: true,
+            shortcuts: true,
         })
     }
 
-    /// Turn the constant-context shortcut on (the default) or off: with it, a
-    /// condition item whose rows are all equal (the all-zero `neg_cond`)
-    /// gives each block's cross-attention output directly instead of through
-    /// the query projection, scores and weighted sum, which equal it up to
-    /// float rounding. Off, the fast path computes everything (as the plain
-    /// path always does).
-    pub fn set_constant_context_shortcut(&mut self, on: bool) {
-        self.constant_context = on;
+    /// Turn on (the default) or off the fast path's shortcuts whose results
+    /// equal the full computation's up to float rounding: the constant-context
+    /// shortcut (a condition item whose rows are all equal, such as the
+    /// all-zero `neg_cond`, gives each block's cross-attention output without
+    /// the query projection, scores and weighted sum) and, in a guided step,
+    /// the input stage run once for both passes ([`Self::forward_guided`]).
+    /// Off, the fast path computes everything, as the plain path always does.
+    pub fn set_shortcuts(&mut self, on: bool) {
+        self.shortcuts = on;
     }
 
     /// Every block's cross-attention keys and values for `cond` `[B, L, Cc]`,
@@ -369,7 +370,7 @@ impl SLatFlowModel {
         if self.input_layer.fast().is_none() {
             return Err(Error::msg("SLat flow: prepared conditions are for the fast path"));
         }
-        Ok(PreparedCondition::new(&self.blocks, cond, self.constant_context)?)
+        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
     }
 
     /// [`Self::forward`] with a condition prepared by [`Self::prepare_condition`]
@@ -423,20 +424,49 @@ impl SLatFlowModel {
         if cb != b {
             return Err(Error::msg(format!("SLat flow: condition of {cb} items for batch {b}")));
         }
+        let stem = self.input_stage(x, t, taps.as_deref_mut())?;
+        self.output_stage(stem, cond, taps)
+    }
+
+    /// Both passes of a guided step, conditional then unconditional, on the
+    /// voxels of `x` (one item): a batch of two items, as [`Self::forward`]
+    /// of `x` twice with `t` `[1]` for both and `cond` (two items, prepared by
+    /// [`Self::prepare_condition`]). With the shortcuts on, the input layer and
+    /// blocks, which see neither condition, run once for both items (the
+    /// same algebra; the sparse convolutions round the rows of a lone item
+    /// slightly differently than in a batch of two). Fast path only.
+    pub fn forward_guided(&self, x: &SparseTensor, t: &Tensor, cond: &PreparedCondition) -> Result<SparseTensor> {
+        if x.batch_size != 1 || t.dims() != [1] || cond.batch() != 2 {
+            return Err(Error::msg(format!(
+                "SLat flow: a guided step takes one item, t [1] and two conditions, got {} items, t {:?}, {} conditions",
+                x.batch_size,
+                t.dims(),
+                cond.batch()
+            )));
+        }
+        if self.shortcuts {
+            return self.output_stage(self.input_stage(x, t, None)?.doubled()?, Cond::Prepared(cond), None);
+        }
+        let coords: Vec<[i32; 4]> = x.coords.iter().copied().chain(x.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+        let xs = SparseTensor::new(coords, Tensor::cat(&[&x.feats, &x.feats], 0)?, 2)?;
+        self.forward_impl(&xs, &Tensor::cat(&[t, t], 0)?, Cond::Prepared(cond), None)
+    }
+
+    fn check_input(&self, x: &SparseTensor) -> Result<()> {
         if x.feats.dim(1)? != self.cfg.in_channels {
             return Err(Error::msg(format!("SLat flow: input has {} channels, expected {}", x.feats.dim(1)?, self.cfg.in_channels)));
         }
+        Ok(())
+    }
 
+    /// The input layer and input blocks.
+    fn input_stage(&self, x: &SparseTensor, t: &Tensor, mut taps: Option<&mut SLatFlowTaps>) -> Result<Stem> {
+        self.check_input(x)?;
         let mut h = x.with_feats(self.input_layer.forward(&x.feats)?)?;
         let t_emb = self.t_embedder.forward(t)?;
         if let Some(tp) = taps.as_deref_mut() {
             tp.t_emb = Some(t_emb.clone());
         }
-        let emb = match &self.ada_ln {
-            Some(l) => l.forward(&t_emb.silu()?)?,
-            None => t_emb.clone(),
-        };
-
         let mut caches = Vec::new();
         let mut skips = Vec::new();
         for blk in &self.input_blocks {
@@ -446,6 +476,17 @@ impl SLatFlowModel {
                 tp.input_blocks.push(h.clone());
             }
         }
+        Ok(Stem { h, t_emb, skips, caches })
+    }
+
+    /// The transformer blocks, output blocks and output layer.
+    fn output_stage(&self, stem: Stem, cond: Cond, mut taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
+        let Stem { mut h, t_emb, mut skips, mut caches } = stem;
+        let b = h.batch_size;
+        let emb = match &self.ada_ln {
+            Some(l) => l.forward(&t_emb.silu()?)?,
+            None => t_emb.clone(),
+        };
 
         let pe = abs_position_embedding(&xyz_tensor(&h)?, self.cfg.model_channels)?.to_dtype(h.feats.dtype())?;
         let mut feats = (&h.feats + pe)?;
@@ -561,6 +602,38 @@ impl SLatFlowModel {
     }
 }
 
+/// What the input stage hands on: the coarse tokens, the timestep
+/// embedding, the skip features and the downsample caches.
+struct Stem {
+    h: SparseTensor,
+    t_emb: Tensor,
+    skips: Vec<Tensor>,
+    caches: Vec<DownsampleCache>,
+}
+
+impl Stem {
+    /// The stem of a batch of two copies of this one-item stem: what the
+    /// input stage gives for the same item twice (item 1's rows after item
+    /// 0's, as a downsample orders them).
+    fn doubled(self) -> Result<Self> {
+        let twice = |c: &[[i32; 4]]| -> Vec<[i32; 4]> { c.iter().copied().chain(c.iter().map(|c| [1, c[1], c[2], c[3]])).collect() };
+        let cat = |t: &Tensor| Tensor::cat(&[t, t], 0);
+        let h = SparseTensor::new(twice(&self.h.coords), cat(&self.h.feats)?, 2)?;
+        let skips = self.skips.iter().map(cat).collect::<candle_core::Result<_>>()?;
+        let caches = self
+            .caches
+            .into_iter()
+            .map(|c| {
+                // Every coarse row has a fine row, so the coarse count is the largest index + 1.
+                let coarse = c.inverse.iter().max().map_or(0, |&m| m + 1);
+                let inverse = c.inverse.iter().copied().chain(c.inverse.iter().map(|&i| i + coarse)).collect();
+                DownsampleCache { factor: c.factor, fine_coords: twice(&c.fine_coords), fine_batch_size: 2, inverse }
+            })
+            .collect();
+        Ok(Self { h, t_emb: cat(&self.t_emb)?, skips, caches })
+    }
+}
+
 /// Per-channel SLat normalisation (`slat_config … normalization`: mean/std).
 #[derive(Debug, Clone)]
 pub struct SLatNormalization {
@@ -634,12 +707,16 @@ impl SlatVelocity<'_> {
     fn run_cfg(&self, state: &[Tensor], t_model: f32, cond: Cond) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
         let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
         let n = self.coords.len();
-        let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
-        let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
-        let t = Tensor::full(t_model, 2, x.device())?;
         let v = match cond {
-            Cond::Tensor(c) => self.model.forward(&xs, &t, c)?,
-            Cond::Prepared(c) => self.model.forward_prepared(&xs, &t, c)?,
+            Cond::Tensor(c) => {
+                let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+                let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
+                self.model.forward(&xs, &Tensor::full(t_model, 2, x.device())?, c)?
+            }
+            Cond::Prepared(c) => {
+                let x1 = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
+                self.model.forward_guided(&x1, &Tensor::full(t_model, 1, x.device())?, c)?
+            }
         }
         .feats;
         Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
@@ -657,7 +734,11 @@ impl VelocityModel for SlatVelocity<'_> {
         if cond.dims() != neg.dims() {
             return Err(Error::msg(format!("SLat sampler: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
         }
-        self.run_cfg(state, t_model, Cond::Tensor(&Tensor::cat(&[cond, neg], 0)?))
+        let both = Tensor::cat(&[cond, neg], 0)?;
+        if self.model.input_layer.fast().is_some() {
+            return self.run_cfg(state, t_model, Cond::Prepared(&self.model.prepare_condition(&both)?));
+        }
+        self.run_cfg(state, t_model, Cond::Tensor(&both))
     }
 
     /// On the fast path: the conditions prepared once for the run
@@ -807,10 +888,10 @@ mod tests {
 
     /// A guided step: the two items of one size run the blocks as one batch
     /// with the bits of item-by-item passes (plain and fast); the fast
-    /// path's condition prepared once per run keeps the conditional half's
-    /// bits, and the constant-context shortcut of the all-zero `neg_cond`
-    /// moves the unconditional half by float rounding only (QK norm in
-    /// cross-attention on and off).
+    /// path's condition prepared once per run gives the bits of preparing it
+    /// at every step; the shortcuts (the input stage once for both passes,
+    /// the constant-context output for the all-zero `neg_cond`) move the
+    /// velocities by float rounding only (QK norm in cross-attention on and off).
     #[test]
     fn guided_step_batched_and_prepared_match_full_computation() -> Result<()> {
         use crate::model::nn::fast::Precision;
@@ -829,7 +910,7 @@ mod tests {
             let plain = SLatFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
             let fast = SLatFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
             let mut full = SLatFlowModel::new(&cfg, vb, Compute::fast(Precision::F32))?;
-            full.set_constant_context_shortcut(false);
+            full.set_shortcuts(false);
             let coords: Vec<[i32; 4]> = blob().coords.into_iter().filter(|c| c[0] == 0).collect();
             let x = Tensor::randn(0f32, 1.0, (coords.len(), 4), &dev)?;
             let cond = Tensor::randn(0f32, 1.0, (1, 6, 16), &dev)?;
@@ -862,15 +943,25 @@ mod tests {
                     input = got.clone();
                 }
             }
+            // The input stage once for both passes, against the batch of two copies.
+            let pc = fast.prepare_condition(&conds)?;
+            let once = fast.forward_guided(&SparseTensor::new(coords.clone(), state[0].clone(), 1)?, &t.narrow(0, 0, 1)?, &pc)?;
+            let twice = fast.forward_prepared(&xs, &t, &pc)?;
+            assert_eq!(once.coords, twice.coords);
+            let d = max_rel_diff(&once.feats, &twice.feats)?;
+            eprintln!("slat_flow qk_cross {qk_cross}: input stage once {d:.2e} from twice");
+            assert!(d <= 1e-6, "qk_cross {qk_cross}: input stage once {d:e} from twice");
+
             let vf = SlatVelocity { model: &full, coords: &coords };
             let (c0, u0) = vf.velocity_cfg(&state, 700.0, &cond, &neg)?;
             let vs = SlatVelocity { model: &fast, coords: &coords };
             let run = vs.prepare(&cond, Some(&neg))?.expect("the fast path prepares");
             let (c1, u1) = run.velocity_cfg(&state, 700.0, &cond, &neg)?;
-            assert!(same_bits(&c1[0], &c0[0])?, "qk_cross {qk_cross}: the conditional velocity changed");
-            let d = max_rel_diff(&u1[0], &u0[0])?;
-            eprintln!("slat_flow qk_cross {qk_cross}: unconditional velocity {d:.2e} from the full computation");
-            assert!(d <= 1e-6, "qk_cross {qk_cross}: unconditional velocity {d:e} from the full computation");
+            for (half, a, b) in [("conditional", &c1[0], &c0[0]), ("unconditional", &u1[0], &u0[0])] {
+                let d = max_rel_diff(a, b)?;
+                eprintln!("slat_flow qk_cross {qk_cross}: {half} velocity {d:.2e} from the full computation");
+                assert!(d <= 1e-6, "qk_cross {qk_cross}: {half} velocity {d:e} from the full computation");
+            }
             let (_, up) = SlatVelocity { model: &plain, coords: &coords }.velocity_cfg(&state, 700.0, &cond, &neg)?;
             assert!(max_rel_diff(&u1[0], &up[0])? <= 1e-5, "qk_cross {qk_cross}: fast vs plain");
 
