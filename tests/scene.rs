@@ -12,7 +12,7 @@ use recon::export::{save_mesh_ply, PlyOptions};
 use recon::mesh::{box_between, Mesh};
 use recon::sim::MaterialTable;
 use recon::sim::SceneFile;
-use recon::sim::{build_scene, write_outputs, SceneOptions, MARKER};
+use recon::sim::{build_scene, write_outputs, SceneSettings, MARKER};
 use recon_testkit::meshes::plain_cylinder;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -178,7 +178,7 @@ fn overlapping_objects_depenetrate_and_output_is_deterministic() {
     let scene = make_scene(&dir, 0.006);
     let table = MaterialTable::builtin();
     let s = SceneFile::load(&scene).unwrap();
-    let opts = SceneOptions { collision: recon::sim::CollisionMethod::Primitive, ..Default::default() };
+    let opts = SceneSettings { collision: recon::sim::CollisionMethod::Primitive, ..Default::default() };
     let run = |out: &Path| {
         let mut sim = build_scene(&s, &table, &opts, "scene.json").unwrap();
         write_outputs(&mut sim, out).unwrap();

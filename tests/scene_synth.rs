@@ -13,7 +13,7 @@ use recon::sim::MaterialTable;
 use recon::sim::PlaneFitOptions;
 use recon::sim::SceneFile;
 use recon::sim::{body_distance, Body};
-use recon::sim::{build_scene, SceneOptions, MARKER};
+use recon::sim::{build_scene, SceneSettings, MARKER};
 use std::path::Path;
 use std::process::Command;
 
@@ -80,7 +80,7 @@ fn synth_scene_settles_at_gt_and_depenetrates_when_perturbed() {
     // pushed 5 mm into each other (measured on their collision geometry).
     let table = MaterialTable::builtin();
     let (mut scene, _) = recon::sim::scene_from_bop(&scene_dir, None, &table, &PlaneFitOptions::default()).unwrap();
-    let mut opts = SceneOptions::default();
+    let mut opts = SceneSettings::default();
     opts.collision_opts.vhacd.resolution = 32;
     opts.collision_opts.vhacd.max_convex_hulls = 8;
     let sim = build_scene(&scene, &table, &opts, "gt").unwrap();

@@ -144,7 +144,7 @@ class Engine:
         select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
         mesh_from: with the shape fit, "fitted" (the fitted occupancy's closed, smoothed surface,
-            coloured from the decoder) or "decoder" (the stage-2 mesh decoder's surface).
+            coloured from the observed points) or "decoder" (the stage-2 mesh decoder's surface).
         smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         parallel_objects: objects reconstructed at once (results do not depend on it).
@@ -207,13 +207,15 @@ def scene(
     objects: Union[_Path, Sequence[Object]],
     frame: Optional[Union[_Path, Dict[str, Any]]] = None,
     out: Optional[_Path] = None,
-    collision: str = "convex",
     *,
     view: Optional[int] = None,
     depth: Optional[_Path] = None,
     depth_scale: Optional[float] = None,
-    plane_threshold_mm: float = 10.0,
     materials: Optional[_Path] = None,
+    variations: Optional[int] = None,
+    spec: Optional[Union[_Path, Dict[str, Any]]] = None,
+    plane_threshold_mm: float = 10.0,
+    collision: str = "convex",
     vhacd_resolution: int = 64,
     vhacd_concavity: float = 0.01,
     vhacd_max_hulls: int = 16,
@@ -223,8 +225,6 @@ def scene(
     flag_mm: float = 10.0,
     flag_deg: float = 10.0,
     seed: int = 0,
-    variations: Optional[int] = None,
-    spec: Optional[Union[_Path, Dict[str, Any]]] = None,
 ) -> Dict[str, Any]:
     """`recon scene`: settle the objects on the support plane seen in the frame's depth and
     export a simulator-ready scene (URDF, MJCF, USD, GLB, scene.json) into `out`.

@@ -349,25 +349,26 @@ def reconstruct_dataset(
 def synth(
     out: Union[str, os.PathLike],
     *,
-    scenes: int = 10,
     num_workers: int = 2,
     scenes_per_task: Optional[int] = None,
     **options: Any,
 ) -> Dict[str, Any]:
-    """`recon synth` split over Ray tasks by scene (`options`: views, seed, sensor, width,
-    height, parts). Scene i is generated from (seed, i) alone and object ids come from the
-    whole dataset's plan, so the result is byte-identical to `recon.synth(out, scenes=…)`
-    with the same options. Returns the summary."""
+    """`recon synth` split over Ray tasks by scene (`options`: `recon.synth`'s keywords,
+    scenes, views, seed, sensor, width, height, parts, with the library's defaults). Scene i
+    is generated from (seed, i) alone and object ids come from the whole dataset's plan, so
+    the result is byte-identical to `recon.synth(out, **options)`. Returns the summary."""
     import ray
 
     if num_workers < 1:
         raise _recon.ConfigError(f"num_workers: must be at least 1, got {num_workers}")
-    opts = dict(options, scenes=scenes)
+    opts = dict(options)
     if "sensor" in opts and opts["sensor"] is not None:
         opts["sensor"] = str(opts["sensor"])
     out = Path(out).absolute()
     staging = _recon.synth_begin(str(out), **opts)
+    # One first object id per scene: the plan also gives the scene count (the option or its default).
     first_ids = _recon.synth_plan(**opts)
+    scenes = len(first_ids)
     per = scenes_per_task or max(1, -(-scenes // num_workers))
     if not ray.is_initialized():
         ray.init()

@@ -5,7 +5,7 @@
 //! the library functions its command calls and returns the report as a dict.
 
 use crate::convert::{frame_options, from_python, rows, to_python};
-use crate::errors::{config, input, IntoPy};
+use crate::errors::{config, input, ConfigError, IntoPy};
 use numpy::{PyArray1, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -230,42 +230,32 @@ fn variation_spec(spec: Option<&Bound<'_, PyAny>>) -> PyResult<(recon::sim::Vari
 /// the written files and per-object physics; with `variations=N`, N re-arranged scenes
 /// (`recon scene --variations`) and their manifest.
 #[pyfunction]
-#[pyo3(signature = (objects, frame=None, out=None, collision="convex", *, view=None, depth=None, depth_scale=None,
-    plane_threshold_mm=10.0, materials=None, vhacd_resolution=64, vhacd_concavity=0.01, vhacd_max_hulls=16,
-    primitive_volume_tolerance=0.05, settle_time=5.0, max_corrective_velocity=0.05, flag_mm=10.0, flag_deg=10.0,
-    seed=0, variations=None, spec=None))]
+#[pyo3(signature = (objects, frame=None, out=None, *, view=None, depth=None, depth_scale=None, materials=None,
+    variations=None, spec=None, **options))]
 #[allow(clippy::too_many_arguments)]
 pub fn scene<'py>(
     py: Python<'py>,
     objects: &Bound<'py, PyAny>,
     frame: Option<&Bound<'py, PyAny>>,
     out: Option<PathBuf>,
-    collision: &str,
     view: Option<u32>,
     depth: Option<PathBuf>,
     depth_scale: Option<f64>,
-    plane_threshold_mm: f64,
     materials: Option<PathBuf>,
-    vhacd_resolution: u32,
-    vhacd_concavity: f32,
-    vhacd_max_hulls: u32,
-    primitive_volume_tolerance: f64,
-    settle_time: f64,
-    max_corrective_velocity: f64,
-    flag_mm: f64,
-    flag_deg: f64,
-    seed: u64,
     variations: Option<usize>,
     spec: Option<&Bound<'py, PyAny>>,
+    options: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    use recon::sim::{build_scene, CollisionMethod, MaterialTable, PlaneFitOptions, SceneFile, SceneOptions, VhacdOptions};
+    use recon::sim::{build_scene, MaterialTable, SceneFile, SceneOptions};
     let out = out.ok_or_else(|| config("out", "the output folder is required"))?;
-    let collision = match collision {
-        "convex" => CollisionMethod::Convex,
-        "hull" => CollisionMethod::Hull,
-        "primitive" => CollisionMethod::Primitive,
-        c => return Err(config("collision", format!("`{c}`: expected convex, hull or primitive"))),
+    // The options' names, defaults and checks are the library's (`recon scene`'s flags with `_`).
+    let options = match options {
+        Some(d) => from_python(d.as_any())?,
+        None => serde_json::Value::Object(Default::default()),
     };
+    let options = SceneOptions::from_json(options).map_err(|e| ConfigError::new_err(e.keyword_message()))?;
+    let opts = options.settings().map_err(|e| ConfigError::new_err(e.keyword_message()))?;
+    let seed = options.seed;
     // A bad spec fails before the scene is read, as in the CLI.
     let spec = match (variations, spec) {
         (Some(_), s) => Some(variation_spec(s)?),
@@ -276,16 +266,7 @@ pub fn scene<'py>(
         Some(p) => MaterialTable::load(p).py()?,
         None => MaterialTable::builtin(),
     };
-    let plane_opts = PlaneFitOptions { threshold_m: plane_threshold_mm * 1e-3, seed, ..Default::default() };
-    let mut opts = SceneOptions { collision, ..Default::default() };
-    opts.collision_opts.vhacd =
-        VhacdOptions { resolution: vhacd_resolution, concavity: vhacd_concavity, max_convex_hulls: vhacd_max_hulls, ..Default::default() };
-    opts.collision_opts.primitive.volume_tolerance = primitive_volume_tolerance;
-    opts.collision_opts.seed = seed;
-    opts.settle.max_time_s = settle_time;
-    opts.settle.max_corrective_velocity_m_s = max_corrective_velocity;
-    opts.settle.flag_displacement_m = flag_mm * 1e-3;
-    opts.settle.flag_rotation_deg = flag_deg;
+    let plane_opts = options.plane_fit();
 
     // In-memory objects: their meshes (or a note for those without one) and their frame.
     let memory: Option<InMemory> = match objects.extract::<PathBuf>() {
@@ -533,7 +514,10 @@ pub fn eval<'py>(
 /// `recon audit depth`: measured vs simulated depth of a dataset; returns the report
 /// (and writes the CLI's files when `out` is given).
 #[pyfunction]
-#[pyo3(signature = (dataset, *, sensor=None, out=None, max_pixels=3000, frames=None, alpha=0.01, max_findings=8, robust=true, interactions=true, max_folds=20, seed=0))]
+#[pyo3(signature = (dataset, *, sensor=None, out=None, max_pixels=recon::audit::DepthOptions::default().max_pixels_per_frame, frames=None,
+    alpha=recon::audit::SearchOptions::default().alpha, max_findings=recon::audit::SearchOptions::default().max_findings,
+    robust=recon::audit::SearchOptions::default().robust, interactions=recon::audit::SearchOptions::default().interactions,
+    max_folds=recon::audit::SearchOptions::default().max_folds, seed=recon::audit::SearchOptions::default().seed))]
 #[allow(clippy::too_many_arguments)]
 pub fn audit_depth<'py>(
     py: Python<'py>,
@@ -550,17 +534,12 @@ pub fn audit_depth<'py>(
     seed: u64,
 ) -> PyResult<Bound<'py, PyAny>> {
     use recon::audit::{collect, residual_table, DepthOptions, SearchOptions};
-    if !(alpha > 0.0 && alpha < 1.0) {
-        return Err(config("alpha", format!("must be in (0, 1), got {alpha}")));
-    }
-    if !(3..=64).contains(&max_folds) {
-        return Err(config("max_folds", format!("must be in 3..=64, got {max_folds}")));
-    }
+    let opts = SearchOptions { alpha, max_findings, robust, interactions, max_folds, seed, ..Default::default() };
+    opts.validate().map_err(|e| ConfigError::new_err(e.keyword_message()))?;
     if max_pixels == 0 {
         return Err(config("max_pixels", "must be ≥ 1"));
     }
     let model = self::sensor(sensor)?;
-    let opts = SearchOptions { alpha, max_findings, robust, interactions, max_folds, seed, ..Default::default() };
     let report = py.detach(|| -> recon::Result<serde_json::Value> {
         let dopts = DepthOptions { max_pixels_per_frame: max_pixels, seed, max_frames: frames };
         let col = collect(&dataset, &model, &dopts)?;

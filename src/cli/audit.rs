@@ -18,10 +18,10 @@ pub enum AuditCmd {
 #[derive(clap::Args)]
 pub struct SearchArgs {
     /// Family-wise significance level of each selection round (randomisation test over its candidates).
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = SearchOptions::default().alpha)]
     alpha: f64,
     /// At most this many findings.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = SearchOptions::default().max_findings)]
     max_findings: usize,
     /// Plain Gaussian residuals (no outlier component).
     #[arg(long)]
@@ -30,10 +30,10 @@ pub struct SearchArgs {
     #[arg(long)]
     no_interactions: bool,
     /// Leave-one-unit-out up to this many units, K-fold beyond.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = SearchOptions::default().max_folds)]
     max_folds: usize,
     /// Seed of the pixel subsample and of the fold assignment.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = SearchOptions::default().seed)]
     seed: u64,
     /// Output folder (report.json, summary.txt, plots/, sensor_extended.json for depth).
     #[arg(long)]
@@ -45,13 +45,7 @@ pub struct SearchArgs {
 
 impl SearchArgs {
     fn options(&self) -> anyhow::Result<SearchOptions> {
-        if !(self.alpha > 0.0 && self.alpha < 1.0) {
-            anyhow::bail!("--alpha must be in (0, 1), got {}", self.alpha);
-        }
-        if !(3..=64).contains(&self.max_folds) {
-            anyhow::bail!("--max-folds must be in 3..=64, got {}", self.max_folds);
-        }
-        Ok(SearchOptions {
+        let o = SearchOptions {
             alpha: self.alpha,
             max_findings: self.max_findings,
             robust: !self.no_robust,
@@ -59,7 +53,9 @@ impl SearchArgs {
             max_folds: self.max_folds,
             seed: self.seed,
             ..Default::default()
-        })
+        };
+        o.validate()?;
+        Ok(o)
     }
 }
 
@@ -72,7 +68,7 @@ pub struct DepthArgs {
     #[arg(long)]
     sensor: Option<PathBuf>,
     /// Object pixels compared per frame (seeded random subset).
-    #[arg(long, default_value_t = 3000)]
+    #[arg(long, default_value_t = DepthOptions::default().max_pixels_per_frame)]
     max_pixels: usize,
     /// Use only the first N frames.
     #[arg(long)]

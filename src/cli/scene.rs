@@ -1,16 +1,6 @@
 //! `recon scene`: posed meshes → settled, simulator-ready scene (URDF, MJCF, USD, GLB).
 use std::path::PathBuf;
 
-#[derive(Clone, Copy, clap::ValueEnum)]
-pub enum CollisionArg {
-    /// Approximate convex decomposition (VHACD).
-    Convex,
-    /// One convex hull per object.
-    Hull,
-    /// Box, cylinder or sphere when one fits well, else the decomposition.
-    Primitive,
-}
-
 #[derive(clap::Args)]
 pub struct SceneArgs {
     /// A scene file (scene.json, version 1), a `recon infer` output folder, or a
@@ -34,40 +24,11 @@ pub struct SceneArgs {
     /// Metres per depth unit for --frame's depth.
     #[arg(long)]
     depth_scale: Option<f64>,
-    /// Plane inlier distance for the support-plane fit (mm).
-    #[arg(long, default_value_t = 10.0)]
-    plane_threshold_mm: f64,
     /// Material table (default: the shipped models/materials.json).
     #[arg(long)]
     materials: Option<PathBuf>,
-    #[arg(long, value_enum, default_value = "convex")]
-    collision: CollisionArg,
-    /// VHACD voxel resolution (longest axis).
-    #[arg(long, default_value_t = 64)]
-    vhacd_resolution: u32,
-    /// VHACD maximum concavity per part.
-    #[arg(long, default_value_t = 0.01)]
-    vhacd_concavity: f32,
-    /// VHACD maximum number of convex parts per object.
-    #[arg(long, default_value_t = 16)]
-    vhacd_max_hulls: u32,
-    /// Primitive fit: accepted excess volume over the mesh (fraction).
-    #[arg(long, default_value_t = 0.05)]
-    primitive_volume_tolerance: f64,
-    /// Simulated settling time limit (s).
-    #[arg(long, default_value_t = 5.0)]
-    settle_time: f64,
-    /// Bound on the depenetration speed (m/s).
-    #[arg(long, default_value_t = 0.05)]
-    max_corrective_velocity: f64,
-    /// Flag objects that moved more than this while settling (mm).
-    #[arg(long, default_value_t = 10.0)]
-    flag_mm: f64,
-    /// Flag objects that rotated more than this while settling (degrees).
-    #[arg(long, default_value_t = 10.0)]
-    flag_deg: f64,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    #[command(flatten)]
+    options: recon::sim::SceneOptions,
     /// Write this many variations of the scene instead (objects re-placed under
     /// spatial predicates, distractors, object variants; `variant_NNNN/` folders
     /// and manifest.json under --out); --seed makes them reproducible.
@@ -86,10 +47,8 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     use anyhow::Context;
     use recon::dataset::{FrameOptions, RgbdFrame};
     use recon::sim::MaterialTable;
-    use recon::sim::PlaneFitOptions;
     use recon::sim::SceneFile;
-    use recon::sim::{build_scene, write_outputs, SceneOptions};
-    use recon::sim::{CollisionMethod, VhacdOptions};
+    use recon::sim::{build_scene, write_outputs};
 
     // A bad spec or asset fails before the scene is read.
     let spec = match (&a.variations, &a.spec) {
@@ -105,7 +64,8 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
         Some((a, f)) => Some(recon::sim::AssetLibrary::load(a, &table, f)?),
         None => None,
     };
-    let plane_opts = PlaneFitOptions { threshold_m: a.plane_threshold_mm * 1e-3, seed: a.seed, ..Default::default() };
+    let opts = a.options.settings()?;
+    let plane_opts = a.options.plane_fit();
     let (scene, file) = if a.input.is_dir() && a.input.join("scene_gt.json").is_file() {
         let (scene, check) = recon::sim::scene_from_bop(&a.input, a.view, &table, &plane_opts)?;
         if let Some(c) = check {
@@ -141,29 +101,8 @@ pub fn run(a: SceneArgs) -> anyhow::Result<bool> {
     } else {
         (SceneFile::load(&a.input)?, a.input.display().to_string())
     };
-    let mut opts = SceneOptions {
-        collision: match a.collision {
-            CollisionArg::Convex => CollisionMethod::Convex,
-            CollisionArg::Hull => CollisionMethod::Hull,
-            CollisionArg::Primitive => CollisionMethod::Primitive,
-        },
-        ..Default::default()
-    };
-    opts.collision_opts.vhacd = VhacdOptions {
-        resolution: a.vhacd_resolution,
-        concavity: a.vhacd_concavity,
-        max_convex_hulls: a.vhacd_max_hulls,
-        ..Default::default()
-    };
-    opts.collision_opts.primitive.volume_tolerance = a.primitive_volume_tolerance;
-    opts.collision_opts.seed = a.seed;
-    opts.settle.max_time_s = a.settle_time;
-    opts.settle.max_corrective_velocity_m_s = a.max_corrective_velocity;
-    opts.settle.flag_displacement_m = a.flag_mm * 1e-3;
-    opts.settle.flag_rotation_deg = a.flag_deg;
-
     if let (Some(count), Some((spec, spec_file))) = (a.variations, spec) {
-        let vo = recon::sim::VariationOptions { count, seed: a.seed, spec, spec_file, assets };
+        let vo = recon::sim::VariationOptions { count, seed: a.options.seed, spec, spec_file, assets };
         let r = recon::sim::run_variations(&scene, &table, &opts, &vo, &file, &a.out)?;
         let m = &r.manifest;
         if a.json {

@@ -120,6 +120,21 @@ impl Default for SearchOptions {
     }
 }
 
+impl SearchOptions {
+    /// Checks the options a user sets (`recon audit`'s flags, `recon.audit_depth`'s
+    /// keywords); the error names the option.
+    pub fn validate(&self) -> std::result::Result<(), recon_core::engine::OptionError> {
+        use recon_core::engine::OptionError;
+        if !(self.alpha > 0.0 && self.alpha < 1.0) {
+            return Err(OptionError::new("alpha", "in (0, 1)", self.alpha));
+        }
+        if !(3..=64).contains(&self.max_folds) {
+            return Err(OptionError::new("max_folds", "in 3..=64", self.max_folds));
+        }
+        Ok(())
+    }
+}
+
 /// Row sets per fold; index `k` (= number of folds) is the full data.
 pub struct Folds {
     pub k: usize,

@@ -63,8 +63,6 @@
 #![warn(missing_docs)]
 
 pub mod dataset;
-// documented after the options/keys refactor lands
-#[allow(missing_docs)]
 pub mod engine;
 pub mod error;
 pub mod export;
@@ -72,19 +70,13 @@ pub mod gaussians;
 pub mod geometry;
 pub mod math;
 pub mod mesh;
-// documented after the options/keys refactor lands
-#[allow(missing_docs)]
 pub mod model;
 pub mod render;
 pub mod rng;
 pub mod sensor;
 pub mod settings;
 pub mod spatial;
-// documented after the options/keys refactor lands
-#[allow(missing_docs)]
 pub mod util;
-// documented after the options/keys refactor lands
-#[allow(missing_docs)]
 pub mod weights;
 
 pub use engine::Engine;

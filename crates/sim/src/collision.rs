@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 
 /// Requested collision representation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum CollisionMethod {
     /// Approximate convex decomposition (VHACD).

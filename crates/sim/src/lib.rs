@@ -23,6 +23,7 @@ pub(crate) mod collision;
 pub(crate) mod inputs;
 pub(crate) mod materials;
 pub(crate) mod mjcf;
+mod options;
 pub(crate) mod physics;
 mod scene;
 pub(crate) mod scene_file;
@@ -35,10 +36,11 @@ mod write;
 pub use self::collision::{CollisionMethod, VhacdOptions};
 pub use self::inputs::{infer_frame, scene_from_bop, scene_from_infer_output, scene_from_meshes, support_plane_from_frame};
 pub use self::materials::MaterialTable;
+pub use self::options::SceneOptions;
 pub use self::scene_file::SceneFile;
 pub use self::settle::{body_distance, Body};
 pub use recon_core::geometry::PlaneFitOptions;
-pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneOptions, SimObject, SimScene, Timings};
+pub use scene::{build_scene, hull_file, principal, ObjectSummary, PlaneMaterial, SceneSettings, SimObject, SimScene, Timings};
 pub use variations::{
     run_variations, Asset, AssetLibrary, AssetPhysics, AssetSpec, Category, DirFrame, Manifest as VariationsManifest, Predicate,
     RunSummary, UpAxis, VariationOptions, VariationSpec, MANIFEST as VARIATIONS_MANIFEST,

@@ -13,9 +13,9 @@ use recon_core::{Error, Result};
 use serde::Serialize;
 use std::path::PathBuf;
 
-/// Everything `recon scene` can be told.
+/// The settings `build_scene` runs with (derived from [`crate::SceneOptions`], the flags a user sets).
 #[derive(Debug, Clone)]
-pub struct SceneOptions {
+pub struct SceneSettings {
     /// How collision geometry is built.
     pub collision: CollisionMethod,
     /// Parameters of the collision builders (VHACD, primitive fits).
@@ -24,7 +24,7 @@ pub struct SceneOptions {
     pub settle: SettleOptions,
 }
 
-impl Default for SceneOptions {
+impl Default for SceneSettings {
     fn default() -> Self {
         Self { collision: CollisionMethod::Convex, collision_opts: CollisionOptions::new(), settle: SettleOptions::default() }
     }
@@ -129,14 +129,14 @@ pub struct SimScene {
     /// Outcome of the settle.
     pub settle: SettleResult,
     /// Options it was built with.
-    pub options: SceneOptions,
+    pub options: SceneSettings,
     /// Wall-clock times of the phases.
     pub timings: Timings,
 }
 
 /// Load meshes, annotate physics, build collision geometry (objects in
 /// parallel, results in input order) and settle.
-pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneOptions, file: &str) -> Result<SimScene> {
+pub fn build_scene(scene: &SceneFile, table: &MaterialTable, opts: &SceneSettings, file: &str) -> Result<SimScene> {
     opts.settle.validate()?;
     let t0 = std::time::Instant::now();
     let prepared: Vec<Result<Prepared>> =
@@ -224,7 +224,7 @@ impl Prepared {
     }
 }
 
-fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneOptions, file: &str) -> Result<Prepared> {
+fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneSettings, file: &str) -> Result<Prepared> {
     let mesh_file = o.mesh.display().to_string();
     let tm: TriMesh = recon_core::dataset::ply::read_ply(&o.mesh)?;
     if tm.faces.is_empty() {
@@ -243,7 +243,7 @@ pub(crate) fn prepare_mesh(
     raw: &Mesh,
     mesh_file: &str,
     table: &MaterialTable,
-    opts: &SceneOptions,
+    opts: &SceneSettings,
     file: &str,
 ) -> Result<Prepared> {
     let field = format!("objects[{i}]");

@@ -86,12 +86,14 @@ pub struct InferSettings {
     pub run: RunOptions,
     /// Minimum eroded-mask pixels with valid depth for an object to run.
     pub min_valid_depth_pixels: usize,
+    /// Preprocessing of each view: mask erosion, crop, point-map normalisation.
     pub prepare: PrepareOptions,
     /// Samples per object (seeds `run.seed`, `run.seed + 1`, …); the best
     /// pose is selected and the spread reported.
     pub samples: usize,
     /// How the pose is chosen among views and samples ([`SelectMethod`]).
     pub select: SelectMethod,
+    /// How candidate poses are refined and scored against the observed points and depth.
     pub align: AlignOptions,
     /// Meshes with more faces are decimated (quadric edge collapse) to about
     /// this many; `None` keeps the decoder's mesh.
@@ -107,6 +109,7 @@ pub struct InferSettings {
     /// ([`crate::engine::fit_in_pose`]); the pose is then refined before the
     /// fit and not after it, so the fit sees the final pose.
     pub shape_fit: ShapeFit,
+    /// Settings of the shape fit; [`ShapeFit::DepthHull`] turns its `hull` on whatever is set here.
     pub shape_fit_options: ShapeFitOptions,
     /// With the shape fit, whether the mesh is the fitted occupancy's closed
     /// surface or the stage-2 decoder's (without the fit: always the decoder's).
@@ -166,6 +169,7 @@ impl InferOptions {
 
 /// The second view of a two-view reconstruction.
 pub struct SecondView<'a> {
+    /// The second view's RGB-D frame.
     pub frame: &'a RgbdFrame,
     /// The second frame's masks, matched to the first frame's by instance
     /// id, or by order when masks carry no id ([`match_views`]).
@@ -177,29 +181,42 @@ pub struct SecondView<'a> {
 /// What the engine is doing, for progress displays.
 #[derive(Debug, Clone, Copy)]
 pub enum Progress<'a> {
+    /// An object starts (its views are prepared, then its samples run).
     Object {
+        /// Position of the object in the frame's list, from 0.
         index: usize,
+        /// Objects in the frame.
         total: usize,
+        /// The object's mask label.
         label: &'a str,
     },
+    /// A sample of the current object starts.
     Sample {
+        /// Sample number, from 0.
         index: usize,
+        /// Samples per object.
         total: usize,
+        /// This sample's seed (`run.seed + index`).
         seed: u64,
     },
+    /// A model stage of the current sample starts.
     Stage(Stage),
     /// Applying the face budget.
     Decimating,
     /// Scoring the candidate poses.
     Selecting,
+    /// An object is reconstructed (not sent for an object that is skipped).
     ObjectDone {
+        /// The object's mask label.
         label: &'a str,
+        /// Wall-clock seconds since the object started, preprocessing included.
         seconds: f64,
     },
 }
 
 /// A loaded model, reused across objects and frames.
 pub struct Engine {
+    /// The loaded two-stage model.
     pub pipeline: Pipeline,
 }
 
@@ -208,10 +225,13 @@ pub struct Engine {
 pub struct ViewPose {
     /// 1 = the anchor (`--rgbd`), 2 = `--view2`.
     pub view: usize,
+    /// This view's colour image file.
     pub frame: PathBuf,
+    /// Label of this view's object mask.
     pub mask: String,
     /// This view's point normaliser (metres).
     pub normaliser_centre_m: [f64; 3],
+    /// This view's point normaliser diameter (metres).
     pub normaliser_diameter_m: f64,
     /// Observed object points (eroded mask, valid depth).
     pub observed_points: usize,
@@ -226,6 +246,7 @@ pub struct ViewPose {
 /// One candidate pose: one view's token of one sample.
 #[derive(Debug, Clone, Serialize)]
 pub struct Candidate {
+    /// Seed of the sample the candidate comes from.
     pub seed: u64,
     /// 1 or 2 (the view whose token it is).
     pub view: usize,
@@ -243,10 +264,13 @@ pub struct Candidate {
 /// Which candidate won.
 #[derive(Debug, Clone, Serialize)]
 pub struct Selection {
+    /// The selection method used.
     pub method: SelectMethod,
     /// Index into [`ObjectResult::candidates`].
     pub candidate: usize,
+    /// Seed of the winning candidate's sample.
     pub seed: u64,
+    /// View (1 or 2) whose token won.
     pub view: usize,
     /// The selection key (metres): own-view score (`single`, `first`) or the mean over views (`cross`).
     pub score_m: f64,
@@ -255,17 +279,23 @@ pub struct Selection {
 /// One reconstructed object.
 #[derive(Debug, Clone)]
 pub struct ObjectResult {
+    /// The object's mask label (view 1's).
     pub label: String,
+    /// The mask's instance id, when it has one.
     pub id: Option<u32>,
     /// The selected token's pose: canonical object frame → that view's normalised pointmap frame.
     pub pose_normalised: Pose,
     /// The selected pose: canonical object frame → metric (anchor) camera frame.
     pub pose_camera: Pose,
+    /// Which candidate was selected, and its score.
     pub selection: Selection,
+    /// Each view of the object, view 1 first.
     pub views: Vec<ViewPose>,
+    /// Every scored candidate, in sample order, then view order.
     pub candidates: Vec<Candidate>,
     /// Spread of the per-sample poses (with two or more samples).
     pub uncertainty: Option<PoseSpread>,
+    /// Occupied stage-1 voxels stage 2 ran on, of the selected sample (after the shape fit, when it ran).
     pub occupied_voxels: usize,
     /// What the shape fit did to the selected sample's occupancy (`None`: not run).
     pub shape_fit: Option<ShapeFitReport>,
@@ -273,9 +303,11 @@ pub struct ObjectResult {
     pub faces_decoded: usize,
     /// Mesh and Gaussians placed in the anchor camera frame (metres).
     pub mesh_camera: Option<Mesh>,
+    /// Gaussians placed in the anchor camera frame (metres); `None` when not decoded.
     pub gaussians_camera: Option<Gaussians>,
     /// Observed object points (anchor camera frame, metres) of every view, view 1 first.
     pub observed_points: Vec<[f32; 3]>,
+    /// RGB colour of each of `observed_points`, in the same order.
     pub observed_colors: Vec<[u8; 3]>,
     /// Model stages, summed over samples.
     pub timings: StageTimings,
@@ -285,16 +317,20 @@ pub struct ObjectResult {
     pub select_seconds: f64,
     /// The selected sample's run.
     pub metadata: RunMetadata,
+    /// Samples requested per object ([`InferSettings::samples`]), failed ones included.
     pub samples: usize,
+    /// Remarks on the object (failed samples, a view 2 without a usable mask, …).
     pub notes: Vec<String>,
 }
 
 /// Everything one frame produces.
 #[derive(Debug, Clone)]
 pub struct FrameResult {
+    /// The reconstructed objects, in mask order.
     pub objects: Vec<ObjectResult>,
     /// Objects left out, with the reason (validation, preprocessing or model failure).
     pub skipped: Vec<MaskSkip>,
+    /// Seconds spent preparing the objects' views (crops, point maps), summed over objects.
     pub preprocess_seconds: f64,
     /// Frame-level remarks (e.g. masks of view 2 without a partner in view 1).
     pub notes: Vec<String>,
@@ -988,10 +1024,14 @@ fn ser_pose<S: serde::Serializer>(p: &Pose, s: S) -> std::result::Result<S::Ok, 
     PoseJson::from(p).serialize(s)
 }
 
+/// A [`Pose`] as written to JSON: `x' = scale · rotation · x + translation`.
 #[derive(Debug, Serialize)]
 pub struct PoseJson {
+    /// Rotation matrix, row-major.
     pub rotation: [[f32; 3]; 3],
+    /// Translation, in the units of the target frame.
     pub translation: [f32; 3],
+    /// Uniform scale.
     pub scale: f32,
 }
 

@@ -19,9 +19,8 @@ pub const DEFAULT_MAX_FACES: usize = 200_000;
 pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
 
 /// Objects reconstructed at once by default: one. On 2 cores the model's
-/// kernels already keep both busy; two objects at once saved no wall time on
-/// the README sample and took 15-40 % more peak memory (README, `recon infer`
-/// options).
+/// kernels already keep both busy, so two objects at once save no wall time
+/// and cost memory (docs/performance.md).
 pub const DEFAULT_PARALLEL_OBJECTS: NonZeroUsize = NonZeroUsize::MIN;
 
 /// The per-frame options of `recon infer`, `recon eval --method recgen` and Python's
@@ -49,7 +48,7 @@ pub struct InferOptions {
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.shape_fit))]
     pub shape_fit: ShapeFit,
     /// With the shape fit: the mesh is the fitted occupancy's closed, smoothed surface
-    /// coloured from the decoder (`fitted`), or the stage-2 decoder's surface (`decoder`).
+    /// coloured from the observed points (`fitted`), or the stage-2 decoder's surface (`decoder`).
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.mesh_from))]
     pub mesh_from: MeshFrom,
     /// Sampler steps for both stages (default: the config's).
@@ -123,13 +122,7 @@ impl InferOptions {
     /// Options from JSON (an object of option names; absent ones take their defaults),
     /// checked. An unknown name is an error listing the valid ones.
     pub fn from_json(v: serde_json::Value) -> Result<Self, OptionError> {
-        if let Some(map) = v.as_object() {
-            if let Some(k) = map.keys().find(|k| !Self::NAMES.contains(&k.as_str())) {
-                return Err(OptionError::Unknown { option: k.clone(), valid: Self::NAMES.join(", ") });
-            }
-        }
-        let o: InferOptions = serde_path_to_error::deserialize(v)
-            .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })?;
+        let o: InferOptions = options_from_json(v, &Self::NAMES)?;
         o.validate()?;
         Ok(o)
     }
@@ -146,16 +139,34 @@ impl Default for InferOptions {
 pub enum OptionError {
     /// A value out of range: which option, what it must be, what it was.
     #[error("{} must be {expected}, got {given}", flag(option))]
-    OutOfRange { option: String, expected: String, given: String },
+    OutOfRange {
+        /// The option's name.
+        option: String,
+        /// What the value must be (`in [0, 1)`).
+        expected: String,
+        /// The value given, as text.
+        given: String,
+    },
     /// A name that is no option.
     #[error("unknown option `{option}`; the options are {valid}")]
-    Unknown { option: String, valid: String },
+    Unknown {
+        /// The name given.
+        option: String,
+        /// The valid names, comma-separated.
+        valid: String,
+    },
     /// A value of the wrong type (`message` says what was expected).
     #[error("{}: {message}", flag(option))]
-    Invalid { option: String, message: String },
+    Invalid {
+        /// The option's name (its path in the JSON).
+        option: String,
+        /// The deserialiser's message.
+        message: String,
+    },
 }
 
 impl OptionError {
+    /// An [`OptionError::OutOfRange`]: `option` must be `expected`, was `given`.
     pub fn new(option: &str, expected: &str, given: impl std::fmt::Display) -> Self {
         OptionError::OutOfRange { option: option.to_string(), expected: expected.to_string(), given: given.to_string() }
     }
@@ -176,6 +187,17 @@ impl OptionError {
             OptionError::Invalid { option, message } => format!("{option}: {message}"),
         }
     }
+}
+
+/// Options of type `T` from JSON: an object of the option `names` (absent ones take their
+/// defaults, through `T`'s `#[serde(default)]`). An unknown name is an error listing the
+/// valid ones; a value of the wrong type names its option. Range checks are `T`'s.
+pub fn options_from_json<T: serde::de::DeserializeOwned>(v: serde_json::Value, names: &[&str]) -> Result<T, OptionError> {
+    if let Some(k) = v.as_object().and_then(|m| m.keys().find(|k| !names.contains(&k.as_str()))) {
+        return Err(OptionError::Unknown { option: k.clone(), valid: names.join(", ") });
+    }
+    serde_path_to_error::deserialize(v)
+        .map_err(|e| OptionError::Invalid { option: e.path().to_string(), message: e.into_inner().to_string() })
 }
 
 /// `min_component_area` → `--min-component-area`.

@@ -18,33 +18,51 @@ use std::path::{Path, PathBuf};
 /// The pose file written per object.
 #[derive(Debug, Serialize)]
 pub struct PoseRecord<'a> {
+    /// The object's mask label.
     pub object: &'a str,
+    /// The mask's instance id, when it has one.
     pub id: Option<u32>,
+    /// The frame the pose maps into, in words.
     pub frame: &'static str,
     /// `x_camera = scale · rotation · x_object + translation`, metres; object
     /// frame = the decoder's canonical [-0.5, 0.5]³ (z up).
     pub rotation: [[f32; 3]; 3],
+    /// Translation, metres.
     pub translation_m: [f32; 3],
+    /// Scale: the side of the object frame's unit cube, in metres.
     pub scale_m: f32,
     /// The selected token's pose in its view's normalised frame.
     pub pose_normalised: PoseJson,
+    /// Which candidate won.
     pub selection: &'a Selection,
+    /// Spread of the per-sample poses (with two or more samples).
     pub uncertainty: Option<&'a PoseSpread>,
+    /// Each view of the object, view 1 first.
     pub views: &'a [ViewPose],
+    /// Every scored candidate.
     pub candidates: &'a [Candidate],
+    /// Samples requested per object.
     pub samples: usize,
+    /// Seed of the first candidate's sample (the selected run's seed when there is none).
     pub base_seed: u64,
+    /// Occupied voxels stage 2 ran on ([`ObjectResult::occupied_voxels`]).
     pub occupied_voxels: usize,
     /// What the shape fit changed in the occupancy (absent with `--shape-fit none`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shape_fit: Option<&'a ShapeFitReport>,
+    /// Faces as decoded, before the face budget.
     pub faces_decoded: usize,
+    /// Faces of the written mesh (0 without one).
     pub faces: usize,
+    /// Model stage seconds, summed over samples.
     pub timings_s: &'a StageTimings,
+    /// Mesh post-processing seconds ([`ObjectResult::postprocess_seconds`]).
     pub postprocess_s: f64,
+    /// Scoring and selection seconds.
     pub select_s: f64,
     /// The selected sample's run: its seed, sampler settings, weights.
     pub run: &'a RunMetadata,
+    /// Remarks on the object ([`ObjectResult::notes`]).
     pub notes: &'a [String],
 }
 
@@ -73,10 +91,15 @@ pub fn stage_seconds(o: &ObjectResult) -> [f64; 10] {
 /// Paths written for one object.
 #[derive(Debug, Clone, Serialize)]
 pub struct WrittenObject {
+    /// The object's mask label.
     pub object: String,
+    /// Its `pose.json`.
     pub pose: PathBuf,
+    /// Its `mesh.glb`, when it has a mesh with faces.
     pub mesh_glb: Option<PathBuf>,
+    /// Its `mesh.ply`, when it has a mesh with faces.
     pub mesh_ply: Option<PathBuf>,
+    /// Its Gaussians as a splat PLY (`gaussians.ply`), when it has any.
     pub gaussians_ply: Option<PathBuf>,
 }
 

@@ -119,6 +119,7 @@ pub struct ViewInput {
 /// All views of one object; view 0 is the anchor whose pose is reported.
 #[derive(Debug, Clone)]
 pub struct ObjectInputs {
+    /// The views, anchor first: 1 to [`Pipeline::max_views`].
     pub views: Vec<ViewInput>,
 }
 
@@ -126,14 +127,21 @@ pub struct ObjectInputs {
 /// architecture file's `samplers` section.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RunOptions {
+    /// Seed of all the run's noise (module docs, **Noise order**).
     pub seed: u64,
+    /// Stage-1 sampler steps (`None`: the architecture file's).
     pub ss_steps: Option<usize>,
+    /// Stage-1 classifier-free guidance strength (`None`: the architecture file's).
     pub ss_cfg_strength: Option<f64>,
+    /// Stage-2 sampler steps (`None`: the architecture file's).
     pub slat_steps: Option<usize>,
+    /// Stage-2 classifier-free guidance strength (`None`: the architecture file's).
     pub slat_cfg_strength: Option<f64>,
     /// Stop after stage 1 (occupancy + pose): no stage-2 sampling, no decoding.
     pub stage1_only: bool,
+    /// Decode the mesh (mesh decoder and FlexiCubes) after stage 2.
     pub decode_mesh: bool,
+    /// Decode the Gaussians after stage 2.
     pub decode_gaussians: bool,
     /// Record the peak resident memory of each stage in
     /// [`ObjectReconstruction::memory`]. Resets the process-wide high-water
@@ -161,23 +169,32 @@ impl Default for RunOptions {
 /// Wall-clock seconds per stage (0 for stages that did not run).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct StageTimings {
+    /// DINOv2 on every view.
     pub image_encoder: f64,
+    /// The stage-1 condition (`ss_flow.condition`).
     pub ss_condition: f64,
+    /// Stage-1 sampling of the latent and the pose tokens.
     pub ss_sampling: f64,
+    /// The SS decoder (occupied voxels).
     pub ss_decoder: f64,
+    /// Decoding the pose tokens.
     pub pose: f64,
     /// The occupancy hook of [`Pipeline::run_guided`] (the shape fit).
     pub shape_fit: f64,
+    /// The stage-2 condition (`slat_flow.condition`).
     pub slat_condition: f64,
+    /// Stage-2 sampling on the occupied voxels.
     pub slat_sampling: f64,
     /// The mesh decoder's network (FlexiCubes features per cube).
     pub mesh_decoder: f64,
     /// FlexiCubes surface extraction from those features.
     pub flexicubes: f64,
+    /// The Gaussian decoder.
     pub gaussian_decoder: f64,
     /// Building modules during the run ([`LoadOptions::per_stage`]); also
     /// counted in the stage it belongs to.
     pub loading: f64,
+    /// The whole run.
     pub total: f64,
 }
 
@@ -185,11 +202,17 @@ pub struct StageTimings {
 /// included; `None` for stages that did not run or where unavailable.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct StageMemory {
+    /// The image encoder.
     pub image_encoder: Option<f64>,
+    /// Stage-1 condition and sampling.
     pub ss_flow: Option<f64>,
+    /// The SS decoder.
     pub ss_decoder: Option<f64>,
+    /// Stage-2 condition and sampling.
     pub slat_flow: Option<f64>,
+    /// The mesh decoder and FlexiCubes extraction.
     pub mesh_decoder: Option<f64>,
+    /// The Gaussian decoder.
     pub gaussian_decoder: Option<f64>,
 }
 
@@ -197,15 +220,22 @@ pub struct StageMemory {
 /// ([`Pipeline::run_observed`]), e.g. to drive a progress bar.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stage {
+    /// DINOv2 on every view.
     ImageEncoder,
+    /// Stage-1 condition and sampling (occupancy latent and pose tokens).
     SsSampling,
+    /// The SS decoder: occupied voxels.
     SsDecoder,
+    /// Stage-2 condition and sampling on the occupied voxels.
     SlatSampling,
+    /// The mesh decoder and FlexiCubes extraction.
     MeshDecoder,
+    /// The Gaussian decoder.
     GaussianDecoder,
 }
 
 impl Stage {
+    /// Lower-case name for progress displays (`"ss sampling"`).
     pub fn name(self) -> &'static str {
         match self {
             Stage::ImageEncoder => "image encoder",
@@ -237,10 +267,20 @@ pub struct PredictedPose {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum WeightsSource {
-    /// In-memory random weights (`Pipeline::random`): NOT a trained model.
-    Random { seed: u64 },
+    /// In-memory random weights ([`Weights::Random`]): NOT a trained model.
+    Random {
+        /// The seed the weights were generated from.
+        seed: u64,
+    },
     /// Files per module; `random_init` when any carries `recon.random_init`.
-    Files { dir: PathBuf, files: Vec<PathBuf>, random_init: bool },
+    Files {
+        /// The weights folder ([`WeightFiles::dir`]).
+        dir: PathBuf,
+        /// The checkpoint file of every loaded module.
+        files: Vec<PathBuf>,
+        /// Whether any safetensors file carries the random-init label.
+        random_init: bool,
+    },
 }
 
 impl WeightsSource {
@@ -256,14 +296,21 @@ impl WeightsSource {
 /// What produced a result.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RunMetadata {
+    /// The architecture's name (the config's `name`).
     pub architecture: String,
+    /// Where the weights came from.
     pub weights: WeightsSource,
     /// Same as `weights.is_random()`, spelled out for readers of the JSON.
     pub random_weights: bool,
+    /// The run's seed ([`RunOptions::seed`]).
     pub seed: u64,
+    /// Views the run was conditioned on.
     pub num_views: usize,
+    /// Stage-1 sampler settings as run.
     pub ss_sampler: SamplerSettings,
+    /// Stage-2 sampler settings as run (`None`: stage 1 only).
     pub slat_sampler: Option<SamplerSettings>,
+    /// The order the seeded noise is drawn in (module docs, **Noise order**).
     pub noise_order: &'static str,
 }
 
@@ -273,24 +320,29 @@ pub type OccupancyFit<'a> = dyn FnMut(&PredictedPose, &[[i32; 3]], usize) -> Res
 /// Everything one run produces.
 #[derive(Debug, Clone)]
 pub struct ObjectReconstruction {
+    /// The stage-1 pose prediction.
     pub pose: PredictedPose,
     /// Occupied voxels `(x, y, z)` of the SS decoder grid (resolution
     /// `ss_resolution`), in argwhere order.
     pub coords: Vec<[i32; 3]>,
+    /// Side of the SS decoder grid, in voxels.
     pub ss_resolution: usize,
     /// Mesh in the object frame with vertex colours (`vertex_attrs`).
     pub mesh: Option<Mesh>,
     /// Activated Gaussians in the object frame.
     pub gaussians: Option<Gaussians>,
+    /// Wall-clock seconds per stage.
     pub timings: StageTimings,
     /// Filled when [`RunOptions::measure_memory`] is set.
     pub memory: Option<StageMemory>,
+    /// What produced this result.
     pub metadata: RunMetadata,
 }
 
 /// Which modules to build.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Stages {
+    /// Every module: both stages and both decoders.
     All,
     /// Image encoder, stage-1 flow and SS decoder only (occupancy + pose).
     SparseStructure,
@@ -331,8 +383,11 @@ pub enum Dtype {
     /// The fastest precision within the stated budget for this model (see [`Dtype::resolve`]).
     #[default]
     Auto,
+    /// f32 weights and arithmetic.
     F32,
+    /// bf16 weights, bf16-rounded GEMM and attention inputs, f32 accumulation.
     Bf16,
+    /// f16 weights widened to f32 for the arithmetic.
     F16,
 }
 
@@ -411,6 +466,7 @@ pub enum Weights<'a> {
 
 /// All modules of one architecture file with their weights.
 pub struct Pipeline {
+    /// The architecture file, parsed.
     pub config: RecGenConfig,
     options: LoadOptions,
     stages: Stages,

@@ -54,7 +54,8 @@ pub enum ShapeFit {
 #[serde(rename_all = "kebab-case")]
 pub enum MeshFrom {
     /// The closed, smoothed surface of the fitted occupancy
-    /// ([`Grid::smooth_surface`]), coloured from the decoder's mesh.
+    /// ([`Grid::smooth_surface`]), coloured from the observed points (the
+    /// Gaussians' colours where no point was observed).
     #[default]
     Fitted,
     /// The stage-2 mesh decoder's surface (FlexiCubes) as it is.
@@ -109,13 +110,16 @@ pub struct ShapeFitReport {
 /// A dense `r³` occupancy grid, flat index `(i·r + j)·r + k`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Grid {
+    /// Cells per side.
     pub r: usize,
+    /// Occupancy of every cell, `r³` long, by flat index.
     pub occ: Vec<bool>,
 }
 
 const N6: [[i32; 3]; 6] = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]];
 
 impl Grid {
+    /// An `r³` grid with no cell occupied.
     pub fn empty(r: usize) -> Self {
         Grid { r, occ: vec![false; r * r * r] }
     }
@@ -148,6 +152,7 @@ impl Grid {
         self.occ.iter().enumerate().filter(|(_, &o)| o).map(|(i, _)| self.coord(i)).collect()
     }
 
+    /// Number of occupied cells.
     pub fn count(&self) -> usize {
         self.occ.iter().filter(|&&o| o).count()
     }
@@ -413,8 +418,11 @@ impl Grid {
 /// Where the views put each cell: observed free space, and the cells holding
 /// an observed point.
 pub struct Observation {
+    /// Per cell: observed free space in some view (in front of the measured depth, or beyond a support plane).
     pub free: Vec<bool>,
+    /// Per cell: holds an observed point of the object.
     pub surface: Vec<bool>,
+    /// Observed points that fall outside the grid.
     pub points_outside_grid: usize,
 }
 

@@ -18,14 +18,31 @@ pub enum ModelSource {
     /// `<module>.safetensors` per module; the architecture file is the JSON in
     /// the folder holding an `ss_flow` section unless `config` names one
     /// (`models/recgen-tiny.json` when the folder holds none).
-    Dir { dir: PathBuf, config: Option<PathBuf> },
+    Dir {
+        /// The folder holding the weights.
+        dir: PathBuf,
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+    },
     /// A weights manifest (`recgen`, or a manifest file) resolved in the
     /// Hugging Face cache after `recon weights fetch`; architecture
     /// `models/recgen-large.json` unless `config` names one.
-    Manifest { name: String, config: Option<PathBuf>, cache: PathBuf },
+    Manifest {
+        /// An embedded manifest's name or a manifest file's path.
+        name: String,
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+        /// The Hugging Face cache (`hub` folder) the files are looked up in.
+        cache: PathBuf,
+    },
     /// Random weights (`models/recgen-tiny.json` unless `config` names an
     /// architecture): the plumbing is real, the shapes and poses are not.
-    Random { config: Option<PathBuf>, seed: u64 },
+    Random {
+        /// The architecture file, when given.
+        config: Option<PathBuf>,
+        /// Seed of the random weights.
+        seed: u64,
+    },
 }
 
 impl ModelSource {

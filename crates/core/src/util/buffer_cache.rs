@@ -3,7 +3,7 @@
 //! A full-size transformer block allocates the same few large activations
 //! (33.5 MB rows, 100 MB q/k/v, …) in every block and every sampler step.
 //! glibc serves each one above 32 MiB with a fresh mapping, faulted in and
-//! zeroed page by page (7–12 CPU seconds in the kernel per stage-1 step);
+//! zeroed page by page (CPU time in the kernel on every step; docs/performance.md);
 //! keeping freed memory in glibc's heap instead avoids that but fragments
 //! the heap, raising peak resident memory by ~15 % of the live data.
 //!

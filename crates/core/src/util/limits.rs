@@ -25,9 +25,11 @@ pub const MAX_MESH_FILE_BYTES: u64 = 256 << 20;
 /// Most vertices and most triangles one user mesh may hold (a scanned
 /// object decimated for simulation has well under a million).
 pub const MAX_MESH_VERTICES: u64 = 4_000_000;
+/// Most triangles one user mesh may hold (see [`MAX_MESH_VERTICES`]).
 pub const MAX_MESH_TRIANGLES: u64 = 8_000_000;
 /// Most mesh files one asset folder may hold, and the deepest folder walked.
 pub const MAX_ASSET_FILES: usize = 1000;
+/// Most folder levels walked in an asset folder, the folder itself counting as one (see [`MAX_ASSET_FILES`]).
 pub const MAX_ASSET_DEPTH: usize = 4;
 /// Largest physics JSON beside an asset, in bytes.
 pub const MAX_ASSET_JSON_BYTES: u64 = 1 << 20;

@@ -33,8 +33,8 @@ pub fn reset_peak_rss() {
 /// to the OS (glibc `mallopt`: mmap and trim thresholds at 1 GiB). By
 /// default glibc serves every buffer above 32 MiB, such as one activation of
 /// a full-size transformer block, with fresh pages that are faulted in and
-/// zeroed on each allocation: a full-size stage-1 step spent 7–12 CPU
-/// seconds in the kernel on them. The cost is a few percent more peak
+/// zeroed on each allocation, kernel time on every step
+/// (docs/performance.md). The cost is a few percent more peak
 /// resident memory (freed holes are reused, not unmapped). Returns whether
 /// the allocator took both settings; `false` (and nothing changed) off glibc.
 pub fn keep_freed_memory() -> bool {

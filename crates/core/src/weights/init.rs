@@ -15,6 +15,7 @@ use candle_core::{DType, Tensor};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+/// Safetensors metadata key whose value `"true"` labels random-initialised weights.
 pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 
 /// Write `<out>/<config stem>.safetensors` and a copy of the config as

@@ -15,10 +15,12 @@ use std::path::{Path, PathBuf};
 /// order when the top level of a `.pt` file holds no tensors.
 pub const PT_WRAPPER_KEYS: &[&str] = &["state_dict", "model", "ema", "model_state_dict", "module", "net", "params"];
 
-/// Name and storage dtype/shape of one checkpoint tensor.
+/// Storage shape and dtype of one checkpoint tensor (its name is the map key).
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredTensor {
+    /// Shape as stored.
     pub shape: Vec<usize>,
+    /// Dtype as stored.
     pub dtype: DType,
 }
 
@@ -29,6 +31,7 @@ enum Inner {
 
 /// An opened checkpoint. Names are the logical (prefix-stripped) names.
 pub struct Checkpoint {
+    /// The checkpoint file.
     pub path: PathBuf,
     inner: Inner,
     /// Prefix present in the file and stripped from every name (`module.` for DDP checkpoints).

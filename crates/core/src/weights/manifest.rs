@@ -15,29 +15,40 @@ pub const EMBEDDED: &[(&str, &str)] = &[
     ("dinov2-vitl14-reg", include_str!("../../../../weights-manifest/dinov2-vitl14-reg.json")),
 ];
 
+/// A weights manifest: the upstream files of one model release, where they come from and what they hold.
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {
+    /// The manifest's name (`recgen`); URL-sourced files are stored under it.
     pub name: String,
     /// `huggingface` (files of `repo` at `revision`) or `url` (each file has its own `url`).
     pub source: String,
+    /// Hugging Face repo id (`owner/name`) of a `huggingface` manifest.
     #[serde(default)]
     pub repo: Option<String>,
+    /// Repo revision the files are taken from (`main` when absent).
     #[serde(default)]
     pub revision: Option<String>,
+    /// Licence of the files, as text.
     #[serde(default)]
     pub licence: Option<String>,
+    /// Free-form remarks.
     #[serde(default)]
     pub notes: Vec<String>,
+    /// The files.
     pub files: Vec<ManifestFile>,
 }
 
+/// One file of a [`Manifest`].
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct ManifestFile {
+    /// Path in the repo (for `url` manifests: in the download folder).
     pub path: String,
     /// `safetensors`, `pt`, `json`, ...
     pub kind: String,
+    /// Where to download it (`url` manifests).
     #[serde(default)]
     pub url: Option<String>,
+    /// SHA-256 of the file (hex), as recorded; recon does not check it.
     #[serde(default)]
     pub sha256: Option<String>,
     /// Upstream class the weights belong to.
@@ -61,11 +72,13 @@ pub struct ManifestFile {
     /// Why `tensors` is null, or how it was generated.
     #[serde(default)]
     pub tensors_note: Option<String>,
+    /// Not needed by recon: fetched only on request, and absence passes `verify`.
     #[serde(default)]
     pub optional: bool,
 }
 
 impl Manifest {
+    /// Parse manifest JSON; errors name `file`.
     pub fn parse(text: &str, file: &str) -> Result<Self> {
         serde_json::from_str(text).map_err(|e| Error::config(file, "manifest", e.to_string()))
     }
@@ -84,6 +97,7 @@ impl Manifest {
         Err(Error::input(name_or_path, format!("no such manifest (known: {known:?}, or a path to a manifest .json)")))
     }
 
+    /// Every embedded manifest, parsed.
     pub fn all() -> Result<Vec<Self>> {
         EMBEDDED.iter().map(|(n, t)| Self::parse(t, &format!("weights-manifest/{n}.json"))).collect()
     }
@@ -121,7 +135,7 @@ fn is_weights_file(f: &ManifestFile) -> bool {
 /// manifest lists, as they lie in a Hugging Face cache (`cache`, the `hub`
 /// folder; see [`Manifest::resolve_dir`]) after `recon weights fetch`.
 ///
-/// Each module is matched by class family ([`ModuleKind`]) to a weights
+/// Each module is matched by class family ([`ModuleKind`](crate::weights::registry::ModuleKind)) to a weights
 /// file of the named manifest; a family the manifest does not list at all
 /// (RecGen ships no DINOv2) is taken from the other embedded manifests. The
 /// manifest's pose-statistics files (role "stage-1/stage-2 pose normaliser
@@ -199,6 +213,7 @@ pub struct WeightFiles {
     pub modules: HashMap<crate::model::key::ModuleKey, PathBuf>,
     /// Pose statistics to use instead of the files the architecture names.
     pub ss_stats: Option<PathBuf>,
+    /// Likewise for the stage-2 pose statistics (`ss_stats` is stage 1's).
     pub slat_stats: Option<PathBuf>,
 }
 

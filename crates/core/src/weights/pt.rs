@@ -20,7 +20,9 @@ const MAX_PICKLE_BYTES: u64 = 64 << 20;
 /// One tensor of the state dict: where its bytes are and what they hold.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PtTensorInfo {
+    /// Element dtype.
     pub dtype: DType,
+    /// Shape (row-major, contiguous).
     pub shape: Vec<usize>,
     /// Zip entry holding the storage (`<archive>/data/<key>`).
     pub entry: String,
@@ -30,7 +32,9 @@ pub struct PtTensorInfo {
 
 /// An opened `.pt` file: the tensors of the selected state dict.
 pub struct PtFile {
+    /// The archive file.
     pub path: PathBuf,
+    /// The selected state dict's tensors by name, as stored (no prefix stripped).
     pub tensors: BTreeMap<String, PtTensorInfo>,
 }
 

@@ -13,7 +13,9 @@ use std::sync::{Arc, Mutex};
 /// Expected name and shape of one parameter.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct TensorSpec {
+    /// Parameter name (the dotted VarBuilder path).
     pub name: String,
+    /// Parameter shape.
     pub shape: Vec<usize>,
 }
 
@@ -37,9 +39,11 @@ pub struct Recorder {
 }
 
 impl Recorder {
+    /// An empty recorder.
     pub fn new() -> Self {
         Self::default()
     }
+    /// A VarBuilder over this recorder, handing out `dtype` zeros on `dev`.
     pub fn var_builder(&self, dtype: DType, dev: &Device) -> VarBuilder<'static> {
         VarBuilder::from_backend(Box::new(self.clone()), dtype, dev.clone())
     }
@@ -102,9 +106,12 @@ pub fn init_rule(name: &str) -> InitRule {
     }
 }
 
+/// How [`random_values`] fills a parameter ([`init_rule`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum InitRule {
+    /// Every value equal to this.
     Const(f32),
+    /// Zero-mean normal noise with this standard deviation.
     Normal(f32),
 }
 
@@ -160,9 +167,11 @@ pub struct RandomStream {
 }
 
 impl RandomStream {
+    /// A stream for `seed`; `overrides` give named buffers their values instead of noise.
     pub fn new(seed: u64, overrides: BTreeMap<String, Tensor>) -> Self {
         Self { seed, overrides: Arc::new(overrides) }
     }
+    /// An f32 VarBuilder over this stream on `dev`.
     pub fn var_builder(&self, dev: &Device) -> VarBuilder<'static> {
         VarBuilder::from_backend(Box::new(self.clone()), DType::F32, dev.clone())
     }
@@ -195,9 +204,11 @@ pub struct RandomInit {
 }
 
 impl RandomInit {
+    /// An initialiser for `seed`, with nothing handed out yet.
     pub fn new(seed: u64) -> Self {
         Self { seed, log: Log::default(), tensors: Default::default() }
     }
+    /// An f32 VarBuilder over this initialiser on `dev`.
     pub fn var_builder(&self, dev: &Device) -> VarBuilder<'static> {
         VarBuilder::from_backend(Box::new(self.clone()), DType::F32, dev.clone())
     }

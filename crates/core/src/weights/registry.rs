@@ -105,11 +105,10 @@ pub fn expected_tensors(cfg: &ModuleArgs, file: &str) -> Result<Vec<TensorSpec>>
 /// One deliberate prior: the SS decoder's output bias (`out_layer.2.bias`) is
 /// [`SS_DECODER_OCCUPANCY_PRIOR`] · σ below zero, where σ = 0.01·√(27·C) is
 /// the logit std this init gives (weight std 0.02 × √fan-in × ≈½ for the
-/// SiLU of a unit-variance LayerNorm output; measured 0.15 for recgen-tiny).
-/// With a zero bias about a third of the grid is "occupied", which no
-/// trained decoder produces and which makes stage 2 and the mesh needlessly
-/// big; with the prior a few hundred voxels are (123 of 32³ for
-/// recgen-tiny, seed 0), the sparse shell a real object gives.
+/// SiLU of a unit-variance LayerNorm output). With a zero bias about a third
+/// of the grid is "occupied", which no trained decoder produces and which
+/// makes stage 2 and the mesh needlessly big; with the prior a few hundred
+/// voxels are, the sparse shell a real object gives.
 pub fn random_weights(cfg: &ModuleArgs, seed: u64, file: &str) -> Result<BTreeMap<String, Tensor>> {
     let init = RandomInit::new(seed);
     build(cfg, init.var_builder(&Device::Cpu), file)?;

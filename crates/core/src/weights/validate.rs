@@ -10,14 +10,18 @@ use std::collections::{BTreeMap, BTreeSet};
 /// Everything that differs between a checkpoint and the expected list.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ValidationReport {
+    /// Expected tensors the checkpoint lacks.
     pub missing: Vec<TensorSpec>,
     /// (name, found, expected)
     pub mismatched: Vec<(String, Vec<usize>, Vec<usize>)>,
+    /// Checkpoint tensors not in the expected list (left empty when extras are ignored).
     pub unexpected: Vec<String>,
+    /// Expected tensors found with the expected shape.
     pub matched: usize,
 }
 
 impl ValidationReport {
+    /// True when nothing is missing, mis-shaped or unexpected.
     pub fn is_ok(&self) -> bool {
         self.missing.is_empty() && self.mismatched.is_empty() && self.unexpected.is_empty()
     }

@@ -11,14 +11,20 @@ use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::Path;
 
+/// One row of `recon weights verify`: a manifest file and what its check found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VerifyRow {
+    /// The file's path in the manifest.
     pub file: String,
+    /// Whether the file exists.
     pub present: bool,
+    /// File size in bytes (0 when absent).
     pub bytes: u64,
     /// `None` when no tensor list is known for the file.
     pub tensors: Option<(usize, usize)>, // (matched, expected)
+    /// Whether the file passes (an absent optional file does).
     pub ok: bool,
+    /// What the check found, in words.
     pub detail: String,
 }
 
@@ -114,6 +120,7 @@ fn derive_expected(module: &str, config: &Path) -> Option<Vec<crate::weights::re
     expected_tensors(&ModuleArgs::from_spec(&cfg, &file).ok()?, &file).ok()
 }
 
+/// Write `rows` as the verify table, headed by the manifest and its folder, to `out` (write errors ignored).
 pub fn print_table(m: &Manifest, dir: &Path, rows: &[VerifyRow], out: &mut dyn Write) {
     let _ = writeln!(out, "manifest {} ({}) in {}", m.name, m.repo.as_deref().unwrap_or(&m.source), m.resolve_dir(dir).display());
     let _ = writeln!(out, "{:<70} {:>14} {:>13}  {:<4}  detail", "file", "bytes", "tensors", "ok");

@@ -25,7 +25,7 @@ pub use place::Judged;
 pub use spec::{AssetSpec, Category, DirFrame, Predicate, VariationSpec};
 
 use crate::materials::MaterialTable;
-use crate::scene::{build_scene, prepare_mesh, Prepared, SceneOptions, SimScene, Timings};
+use crate::scene::{build_scene, prepare_mesh, Prepared, SceneSettings, SimScene, Timings};
 use crate::scene_file::{safe_name, ObjectSpec, PoseSpec, SceneFile};
 use crate::settle::{part_shapes, settle, SettleOptions};
 use place::{Bound, Placeable, Region, WorldView};
@@ -366,7 +366,7 @@ fn mix(seed: u64, index: usize, attempt: u64) -> u64 {
 pub fn run_variations(
     scene: &SceneFile,
     table: &MaterialTable,
-    opts: &SceneOptions,
+    opts: &SceneSettings,
     v: &VariationOptions,
     file: &str,
     out: &Path,
@@ -483,7 +483,7 @@ pub fn run_variations(
 struct Ctx<'a> {
     scene: &'a SceneFile,
     table: &'a MaterialTable,
-    opts: &'a SceneOptions,
+    opts: &'a SceneSettings,
     spec: &'a VariationSpec,
     assets: Option<&'a AssetLibrary>,
     bases: &'a [BaseObject],

@@ -25,8 +25,11 @@ pub struct ViewPoints {
 /// A view's depth image prepared for free-space tests (3×3 minimum filter).
 #[derive(Debug, Clone)]
 pub struct DepthView {
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
+    /// The depth camera's intrinsics.
     pub k: Intrinsics,
     /// Minimum valid depth over each pixel's 3×3 neighbourhood (0: none valid).
     min_depth: Vec<f32>,

@@ -86,6 +86,7 @@ pub enum PoseFit {
 }
 
 impl PoseFit {
+    /// The alignment settings this mode stands for.
     pub fn options(self) -> AlignOptions {
         match self {
             PoseFit::Recgen => AlignOptions::recgen(),

@@ -112,12 +112,14 @@ pub fn adjust(pose: &Similarity, delta_log_scale: f64, shift: [f64; 3]) -> Simil
 /// What a refinement did.
 #[derive(Debug, Clone, Copy)]
 pub struct Refined {
+    /// The refined pose (surface → anchor camera); the start when nothing improved.
     pub pose: Similarity,
     /// Per-axis stretch of the object frame (`[1, 1, 1]` unless
     /// `refine_stretch`): the mesh is `diag(stretch)·x` before `pose`.
     pub stretch: [f64; 3],
-    /// Objective before and after (subsampled cross score, metres).
+    /// Objective before the refinement (subsampled cross score, metres).
     pub before_m: f64,
+    /// Objective after it (equal to `before_m` when nothing improved).
     pub after_m: f64,
 }
 

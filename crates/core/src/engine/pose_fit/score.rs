@@ -114,6 +114,7 @@ impl Surface {
         }
     }
 
+    /// [`Surface::distance`] of every point, computed in parallel.
     pub fn distances(&self, qs: &[P3]) -> Vec<f64> {
         qs.par_iter().map(|q| self.distance(q)).collect()
     }
@@ -130,6 +131,7 @@ impl Surface {
 pub struct CandidateScore {
     /// The view whose pose token produced the candidate.
     pub own_view: usize,
+    /// Score in each view, view order (metres; NaN when there was nothing to score against).
     pub per_view_m: Vec<f64>,
 }
 

@@ -23,13 +23,17 @@ use serde::Serialize;
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum SelectMethod {
+    /// Only the first (anchor) view's candidates compete, each scored in that view.
     First,
+    /// Every candidate competes, scored in its own view only.
     Single,
+    /// Every candidate competes, scored by its mean score over all views.
     #[default]
     Cross,
 }
 
 impl SelectMethod {
+    /// The method's name on the command line and in JSON (`cross`).
     pub fn name(self) -> &'static str {
         match self {
             SelectMethod::First => "first",
@@ -65,6 +69,7 @@ pub fn select_best(method: SelectMethod, scores: &[CandidateScore]) -> Option<us
 /// Spread of several pose estimates of one object (the `--samples` uncertainty).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PoseSpread {
+    /// Poses the spread is taken over.
     pub samples: usize,
     /// `sqrt(Σ|t_i − t̄|² / (n−1))`, millimetres.
     pub translation_sd_mm: f64,
