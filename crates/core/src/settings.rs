@@ -10,7 +10,7 @@
 //!
 //! | Variable | Meaning | Default | Read where |
 //! |---|---|---|---|
-//! | `RECON_ISA` | Caps the kernels' instruction set: `portable`, `avx512` or `avx512bf16` | the best the CPU runs | `Settings::from_env` → `recon_kernels::isa::set_cap` |
+//! | `RECON_ISA` | Caps the kernels' instruction set: `portable`, `avx2`, `avx512` or `avx512bf16` | the best the CPU runs | `Settings::from_env` → `recon_kernels::isa::set_cap` |
 //! | `RECON_BF16_DOT` | `on`/`off`: whether bf16 weights use `vdpbf16ps` (AVX512-BF16) instead of f32 FMA | measured once per process | `Settings::from_env` → `recon_kernels::peak::set_bf16_dot` |
 //! | `RECON_MEMORY_LIMIT_MB` | Caps the memory budget (MiB) that model loads are checked against | the machine's `MemTotal` | `Settings::from_env` → `util::limits::memory_budget_bytes` |
 //! | `RECON_CACHE` | Folder the embedded recgen-nano is unpacked to | `$XDG_CACHE_HOME/recon` | `Settings::from_env` → `engine::source` |
@@ -32,7 +32,7 @@ use recon_kernels::isa::Isa;
 /// The variables [`Settings::from_env`] reads, with their meaning (the table
 /// of the module docs, for `--help` texts and checks).
 pub const VARIABLES: &[(&str, &str)] = &[
-    ("RECON_ISA", "caps the kernels' instruction set: portable, avx512 or avx512bf16"),
+    ("RECON_ISA", "caps the kernels' instruction set: portable, avx2, avx512 or avx512bf16"),
     ("RECON_BF16_DOT", "on/off: whether bf16 weights use vdpbf16ps instead of f32 FMA (default: measured)"),
     ("RECON_MEMORY_LIMIT_MB", "caps the memory budget, in MiB (default: the machine's MemTotal)"),
     ("RECON_CACHE", "folder the embedded model is unpacked to (default: $XDG_CACHE_HOME/recon)"),
@@ -105,7 +105,7 @@ impl Settings {
 
         let isa_cap = match text("RECON_ISA")? {
             None => None,
-            Some(v) => Some(Isa::parse(&v).ok_or_else(|| bad("RECON_ISA", &v, "expected portable, avx512 or avx512bf16"))?),
+            Some(v) => Some(Isa::parse(&v).ok_or_else(|| bad("RECON_ISA", &v, "expected portable, avx2, avx512 or avx512bf16"))?),
         };
         let bf16_dot = match text("RECON_BF16_DOT")? {
             None => None,
