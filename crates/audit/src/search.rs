@@ -123,7 +123,7 @@ impl Default for SearchOptions {
 impl SearchOptions {
     /// Checks the options a user sets (`recon audit`'s flags, `recon.audit_depth`'s
     /// keywords); the error names the option.
-    pub fn validate(&self) -> Result<(), recon_core::engine::OptionError> {
+    pub fn validate(&self) -> std::result::Result<(), recon_core::engine::OptionError> {
         use recon_core::engine::OptionError;
         if !(self.alpha > 0.0 && self.alpha < 1.0) {
             return Err(OptionError::new("alpha", "in (0, 1)", self.alpha));
