@@ -716,8 +716,11 @@ impl Jobs {
         skipped.append(&mut result.skipped);
         result.skipped = skipped;
         job.update(|r| r.stage = Some("writing".into()));
-        let written = write_outputs(&result, &job.dir.join("out"))
-            .map_err(|e| JobError { reason: "write".into(), message: format!("writing the outputs: {e}") })?;
+        let written = write_outputs(&result, &job.dir.join("out")).map_err(|e| {
+            // Half-written outputs are never served; their space is given back at once.
+            let _ = std::fs::remove_dir_all(job.dir.join("out.partial"));
+            JobError { reason: "write".into(), message: format!("writing the outputs: {e}") }
+        })?;
         Ok((result, written))
     }
 }
