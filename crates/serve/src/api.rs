@@ -86,6 +86,8 @@ async fn auth(State(app): State<App>, req: Request, next: Next) -> Response {
     if given.is_some_and(|g| same(g.trim().as_bytes(), token.expose().as_bytes())) {
         return next.run(req).await;
     }
+    // Unauthenticated bodies are drained only up to 1 MiB.
+    linger(req.into_body(), 1 << 20);
     let mut r = ApiError::new(StatusCode::UNAUTHORIZED, "missing or wrong bearer token (Authorization: Bearer <token>)").into_response();
     r.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
     r
@@ -158,6 +160,34 @@ async fn openapi_json() -> Json<serde_json::Value> {
     Json(openapi())
 }
 
+/// Reads and drops the rest of a request body in the background (at most `cap` bytes, 30
+/// s), so that a client still sending it reads the early answer (401, 413, 429, 400)
+/// instead of a broken pipe: a lingering close.
+fn linger(body: Body, cap: u64) {
+    tokio::spawn(async move {
+        use http_body_util::BodyExt;
+        let mut body = body;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        let mut n = 0u64;
+        while let Ok(Some(Ok(frame))) = tokio::time::timeout_at(deadline, body.frame()).await {
+            n += frame.data_ref().map_or(0, |d| d.len() as u64);
+            if n > cap {
+                break;
+            }
+        }
+    });
+}
+
+/// [`linger`] for a multipart body an error stopped reading.
+fn linger_multipart(mut mp: Multipart) {
+    tokio::spawn(async move {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        while let Ok(Ok(Some(mut f))) = tokio::time::timeout_at(deadline, mp.next_field()).await {
+            while let Ok(Ok(Some(_))) = tokio::time::timeout_at(deadline, f.chunk()).await {}
+        }
+    });
+}
+
 /// Removes a job folder whose upload did not end in a queued job.
 struct DirGuard(Option<PathBuf>);
 
@@ -200,7 +230,7 @@ fn multipart_error(e: axum::extract::multipart::MultipartError, part: Option<&st
 }
 
 /// Streams the multipart parts into `<job>/inputs/`; small parts are also kept in memory.
-async fn receive(mut mp: Multipart, dir: &std::path::Path, cfg: &ServeConfig) -> Result<(Manifest, BTreeMap<String, Vec<u8>>), ApiError> {
+async fn receive(mp: &mut Multipart, dir: &std::path::Path, cfg: &ServeConfig) -> Result<(Manifest, BTreeMap<String, Vec<u8>>), ApiError> {
     let limit = cfg.max_upload_bytes;
     let mut m = Manifest::default();
     let mut small: BTreeMap<String, Vec<u8>> = BTreeMap::new();
@@ -278,10 +308,17 @@ fn parse_wait(q: &BTreeMap<String, String>) -> Result<bool, ApiError> {
 }
 
 async fn reconstruct(State(app): State<App>, Query(q): Query<BTreeMap<String, String>>, req: Request) -> Result<Response, ApiError> {
-    let wait = parse_wait(&q)?;
     let cfg = &app.jobs.cfg;
     let limit = cfg.max_upload_bytes;
-    let claimed = req.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+    let (head, body) = req.into_parts();
+    let wait = match parse_wait(&q) {
+        Ok(w) => w,
+        Err(e) => {
+            linger(body, limit);
+            return Err(e);
+        }
+    };
+    let claimed = head.headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
     if claimed.is_some_and(|n| n > limit) {
         return Err(ApiError::new(
             StatusCode::PAYLOAD_TOO_LARGE,
@@ -290,6 +327,7 @@ async fn reconstruct(State(app): State<App>, Query(q): Query<BTreeMap<String, St
         .at("request", "Content-Length"));
     }
     let Some(slot) = app.jobs.reserve() else {
+        linger(body, limit);
         if app.jobs.stopping() {
             return Err(ApiError::unavailable("the server is shutting down"));
         }
@@ -299,13 +337,19 @@ async fn reconstruct(State(app): State<App>, Query(q): Query<BTreeMap<String, St
         e.retry_after = Some(app.jobs.retry_after());
         return Err(e);
     };
-    let req = req.map(|b| Body::new(http_body_util_limited(b, limit)));
-    let mp = Multipart::from_request(req, &app)
+    let req = Request::from_parts(head, Body::new(http_body_util_limited(body, limit)));
+    let mut mp = Multipart::from_request(req, &app)
         .await
         .map_err(|e| ApiError::bad("request", "Content-Type", format!("expected a multipart/form-data body: {}", e.body_text())))?;
     let (id, dir) = app.jobs.create_dir()?;
     let mut guard = DirGuard(Some(dir.clone()));
-    let (mut manifest, small) = receive(mp, &dir, cfg).await?;
+    let (mut manifest, small) = match receive(&mut mp, &dir, cfg).await {
+        Ok(r) => r,
+        Err(e) => {
+            linger_multipart(mp);
+            return Err(e);
+        }
+    };
     manifest.options = inputs::merge_options(&cfg.defaults, small.get("options").map(|v| v.as_slice()))?;
     if let Some(o) = small.get("objects") {
         manifest.objects = Some(inputs::parse_objects(o)?);

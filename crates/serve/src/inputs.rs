@@ -150,27 +150,20 @@ fn required(dir: &Path, m: &Manifest, name: &str) -> Result<Part, ApiError> {
 /// the message replaced by its part's name, the part named, and the field (the bound's
 /// field, the config field, or `default_field`).
 fn from_engine(e: &recon_core::Error, parts: &[&Part], default_field: &str) -> ApiError {
-    let mut msg = e.to_string();
-    let mut at: Option<&Part> = None;
-    for p in parts {
-        let s = p.path.display().to_string();
-        if msg.contains(&s) {
-            // The first part the message names is the one at fault (its file leads the message).
-            let pos = msg.find(&s).unwrap_or(usize::MAX);
-            if at.is_none_or(|a| msg.find(&a.name).is_none_or(|q| pos < q)) {
-                at = Some(p);
-            }
-            msg = msg.replace(&s, &p.name);
-        }
-    }
-    let part = at.or(parts.first().copied());
+    let orig = e.to_string();
+    let path_of = |p: &Part| p.path.display().to_string();
+    // The part whose file the message names first is the one at fault (its file leads it).
+    let part = parts.iter().filter_map(|p| orig.find(&path_of(p)).map(|i| (i, *p))).min_by_key(|(i, _)| *i).map(|(_, p)| p);
+    let mut by_length: Vec<&&Part> = parts.iter().collect();
+    by_length.sort_by_key(|p| std::cmp::Reverse(path_of(p).len()));
+    let msg = by_length.iter().fold(orig.clone(), |m, p| m.replace(&path_of(p), &p.name));
     let field = match e {
         recon_core::Error::TooLarge(b) => b.field.clone(),
         recon_core::Error::Config { field, .. } => field.clone(),
         recon_core::Error::Json { .. } => "json".to_string(),
         _ => default_field.to_string(),
     };
-    let name = part.map_or("request", |p| p.name.as_str());
+    let name = part.or(parts.first().copied()).map_or("request", |p| p.name.as_str());
     ApiError::new(input_status(e), msg).at(name, &field)
 }
 
