@@ -862,3 +862,72 @@ fn timeout_and_retention() {
     assert!(server.logs().contains("\"event\":\"retention\""));
     let _ = std::fs::remove_dir_all(&t);
 }
+
+/// The other input forms: binary mask parts (objects named by their file names), `.npy`
+/// float32 depth in metres, intrinsics as a 3×3 `K`; and a second view (the same frame,
+/// `T_c1_c2` the identity), whose objects pair by instance id.
+#[test]
+fn binary_masks_npy_depth_k_and_a_second_view() {
+    let t = tmp("serve-forms");
+    let server = Server::tiny(&t.join("data"), &[]);
+    let s = sample();
+    let label = image::load_from_memory(&s.label).unwrap().to_luma8();
+    let mask = |id: u8| {
+        let m = image::GrayImage::from_fn(label.width(), label.height(), |x, y| {
+            image::Luma([if label.get_pixel(x, y).0[0] == id { 255 } else { 0 }])
+        });
+        let mut out = Vec::new();
+        m.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png).unwrap();
+        out
+    };
+    let depth = image::load_from_memory(&s.depth).unwrap().to_luma16();
+    let intr: serde_json::Value = serde_json::from_slice(&s.intrinsics).unwrap();
+    let scale = intr["depth_scale_m"].as_f64().unwrap();
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}", depth.height(), depth.width());
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend((header.len() as u16).to_le_bytes());
+    npy.extend(header.as_bytes());
+    for v in depth.pixels() {
+        npy.extend(((v.0[0] as f64 * scale) as f32).to_le_bytes());
+    }
+    let k = serde_json::json!({"K": [[intr["fx"], 0, intr["cx"]], [0, intr["fy"], intr["cy"]], [0, 0, 1]]}).to_string();
+    let (m8, m14) = (mask(8), mask(14));
+    let a = post_parts(
+        &server,
+        "",
+        &[
+            ("rgb", Some("shot.png"), &s.rgb),
+            ("depth", Some("shot.npy"), &npy),
+            ("masks", Some("gelatin.png"), &m8),
+            ("masks", Some("mug.png"), &m14),
+            ("intrinsics", None, k.as_bytes()),
+            ("options", None, FAST),
+        ],
+    );
+    assert_eq!(a.status, 200, "{}", a.text());
+    let j = a.json();
+    let labels: Vec<&str> = j["result"]["objects"].as_array().unwrap().iter().map(|o| o["label"].as_str().unwrap()).collect();
+    assert_eq!(labels, ["gelatin.png", "mug.png"], "{j}");
+    assert!(j["result"]["objects"].as_array().unwrap().iter().all(|o| o["status"] == "ok"), "{j}");
+
+    let mut two = tiny_parts(&s, FAST);
+    two.extend([
+        ("rgb2", Some("b.png"), &s.rgb[..]),
+        ("depth2", Some("b-depth.png"), &s.depth[..]),
+        ("masks2", Some("b-label.png"), &s.label[..]),
+        ("intrinsics2", None, &s.intrinsics[..]),
+        ("T_c1_c2", None, &b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"[..]),
+    ]);
+    let a = post_parts(&server, "", &two);
+    assert_eq!(a.status, 200, "{}", a.text());
+    let o = &a.json()["result"]["objects"][0];
+    assert_eq!(o["status"], "ok", "{o}");
+    let pose = get(&server.url(o["files"]["pose"].as_str().unwrap())).json();
+    assert_eq!(pose["views"].as_array().unwrap().len(), 2, "{pose}");
+    assert_eq!(pose["views"][1]["frame"], "b.png");
+    let _ = std::fs::remove_dir_all(&t);
+}
