@@ -15,7 +15,7 @@ pub struct BenchArgs {
     /// Architecture file (full size: models/recgen-large.json).
     #[arg(long, default_value = "models/recgen-large.json")]
     config: PathBuf,
-    /// Sections to run: kernels, modules, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
+    /// Sections to run: kernels, modules, guided, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
     #[arg(long, value_delimiter = ',', default_value = "kernels,modules")]
     sections: Vec<String>,
     /// Precisions of the fast kernels for modules / e2e / comparisons.
@@ -73,7 +73,7 @@ fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
 }
 
 /// The sections `--sections` accepts, in the order they run.
-const SECTIONS: [&str; 8] = ["kernels", "modules", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
+const SECTIONS: [&str; 9] = ["kernels", "modules", "guided", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
 
 pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     if let Some(n) = a.threads {
@@ -91,6 +91,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     }
     if has("modules") {
         module_rows(&a, &modules, &mut report)?;
+    }
+    if has("guided") {
+        guided(&a, &modules, &mut report)?;
     }
     if has("precision") {
         precision(&a, &modules, &mut report)?;
@@ -243,6 +246,38 @@ fn module_rows(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -
             r.input
         );
     })?;
+    Ok(())
+}
+
+/// A guided sampler step of the flows (ss_flow, slat_flow), in full and on
+/// the run's prepared conditions (keys and values once per run, the
+/// constant-context shortcut for the all-zero neg_cond).
+fn guided(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> anyhow::Result<()> {
+    let computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
+    println!(
+        "\n{:<10} {:<28} {:>8} {:>9} {:>8} {:>8} {:>10} {:>10} {:>6}  input",
+        "guided", "compute", "full s", "prepare s", "step s", "speed-up", "rel cond", "rel uncond", "load"
+    );
+    report.guided = bench::bench_guided(&a.config, modules, &computes, a.reps, |r| {
+        println!(
+            "{:<10} {:<28} {:>8.2} {:>9.2} {:>8.2} {:>7.3}× {:>10.1e} {:>10.1e} {:>6}  {}",
+            r.module,
+            r.precision,
+            r.full_seconds,
+            r.prepare_seconds,
+            r.step_seconds,
+            r.full_seconds / r.step_seconds,
+            r.max_rel_cond,
+            r.max_rel_uncond,
+            opt(r.load_average, |v| format!("{v:.1}")),
+            r.input
+        );
+    })?;
+    report.notes.push(
+        "guided: one step of cond + zero neg_cond; full = everything computed in the step; step = on conditions prepared once per run \
+         (prepare s, once per run); rel = max|a−b| / max|b| of the velocities against the full step"
+            .into(),
+    );
     Ok(())
 }
 

@@ -556,6 +556,129 @@ pub fn bench_modules(
     Ok(rows)
 }
 
+/// One guided sampler step of a flow at full size (cond + all-zero
+/// `neg_cond`, as the pipeline samples), computed in full and on the run's
+/// prepared condition.
+#[derive(Debug, Clone, Serialize)]
+pub struct GuidedRow {
+    pub module: String,
+    pub input: String,
+    pub precision: String,
+    /// A guided step computing everything: the condition's keys and values
+    /// inside the step, the unconditional cross-attention in full (best of reps).
+    pub full_seconds: f64,
+    /// Preparing the run's cond and neg_cond, once per sampling run (best of reps).
+    pub prepare_seconds: f64,
+    /// A guided step on the prepared conditions, with the constant-context
+    /// shortcut for the all-zero neg_cond (best of reps).
+    pub step_seconds: f64,
+    /// The step's velocities against the full step's: max |a−b| / max |b|, cond half.
+    pub max_rel_cond: f64,
+    /// The same for the unconditional half (the shortcut's float rounding).
+    pub max_rel_uncond: f64,
+    pub load_average: Option<f64>,
+}
+
+/// For `ss_flow` and `slat_flow` among `modules`: a guided step computed in
+/// full and on the prepared conditions, alternately `reps` times each (best
+/// of), on the inputs of [`bench_modules`] (the condition's first item, a
+/// zero `neg_cond`).
+pub fn bench_guided(
+    arch_path: &Path,
+    modules: &[ModuleKey],
+    computes: &[Compute],
+    reps: usize,
+    mut on_row: impl FnMut(&GuidedRow),
+) -> Result<Vec<GuidedRow>> {
+    use crate::model::sampler::VelocityModel;
+    use crate::model::stage2::slat_flow::SlatVelocity;
+    let arch = RecGenConfig::load(arch_path)?;
+    let inputs = ModuleInputs::new(&arch)?;
+    let mut rows = Vec::new();
+    for &key in modules.iter().filter(|k| matches!(k, ModuleKey::SsFlow | ModuleKey::SlatFlow)) {
+        for &compute in computes.iter().filter(|c| c.is_fast()) {
+            let cfg = arch.module_args(key)?;
+            let label = format!("{}: {key}", arch.name);
+            let vb = registry::random_var_builder(&cfg, registry::module_seed(0, key.name()))?;
+            // One guided step at t = 0.75: (prepare s, step s, velocities).
+            let time_step = |m: &dyn VelocityModel, state: &[Tensor], cond: &Tensor, neg: &Tensor, prepared: bool| {
+                let t = Instant::now();
+                let run = if prepared { m.prepare(cond, Some(neg))? } else { None };
+                let prep = t.elapsed().as_secs_f64();
+                let t = Instant::now();
+                let (c, u) = run.as_deref().unwrap_or(m).velocity_cfg(state, 750.0, cond, neg)?;
+                Ok::<_, crate::Error>((prep, t.elapsed().as_secs_f64(), c.into_iter().chain(u).collect::<Vec<_>>()))
+            };
+            let (mut full_s, mut prep_s, mut step_s) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
+            let mut errs = (0f64, 0f64);
+            let mut record = |full: (f64, f64, Vec<Tensor>), short: (f64, f64, Vec<Tensor>)| -> Result<()> {
+                full_s = full_s.min(full.1);
+                prep_s = prep_s.min(short.0);
+                step_s = step_s.min(short.1);
+                let half = full.2.len() / 2;
+                for (i, (a, b)) in short.2.iter().zip(&full.2).enumerate() {
+                    let e = rel_errors(a, b)?.0;
+                    if i < half {
+                        errs.0 = errs.0.max(e);
+                    } else {
+                        errs.1 = errs.1.max(e);
+                    }
+                }
+                Ok(())
+            };
+            let input = match key {
+                ModuleKey::SsFlow => {
+                    let mut m = registry::build_ss_flow(&cfg, vb, &label, compute)?;
+                    crate::util::release_cached_buffers();
+                    let state: Vec<Tensor> = inputs.ss_state.iter().map(|s| s.narrow(0, 0, 1)).collect::<candle_core::Result<_>>()?;
+                    let cond = inputs.ss_cond.narrow(0, 0, 1)?;
+                    let neg = cond.zeros_like()?;
+                    for _ in 0..reps.max(1) {
+                        m.set_shortcuts(false);
+                        let full = time_step(&m, &state, &cond, &neg, false)?;
+                        m.set_shortcuts(true);
+                        record(full, time_step(&m, &state, &cond, &neg, true)?)?;
+                    }
+                    format!(
+                        "{} + pose tokens, cond {:?} and zeros",
+                        inputs.ss_state[0].elem_count() / inputs.ss_state[0].dims()[0] / inputs.ss_state[0].dims()[1],
+                        cond.dims()
+                    )
+                }
+                _ => {
+                    let mut m = registry::build_slat_flow(&cfg, vb, &label, compute)?;
+                    crate::util::release_cached_buffers();
+                    let coords = &inputs.slat.coords;
+                    let state = [inputs.slat_x.feats.narrow(0, 0, coords.len())?];
+                    let cond = inputs.slat_cond.narrow(0, 0, 1)?;
+                    let neg = cond.zeros_like()?;
+                    for _ in 0..reps.max(1) {
+                        m.set_shortcuts(false);
+                        let full = time_step(&SlatVelocity { model: &m, coords }, &state, &cond, &neg, false)?;
+                        m.set_shortcuts(true);
+                        record(full, time_step(&SlatVelocity { model: &m, coords }, &state, &cond, &neg, true)?)?;
+                    }
+                    format!("{} voxels, cond {:?} and zeros", coords.len(), cond.dims())
+                }
+            };
+            let row = GuidedRow {
+                module: key.to_string(),
+                input,
+                precision: compute.describe(),
+                full_seconds: full_s,
+                prepare_seconds: prep_s,
+                step_seconds: step_s,
+                max_rel_cond: errs.0,
+                max_rel_uncond: errs.1,
+                load_average: load_average(),
+            };
+            on_row(&row);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
+}
+
 /// Error of one stage's output in a precision against the f32 fast path
 /// (same weights, same input): `max_rel = max|a−b| / max|b|`,
 /// `mean_rel = mean|a−b| / mean|b|`.
@@ -1017,6 +1140,7 @@ pub struct BenchReport {
     pub gemm: Vec<GemmRow>,
     pub attention: Vec<AttentionRow>,
     pub modules: Vec<ModuleRow>,
+    pub guided: Vec<GuidedRow>,
     pub precision: Vec<PrecisionRow>,
     pub occupancy: Vec<OccupancyRow>,
     pub end_to_end: Vec<EndToEndRow>,

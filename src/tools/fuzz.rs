@@ -130,7 +130,9 @@ fn write(dir: &Path, name: &str, data: &[u8]) -> Result<PathBuf> {
 }
 
 const BOP_GT: &str = r#"{"0": [{"cam_R_m2c": [1,0,0,0,1,0,0,0,1], "cam_t_m2c": [0,0,500], "obj_id": 1}]}"#;
-const BOP_CAMERA: &str = r#"{"0": {"cam_K": [500,0,32,0,500,24,0,0,1], "depth_scale": 1.0}}"#;
+// Cameras for every image the scene_gt seed names (0 and 3), so the seed itself parses.
+const BOP_CAMERA: &str = r#"{"0": {"cam_K": [500,0,32,0,500,24,0,0,1], "depth_scale": 1.0},
+"3": {"cam_K": [500,0,32,0,500,24,0,0,1], "depth_scale": 1.0}}"#;
 const BOP_INFO: &str = r#"{"1": {"diameter": 100.0}}"#;
 const BOP_PLY: &str = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n\
 element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n10 0 0\n0 10 0\n3 0 1 2\n";

@@ -1,7 +1,8 @@
 //! Times one dense conv3d at the sizes of the full sparse-structure decoder,
 //! with f32 and with bf16 transformed weights (the Winograd layers; the
 //! narrow im2col layers compute in f32 either way).
-//! `cargo run --release -p recon-kernels --example conv3d_speed`
+//! `cargo run --release -p recon-kernels --example conv3d_speed [-- --isa avx2]`
+//! (`--isa` caps the kernels at that family).
 use recon_kernels::conv3d::{conv3d_winograd, conv3d_with, Conv3dShape};
 use recon_kernels::gemm::WeightFormat;
 use recon_kernels::isa::Isa;
@@ -9,6 +10,9 @@ use recon_kernels::peak::bf16_isa;
 use std::time::Instant;
 
 fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let cap = args.iter().position(|a| a == "--isa").and_then(|i| args.get(i + 1)).map(|n| Isa::parse(n).expect("unknown ISA"));
+    let capped = |isa: Isa| cap.map_or(isa, |c| c.min(isa));
     println!("2·27·Cin·Cout·voxels / best-of-3 wall time; cpu = CPU seconds per run");
     // `wino`: the narrow layer forced through Winograd (the dispatcher uses im2col there).
     let layers = [
@@ -33,7 +37,7 @@ fn main() {
                 conv3d_with(&x, &s, &w, Some(&b), out, false, format, isa)
             }
         };
-        for (name, format, isa) in [("f32", WeightFormat::F32, Isa::best()), ("bf16", WeightFormat::Bf16, bf16_isa())] {
+        for (name, format, isa) in [("f32", WeightFormat::F32, capped(Isa::best())), ("bf16", WeightFormat::Bf16, capped(bf16_isa()))] {
             conv(&mut out, format, isa).unwrap();
             // Best of 3 wall times, and CPU seconds (less sensitive to a shared machine).
             let mut dt = f64::INFINITY;

@@ -19,7 +19,7 @@
 
 use crate::buf::{AlignedBuf, SendPtr};
 use crate::gemm::{self, a_format, a_tile_words, microkernel, pack_a_rows, pack_a_tile_cols, AFormat, WeightFormat, MR, NR};
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 use rayon::prelude::*;
 use std::ops::Range;
 
@@ -425,10 +425,11 @@ fn pack_q_panel<'a>(fmt: WeightFormat, dst: &mut [u32], d: usize, nq: usize, row
 /// replaces `s` by `exp(s − m_new)`.
 fn softmax_block(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR]) {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: the ISA is supported (checked by the caller) and s holds nk rows of NR.
-        unsafe { x86::softmax_block(s, nk, m, l, alpha) };
-        return;
+    match isa.simd() {
+        // SAFETY (both): the ISA is supported (checked by the caller) and s holds nk rows of NR.
+        Simd::Avx512 => return unsafe { x86::softmax_block(s, nk, m, l, alpha) },
+        Simd::Avx2 => return unsafe { avx2::softmax_block(s, nk, m, l, alpha) },
+        Simd::Scalar => {}
     }
     let _ = isa;
     let mut mn = *m;
@@ -452,21 +453,17 @@ fn softmax_block(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut 
 }
 
 /// [`softmax_block`] followed by [`to_bf16_pairs`] into `dst`, in one pass
-/// over the scores on AVX-512 (the exponentials go straight to bf16 pairs
-/// instead of through `s`); same values either way.
+/// over the scores on AVX-512 and AVX2 (the exponentials go straight to bf16
+/// pairs instead of through `s`); same values either way.
 fn softmax_block_pairs(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+    // SAFETY (all vector paths): the ISA is supported (checked by the
+    // caller); s holds nk rows of NR and dst ceil(nk/2)·NR words.
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: the ISA is supported (checked by the caller); s holds nk rows
-        // of NR and dst ceil(nk/2)·NR words.
-        unsafe {
-            if isa >= Isa::Avx512Bf16 {
-                x86::softmax_block_pairs_bf16(s, nk, m, l, alpha, dst)
-            } else {
-                x86::softmax_block_pairs(s, nk, m, l, alpha, dst)
-            }
-        };
-        return;
+    match isa.simd() {
+        Simd::Avx512 if isa == Isa::Avx512Bf16 => return unsafe { x86::softmax_block_pairs_bf16(s, nk, m, l, alpha, dst) },
+        Simd::Avx512 => return unsafe { x86::softmax_block_pairs(s, nk, m, l, alpha, dst) },
+        Simd::Avx2 => return unsafe { avx2::softmax_block_pairs(s, nk, m, l, alpha, dst) },
+        Simd::Scalar => {}
     }
     softmax_block(isa, s, nk, m, l, alpha);
     to_bf16_pairs(s, nk, dst);
@@ -475,10 +472,11 @@ fn softmax_block_pairs(isa: Isa, s: &mut [f32], nk: usize, m: &mut [f32; NR], l:
 /// `o[r][c] *= alpha[c]` for every row of `NR` columns.
 fn scale_columns(isa: Isa, o: &mut [f32], alpha: &[f32; NR]) {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: the ISA is supported (checked by the caller).
-        unsafe { x86::scale_columns(o, alpha) };
-        return;
+    match isa.simd() {
+        // SAFETY (both): the ISA is supported (checked by the caller).
+        Simd::Avx512 => return unsafe { x86::scale_columns(o, alpha) },
+        Simd::Avx2 => return unsafe { avx2::scale_columns(o, alpha) },
+        Simd::Scalar => {}
     }
     let _ = isa;
     for row in o.chunks_exact_mut(NR) {
@@ -651,6 +649,98 @@ mod x86 {
             let p = row.as_mut_ptr();
             _mm512_storeu_ps(p, _mm512_mul_ps(_mm512_loadu_ps(p), a0));
             _mm512_storeu_ps(p.add(16), _mm512_mul_ps(_mm512_loadu_ps(p.add(16)), a1));
+        }
+    }
+}
+
+/// The AVX2 versions of the `x86` module: the same operations in the same
+/// order, on four 8-lane vectors per row of `NR` queries.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::NR;
+    use crate::gemm::avx2::bf16_pairs;
+    use crate::vecmath::avx2::exp256;
+    use std::arch::x86_64::*;
+
+    /// Vectors per row of `NR` queries.
+    const V: usize = NR / 8;
+
+    /// As `x86::block_start`.
+    #[inline(always)]
+    unsafe fn block_start(
+        sp: *const f32,
+        nk: usize,
+        m: &mut [f32; NR],
+        l: &[f32; NR],
+        alpha: &mut [f32; NR],
+    ) -> ([__m256; V], [__m256; V]) {
+        let mo: [__m256; V] = std::array::from_fn(|h| _mm256_loadu_ps(m.as_ptr().add(8 * h)));
+        let mut mn = mo;
+        for j in 0..nk {
+            for h in 0..V {
+                mn[h] = _mm256_max_ps(mn[h], _mm256_loadu_ps(sp.add(j * NR + 8 * h)));
+            }
+        }
+        let mut acc = [_mm256_setzero_ps(); V];
+        for h in 0..V {
+            let a = exp256(_mm256_sub_ps(mo[h], mn[h]));
+            _mm256_storeu_ps(alpha.as_mut_ptr().add(8 * h), a);
+            acc[h] = _mm256_mul_ps(_mm256_loadu_ps(l.as_ptr().add(8 * h)), a);
+            _mm256_storeu_ps(m.as_mut_ptr().add(8 * h), mn[h]);
+        }
+        (mn, acc)
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn softmax_block(s: &mut [f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR]) {
+        let sp = s.as_mut_ptr();
+        let (mn, mut acc) = block_start(sp, nk, m, l, alpha);
+        for j in 0..nk {
+            for h in 0..V {
+                let p = exp256(_mm256_sub_ps(_mm256_loadu_ps(sp.add(j * NR + 8 * h)), mn[h]));
+                _mm256_storeu_ps(sp.add(j * NR + 8 * h), p);
+                acc[h] = _mm256_add_ps(acc[h], p);
+            }
+        }
+        for h in 0..V {
+            _mm256_storeu_ps(l.as_mut_ptr().add(8 * h), acc[h]);
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn softmax_block_pairs(s: &[f32], nk: usize, m: &mut [f32; NR], l: &mut [f32; NR], alpha: &mut [f32; NR], dst: &mut [u32]) {
+        let sp = s.as_ptr();
+        let dp = dst.as_mut_ptr();
+        let (mn, mut acc) = block_start(sp, nk, m, l, alpha);
+        for j2 in 0..nk.div_ceil(2) {
+            let j = 2 * j2;
+            for h in 0..V {
+                // Summed in key order, as softmax_block does.
+                let pe = exp256(_mm256_sub_ps(_mm256_loadu_ps(sp.add(j * NR + 8 * h)), mn[h]));
+                acc[h] = _mm256_add_ps(acc[h], pe);
+                let po = if j + 1 < nk {
+                    let po = exp256(_mm256_sub_ps(_mm256_loadu_ps(sp.add((j + 1) * NR + 8 * h)), mn[h]));
+                    acc[h] = _mm256_add_ps(acc[h], po);
+                    po
+                } else {
+                    _mm256_setzero_ps()
+                };
+                _mm256_storeu_si256(dp.add(j2 * NR + 8 * h) as *mut __m256i, bf16_pairs(pe, po));
+            }
+        }
+        for h in 0..V {
+            _mm256_storeu_ps(l.as_mut_ptr().add(8 * h), acc[h]);
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn scale_columns(o: &mut [f32], alpha: &[f32; NR]) {
+        let a: [__m256; V] = std::array::from_fn(|h| _mm256_loadu_ps(alpha.as_ptr().add(8 * h)));
+        for row in o.chunks_exact_mut(NR) {
+            let p = row.as_mut_ptr();
+            for h in 0..V {
+                _mm256_storeu_ps(p.add(8 * h), _mm256_mul_ps(_mm256_loadu_ps(p.add(8 * h)), a[h]));
+            }
         }
     }
 }

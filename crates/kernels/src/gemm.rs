@@ -13,15 +13,16 @@
 //! summation order, so results do not depend on the thread count.
 //!
 //! Kernels, chosen by [`Isa`] at run time:
-//! - f32 weights: AVX-512 FMA `14×32` tile / portable;
+//! - f32 weights: AVX-512 FMA `14×32` tile; AVX2 FMA covers the same tile
+//!   in sub-tiles of up to `6×16` (its 16 registers hold no more); portable;
 //! - bf16 weights: `vdpbf16ps` on bf16 pairs of A and B (A rounded to bf16,
 //!   f32 accumulation) with AVX512-BF16; otherwise B is widened to f32 in
 //!   registers and A rounded to bf16 first, so every ISA computes the same
 //!   products;
-//! - f16 weights: widened with `vcvtph2ps` (AVX-512) / in software; A stays f32.
+//! - f16 weights: widened with `vcvtph2ps` (AVX-512, F16C) / in software; A stays f32.
 
 use crate::buf::{AlignedBuf, SendPtr};
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 use crate::vecmath::{self, Activation};
 use rayon::prelude::*;
 
@@ -43,6 +44,23 @@ impl Blocking {
     /// Blocking for this CPU's caches ([`cache_sizes`]).
     pub fn for_format(format: WeightFormat) -> Self {
         Self::for_caches(format, cache_sizes())
+    }
+
+    /// Blocking for the kernels of `isa` on this CPU's caches ([`Self::for_isa_caches`]).
+    pub fn for_isa(isa: Isa, format: WeightFormat) -> Self {
+        Self::for_isa_caches(isa, format, cache_sizes())
+    }
+
+    /// [`Self::for_caches`], except that AVX2 takes f32 k slices twice as
+    /// long: its kernel reads a panel in two 16-column halves, each with the
+    /// A tile again, so the panel leaves L1 at any `kc`, and longer slices
+    /// halve the passes over `C` (measured a few percent faster).
+    pub fn for_isa_caches(isa: Isa, format: WeightFormat, caches: (usize, usize)) -> Self {
+        let b = Self::for_caches(format, caches);
+        match (isa.simd(), format) {
+            (Simd::Avx2, WeightFormat::F32) => Blocking { kc: (2 * b.kc).min(1024), ..b },
+            _ => b,
+        }
     }
 
     /// Blocking for an L1d / L2 of `(l1, l2)` bytes: the `KC×NR` micro-panel
@@ -146,6 +164,18 @@ pub fn bf16_to_f32(b: u16) -> f32 {
 pub fn round_bf16(x: f32) -> f32 {
     bf16_to_f32(f32_to_bf16(x))
 }
+
+/// [`round_bf16`] on f32 bits, without branches (so loops of it vectorise).
+#[inline(always)]
+fn round_bf16_bits(b: u32) -> u32 {
+    let r = b.wrapping_add(0x7fff + ((b >> 16) & 1)) & 0xffff_0000;
+    let nan = (b & 0x7fff_ffff) > 0x7f80_0000;
+    if nan {
+        0x7fc0_0000
+    } else {
+        r
+    }
+}
 /// Whether the AVX-512 conversions below may run (a CPU check std caches).
 #[inline]
 fn avx512_bw() -> bool {
@@ -156,13 +186,23 @@ fn avx512_bw() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     false
 }
+/// Whether the AVX2 conversions below may run (a CPU check std caches).
+#[inline]
+fn avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
 
 /// Floats converted per pass of [`bf16_pairs_down_column`] (its stack buffer).
 const PAIRS_CHUNK: usize = 128;
 
 /// `out[k] = bf16(x[2k]·scale) | bf16(x[2k+1]·scale) << 16`, rounded as
 /// [`f32_to_bf16`] (a zero high half past an odd end); 16 floats at a time
-/// with AVX-512 where the CPU has it, bit for bit the same.
+/// with AVX-512 or AVX2 where the CPU has it, bit for bit the same.
 pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
     let out = &mut out[..x.len().div_ceil(2)];
     #[allow(unused_mut)]
@@ -171,6 +211,9 @@ pub(crate) fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) {
     if avx512_bw() {
         // SAFETY: AVX-512 F/BW checked; `out` holds x.len()/2 words.
         done = unsafe { x86::bf16_pairs_of_row(x, scale, out) };
+    } else if avx2() {
+        // SAFETY: AVX2 checked; as above.
+        done = unsafe { avx2::bf16_pairs_of_row(x, scale, out) };
     }
     for k in done / 2..out.len() {
         let lo = f32_to_bf16(x[2 * k] * scale) as u32;
@@ -410,17 +453,35 @@ pub(crate) enum AFormat {
 pub(crate) fn a_format(isa: Isa, format: WeightFormat) -> AFormat {
     match format {
         WeightFormat::F32 | WeightFormat::F16 => AFormat::F32,
-        WeightFormat::Bf16 if isa >= Isa::Avx512Bf16 => AFormat::Bf16Pairs,
+        WeightFormat::Bf16 if isa == Isa::Avx512Bf16 => AFormat::Bf16Pairs,
         WeightFormat::Bf16 => AFormat::F32Bf16,
     }
 }
 
 /// u32 words of one packed `A` tile of `kc` k values.
 pub(crate) fn a_tile_words(afmt: AFormat, kc: usize) -> usize {
+    a_tile_words_mr(afmt, kc, MR)
+}
+
+/// [`a_tile_words`] for a tile of `mr` rows.
+pub(crate) fn a_tile_words_mr(afmt: AFormat, kc: usize, mr: usize) -> usize {
     match afmt {
-        AFormat::F32 => kc * MR,
-        AFormat::F32Bf16 => kc.div_ceil(2) * 2 * MR,
-        AFormat::Bf16Pairs => kc.div_ceil(2) * MR,
+        AFormat::F32 => kc * mr,
+        AFormat::F32Bf16 => kc.div_ceil(2) * 2 * mr,
+        AFormat::Bf16Pairs => kc.div_ceil(2) * mr,
+    }
+}
+
+/// Rows of the `A` tiles [`gemm()`] packs for the kernels of `isa` on B in
+/// `format`: `MR`, except 12 for AVX2 on f32 and bf16, whose row groups of
+/// up to six split 12 rows evenly and `MR` only as 5, 5, 4 (a 4-row group
+/// has too few independent FMA chains). The f16 kernel runs faster in 5-row
+/// groups (its conversions need the registers), so it keeps `MR`, as do
+/// attention and Winograd for every ISA.
+pub(crate) fn gemm_tile_rows(isa: Isa, format: WeightFormat) -> usize {
+    match (isa.simd(), format) {
+        (Simd::Avx2, WeightFormat::F32 | WeightFormat::Bf16) => 12,
+        _ => MR,
     }
 }
 
@@ -474,35 +535,46 @@ pub(crate) fn pack_a_tile_cols<'a>(afmt: AFormat, dst: &mut [u32], rows: usize, 
 /// Pack an `A` tile from row-major f32 rows (`a[i·lda + k]`), the hot case.
 #[inline]
 pub(crate) fn pack_a_rows(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize, rows: usize, kc: usize) {
+    pack_a_rows_mr(afmt, dst, a, lda, rows, kc, MR)
+}
+
+/// [`pack_a_rows`] into a tile of `mr ≥ rows` rows.
+#[inline]
+pub(crate) fn pack_a_rows_mr(afmt: AFormat, dst: &mut [u32], a: &[f32], lda: usize, rows: usize, kc: usize, mr: usize) {
     match afmt {
         AFormat::F32 => {
-            if rows < MR {
-                dst[..kc * MR].fill(0);
+            if rows < mr {
+                dst[..kc * mr].fill(0);
             }
             for i in 0..rows {
                 let src = &a[i * lda..i * lda + kc];
                 for (k, &v) in src.iter().enumerate() {
-                    dst[k * MR + i] = v.to_bits();
+                    dst[k * mr + i] = v.to_bits();
                 }
             }
         }
         AFormat::F32Bf16 => {
             let kp = kc.div_ceil(2) * 2;
-            if rows < MR || kp != kc {
-                dst[..kp * MR].fill(0);
+            if rows < mr || kp != kc {
+                dst[..kp * mr].fill(0);
             }
             for i in 0..rows {
                 for (k, &v) in a[i * lda..i * lda + kc].iter().enumerate() {
-                    dst[k * MR + i] = round_bf16(v).to_bits();
+                    dst[k * mr + i] = v.to_bits();
                 }
+            }
+            // Rounded in a separate contiguous pass, which vectorises (the
+            // transposing copy above cannot).
+            for w in dst[..kp * mr].iter_mut() {
+                *w = round_bf16_bits(*w);
             }
         }
         AFormat::Bf16Pairs => {
-            if rows < MR {
-                dst[..kc.div_ceil(2) * MR].fill(0);
+            if rows < mr {
+                dst[..kc.div_ceil(2) * mr].fill(0);
             }
             for i in 0..rows {
-                bf16_pairs_down_column(&a[i * lda..i * lda + kc], 1.0, dst, MR, i);
+                bf16_pairs_down_column(&a[i * lda..i * lda + kc], 1.0, dst, mr, i);
             }
         }
     }
@@ -530,7 +602,13 @@ pub(crate) unsafe fn microkernel(
     load: bool,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
+    match isa.simd() {
+        Simd::Avx512 => {}
+        Simd::Avx2 => return avx2::tile::<MR>(format, kc, a, b, c, ldc, rows, cols, load),
+        Simd::Scalar => return portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load),
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
         // A short tile (the last rows of M, or a head dim that is not a
         // multiple of MR) runs a kernel that computes only those rows: the
         // full one would spend MR rows of FMAs on it. Each row's sum is the
@@ -552,10 +630,38 @@ pub(crate) unsafe fn microkernel(
             5..=8 => rows!(8),
             _ => rows!(MR),
         }
-        return;
     }
-    let _ = isa;
-    portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = isa;
+        portable_kernel(format, kc, a as *const f32, b, c, ldc, rows, cols, load)
+    }
+}
+
+/// [`microkernel`] on a tile of [`gemm_tile_rows`] rows (`rows` of them).
+///
+/// # Safety
+/// As [`microkernel`], with `a` packed in tiles of `gemm_tile_rows(isa, format)` rows.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+unsafe fn microkernel_gemm(
+    isa: Isa,
+    format: WeightFormat,
+    kc: usize,
+    a: *const u32,
+    b: *const u8,
+    c: *mut f32,
+    ldc: usize,
+    rows: usize,
+    cols: usize,
+    load: bool,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if gemm_tile_rows(isa, format) == 12 {
+        return avx2::tile::<12>(format, kc, a, b, c, ldc, rows, cols, load);
+    }
+    debug_assert_eq!(gemm_tile_rows(isa, format), MR);
+    microkernel(isa, format, kc, a, b, c, ldc, rows, cols, load)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -622,7 +728,7 @@ pub fn gemm(
     c: &mut [f32],
     ldc: usize,
 ) -> Result<(), String> {
-    gemm_blocked(isa, a, m, lda, b, bias, act, c, ldc, Blocking::for_format(b.format))
+    gemm_blocked(isa, a, m, lda, b, bias, act, c, ldc, Blocking::for_isa(isa, b.format))
 }
 
 /// [`gemm()`] with explicit cache blocking (for tuning).
@@ -640,7 +746,8 @@ pub fn gemm_blocked(
     blocking: Blocking,
 ) -> Result<(), String> {
     let (k, n) = (b.k, b.n);
-    let mc = blocking.mc.div_ceil(MR).max(1) * MR;
+    let mr = gemm_tile_rows(isa, b.format);
+    let mc = blocking.mc.div_ceil(mr).max(1) * mr;
     let kc_blk = (blocking.kc.div_ceil(2) * 2).max(2);
     if !isa.supported() {
         return Err(format!("gemm: instruction set {} is not supported by this CPU", isa.name()));
@@ -668,12 +775,12 @@ pub fn gemm_blocked(
     let ngroups = (4 * threads).div_ceil(mblocks).clamp(1, panels);
     let cptr = SendPtr(c.as_mut_ptr());
     (0..mblocks * ngroups).into_par_iter().for_each_init(
-        || AlignedBuf::<u32>::zeroed(mc.div_ceil(MR) * a_tile_words(afmt, kc_max)),
+        || AlignedBuf::<u32>::zeroed(mc.div_ceil(mr) * a_tile_words_mr(afmt, kc_max, mr)),
         |abuf, task| {
             let (mb, ng) = (task / ngroups, task % ngroups);
             let m0 = mb * mc;
             let rows = mc.min(m - m0);
-            let tiles = rows.div_ceil(MR);
+            let tiles = rows.div_ceil(mr);
             let (p0, p1) = (ng * panels / ngroups, (ng + 1) * panels / ngroups);
             if k == 0 {
                 for i in 0..rows {
@@ -692,24 +799,24 @@ pub fn gemm_blocked(
             while k0 < k {
                 let kc = kc_max.min(k - k0);
                 let kc_step = b.format.k_padded(kc);
-                let tw = a_tile_words(afmt, kc);
+                let tw = a_tile_words_mr(afmt, kc, mr);
                 for t in 0..tiles {
-                    let r0 = t * MR;
-                    let tr = MR.min(rows - r0);
-                    pack_a_rows(afmt, &mut abuf[t * tw..(t + 1) * tw], &a[(m0 + r0) * lda + k0..], lda, tr, kc);
+                    let r0 = t * mr;
+                    let tr = mr.min(rows - r0);
+                    pack_a_rows_mr(afmt, &mut abuf[t * tw..(t + 1) * tw], &a[(m0 + r0) * lda + k0..], lda, tr, kc, mr);
                 }
                 let last = k0 + kc >= k;
                 for p in p0..p1 {
                     let bp = b.panel_ptr(p, k0);
                     let cols = NR.min(n - p * NR);
                     for t in 0..tiles {
-                        let r0 = t * MR;
-                        let tr = MR.min(rows - r0);
+                        let r0 = t * mr;
+                        let tr = mr.min(rows - r0);
                         // SAFETY: the tile lies inside this task's rows and panel range; the
                         // packed operands hold kc_step values (zero padded).
                         unsafe {
                             let cp = cptr.get().add((m0 + r0) * ldc + p * NR);
-                            microkernel(isa, b.format, kc_step, abuf.as_ptr().add(t * tw), bp, cp, ldc, tr, cols, k0 > 0);
+                            microkernel_gemm(isa, b.format, kc_step, abuf.as_ptr().add(t * tw), bp, cp, ldc, tr, cols, k0 > 0);
                             if last && (bias.is_some() || act != Activation::None) {
                                 for i in 0..tr {
                                     let row = std::slice::from_raw_parts_mut(cp.add(i * ldc), cols);
@@ -953,6 +1060,264 @@ pub(crate) mod x86 {
     }
 }
 
+/// AVX2 + FMA kernels over the same packed B panels. The 16 ymm registers
+/// hold at most `6×16` of a tile (12 accumulators, two B vectors, one
+/// broadcast), so a tile runs as sub-tiles: each 16-column half of the
+/// panel in turn, in row groups of at most [`RMAX`] rows sized evenly
+/// (`MR` rows: 5, 5, 4, faster than 6, 6, 2; [`super::gemm()`] packs 12-row
+/// A tiles for f32 and bf16, see [`super::gemm_tile_rows`]). Every row's
+/// sum runs in k order, as in the AVX-512 kernels.
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2 {
+    use super::{WeightFormat, NR};
+    use std::arch::x86_64::*;
+
+    /// Columns of a sub-tile: two 8-lane vectors.
+    const NH: usize = 16;
+    /// Rows of the largest sub-tile.
+    pub(crate) const RMAX: usize = 6;
+
+    /// The first `min(n, 8)` lanes set, as `vmaskmovps` wants.
+    #[inline(always)]
+    pub(crate) unsafe fn lane_mask(n: usize) -> __m256i {
+        _mm256_cmpgt_epi32(_mm256_set1_epi32(n.min(8) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+    }
+
+    /// bf16 bits (round to nearest even, NaN → 0x7fc0, as [`super::f32_to_bf16`])
+    /// in the low half of each lane.
+    #[inline(always)]
+    pub(crate) unsafe fn bf16_bits(v: __m256) -> __m256i {
+        let b = _mm256_castps_si256(v);
+        let lsb = _mm256_and_si256(_mm256_srli_epi32::<16>(b), _mm256_set1_epi32(1));
+        let r = _mm256_srli_epi32::<16>(_mm256_add_epi32(_mm256_add_epi32(b, _mm256_set1_epi32(0x7fff)), lsb));
+        let nan = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_UNORD_Q>(v, v));
+        _mm256_blendv_epi8(r, _mm256_set1_epi32(0x7fc0), nan)
+    }
+
+    /// Words `bf16(lo) | bf16(hi) << 16`, lane by lane.
+    #[inline(always)]
+    pub(crate) unsafe fn bf16_pairs(lo: __m256, hi: __m256) -> __m256i {
+        _mm256_or_si256(bf16_bits(lo), _mm256_slli_epi32::<16>(bf16_bits(hi)))
+    }
+
+    /// The whole 16-float blocks of [`super::bf16_pairs_of_row`]; returns
+    /// the floats done.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn bf16_pairs_of_row(x: &[f32], scale: f32, out: &mut [u32]) -> usize {
+        let s = _mm256_set1_ps(scale);
+        let n = x.len() / 16 * 16;
+        for i in (0..n).step_by(16) {
+            let v0 = bf16_bits(_mm256_mul_ps(_mm256_loadu_ps(x.as_ptr().add(i)), s));
+            let v1 = bf16_bits(_mm256_mul_ps(_mm256_loadu_ps(x.as_ptr().add(i + 8)), s));
+            // packus interleaves the 128-bit halves: put them back in order.
+            let w = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packus_epi32(v0, v1));
+            _mm256_storeu_si256(out.as_mut_ptr().add(i / 2) as *mut __m256i, w);
+        }
+        n
+    }
+
+    /// Ask for the sub-tile's rows of `C` (a row apart in a large matrix,
+    /// so out of cache and not prefetched by the hardware) before the k loop,
+    /// so the final `C += acc` does not wait for them.
+    #[inline(always)]
+    unsafe fn prefetch_c<const R: usize>(c: *mut f32, ldc: usize) {
+        for i in 0..R {
+            _mm_prefetch::<_MM_HINT_T0>(c.wrapping_add(i * ldc) as *const i8);
+        }
+    }
+
+    /// `C[R rows, cols ≤ 16] (+)= acc`.
+    #[inline(always)]
+    unsafe fn store<const R: usize>(acc: &[[__m256; 2]; R], c: *mut f32, ldc: usize, cols: usize, load: bool) {
+        if cols == NH {
+            for i in 0..R {
+                let p = c.add(i * ldc);
+                let (mut v0, mut v1) = (acc[i][0], acc[i][1]);
+                if load {
+                    v0 = _mm256_add_ps(v0, _mm256_loadu_ps(p));
+                    v1 = _mm256_add_ps(v1, _mm256_loadu_ps(p.add(8)));
+                }
+                _mm256_storeu_ps(p, v0);
+                _mm256_storeu_ps(p.add(8), v1);
+            }
+        } else {
+            let m = [lane_mask(cols), lane_mask(cols.saturating_sub(8))];
+            for i in 0..R {
+                for h in 0..2 {
+                    let p = c.add(i * ldc + 8 * h);
+                    let mut v = acc[i][h];
+                    if load {
+                        v = _mm256_add_ps(v, _mm256_maskload_ps(p, m[h]));
+                    }
+                    _mm256_maskstore_ps(p, m[h], v);
+                }
+            }
+        }
+    }
+
+    /// The k loop of a sub-tile: [`prefetch_c`], then `step(k)` for `k` in
+    /// `0..n`, four at a time (the 5- and 6-row kernels issue close to four
+    /// instructions per cycle, so the loop counter's share of the front end
+    /// matters).
+    #[inline(always)]
+    unsafe fn k_loop<const R: usize>(n: usize, c: *mut f32, ldc: usize, mut step: impl FnMut(usize)) {
+        prefetch_c::<R>(c, ldc);
+        let mut k = 0;
+        while k + 4 <= n {
+            step(k);
+            step(k + 1);
+            step(k + 2);
+            step(k + 3);
+            k += 4;
+        }
+        while k < n {
+            step(k);
+            k += 1;
+        }
+    }
+
+    /// `acc[i] += a[i] · (b0, b1)` for the sub-tile's rows.
+    #[inline(always)]
+    unsafe fn fma_rows<const R: usize>(acc: &mut [[__m256; 2]; R], a: *const f32, b0: __m256, b1: __m256) {
+        for i in 0..R {
+            let ai = _mm256_set1_ps(*a.add(i));
+            acc[i][0] = _mm256_fmadd_ps(ai, b0, acc[i][0]);
+            acc[i][1] = _mm256_fmadd_ps(ai, b1, acc[i][1]);
+        }
+    }
+
+    /// f32 B: `a` at the sub-tile's first row of an A tile of `S` rows
+    /// (stride `S` per k), `b` at its first column (stride `NR` per k).
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn kern_f32<const R: usize, const S: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const f32,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        k_loop::<R>(kc, c, ldc, |k| {
+            let b = b.add(k * NR);
+            fma_rows(&mut acc, a.add(k * S), _mm256_load_ps(b), _mm256_load_ps(b.add(8)));
+        });
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// f16 B, widened by F16C.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    unsafe fn kern_f16<const R: usize, const S: usize>(
+        kc: usize,
+        a: *const f32,
+        b: *const u16,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        k_loop::<R>(kc, c, ldc, |k| {
+            let b = b.add(k * NR);
+            let b0 = _mm256_cvtph_ps(_mm_load_si128(b as *const __m128i));
+            let b1 = _mm256_cvtph_ps(_mm_load_si128(b.add(8) as *const __m128i));
+            fma_rows(&mut acc, a.add(k * S), b0, b1);
+        });
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// `p`, as a value the compiler cannot tell equal to `p`: loads through
+    /// it are not merged with earlier loads through `p`, so their values need
+    /// not stay in registers meanwhile (no instruction is emitted).
+    #[inline(always)]
+    #[allow(clippy::pointers_in_nomem_asm_block)] // the template reads no memory: it only hides the value
+    fn reload<T>(mut p: *const T) -> *const T {
+        // SAFETY: an empty template; the pointer is passed through unchanged.
+        unsafe { std::arch::asm!("/* {0} */", inout(reg) p, options(pure, nomem, nostack, preserves_flags)) };
+        p
+    }
+
+    /// bf16 pairs of B widened in registers (`b` at the sub-tile's first
+    /// word, `NR` words per k pair): the even k of every row, then the odd k
+    /// (B reloaded, so six rows still fit the registers).
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn kern_bf16<const R: usize, const S: usize>(
+        kc2: usize,
+        a: *const f32,
+        b: *const u32,
+        c: *mut f32,
+        ldc: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        let mut acc = [[_mm256_setzero_ps(); 2]; R];
+        let hi_mask = _mm256_set1_epi32(0xffff_0000u32 as i32);
+        k_loop::<R>(kc2, c, ldc, |k2| {
+            let (a, b) = (a.add(2 * k2 * S), b.add(k2 * NR) as *const __m256i);
+            let e0 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b)));
+            let e1 = _mm256_castsi256_ps(_mm256_slli_epi32::<16>(_mm256_load_si256(b.add(1))));
+            fma_rows(&mut acc, a, e0, e1);
+            // Six rows leave no register for the raw pairs: read them again.
+            let b = if R == RMAX { reload(b) } else { b };
+            let o0 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b), hi_mask));
+            let o1 = _mm256_castsi256_ps(_mm256_and_si256(_mm256_load_si256(b.add(1)), hi_mask));
+            fma_rows(&mut acc, a.add(S), o0, o1);
+        });
+        store(&acc, c, ldc, cols, load);
+    }
+
+    /// Row groups of a tile of `rows` rows: `(first row, rows)`, at
+    /// most [`RMAX`] rows each, as even as possible.
+    #[inline(always)]
+    pub(crate) fn row_groups(rows: usize) -> impl Iterator<Item = (usize, usize)> {
+        let g = rows.div_ceil(RMAX);
+        let (base, extra) = (rows / g.max(1), rows % g.max(1));
+        (0..g).map(move |i| (i * base + i.min(extra), base + usize::from(i < extra)))
+    }
+
+    /// One register tile, as [`super::microkernel`] (same contract) but
+    /// with A in tiles of `S` rows, for an `Isa` whose
+    /// [`crate::isa::Simd`] is AVX2.
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub(crate) unsafe fn tile<const S: usize>(
+        format: WeightFormat,
+        kc: usize,
+        a: *const u32,
+        b: *const u8,
+        c: *mut f32,
+        ldc: usize,
+        rows: usize,
+        cols: usize,
+        load: bool,
+    ) {
+        for h in 0..cols.div_ceil(NH) {
+            let nc = NH.min(cols - h * NH);
+            for (r0, nr) in row_groups(rows) {
+                let a = (a as *const f32).add(r0);
+                let c = c.add(r0 * ldc + h * NH);
+                macro_rules! rows {
+                    ($r:literal) => {
+                        match format {
+                            WeightFormat::F32 => kern_f32::<$r, S>(kc, a, (b as *const f32).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::F16 => kern_f16::<$r, S>(kc, a, (b as *const u16).add(h * NH), c, ldc, nc, load),
+                            WeightFormat::Bf16 => kern_bf16::<$r, S>(kc / 2, a, (b as *const u32).add(h * NH), c, ldc, nc, load),
+                        }
+                    };
+                }
+                match nr {
+                    1 => rows!(1),
+                    2 => rows!(2),
+                    3 => rows!(3),
+                    4 => rows!(4),
+                    5 => rows!(5),
+                    _ => rows!(6),
+                }
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1003,6 +1368,21 @@ mod tests {
         }
     }
 
+    /// Every tile height (each AVX2 row grouping) and the panel widths
+    /// around the 8- and 16-column vector boundaries.
+    #[test]
+    fn every_tile_height_and_panel_width_matches_reference() {
+        for isa in Isa::all_supported() {
+            for format in [WeightFormat::F32, WeightFormat::Bf16, WeightFormat::F16] {
+                for m in 1..=2 * MR {
+                    for n in [1, 7, 8, 9, 15, 16, 17, 24, 25, 31, NR + 16] {
+                        check(isa, format, m, 37, n, 40, Activation::None, (m * 100 + n) as u64);
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn k_slices_beyond_kc_and_zero_k() {
         for isa in Isa::all_supported() {
@@ -1042,6 +1422,11 @@ mod tests {
         assert_eq!(Blocking::for_caches(WeightFormat::Bf16, (32 << 10, 1 << 20)), Blocking { mc: 336, kc: 512 });
         assert_eq!(Blocking::for_caches(WeightFormat::F16, (32 << 10, 1 << 20)), Blocking { mc: 336, kc: 512 });
         assert_eq!(Blocking::for_caches(WeightFormat::F32, (48 << 10, 2 << 20)), Blocking { mc: 448, kc: 384 });
+        // AVX2: f32 k slices twice as long; everything else as the caches say.
+        let zen4 = (32 << 10, 1 << 20);
+        assert_eq!(Blocking::for_isa_caches(Isa::Avx2, WeightFormat::F32, zen4), Blocking { mc: 336, kc: 512 });
+        assert_eq!(Blocking::for_isa_caches(Isa::Avx2, WeightFormat::Bf16, zen4), Blocking { mc: 336, kc: 512 });
+        assert_eq!(Blocking::for_isa_caches(Isa::Avx512, WeightFormat::F32, zen4), Blocking { mc: 336, kc: 256 });
         assert_eq!((parse_cache_size("32K"), parse_cache_size("2M"), parse_cache_size("x")), (Some(32 << 10), Some(2 << 20), None));
         let (l1, l2) = cache_sizes();
         assert!(l1 >= 4 << 10 && l2 > l1);
@@ -1109,6 +1494,17 @@ mod tests {
                 for (k, &g) in got.iter().enumerate() {
                     assert_eq!(g, want_pair(x, k, scale), "len {len} scale {scale} word {k}");
                 }
+                // The AVX2 blocks, which this function uses only on CPUs without AVX-512.
+                #[cfg(target_arch = "x86_64")]
+                if Isa::Avx2.supported() {
+                    let mut got = vec![u32::MAX; len.div_ceil(2)];
+                    // SAFETY: AVX2 checked.
+                    let done = unsafe { avx2::bf16_pairs_of_row(x, scale, &mut got) };
+                    assert_eq!(done, len / 16 * 16);
+                    for (k, &g) in got[..done / 2].iter().enumerate() {
+                        assert_eq!(g, want_pair(x, k, scale), "AVX2: len {len} scale {scale} word {k}");
+                    }
+                }
             }
         }
         for rows in [1usize, 5, MR] {
@@ -1119,6 +1515,17 @@ mod tests {
                 pack_a_rows(AFormat::Bf16Pairs, &mut got, a, lda, rows, kc);
                 let mut cols = vec![7u32; got.len()];
                 pack_a_tile_cols(AFormat::Bf16Pairs, &mut cols, rows, kc, |k| &vals[k * MR..k * MR + MR]);
+                // The f32 tiles of bf16-rounded values (tiles of MR and of 12 rows).
+                for mr in [MR, 12] {
+                    let mut f = vec![7u32; a_tile_words_mr(AFormat::F32Bf16, kc, mr)];
+                    pack_a_rows_mr(AFormat::F32Bf16, &mut f, a, lda, rows.min(mr), kc, mr);
+                    for k in 0..kc.div_ceil(2) * 2 {
+                        for i in 0..mr {
+                            let want = if i < rows.min(mr) && k < kc { round_bf16(a[i * lda + k]).to_bits() } else { 0 };
+                            assert_eq!(f[k * mr + i], want, "rows {rows} kc {kc} mr {mr}: F32Bf16 ({k}, {i})");
+                        }
+                    }
+                }
                 for k2 in 0..kc.div_ceil(2) {
                     for i in 0..MR {
                         let (w, wc) = if i < rows {

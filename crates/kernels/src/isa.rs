@@ -1,7 +1,14 @@
 //! Instruction-set selection. Every fast kernel has a portable version that
-//! runs anywhere; the AVX-512 versions are chosen at run time from what the
-//! CPU reports, never at compile time, so one binary serves every x86-64
-//! machine.
+//! runs anywhere; the AVX2 and AVX-512 versions are chosen at run time from
+//! what the CPU reports, never at compile time, so one binary serves every
+//! x86-64 machine.
+//!
+//! Kernels dispatch on [`Isa::simd`], matched exhaustively, so a new vector
+//! family (e.g. ARM NEON) makes the compiler list every place that needs a
+//! version of it. All families read the same packed weights (`NR`-column
+//! panels of B, packed once at load time); a narrower vector unit covers a
+//! register tile in several sub-tiles, as AVX2 does, and may ask for A
+//! tiles of another height (A is packed per call).
 //!
 //! AMX is not implemented: the development machine (AMD Zen 4) has no AMX
 //! unit, and untested tile code is not shipped.
@@ -14,6 +21,8 @@ use std::sync::OnceLock;
 pub enum Isa {
     /// Plain Rust (compiler auto-vectorisation at the target's baseline).
     Portable,
+    /// AVX2 + FMA + F16C (8-lane f32 FMA; bf16/f16 weights widened to f32 in registers).
+    Avx2,
     /// AVX-512 F + BW (f32 FMA; bf16/f16 weights widened to f32 in registers).
     Avx512,
     /// AVX-512 BF16 (`vdpbf16ps`: bf16 pairs, f32 accumulation) on top of [`Isa::Avx512`].
@@ -22,12 +31,13 @@ pub enum Isa {
 
 impl Isa {
     /// Every family, most portable first.
-    pub const ALL: [Isa; 3] = [Isa::Portable, Isa::Avx512, Isa::Avx512Bf16];
+    pub const ALL: [Isa; 4] = [Isa::Portable, Isa::Avx2, Isa::Avx512, Isa::Avx512Bf16];
 
     /// Lower-case name, as accepted by [`Isa::parse`].
     pub fn name(self) -> &'static str {
         match self {
             Isa::Portable => "portable",
+            Isa::Avx2 => "avx2",
             Isa::Avx512 => "avx512",
             Isa::Avx512Bf16 => "avx512bf16",
         }
@@ -38,12 +48,15 @@ impl Isa {
         Isa::ALL.into_iter().find(|i| i.name() == s.trim().to_ascii_lowercase())
     }
 
-    /// Whether this CPU can run the family.
+    /// Whether this CPU can run the family. A family's support implies that of
+    /// every family before it, so a cap always leaves a supported one.
     pub fn supported(self) -> bool {
         match self {
             Isa::Portable => true,
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw") && is_x86_feature_detected!("fma"),
+            Isa::Avx2 => is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") && is_x86_feature_detected!("f16c"),
+            #[cfg(target_arch = "x86_64")]
+            Isa::Avx512 => Isa::Avx2.supported() && is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512bw"),
             #[cfg(target_arch = "x86_64")]
             Isa::Avx512Bf16 => Isa::Avx512.supported() && is_x86_feature_detected!("avx512bf16"),
             #[cfg(not(target_arch = "x86_64"))]
@@ -61,9 +74,36 @@ impl Isa {
     pub fn best() -> Isa {
         static DETECTED: OnceLock<Isa> = OnceLock::new();
         let detected = *DETECTED.get_or_init(|| Isa::ALL.into_iter().rev().find(|i| i.supported()).unwrap_or(Isa::Portable));
-        match cap() {
-            Some(cap) => cap.min(detected),
-            None => detected,
+        capped(detected, cap())
+    }
+}
+
+/// `detected` capped at `cap` (support is downward closed, so the result runs).
+fn capped(detected: Isa, cap: Option<Isa>) -> Isa {
+    match cap {
+        Some(cap) => cap.min(detected),
+        None => detected,
+    }
+}
+
+/// The vector unit a family's f32 kernels use: what dispatch sites match on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Simd {
+    /// Portable Rust.
+    Scalar,
+    /// 256-bit AVX2 + FMA (+ F16C).
+    Avx2,
+    /// 512-bit AVX-512 F + BW.
+    Avx512,
+}
+
+impl Isa {
+    /// The vector unit of this family's kernels.
+    pub(crate) fn simd(self) -> Simd {
+        match self {
+            Isa::Portable => Simd::Scalar,
+            Isa::Avx2 => Simd::Avx2,
+            Isa::Avx512 | Isa::Avx512Bf16 => Simd::Avx512,
         }
     }
 }
@@ -90,6 +130,11 @@ mod tests {
     #[test]
     fn cap_round_trips_and_bounds_best() {
         assert_eq!(Isa::parse(" AVX512bf16 "), Some(Isa::Avx512Bf16));
+        assert_eq!(Isa::parse("avx2"), Some(Isa::Avx2));
+        // Support is downward closed: capping never lands on a family the CPU lacks.
+        for w in Isa::ALL.windows(2) {
+            assert!(!w[1].supported() || w[0].supported(), "{:?} without {:?}", w[1], w[0]);
+        }
         assert_eq!(Isa::parse("sse"), None);
         // Capping at the current best changes nothing for tests running beside this one.
         let best = Isa::best();
@@ -100,5 +145,12 @@ mod tests {
         assert_eq!(cap(), None);
         assert_eq!(Isa::best(), best);
         assert!(Isa::best().supported());
+        // RECON_ISA=avx2 on an AVX-512 machine runs the AVX2 kernels.
+        assert_eq!(capped(Isa::Avx512Bf16, Some(Isa::Avx2)), Isa::Avx2);
+        assert_eq!(capped(Isa::Avx2, Some(Isa::Avx512)), Isa::Avx2);
+        assert_eq!(capped(Isa::Avx512, None), Isa::Avx512);
+        for cap in Isa::ALL {
+            assert!(capped(best, Some(cap)).supported() && capped(best, Some(cap)) <= cap);
+        }
     }
 }

@@ -1,16 +1,17 @@
 //! Measured arithmetic peak of each instruction set: independent
-//! register-only FMA (or `vdpbf16ps`) chains on every pool thread, so GEMM
-//! efficiency can be reported against what this machine actually sustains
-//! (clock, SMT sharing and other load included) rather than a datasheet.
+//! register-only FMA (ymm for AVX2, zmm for AVX-512) or `vdpbf16ps` chains
+//! on every pool thread, so GEMM efficiency can be reported against what
+//! this machine actually sustains (clock, SMT sharing and other load
+//! included) rather than a datasheet.
 
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::time::Instant;
 
 /// Which multiply-accumulate to time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PeakKind {
-    /// f32 FMA (`vfmadd231ps zmm`, or scalar-vectorised portable code).
+    /// f32 FMA (`vfmadd231ps` on ymm / zmm, or scalar-vectorised portable code).
     F32,
     /// bf16 pair dot product with f32 accumulation (`vdpbf16ps zmm`); 2 FLOP per bf16 product.
     Bf16,
@@ -19,7 +20,7 @@ pub enum PeakKind {
 /// GFLOP/s over all threads of the current rayon pool (best of `reps` runs of
 /// `iters` iterations each). `None` when `isa` cannot run `kind`.
 pub fn measure_peak_gflops(isa: Isa, kind: PeakKind, iters: usize, reps: usize) -> Option<f64> {
-    if !isa.supported() || (kind == PeakKind::Bf16 && isa < Isa::Avx512Bf16) {
+    if !isa.supported() || (kind == PeakKind::Bf16 && isa != Isa::Avx512Bf16) {
         return None;
     }
     let threads = rayon::current_num_threads().max(1);
@@ -75,7 +76,7 @@ pub fn bf16_isa() -> Isa {
     static CHOICE: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
     *CHOICE.get_or_init(|| {
         let best = Isa::best();
-        if best < Isa::Avx512Bf16 {
+        if best != Isa::Avx512Bf16 {
             return best;
         }
         let pays = match BF16_DOT.load(Ordering::Acquire) {
@@ -103,14 +104,18 @@ fn timed(isa: Isa, kind: PeakKind, iters: usize) -> f64 {
 
 fn run(isa: Isa, kind: PeakKind, iters: usize) -> f64 {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: support checked by the caller.
-        return unsafe {
-            match kind {
-                PeakKind::F32 => x86::fma(iters),
-                PeakKind::Bf16 => x86::dpbf16(iters),
+    match isa.simd() {
+        // SAFETY (both): support checked by the caller.
+        Simd::Avx512 => {
+            return unsafe {
+                match kind {
+                    PeakKind::F32 => x86::fma(iters),
+                    PeakKind::Bf16 => x86::dpbf16(iters),
+                }
             }
-        };
+        }
+        Simd::Avx2 => return unsafe { x86::fma_avx2(iters) },
+        Simd::Scalar => {}
     }
     let _ = (isa, kind);
     portable(iters)
@@ -151,6 +156,24 @@ mod x86 {
         (iters * CHAINS * 32) as f64
     }
 
+    /// Chains of the AVX2 loop: enough to keep both FMA pipes busy through
+    /// their latency, few enough for the 16 ymm registers.
+    const CHAINS_YMM: usize = 12;
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn fma_avx2(iters: usize) -> f64 {
+        let mut acc = [_mm256_setzero_ps(); CHAINS_YMM];
+        let a = _mm256_set1_ps(std::hint::black_box(1.000_000_1));
+        let b = _mm256_set1_ps(std::hint::black_box(0.999_999));
+        for _ in 0..iters {
+            for v in acc.iter_mut() {
+                *v = _mm256_fmadd_ps(a, b, *v);
+            }
+        }
+        std::hint::black_box(acc);
+        (iters * CHAINS_YMM * 16) as f64
+    }
+
     #[target_feature(enable = "avx512f,avx512bf16")]
     pub unsafe fn dpbf16(iters: usize) -> f64 {
         let mut acc = [_mm512_setzero_ps(); CHAINS];
@@ -177,7 +200,12 @@ mod tests {
         assert!(!bf16_dot_pays_given(470.0, 470.0));
         let isa = bf16_isa();
         assert!(isa <= Isa::best() && isa.supported());
-        if Isa::best() < Isa::Avx512Bf16 {
+        // Every family has an f32 peak; only AVX512-BF16 a bf16 one.
+        for isa in Isa::all_supported() {
+            assert!(measure_peak_gflops(isa, PeakKind::F32, 1000, 1).is_some_and(|g| g > 0.0), "{isa:?}");
+            assert_eq!(measure_peak_gflops(isa, PeakKind::Bf16, 1000, 1).is_some(), isa == Isa::Avx512Bf16, "{isa:?}");
+        }
+        if Isa::best() != Isa::Avx512Bf16 {
             assert_eq!(isa, Isa::best());
         }
     }

@@ -1,13 +1,13 @@
 //! Vectorised element-wise math: exp, GELU (tanh and erf forms), SiLU,
 //! row LayerNorm and per-head RMS normalisation.
 //!
-//! The AVX-512 and portable versions evaluate the same formulas (same range
-//! reduction, same polynomials), so they agree to a few ulp; the portable
-//! one is written so the compiler can vectorise it at the baseline ISA.
+//! The AVX-512, AVX2 and portable versions evaluate the same formulas (same
+//! range reduction, same polynomials), so they agree to a few ulp; the
+//! portable one is written so the compiler can vectorise it at the baseline ISA.
 //! exp is accurate to about 2 ulp on [-87, 88]; the erf used by the exact
 //! GELU has an absolute error below 1.5e-7 (Abramowitz & Stegun 7.1.26).
 
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 
 /// Element-wise function applied after a GEMM (in its epilogue).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -91,11 +91,12 @@ pub fn bias_act(isa: Isa, x: &mut [f32], bias: Option<&[f32]>, act: Activation) 
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
-        // SAFETY: isa >= Avx512 is only constructed when the CPU supports it
+    match isa.simd() {
+        // SAFETY (all vector paths): kernels only get an `isa` the CPU runs
         // (Isa::supported), and the slices are in bounds.
-        unsafe { x86::bias_act(x, bias, act) };
-        return;
+        Simd::Avx512 => return unsafe { x86::bias_act(x, bias, act) },
+        Simd::Avx2 => return unsafe { avx2::bias_act(x, bias, act) },
+        Simd::Scalar => {}
     }
     let _ = isa;
     match bias {
@@ -107,10 +108,11 @@ pub fn bias_act(isa: Isa, x: &mut [f32], bias: Option<&[f32]>, act: Activation) 
 /// In-place `x[i] = exp(x[i])`.
 pub fn exp_inplace(isa: Isa, x: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
+    match isa.simd() {
         // SAFETY: see `bias_act`.
-        unsafe { x86::exp_inplace(x) };
-        return;
+        Simd::Avx512 => return unsafe { x86::exp_inplace(x) },
+        Simd::Avx2 => return unsafe { avx2::exp_inplace(x) },
+        Simd::Scalar => {}
     }
     let _ = isa;
     x.iter_mut().for_each(|v| *v = exp_approx(*v));
@@ -126,10 +128,11 @@ pub fn layer_norm_row(isa: Isa, x: &[f32], out: &mut [f32], eps: f32, mul: Optio
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if isa >= Isa::Avx512 {
+    match isa.simd() {
         // SAFETY: see `bias_act`.
-        unsafe { x86::layer_norm_row(x, out, eps, mul, add) };
-        return;
+        Simd::Avx512 => return unsafe { x86::layer_norm_row(x, out, eps, mul, add) },
+        Simd::Avx2 => return unsafe { avx2::layer_norm_row(x, out, eps, mul, add) },
+        Simd::Scalar => {}
     }
     let _ = isa;
     let mean = sum8(x.iter().copied()) / c as f32;
@@ -292,6 +295,142 @@ pub(crate) mod x86 {
             }
             _mm512_mask_storeu_ps(out.as_mut_ptr().add(i), m, y);
             i += 16;
+        }
+    }
+}
+
+/// The AVX2 + FMA versions: the AVX-512 ones on 8 lanes, with the integer
+/// `2^n` construction of the portable exp (no `vscalefps`) and
+/// `vmaskmovps` tails. LayerNorm sums in 16 lanes (two vectors) as AVX-512 does.
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2 {
+    use super::*;
+    use crate::gemm::avx2::lane_mask;
+    use std::arch::x86_64::*;
+
+    #[inline(always)]
+    pub unsafe fn exp256(x: __m256) -> __m256 {
+        let x = _mm256_max_ps(_mm256_min_ps(x, _mm256_set1_ps(EXP_HI)), _mm256_set1_ps(EXP_LO));
+        let n = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(_mm256_mul_ps(x, _mm256_set1_ps(LOG2E)));
+        let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_HI), x);
+        let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(LN2_LO), r);
+        let mut p = _mm256_set1_ps(1.0 / 5040.0);
+        for c in [1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
+            p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(c));
+        }
+        // The clamps keep n in [-126, 127]: 2^n is a normal float.
+        let pow2 = _mm256_slli_epi32::<23>(_mm256_add_epi32(_mm256_cvtps_epi32(n), _mm256_set1_epi32(127)));
+        _mm256_mul_ps(p, _mm256_castsi256_ps(pow2))
+    }
+
+    #[inline(always)]
+    unsafe fn erf256(x: __m256) -> __m256 {
+        let sign_bit = _mm256_set1_ps(-0.0);
+        let sign = _mm256_and_ps(x, sign_bit);
+        let a = _mm256_andnot_ps(sign_bit, x);
+        let one = _mm256_set1_ps(1.0);
+        let t = _mm256_div_ps(one, _mm256_fmadd_ps(_mm256_set1_ps(ERF_P), a, one));
+        let mut p = _mm256_set1_ps(ERF_A[4]);
+        for c in [ERF_A[3], ERF_A[2], ERF_A[1], ERF_A[0]] {
+            p = _mm256_fmadd_ps(p, t, _mm256_set1_ps(c));
+        }
+        p = _mm256_mul_ps(p, t);
+        let e = exp256(_mm256_sub_ps(_mm256_setzero_ps(), _mm256_mul_ps(a, a)));
+        let y = _mm256_fnmadd_ps(p, e, one);
+        _mm256_or_ps(y, sign)
+    }
+
+    #[inline(always)]
+    pub unsafe fn act256(x: __m256, act: Activation) -> __m256 {
+        let one = _mm256_set1_ps(1.0);
+        match act {
+            Activation::None => x,
+            Activation::GeluTanh => {
+                let x3 = _mm256_mul_ps(_mm256_mul_ps(x, x), x);
+                let u = _mm256_mul_ps(_mm256_set1_ps(SQRT_2_OVER_PI), _mm256_fmadd_ps(_mm256_set1_ps(0.044715), x3, x));
+                let e = exp256(_mm256_mul_ps(_mm256_set1_ps(-2.0), u));
+                _mm256_div_ps(x, _mm256_add_ps(one, e))
+            }
+            Activation::GeluErf => {
+                let e = erf256(_mm256_mul_ps(x, _mm256_set1_ps(std::f32::consts::FRAC_1_SQRT_2)));
+                _mm256_mul_ps(_mm256_mul_ps(_mm256_set1_ps(0.5), x), _mm256_add_ps(one, e))
+            }
+            Activation::Silu => {
+                let e = exp256(_mm256_sub_ps(_mm256_setzero_ps(), x));
+                _mm256_div_ps(x, _mm256_add_ps(one, e))
+            }
+        }
+    }
+
+    /// `f` on every 8 lanes of `x` in place (the tail masked: its missing lanes read as zero).
+    #[inline(always)]
+    unsafe fn map(x: &mut [f32], f: impl Fn(__m256, usize, __m256i) -> __m256) {
+        let n = x.len();
+        let p = x.as_mut_ptr();
+        let full = n / 8 * 8;
+        let all = _mm256_set1_epi32(-1);
+        for i in (0..full).step_by(8) {
+            _mm256_storeu_ps(p.add(i), f(_mm256_loadu_ps(p.add(i)), i, all));
+        }
+        if full < n {
+            let m = lane_mask(n - full);
+            _mm256_maskstore_ps(p.add(full), m, f(_mm256_maskload_ps(p.add(full), m), full, m));
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn bias_act(x: &mut [f32], bias: Option<&[f32]>, act: Activation) {
+        map(x, |v, i, m| {
+            let v = match bias {
+                Some(b) => _mm256_add_ps(v, _mm256_maskload_ps(b.as_ptr().add(i), m)),
+                None => v,
+            };
+            act256(v, act)
+        });
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn exp_inplace(x: &mut [f32]) {
+        map(x, |v, _, _| exp256(v));
+    }
+
+    /// Sum of the 8 lanes.
+    #[inline(always)]
+    pub unsafe fn hsum(v: __m256) -> f32 {
+        let s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+        let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+        _mm_cvtss_f32(_mm_add_ss(s, _mm_movehdup_ps(s)))
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn layer_norm_row(x: &[f32], out: &mut [f32], eps: f32, mul: Option<&[f32]>, add: Option<&[f32]>) {
+        let c = x.len();
+        let xp = x.as_ptr();
+        let load = |i: usize| _mm256_maskload_ps(xp.add(i), lane_mask(c - i));
+        let mut s = [_mm256_setzero_ps(); 2];
+        for i in (0..c).step_by(8) {
+            s[(i / 8) % 2] = _mm256_add_ps(s[(i / 8) % 2], load(i));
+        }
+        let mean = hsum(_mm256_add_ps(s[0], s[1])) / c as f32;
+        let vm = _mm256_set1_ps(mean);
+        let mut q = [_mm256_setzero_ps(); 2];
+        for i in (0..c).step_by(8) {
+            // Lanes past the end read as zero: keep them out of the sum.
+            let d = _mm256_and_ps(_mm256_sub_ps(load(i), vm), _mm256_castsi256_ps(lane_mask(c - i)));
+            q[(i / 8) % 2] = _mm256_fmadd_ps(d, d, q[(i / 8) % 2]);
+        }
+        let var = hsum(_mm256_add_ps(q[0], q[1])) / c as f32;
+        let rstd = _mm256_set1_ps(1.0 / (var + eps).sqrt());
+        for i in (0..c).step_by(8) {
+            let m = lane_mask(c - i);
+            let mut y = _mm256_mul_ps(_mm256_sub_ps(load(i), vm), rstd);
+            if let Some(w) = mul {
+                y = _mm256_mul_ps(y, _mm256_maskload_ps(w.as_ptr().add(i), m));
+            }
+            if let Some(b) = add {
+                y = _mm256_add_ps(y, _mm256_maskload_ps(b.as_ptr().add(i), m));
+            }
+            _mm256_maskstore_ps(out.as_mut_ptr().add(i), m, y);
         }
     }
 }

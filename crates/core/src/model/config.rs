@@ -315,15 +315,17 @@ impl RecGenConfig {
         }
         let parse = |key: ModuleKey, spec: &ModuleSpec| -> Result<ModuleArgs> {
             let label = format!("{file}: {key}");
-            let args = ModuleArgs::from_spec(spec, &label)?;
-            if args.kind() != key.kind() {
+            // The kind first: a section naming another kind of module is refused as such,
+            // not by the first field its args lack.
+            let kind = spec.kind(&label)?;
+            if kind != key.kind() {
                 return Err(Error::config(
                     label,
                     "name",
-                    format!("`{}` is a {:?} module; this section needs a {:?} module", spec.name, args.kind(), key.kind()),
+                    format!("`{}` is a {:?} module; this section needs a {:?} module", spec.name, kind, key.kind()),
                 ));
             }
-            Ok(args)
+            ModuleArgs::from_spec(spec, &label)
         };
         // `parse` checked the kind, so each getter finds its variant.
         let label = |key: ModuleKey| format!("{file}: {key}");

@@ -23,9 +23,12 @@ pub use self::config::{ArchArgs, ModuleArgs, ModuleSpec, RecGenConfig};
 pub use self::key::{ModuleKey, ModuleKind};
 pub use self::nn::common::layer_norm_plain;
 pub use self::nn::common::PeMode;
+pub use self::nn::common::PreparedCondition;
 pub use self::nn::dense3d::{ChannelLayerNorm, Conv3d, NormType};
 pub use self::nn::fast::{Compute, Precision};
-pub use self::sampler::{FlowEulerGuidanceIntervalSampler, FnVelocity, SamplerSettings, StepRecord, VelocityModel};
+pub use self::sampler::{
+    FlowEulerGuidanceIntervalSampler, FnVelocity, PrepareCondition, PreparedRun, SamplerSettings, StepRecord, Unprepared, VelocityModel,
+};
 pub use self::sparse::{neighbour_map, varlen_attention, varlen_attention_with, SparseConv3d};
 pub use self::sparse::{sparse_downsample, SparseTensor};
 pub use self::stage1::dinov2::{recgen_cond, Dinov2, Dinov2Config};

@@ -143,6 +143,96 @@ pub trait VelocityModel {
     fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg_cond: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
         Ok((self.velocity(state, t_model, cond)?, self.velocity(state, t_model, neg_cond)?))
     }
+
+    /// This model for one sampling run, whose conditions stay the same from
+    /// step to step: what depends on them alone is computed here once instead
+    /// of at every step (see [`PreparedRun`]). The sampler calls it before
+    /// the first step and then uses the returned model; `None` (the default)
+    /// means there is nothing to prepare and the sampler uses this one. The
+    /// returned model must give this one's velocities.
+    fn prepare<'a>(&'a self, cond: &Tensor, neg_cond: Option<&Tensor>) -> Result<Option<Box<dyn VelocityModel + 'a>>> {
+        let _ = (cond, neg_cond);
+        Ok(None)
+    }
+}
+
+/// A velocity model that can turn a condition into a prepared form once and
+/// then take that form at every step ([`PreparedRun`] drives it).
+pub trait PrepareCondition: VelocityModel {
+    /// The prepared form of one condition tensor.
+    type Prepared;
+
+    /// Prepare `cond` (any batch [`VelocityModel::velocity`] accepts).
+    fn prepare_condition(&self, cond: &Tensor) -> Result<Self::Prepared>;
+
+    /// [`VelocityModel::velocity`] on a prepared condition.
+    fn velocity_prepared(&self, state: &[Tensor], t_model: f32, cond: &Self::Prepared) -> Result<Vec<Tensor>>;
+
+    /// [`VelocityModel::velocity_cfg`] on prepared conditions.
+    fn velocity_cfg_prepared(
+        &self,
+        state: &[Tensor],
+        t_model: f32,
+        cond: &Self::Prepared,
+        neg_cond: &Self::Prepared,
+    ) -> Result<(Vec<Tensor>, Vec<Tensor>)>;
+}
+
+/// A model with one run's condition and negative condition prepared once
+/// ([`PrepareCondition`]). A call with one of those tensors (the same
+/// tensor, not an equal one: candle's tensor id) takes the prepared form; any
+/// other tensor goes to the model unprepared.
+pub struct PreparedRun<'a, M: PrepareCondition> {
+    model: &'a M,
+    cond: (candle_core::TensorId, M::Prepared),
+    neg_cond: Option<(candle_core::TensorId, M::Prepared)>,
+}
+
+impl<'a, M: PrepareCondition> PreparedRun<'a, M> {
+    /// Prepare `cond` and, when given, `neg_cond` for `model`.
+    pub fn new(model: &'a M, cond: &Tensor, neg_cond: Option<&Tensor>) -> Result<Self> {
+        let neg_cond = match neg_cond {
+            Some(n) => Some((n.id(), model.prepare_condition(n)?)),
+            None => None,
+        };
+        Ok(Self { model, cond: (cond.id(), model.prepare_condition(cond)?), neg_cond })
+    }
+
+    fn lookup(&self, t: &Tensor) -> Option<&M::Prepared> {
+        let id = t.id();
+        std::iter::once(&self.cond).chain(&self.neg_cond).find(|(i, _)| *i == id).map(|(_, p)| p)
+    }
+}
+
+impl<M: PrepareCondition> VelocityModel for PreparedRun<'_, M> {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        match self.lookup(cond) {
+            Some(p) => self.model.velocity_prepared(state, t_model, p),
+            None => self.model.velocity(state, t_model, cond),
+        }
+    }
+
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg_cond: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        match (self.lookup(cond), self.lookup(neg_cond)) {
+            (Some(c), Some(n)) => self.model.velocity_cfg_prepared(state, t_model, c, n),
+            _ => self.model.velocity_cfg(state, t_model, cond, neg_cond),
+        }
+    }
+}
+
+/// A model as the sampler saw it before [`VelocityModel::prepare`]: every
+/// call goes to the wrapped model and nothing is prepared (tests compare a
+/// prepared run with this).
+pub struct Unprepared<'a>(pub &'a dyn VelocityModel);
+
+impl VelocityModel for Unprepared<'_> {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        self.0.velocity(state, t_model, cond)
+    }
+
+    fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg_cond: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        self.0.velocity_cfg(state, t_model, cond, neg_cond)
+    }
 }
 
 /// Adapter so any closure can drive the sampler.
@@ -216,6 +306,9 @@ impl FlowEulerGuidanceIntervalSampler {
         let s = &self.settings;
         let grid = s.time_grid();
         let sigma = s.sigma_min;
+        // The conditions are the same at every step: the model prepares them once.
+        let prepared = model.prepare(cond, neg_cond)?;
+        let model = prepared.as_deref().unwrap_or(model);
         let mut x = noise;
         for (step, pair) in grid.windows(2).enumerate() {
             let (t, t_prev) = (pair[0], pair[1]);

@@ -14,19 +14,20 @@
 //!   GEMM kernel's packed `A` layout (rounded to bf16 there for bf16
 //!   weights), so the GEMMs pack nothing.
 //! - The GEMMs run recon's register-tile kernel ([`microkernel`]: AVX-512
-//!   FMA, or `vdpbf16ps` with f32 accumulation), one task per (tap, row
+//!   or AVX2 FMA, or `vdpbf16ps` with f32 accumulation), one task per (tap, row
 //!   block), so every tap's operands are packed once.
 //! - The output transform reads 16 consecutive output channels of `M` and
 //!   writes NCDHW (plus bias, optionally accumulating onto `out`).
 //!
 //! The transforms are written once over a 16-lane vector type: a plain array
-//! (portable) or an AVX-512 register; both do the same operations in the
-//! same order (no fused multiply-adds), so they give identical bits.
+//! (portable), two AVX2 registers or an AVX-512 register; all do the same
+//! operations in the same order (no fused multiply-adds), so they give
+//! identical bits.
 
 use super::Conv3dShape;
 use crate::buf::SendPtr;
 use crate::gemm::{a_format, a_tile_words, f32_to_bf16, microkernel, AFormat, Blocking, PackedMatrix, WeightFormat, MR, NR};
-use crate::isa::Isa;
+use crate::isa::{Isa, Simd};
 use rayon::prelude::*;
 
 /// Channels per transform vector.
@@ -78,6 +79,7 @@ impl Lanes for Plain {
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{Lanes, L};
+    use crate::gemm::avx2::bf16_bits as avx2_bf16_bits;
     use crate::gemm::x86::bf16_bits;
     use std::arch::x86_64::*;
 
@@ -114,6 +116,56 @@ mod x86 {
             // Rounded as f32_to_bf16 (nearest even; NaN → 0x7fc0).
             let mut a = [0u16; L];
             unsafe { _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, _mm512_cvtepi32_epi16(bf16_bits(self.0))) };
+            a
+        }
+    }
+
+    /// Two AVX2 registers; only used inside `avx2` functions.
+    #[derive(Clone, Copy)]
+    pub(super) struct Ymm2([__m256; 2]);
+
+    impl Ymm2 {
+        #[inline(always)]
+        fn zip(self, o: Self, f: impl Fn(__m256, __m256) -> __m256) -> Self {
+            Ymm2([f(self.0[0], o.0[0]), f(self.0[1], o.0[1])])
+        }
+    }
+
+    impl Lanes for Ymm2 {
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            Ymm2([_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8))])
+        }
+        #[inline(always)]
+        fn add(self, o: Self) -> Self {
+            // SAFETY (all methods): reached only from `avx2` functions.
+            self.zip(o, |a, b| unsafe { _mm256_add_ps(a, b) })
+        }
+        #[inline(always)]
+        fn sub(self, o: Self) -> Self {
+            self.zip(o, |a, b| unsafe { _mm256_sub_ps(a, b) })
+        }
+        #[inline(always)]
+        fn half(self) -> Self {
+            self.zip(self, |a, _| unsafe { _mm256_mul_ps(a, _mm256_set1_ps(0.5)) })
+        }
+        #[inline(always)]
+        fn to_array(self) -> [f32; L] {
+            let mut a = [0f32; L];
+            unsafe {
+                _mm256_storeu_ps(a.as_mut_ptr(), self.0[0]);
+                _mm256_storeu_ps(a.as_mut_ptr().add(8), self.0[1]);
+            }
+            a
+        }
+        #[inline(always)]
+        fn to_bf16(self) -> [u16; L] {
+            // Rounded as f32_to_bf16; packus interleaves the 128-bit halves, the permute restores the order.
+            let mut a = [0u16; L];
+            unsafe {
+                let w = _mm256_packus_epi32(avx2_bf16_bits(self.0[0]), avx2_bf16_bits(self.0[1]));
+                _mm256_storeu_si256(a.as_mut_ptr() as *mut __m256i, _mm256_permute4x64_epi64::<0b11_01_10_00>(w));
+            }
             a
         }
     }
@@ -284,10 +336,11 @@ impl APack {
 fn weight_taps(weight: &[f32], cin: usize, cout: usize, format: WeightFormat, isa: Isa) -> Vec<PackedMatrix> {
     PackedMatrix::pack_many(64, cin, cout, format, |ci, p, row| {
         #[cfg(target_arch = "x86_64")]
-        if isa >= Isa::Avx512 {
-            // SAFETY: the caller checked that the CPU runs `isa`.
-            unsafe { weight_row_avx512(weight, cin, cout, ci, p, row) };
-            return;
+        match isa.simd() {
+            // SAFETY (both): the caller checked that the CPU runs `isa`.
+            Simd::Avx512 => return unsafe { weight_row_avx512(weight, cin, cout, ci, p, row) },
+            Simd::Avx2 => return unsafe { weight_row_avx2(weight, cin, cout, ci, p, row) },
+            Simd::Scalar => {}
         }
         let _ = isa;
         weight_row::<Plain>(weight, cin, cout, ci, p, row)
@@ -298,6 +351,12 @@ fn weight_taps(weight: &[f32], cin: usize, cout: usize, format: WeightFormat, is
 #[target_feature(enable = "avx512f,avx512bw,fma")]
 unsafe fn weight_row_avx512(weight: &[f32], cin: usize, cout: usize, ci: usize, p: usize, row: &mut [f32]) {
     weight_row::<x86::Zmm>(weight, cin, cout, ci, p, row)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn weight_row_avx2(weight: &[f32], cin: usize, cout: usize, ci: usize, p: usize, row: &mut [f32]) {
+    weight_row::<x86::Ymm2>(weight, cin, cout, ci, p, row)
 }
 
 /// Row `ci` of panel `p` of every `U[e]`: `row[e·NR + j] = U[e](ci, co = p·NR + j)`.
@@ -404,15 +463,22 @@ unsafe fn input_job_avx512(xp: &[f32], g: &Geom, ap: &APack, t0: usize, tc: usiz
     input_job::<x86::Zmm>(xp, g, ap, t0, tc, rt, v)
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn input_job_avx2(xp: &[f32], g: &Geom, ap: &APack, t0: usize, tc: usize, rt: usize, v: *mut u32) {
+    input_job::<x86::Ymm2>(xp, g, ap, t0, tc, rt, v)
+}
+
 fn input_transform(isa: Isa, xp: &[f32], g: &Geom, ap: &APack, t0: usize, tc: usize, v: &mut [u32]) {
     assert!(v.len() >= ap.offset(64, 0, 0) && tc <= ap.nrt * MR);
     let vp = SendPtr(v.as_mut_ptr());
     (0..tc.div_ceil(MR)).into_par_iter().for_each(|rt| {
         #[cfg(target_arch = "x86_64")]
-        if isa >= Isa::Avx512 {
-            // SAFETY: the caller checked that the CPU runs `isa`.
-            unsafe { input_job_avx512(xp, g, ap, t0, tc, rt, vp.get()) };
-            return;
+        match isa.simd() {
+            // SAFETY (both): the caller checked that the CPU runs `isa`.
+            Simd::Avx512 => return unsafe { input_job_avx512(xp, g, ap, t0, tc, rt, vp.get()) },
+            Simd::Avx2 => return unsafe { input_job_avx2(xp, g, ap, t0, tc, rt, vp.get()) },
+            Simd::Scalar => {}
         }
         let _ = isa;
         input_job::<Plain>(xp, g, ap, t0, tc, rt, vp.get())
@@ -428,7 +494,7 @@ fn gemm_taps(isa: Isa, format: WeightFormat, u: &[PackedMatrix], g: &Geom, ap: &
     assert!(v.len() >= ap.offset(64, 0, 0) && m.len() >= tc * 64 * g.coutp && u.len() == 64);
     let panels = g.cout.div_ceil(NR);
     let nrt = tc.div_ceil(MR);
-    let rb_tiles = (Blocking::for_format(format).mc / MR).max(1);
+    let rb_tiles = (Blocking::for_isa(isa, format).mc / MR).max(1);
     let nrb = nrt.div_ceil(rb_tiles);
     let ldc = 64 * g.coutp;
     debug_assert!(g.coutp.is_multiple_of(NR));
@@ -507,6 +573,12 @@ unsafe fn output_job_avx512(m: &[f32], g: &Geom, t0: usize, tls: (usize, usize),
     output_job::<x86::Zmm>(m, g, t0, tls, bias, acc, out)
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn output_job_avx2(m: &[f32], g: &Geom, t0: usize, tls: (usize, usize), bias: Option<&[f32]>, acc: bool, out: SendPtr<f32>) {
+    output_job::<x86::Ymm2>(m, g, t0, tls, bias, acc, out)
+}
+
 /// One job per row of tiles along x (cut at the chunk's ends): M is read
 /// sequentially, and jobs write disjoint output rows.
 #[allow(clippy::too_many_arguments)]
@@ -517,10 +589,11 @@ fn output_transform(isa: Isa, m: &[f32], g: &Geom, t0: usize, tc: usize, bias: O
     (r0..r1).into_par_iter().for_each(|r| {
         let tls = ((r * g.tw).max(t0) - t0, ((r + 1) * g.tw).min(t0 + tc) - t0);
         #[cfg(target_arch = "x86_64")]
-        if isa >= Isa::Avx512 {
-            // SAFETY: the caller checked that the CPU runs `isa`.
-            unsafe { output_job_avx512(m, g, t0, tls, bias, accumulate, op) };
-            return;
+        match isa.simd() {
+            // SAFETY (both): the caller checked that the CPU runs `isa`.
+            Simd::Avx512 => return unsafe { output_job_avx512(m, g, t0, tls, bias, accumulate, op) },
+            Simd::Avx2 => return unsafe { output_job_avx2(m, g, t0, tls, bias, accumulate, op) },
+            Simd::Scalar => {}
         }
         let _ = isa;
         output_job::<Plain>(m, g, t0, tls, bias, accumulate, op)
@@ -553,7 +626,7 @@ pub(super) fn winograd(
     let tc_max = tiles_per_chunk.clamp(1, ntiles);
     let afmt = a_format(isa, format);
     // k slices as the GEMM blocks them (B's micro-panel in L1), whole vectors.
-    let kc = kc.unwrap_or(Blocking::for_format(format).kc).max(L) / L * L;
+    let kc = kc.unwrap_or(Blocking::for_isa(isa, format).kc).max(L) / L * L;
     let ap = APack { afmt, kc, nks: s.cin.div_ceil(kc), nrt: tc_max.div_ceil(MR), aw: a_tile_words(afmt, kc) };
     let mut xp = vec![0f32; g.padded_len()];
     let mut v = vec![0u32; ap.offset(64, 0, 0)];
@@ -576,12 +649,9 @@ mod tests {
     use super::*;
     use crate::test_rng::Lcg;
 
-    /// The AVX-512 builds of the transforms give the portable ones' bits.
+    /// The AVX2 and AVX-512 builds of the transforms give the portable ones' bits.
     #[test]
-    fn avx512_transforms_match_portable_bits() {
-        if !Isa::Avx512.supported() {
-            return;
-        }
+    fn vector_transforms_match_portable_bits() {
         let s = Conv3dShape { batch: 1, cin: 20, cout: 19, d: 3, h: 5, w: 4, k: 3, pad: 1 };
         let mut r = Lcg(5);
         let x = r.vec(s.input_len(), 1.0);
@@ -598,7 +668,8 @@ mod tests {
         {
             let ap = APack { afmt, kc: 16, nks: 2, nrt: ntiles.div_ceil(MR), aw: a_tile_words(afmt, 16) };
             let mut runs = Vec::new();
-            for isa in [Isa::Portable, Isa::Avx512] {
+            let isas = [Isa::Portable, Isa::Avx2, Isa::Avx512].into_iter().filter(|i| i.supported()).collect::<Vec<_>>();
+            for &isa in &isas {
                 let mut v = vec![0u32; ap.offset(64, 0, 0)];
                 input_transform(isa, &xp, &g, &ap, 0, ntiles, &mut v);
                 let mut out = base.clone();
@@ -609,27 +680,37 @@ mod tests {
                     .collect();
                 runs.push((v, out.iter().map(|f| f.to_bits()).collect::<Vec<_>>(), u));
             }
-            assert!(runs[0] == runs[1], "{afmt:?}: portable and AVX-512 transforms differ");
+            for (isa, run) in isas.iter().zip(&runs).skip(1) {
+                assert!(runs[0] == *run, "{afmt:?}: portable and {isa:?} transforms differ");
+            }
         }
     }
 
-    /// The vector bf16 rounding is `f32_to_bf16`, ties and NaN included.
+    /// The vector bf16 roundings are `f32_to_bf16`, ties and NaN included.
     #[test]
-    fn avx512_bf16_rounding_matches_scalar() {
-        if !Isa::Avx512.supported() {
-            return;
-        }
+    fn vector_bf16_rounding_matches_scalar() {
         #[target_feature(enable = "avx512f,avx512bw")]
-        unsafe fn round(v: &[f32; L]) -> [u16; L] {
+        unsafe fn round512(v: &[f32; L]) -> [u16; L] {
             x86::Zmm::load(v.as_ptr()).to_bf16()
+        }
+        #[target_feature(enable = "avx2,fma")]
+        unsafe fn round256(v: &[f32; L]) -> [u16; L] {
+            x86::Ymm2::load(v.as_ptr()).to_bf16()
         }
         let special = [1.0 + 1.0 / 256.0, 1.0 + 3.0 / 256.0, -2.5e-3, f32::NAN, f32::INFINITY, -0.0, 3.4e38, 1e-40];
         let mut r = Lcg(9);
         for round_i in 0..64 {
-            let v: [f32; L] = std::array::from_fn(|j| if round_i == 0 && j < special.len() { special[j] } else { r.next() * 100.0 });
-            // SAFETY: AVX-512 checked above.
-            let got = unsafe { round(&v) };
-            assert_eq!(got, v.map(f32_to_bf16), "{v:?}");
+            // The specials in the low lanes, then in the high ones (AVX2's second register).
+            let v: [f32; L] = std::array::from_fn(|j| if j / 8 == round_i { special[j % 8] } else { r.next() * 100.0 });
+            let want = v.map(f32_to_bf16);
+            if Isa::Avx512.supported() {
+                // SAFETY: AVX-512 checked.
+                assert_eq!(unsafe { round512(&v) }, want, "AVX-512 {v:?}");
+            }
+            if Isa::Avx2.supported() {
+                // SAFETY: AVX2 checked.
+                assert_eq!(unsafe { round256(&v) }, want, "AVX2 {v:?}");
+            }
         }
     }
 }

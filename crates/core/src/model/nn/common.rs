@@ -5,8 +5,11 @@
 //! candle ops, differentiable for training; with a fast compute the same layers
 //! run the inference kernels of `recon-kernels` (see [`crate::model::nn::fast`]).
 
+use std::sync::Arc;
+
 use candle_core::{CpuStorage, DType, Layout, Module, Result, Shape, Tensor, D};
 use candle_nn::VarBuilder;
+use rayon::prelude::*;
 
 pub use crate::model::nn::fast::Linear;
 use crate::model::nn::fast::{self, Activation, AttnLayout, AttnSegment, Compute};
@@ -190,7 +193,6 @@ impl candle_core::CustomOp1 for SoftmaxLastDim {
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
         use candle_core::cpu::kernels::VecOps;
-        use rayon::prelude::*;
         let CpuStorage::F32(src) = storage else { candle_core::bail!("softmax: f32 only") };
         let Some((o1, o2)) = layout.contiguous_offsets() else { candle_core::bail!("softmax: input must be contiguous") };
         let src = &src[o1..o2];
@@ -381,12 +383,7 @@ impl MultiHeadAttention {
         let (n, _) = x.dims2()?;
         let (h, d) = (self.heads, self.head_dim);
         let c = h * d;
-        fn fl(l: &Linear) -> Result<&fast::FastLinear> {
-            l.fast().ok_or_else(|| candle_core::Error::Msg("attention: layer not packed".into()))
-        }
-        let gamma = |nrm: &Option<MultiHeadRmsNorm>| -> Result<Option<Vec<f32>>> {
-            nrm.as_ref().map(|m| m.gamma.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()).transpose()
-        };
+        let (fl, gamma) = (fast_layer, head_gamma);
         let o = match (&self.to_qkv, ctx) {
             (Some(to_qkv), None) => {
                 let mut qkv = fast::with_f32(x, |xs| fl(to_qkv)?.forward_slice(xs, n, Activation::None))?;
@@ -417,6 +414,182 @@ impl MultiHeadAttention {
         let y = fl(&self.to_out)?.forward_slice(&o, n, Activation::None)?;
         Tensor::from_vec(y, (n, c), x.device())
     }
+}
+
+/// For each item of a context `[B, L, C]`: whether it has at least one row
+/// and all its rows are the same finite row, bit for bit. A cross-attention
+/// to such a context gives every query the same output (see [`CrossContext`]);
+/// the unconditional branch's condition (all zeros) is the case that matters.
+pub fn constant_rows(ctx: &Tensor) -> Result<Vec<bool>> {
+    let (b, l, c) = ctx.dims3()?;
+    fast::with_f32(ctx, |v| {
+        Ok((0..b)
+            .map(|i| {
+                let item = &v[i * l * c..(i + 1) * l * c];
+                let first = &item[..c.min(item.len())];
+                // Compared as bits: exact, and conservative (rows of 0.0 and
+                // -0.0 only miss the shortcut). A non-finite row is left to the
+                // full computation, whose scores it would turn into NaN.
+                l > 0
+                    && first.iter().all(|x| x.is_finite())
+                    && item.chunks_exact(c.max(1)).all(|row| row.iter().zip(first).all(|(a, b)| a.to_bits() == b.to_bits()))
+            })
+            .collect())
+    })
+}
+
+/// One batch item of a [`CrossContext`].
+#[derive(Debug)]
+enum ContextItem {
+    /// Keys and values of the item's context rows, `[Lc, 2C]` (K then V per
+    /// row, keys RMS-normalised when the layer has QK norm).
+    Kv { kv: Vec<f32>, rows: usize },
+    /// All context rows are equal: every key is the same, so the softmax is
+    /// uniform whatever the query and the attention output is the common
+    /// value row. The layer's output for every query, `to_out(v)` `[C]`.
+    Constant(Vec<f32>),
+}
+
+/// A cross-attention layer's context prepared once and reused by every
+/// forward on that context, as a sampler's steps are: the condition does not
+/// change from step to step, so neither do its keys and values. Items whose
+/// rows are all equal keep only the layer's output row (an exact shortcut:
+/// no query projection, scores or weighted sum for them). Built by
+/// [`MultiHeadAttention::prepare`]; fast path only.
+#[derive(Debug, Clone)]
+pub struct CrossContext {
+    items: Vec<Arc<ContextItem>>,
+}
+
+impl CrossContext {
+    /// Number of batch items.
+    pub fn batch(&self) -> usize {
+        self.items.len()
+    }
+
+    /// Which items take the constant-context shortcut.
+    pub fn constant_items(&self) -> Vec<bool> {
+        self.items.iter().map(|i| matches!(**i, ContextItem::Constant(_))).collect()
+    }
+
+    /// Items `start..start + len` (shared, not copied).
+    pub fn narrow(&self, start: usize, len: usize) -> Result<Self> {
+        match self.items.get(start..start + len) {
+            Some(items) => Ok(Self { items: items.to_vec() }),
+            None => candle_core::bail!("cross context: items {start}..{} of {}", start + len, self.items.len()),
+        }
+    }
+
+    /// The items of `parts` one after the other (shared, not copied).
+    pub fn cat(parts: &[&Self]) -> Self {
+        Self { items: parts.iter().flat_map(|p| p.items.iter().cloned()).collect() }
+    }
+
+    /// A batch-1 context repeated to `batch` items; any other context must already have `batch` items.
+    pub fn expand(&self, batch: usize) -> Result<Self> {
+        match self.items.len() {
+            n if n == batch => Ok(self.clone()),
+            1 => Ok(Self { items: vec![self.items[0].clone(); batch] }),
+            n => candle_core::bail!("cross context: {n} items for batch {batch}"),
+        }
+    }
+}
+
+impl MultiHeadAttention {
+    /// Keys and values of cross-attention context `ctx` `[B, Lc, Cc]`, once,
+    /// for [`Self::forward_prepared`]. With `shortcut`, items whose rows are
+    /// all equal ([`constant_rows`]) keep only their output row. Fast path only.
+    pub fn prepare(&self, ctx: &Tensor, shortcut: bool) -> Result<CrossContext> {
+        let constant = if shortcut { constant_rows(ctx)? } else { vec![false; ctx.dim(0)?] };
+        self.prepare_flagged(ctx, &constant)
+    }
+
+    /// [`Self::prepare`] with the items' [`constant_rows`] flags computed by
+    /// the caller (once for a stack of blocks); they are trusted.
+    fn prepare_flagged(&self, ctx: &Tensor, constant: &[bool]) -> Result<CrossContext> {
+        let (to_kv, to_out) = match (&self.to_kv, self.compute.is_fast()) {
+            (Some(kv), true) => (fast_layer(kv)?, fast_layer(&self.to_out)?),
+            _ => candle_core::bail!("attention: prepared contexts are for fast cross-attention layers"),
+        };
+        let (b, lc, cc) = ctx.dims3()?;
+        if constant.len() != b {
+            candle_core::bail!("attention: {} constant-row flags for {b} context items", constant.len());
+        }
+        let (h, d) = (self.heads, self.head_dim);
+        let c = h * d;
+        let gamma = head_gamma(&self.k_norm)?;
+        let items = fast::with_f32(ctx, |v| {
+            (0..b)
+                .map(|i| {
+                    let item = &v[i * lc * cc..(i + 1) * lc * cc];
+                    if constant[i] {
+                        // One row: its value row through the output projection. The keys
+                        // (and any QK norm) only shape the scores, which are all equal.
+                        let kv = to_kv.forward_slice(&item[..cc], 1, Activation::None)?;
+                        return Ok(Arc::new(ContextItem::Constant(to_out.forward_slice(&kv[c..], 1, Activation::None)?)));
+                    }
+                    let mut kv = to_kv.forward_slice(item, lc, Activation::None)?;
+                    if let Some(g) = &gamma {
+                        fast::rms_norm_heads(&mut kv, lc, 2 * c, 0, g, h, d);
+                    }
+                    Ok(Arc::new(ContextItem::Kv { kv, rows: lc }))
+                })
+                .collect::<Result<Vec<_>>>()
+        })?;
+        Ok(CrossContext { items })
+    }
+
+    /// Cross-attention of `x` `[B, L, C]` to a prepared context of B items:
+    /// the same as [`Self::forward`] on the context it was prepared from, up
+    /// to float rounding for constant items (exactly for the others). Each
+    /// item is its own GEMMs and attention call; every row of those is
+    /// computed independently, so batching items would give the same bits.
+    pub fn forward_prepared(&self, x: &Tensor, ctx: &CrossContext) -> Result<Tensor> {
+        let Some((precision, isa)) = self.compute.fast_parts() else {
+            candle_core::bail!("attention: prepared contexts are for fast cross-attention layers");
+        };
+        let (Some(to_q), Some(_)) = (&self.to_q, &self.to_kv) else {
+            candle_core::bail!("attention: prepared context given to self-attention")
+        };
+        let (to_q, to_out) = (fast_layer(to_q)?, fast_layer(&self.to_out)?);
+        let (b, l, c) = x.dims3()?;
+        let (h, d) = (self.heads, self.head_dim);
+        if c != h * d || ctx.batch() != b {
+            candle_core::bail!("attention: input {:?} for a prepared context of {} items and {h}×{d} channels", x.dims(), ctx.batch());
+        }
+        let gamma = head_gamma(&self.q_norm)?;
+        let mut y = vec![0f32; b * l * c];
+        fast::with_f32(x, |xs| {
+            for (i, item) in ctx.items.iter().enumerate() {
+                let yi = &mut y[i * l * c..(i + 1) * l * c];
+                match &**item {
+                    ContextItem::Constant(row) => yi.par_chunks_mut(c).for_each(|r| r.copy_from_slice(row)),
+                    ContextItem::Kv { kv, rows } => {
+                        let mut q = to_q.forward_slice(&xs[i * l * c..(i + 1) * l * c], l, Activation::None)?;
+                        if let Some(g) = &gamma {
+                            fast::rms_norm_heads(&mut q, l, c, 0, g, h, d);
+                        }
+                        let (ql, kl, vl) = (AttnLayout::new(c, 0), AttnLayout::new(2 * c, 0), AttnLayout::new(2 * c, c));
+                        let seg = [AttnSegment { q: 0..l, kv: 0..*rows }];
+                        let o = fast::attention_rows(isa, precision, h, d, (&q, ql), (kv, kl), (kv, vl), l, &seg)?;
+                        drop(q);
+                        to_out.forward_into(&o, l, Activation::None, yi)?;
+                    }
+                }
+            }
+            Ok(())
+        })?;
+        Tensor::from_vec(y, (b, l, c), x.device())
+    }
+}
+
+fn fast_layer(l: &Linear) -> Result<&fast::FastLinear> {
+    l.fast().ok_or_else(|| candle_core::Error::Msg("attention: layer not packed".into()))
+}
+
+/// A QK norm's gamma `[H·D]` as f32 values.
+fn head_gamma(n: &Option<MultiHeadRmsNorm>) -> Result<Option<Vec<f32>>> {
+    n.as_ref().map(|m| m.gamma.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()).transpose()
 }
 
 /// TRELLIS `ModulatedTransformerCrossBlock`: adaLN-modulated self-attention,
@@ -474,22 +647,8 @@ impl ModulatedTransformerCrossBlock {
             None => emb.clone(),
         };
         let ch = m.chunk(6, 1)?;
-        if let Some((_, isa)) = self.compute.fast_parts() {
-            // Fused kernels: LN + modulation, gated residuals (same math).
-            // Each activation is dropped as soon as it is used: at full size
-            // one is 33.5 MB, and shadowed bindings would live to the end.
-            let h = fast::layer_norm(isa, x, 1e-6, Some(&(&ch[1] + 1.0)?), Some(&ch[0]))?;
-            let a = self.self_attn.forward(&h, None)?;
-            drop(h);
-            let x1 = fast::gated_residual(x, &a, Some(&ch[2]))?;
-            drop(a);
-            let a = self.cross_attn.forward(&self.norm2.forward(&x1)?, Some(cond))?;
-            let x2 = fast::gated_residual(&x1, &a, None)?;
-            drop((a, x1));
-            let h = fast::layer_norm(isa, &x2, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
-            let f = self.mlp.forward(&h)?;
-            drop(h);
-            return fast::gated_residual(&x2, &f, Some(&ch[5]));
+        if self.compute.is_fast() {
+            return self.forward_fast(x, &ch, |h| self.cross_attn.forward(h, Some(cond)));
         }
         let (shift_msa, scale_msa, gate_msa) = (ch[0].unsqueeze(1)?, ch[1].unsqueeze(1)?, ch[2].unsqueeze(1)?);
         let (shift_mlp, scale_mlp, gate_mlp) = (ch[3].unsqueeze(1)?, ch[4].unsqueeze(1)?, ch[5].unsqueeze(1)?);
@@ -504,6 +663,100 @@ impl ModulatedTransformerCrossBlock {
         let h = layer_norm_plain(&x, 1e-6)?.broadcast_mul(&(scale_mlp + 1.0)?)?.broadcast_add(&shift_mlp)?;
         let h = self.mlp.forward(&h)?.broadcast_mul(&gate_mlp)?;
         x + h
+    }
+
+    /// [`Self::forward`] with the cross-attention context prepared once
+    /// ([`MultiHeadAttention::prepare`], B items or one for all); fast path only.
+    pub fn forward_prepared(&self, x: &Tensor, emb: &Tensor, ctx: &CrossContext) -> Result<Tensor> {
+        if !self.compute.is_fast() {
+            candle_core::bail!("cross block: prepared contexts are for the fast path");
+        }
+        let m = match &self.ada_ln {
+            Some(l) => l.forward(&emb.silu()?)?,
+            None => emb.clone(),
+        };
+        let ctx = ctx.expand(x.dim(0)?)?;
+        self.forward_fast(x, &m.chunk(6, 1)?, |h| self.cross_attn.forward_prepared(h, &ctx))
+    }
+
+    /// The fast path with the modulation chunks `ch`; `cross` maps `norm2`'s
+    /// output to the cross-attention output. Fused kernels: LN + modulation,
+    /// gated residuals (same math). Each activation is dropped as soon as it
+    /// is used: at full size one is 33.5 MB, and shadowed bindings would live
+    /// to the end.
+    fn forward_fast(&self, x: &Tensor, ch: &[Tensor], cross: impl FnOnce(&Tensor) -> Result<Tensor>) -> Result<Tensor> {
+        let Some((_, isa)) = self.compute.fast_parts() else { candle_core::bail!("cross block: not built for the fast path") };
+        let h = fast::layer_norm(isa, x, 1e-6, Some(&(&ch[1] + 1.0)?), Some(&ch[0]))?;
+        let a = self.self_attn.forward(&h, None)?;
+        drop(h);
+        let x1 = fast::gated_residual(x, &a, Some(&ch[2]))?;
+        drop(a);
+        let a = cross(&self.norm2.forward(&x1)?)?;
+        let x2 = fast::gated_residual(&x1, &a, None)?;
+        drop((a, x1));
+        let h = fast::layer_norm(isa, &x2, 1e-6, Some(&(&ch[4] + 1.0)?), Some(&ch[3]))?;
+        let f = self.mlp.forward(&h)?;
+        drop(h);
+        fast::gated_residual(&x2, &f, Some(&ch[5]))
+    }
+}
+
+/// A condition prepared for many forwards of a stack of cross blocks: each
+/// block's [`CrossContext`]. A sampler's condition is the same at every
+/// step, so its keys and values are computed once per run instead of once
+/// per step; items whose rows are all equal (the all-zero unconditional
+/// condition) take the constant-context shortcut in every block.
+#[derive(Debug, Clone)]
+pub struct PreparedCondition {
+    blocks: Vec<CrossContext>,
+    batch: usize,
+}
+
+impl PreparedCondition {
+    /// Prepare `cond` `[B, Lc, Cc]` for `blocks` (fast path). With
+    /// `shortcut`, items whose rows are all equal ([`constant_rows`]) keep
+    /// only each block's output row; without it every item keeps its keys and
+    /// values (the full computation).
+    pub fn new(blocks: &[ModulatedTransformerCrossBlock], cond: &Tensor, shortcut: bool) -> Result<Self> {
+        let batch = cond.dim(0)?;
+        let constant = if shortcut { constant_rows(cond)? } else { vec![false; batch] };
+        let blocks = blocks.iter().map(|b| b.cross_attn.prepare_flagged(cond, &constant)).collect::<Result<Vec<_>>>()?;
+        Ok(Self { blocks, batch })
+    }
+
+    /// Number of batch items.
+    pub fn batch(&self) -> usize {
+        self.batch
+    }
+
+    /// Which items take the constant-context shortcut.
+    pub fn constant_items(&self) -> Vec<bool> {
+        self.blocks.first().map(CrossContext::constant_items).unwrap_or_else(|| vec![false; self.batch])
+    }
+
+    /// The context of block `i`.
+    pub fn block(&self, i: usize) -> Result<&CrossContext> {
+        self.blocks.get(i).ok_or_else(|| candle_core::Error::Msg(format!("prepared condition: no block {i} of {}", self.blocks.len())))
+    }
+
+    /// Items `start..start + len` (shared, not copied).
+    pub fn narrow(&self, start: usize, len: usize) -> Result<Self> {
+        Ok(Self { blocks: self.blocks.iter().map(|c| c.narrow(start, len)).collect::<Result<_>>()?, batch: len })
+    }
+
+    /// The items of `parts` one after the other (shared, not copied); all must be for the same blocks.
+    pub fn cat(parts: &[&Self]) -> Result<Self> {
+        let n = parts.first().map_or(0, |p| p.blocks.len());
+        if parts.iter().any(|p| p.blocks.len() != n) {
+            candle_core::bail!("prepared condition: parts for different numbers of blocks");
+        }
+        let blocks = (0..n).map(|i| CrossContext::cat(&parts.iter().map(|p| &p.blocks[i]).collect::<Vec<_>>())).collect();
+        Ok(Self { blocks, batch: parts.iter().map(|p| p.batch).sum() })
+    }
+
+    /// A batch-1 condition repeated to `batch` items; any other must already have `batch` items.
+    pub fn expand(&self, batch: usize) -> Result<Self> {
+        Ok(Self { blocks: self.blocks.iter().map(|c| c.expand(batch)).collect::<Result<_>>()?, batch })
     }
 }
 
@@ -572,6 +825,94 @@ mod tests {
         let a = fast.forward(&x, Some(&c1))?;
         let b = plain.cross_attn.forward(&x, Some(&c1.broadcast_as((2, 29, 24))?.contiguous()?))?;
         assert!(max_diff(&a, &b) < 1e-4);
+        Ok(())
+    }
+
+    /// The constant-row test: all-equal finite rows, bit for bit.
+    #[test]
+    fn constant_rows_needs_equal_finite_rows() -> Result<()> {
+        let dev = Device::Cpu;
+        let row = Tensor::new(&[[0.5f32, -2.0, 3.0]], &dev)?;
+        let same = row.broadcast_as((4, 3))?.contiguous()?.unsqueeze(0)?;
+        let zeros = Tensor::zeros((1, 4, 3), DType::F32, &dev)?;
+        let mut v = same.flatten_all()?.to_vec1::<f32>()?;
+        v[10] = f32::from_bits(v[10].to_bits() + 1);
+        let one_ulp = Tensor::from_vec(v, (1, 4, 3), &dev)?;
+        let nan = Tensor::full(f32::NAN, (1, 4, 3), &dev)?;
+        let empty = Tensor::zeros((1, 0, 3), DType::F32, &dev)?;
+        let all = Tensor::cat(&[&same, &zeros, &one_ulp, &nan], 0)?;
+        assert_eq!(constant_rows(&all)?, vec![true, true, false, false]);
+        assert_eq!(constant_rows(&empty)?, vec![false]);
+        Ok(())
+    }
+
+    /// Prepared cross-attention contexts against the full computation, with
+    /// and without QK norm in cross-attention: items with keys and values
+    /// give the same bits; the constant-context shortcut (all-zero and
+    /// constant non-zero conditions) is within 1e-6 of the output's scale.
+    #[test]
+    fn prepared_context_matches_full_computation() -> crate::Result<()> {
+        use crate::model::nn::fast::{Compute, Precision};
+        use crate::util::testing::{max_rel_diff, same_bits};
+        use candle_nn::VarMap;
+        let dev = Device::Cpu;
+        for qk_cross in [false, true] {
+            let vm = VarMap::new();
+            let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+            let cfg = CrossBlockConfig {
+                channels: 64,
+                ctx_channels: 24,
+                heads: 4,
+                mlp_ratio: 2.0,
+                share_mod: false,
+                qk_rms_norm: true,
+                qk_rms_norm_cross: qk_cross,
+            };
+            ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"), Compute::Plain)?;
+            let mut rng = crate::rng::SeededRng::new(5);
+            for (_, var) in vm.data().lock().unwrap().iter() {
+                var.set(&((rng.randn(var.dims(), &dev)? * 0.2)? + 0.05)?)?;
+            }
+            let plain = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"), Compute::Plain)?;
+            let fast = ModulatedTransformerCrossBlock::new(&cfg, vb.pp("blk"), Compute::fast(Precision::F32))?;
+            let x = rng.randn(&[3, 37, 64], &dev)?;
+            let emb = rng.randn(&[3, 64], &dev)?;
+            // Item 0 a real condition, item 1 all zeros (`neg_cond`), item 2 one non-zero row repeated.
+            let row = rng.randn(&[1, 1, 24], &dev)?;
+            let cond = Tensor::cat(
+                &[&rng.randn(&[1, 29, 24], &dev)?, &Tensor::zeros((1, 29, 24), DType::F32, &dev)?, &row.repeat((1, 29, 1))?],
+                0,
+            )?;
+            assert_eq!(constant_rows(&cond)?, vec![false, true, true]);
+
+            let full = fast.forward(&x, &emb, &cond)?;
+            let kept = fast.forward_prepared(&x, &emb, &fast.cross_attn.prepare(&cond, false)?)?;
+            assert!(same_bits(&kept, &full)?, "qk_cross {qk_cross}: prepared keys and values change the bits");
+            let short = fast.cross_attn.prepare(&cond, true)?;
+            assert_eq!(short.constant_items(), vec![false, true, true]);
+            let got = fast.forward_prepared(&x, &emb, &short)?;
+            assert!(same_bits(&got.get(0)?, &full.get(0)?)?, "qk_cross {qk_cross}: the real condition changed");
+            for i in 1..3 {
+                let d = max_rel_diff(&got.get(i)?, &full.get(i)?)?;
+                eprintln!("cross block qk_cross {qk_cross}, item {i}: {d:.2e} from the full computation");
+                assert!(d <= 1e-6, "qk_cross {qk_cross}, item {i}: block output {d:e} from the full computation");
+                // The attention layer alone: one row for every query.
+                let h = x.narrow(0, i, 1)?;
+                let a_full = fast.cross_attn.forward(&h, Some(&cond.narrow(0, i, 1)?))?;
+                let a_short = fast.cross_attn.forward_prepared(&h, &short.narrow(i, 1)?)?;
+                let d = max_rel_diff(&a_short, &a_full)?;
+                assert!(d <= 1e-6, "qk_cross {qk_cross}, item {i}: attention output {d:e} from the full computation");
+                let first = a_short.narrow(1, 0, 1)?.broadcast_as(a_short.dims())?;
+                assert!(same_bits(&a_short, &first.contiguous()?)?);
+            }
+            // Against the plain (reference) block, within the fast path's usual tolerance.
+            let d = max_rel_diff(&got, &plain.forward(&x, &emb, &cond)?)?;
+            assert!(d <= 1e-5, "qk_cross {qk_cross}: fast prepared vs plain {d:e}");
+            // One prepared item serves a whole batch.
+            let one = fast.cross_attn.prepare(&cond.narrow(0, 1, 1)?, true)?;
+            let b = fast.forward_prepared(&x, &emb.narrow(0, 1, 1)?.repeat((3, 1))?, &one)?;
+            assert!(same_bits(&b.get(1)?, &got.get(1)?)?);
+        }
         Ok(())
     }
 

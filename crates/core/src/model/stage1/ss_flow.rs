@@ -16,8 +16,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::pose::PoseRepresentation;
 use crate::model::nn::common::PeMode;
-use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, TimestepEmbedder};
-use crate::model::sampler::VelocityModel;
+use crate::model::nn::common::{self, CrossBlockConfig, ModulatedTransformerCrossBlock, PreparedCondition, TimestepEmbedder};
+use crate::model::sampler::{PrepareCondition, PreparedRun, VelocityModel};
 use crate::model::stage1::embedders::{
     build_condition, CondEmbedderConfig, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs,
 };
@@ -171,6 +171,13 @@ impl SsFlowConfig {
     }
 }
 
+/// The condition of one forward: a tensor (plain path), or prepared once for many (fast path).
+#[derive(Clone, Copy)]
+enum Cond<'a> {
+    Tensor(&'a Tensor),
+    Prepared(&'a PreparedCondition),
+}
+
 /// RecGen pose token I/O.
 #[derive(Debug, Clone)]
 struct PoseIo {
@@ -199,6 +206,8 @@ pub struct SparseStructureFlowModel {
     pub mask_embedder: Option<MaskEmbedder>,
     /// `frame_token_embedder`, when `use_frame_token_embedder` is set.
     pub frame_token_embedder: Option<FrameTokenEmbedder>,
+    /// Whether the constant-context shortcut is on (see [`SparseStructureFlowModel::set_shortcuts`]).
+    shortcuts: bool,
 }
 
 impl SparseStructureFlowModel {
@@ -253,7 +262,32 @@ impl SparseStructureFlowModel {
             } else {
                 None
             },
+            shortcuts: true,
         })
+    }
+
+    /// Turn on (the default) or off the fast path's shortcut whose results
+    /// equal the full computation's up to float rounding: the constant-context
+    /// shortcut (a condition item whose rows are all equal, such as the
+    /// all-zero `neg_cond`, gives each block's cross-attention output without
+    /// the query projection, scores and weighted sum). Off, the fast path
+    /// computes everything, as the plain path always does.
+    pub fn set_shortcuts(&mut self, on: bool) {
+        self.shortcuts = on;
+    }
+
+    /// Every block's cross-attention keys and values for `cond` `[B, L, Cc]`,
+    /// computed once for many [`Self::forward_prepared`] calls (a sampler's
+    /// condition is the same at every step); fast path only.
+    pub fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
+        let (_, _, cc) = cond.dims3()?;
+        if cc != self.cfg.cond_channels {
+            return Err(Error::msg(format!("ss_flow: cond shape {:?}, expected [B, L, {}]", cond.dims(), self.cfg.cond_channels)));
+        }
+        if self.input_layer.fast().is_none() {
+            return Err(Error::msg("ss_flow: prepared conditions are for the fast path"));
+        }
+        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
     }
 
     /// APE of the `g³` token grid, coordinates in meshgrid-`ij` order (z fastest),
@@ -308,7 +342,37 @@ impl SparseStructureFlowModel {
     /// `t` `[B]` is on the model scale; `cond` `[B or 1, L, Cc]`.
     /// Returns `(v [B, Cout, R, R, R], v_pose)` with `v_pose` shaped like
     /// upstream: `[B, K, P]`, squeezed to `[B, P]` when K = 1.
+    ///
+    /// On the fast path the condition is prepared here
+    /// ([`Self::prepare_condition`]); a sampler prepares it once per run and
+    /// calls [`Self::forward_prepared`].
     pub fn forward(&self, x: &Tensor, pose: Option<&Tensor>, t: &Tensor, cond: &Tensor) -> Result<(Tensor, Option<Tensor>)> {
+        let b = x.dim(0)?;
+        match cond.dims3()? {
+            (cb, _, cc) if cc != self.cfg.cond_channels || (cb != b && cb != 1) => {
+                Err(Error::msg(format!("ss_flow: cond shape {:?}, expected [{b} or 1, L, {}]", cond.dims(), self.cfg.cond_channels)))
+            }
+            // A batch-1 condition is prepared once for the whole batch.
+            _ if self.input_layer.fast().is_some() => self.forward_impl(x, pose, t, Cond::Prepared(&self.prepare_condition(cond)?)),
+            // The sampler repeats a batch-1 condition over the batch.
+            (1, l, cc) if b > 1 => self.forward_impl(x, pose, t, Cond::Tensor(&cond.broadcast_as((b, l, cc))?.contiguous()?)),
+            _ => self.forward_impl(x, pose, t, Cond::Tensor(cond)),
+        }
+    }
+
+    /// [`Self::forward`] with a condition prepared by [`Self::prepare_condition`]
+    /// (B items, or one for the whole batch); fast path only.
+    pub fn forward_prepared(
+        &self,
+        x: &Tensor,
+        pose: Option<&Tensor>,
+        t: &Tensor,
+        cond: &PreparedCondition,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        self.forward_impl(x, pose, t, Cond::Prepared(cond))
+    }
+
+    fn forward_impl(&self, x: &Tensor, pose: Option<&Tensor>, t: &Tensor, cond: Cond) -> Result<(Tensor, Option<Tensor>)> {
         let cfg = &self.cfg;
         let (b, c_in, d, hh, ww) = x.dims5()?;
         let r = cfg.resolution;
@@ -318,14 +382,6 @@ impl SparseStructureFlowModel {
         if t.dims() != [b] {
             return Err(Error::msg(format!("ss_flow: t shape {:?}, expected [{b}]", t.dims())));
         }
-        let cond = match cond.dims3()? {
-            (cb, _, cc) if cc != cfg.cond_channels || (cb != b && cb != 1) => {
-                return Err(Error::msg(format!("ss_flow: cond shape {:?}, expected [{b} or 1, L, {}]", cond.dims(), cfg.cond_channels)))
-            }
-            // The sampler repeats a batch-1 condition over the batch.
-            (1, l, cc) if b > 1 => cond.broadcast_as((b, l, cc))?.contiguous()?,
-            _ => cond.clone(),
-        };
 
         let h = self.input_layer.forward(&self.patchify(x)?)?.broadcast_add(&self.pos_emb)?;
         let emb = self.block_modulation(&self.timestep_embedding(t)?)?;
@@ -355,8 +411,18 @@ impl SparseStructureFlowModel {
         };
 
         let mut h = h;
-        for block in &self.blocks {
-            h = block.forward(&h, &emb, &cond)?;
+        match cond {
+            Cond::Tensor(cond) => {
+                for block in &self.blocks {
+                    h = block.forward(&h, &emb, cond)?;
+                }
+            }
+            Cond::Prepared(cond) => {
+                let cond = cond.expand(b)?;
+                for (i, block) in self.blocks.iter().enumerate() {
+                    h = block.forward_prepared(&h, &emb, cond.block(i)?)?;
+                }
+            }
         }
         let h = common::layer_norm_plain(&h, 1e-5)?;
         let n = cfg.num_tokens();
@@ -395,10 +461,16 @@ impl SparseStructureFlowModel {
         Ok(s)
     }
 
-    fn run_state(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+    fn run_state(&self, state: &[Tensor], t_model: f32, cond: Cond) -> Result<Vec<Tensor>> {
+        if state.is_empty() || state.len() > 2 {
+            return Err(Error::msg(format!("ss_flow: state must be [latent] or [latent, pose], got {} tensors", state.len())));
+        }
         let b = state[0].dim(0)?;
         let t = Tensor::full(t_model, b, state[0].device())?.to_dtype(DType::F32)?;
-        let (v, vp) = self.forward(&state[0], state.get(1), &t, cond)?;
+        let (v, vp) = match cond {
+            Cond::Tensor(c) => self.forward(&state[0], state.get(1), &t, c)?,
+            Cond::Prepared(c) => self.forward_prepared(&state[0], state.get(1), &t, c)?,
+        };
         Ok(match vp {
             Some(p) => vec![v, p],
             None => vec![v],
@@ -408,34 +480,74 @@ impl SparseStructureFlowModel {
 
 impl VelocityModel for SparseStructureFlowModel {
     fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
-        if state.is_empty() || state.len() > 2 {
-            return Err(Error::msg(format!("ss_flow: state must be [latent] or [latent, pose], got {} tensors", state.len())));
-        }
-        self.run_state(state, t_model, cond)
+        self.run_state(state, t_model, Cond::Tensor(cond))
     }
 
     /// Conditional and unconditional passes batched into one forward (the
     /// state is duplicated along the batch); per-sample results are the same
     /// as two passes up to float rounding.
     fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
-        if state.is_empty() || state.len() > 2 {
-            return Err(Error::msg(format!("ss_flow: state must be [latent] or [latent, pose], got {} tensors", state.len())));
+        let b = state.first().ok_or_else(|| Error::msg("ss_flow: empty state"))?.dim(0)?;
+        let over_batch = |c: &Tensor| -> Result<[usize; 3]> {
+            let (cb, l, cc) = c.dims3()?;
+            Ok([if cb == 1 { b } else { cb }, l, cc])
+        };
+        if over_batch(cond)? != over_batch(neg)? {
+            return Err(Error::msg(format!("ss_flow: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
         }
-        let b = state[0].dim(0)?;
+        if self.input_layer.fast().is_some() {
+            let (c, n) = (self.prepare_condition(cond)?, self.prepare_condition(neg)?);
+            return self.velocity_cfg_prepared(state, t_model, &c, &n);
+        }
         let expand = |c: &Tensor| -> Result<Tensor> {
             let (cb, l, cc) = c.dims3()?;
             Ok(if cb == 1 && b > 1 { c.broadcast_as((b, l, cc))?.contiguous()? } else { c.clone() })
         };
         let (c, n) = (expand(cond)?, expand(neg)?);
-        if c.dims() != n.dims() {
-            return Err(Error::msg(format!("ss_flow: cond {:?} and neg_cond {:?} differ in shape", c.dims(), n.dims())));
-        }
         let doubled: Vec<Tensor> = state.iter().map(|s| Tensor::cat(&[s, s], 0)).collect::<candle_core::Result<_>>()?;
-        let both = self.run_state(&doubled, t_model, &Tensor::cat(&[&c, &n], 0)?)?;
-        let split =
-            |i: usize| -> Result<Vec<Tensor>> { Ok(both.iter().map(|v| v.narrow(0, i * b, b)).collect::<candle_core::Result<_>>()?) };
-        Ok((split(0)?, split(1)?))
+        split_cfg(self.run_state(&doubled, t_model, Cond::Tensor(&Tensor::cat(&[&c, &n], 0)?))?, b)
     }
+
+    /// On the fast path: the conditions prepared once for the run
+    /// ([`Self::prepare_condition`]).
+    fn prepare<'a>(&'a self, cond: &Tensor, neg_cond: Option<&Tensor>) -> Result<Option<Box<dyn VelocityModel + 'a>>> {
+        if self.input_layer.fast().is_none() {
+            return Ok(None);
+        }
+        Ok(Some(Box::new(PreparedRun::new(self, cond, neg_cond)?)))
+    }
+}
+
+impl PrepareCondition for SparseStructureFlowModel {
+    type Prepared = PreparedCondition;
+
+    fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
+        SparseStructureFlowModel::prepare_condition(self, cond)
+    }
+
+    fn velocity_prepared(&self, state: &[Tensor], t_model: f32, cond: &PreparedCondition) -> Result<Vec<Tensor>> {
+        self.run_state(state, t_model, Cond::Prepared(cond))
+    }
+
+    /// As [`VelocityModel::velocity_cfg`]: one forward of the doubled batch.
+    fn velocity_cfg_prepared(
+        &self,
+        state: &[Tensor],
+        t_model: f32,
+        cond: &PreparedCondition,
+        neg: &PreparedCondition,
+    ) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        let b = state.first().ok_or_else(|| Error::msg("ss_flow: empty state"))?.dim(0)?;
+        let both = PreparedCondition::cat(&[&cond.expand(b)?, &neg.expand(b)?])?;
+        let doubled: Vec<Tensor> = state.iter().map(|s| Tensor::cat(&[s, s], 0)).collect::<candle_core::Result<_>>()?;
+        split_cfg(self.run_state(&doubled, t_model, Cond::Prepared(&both))?, b)
+    }
+}
+
+/// The conditional and unconditional halves of a doubled batch's velocities.
+fn split_cfg(both: Vec<Tensor>, b: usize) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+    let split = |i: usize| -> Result<Vec<Tensor>> { Ok(both.iter().map(|v| v.narrow(0, i * b, b)).collect::<candle_core::Result<_>>()?) };
+    Ok((split(0)?, split(1)?))
 }
 
 #[cfg(test)]
@@ -546,6 +658,81 @@ mod tests {
             let dv = (&v1 - &v0)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
             let dp = (p1.unwrap() - p0.as_ref().unwrap())?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
             assert!(dv <= tol * scale && dp <= tol * scale, "{p}: v diff {dv}, pose diff {dp} (scale {scale})");
+        }
+        Ok(())
+    }
+
+    /// The fast model's condition prepared once per sampling run against the
+    /// full computation, with and without QK norm in cross-attention: the
+    /// keys and values computed once give the same bits as computing them at
+    /// every step; the constant-context shortcut of the all-zero `neg_cond`
+    /// keeps the conditional half's bits and moves the unconditional half by
+    /// float rounding only. Thread counts do not change the bits.
+    #[test]
+    fn prepared_sampling_matches_full_computation() -> Result<()> {
+        use crate::model::nn::fast::Precision;
+        use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, Unprepared};
+        use crate::util::testing::{max_rel_diff, same_bits};
+        let dev = Device::Cpu;
+        for qk_cross in [false, true] {
+            let mut cfg = tiny_cfg(1, true);
+            cfg.qk_rms_norm_cross = qk_cross;
+            let vm = VarMap::new();
+            let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+            SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
+            let mut rng = SeededRng::new(17);
+            for (_, var) in vm.data().lock().unwrap().iter() {
+                var.set(&(rng.randn(var.dims(), &dev)? * 0.2)?)?;
+            }
+            let fast = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
+            let mut full = SparseStructureFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
+            full.set_shortcuts(false);
+            let plain = SparseStructureFlowModel::new(&cfg, vb, Compute::Plain)?;
+            let state = fast.initial_state(&mut rng, 1, &dev)?;
+            let cond = rng.randn(&[1, 5, 16], &dev)?;
+            let neg = cond.zeros_like()?;
+
+            // One guided step.
+            let (c0, u0) = full.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            let run = fast.prepare(&cond, Some(&neg))?.expect("the fast path prepares");
+            let (c1, u1) = run.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            for (a, b) in c1.iter().zip(&c0) {
+                assert!(same_bits(a, b)?, "qk_cross {qk_cross}: the conditional velocity changed");
+            }
+            for (a, b) in u1.iter().zip(&u0) {
+                let d = max_rel_diff(a, b)?;
+                eprintln!("ss_flow qk_cross {qk_cross}: unconditional velocity {d:.2e} from the full computation");
+                assert!(d <= 1e-6, "qk_cross {qk_cross}: unconditional velocity {d:e} from the full computation");
+            }
+            let (cp, up) = plain.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            for (a, b) in c1.iter().chain(&u1).zip(cp.iter().chain(&up)) {
+                assert!(max_rel_diff(a, b)? <= 1e-5, "qk_cross {qk_cross}: fast vs plain");
+            }
+
+            // Whole runs (4 steps, 2 guided).
+            let sampler = FlowEulerGuidanceIntervalSampler::new(SamplerSettings { steps: 4, ..Default::default() });
+            let sample = |m: &dyn VelocityModel| sampler.sample(m, state.clone(), &cond, Some(&neg));
+            // Unprepared: every step computes the condition's keys and values itself.
+            let each_step = sample(&Unprepared(&full))?;
+            let once = sample(&full)?;
+            for (a, b) in once.iter().zip(&each_step) {
+                assert!(same_bits(a, b)?, "qk_cross {qk_cross}: keys and values once per run change the bits");
+            }
+            // The guided velocity is (1+s)·v(cond) − s·v(neg) with s = 5 here: the
+            // unconditional rounding difference reaches the state times s, step after step.
+            let short = sample(&fast)?;
+            for (a, b) in short.iter().zip(&once) {
+                let d = max_rel_diff(a, b)?;
+                eprintln!("ss_flow qk_cross {qk_cross}: shortcut run {d:.2e} from the full run");
+                assert!(d <= 1e-5, "qk_cross {qk_cross}: shortcut run {d:e} from the full run");
+            }
+            for threads in [1, 3] {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().map_err(|e| Error::msg(e.to_string()))?;
+                let again = pool.install(|| sample(&fast))?;
+                for (a, b) in again.iter().zip(&short) {
+                    assert!(same_bits(a, b)?, "{threads} threads change the bits");
+                }
+            }
         }
         Ok(())
     }

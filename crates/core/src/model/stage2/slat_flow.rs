@@ -15,10 +15,11 @@ use crate::geometry::pose::PoseRepresentation;
 use crate::model::nn::common::Linear;
 use crate::model::nn::common::PeMode;
 use crate::model::nn::common::{
-    abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, TimestepEmbedder,
+    abs_position_embedding, layer_norm_plain, linear, CrossBlockConfig, LayerNorm, ModulatedTransformerCrossBlock, PreparedCondition,
+    TimestepEmbedder,
 };
 use crate::model::nn::fast::Compute;
-use crate::model::sampler::VelocityModel;
+use crate::model::sampler::{PrepareCondition, PreparedRun, VelocityModel};
 use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
@@ -261,6 +262,15 @@ pub struct SLatFlowModel {
     pub mask_embedder: Option<MaskEmbedder>,
     pose_embedder: Option<Linear>,
     conv_path: ConvPath,
+    /// Whether the shortcuts that round differently are on (see [`SLatFlowModel::set_shortcuts`]).
+    shortcuts: bool,
+}
+
+/// The condition of one forward: a tensor (plain path), or prepared once for many (fast path).
+#[derive(Clone, Copy)]
+enum Cond<'a> {
+    Tensor(&'a Tensor),
+    Prepared(&'a PreparedCondition),
 }
 
 impl SLatFlowModel {
@@ -334,7 +344,39 @@ impl SLatFlowModel {
             },
             cfg: cfg.clone(),
             conv_path: ConvPath::Fast,
+            shortcuts: true,
         })
+    }
+
+    /// Turn on (the default) or off the fast path's shortcuts whose results
+    /// equal the full computation's up to float rounding: the constant-context
+    /// shortcut (a condition item whose rows are all equal, such as the
+    /// all-zero `neg_cond`, gives each block's cross-attention output without
+    /// the query projection, scores and weighted sum) and, in a guided step,
+    /// the input stage run once for both passes ([`Self::forward_guided`]).
+    /// Off, the fast path computes everything, as the plain path always does.
+    pub fn set_shortcuts(&mut self, on: bool) {
+        self.shortcuts = on;
+    }
+
+    /// Every block's cross-attention keys and values for `cond` `[B, L, Cc]`,
+    /// computed once for many [`Self::forward_prepared`] calls (a sampler's
+    /// condition is the same at every step); fast path only.
+    pub fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
+        let (_, _, cc) = cond.dims3()?;
+        if cc != self.cfg.cond_channels {
+            return Err(Error::msg(format!("SLat flow: cond has shape {:?}, expected [B, L, {}]", cond.dims(), self.cfg.cond_channels)));
+        }
+        if self.input_layer.fast().is_none() {
+            return Err(Error::msg("SLat flow: prepared conditions are for the fast path"));
+        }
+        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
+    }
+
+    /// [`Self::forward`] with a condition prepared by [`Self::prepare_condition`]
+    /// (one item per batch item); fast path only.
+    pub fn forward_prepared(&self, x: &SparseTensor, t: &Tensor, cond: &PreparedCondition) -> Result<SparseTensor> {
+        self.forward_impl(x, t, Cond::Prepared(cond), None)
     }
 
     /// Select the sparse conv implementation (default: fast kernel).
@@ -344,40 +386,87 @@ impl SLatFlowModel {
 
     /// Velocity for noisy latents `x` (`[N, in_channels]` feats), model-scale
     /// timesteps `t` `[B]` (1000·t) and condition tokens `cond` `[B, L, cond_channels]`.
+    /// On the fast path the condition is prepared here
+    /// ([`Self::prepare_condition`]); a sampler prepares it once per run and
+    /// calls [`Self::forward_prepared`].
     pub fn forward(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor) -> Result<SparseTensor> {
-        self.forward_impl(x, t, cond, None)
+        self.forward_tensor(x, t, cond, None)
     }
 
     /// As [`forward`](Self::forward), also recording intermediates.
     pub fn forward_with_taps(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor) -> Result<(SparseTensor, SLatFlowTaps)> {
         let mut taps = SLatFlowTaps::default();
-        let y = self.forward_impl(x, t, cond, Some(&mut taps))?;
+        let y = self.forward_tensor(x, t, cond, Some(&mut taps))?;
         Ok((y, taps))
     }
 
-    fn forward_impl(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor, mut taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
+    fn forward_tensor(&self, x: &SparseTensor, t: &Tensor, cond: &Tensor, taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
         let b = x.batch_size;
-        if t.dims() != [b] {
-            return Err(Error::msg(format!("SLat flow: t has shape {:?}, expected [{b}]", t.dims())));
-        }
         let (cb, _, cc) = cond.dims3()?;
         if cb != b || cc != self.cfg.cond_channels {
             return Err(Error::msg(format!("SLat flow: cond has shape {:?}, expected [{b}, L, {}]", cond.dims(), self.cfg.cond_channels)));
         }
+        if self.input_layer.fast().is_some() {
+            return self.forward_impl(x, t, Cond::Prepared(&self.prepare_condition(cond)?), taps);
+        }
+        self.forward_impl(x, t, Cond::Tensor(cond), taps)
+    }
+
+    fn forward_impl(&self, x: &SparseTensor, t: &Tensor, cond: Cond, mut taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
+        let b = x.batch_size;
+        if t.dims() != [b] {
+            return Err(Error::msg(format!("SLat flow: t has shape {:?}, expected [{b}]", t.dims())));
+        }
+        let cb = match cond {
+            Cond::Tensor(c) => c.dim(0)?,
+            Cond::Prepared(p) => p.batch(),
+        };
+        if cb != b {
+            return Err(Error::msg(format!("SLat flow: condition of {cb} items for batch {b}")));
+        }
+        let stem = self.input_stage(x, t, taps.as_deref_mut())?;
+        self.output_stage(stem, cond, taps)
+    }
+
+    /// Both passes of a guided step, conditional then unconditional, on the
+    /// voxels of `x` (one item): a batch of two items, as [`Self::forward`]
+    /// of `x` twice with `t` `[1]` for both and `cond` (two items, prepared by
+    /// [`Self::prepare_condition`]). With the shortcuts on, the input layer and
+    /// blocks, which see neither condition, run once for both items (the
+    /// same algebra; the sparse convolutions round the rows of a lone item
+    /// slightly differently than in a batch of two). Fast path only.
+    pub fn forward_guided(&self, x: &SparseTensor, t: &Tensor, cond: &PreparedCondition) -> Result<SparseTensor> {
+        if x.batch_size != 1 || t.dims() != [1] || cond.batch() != 2 {
+            return Err(Error::msg(format!(
+                "SLat flow: a guided step takes one item, t [1] and two conditions, got {} items, t {:?}, {} conditions",
+                x.batch_size,
+                t.dims(),
+                cond.batch()
+            )));
+        }
+        if self.shortcuts {
+            return self.output_stage(self.input_stage(x, t, None)?.doubled()?, Cond::Prepared(cond), None);
+        }
+        let coords: Vec<[i32; 4]> = x.coords.iter().copied().chain(x.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+        let xs = SparseTensor::new(coords, Tensor::cat(&[&x.feats, &x.feats], 0)?, 2)?;
+        self.forward_impl(&xs, &Tensor::cat(&[t, t], 0)?, Cond::Prepared(cond), None)
+    }
+
+    fn check_input(&self, x: &SparseTensor) -> Result<()> {
         if x.feats.dim(1)? != self.cfg.in_channels {
             return Err(Error::msg(format!("SLat flow: input has {} channels, expected {}", x.feats.dim(1)?, self.cfg.in_channels)));
         }
+        Ok(())
+    }
 
+    /// The input layer and input blocks.
+    fn input_stage(&self, x: &SparseTensor, t: &Tensor, mut taps: Option<&mut SLatFlowTaps>) -> Result<Stem> {
+        self.check_input(x)?;
         let mut h = x.with_feats(self.input_layer.forward(&x.feats)?)?;
         let t_emb = self.t_embedder.forward(t)?;
         if let Some(tp) = taps.as_deref_mut() {
             tp.t_emb = Some(t_emb.clone());
         }
-        let emb = match &self.ada_ln {
-            Some(l) => l.forward(&t_emb.silu()?)?,
-            None => t_emb.clone(),
-        };
-
         let mut caches = Vec::new();
         let mut skips = Vec::new();
         for blk in &self.input_blocks {
@@ -387,22 +476,51 @@ impl SLatFlowModel {
                 tp.input_blocks.push(h.clone());
             }
         }
+        Ok(Stem { h, t_emb, skips, caches })
+    }
+
+    /// The transformer blocks, output blocks and output layer.
+    fn output_stage(&self, stem: Stem, cond: Cond, mut taps: Option<&mut SLatFlowTaps>) -> Result<SparseTensor> {
+        let Stem { mut h, t_emb, mut skips, mut caches } = stem;
+        let b = h.batch_size;
+        let emb = match &self.ada_ln {
+            Some(l) => l.forward(&t_emb.silu()?)?,
+            None => t_emb.clone(),
+        };
 
         let pe = abs_position_embedding(&xyz_tensor(&h)?, self.cfg.model_channels)?.to_dtype(h.feats.dtype())?;
         let mut feats = (&h.feats + pe)?;
         let ranges = h.batch_ranges();
-        for blk in &self.blocks {
-            // Full attention within each item = the dense block applied per item.
-            let mut parts = Vec::with_capacity(b);
-            for (i, r) in ranges.iter().enumerate() {
-                if r.is_empty() {
-                    continue;
+        // Full attention within each item = the dense block applied per item.
+        // On the fast path, items of one size (a guided step's two, on the
+        // same voxels) are one dense batch: its kernels compute every row of
+        // every product on its own, so this gives the bits of the item-by-item
+        // loop. The plain path keeps the loop (candle's batched products round
+        // differently, and it is the reference).
+        let n0 = ranges.first().map_or(0, |r| r.len());
+        let uniform =
+            matches!(cond, Cond::Prepared(_)) && n0 > 0 && ranges.iter().enumerate().all(|(i, r)| r.start == i * n0 && r.len() == n0);
+        let c = feats.dim(1)?;
+        for (j, blk) in self.blocks.iter().enumerate() {
+            let run = |x: &Tensor, emb: &Tensor, items: std::ops::Range<usize>| -> Result<Tensor> {
+                Ok(match cond {
+                    Cond::Tensor(cond) => blk.forward(x, emb, &cond.narrow(0, items.start, items.len())?)?,
+                    Cond::Prepared(p) => blk.forward_prepared(x, emb, &p.block(j)?.narrow(items.start, items.len())?)?,
+                })
+            };
+            if uniform {
+                feats = run(&feats.reshape((b, n0, c))?, &emb, 0..b)?.reshape((b * n0, c))?;
+            } else {
+                let mut parts = Vec::with_capacity(b);
+                for (i, r) in ranges.iter().enumerate() {
+                    if r.is_empty() {
+                        continue;
+                    }
+                    let xi = feats.narrow(0, r.start, r.len())?.unsqueeze(0)?;
+                    parts.push(run(&xi, &emb.narrow(0, i, 1)?, i..i + 1)?.squeeze(0)?);
                 }
-                let xi = feats.narrow(0, r.start, r.len())?.unsqueeze(0)?;
-                let yi = blk.forward(&xi, &emb.narrow(0, i, 1)?, &cond.narrow(0, i, 1)?)?;
-                parts.push(yi.squeeze(0)?);
+                feats = if parts.is_empty() { feats } else { Tensor::cat(&parts, 0)? };
             }
-            feats = if parts.is_empty() { feats } else { Tensor::cat(&parts, 0)? };
             if let Some(tp) = taps.as_deref_mut() {
                 tp.blocks.push(feats.clone());
             }
@@ -484,6 +602,38 @@ impl SLatFlowModel {
     }
 }
 
+/// What the input stage hands on: the coarse tokens, the timestep
+/// embedding, the skip features and the downsample caches.
+struct Stem {
+    h: SparseTensor,
+    t_emb: Tensor,
+    skips: Vec<Tensor>,
+    caches: Vec<DownsampleCache>,
+}
+
+impl Stem {
+    /// The stem of a batch of two copies of this one-item stem: what the
+    /// input stage gives for the same item twice (item 1's rows after item
+    /// 0's, as a downsample orders them).
+    fn doubled(self) -> Result<Self> {
+        let twice = |c: &[[i32; 4]]| -> Vec<[i32; 4]> { c.iter().copied().chain(c.iter().map(|c| [1, c[1], c[2], c[3]])).collect() };
+        let cat = |t: &Tensor| Tensor::cat(&[t, t], 0);
+        let h = SparseTensor::new(twice(&self.h.coords), cat(&self.h.feats)?, 2)?;
+        let skips = self.skips.iter().map(cat).collect::<candle_core::Result<_>>()?;
+        let caches = self
+            .caches
+            .into_iter()
+            .map(|c| {
+                // Every coarse row has a fine row, so the coarse count is the largest index + 1.
+                let coarse = c.inverse.iter().max().map_or(0, |&m| m + 1);
+                let inverse = c.inverse.iter().copied().chain(c.inverse.iter().map(|&i| i + coarse)).collect();
+                DownsampleCache { factor: c.factor, fine_coords: twice(&c.fine_coords), fine_batch_size: 2, inverse }
+            })
+            .collect();
+        Ok(Self { h, t_emb: cat(&self.t_emb)?, skips, caches })
+    }
+}
+
 /// Per-channel SLat normalisation (`slat_config … normalization`: mean/std).
 #[derive(Debug, Clone)]
 pub struct SLatNormalization {
@@ -540,27 +690,86 @@ pub struct SlatVelocity<'a> {
     pub coords: &'a [[i32; 4]],
 }
 
-impl VelocityModel for SlatVelocity<'_> {
-    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+impl SlatVelocity<'_> {
+    fn run(&self, state: &[Tensor], t_model: f32, cond: Cond) -> Result<Vec<Tensor>> {
         let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
         let x = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
         let t = Tensor::full(t_model, 1, x.feats.device())?;
-        Ok(vec![self.model.forward(&x, &t, cond)?.feats])
+        let v = match cond {
+            Cond::Tensor(c) => self.model.forward(&x, &t, c)?,
+            Cond::Prepared(c) => self.model.forward_prepared(&x, &t, c)?,
+        };
+        Ok(vec![v.feats])
+    }
+
+    /// Conditional and unconditional passes as one batch of two items on
+    /// the same coordinates; `cond` holds both conditions.
+    fn run_cfg(&self, state: &[Tensor], t_model: f32, cond: Cond) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
+        let n = self.coords.len();
+        let v = match cond {
+            Cond::Tensor(c) => {
+                let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+                let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
+                self.model.forward(&xs, &Tensor::full(t_model, 2, x.device())?, c)?
+            }
+            Cond::Prepared(c) => {
+                let x1 = SparseTensor::new(self.coords.to_vec(), x.clone(), 1)?;
+                self.model.forward_guided(&x1, &Tensor::full(t_model, 1, x.device())?, c)?
+            }
+        }
+        .feats;
+        Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
+    }
+}
+
+impl VelocityModel for SlatVelocity<'_> {
+    fn velocity(&self, state: &[Tensor], t_model: f32, cond: &Tensor) -> Result<Vec<Tensor>> {
+        self.run(state, t_model, Cond::Tensor(cond))
     }
 
     /// Conditional and unconditional passes as one batch of two items on
     /// the same coordinates.
     fn velocity_cfg(&self, state: &[Tensor], t_model: f32, cond: &Tensor, neg: &Tensor) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
-        let [x] = state else { return Err(Error::msg("SLat sampler: state must be one feature tensor")) };
         if cond.dims() != neg.dims() {
             return Err(Error::msg(format!("SLat sampler: cond {:?} and neg_cond {:?} differ in shape", cond.dims(), neg.dims())));
         }
-        let n = self.coords.len();
-        let coords: Vec<[i32; 4]> = self.coords.iter().copied().chain(self.coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
-        let xs = SparseTensor::new(coords, Tensor::cat(&[x, x], 0)?, 2)?;
-        let t = Tensor::full(t_model, 2, x.device())?;
-        let v = self.model.forward(&xs, &t, &Tensor::cat(&[cond, neg], 0)?)?.feats;
-        Ok((vec![v.narrow(0, 0, n)?], vec![v.narrow(0, n, n)?]))
+        let both = Tensor::cat(&[cond, neg], 0)?;
+        if self.model.input_layer.fast().is_some() {
+            return self.run_cfg(state, t_model, Cond::Prepared(&self.model.prepare_condition(&both)?));
+        }
+        self.run_cfg(state, t_model, Cond::Tensor(&both))
+    }
+
+    /// On the fast path: the conditions prepared once for the run
+    /// ([`SLatFlowModel::prepare_condition`]).
+    fn prepare<'a>(&'a self, cond: &Tensor, neg_cond: Option<&Tensor>) -> Result<Option<Box<dyn VelocityModel + 'a>>> {
+        if self.model.input_layer.fast().is_none() {
+            return Ok(None);
+        }
+        Ok(Some(Box::new(PreparedRun::new(self, cond, neg_cond)?)))
+    }
+}
+
+impl PrepareCondition for SlatVelocity<'_> {
+    type Prepared = PreparedCondition;
+
+    fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
+        self.model.prepare_condition(cond)
+    }
+
+    fn velocity_prepared(&self, state: &[Tensor], t_model: f32, cond: &PreparedCondition) -> Result<Vec<Tensor>> {
+        self.run(state, t_model, Cond::Prepared(cond))
+    }
+
+    fn velocity_cfg_prepared(
+        &self,
+        state: &[Tensor],
+        t_model: f32,
+        cond: &PreparedCondition,
+        neg: &PreparedCondition,
+    ) -> Result<(Vec<Tensor>, Vec<Tensor>)> {
+        self.run_cfg(state, t_model, Cond::Prepared(&PreparedCondition::cat(&[cond, neg])?))
     }
 }
 
@@ -674,6 +883,98 @@ mod tests {
         let t = Tensor::new(&[1f32], &Device::Cpu)?;
         let cond = Tensor::zeros((2, 3, 16), DType::F32, &Device::Cpu)?;
         assert!(m.forward(&x, &t, &cond).is_err());
+        Ok(())
+    }
+
+    /// A guided step: the two items of one size run the blocks as one batch
+    /// with the bits of item-by-item passes (plain and fast); the fast
+    /// path's condition prepared once per run gives the bits of preparing it
+    /// at every step; the shortcuts (the input stage once for both passes,
+    /// the constant-context output for the all-zero `neg_cond`) move the
+    /// velocities by float rounding only (QK norm in cross-attention on and off).
+    #[test]
+    fn guided_step_batched_and_prepared_match_full_computation() -> Result<()> {
+        use crate::model::nn::fast::Precision;
+        use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings, Unprepared};
+        use crate::util::testing::{max_rel_diff, same_bits};
+        let dev = Device::Cpu;
+        for qk_cross in [false, true] {
+            let mut cfg = tiny_cfg();
+            cfg.qk_rms_norm_cross = qk_cross;
+            let vm = VarMap::new();
+            let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+            SLatFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
+            for v in vm.all_vars() {
+                v.set(&Tensor::randn(0f32, 0.2, v.shape(), &dev)?)?;
+            }
+            let plain = SLatFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
+            let fast = SLatFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
+            let mut full = SLatFlowModel::new(&cfg, vb, Compute::fast(Precision::F32))?;
+            full.set_shortcuts(false);
+            let coords: Vec<[i32; 4]> = blob().coords.into_iter().filter(|c| c[0] == 0).collect();
+            let x = Tensor::randn(0f32, 1.0, (coords.len(), 4), &dev)?;
+            let cond = Tensor::randn(0f32, 1.0, (1, 6, 16), &dev)?;
+            let neg = cond.zeros_like()?;
+            let state = [x];
+            // The blocks of a batch of two equal items against the item-by-item loop
+            // (each block run on its recorded input, one item at a time, unprepared).
+            let two: Vec<[i32; 4]> = coords.iter().copied().chain(coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
+            let xs = SparseTensor::new(two, Tensor::cat(&[&state[0], &state[0]], 0)?, 2)?;
+            let t = Tensor::new(&[700f32, 700.], &dev)?;
+            let conds = Tensor::cat(&[&cond, &Tensor::randn(0f32, 1.0, (1, 6, 16), &dev)?], 0)?;
+            for (name, m) in [("plain", &plain), ("fast", &full), ("fast + shortcut", &fast)] {
+                let (_, taps) = m.forward_with_taps(&xs, &t, &conds)?;
+                let h = taps.input_blocks.last().unwrap();
+                let pe = abs_position_embedding(&xyz_tensor(h)?, cfg.model_channels)?;
+                let mut input = (&h.feats + pe)?;
+                let emb = taps.t_emb.clone().unwrap();
+                let k = h.len() / 2;
+                for (blk, got) in m.blocks.iter().zip(&taps.blocks) {
+                    let items = (0..2)
+                        .map(|i| {
+                            Ok(blk
+                                .forward(&input.narrow(0, i * k, k)?.unsqueeze(0)?, &emb.narrow(0, i, 1)?, &conds.narrow(0, i, 1)?)?
+                                .squeeze(0)?)
+                        })
+                        .collect::<Result<Vec<_>>>()?;
+                    let want = Tensor::cat(&items, 0)?;
+                    let d = crate::util::max_abs_diff(got, &want)?;
+                    assert!(same_bits(got, &want)?, "qk_cross {qk_cross}, {name}: batched blocks change the bits (max diff {d:e})");
+                    input = got.clone();
+                }
+            }
+            // The input stage once for both passes, against the batch of two copies.
+            let pc = fast.prepare_condition(&conds)?;
+            let once = fast.forward_guided(&SparseTensor::new(coords.clone(), state[0].clone(), 1)?, &t.narrow(0, 0, 1)?, &pc)?;
+            let twice = fast.forward_prepared(&xs, &t, &pc)?;
+            assert_eq!(once.coords, twice.coords);
+            let d = max_rel_diff(&once.feats, &twice.feats)?;
+            eprintln!("slat_flow qk_cross {qk_cross}: input stage once {d:.2e} from twice");
+            assert!(d <= 1e-6, "qk_cross {qk_cross}: input stage once {d:e} from twice");
+
+            let vf = SlatVelocity { model: &full, coords: &coords };
+            let (c0, u0) = vf.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            let vs = SlatVelocity { model: &fast, coords: &coords };
+            let run = vs.prepare(&cond, Some(&neg))?.expect("the fast path prepares");
+            let (c1, u1) = run.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            for (half, a, b) in [("conditional", &c1[0], &c0[0]), ("unconditional", &u1[0], &u0[0])] {
+                let d = max_rel_diff(a, b)?;
+                eprintln!("slat_flow qk_cross {qk_cross}: {half} velocity {d:.2e} from the full computation");
+                assert!(d <= 1e-6, "qk_cross {qk_cross}: {half} velocity {d:e} from the full computation");
+            }
+            let (_, up) = SlatVelocity { model: &plain, coords: &coords }.velocity_cfg(&state, 700.0, &cond, &neg)?;
+            assert!(max_rel_diff(&u1[0], &up[0])? <= 1e-5, "qk_cross {qk_cross}: fast vs plain");
+
+            // Whole runs: keys and values once per run give the bits of once per step.
+            let sampler = FlowEulerGuidanceIntervalSampler::new(SamplerSettings { steps: 3, ..Default::default() });
+            let sample = |m: &dyn VelocityModel| sampler.sample(m, state.to_vec(), &cond, Some(&neg));
+            let each_step = sample(&Unprepared(&vf))?;
+            assert!(same_bits(&sample(&vf)?[0], &each_step[0])?, "qk_cross {qk_cross}: prepared run changes the bits");
+            // s = 5: the unconditional rounding difference reaches the state times s.
+            let d = max_rel_diff(&sample(&vs)?[0], &each_step[0])?;
+            eprintln!("slat_flow qk_cross {qk_cross}: shortcut run {d:.2e} from the full run");
+            assert!(d <= 1e-5, "qk_cross {qk_cross}: shortcut run {d:e} from the full run");
+        }
         Ok(())
     }
 

@@ -31,7 +31,7 @@ pub struct SLatEncoderConfig {
 impl SLatEncoderConfig {
     /// Parse the encoder's `args`; errors name `file` and the field.
     pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
-        crate::util::json::from_value(v, file)
+        crate::model::stage2::slat_vae::trunk::from_json_with_trunk(v, file)
     }
 }
 

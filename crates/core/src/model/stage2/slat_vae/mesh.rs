@@ -344,7 +344,7 @@ pub struct MeshRepresentationConfig {
 impl MeshDecoderConfig {
     /// Parse the decoder's `args`; errors name `file` and the field.
     pub fn from_json(v: &serde_json::Value, file: &str) -> Result<Self> {
-        crate::util::json::from_value(v, file)
+        crate::model::stage2::slat_vae::trunk::from_json_with_trunk(v, file)
     }
 }
 

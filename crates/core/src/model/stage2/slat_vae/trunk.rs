@@ -24,6 +24,14 @@ pub enum AttnMode {
     Full,
 }
 
+/// A config with [`TrunkArgs`] flattened in, from an `args` object. serde loses the
+/// field path inside a flattened struct, so the trunk's fields are parsed on their own
+/// first: a bad `model_channels` is named as such, not as "`args`".
+pub(crate) fn from_json_with_trunk<T: serde::de::DeserializeOwned>(v: &serde_json::Value, file: &str) -> Result<T> {
+    crate::util::json::from_value::<TrunkArgs>(v, file)?;
+    crate::util::json::from_value(v, file)
+}
+
 /// The trunk's upstream constructor args, shared by the SLat decoders and
 /// the SLat encoder (flattened into their configs). Unknown keys
 /// (`use_fp16`, `qk_rms_norm`, ...) are ignored, as upstream's are.
