@@ -931,3 +931,128 @@ fn binary_masks_npy_depth_k_and_a_second_view() {
     assert_eq!(pose["views"][1]["frame"], "b.png");
     let _ = std::fs::remove_dir_all(&t);
 }
+
+/// Runs `recon args…` from the repository and waits for it with `wait4`: its exit status,
+/// its stdout and stderr, its seconds and its peak resident memory (MiB, the kernel's
+/// `ru_maxrss` of that process).
+fn recon_measured(args: &[&str]) -> (i32, String, String, f64, f64) {
+    let out_file = tmp("measured-out").with_extension(format!("{}.txt", std::process::id()));
+    let err_file = out_file.with_extension("err");
+    let t0 = Instant::now();
+    let child = Command::new(env!("CARGO_BIN_EXE_recon"))
+        .args(args)
+        .current_dir(repo())
+        .stdout(std::fs::File::create(&out_file).unwrap())
+        .stderr(std::fs::File::create(&err_file).unwrap())
+        .spawn()
+        .unwrap();
+    let (mut status, mut usage) = (0i32, unsafe { std::mem::zeroed::<libc::rusage>() });
+    // SAFETY: waits for our own child; `status` and `usage` are valid for writes.
+    let pid = unsafe { libc::wait4(child.id() as libc::pid_t, &mut status, 0, &mut usage) };
+    assert_eq!(pid, child.id() as libc::pid_t, "wait4");
+    let secs = t0.elapsed().as_secs_f64();
+    let code = if libc::WIFEXITED(status) { libc::WEXITSTATUS(status) } else { -1 };
+    let (out, err) = (std::fs::read_to_string(&out_file).unwrap(), std::fs::read_to_string(&err_file).unwrap());
+    let _ = (std::fs::remove_file(&out_file), std::fs::remove_file(&err_file));
+    (code, out, err, secs, usage.ru_maxrss as f64 / 1024.0)
+}
+
+/// An instance-id PNG of the README sample's size (640×480, 16-bit) with 20 000 one-pixel
+/// instances: through `recon infer` and through the server it completes, skips every
+/// instance (nothing is left after erosion), and stays within a few hundred MB: masks are
+/// held as row runs and checked on them, no full-frame buffer per instance. Before, this
+/// took 195 s and 6.1 GB to skip them all. `max_objects` refuses a frame with more
+/// objects that pass the checks, naming the count and the limit, through both.
+#[test]
+fn twenty_thousand_one_pixel_instances_stay_small() {
+    let t = tmp("serve-many-masks");
+    let d = repo().join("data/sample");
+    let (w, h) = (640u32, 480u32);
+    let n = 20_000u32;
+    let map = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
+        // Every other pixel of every other row: no two instances touch.
+        let i = (y / 2) * (w / 2) + x / 2;
+        image::Luma([if x % 2 == 0 && y % 2 == 0 && i < n { (i + 1) as u16 } else { 0 }])
+    });
+    let masks = t.join("many-label.png");
+    map.save(&masks).unwrap();
+    let out = t.join("many_recon");
+    let rgb = d.join("000001-color.png");
+    let (code, stdout, stderr, secs, peak) = recon_measured(&[
+        "infer",
+        "--rgbd",
+        rgb.to_str().unwrap(),
+        "--masks",
+        masks.to_str().unwrap(),
+        "--weights",
+        "random",
+        "--config",
+        "models/recgen-tiny.json",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    eprintln!("recon infer, {n} one-pixel instances: {secs:.1} s, peak RSS {peak:.0} MiB");
+    // Exit 2: no object could be reconstructed; every instance is listed as skipped.
+    assert_eq!(code, 2, "{stderr}");
+    let skipped = stdout.lines().filter(|l| l.contains(": skipped: mask of 1 px is empty after erosion")).count();
+    assert_eq!(skipped, n as usize, "{}", &stdout[..stdout.len().min(2000)]);
+    assert!(peak < 600.0, "recon infer peak RSS {peak:.0} MiB");
+
+    let server = Server::tiny(&t.join("data"), &[]);
+    let s = sample();
+    let many = std::fs::read(&masks).unwrap();
+    let parts = [
+        ("rgb", Some("000001-color.png"), s.rgb.as_slice()),
+        ("depth", Some("000001-depth.png"), s.depth.as_slice()),
+        ("masks", Some("many-label.png"), many.as_slice()),
+        ("intrinsics", None, s.intrinsics.as_slice()),
+    ];
+    let t0 = Instant::now();
+    let a = post_parts(&server, "", &parts);
+    let http_s = t0.elapsed().as_secs_f64();
+    assert_eq!(a.status, 200, "{}", a.text());
+    let j = a.json();
+    let objects = j["result"]["objects"].as_array().unwrap();
+    assert_eq!(objects.len(), n as usize);
+    assert!(objects.iter().all(|o| o["status"] == "skipped"), "{}", objects[0]);
+    let metrics = get(&server.url("/metrics")).text();
+    let peak: f64 = metrics.lines().find_map(|l| l.strip_prefix("recon_peak_resident_memory_bytes ")).unwrap().parse().unwrap();
+    let peak = peak / 1048576.0;
+    eprintln!("recon serve, {n} one-pixel instances: {http_s:.1} s round trip, server peak RSS {peak:.0} MiB");
+    assert!(peak < 600.0, "recon serve peak RSS {peak:.0} MiB");
+
+    // max_objects: the sample has several objects that pass; 1 is refused, naming 1 and the count.
+    let (code, _, stderr, _, _) = recon_measured(&[
+        "infer",
+        "--rgbd",
+        rgb.to_str().unwrap(),
+        "--masks",
+        d.join("000001-label.png").to_str().unwrap(),
+        "--weights",
+        "random",
+        "--config",
+        "models/recgen-tiny.json",
+        "--max-objects",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{stderr}");
+    assert!(stderr.contains("--masks: max_objects claims") && stderr.contains("more than the limit of 1 "), "{stderr}");
+    let opts = br#"{"max_objects": 1}"#;
+    let parts = [
+        ("rgb", Some("000001-color.png"), s.rgb.as_slice()),
+        ("depth", Some("000001-depth.png"), s.depth.as_slice()),
+        ("masks", Some("000001-label.png"), s.label.as_slice()),
+        ("intrinsics", None, s.intrinsics.as_slice()),
+        ("options", None, opts.as_slice()),
+    ];
+    let (status, part, field, message) = error_of(&post_parts(&server, "", &parts));
+    assert_eq!((status, part.as_str(), field.as_str()), (413, "masks", "max_objects"), "{message}");
+    assert!(message.contains("more than the limit of 1 "), "{message}");
+    // A request may lower the server's --max-objects, not raise it.
+    let (status, part, field, message) = error_of(&post_parts(&server, "", &tiny_parts(&s, br#"{"max_objects": 100000}"#)));
+    assert_eq!((status, part.as_str(), field.as_str()), (400, "options", "max_objects"), "{message}");
+    assert!(message.contains("256"), "{message}");
+    let _ = std::fs::remove_dir_all(&t);
+}

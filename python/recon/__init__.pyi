@@ -132,6 +132,7 @@ class Engine:
         min_component_area: float = 0.02,
         smooth: int = 0,
         parallel_objects: int = 1,
+        max_objects: int = 256,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
 
@@ -148,8 +149,10 @@ class Engine:
         smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         parallel_objects: objects reconstructed at once (results do not depend on it).
+        max_objects: most objects whose masks pass the checks (the ones the model runs on);
+            a frame with more is an InputError naming the count and the limit.
         progress: called with event dicts (object, sample, stage, …) from worker threads.
-        The per-frame keywords (seed … parallel_objects) are `recon infer`'s flags with `_`,
+        The per-frame keywords (seed … max_objects) are `recon infer`'s flags with `_`,
         with the CLI's defaults (`infer_defaults()`); an unknown keyword is a ConfigError
         listing them.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
@@ -177,6 +180,7 @@ class Engine:
         min_component_area: float = 0.02,
         smooth: int = 0,
         parallel_objects: int = 1,
+        max_objects: int = 256,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
         the same masks (one instance-id PNG or several binary masks), the same output folder
@@ -298,6 +302,7 @@ def eval(
     min_component_area: float = 0.02,
     smooth: int = 0,
     parallel_objects: int = 1,
+    max_objects: int = 256,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -309,7 +314,7 @@ def eval(
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
     per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
     select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
-    parallel_objects. Returns report.json's dict."""
+    parallel_objects, max_objects. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,

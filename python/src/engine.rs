@@ -122,13 +122,8 @@ fn masks_from(m: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<ObjectMask>, Ve
                 .extract()
                 .map_err(|_| input(what, format!("mask {i}: expected an H×W boolean array")))?;
             let (h, w) = (a.shape()[0], a.shape()[1]);
-            out.push(ObjectMask {
-                id: None,
-                label: format!("mask {i}"),
-                width: w,
-                height: h,
-                mask: a.as_array().iter().copied().collect(),
-            });
+            let mask: Vec<bool> = a.as_array().iter().copied().collect();
+            out.push(ObjectMask::from_bools(None, format!("mask {i}"), w, h, &mask));
         }
         return Ok((out, Vec::new()));
     }

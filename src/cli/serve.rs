@@ -43,9 +43,6 @@ pub struct ServeArgs {
     /// Seconds running jobs may go on after SIGTERM/SIGINT before they are stopped.
     #[arg(long, default_value_t = recon_serve::DEFAULT_SHUTDOWN_GRACE_S as f64)]
     shutdown_grace_s: f64,
-    /// Most objects (instance ids or binary masks) in one frame; more is answered 413.
-    #[arg(long, default_value_t = recon_serve::DEFAULT_MAX_OBJECTS)]
-    max_objects: usize,
 }
 
 pub fn run(a: ServeArgs) -> anyhow::Result<bool> {
@@ -66,7 +63,6 @@ pub fn run(a: ServeArgs) -> anyhow::Result<bool> {
     cfg.defaults = a.model.infer.clone();
     cfg.shutdown_grace =
         std::time::Duration::try_from_secs_f64(a.shutdown_grace_s).map_err(|_| anyhow::anyhow!("--shutdown-grace-s must be >= 0"))?;
-    cfg.max_objects = a.max_objects;
     // Refused before the model is loaded (a non-loopback bind without a token, bad limits).
     cfg.check()?;
     if let Some(n) = a.threads {

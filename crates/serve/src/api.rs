@@ -245,10 +245,12 @@ async fn receive(mp: &mut Multipart, dir: &std::path::Path, cfg: &ServeConfig) -
         if count > 0 && !is_repeatable(&name) {
             return Err(ApiError::bad(&name, "name", format!("part `{name}` given twice")));
         }
-        if count >= cfg.max_objects {
+        // Each binary mask part is decoded at full size: their number is bounded up front.
+        let max_objects = cfg.defaults.max_objects.get();
+        if count >= max_objects {
             return Err(ApiError::new(
                 StatusCode::PAYLOAD_TOO_LARGE,
-                format!("more than {} {name} parts (objects per frame)", cfg.max_objects),
+                format!("more than {max_objects} {name} parts (objects per frame, --max-objects)"),
             )
             .at(&name, "count"));
         }
@@ -356,11 +358,9 @@ async fn reconstruct(State(app): State<App>, Query(q): Query<BTreeMap<String, St
     }
     // Everything recon infer would refuse is refused here, before the job is queued.
     let (check_dir, check_m, jobs) = (dir.clone(), manifest.clone(), app.jobs.clone());
-    tokio::task::spawn_blocking(move || {
-        inputs::load(&check_dir, &check_m, jobs.cfg.max_objects, jobs.engine.pipeline.max_views()).map(|_| ())
-    })
-    .await
-    .map_err(|e| ApiError::unavailable(format!("checking the inputs: {e}")))??;
+    tokio::task::spawn_blocking(move || inputs::load(&check_dir, &check_m, jobs.engine.pipeline.max_views()).map(|_| ()))
+        .await
+        .map_err(|e| ApiError::unavailable(format!("checking the inputs: {e}")))??;
     let job = app.jobs.submit(slot, id.clone(), dir, &manifest)?;
     guard.0 = None;
     log("job", serde_json::json!({"job": id, "status": "queued"}));
@@ -546,7 +546,7 @@ fn build_scene(jobs: &Jobs, job: &Job, opts: &recon_sim::SceneOptions) -> Result
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok())
         .ok_or_else(|| ApiError::unavailable("the stored request is unreadable"))?;
-    let loaded = inputs::load(&job.dir, &m, jobs.cfg.max_objects, jobs.engine.pipeline.max_views())?;
+    let loaded = inputs::load(&job.dir, &m, jobs.engine.pipeline.max_views())?;
     let settings = opts.settings().map_err(|e| ApiError::bad("body", e.option(), e.keyword_message()))?;
     let table = recon_sim::MaterialTable::builtin();
     let out = job.dir.join("out");

@@ -18,8 +18,6 @@ pub const DEFAULT_QUEUE: usize = 16;
 pub const DEFAULT_MAX_UPLOAD_MB: u64 = 64;
 /// Default seconds running jobs get to finish after SIGTERM/SIGINT.
 pub const DEFAULT_SHUTDOWN_GRACE_S: u64 = 30;
-/// Default most objects (instance ids or binary masks) in one frame.
-pub const DEFAULT_MAX_OBJECTS: usize = 256;
 
 /// Everything the server runs with. `recon serve`'s flags fill it; tests build it directly.
 #[derive(Debug, Clone)]
@@ -43,13 +41,13 @@ pub struct ServeConfig {
     /// `RECON_API_TOKEN`); `None`: no authentication, loopback binds only.
     pub token: Option<Secret>,
     /// The per-frame options a request starts from (the model flags' `--seed`,
-    /// `--samples`, …); a request's `options` part overrides them by name.
+    /// `--samples`, …); a request's `options` part overrides them by name. Their
+    /// `max_objects` (`--max-objects`) is also the server's ceiling: a request may lower
+    /// it, not raise it, and it bounds the binary mask parts of a request.
     pub defaults: InferOptions,
     /// How long running jobs may go on after a shutdown signal before they are stopped
     /// and reported `failed: interrupted`.
     pub shutdown_grace: Duration,
-    /// Most objects one frame may hold (instance ids of a mask, or binary masks).
-    pub max_objects: usize,
 }
 
 impl ServeConfig {
@@ -66,7 +64,6 @@ impl ServeConfig {
             token: None,
             defaults: InferOptions::default(),
             shutdown_grace: Duration::from_secs(DEFAULT_SHUTDOWN_GRACE_S),
-            max_objects: DEFAULT_MAX_OBJECTS,
         }
     }
 
@@ -87,9 +84,6 @@ impl ServeConfig {
         }
         if self.max_upload_bytes == 0 {
             return Err(ServeError::config("--max-upload-mb", "must be at least 1"));
-        }
-        if self.max_objects == 0 {
-            return Err(ServeError::config("--max-objects", "must be at least 1"));
         }
         if self.job_timeout.is_some_and(|t| t.is_zero()) {
             return Err(ServeError::config("--job-timeout-s", "must be > 0"));

@@ -92,7 +92,14 @@ pub fn merge_options(defaults: &InferOptions, part: Option<&[u8]>) -> Result<ser
             m.extend(given);
         }
     }
-    InferOptions::from_json(merged.clone()).map_err(|e| option_error(&e))?;
+    let o = InferOptions::from_json(merged.clone()).map_err(|e| option_error(&e))?;
+    if o.max_objects > defaults.max_objects {
+        return Err(ApiError::bad(
+            "options",
+            "max_objects",
+            format!("options: max_objects: {} is above this server's limit of {} (--max-objects)", o.max_objects, defaults.max_objects),
+        ));
+    }
     Ok(merged)
 }
 
@@ -249,15 +256,10 @@ fn load_frame(dir: &Path, m: &Manifest, suffix: &str) -> Result<RgbdFrame, ApiEr
     Ok(frame)
 }
 
-/// Reads one view's masks: one part is an instance-id map (at most `max_objects` ids),
-/// several are binary masks. Every mask must be the frame's size.
-fn load_view_masks(
-    dir: &Path,
-    m: &Manifest,
-    name: &str,
-    frame: &RgbdFrame,
-    max_objects: usize,
-) -> Result<(Vec<ObjectMask>, Vec<MaskSkip>), ApiError> {
+/// Reads one view's masks: one part is an instance-id map, several are binary masks.
+/// Every mask must be the frame's size. Masks are held as row runs, so a map of many
+/// instances costs its pixels; `max_objects` is checked on what passes ([`load`]).
+fn load_view_masks(dir: &Path, m: &Manifest, name: &str, frame: &RgbdFrame) -> Result<(Vec<ObjectMask>, Vec<MaskSkip>), ApiError> {
     let stored = m
         .parts
         .get(name)
@@ -274,14 +276,6 @@ fn load_view_masks(
         let p = Part { name: name.to_string(), path: dir.join(&stored[0].file), filename: stored[0].filename.clone() };
         let map = InstanceMap::open(&p.path).map_err(|e| from_engine(&e, &[&p], "image"))?;
         size_check(map.width, map.height, name)?;
-        let ids = map.present_ids();
-        if ids.len() > max_objects {
-            return Err(ApiError::new(
-                axum::http::StatusCode::PAYLOAD_TOO_LARGE,
-                format!("{name}: {} instance ids, more than the server's limit of {max_objects} objects per frame", ids.len()),
-            )
-            .at(name, "instances"));
-        }
         Ok(map.objects(m.objects.as_deref()))
     } else {
         if m.objects.is_some() {
@@ -332,7 +326,7 @@ fn load_rel_pose(dir: &Path, m: &Manifest) -> Result<RigidTransform, ApiError> {
 /// Reads and checks everything a job runs on from its folder `dir`. `max_views` is the
 /// loaded model's (a second view needs 2). Called when the request arrives (nothing is
 /// queued that fails here) and again by the worker.
-pub fn load(dir: &Path, m: &Manifest, max_objects: usize, max_views: usize) -> Result<Loaded, ApiError> {
+pub fn load(dir: &Path, m: &Manifest, max_views: usize) -> Result<Loaded, ApiError> {
     for (name, req, what) in PARTS {
         if *req && !m.parts.contains_key(*name) {
             return Err(ApiError::bad(name, name, format!("missing part `{name}` ({what})")));
@@ -340,7 +334,11 @@ pub fn load(dir: &Path, m: &Manifest, max_objects: usize, max_views: usize) -> R
     }
     let options = InferOptions::from_json(m.options.clone()).map_err(|e| option_error(&e))?;
     let frame = load_frame(dir, m, "")?;
-    let (objects, skipped) = load_view_masks(dir, m, "masks", &frame, max_objects)?;
+    let (objects, skipped) = load_view_masks(dir, m, "masks", &frame)?;
+    // `recon infer`'s rule: more objects that pass the mask checks than max_objects is refused.
+    let settings = options.settings().map_err(|e| option_error(&e))?;
+    recon_core::engine::check_object_count(&frame, &objects, &settings, "masks")
+        .map_err(|e| ApiError::new(crate::error::input_status(&e), e.to_string()).at("masks", "max_objects"))?;
     let given: Vec<&str> = SECOND_VIEW_PARTS.iter().copied().filter(|p| m.parts.contains_key(*p)).collect();
     let second = if given.is_empty() {
         None
@@ -363,7 +361,7 @@ pub fn load(dir: &Path, m: &Manifest, max_objects: usize, max_views: usize) -> R
             ));
         }
         let f2 = load_frame(dir, m, "2")?;
-        let (o2, _) = load_view_masks(dir, m, "masks2", &f2, max_objects)?;
+        let (o2, _) = load_view_masks(dir, m, "masks2", &f2)?;
         let rel = load_rel_pose(dir, m)?;
         // The engine pairs the views' objects; a count mismatch of binary masks is the request's fault.
         recon_core::engine::match_views(objects.clone(), o2.clone())

@@ -641,7 +641,7 @@ impl Jobs {
             .ok()
             .and_then(|b| serde_json::from_slice(&b).ok())
             .ok_or_else(|| JobError { reason: "input".into(), message: "the stored request is missing or unreadable".into() })?;
-        let loaded = inputs::load(&job.dir, &m, self.cfg.max_objects, self.engine.pipeline.max_views())
+        let loaded = inputs::load(&job.dir, &m, self.engine.pipeline.max_views())
             .map_err(|e| JobError { reason: "input".into(), message: e.message })?;
         let settings = loaded.options.settings().map_err(|e| JobError { reason: "input".into(), message: e.keyword_message() })?;
         let samples = settings.samples.max(1) as f64;

@@ -38,8 +38,7 @@ mod paths;
 
 pub use api::{run, start, RunningServer};
 pub use config::{
-    read_token_file, seconds, ServeConfig, DEFAULT_BIND, DEFAULT_MAX_OBJECTS, DEFAULT_MAX_UPLOAD_MB, DEFAULT_QUEUE,
-    DEFAULT_SHUTDOWN_GRACE_S, DEFAULT_WORKERS,
+    read_token_file, seconds, ServeConfig, DEFAULT_BIND, DEFAULT_MAX_UPLOAD_MB, DEFAULT_QUEUE, DEFAULT_SHUTDOWN_GRACE_S, DEFAULT_WORKERS,
 };
 pub use error::{ApiError, ServeError};
 pub use metrics::Metrics;
