@@ -318,6 +318,11 @@ impl Jobs {
         for entry in entries.flatten() {
             let dir = entry.path();
             let name = entry.file_name().to_string_lossy().to_string();
+            if name.strip_prefix("deleting-").is_some_and(valid_id) && dir.is_dir() {
+                // A deletion the previous run did not finish.
+                let _ = std::fs::remove_dir_all(&dir);
+                continue;
+            }
             if !valid_id(&name) || !dir.is_dir() {
                 continue;
             }
@@ -478,10 +483,14 @@ impl Jobs {
         job.status()
     }
 
-    /// Deletes a finished job's folder.
+    /// Deletes a finished job's folder: renamed out of the way first (atomic, so the job's
+    /// files are gone at once and never half-deleted under its id), then forgotten, then
+    /// removed. A leftover `deleting-<id>` folder is removed at the next start.
     pub fn delete(&self, job: &Arc<Job>) -> Result<(), ApiError> {
+        let gone = self.root.join(format!("deleting-{}", job.id));
+        std::fs::rename(&job.dir, &gone).map_err(|e| ApiError::unavailable(format!("deleting the job folder: {e}")))?;
         self.table.lock().unwrap_or_else(PoisonError::into_inner).remove(&job.id);
-        std::fs::remove_dir_all(&job.dir).map_err(|e| ApiError::unavailable(format!("deleting the job folder: {e}")))
+        std::fs::remove_dir_all(&gone).map_err(|e| ApiError::unavailable(format!("deleting the job folder: {e}")))
     }
 
     /// Starts the workers (threads of their own: the engine's compute never runs on the
