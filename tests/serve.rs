@@ -935,6 +935,8 @@ fn binary_masks_npy_depth_k_and_a_second_view() {
 /// Runs `recon args…` from the repository and waits for it with `wait4`: its exit status,
 /// its stdout and stderr, its seconds and its peak resident memory (MiB, the kernel's
 /// `ru_maxrss` of that process).
+// The child is reaped by `wait4`, which clippy does not see.
+#[allow(clippy::zombie_processes)]
 fn recon_measured(args: &[&str]) -> (i32, String, String, f64, f64) {
     let out_file = tmp("measured-out").with_extension(format!("{}.txt", std::process::id()));
     let err_file = out_file.with_extension("err");

@@ -62,7 +62,7 @@ impl ObjectMask {
         let mut runs = Vec::new();
         if width > 0 {
             for (y, row) in mask.chunks_exact(width).enumerate() {
-                push_row_runs(&mut runs, y, row.iter().map(|&b| b));
+                push_row_runs(&mut runs, y, row.iter().copied());
             }
         }
         ObjectMask { id, label: label.into(), width, height, runs }
