@@ -367,7 +367,8 @@ class Job:
         """The job document: status (queued | running | done | failed | cancelled), stage,
         progress, error, and the result when done."""
     def cancel(self) -> Dict[str, Any]:
-        """Cancels the job: a running one stops at its next sampler step or stage boundary."""
+        """Cancels the job (a queued one at once, a running one at its next stage boundary);
+        a job that has already finished is deleted from the server."""
     def result(
         self, timeout: Optional[float] = None, poll: float = 0.1, progress: Optional[Callable[[Dict[str, Any]], None]] = None
     ) -> List[Object]:

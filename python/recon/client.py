@@ -189,7 +189,8 @@ class Job:
         return self.client._json("GET", f"/v1/jobs/{self.id}")
 
     def cancel(self) -> dict:
-        """Cancels the job (a running one stops at its next stage boundary)."""
+        """Cancels the job (a queued one at once, a running one at its next stage boundary);
+        a job that has already finished is deleted from the server."""
         return self.client._json("DELETE", f"/v1/jobs/{self.id}")
 
     def result(self, timeout: float | None = None, poll: float = 0.1, progress=None):
