@@ -31,6 +31,8 @@ enum Cmd {
     Bench(cli::bench::BenchArgs),
     /// Train a stage-1 model (SS VAE, SS flow with pose tokens) on BOP-format synthetic data.
     Train(cli::train::TrainArgs),
+    /// Serve the engine over HTTP: POST a frame and masks, get poses and the files `infer` writes (docs/serve.md).
+    Serve(cli::serve::ServeArgs),
     /// Synthetic occluded RGB-D scenes with exact ground truth, in the BOP format.
     Synth(cli::synth::SynthArgs),
     /// Posed meshes (a scene file or a recon infer output) → settled, simulator-ready scene: URDF, MJCF, USD, GLB.
@@ -63,6 +65,7 @@ fn main() -> anyhow::Result<()> {
         Cmd::Train(a) => cli::train::run(a)?,
         Cmd::Synth(a) => cli::synth::run(a)?,
         Cmd::Scene(a) => cli::scene::run(a)?,
+        Cmd::Serve(a) => cli::serve::run(a)?,
         Cmd::Audit { cmd } => cli::audit::run(cmd)?,
     };
     if !ok {

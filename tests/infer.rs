@@ -246,7 +246,7 @@ fn depth_pose_fit_refines_scale_and_position_only() {
 fn objects_of_two_views_pair_by_id_or_order() {
     use recon::dataset::ObjectMask;
     use recon::engine::match_views;
-    let m = |id: Option<u32>, label: &str| ObjectMask { id, label: label.into(), width: 1, height: 1, mask: vec![true] };
+    let m = |id: Option<u32>, label: &str| ObjectMask::from_bools(id, label, 1, 1, &[true]);
     let (pairs, notes) = match_views(vec![m(Some(3), "a"), m(Some(5), "b")], vec![m(Some(5), "c"), m(Some(9), "d")]).unwrap();
     assert_eq!(pairs.len(), 2);
     assert!(pairs[0].1.is_none());
@@ -333,12 +333,12 @@ fn objects_in_parallel_match_one_at_a_time() {
     let (frame, map, engine, opts) = one_step_sample_setup(1);
     let (mut objects, _) = map.objects(None);
     assert!(objects.len() >= 3, "{} objects", objects.len());
-    let mut tiny = objects[0].clone();
-    let keep = tiny.mask.iter().position(|&m| m).unwrap();
-    for (i, m) in tiny.mask.iter_mut().enumerate() {
+    let mut mask = objects[0].to_bools();
+    let keep = mask.iter().position(|&m| m).unwrap();
+    for (i, m) in mask.iter_mut().enumerate() {
         *m &= i < keep + 3;
     }
-    tiny.label = "tiny".to_string();
+    let tiny = recon::dataset::ObjectMask::from_bools(objects[0].id, "tiny", frame.width, frame.height, &mask);
     objects.insert(1, tiny);
     let run = |n: usize| {
         let opts = InferSettings { parallel_objects: std::num::NonZeroUsize::new(n).unwrap(), ..opts.clone() };

@@ -21,6 +21,7 @@ const CRATES: &[(&str, &str)] = &[
     ("recon-sim", "crates/sim"),
     ("recon-audit", "crates/audit"),
     ("recon-train", "crates/train"),
+    ("recon-serve", "crates/serve"),
     ("recon", "."),
     ("recon-python", "python"),
 ];

@@ -211,7 +211,7 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
                 let gt = Pose { rotation: r, translation: t, scale: 1.0 };
 
                 // Our preprocessing of this object (full size, as inference does).
-                let view = prepare_object(&frame, &obj.mask.mask, 518).unwrap();
+                let view = prepare_object(&frame, &obj.mask.to_bools(), 518).unwrap();
                 let nz: Normaliser = view.normaliser;
                 assert_eq!(view.pointmap.dims(), &[1, 3, 518, 518]);
 
@@ -238,7 +238,7 @@ fn ycb_gt_pose_survives_normalised_frame_round_trip() {
                 }
 
                 // Observed points: the same set that entered the statistics.
-                let (obs, _) = object_points(&frame, &obj.mask.mask, Some(Default::default())).unwrap();
+                let (obs, _) = object_points(&frame, &obj.mask.to_bools(), Some(Default::default())).unwrap();
                 assert_eq!(obs.len(), view.num_points);
                 let grid = Grid::new(&placed, 0.02);
                 let d: Vec<f64> = obs.iter().map(|&q| grid.nearest(q)).collect();
@@ -340,7 +340,7 @@ fn sample_frame_objects_prepare_with_recgen_invariants() {
         assert_eq!(v.pixel_values.dims(), &[1, 3, s, s]);
         assert_eq!(v.pointmap.dims(), &[1, 3, s, s]);
         assert_eq!(v.mask.dims(), &[1, 1, s, s]);
-        let (pts, _) = object_points(&frame, &p.object.mask, Some(Default::default())).unwrap();
+        let (pts, _) = object_points(&frame, &p.object.to_bools(), Some(Default::default())).unwrap();
         let q: Vec<[f64; 3]> = pts.iter().map(|&x| v.normaliser.to_normalised(x)).collect();
         let mut norms: Vec<f64> = q.iter().map(|x| ((x[0] - 0.5).powi(2) + (x[1] - 0.5).powi(2) + (x[2] - 0.5).powi(2)).sqrt()).collect();
         norms.sort_by(|a, b| a.total_cmp(b));
@@ -699,7 +699,7 @@ fn alignment_scores_gt_meshes_on_real_depth() {
         let surface = Surface::new(mesh, 50_000, 0).unwrap();
         let pts = |f: &RgbdFrame, l: &InstanceMap| {
             let (o, _) = l.objects(Some(&[id]));
-            object_points(f, &o[0].mask, Some(Default::default())).unwrap().0
+            object_points(f, &o[0].to_bools(), Some(Default::default())).unwrap().0
         };
         let (p1, p5) = (pts(&f1, &l1), pts(&f5, &l5));
         let g = ycb_gt(&m1, k);

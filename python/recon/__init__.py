@@ -8,7 +8,8 @@ metric 6-DoF poses (RecGen re-implemented in Rust), from Python.
     for o in engine.reconstruct(f["rgb"], f["depth"], f["K"], masks, seed=42):
         print(o.label, o.pose, o.scale, o.mesh.vertices.shape)
 
-`recon.ray` runs whole datasets on Ray. Errors are `recon.ReconError` (subclasses
+`recon.Client(url)` is an `Engine` on a `recon serve` over HTTP: the same `reconstruct`
+call, the same objects. `recon.ray` runs whole datasets on Ray. Errors are `recon.ReconError` (subclasses
 `InputError`, `WeightsError`, `ConfigError`) carrying the CLI's messages.
 """
 
@@ -34,9 +35,12 @@ from ._recon import (
     scene,
     synth,
 )
+from .client import Client, Job
 
 __all__ = [
     "Engine",
+    "Client",
+    "Job",
     "Object",
     "Mesh",
     "Gaussians",

@@ -38,6 +38,11 @@ class Mesh:
     @property
     def colors(self) -> Optional[npt.NDArray[np.float32]]:
         """N×3 float32 RGB in [0, 1] (a view of `attributes`)."""
+    def __init__(
+        self, vertices: npt.ArrayLike, faces: npt.ArrayLike, attributes: Optional[npt.ArrayLike] = None
+    ) -> None:
+        """A mesh from arrays: N×3 float32 vertices, M×3 int faces (checked against N),
+        optional N×6 float32 attributes."""
 
 class Gaussians:
     """3D Gaussians in the camera frame (metres)."""
@@ -54,6 +59,15 @@ class Gaussians:
     """N×3 RGB in [0, 1]."""
     dc: npt.NDArray[np.float32]
     """N×3 SH degree-0 coefficients (colors = 0.28209479·dc + 0.5)."""
+    def __init__(
+        self,
+        means: npt.ArrayLike,
+        scales: npt.ArrayLike,
+        rotations: npt.ArrayLike,
+        opacities: npt.ArrayLike,
+        dc: npt.ArrayLike,
+    ) -> None:
+        """Gaussians from float32 arrays (one row per Gaussian), checked."""
     def __len__(self) -> int: ...
 
 class Object:
@@ -132,6 +146,7 @@ class Engine:
         min_component_area: float = 0.02,
         smooth: int = 0,
         parallel_objects: int = 1,
+        max_objects: int = 256,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
 
@@ -148,8 +163,10 @@ class Engine:
         smooth: Taubin smoothing iterations on the mesh (0: none).
         max_faces: face budget (0 = off). steps / cfg: sampler overrides for both stages.
         parallel_objects: objects reconstructed at once (results do not depend on it).
+        max_objects: most objects whose masks pass the checks (the ones the model runs on);
+            a frame with more is an InputError naming the count and the limit.
         progress: called with event dicts (object, sample, stage, …) from worker threads.
-        The per-frame keywords (seed … parallel_objects) are `recon infer`'s flags with `_`,
+        The per-frame keywords (seed … max_objects) are `recon infer`'s flags with `_`,
         with the CLI's defaults (`infer_defaults()`); an unknown keyword is a ConfigError
         listing them.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
@@ -177,6 +194,7 @@ class Engine:
         min_component_area: float = 0.02,
         smooth: int = 0,
         parallel_objects: int = 1,
+        max_objects: int = 256,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
         the same masks (one instance-id PNG or several binary masks), the same output folder
@@ -298,6 +316,7 @@ def eval(
     min_component_area: float = 0.02,
     smooth: int = 0,
     parallel_objects: int = 1,
+    max_objects: int = 256,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -309,7 +328,7 @@ def eval(
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
     per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
     select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
-    parallel_objects. Returns report.json's dict."""
+    parallel_objects, max_objects. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,
@@ -338,3 +357,83 @@ def keep_freed_memory() -> bool:
 def dataset_frames(source: _Path) -> List[Dict[str, Any]]:
     """The frames of a BOP dataset or YCB-Video folder: {"frame": "<scene>/<NNNNNN>", "rgb",
     "masks"} with the masks `recon infer` takes for it."""
+
+class Job:
+    """A job queued on a `recon serve` (`Client.submit`)."""
+
+    id: str
+    client: Client
+    def status(self) -> Dict[str, Any]:
+        """The job document: status (queued | running | done | failed | cancelled), stage,
+        progress, error, and the result when done."""
+    def cancel(self) -> Dict[str, Any]:
+        """Cancels the job (a queued one at once, a running one at its next stage boundary);
+        a job that has already finished is deleted from the server."""
+    def result(
+        self, timeout: Optional[float] = None, poll: float = 0.1, progress: Optional[Callable[[Dict[str, Any]], None]] = None
+    ) -> List[Object]:
+        """Waits for the job and returns its objects as `Engine.reconstruct` does; a failed
+        or cancelled job raises ReconError with the server's message."""
+
+class Client:
+    """`Engine.reconstruct` on a `recon serve` at `url` over HTTP (docs/serve.md): the same
+    arguments, the same objects, so a pipeline switches by one line
+    (`engine = recon.Client(url)` instead of `recon.Engine()`). Pure Python (urllib).
+
+    The objects are built from the job's files: poses, scale, score, spread and meshes
+    (vertices, faces, colours) exactly as the engine's; `Mesh.attributes[:, 3:]` (the
+    normal-map triple, not in the files) is NaN; Gaussian opacities and scales pass through
+    the splat file's logit and log (within float rounding). Errors: the server's 4xx as
+    InputError (ConfigError for the `options` part) with `status`, `part` and `field`.
+    """
+
+    url: str
+    token: Optional[str]
+    timeout: float
+    def __init__(self, url: str, token: Optional[str] = None, timeout: float = 3600.0) -> None: ...
+    def reconstruct(
+        self,
+        rgb: npt.NDArray[np.uint8],
+        depth: npt.NDArray[Any],
+        K: npt.ArrayLike,
+        masks: Union[npt.NDArray[np.integer], Sequence[npt.NDArray[np.bool_]]],
+        *,
+        depth_scale: Optional[float] = None,
+        view2: Optional[Dict[str, Any]] = None,
+        progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+        seed: int = 42,
+        samples: int = 1,
+        select: str = "cross",
+        pose_fit: str = "depth",
+        shape_fit: str = "depth",
+        mesh_from: str = "fitted",
+        steps: Optional[int] = None,
+        cfg: Optional[float] = None,
+        max_faces: int = 200000,
+        min_component_area: float = 0.02,
+        smooth: int = 0,
+        parallel_objects: int = 1,
+        max_objects: int = 256,
+    ) -> List[Object]:
+        """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
+        given take the server's defaults (its flags), which are the library's unless it was
+        started with others. With `progress`, the job is queued and polled instead."""
+    def submit(
+        self,
+        rgb: npt.NDArray[np.uint8],
+        depth: npt.NDArray[Any],
+        K: npt.ArrayLike,
+        masks: Union[npt.NDArray[np.integer], Sequence[npt.NDArray[np.bool_]]],
+        *,
+        depth_scale: Optional[float] = None,
+        view2: Optional[Dict[str, Any]] = None,
+        **options: Any,
+    ) -> Job:
+        """Queues the reconstruction (`?wait=false`) and returns its Job at once."""
+    def scene(self, job: Union[Job, str], **options: Any) -> Dict[str, Any]:
+        """`recon scene` on a finished job with `recon scene`'s options by name; the
+        server's answer (object summaries, whether they came to rest, file URLs)."""
+    def file(self, url: str) -> bytes:
+        """The bytes of a file URL of an answer."""
+    def health(self) -> bool:
+        """Whether the server answers /health."""

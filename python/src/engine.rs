@@ -122,13 +122,8 @@ fn masks_from(m: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<ObjectMask>, Ve
                 .extract()
                 .map_err(|_| input(what, format!("mask {i}: expected an H×W boolean array")))?;
             let (h, w) = (a.shape()[0], a.shape()[1]);
-            out.push(ObjectMask {
-                id: None,
-                label: format!("mask {i}"),
-                width: w,
-                height: h,
-                mask: a.as_array().iter().copied().collect(),
-            });
+            let mask: Vec<bool> = a.as_array().iter().copied().collect();
+            out.push(ObjectMask::from_bools(None, format!("mask {i}"), w, h, &mask));
         }
         return Ok((out, Vec::new()));
     }
@@ -382,8 +377,46 @@ pub struct Mesh {
     attributes: Py<PyAny>,
 }
 
+/// An `N×K` array of `dtype` (any array-like) as rows, or an input error naming `what`.
+fn array_rows<T: numpy::Element + Copy, const K: usize>(a: &Bound<'_, PyAny>, dtype: &str, what: &str) -> PyResult<Vec<[T; K]>> {
+    let np = a.py().import("numpy")?;
+    let bad = || input(what, format!("expected an N×{K} {dtype} array"));
+    let arr: PyReadonlyArray2<T> = np.call_method1("ascontiguousarray", (a, dtype))?.extract().map_err(|_| bad())?;
+    if arr.shape()[1] != K {
+        return Err(bad());
+    }
+    Ok(arr.as_array().rows().into_iter().map(|r| std::array::from_fn(|k| r[k])).collect())
+}
+
 #[pymethods]
 impl Mesh {
+    /// A mesh from arrays (checked: faces index the vertices): float32 N×3 vertices, int
+    /// M×3 faces, optional float32 N×6 attributes. `recon.Client` builds its objects' meshes so.
+    #[new]
+    #[pyo3(signature = (vertices, faces, attributes=None))]
+    fn py_new(
+        py: Python<'_>,
+        vertices: &Bound<'_, PyAny>,
+        faces: &Bound<'_, PyAny>,
+        attributes: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        let vertices = array_rows::<f32, 3>(vertices, "float32", "vertices")?;
+        let faces: Vec<[i64; 3]> = array_rows::<i64, 3>(faces, "int64", "faces")?;
+        let faces = faces
+            .into_iter()
+            .map(|f| {
+                let ok = f.iter().all(|&i| (0..vertices.len() as i64).contains(&i));
+                ok.then(|| f.map(|i| i as u32))
+                    .ok_or_else(|| input("faces", format!("face {f:?} indexes past {} vertices", vertices.len())))
+            })
+            .collect::<PyResult<Vec<_>>>()?;
+        let vertex_attrs = attributes.filter(|a| !a.is_none()).map(|a| array_rows::<f32, 6>(a, "float32", "attributes")).transpose()?;
+        if vertex_attrs.as_ref().is_some_and(|a| a.len() != vertices.len()) {
+            return Err(input("attributes", "needs one row per vertex"));
+        }
+        Mesh::new(py, recon::mesh::Mesh { vertices, faces, vertex_attrs })
+    }
+
     /// float32 N×3 RGB in [0, 1] (a view of `attributes`), or None.
     #[getter]
     fn colors<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
@@ -457,6 +490,34 @@ pub struct Gaussians {
 
 #[pymethods]
 impl Gaussians {
+    /// Gaussians from arrays (float32; rows per Gaussian): N×3 means, N×3 scales, N×4
+    /// rotations (w, x, y, z), N opacities, N×3 SH degree-0 `dc`. `recon.Client` builds its
+    /// objects' Gaussians so.
+    #[new]
+    fn py_new(
+        py: Python<'_>,
+        means: &Bound<'_, PyAny>,
+        scales: &Bound<'_, PyAny>,
+        rotations: &Bound<'_, PyAny>,
+        opacities: &Bound<'_, PyAny>,
+        dc: &Bound<'_, PyAny>,
+    ) -> PyResult<Self> {
+        let np = py.import("numpy")?;
+        let op: PyReadonlyArray1<f32> = np
+            .call_method1("ascontiguousarray", (opacities, "float32"))?
+            .extract()
+            .map_err(|_| input("opacities", "expected an N float32 array"))?;
+        let g = recon::gaussians::Gaussians {
+            positions: array_rows::<f32, 3>(means, "float32", "means")?,
+            scales: array_rows::<f32, 3>(scales, "float32", "scales")?,
+            rotations: array_rows::<f32, 4>(rotations, "float32", "rotations")?,
+            opacities: op.as_array().to_vec(),
+            dc: array_rows::<f32, 3>(dc, "float32", "dc")?,
+        };
+        g.validate().map_err(|e| input("gaussians", e.to_string()))?;
+        Gaussians::new(py, g)
+    }
+
     fn __len__(&self, py: Python<'_>) -> PyResult<usize> {
         self.means.bind(py).len()
     }
@@ -579,6 +640,31 @@ impl Object {
 
 #[pymethods]
 impl Object {
+    /// An object from its parts, as `recon.Client` builds the objects of a remote job (the
+    /// fields of the same names; `pose` a 4×4 array).
+    #[staticmethod]
+    #[pyo3(signature = (*, id, label, pose, scale, score, spread, stage_seconds, details, mesh=None, gaussians=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn _from_parts(
+        py: Python<'_>,
+        id: Option<u32>,
+        label: String,
+        pose: &Bound<'_, PyAny>,
+        scale: f64,
+        score: f64,
+        spread: Py<PyAny>,
+        stage_seconds: Py<PyAny>,
+        details: Py<PyAny>,
+        mesh: Option<Py<Mesh>>,
+        gaussians: Option<Py<Gaussians>>,
+    ) -> PyResult<Self> {
+        let p = array_rows::<f64, 4>(pose, "float64", "pose")?;
+        if p.len() != 4 {
+            return Err(input("pose", "expected a 4×4 array"));
+        }
+        Ok(Object { id, label, pose: rows(py, p)?.unbind(), scale, score, spread, stage_seconds, mesh, gaussians, details })
+    }
+
     /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb`.
     fn to_glb(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
         let m = self.mesh_or_err(py)?;

@@ -17,7 +17,7 @@ pub fn to_py(e: recon::Error) -> PyErr {
     use recon::Error as E;
     let msg = e.to_string();
     match e {
-        E::Io { .. } | E::Json { .. } | E::Input { .. } => InputError::new_err(msg),
+        E::Io { .. } | E::Json { .. } | E::Input { .. } | E::TooLarge(_) => InputError::new_err(msg),
         E::Config { .. } => ConfigError::new_err(msg),
         E::MissingTensor { .. } | E::ShapeMismatch { .. } | E::UnexpectedTensors { .. } => WeightsError::new_err(msg),
         _ => ReconError::new_err(msg),

@@ -55,7 +55,7 @@ pub fn load_masks<'py>(py: Python<'py>, paths: &Bound<'py, PyAny>, objects: Opti
         let d = PyDict::new(py);
         d.set_item("label", &m.label)?;
         d.set_item("id", m.id)?;
-        d.set_item("mask", PyArray1::from_vec(py, m.mask).reshape([m.height, m.width])?)?;
+        d.set_item("mask", PyArray1::from_vec(py, m.to_bools()).reshape([m.height, m.width])?)?;
         list.append(d)?;
     }
     let out = PyDict::new(py);

@@ -209,6 +209,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         None => None,
     };
 
+    // Too many objects is refused before the model is loaded (the engine checks again).
+    recon::engine::check_object_count(&frame, &objects, &opts, "--masks")?;
     let source = a.model.source()?;
     let load = a.model.load_options(&source)?;
     let engine = Engine::load(&source, &load)?;

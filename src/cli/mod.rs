@@ -5,6 +5,7 @@ pub mod eval;
 pub mod infer;
 pub mod model_args;
 pub mod scene;
+pub mod serve;
 pub mod synth;
 pub mod train;
 pub mod weights;

@@ -17,6 +17,7 @@
 //! | `XDG_CACHE_HOME` | Cache base when `RECON_CACHE` is unset (`<it>/recon`) | `$HOME/.cache` | `Settings::from_env` |
 //! | `HOME` | Home folder: `~/.cache/recon`, `~/.cache/huggingface/hub` | none (then: the temporary folder for recon's cache, `./.cache/huggingface/hub`) | `Settings::from_env` |
 //! | `HF_HOME` | Hugging Face cache root; checkpoints go to `$HF_HOME/hub` | `$HOME/.cache/huggingface` | `Settings::from_env` → `weights::fetch::default_hf_cache` |
+//! | `RECON_API_TOKEN` | Bearer token `recon serve` requires on every route but `/health` (`--token-file` wins) | none: no token (then `recon serve` binds to loopback only) | `Settings::from_env` → `recon-serve`'s configuration |
 //! | `RECON_MALLOC` | `system` turns off the large-buffer cache of the global allocator | cache on | the allocator itself (`util::buffer_cache`), at its first large allocation: it can run before `main` |
 //! | `HF_ENDPOINT`, `HF_TOKEN` | Hugging Face endpoint and token for downloads | hf-hub's defaults | the `hf-hub` client (third-party), when a download starts |
 //!
@@ -39,6 +40,7 @@ pub const VARIABLES: &[(&str, &str)] = &[
     ("XDG_CACHE_HOME", "cache base when RECON_CACHE is unset (default: $HOME/.cache)"),
     ("HOME", "home folder, for ~/.cache/recon and ~/.cache/huggingface/hub"),
     ("HF_HOME", "Hugging Face cache root, checkpoints under $HF_HOME/hub (default: $HOME/.cache/huggingface)"),
+    ("RECON_API_TOKEN", "bearer token recon serve requires on every route but /health (--token-file wins)"),
 ];
 
 /// A variable whose value does not parse.
@@ -67,6 +69,30 @@ pub struct Settings {
     pub cache_dir: Option<PathBuf>,
     /// The Hugging Face hub cache: `HF_HOME/hub`, else `HOME/.cache/huggingface/hub`.
     pub hf_cache: Option<PathBuf>,
+    /// `RECON_API_TOKEN`: the bearer token `recon serve` requires (`--token-file` wins).
+    pub api_token: Option<Secret>,
+}
+
+/// A secret value (an API token): compared and used, never shown by `Debug`.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Secret(String);
+
+impl Secret {
+    /// Wraps a secret.
+    pub fn new(value: impl Into<String>) -> Self {
+        Secret(value.into())
+    }
+
+    /// The secret itself (to compare or send, never to log).
+    pub fn expose(&self) -> &str {
+        &self.0
+    }
+}
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Secret(***)")
+    }
 }
 
 static APPLIED: RwLock<Settings> = RwLock::new(Settings::NONE);
@@ -79,7 +105,8 @@ pub fn current() -> Settings {
 
 impl Settings {
     /// No overrides.
-    pub const NONE: Settings = Settings { isa_cap: None, bf16_dot: None, memory_limit: None, cache_dir: None, hf_cache: None };
+    pub const NONE: Settings =
+        Settings { isa_cap: None, bf16_dot: None, memory_limit: None, cache_dir: None, hf_cache: None, api_token: None };
 
     /// Read the process environment: the one place recon does.
     pub fn from_env() -> Result<Self, SettingsError> {
@@ -131,7 +158,9 @@ impl Settings {
             Some(h) => Some(PathBuf::from(h).join("hub")),
             None => home.map(|h| h.join(".cache").join("huggingface").join("hub")),
         };
-        Ok(Settings { isa_cap, bf16_dot, memory_limit, cache_dir, hf_cache })
+        // Surrounding whitespace (a trailing newline from `$(cat file)`) is not part of a token.
+        let api_token = text("RECON_API_TOKEN")?.map(|t| Secret::new(t.trim()));
+        Ok(Settings { isa_cap, bf16_dot, memory_limit, cache_dir, hf_cache, api_token })
     }
 
     /// Make these the process's settings: the kernels' instruction-set cap
@@ -174,6 +203,9 @@ mod tests {
         let s = parse(&[("RECON_CACHE", "/c"), ("XDG_CACHE_HOME", "/x"), ("HF_HOME", "/hf"), ("HOME", "/h")]).unwrap();
         assert_eq!(s.cache_dir, Some(PathBuf::from("/c")));
         assert_eq!(s.hf_cache, Some(PathBuf::from("/hf/hub")));
+        let s = parse(&[("RECON_API_TOKEN", " tok3n\n")]).unwrap();
+        assert_eq!(s.api_token.as_ref().map(Secret::expose), Some("tok3n"));
+        assert_eq!(format!("{:?}", s.api_token), "Some(Secret(***))");
         // Empty counts as unset.
         let s = parse(&[("RECON_ISA", ""), ("RECON_CACHE", ""), ("HOME", "/h")]).unwrap();
         assert_eq!(s.isa_cap, None);

@@ -419,7 +419,7 @@ pub(crate) fn visible_mask(
     Ok(match ds.visible_mask_source(f, gi) {
         MaskSource::Binary(p) => {
             let m = load_binary_mask(&p)?;
-            (m.width, m.height, m.mask, p)
+            (m.width, m.height, m.to_bools(), p)
         }
         MaskSource::Label(p, id) => {
             if label.is_none() {

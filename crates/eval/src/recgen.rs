@@ -104,7 +104,7 @@ pub fn recgen_frame(
     let mut masks = Vec::with_capacity(f.gt.len());
     for gi in (0..f.gt.len()).filter(|&gi| keep(gi)) {
         let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
-        masks.push(ObjectMask { id: Some(gi as u32), label: format!("gt {gi}"), width: w, height: h, mask });
+        masks.push(ObjectMask::from_bools(Some(gi as u32), format!("gt {gi}"), w, h, &mask));
     }
     let second = match second {
         Some(f2) => {
@@ -122,7 +122,7 @@ pub fn recgen_frame(
                 let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
                 let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
                 if mask.iter().any(|&b| b) {
-                    masks2.push(ObjectMask { id: Some(gi as u32), label: format!("view 2 gt {gj}"), width: w, height: h, mask });
+                    masks2.push(ObjectMask::from_bools(Some(gi as u32), format!("view 2 gt {gj}"), w, h, &mask));
                 }
             }
             Some((frame2, masks2, rel))

@@ -130,7 +130,7 @@ impl BopSource {
             ));
         }
         let g = &f.gt[r.gt];
-        Ok(ObjectView { frame: Arc::new(frame), mask: m.mask, r: g.r, t: g.t })
+        Ok(ObjectView { frame: Arc::new(frame), mask: m.to_bools(), r: g.r, t: g.t })
     }
 }
 

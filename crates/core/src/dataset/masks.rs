@@ -22,30 +22,116 @@ use std::path::{Path, PathBuf};
 use crate::dataset::frame::{depth_valid, RgbdFrame};
 use crate::{Error, Result};
 
-/// One object's mask at full frame resolution.
-#[derive(Debug, Clone)]
+/// A run of object pixels on one row: `len` pixels from `(x, y)` rightwards.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Run {
+    /// Row.
+    pub y: u32,
+    /// First column.
+    pub x: u32,
+    /// Pixels in the run (at least 1).
+    pub len: u32,
+}
+
+/// One object's mask in a frame, held sparsely as row runs: a frame of many
+/// small instances costs memory by its object pixels, not by frame size ×
+/// instance count. The full-frame form ([`ObjectMask::to_bools`]) is made
+/// only for an object that passes [`validate_objects`], when it is prepared.
+#[derive(Debug, Clone, PartialEq)]
 pub struct ObjectMask {
     /// Instance id in the label map (`None` for a mask file).
     pub id: Option<u32>,
     /// Human-readable name for reports (`id 8`, or the file name).
     pub label: String,
-    /// Width in pixels.
+    /// Width of the frame the mask belongs to, pixels.
     pub width: usize,
-    /// Height in pixels.
+    /// Height of the frame the mask belongs to, pixels.
     pub height: usize,
-    /// Row-major `height·width`, `true` = object.
-    pub mask: Vec<bool>,
+    /// The object's pixels: runs ordered by row then column, neither
+    /// overlapping nor touching on a row.
+    runs: Vec<Run>,
 }
 
 impl ObjectMask {
-    /// Number of object pixels.
-    pub fn pixel_count(&self) -> usize {
-        self.mask.iter().filter(|&&m| m).count()
+    /// From a full-frame mask, row-major `height·width`, `true` = object.
+    ///
+    /// # Panics
+    /// When `mask.len() != width·height`, or a side exceeds `u32::MAX`.
+    pub fn from_bools(id: Option<u32>, label: impl Into<String>, width: usize, height: usize, mask: &[bool]) -> Self {
+        assert_eq!(mask.len(), width * height, "mask of {} values for a {width}×{height} frame", mask.len());
+        let mut runs = Vec::new();
+        if width > 0 {
+            for (y, row) in mask.chunks_exact(width).enumerate() {
+                push_row_runs(&mut runs, y, row.iter().copied());
+            }
+        }
+        ObjectMask { id, label: label.into(), width, height, runs }
     }
 
-    /// 8-bit 0/255 copy (the form RecGen hands to PIL).
+    /// From runs already ordered by row then column and not overlapping (adjacent
+    /// runs on a row are merged).
+    ///
+    /// # Panics
+    /// When the runs are out of order, overlap, or leave the `width×height` frame.
+    pub fn from_runs(id: Option<u32>, label: impl Into<String>, width: usize, height: usize, runs: Vec<Run>) -> Self {
+        let mut merged: Vec<Run> = Vec::with_capacity(runs.len());
+        for r in runs {
+            assert!(r.len > 0 && r.x as usize + r.len as usize <= width && (r.y as usize) < height, "run {r:?} outside {width}×{height}");
+            if let Some(p) = merged.last_mut() {
+                assert!(r.y > p.y || (r.y == p.y && r.x >= p.x + p.len), "runs out of order: {p:?} then {r:?}");
+                if p.y == r.y && p.x + p.len == r.x {
+                    p.len += r.len;
+                    continue;
+                }
+            }
+            merged.push(r);
+        }
+        ObjectMask { id, label: label.into(), width, height, runs: merged }
+    }
+
+    /// The object's row runs (ordered by row then column).
+    pub fn runs(&self) -> &[Run] {
+        &self.runs
+    }
+
+    /// Number of object pixels.
+    pub fn pixel_count(&self) -> usize {
+        self.runs.iter().map(|r| r.len as usize).sum()
+    }
+
+    /// The full-frame form: row-major `height·width`, `true` = object.
+    pub fn to_bools(&self) -> Vec<bool> {
+        let mut m = vec![false; self.width * self.height];
+        for r in &self.runs {
+            let i = r.y as usize * self.width + r.x as usize;
+            m[i..i + r.len as usize].fill(true);
+        }
+        m
+    }
+
+    /// 8-bit 0/255 full-frame copy (the form RecGen hands to PIL).
     pub fn to_u8(&self) -> Vec<u8> {
-        self.mask.iter().map(|&m| if m { 255 } else { 0 }).collect()
+        self.to_bools().into_iter().map(|m| if m { 255 } else { 0 }).collect()
+    }
+}
+
+/// Appends the runs of `true` in row `y` (values left to right).
+fn push_row_runs(runs: &mut Vec<Run>, y: usize, row: impl Iterator<Item = bool>) {
+    let mut start: Option<usize> = None;
+    let mut x = 0usize;
+    for b in row {
+        match (b, start) {
+            (true, None) => start = Some(x),
+            (false, Some(s)) => {
+                runs.push(Run { y: y as u32, x: s as u32, len: (x - s) as u32 });
+                start = None;
+            }
+            _ => {}
+        }
+        x += 1;
+    }
+    if let Some(s) = start {
+        runs.push(Run { y: y as u32, x: s as u32, len: (x - s) as u32 });
     }
 }
 
@@ -108,6 +194,70 @@ pub fn erode(mask: &[bool], w: usize, h: usize, e: Erosion) -> Vec<bool> {
     cur
 }
 
+/// [`erode`] on row runs ([`ObjectMask::runs`]): the same pixels, at a cost
+/// proportional to the runs instead of the frame (a one-pixel instance costs
+/// next to nothing). Rows first, then columns, as [`erode`].
+pub fn erode_runs(runs: &[Run], h: usize, e: Erosion) -> Vec<Run> {
+    let mut cur = runs.to_vec();
+    if e.kernel <= 1 || e.iterations == 0 {
+        return cur;
+    }
+    let Ok(k) = u32::try_from(e.kernel) else {
+        return Vec::new();
+    };
+    let (lo, hi) = (k / 2, k - 1 - k / 2); // window [i - lo, i + hi]
+    for _ in 0..e.iterations {
+        // Along a row, a pixel stays when its window lies in its run (the run is in the image).
+        let rows: Vec<Run> = cur.iter().filter(|r| r.len >= k).map(|r| Run { y: r.y, x: r.x + lo, len: r.len - (k - 1) }).collect();
+        // Along a column, row y keeps what every row y - lo ..= y + hi keeps; rows outside
+        // the image keep nothing. A kept pixel is in its own row, so only rows with runs are tried.
+        let row_of = |y: u32| -> &[Run] {
+            let a = rows.partition_point(|r| r.y < y);
+            let b = a + rows[a..].partition_point(|r| r.y == y);
+            &rows[a..b]
+        };
+        let mut next = Vec::new();
+        let mut i = 0;
+        while i < rows.len() {
+            let y = rows[i].y;
+            let own = row_of(y);
+            i += own.len();
+            if y < lo || y as usize + hi as usize >= h {
+                continue;
+            }
+            let mut acc: Vec<Run> = own.to_vec();
+            for yy in (y - lo..=y + hi).filter(|&yy| yy != y) {
+                if acc.is_empty() {
+                    break;
+                }
+                acc = intersect_row(&acc, row_of(yy), y);
+            }
+            next.extend(acc);
+        }
+        cur = next;
+    }
+    cur
+}
+
+/// The pixels of row `y` in both `a` and `b` (runs of one row each, ordered), as runs on row `y`.
+fn intersect_row(a: &[Run], b: &[Run], y: u32) -> Vec<Run> {
+    let (mut i, mut j, mut out) = (0, 0, Vec::new());
+    while i < a.len() && j < b.len() {
+        let (ea, eb) = (a[i].x + a[i].len, b[j].x + b[j].len);
+        let s = a[i].x.max(b[j].x);
+        let end = ea.min(eb);
+        if s < end {
+            out.push(Run { y, x: s, len: end - s });
+        }
+        if ea < eb {
+            i += 1;
+        } else {
+            j += 1;
+        }
+    }
+    out
+}
+
 /// A per-instance label map (0 = background).
 #[derive(Debug, Clone)]
 pub struct InstanceMap {
@@ -150,10 +300,35 @@ impl InstanceMap {
 
     /// Masks for the selected ids (all present ids when `select` is `None`).
     /// Requested ids that do not occur are reported as skips.
+    ///
+    /// One pass over the map collects every instance's row runs; no
+    /// full-frame buffer is made per instance, so 20 000 instances cost
+    /// their pixels, not 20 000 frames.
     pub fn objects(&self, select: Option<&[u32]>) -> (Vec<ObjectMask>, Vec<MaskSkip>) {
+        let mut runs: Vec<(u32, Run)> = Vec::new();
+        if self.width > 0 {
+            for (y, row) in self.ids.chunks_exact(self.width).enumerate() {
+                let mut x = 0;
+                while x < row.len() {
+                    let (id, s) = (row[x], x);
+                    while x < row.len() && row[x] == id {
+                        x += 1;
+                    }
+                    if id != 0 {
+                        runs.push((id, Run { y: y as u32, x: s as u32, len: (x - s) as u32 }));
+                    }
+                }
+            }
+        }
+        // Stable: each id's runs stay in row order.
+        runs.sort_by_key(|&(id, _)| id);
         let ids = match select {
             Some(s) => s.to_vec(),
-            None => self.present_ids(),
+            None => {
+                let mut v: Vec<u32> = runs.iter().map(|&(id, _)| id).collect();
+                v.dedup();
+                v
+            }
         };
         let mut out = Vec::new();
         let mut skips = Vec::new();
@@ -163,12 +338,14 @@ impl InstanceMap {
                 skips.push(MaskSkip { label, reason: SkipReason::Background });
                 continue;
             }
-            let mask: Vec<bool> = self.ids.iter().map(|&v| v == id).collect();
-            if !mask.iter().any(|&m| m) {
+            let a = runs.partition_point(|&(i, _)| i < id);
+            let b = a + runs[a..].partition_point(|&(i, _)| i == id);
+            if a == b {
                 skips.push(MaskSkip { label, reason: SkipReason::IdAbsent });
                 continue;
             }
-            out.push(ObjectMask { id: Some(id), label, width: self.width, height: self.height, mask });
+            let mine = runs[a..b].iter().map(|&(_, r)| r).collect();
+            out.push(ObjectMask::from_runs(Some(id), label, self.width, self.height, mine));
         }
         (out, skips)
     }
@@ -192,7 +369,7 @@ pub fn load_binary_mask(path: &Path) -> Result<ObjectMask> {
         img.to_luma16().into_raw().into_iter().map(|v| v > 0).collect()
     };
     let label = path.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or(file);
-    Ok(ObjectMask { id: None, label, width: w, height: h, mask })
+    Ok(ObjectMask::from_bools(None, label, w, h, &mask))
 }
 
 /// Read several binary mask files, one object each; a file that cannot be
@@ -316,35 +493,48 @@ pub struct ValidObject {
     pub valid_depth_pixels: usize,
 }
 
-/// Check every object against the frame; failures become skips.
+/// Check one object against the frame: its eroded-mask pixels with valid
+/// depth, or why it is left out. Works on the mask's runs: a mask of a few
+/// pixels is refused at the cost of its pixels, before any full-frame buffer.
+pub fn check_object(frame: &RgbdFrame, m: &ObjectMask, opts: &MaskOptions) -> std::result::Result<usize, SkipReason> {
+    if (m.width, m.height) != (frame.width, frame.height) {
+        return Err(SkipReason::WrongSize { mask: (m.width, m.height), frame: (frame.width, frame.height) });
+    }
+    let before = m.pixel_count();
+    if before == 0 {
+        return Err(SkipReason::Empty);
+    }
+    let eroded = match opts.erosion {
+        Some(e) => erode_runs(m.runs(), m.height, e),
+        None => m.runs().to_vec(),
+    };
+    if eroded.is_empty() {
+        return Err(SkipReason::EmptyAfterErosion { before });
+    }
+    let w = frame.width;
+    let valid = eroded
+        .iter()
+        .map(|r| {
+            let i = r.y as usize * w + r.x as usize;
+            frame.depth_m[i..i + r.len as usize].iter().filter(|&&z| depth_valid(z)).count()
+        })
+        .sum();
+    let min = opts.min_valid_depth_pixels.max(1);
+    if valid < min {
+        return Err(SkipReason::TooFewValidDepth { valid, min });
+    }
+    Ok(valid)
+}
+
+/// Check every object against the frame ([`check_object`]); failures become skips.
 pub fn validate_objects(frame: &RgbdFrame, objects: Vec<ObjectMask>, opts: &MaskOptions) -> (Vec<ValidObject>, Vec<MaskSkip>) {
     let mut ok = Vec::new();
     let mut skips = Vec::new();
     for m in objects {
-        let skip = |reason| MaskSkip { label: m.label.clone(), reason };
-        if (m.width, m.height) != (frame.width, frame.height) || m.mask.len() != frame.width * frame.height {
-            skips.push(skip(SkipReason::WrongSize { mask: (m.width, m.height), frame: (frame.width, frame.height) }));
-            continue;
+        match check_object(frame, &m, opts) {
+            Ok(valid) => ok.push(ValidObject { mask: m, valid_depth_pixels: valid }),
+            Err(reason) => skips.push(MaskSkip { label: m.label.clone(), reason }),
         }
-        let before = m.pixel_count();
-        if before == 0 {
-            skips.push(skip(SkipReason::Empty));
-            continue;
-        }
-        let eroded = match opts.erosion {
-            Some(e) => erode(&m.mask, m.width, m.height, e),
-            None => m.mask.clone(),
-        };
-        if !eroded.iter().any(|&b| b) {
-            skips.push(skip(SkipReason::EmptyAfterErosion { before }));
-            continue;
-        }
-        let valid = eroded.iter().zip(&frame.depth_m).filter(|(&b, &z)| b && depth_valid(z)).count();
-        if valid < opts.min_valid_depth_pixels.max(1) {
-            skips.push(skip(SkipReason::TooFewValidDepth { valid, min: opts.min_valid_depth_pixels.max(1) }));
-            continue;
-        }
-        ok.push(ValidObject { mask: m, valid_depth_pixels: valid });
     }
     (ok, skips)
 }
@@ -427,6 +617,14 @@ mod tests {
         for k in [2, 3, 4, 5] {
             assert_eq!(erode(&m, w, h, Erosion { kernel: k, iterations: 1 }), erode_naive(&m, w, h, k), "k={k}");
         }
+        // On runs: the same pixels for every kernel and pass count, in the frame or at its borders.
+        let om = ObjectMask::from_bools(None, "m", w, h, &m);
+        assert_eq!(om.to_bools(), m);
+        for (k, it) in [(1, 1), (2, 1), (3, 1), (4, 1), (5, 1), (3, 2), (5, 0), (2, 3)] {
+            let e = Erosion { kernel: k, iterations: it };
+            let runs = erode_runs(om.runs(), h, e);
+            assert_eq!(ObjectMask::from_runs(None, "r", w, h, runs).to_bools(), erode(&m, w, h, e), "k={k} it={it}");
+        }
         let twice = erode(&m, w, h, Erosion { kernel: 3, iterations: 2 });
         assert_eq!(twice, erode_naive(&erode_naive(&m, w, h, 3), w, h, 3));
         // A 10×10 block loses 2 px per side with k = 5; the border counts as background.
@@ -438,6 +636,8 @@ mod tests {
         }
         let e = erode(&b, 20, 20, Erosion::default());
         assert_eq!(e.iter().filter(|&&v| v).count(), 6 * 6); // x 2..8 (border side too), y 7..13
+        let runs = erode_runs(ObjectMask::from_bools(None, "b", 20, 20, &b).runs(), 20, Erosion::default());
+        assert_eq!(ObjectMask::from_runs(None, "b", 20, 20, runs).to_bools(), e);
         assert!(e[7 * 20 + 2] && !e[7 * 20 + 1] && !e[6 * 20 + 4]);
     }
 
@@ -461,6 +661,14 @@ mod tests {
         lab.save(&p16).unwrap();
         let map = InstanceMap::open(&p16).unwrap();
         assert_eq!(map.present_ids(), vec![3, 5, 700]);
+        // Each instance's runs hold exactly the pixels of its id.
+        let (all, none) = map.objects(None);
+        assert!(none.is_empty());
+        assert_eq!(all.iter().map(|o| o.id.unwrap()).collect::<Vec<_>>(), map.present_ids());
+        for o in &all {
+            let expected: Vec<bool> = map.ids.iter().map(|&v| Some(v) == o.id).collect();
+            assert_eq!(o.to_bools(), expected, "{}", o.label);
+        }
         let f = frame(40, 30, |x, _| if x < 22 { 0.8 } else { 0.0 });
         let (objs, skips) = map.objects(Some(&[3, 5, 700, 9, 0]));
         assert_eq!(objs.len(), 3);
@@ -500,8 +708,35 @@ mod tests {
         assert_eq!(ms.len(), 2);
         assert!(matches!(&sk[0].reason, SkipReason::Unreadable(_)) && sk[0].label.contains("missing.png"));
         // Empty mask is a skip, not an error.
-        let empty = ObjectMask { id: None, label: "e".into(), width: 40, height: 30, mask: vec![false; 1200] };
+        let empty = ObjectMask::from_bools(None, "e", 40, 30, &[false; 1200]);
         let (_, skips) = validate_objects(&f, vec![empty], &MaskOptions::default());
         assert_eq!(skips[0].reason, SkipReason::Empty);
+    }
+
+    #[test]
+    fn many_one_pixel_instances_cost_their_pixels() {
+        // 60×50 map, an instance on every other pixel of every other row: 750 instances.
+        let (w, h) = (60usize, 50usize);
+        let mut ids = vec![0u32; w * h];
+        let mut n = 0;
+        for y in (0..h).step_by(2) {
+            for x in (0..w).step_by(2) {
+                n += 1;
+                ids[y * w + x] = n;
+            }
+        }
+        let map = InstanceMap { width: w, height: h, ids, path: PathBuf::from("many.png") };
+        let (objs, skips) = map.objects(None);
+        assert!(skips.is_empty());
+        assert_eq!(objs.len(), n as usize);
+        assert!(objs.iter().all(|o| o.runs().len() == 1 && o.pixel_count() == 1));
+        let f = frame(w, h, |_, _| 1.0);
+        let (ok, skips) = validate_objects(&f, objs, &MaskOptions::default());
+        assert!(ok.is_empty());
+        assert!(skips.iter().all(|s| s.reason == SkipReason::EmptyAfterErosion { before: 1 }), "{:?}", skips[0]);
+        // Without erosion a pixel is too few valid-depth pixels.
+        let (o, _) = map.objects(Some(&[7]));
+        let opts = MaskOptions { erosion: None, ..Default::default() };
+        assert_eq!(check_object(&f, &o[0], &opts), Err(SkipReason::TooFewValidDepth { valid: 1, min: 100 }));
     }
 }

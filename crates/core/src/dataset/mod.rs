@@ -16,7 +16,9 @@ pub use self::bop::{load_dataset, load_ycbv, Dataset, Layout};
 pub use self::frame::{FrameOptions, Intrinsics, RgbdFrame};
 pub use self::glb::parse_glb;
 pub use self::image::{pointmap_to_tensor, square_crop_box, trellis_preprocess_rgba, CropBox, DINO_SIZE};
-pub use self::masks::{load_binary_masks, load_masks, validate_objects, InstanceMap, MaskOptions, MaskSkip, ObjectMask, SkipReason};
+pub use self::masks::{
+    check_object, load_binary_masks, load_masks, validate_objects, InstanceMap, MaskOptions, MaskSkip, ObjectMask, Run, SkipReason,
+};
 pub use self::matv5::MatFile;
 pub use self::mesh_file::{parse_mesh, read_mesh_file, MeshFormat};
 pub use self::obj::parse_obj;

@@ -34,8 +34,10 @@
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
 use crate::dataset::frame::{depth_valid, RgbdFrame};
-use crate::dataset::masks::{MaskSkip, ObjectMask, SkipReason};
-use crate::engine::options::{InferOptions, OptionError, DEFAULT_MAX_FACES, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS};
+use crate::dataset::masks::{check_object, MaskOptions, MaskSkip, ObjectMask, SkipReason};
+use crate::engine::options::{
+    InferOptions, OptionError, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS,
+};
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
     LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages,
@@ -119,6 +121,9 @@ pub struct InferSettings {
     /// on it (an object's seeds are its own). Default
     /// [`DEFAULT_PARALLEL_OBJECTS`].
     pub parallel_objects: NonZeroUsize,
+    /// Most objects of a frame that pass the mask checks; a frame with more is
+    /// refused before any object runs ([`check_object_count`]).
+    pub max_objects: NonZeroUsize,
 }
 
 impl Default for InferSettings {
@@ -137,6 +142,7 @@ impl Default for InferSettings {
             shape_fit_options: ShapeFitOptions::default(),
             mesh_from: MeshFrom::default(),
             parallel_objects: DEFAULT_PARALLEL_OBJECTS,
+            max_objects: DEFAULT_MAX_OBJECTS,
         }
     }
 }
@@ -157,6 +163,7 @@ impl InferOptions {
             shape_fit: self.shape_fit,
             mesh_from: self.mesh_from,
             parallel_objects: self.parallel_objects,
+            max_objects: self.max_objects,
             ..Default::default()
         };
         s.run.seed = self.seed;
@@ -334,6 +341,27 @@ pub struct FrameResult {
     pub preprocess_seconds: f64,
     /// Frame-level remarks (e.g. masks of view 2 without a partner in view 1).
     pub notes: Vec<String>,
+}
+
+/// Refuses a frame with more objects than `opts.max_objects` that pass the mask checks
+/// ([`check_object`](crate::dataset::masks::check_object): the objects the model would
+/// run on); returns their count. Tiny masks are checked on their runs, so this costs the
+/// masks' pixels, not a frame per mask. `what` names the masks in the error (`--masks`).
+pub fn check_object_count(frame: &RgbdFrame, objects: &[ObjectMask], opts: &InferSettings, what: &str) -> Result<usize> {
+    let mopts = MaskOptions { erosion: opts.prepare.erosion, min_valid_depth_pixels: opts.min_valid_depth_pixels };
+    let count = objects.iter().filter(|o| check_object(frame, o, &mopts).is_ok()).count();
+    let limit = opts.max_objects.get();
+    if count > limit {
+        return Err(Error::too_large(
+            what,
+            "max_objects",
+            count as u128,
+            limit as u128,
+            "objects",
+            "masks that pass the mask checks, each a model run; raise --max-objects (max_objects) or select instances (--objects)",
+        ));
+    }
+    Ok(count)
 }
 
 /// Pair the objects of two views: by instance id when every mask has one,
@@ -654,6 +682,7 @@ impl Engine {
                 format!("this model takes {} view(s); a second view needs a two-view (num_pose_tokens 2) model", self.pipeline.max_views()),
             ));
         }
+        check_object_count(frame, &objects, opts, "masks")?;
         let size = self.pipeline.image_size();
         let dev = Device::Cpu;
         let mut preprocess_seconds = 0.0;

@@ -23,6 +23,12 @@ pub const DEFAULT_SMOOTH_ITERATIONS: usize = 0;
 /// and cost memory (docs/performance.md).
 pub const DEFAULT_PARALLEL_OBJECTS: NonZeroUsize = NonZeroUsize::MIN;
 
+/// Default most objects of a frame the model runs on ([`InferOptions::max_objects`]).
+pub const DEFAULT_MAX_OBJECTS: NonZeroUsize = match NonZeroUsize::new(256) {
+    Some(n) => n,
+    None => NonZeroUsize::MIN,
+};
+
 /// The per-frame options of `recon infer`, `recon eval --method recgen` and Python's
 /// `Engine.reconstruct`. The field docs are the CLI's `--help` text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -73,6 +79,11 @@ pub struct InferOptions {
     /// than 1 pays only with cores the model leaves idle, and costs memory per object.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.parallel_objects))]
     pub parallel_objects: NonZeroUsize,
+    /// Most objects of a frame the model runs on: masks that pass the mask checks (enough
+    /// pixels with valid depth after erosion; smaller masks are skipped at the cost of their
+    /// pixels). A frame with more is refused, naming the count, before any is reconstructed.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.max_objects))]
+    pub max_objects: NonZeroUsize,
 }
 
 impl InferOptions {
@@ -90,10 +101,11 @@ impl InferOptions {
         min_component_area: 0.02,
         smooth: DEFAULT_SMOOTH_ITERATIONS,
         parallel_objects: DEFAULT_PARALLEL_OBJECTS,
+        max_objects: DEFAULT_MAX_OBJECTS,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 12] = [
+    pub const NAMES: [&'static str; 13] = [
         "seed",
         "samples",
         "select",
@@ -106,6 +118,7 @@ impl InferOptions {
         "min_component_area",
         "smooth",
         "parallel_objects",
+        "max_objects",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -247,6 +260,8 @@ mod tests {
         assert!(e.keyword_message().starts_with("samples: invalid type"), "{e:?}");
         let e = InferOptions::from_json(serde_json::json!({"samples": 0})).unwrap_err();
         assert_eq!(e.option(), "samples");
+        let e = InferOptions::from_json(serde_json::json!({"max_objects": 0})).unwrap_err();
+        assert_eq!(e.option(), "max_objects");
     }
 
     #[test]
@@ -264,6 +279,7 @@ mod tests {
             min_component_area: 0.1,
             smooth: 5,
             parallel_objects: NonZeroUsize::new(2).unwrap(),
+            max_objects: NonZeroUsize::new(7).unwrap(),
         };
         let s = o.settings().unwrap();
         assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
@@ -272,7 +288,7 @@ mod tests {
             (Some(4), Some(4), Some(2.5), Some(2.5))
         );
         assert_eq!((s.max_faces, s.floater_area_fraction, s.smooth_iterations), (None, 0.1, 5));
-        assert_eq!((s.shape_fit, s.mesh_from, s.parallel_objects.get()), (ShapeFit::None, MeshFrom::Decoder, 2));
+        assert_eq!((s.shape_fit, s.mesh_from, s.parallel_objects.get(), s.max_objects.get()), (ShapeFit::None, MeshFrom::Decoder, 2, 7));
         assert!(!s.align.refine);
         let d = InferOptions::default().settings().unwrap();
         assert_eq!((d.max_faces, d.run.seed, d.align.refine), (Some(DEFAULT_MAX_FACES), 42, true));

@@ -401,7 +401,7 @@ pub fn prepare_frame_objects(
     let (valid, mut skips) = validate_objects(frame, objects, &mopts);
     let mut out = Vec::new();
     for v in valid {
-        match prepare_object_with(frame, &v.mask.mask, size, opts, dev) {
+        match prepare_object_with(frame, &v.mask.to_bools(), size, opts, dev) {
             Ok(view) => out.push(PreparedObject { object: v.mask, view }),
             Err(e) => skips.push(MaskSkip { label: v.mask.label.clone(), reason: SkipReason::Preprocessing(e.to_string()) }),
         }
