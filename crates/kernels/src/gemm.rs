@@ -1070,18 +1070,13 @@ pub(crate) mod x86 {
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
     use super::{WeightFormat, NR};
+    use crate::vecmath::avx2::lane_mask;
     use std::arch::x86_64::*;
 
     /// Columns of a sub-tile: two 8-lane vectors.
     const NH: usize = 16;
     /// Rows of the largest sub-tile.
     pub(crate) const RMAX: usize = 6;
-
-    /// The first `min(n, 8)` lanes set, as `vmaskmovps` wants.
-    #[inline(always)]
-    pub(crate) unsafe fn lane_mask(n: usize) -> __m256i {
-        _mm256_cmpgt_epi32(_mm256_set1_epi32(n.min(8) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
-    }
 
     /// bf16 bits (round to nearest even, NaN → 0x7fc0, as [`super::f32_to_bf16`])
     /// in the low half of each lane.

@@ -305,8 +305,14 @@ pub(crate) mod x86 {
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx2 {
     use super::*;
-    use crate::gemm::avx2::lane_mask;
     use std::arch::x86_64::*;
+
+    /// The first `min(n, 8)` lanes set, as `vmaskmovps` wants (gemm's AVX2
+    /// tails use it too: vecmath is the layer below gemm).
+    #[inline(always)]
+    pub(crate) unsafe fn lane_mask(n: usize) -> __m256i {
+        _mm256_cmpgt_epi32(_mm256_set1_epi32(n.min(8) as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+    }
 
     #[inline(always)]
     pub unsafe fn exp256(x: __m256) -> __m256 {
