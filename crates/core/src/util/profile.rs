@@ -7,11 +7,13 @@
 //! Off by default: each instrumented call then costs one relaxed atomic
 //! load. On, kind times are exclusive (a kind timed inside another, e.g. a
 //! GEMM inside a timed conv, is subtracted from the outer one) and regions
-//! (parts of a model's forward) are inclusive. Timers run on the calling
-//! thread; the kernels parallelise inside the timed call and return before
-//! it ends. Counters are process-wide: profile one forward at a time.
+//! (parts of a model's forward) are inclusive. Only the calls made on the
+//! thread that turned profiling on are recorded (the kernels parallelise
+//! inside the timed call and return before it ends), so other threads'
+//! work does not leak in. Counters are process-wide: profile one forward at
+//! a time, from one thread.
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
@@ -52,16 +54,20 @@ static REGION_FLOPS: [AtomicU64; REGIONS] = [const { AtomicU64::new(0) }; REGION
 thread_local! {
     /// Nanoseconds of timed kinds nested in each open kind scope.
     static NESTED: RefCell<Vec<u64>> = const { RefCell::new(Vec::new()) };
+    /// Whether this thread turned profiling on.
+    static RECORDING: Cell<bool> = const { Cell::new(false) };
 }
 
-/// Whether profiling is on.
+/// Whether profiling is on for calls made on this thread.
 #[inline]
 pub fn enabled() -> bool {
-    ENABLED.load(Ordering::Relaxed)
+    ENABLED.load(Ordering::Relaxed) && RECORDING.with(Cell::get)
 }
 
-/// Turn profiling on or off (the counters are kept; see [`reset`]).
+/// Turn profiling on or off for the calls made on this thread (the counters
+/// are kept; see [`reset`]).
 pub fn set_enabled(on: bool) {
+    RECORDING.with(|r| r.set(on));
     ENABLED.store(on, Ordering::Relaxed);
 }
 
@@ -213,10 +219,12 @@ mod tests {
                 },
             )
         });
+        // Another thread's calls are not recorded.
+        std::thread::spawn(|| timed(Kind::Attention, || 5, || ())).join().unwrap();
         set_enabled(false);
         let p = snapshot();
         reset();
-        assert_eq!((p.gemm.calls, p.sparse_conv.calls, p.gemm.flops, p.sparse_conv.flops), (1, 1, 7.0, 100.0));
+        assert_eq!((p.gemm.calls, p.sparse_conv.calls, p.gemm.flops, p.sparse_conv.flops, p.attention.calls), (1, 1, 7.0, 100.0, 0));
         assert!(p.gemm.seconds >= 0.03 && p.sparse_conv.seconds >= 0.02, "{p:?}");
         // Exclusive kinds never add up to more than the region around them.
         assert!(p.io_blocks_seconds >= p.kernel_seconds() && p.transformer_seconds == 0.0, "nested time counted twice: {p:?}");
