@@ -15,7 +15,7 @@ pub struct BenchArgs {
     /// Architecture file (full size: models/recgen-large.json).
     #[arg(long, default_value = "models/recgen-large.json")]
     config: PathBuf,
-    /// Sections to run: kernels, modules, guided, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
+    /// Sections to run: kernels, modules, guided, stage2, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
     #[arg(long, value_delimiter = ',', default_value = "kernels,modules")]
     sections: Vec<String>,
     /// Precisions of the fast kernels for modules / e2e / comparisons.
@@ -31,6 +31,10 @@ pub struct BenchArgs {
     /// file's, i.e. the paper's 25 + 25 with its CFG for recgen-large).
     #[arg(long)]
     steps: Option<usize>,
+    /// Run stage 2 of the end-to-end object on the random model's sampled
+    /// (noise) occupancy instead of the realistic object voxel set.
+    #[arg(long)]
+    sampled_occupancy: bool,
     /// Stage-1 sampler steps of the occupancy comparison.
     #[arg(long, default_value_t = 2)]
     occupancy_steps: usize,
@@ -73,7 +77,7 @@ fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
 }
 
 /// The sections `--sections` accepts, in the order they run.
-const SECTIONS: [&str; 9] = ["kernels", "modules", "guided", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
+const SECTIONS: [&str; 10] = ["kernels", "modules", "guided", "stage2", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
 
 pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     if let Some(n) = a.threads {
@@ -94,6 +98,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     }
     if has("guided") {
         guided(&a, &modules, &mut report)?;
+    }
+    if has("stage2") {
+        stage2(&a, &mut report)?;
     }
     if has("precision") {
         precision(&a, &modules, &mut report)?;
@@ -255,12 +262,12 @@ fn module_rows(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -
 fn guided(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> anyhow::Result<()> {
     let computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
     println!(
-        "\n{:<10} {:<28} {:>8} {:>9} {:>8} {:>8} {:>10} {:>10} {:>6}  input",
-        "guided", "compute", "full s", "prepare s", "step s", "speed-up", "rel cond", "rel uncond", "load"
+        "\n{:<10} {:<28} {:>8} {:>9} {:>8} {:>8} {:>10} {:>5} {:>10} {:>6}  input",
+        "guided", "compute", "full s", "prepare s", "step s", "speed-up", "rel cond", "bits", "rel uncond", "load"
     );
-    report.guided = bench::bench_guided(&a.config, modules, &computes, a.reps, |r| {
+    report.guided = bench::bench_guided(&a.config, modules, &computes, a.reps, true, |r| {
         println!(
-            "{:<10} {:<28} {:>8.2} {:>9.2} {:>8.2} {:>7.3}× {:>10.1e} {:>10.1e} {:>6}  {}",
+            "{:<10} {:<28} {:>8.2} {:>9.2} {:>8.2} {:>7.3}× {:>10.1e} {:>5} {:>10.1e} {:>6}  {}",
             r.module,
             r.precision,
             r.full_seconds,
@@ -268,6 +275,7 @@ fn guided(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> any
             r.step_seconds,
             r.full_seconds / r.step_seconds,
             r.max_rel_cond,
+            if r.cond_same_bits { "same" } else { "diff" },
             r.max_rel_uncond,
             opt(r.load_average, |v| format!("{v:.1}")),
             r.input
@@ -275,7 +283,68 @@ fn guided(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> any
     })?;
     report.notes.push(
         "guided: one step of cond + zero neg_cond; full = everything computed in the step; step = on conditions prepared once per run \
-         (prepare s, once per run); rel = max|a−b| / max|b| of the velocities against the full step"
+         (prepare s, once per run); rel = max|a−b| / max|b| of the velocities against the full step, bits: whether the \
+         conditional half has the full step's bits; slat_flow runs on the object voxel set of the stage2 section"
+            .into(),
+    );
+    Ok(())
+}
+
+/// One full-size guided SLat-flow step on the realistic voxel set: FLOPs,
+/// GFLOP/s against the peak, and where the time goes.
+fn stage2(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
+    let computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
+    println!(
+        "\n{:<28} {:>6} {:>6} {:>7} {:>7} {:>8} {:>7} {:>6} {:>10} {:>6} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>6}",
+        "stage2 (guided SLat step)",
+        "voxels",
+        "tokens",
+        "step s",
+        "GFLOP",
+        "GFLOP/s",
+        "peak",
+        "peak%",
+        "blocks G/s",
+        "peak%",
+        "gemm%",
+        "attn%",
+        "conv%",
+        "idx%",
+        "norm%",
+        "glue%",
+        "io%",
+        "load"
+    );
+    report.stage2 = bench::bench_stage2(&a.config, &computes, a.reps, |r| {
+        let pct = |s: f64| format!("{:.1}", 100.0 * s / r.step_seconds);
+        let p = &r.profile;
+        println!(
+            "{:<28} {:>6} {:>6} {:>7.2} {:>7.0} {:>8.1} {:>7} {:>6} {:>10.1} {:>6} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>6}",
+            r.precision,
+            r.voxels,
+            r.tokens,
+            r.step_seconds,
+            r.flops / 1e9,
+            r.gflops,
+            opt(r.peak_gflops, |v| format!("{v:.1}")),
+            opt(r.efficiency, |e| format!("{:.0}", e * 100.0)),
+            r.transformer_gflops,
+            opt(r.transformer_efficiency, |e| format!("{:.0}", e * 100.0)),
+            pct(p.gemm.seconds),
+            pct(p.attention.seconds),
+            pct(p.sparse_conv.seconds),
+            pct(p.sparse_index.seconds),
+            pct(p.norm.seconds),
+            pct(r.glue_seconds),
+            pct(r.io_blocks_seconds),
+            opt(r.load_average, |v| format!("{v:.1}"))
+        );
+    })?;
+    report.notes.push(
+        "stage2: one guided SLat-flow step (cond + zero neg_cond, conditions prepared once, shortcuts on) on the object voxel set \
+         (a recon synth bottle's surface voxels); GFLOP = GEMM + attention + sparse conv operations counted from each call's shapes; \
+         peak = the GEMM precision's peak measured around the step; blocks = the transformer blocks alone; gemm/attn/conv/idx \
+         (neighbour maps, down/upsampling)/norm = exclusive kernel time, glue = the rest; io = the sparse io blocks, inclusive"
             .into(),
     );
     Ok(())
@@ -324,14 +393,16 @@ fn occupancy(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
 fn end_to_end(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
     println!("\nend to end (random weights, synthetic view, modules built per stage and freed):");
     for &p in &a.dtype {
-        let r = bench::bench_end_to_end(&a.config, Compute::fast(p), a.steps, 0)?;
+        let r = bench::bench_end_to_end(&a.config, Compute::fast(p), a.steps, 0, !a.sampled_occupancy)?;
         let t = &r.timings;
         println!(
-            "  {} | steps {}/{} | {} voxels, {:?} faces ({:?} after post-processing), {:?} gaussians | total {:.1} s + post {:.1} s (loading {:.1}) | peak RSS {} MiB | load {}",
+            "  {} | steps {}/{} | {} occupancy: {} voxels, {} stage-2 tokens | {:?} faces ({:?} after post-processing), {:?} gaussians | total {:.1} s + post {:.1} s (loading {:.1}) | peak RSS {} MiB | load {}",
             r.precision,
             r.ss_steps,
             r.slat_steps,
+            r.occupancy,
             r.occupied_voxels,
+            r.slat_tokens,
             r.faces,
             r.faces_after_postprocess,
             r.gaussians,

@@ -345,6 +345,49 @@ pub fn shell_coords(res: i32, r: f64, b: i32) -> Vec<[i32; 4]> {
     out
 }
 
+/// The realistic stage-2 voxel set: the surface voxels of a `recon synth`
+/// object (a bottle, fixed seed) at `res`³, as the SS decoder's occupancy of
+/// a real object looks (TRELLIS voxelises mesh surfaces). The mesh is centred
+/// and scaled so its longest side spans 95 % of the grid, and every triangle
+/// is sampled on a barycentric lattice finer than half a voxel. Sorted
+/// `(x, y, z)`, as the pipeline's argwhere order; deterministic.
+pub fn object_voxels(res: usize) -> Vec<[i32; 3]> {
+    use crate::synth::objects::{Kind, Object};
+    let mesh = Object::random(Kind::Bottle, &mut SeededRng::new(7)).mesh();
+    let (lo, hi) = crate::mesh::primitives::bounds(&mesh);
+    let extent = (0..3).map(|i| hi[i] - lo[i]).fold(0.0, f64::max).max(f64::MIN_POSITIVE);
+    let scale = 0.95 * res as f64 / extent;
+    let to_grid = |v: &[f32; 3]| -> [f64; 3] { std::array::from_fn(|i| (v[i] as f64 - 0.5 * (lo[i] + hi[i])) * scale + 0.5 * res as f64) };
+    let mut out = Vec::new();
+    for f in &mesh.faces {
+        let [a, b, c] = f.map(|i| to_grid(&mesh.vertices[i as usize]));
+        let edge = |p: &[f64; 3], q: &[f64; 3]| (0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f64>().sqrt();
+        let n = (2.0 * edge(&a, &b).max(edge(&b, &c)).max(edge(&c, &a))).ceil().max(1.0) as usize;
+        for i in 0..=n {
+            for j in 0..=n - i {
+                let (u, v) = (i as f64 / n as f64, j as f64 / n as f64);
+                let p: [i32; 3] = std::array::from_fn(|k| (a[k] + u * (b[k] - a[k]) + v * (c[k] - a[k])).floor() as i32);
+                if p.iter().all(|&x| (0..res as i32).contains(&x)) {
+                    out.push(p);
+                }
+            }
+        }
+    }
+    out.sort_unstable();
+    out.dedup();
+    out
+}
+
+/// Distinct cells of `voxels` at `1/factor` resolution: the SLat flow's
+/// transformer tokens per item (its io stages downsample by `patch_size`).
+pub fn coarse_tokens(voxels: &[[i32; 3]], factor: usize) -> usize {
+    let f = factor.max(1) as i32;
+    let mut c: Vec<[i32; 3]> = voxels.iter().map(|v| v.map(|x| x.div_euclid(f))).collect();
+    c.sort_unstable();
+    c.dedup();
+    c.len()
+}
+
 /// A synthetic view at DINO size `s`: smooth image, disc mask, sphere-cap pointmap.
 pub fn synthetic_view(s: usize, shift: f32) -> ViewInput {
     disc_view(s, shift, |u, v, ch| ((3.0 * u + 2.0 * v + ch as f32).sin() * 0.4 + 0.5 - 0.45) / 0.225)
@@ -576,18 +619,38 @@ pub struct GuidedRow {
     pub max_rel_cond: f64,
     /// The same for the unconditional half (the shortcut's float rounding).
     pub max_rel_uncond: f64,
+    /// Whether the conditional half has the full step's bits in every repetition.
+    pub cond_same_bits: bool,
     pub load_average: Option<f64>,
+}
+
+fn same_bits(a: &Tensor, b: &Tensor) -> Result<bool> {
+    let bits = |t: &Tensor| -> Result<Vec<u32>> {
+        Ok(t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?.iter().map(|v| v.to_bits()).collect())
+    };
+    Ok(a.dims() == b.dims() && bits(a)? == bits(b)?)
+}
+
+/// The SLat-flow input of a guided step on [`object_voxels`] at the flow's
+/// resolution: coordinates (batch 0) and seeded noise features.
+pub fn object_slat_state(arch: &RecGenConfig) -> Result<(Vec<[i32; 4]>, Tensor)> {
+    let cfg = &arch.args.slat_flow;
+    let coords: Vec<[i32; 4]> = object_voxels(cfg.resolution).into_iter().map(|[x, y, z]| [0, x, y, z]).collect();
+    let feats = SeededRng::new(12).randn(&[coords.len(), cfg.in_channels], &Device::Cpu)?;
+    Ok((coords, feats))
 }
 
 /// For `ss_flow` and `slat_flow` among `modules`: a guided step computed in
 /// full and on the prepared conditions, alternately `reps` times each (best
 /// of), on the inputs of [`bench_modules`] (the condition's first item, a
-/// zero `neg_cond`).
+/// zero `neg_cond`); with `object`, the SLat flow runs on [`object_voxels`]
+/// instead of the module bench's sphere shell.
 pub fn bench_guided(
     arch_path: &Path,
     modules: &[ModuleKey],
     computes: &[Compute],
     reps: usize,
+    object: bool,
     mut on_row: impl FnMut(&GuidedRow),
 ) -> Result<Vec<GuidedRow>> {
     use crate::model::sampler::VelocityModel;
@@ -611,6 +674,7 @@ pub fn bench_guided(
             };
             let (mut full_s, mut prep_s, mut step_s) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
             let mut errs = (0f64, 0f64);
+            let mut cond_same_bits = true;
             let mut record = |full: (f64, f64, Vec<Tensor>), short: (f64, f64, Vec<Tensor>)| -> Result<()> {
                 full_s = full_s.min(full.1);
                 prep_s = prep_s.min(short.0);
@@ -620,6 +684,7 @@ pub fn bench_guided(
                     let e = rel_errors(a, b)?.0;
                     if i < half {
                         errs.0 = errs.0.max(e);
+                        cond_same_bits &= same_bits(a, b)?;
                     } else {
                         errs.1 = errs.1.max(e);
                     }
@@ -648,8 +713,13 @@ pub fn bench_guided(
                 _ => {
                     let mut m = registry::build_slat_flow(&cfg, vb, &label, compute)?;
                     crate::util::release_cached_buffers();
-                    let coords = &inputs.slat.coords;
-                    let state = [inputs.slat_x.feats.narrow(0, 0, coords.len())?];
+                    let (coords, state) = if object {
+                        let (c, f) = object_slat_state(&arch)?;
+                        (c, [f])
+                    } else {
+                        (inputs.slat.coords.clone(), [inputs.slat_x.feats.narrow(0, 0, inputs.slat.len())?])
+                    };
+                    let coords = &coords;
                     let cond = inputs.slat_cond.narrow(0, 0, 1)?;
                     let neg = cond.zeros_like()?;
                     for _ in 0..reps.max(1) {
@@ -658,7 +728,10 @@ pub fn bench_guided(
                         m.set_shortcuts(true);
                         record(full, time_step(&SlatVelocity { model: &m, coords }, &state, &cond, &neg, true)?)?;
                     }
-                    format!("{} voxels, cond {:?} and zeros", coords.len(), cond.dims())
+                    let what = if object { "object surface voxels" } else { "shell voxels" };
+                    let tokens =
+                        coarse_tokens(&coords.iter().map(|c| [c[1], c[2], c[3]]).collect::<Vec<_>>(), arch.args.slat_flow.patch_size);
+                    format!("{} {what} ({tokens} tokens), cond {:?} and zeros", coords.len(), cond.dims())
                 }
             };
             let row = GuidedRow {
@@ -670,11 +743,114 @@ pub fn bench_guided(
                 step_seconds: step_s,
                 max_rel_cond: errs.0,
                 max_rel_uncond: errs.1,
+                cond_same_bits,
                 load_average: load_average(),
             };
             on_row(&row);
             rows.push(row);
         }
+    }
+    Ok(rows)
+}
+
+/// One guided SLat-flow step at full size on the realistic voxel set
+/// ([`object_voxels`]), as the sampler runs it (conditions prepared once,
+/// shortcuts on), with the kernels' time and FLOPs
+/// ([`crate::util::profile`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct Stage2Row {
+    pub precision: String,
+    /// Occupied voxels at the flow's resolution.
+    pub voxels: usize,
+    /// Transformer tokens per item.
+    pub tokens: usize,
+    /// The step (best of the repetitions; profile of that one).
+    pub step_seconds: f64,
+    /// FLOPs of the step's GEMMs, attention and sparse convolutions,
+    /// counted from the operand shapes of each call.
+    pub flops: f64,
+    /// `flops / step_seconds / 1e9`.
+    pub gflops: f64,
+    /// The peak of the step's GEMM precision on its ISA (bf16 dot product on
+    /// AVX512-BF16, else f32 FMA), measured right before and after the step.
+    pub peak_gflops: Option<f64>,
+    pub efficiency: Option<f64>,
+    /// The transformer blocks alone: seconds, GFLOP/s and share of the peak.
+    pub transformer_seconds: f64,
+    pub transformer_gflops: f64,
+    pub transformer_efficiency: Option<f64>,
+    /// The sparse io blocks (input and output ResBlocks), seconds.
+    pub io_blocks_seconds: f64,
+    /// Exclusive seconds per kind; glue = the step less all of them.
+    pub profile: crate::util::profile::Profile,
+    pub glue_seconds: f64,
+    pub load_average: Option<f64>,
+}
+
+/// [`Stage2Row`] for each fast compute: `reps` profiled guided steps
+/// (best of) after preparing the conditions once.
+pub fn bench_stage2(arch_path: &Path, computes: &[Compute], reps: usize, mut on_row: impl FnMut(&Stage2Row)) -> Result<Vec<Stage2Row>> {
+    use crate::model::sampler::VelocityModel;
+    use crate::model::stage2::slat_flow::SlatVelocity;
+    use crate::util::profile;
+    let arch = RecGenConfig::load(arch_path)?;
+    let key = ModuleKey::SlatFlow;
+    let cfg = arch.module_args(key)?;
+    let (coords, feats) = object_slat_state(&arch)?;
+    let voxels: Vec<[i32; 3]> = coords.iter().map(|c| [c[1], c[2], c[3]]).collect();
+    let tokens = coarse_tokens(&voxels, arch.args.slat_flow.patch_size);
+    let cond = (SeededRng::new(13).randn(&[1, 1371, arch.args.slat_flow.cond_channels], &Device::Cpu)? * 0.5)?;
+    let neg = cond.zeros_like()?;
+    let state = [feats];
+    let mut rows = Vec::new();
+    for &compute in computes.iter().filter(|c| c.is_fast()) {
+        let Some((precision, isa)) = compute.fast_parts() else { continue };
+        let vb = registry::random_var_builder(&cfg, registry::module_seed(0, key.name()))?;
+        let m = registry::build_slat_flow(&cfg, vb, &format!("{}: {key}", arch.name), compute)?;
+        crate::util::release_cached_buffers();
+        let v = SlatVelocity { model: &m, coords: &coords };
+        let run = v.prepare(&cond, Some(&neg))?;
+        let model: &dyn VelocityModel = run.as_deref().unwrap_or(&v);
+        let (best, peak) = with_adjacent_peak(isa, precision.weight_format(), || -> Result<(f64, profile::Profile)> {
+            let mut best = (f64::INFINITY, profile::Profile::default());
+            for _ in 0..reps.max(1) {
+                profile::reset();
+                profile::set_enabled(true);
+                let t = Instant::now();
+                let r = model.velocity_cfg(&state, 750.0, &cond, &neg);
+                let s = t.elapsed().as_secs_f64();
+                profile::set_enabled(false);
+                r?;
+                if s < best.0 {
+                    best = (s, profile::snapshot());
+                }
+            }
+            profile::reset();
+            Ok(best)
+        });
+        let (step_seconds, p) = best?;
+        let flops = p.flops();
+        let gflops = flops / step_seconds / 1e9;
+        let transformer_gflops = p.transformer_flops / p.transformer_seconds.max(f64::MIN_POSITIVE) / 1e9;
+        let row = Stage2Row {
+            precision: compute.describe(),
+            voxels: coords.len(),
+            tokens,
+            step_seconds,
+            flops,
+            gflops,
+            peak_gflops: peak,
+            efficiency: peak.map(|pk| gflops / pk),
+            transformer_seconds: p.transformer_seconds,
+            transformer_gflops,
+            transformer_efficiency: peak.map(|pk| transformer_gflops / pk),
+            io_blocks_seconds: p.io_blocks_seconds,
+            glue_seconds: (step_seconds - p.kernel_seconds()).max(0.0),
+            profile: p,
+            load_average: load_average(),
+        };
+        on_row(&row);
+        rows.push(row);
     }
     Ok(rows)
 }
@@ -791,7 +967,12 @@ pub struct EndToEndRow {
     pub per_stage: bool,
     pub ss_steps: usize,
     pub slat_steps: usize,
+    /// What stage 2 ran on: `object` ([`object_voxels`]) or `sampled` (the
+    /// random model's stage-1 occupancy, noise).
+    pub occupancy: String,
     pub occupied_voxels: usize,
+    /// Stage-2 transformer tokens per item (voxels at 1/patch_size resolution).
+    pub slat_tokens: usize,
     pub faces: Option<usize>,
     pub gaussians: Option<usize>,
     pub timings: crate::engine::pipeline::StageTimings,
@@ -808,13 +989,18 @@ pub struct EndToEndRow {
 /// An object end to end on random weights (synthetic single view), every
 /// module built for its stage and freed after it; `steps` `None`: the
 /// architecture file's sampler settings (the paper's 25 + 25 steps and CFG
-/// for recgen-large).
-pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: Option<usize>, seed: u64) -> Result<EndToEndRow> {
+/// for recgen-large). With `object`, stage 2 runs on [`object_voxels`] at
+/// the SS decoder's resolution (through the pipeline's occupancy hook, in
+/// place of the random model's noise occupancy).
+pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: Option<usize>, seed: u64, object: bool) -> Result<EndToEndRow> {
     let opts = crate::engine::pipeline::LoadOptions { compute, per_stage: true };
     let p = Pipeline::load(arch_path, Weights::Random(seed), Stages::All, &opts)?;
     let inputs = ObjectInputs { views: vec![synthetic_view(p.image_size(), 0.0)] };
     let run = RunOptions { seed, ss_steps: steps, slat_steps: steps, measure_memory: true, ..Default::default() };
-    let out = p.run(&inputs, &run)?;
+    let mut to_object = |_: &crate::engine::pipeline::PredictedPose, _: &[[i32; 3]], res: usize| Ok(object_voxels(res));
+    let fit: Option<&mut crate::engine::pipeline::OccupancyFit<'_>> = if object { Some(&mut to_object) } else { None };
+    let out = p.run_guided(&inputs, &run, &|_| {}, fit)?;
+    let patch = RecGenConfig::load(arch_path)?.args.slat_flow.patch_size;
     let t = Instant::now();
     let post = out.mesh.as_ref().map(|m| {
         let m = crate::mesh::post::drop_floaters(m.clone(), 0.02);
@@ -844,7 +1030,9 @@ pub fn bench_end_to_end(arch_path: &Path, compute: Compute, steps: Option<usize>
         per_stage: true,
         ss_steps: out.metadata.ss_sampler.steps,
         slat_steps: out.metadata.slat_sampler.as_ref().map(|s| s.steps).unwrap_or(0),
+        occupancy: if object { "object" } else { "sampled" }.into(),
         occupied_voxels: out.coords.len(),
+        slat_tokens: coarse_tokens(&out.coords, patch),
         faces: out.mesh.as_ref().map(|m| m.faces.len()),
         gaussians: out.gaussians.as_ref().map(|g| g.len()),
         timings: out.timings,
@@ -1141,6 +1329,7 @@ pub struct BenchReport {
     pub attention: Vec<AttentionRow>,
     pub modules: Vec<ModuleRow>,
     pub guided: Vec<GuidedRow>,
+    pub stage2: Vec<Stage2Row>,
     pub precision: Vec<PrecisionRow>,
     pub occupancy: Vec<OccupancyRow>,
     pub end_to_end: Vec<EndToEndRow>,
@@ -1178,6 +1367,22 @@ mod tests {
         let v = synthetic_view(28, 0.0);
         assert_eq!(v.pixels.dims(), &[1, 3, 28, 28]);
         assert!(v.mask.sum_all().unwrap().to_scalar::<f32>().unwrap() > 0.0);
+    }
+
+    /// The realistic voxel set: a few thousand surface voxels at 64³, about a
+    /// quarter of them as 32³ tokens, in argwhere order, the same every time.
+    #[test]
+    fn object_voxels_are_a_realistic_surface() {
+        let v = object_voxels(64);
+        assert!((2000..12000).contains(&v.len()), "{} voxels", v.len());
+        assert!(v.windows(2).all(|w| w[0] < w[1]) && v.iter().flatten().all(|&c| (0..64).contains(&c)));
+        let tokens = coarse_tokens(&v, 2);
+        assert!(tokens * 3 < v.len() && tokens * 6 > v.len(), "{tokens} tokens for {} voxels", v.len());
+        // Longest side spans 95 % of the grid.
+        let span = (0..3).map(|i| v.iter().map(|c| c[i]).max().unwrap() - v.iter().map(|c| c[i]).min().unwrap()).max().unwrap();
+        assert!((58..=62).contains(&span), "span {span}");
+        assert_eq!(object_voxels(64), v);
+        assert!(object_voxels(16).len() < v.len() / 8);
     }
 
     #[test]
@@ -1220,6 +1425,27 @@ mod tests {
         let rows = bench_train(&micro, 1, 1, |_| seen += 1).unwrap();
         assert_eq!((rows.len(), seen), (3, 3));
         assert!(rows.iter().all(|r| r.forward_seconds > 0.0 && r.backward_seconds > 0.0 && r.update_seconds > 0.0));
+    }
+
+    /// The stage2 section profiles a guided step of the tiny SLat flow on the
+    /// object voxel set, and the end-to-end object runs stage 2 on that set.
+    #[test]
+    fn stage2_section_and_object_occupancy_run_tiny() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/recgen-tiny.json");
+        let rows = bench_stage2(&path, &[Compute::fast(Precision::F32)], 1, |_| {}).unwrap();
+        let r = &rows[0];
+        let p = &r.profile;
+        assert_eq!(r.voxels, object_voxels(32).len());
+        assert!(r.tokens > 0 && r.tokens < r.voxels && r.step_seconds > 0.0, "{r:?}");
+        assert!(p.gemm.flops > 0.0 && p.attention.flops > 0.0 && p.sparse_conv.flops > 0.0 && p.sparse_index.calls > 0, "{p:?}");
+        assert!(p.transformer_flops > 0.0 && p.io_blocks_flops > 0.0 && r.flops >= p.transformer_flops + p.io_blocks_flops, "{p:?}");
+        assert!(r.gflops > 0.0 && r.io_blocks_seconds < r.step_seconds && r.transformer_seconds < r.step_seconds, "{r:?}");
+        assert!(!crate::util::profile::enabled());
+
+        let e = bench_end_to_end(&path, Compute::fast(Precision::F32), Some(1), 0, true).unwrap();
+        let want = object_voxels(32); // the tiny SS decoder's grid
+        assert_eq!((e.occupancy.as_str(), e.occupied_voxels), ("object", want.len()));
+        assert_eq!(e.slat_tokens, coarse_tokens(&want, 2));
     }
 
     /// The module bench runs every module of the tiny architecture on both paths.

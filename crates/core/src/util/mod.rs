@@ -7,6 +7,7 @@ pub(crate) mod buffer_cache;
 pub mod json;
 pub mod limits;
 pub mod memory;
+pub mod profile;
 #[cfg(any(test, feature = "testkit"))]
 pub mod testing;
 

@@ -34,12 +34,18 @@ pub fn linear(in_dim: usize, out_dim: usize, vb: VarBuilder, compute: Compute) -
 
 /// LayerNorm over the last dim without affine parameters (computed in f32).
 pub fn layer_norm_plain(x: &Tensor, eps: f64) -> Result<Tensor> {
-    let dtype = x.dtype();
-    let x = x.to_dtype(DType::F32)?;
-    let mean = x.mean_keepdim(D::Minus1)?;
-    let xc = x.broadcast_sub(&mean)?;
-    let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
-    xc.broadcast_div(&(var + eps)?.sqrt()?)?.to_dtype(dtype)
+    crate::util::profile::timed(
+        crate::util::profile::Kind::Norm,
+        || 0,
+        || {
+            let dtype = x.dtype();
+            let x = x.to_dtype(DType::F32)?;
+            let mean = x.mean_keepdim(D::Minus1)?;
+            let xc = x.broadcast_sub(&mean)?;
+            let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+            xc.broadcast_div(&(var + eps)?.sqrt()?)?.to_dtype(dtype)
+        },
+    )
 }
 
 /// Affine LayerNorm over the last dim (`{prefix}.weight`, `{prefix}.bias`).

@@ -32,6 +32,8 @@ pub use recon_kernels::isa::Isa;
 use recon_kernels::vecmath;
 pub use recon_kernels::vecmath::Activation;
 
+use crate::util::profile;
+
 /// Storage/arithmetic precision of the fast path (see the module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
@@ -198,7 +200,12 @@ impl FastLinear {
 
     /// [`Self::forward_slice`] into `out` (`[m, N]`).
     pub fn forward_into(&self, x: &[f32], m: usize, act: Activation, out: &mut [f32]) -> Result<()> {
-        gemm(self.isa, x, m, self.in_dim(), &self.w, self.bias.as_deref(), act, out, self.out_dim()).map_err(kerr)
+        let (k, n) = (self.in_dim(), self.out_dim());
+        profile::timed(
+            profile::Kind::Gemm,
+            || 2 * (m * k * n) as u64,
+            || gemm(self.isa, x, m, k, &self.w, self.bias.as_deref(), act, out, n).map_err(kerr),
+        )
     }
 
     /// `act(x·Wᵀ + b)` over the last dim of `x`.
@@ -308,6 +315,10 @@ fn per_item(t: Option<&Tensor>, c: usize) -> Result<Option<(Vec<f32>, usize)>> {
 /// `LN(x)·mul + add` with `mul`/`add` `[C]` or per item `[B, C]`
 /// (adaLN: `mul = 1 + scale`, `add = shift`).
 pub fn layer_norm(isa: Isa, x: &Tensor, eps: f64, mul: Option<&Tensor>, add: Option<&Tensor>) -> Result<Tensor> {
+    profile::timed(profile::Kind::Norm, || 0, || layer_norm_impl(isa, x, eps, mul, add))
+}
+
+fn layer_norm_impl(isa: Isa, x: &Tensor, eps: f64, mul: Option<&Tensor>, add: Option<&Tensor>) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let c = *dims.last().unwrap_or(&1);
     let rows = x.elem_count() / c.max(1);
@@ -391,11 +402,17 @@ pub fn gated_residual(x: &Tensor, h: &Tensor, gate: Option<&Tensor>) -> Result<T
 /// (at `row·stride + offset + h·d`) → `x/‖x‖·gamma[h]·√d`.
 pub fn rms_norm_heads(buf: &mut [f32], rows: usize, stride: usize, offset: usize, gamma: &[f32], heads: usize, d: usize) {
     let scale = (d as f32).sqrt();
-    buf.par_chunks_mut(stride).take(rows).for_each(|row| {
-        for h in 0..heads {
-            vecmath::rms_norm_head(&mut row[offset + h * d..offset + (h + 1) * d], &gamma[h * d..(h + 1) * d], scale);
-        }
-    });
+    profile::timed(
+        profile::Kind::Norm,
+        || 0,
+        || {
+            buf.par_chunks_mut(stride).take(rows).for_each(|row| {
+                for h in 0..heads {
+                    vecmath::rms_norm_head(&mut row[offset + h * d..offset + (h + 1) * d], &gamma[h * d..(h + 1) * d], scale);
+                }
+            })
+        },
+    );
 }
 
 /// Flash attention on row buffers: q rows `[.., q_stride]`, k/v rows; heads
@@ -424,7 +441,9 @@ pub fn attention_rows(
         out: HeadLayout::new(c, 0),
         precision: precision.attention(),
     };
-    flash_attention(isa, &spec, q.0, k.0, v.0, segments, &mut out).map_err(kerr)?;
+    // Scores and weighted sum: 2·d each per (query, key, head).
+    let flops = || segments.iter().map(|s| 4 * (s.q.len() * s.kv.len() * c) as u64).sum();
+    profile::timed(profile::Kind::Attention, flops, || flash_attention(isa, &spec, q.0, k.0, v.0, segments, &mut out)).map_err(kerr)?;
     Ok(out)
 }
 

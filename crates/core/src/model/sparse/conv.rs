@@ -10,6 +10,7 @@
 //!   matmul, index_add scatter), so gradients flow to feats and weights.
 
 use super::tensor::SparseTensor;
+use crate::util::profile;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
@@ -17,7 +18,7 @@ use recon_kernels::sparse::NeighbourMap;
 
 /// Build the submanifold neighbour map of `x`'s coordinates.
 pub fn neighbour_map(x: &SparseTensor, kernel_size: usize) -> Result<NeighbourMap> {
-    NeighbourMap::submanifold(&x.coords, kernel_size).map_err(Error::msg)
+    profile::timed(profile::Kind::SparseIndex, || 0, || NeighbourMap::submanifold(&x.coords, kernel_size).map_err(Error::msg))
 }
 
 /// Submanifold sparse 3D convolution with odd kernel size k: outputs only at the input's active voxels.
@@ -84,14 +85,17 @@ impl SparseConv3d {
         self.check_input(x, map)?;
         let dtype = x.feats.dtype();
         let feats = x.feats.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-        let out = recon_kernels::sparse::submanifold_conv3d(
-            &feats,
-            self.in_channels,
-            map,
-            &self.weight_host,
-            self.bias_host.as_deref(),
-            self.out_channels,
-        )
+        let flops = || 2 * (map.pairs.iter().map(Vec::len).sum::<usize>() * self.in_channels * self.out_channels) as u64;
+        let out = profile::timed(profile::Kind::SparseConv, flops, || {
+            recon_kernels::sparse::submanifold_conv3d(
+                &feats,
+                self.in_channels,
+                map,
+                &self.weight_host,
+                self.bias_host.as_deref(),
+                self.out_channels,
+            )
+        })
         .map_err(Error::msg)?;
         let out = Tensor::from_vec(out, (x.len(), self.out_channels), x.feats.device())?.to_dtype(dtype)?;
         x.with_feats(out)

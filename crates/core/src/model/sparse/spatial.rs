@@ -28,6 +28,10 @@ pub struct DownsampleCache {
 /// Pool onto `coords // factor` (floor division) with upstream's
 /// include-self mean: `sum / (count + 1)`.
 pub fn sparse_downsample(x: &SparseTensor, factor: usize) -> Result<(SparseTensor, DownsampleCache)> {
+    crate::util::profile::timed(crate::util::profile::Kind::SparseIndex, || 0, || downsample(x, factor))
+}
+
+fn downsample(x: &SparseTensor, factor: usize) -> Result<(SparseTensor, DownsampleCache)> {
     if factor == 0 {
         return Err(Error::msg("sparse downsample: factor must be ≥ 1"));
     }
@@ -60,6 +64,10 @@ pub fn sparse_downsample(x: &SparseTensor, factor: usize) -> Result<(SparseTenso
 
 /// Nearest upsample back to the rows recorded by the matching downsample.
 pub fn sparse_upsample(x: &SparseTensor, cache: &DownsampleCache) -> Result<SparseTensor> {
+    crate::util::profile::timed(crate::util::profile::Kind::SparseIndex, || 0, || upsample(x, cache))
+}
+
+fn upsample(x: &SparseTensor, cache: &DownsampleCache) -> Result<SparseTensor> {
     if cache.inverse.iter().any(|&i| i as usize >= x.len()) {
         return Err(Error::msg("sparse upsample: cache does not belong to this tensor"));
     }

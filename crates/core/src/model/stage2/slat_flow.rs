@@ -24,6 +24,7 @@ use crate::model::sparse::conv::neighbour_map;
 use crate::model::sparse::spatial::xyz_tensor;
 use crate::model::sparse::{sparse_downsample, sparse_upsample, DownsampleCache, SparseConv3d, SparseTensor};
 use crate::model::stage1::embedders::{build_condition, CondEmbedderConfig, CondEmbedders, MaskEmbedder, PointmapEmbedder, ViewInputs};
+use crate::util::profile::{region, Region};
 use crate::{Error, Result};
 use candle_core::{Module, Tensor, D};
 use candle_nn::VarBuilder;
@@ -470,7 +471,7 @@ impl SLatFlowModel {
         let mut caches = Vec::new();
         let mut skips = Vec::new();
         for blk in &self.input_blocks {
-            h = blk.forward(&h, &t_emb, &mut caches, self.conv_path)?;
+            h = region(Region::IoBlocks, || blk.forward(&h, &t_emb, &mut caches, self.conv_path))?;
             skips.push(h.feats.clone());
             if let Some(tp) = taps.as_deref_mut() {
                 tp.input_blocks.push(h.clone());
@@ -508,9 +509,10 @@ impl SLatFlowModel {
                     Cond::Prepared(p) => blk.forward_prepared(x, emb, &p.block(j)?.narrow(items.start, items.len())?)?,
                 })
             };
-            if uniform {
-                feats = run(&feats.reshape((b, n0, c))?, &emb, 0..b)?.reshape((b * n0, c))?;
-            } else {
+            feats = region(Region::Transformer, || -> Result<Tensor> {
+                if uniform {
+                    return Ok(run(&feats.reshape((b, n0, c))?, &emb, 0..b)?.reshape((b * n0, c))?);
+                }
                 let mut parts = Vec::with_capacity(b);
                 for (i, r) in ranges.iter().enumerate() {
                     if r.is_empty() {
@@ -519,8 +521,8 @@ impl SLatFlowModel {
                     let xi = feats.narrow(0, r.start, r.len())?.unsqueeze(0)?;
                     parts.push(run(&xi, &emb.narrow(0, i, 1)?, i..i + 1)?.squeeze(0)?);
                 }
-                feats = if parts.is_empty() { feats } else { Tensor::cat(&parts, 0)? };
-            }
+                Ok(if parts.is_empty() { feats.clone() } else { Tensor::cat(&parts, 0)? })
+            })?;
             if let Some(tp) = taps.as_deref_mut() {
                 tp.blocks.push(feats.clone());
             }
@@ -529,8 +531,10 @@ impl SLatFlowModel {
 
         for blk in &self.out_blocks {
             let skip = skips.pop().ok_or_else(|| Error::msg("SLat flow: more out blocks than skips"))?;
-            let inp = if self.cfg.use_skip_connection { h.with_feats(Tensor::cat(&[&h.feats, &skip], 1)?)? } else { h };
-            h = blk.forward(&inp, &t_emb, &mut caches, self.conv_path)?;
+            h = region(Region::IoBlocks, || {
+                let inp = if self.cfg.use_skip_connection { h.with_feats(Tensor::cat(&[&h.feats, &skip], 1)?)? } else { h };
+                blk.forward(&inp, &t_emb, &mut caches, self.conv_path)
+            })?;
         }
 
         let out = self.out_layer.forward(&layer_norm_plain(&h.feats, 1e-5)?)?;

@@ -5,7 +5,7 @@
 
 use crate::model::nn::common::Linear;
 use crate::model::nn::common::{abs_position_embedding, layer_norm_plain, linear, FeedForward, MultiHeadAttention, PeMode};
-use crate::model::nn::fast::Compute;
+use crate::model::nn::fast::{self, Compute};
 use crate::model::sparse::windowed::{sparse_self_attention, WindowPartition};
 use crate::model::sparse::SparseTensor;
 use crate::{Error, Result};
@@ -123,11 +123,22 @@ pub struct SparseTransformerBlock {
     pub mlp: FeedForward,
     /// Window shift (swin mode).
     pub shift: usize,
+    compute: Compute,
 }
 
 impl SparseTransformerBlock {
     /// Apply the block to `feats` `[N, C]`, attention within the windows of `part`.
+    /// On the fast path the norms are the fused LayerNorm kernel and the
+    /// residuals one pass each (no candle temporaries for the mean, centred
+    /// values and variance); the plain path is the differentiable reference.
     pub fn forward(&self, feats: &Tensor, part: &WindowPartition) -> Result<Tensor> {
+        if let Some((_, isa)) = self.compute.fast_parts() {
+            let h = sparse_self_attention(&self.attn, &fast::layer_norm(isa, feats, 1e-6, None, None)?, part)?;
+            let x = fast::gated_residual(feats, &h, None)?;
+            drop(h);
+            let h = self.mlp.forward(&fast::layer_norm(isa, &x, 1e-6, None, None)?)?;
+            return Ok(fast::gated_residual(&x, &h, None)?);
+        }
         let h = sparse_self_attention(&self.attn, &layer_norm_plain(feats, 1e-6)?, part)?;
         let x = (feats + h)?;
         let h = self.mlp.forward(&layer_norm_plain(&x, 1e-6)?)?;
@@ -157,6 +168,7 @@ impl SparseTransformerBase {
                 attn: MultiHeadAttention::new(c, cfg.num_heads, None, false, b.pp("attn"), compute)?,
                 mlp: FeedForward::new(c, cfg.mlp_ratio, b.pp("mlp"), compute)?,
                 shift: if j % 2 == 1 { cfg.window_size / 2 } else { 0 },
+                compute,
             });
         }
         Ok(Self { cfg: cfg.clone(), input_layer, blocks })
