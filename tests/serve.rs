@@ -549,11 +549,13 @@ fn percentile(v: &mut [f64], p: f64) -> f64 {
     v[((v.len() - 1) as f64 * p).round() as usize]
 }
 
-/// 16 clients send 2 requests each at once against `--workers 2 --queue 8`: every answer
+/// 32 clients send 4 requests each at once against `--workers 2 --queue 8`: every answer
 /// is 200 or 429 (with Retry-After), every 200 is a complete, correct job, and the
 /// server's memory stays bounded.
 #[test]
 fn load_gets_200_or_429_and_every_200_is_right() {
+    const CLIENTS: usize = 32;
+    const PER_CLIENT: usize = 4;
     let t = tmp("serve-load");
     let server = Server::tiny(&t.join("data"), &["--workers", "2", "--queue", "8"]);
     let s = std::sync::Arc::new(sample());
@@ -561,11 +563,11 @@ fn load_gets_200_or_429_and_every_200_is_right() {
     let (ct, body) = (std::sync::Arc::new(ct), std::sync::Arc::new(body));
     let url = server.url("/v1/reconstruct");
     let t0 = Instant::now();
-    let handles: Vec<_> = (0..16)
+    let handles: Vec<_> = (0..CLIENTS)
         .map(|_| {
             let (ct, body, url) = (ct.clone(), body.clone(), url.clone());
             std::thread::spawn(move || {
-                (0..2)
+                (0..PER_CLIENT)
                     .map(|_| {
                         let t = Instant::now();
                         let a = request("POST", &url, Some((&ct, &body)), None);
@@ -593,13 +595,15 @@ fn load_gets_200_or_429_and_every_200_is_right() {
         }
     }
     let n429 = results.len() - ok_s.len();
-    assert!(!ok_s.is_empty() && ok_s.len() >= 10, "{} of 32 got 200", ok_s.len());
+    assert_eq!(results.len(), CLIENTS * PER_CLIENT);
+    assert!(ok_s.len() >= 10, "{} of {} got 200", ok_s.len(), results.len());
     let metrics = get(&server.url("/metrics")).text();
     let peak: f64 = metrics.lines().find_map(|l| l.strip_prefix("recon_peak_resident_memory_bytes ")).unwrap().parse().unwrap();
     let (p50, p99) = (percentile(&mut ok_s.clone(), 0.5), percentile(&mut ok_s, 0.99));
     eprintln!(
-        "load: 32 requests in {wall:.1} s: {} × 200 (p50 {p50:.2} s, p99 {p99:.2} s), {n429} × 429; server peak RSS {:.0} MiB",
-        32 - n429,
+        "load: {} requests in {wall:.1} s: {} × 200 (p50 {p50:.2} s, p99 {p99:.2} s), {n429} × 429; server peak RSS {:.0} MiB",
+        results.len(),
+        ok_s.len(),
         peak / 1048576.0
     );
     assert!(peak < 4e9, "peak RSS {peak}");
