@@ -1,7 +1,7 @@
 """recon: RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
 
 from os import PathLike
-from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -147,6 +147,12 @@ class Engine:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
 
@@ -165,8 +171,13 @@ class Engine:
         parallel_objects: objects reconstructed at once (results do not depend on it).
         max_objects: most objects whose masks pass the checks (the ones the model runs on);
             a frame with more is an InputError naming the count and the limit.
+        RecGen's preprocessing, with `recgen_inference.generate`'s names and defaults:
+            quantile_drop_threshold (fraction of points dropped at each end when sizing the
+            unit cube), clamp_range (of the normalised point map), mask_erosion_enabled /
+            mask_erosion_kernel_size / mask_erosion_iterations (its `mask_erosion_params`),
+            use_pointmap (False: the model is conditioned on the image and mask only).
         progress: called with event dicts (object, sample, stage, …) from worker threads.
-        The per-frame keywords (seed … max_objects) are `recon infer`'s flags with `_`,
+        The per-frame keywords (seed … use_pointmap) are `recon infer`'s flags with `_`,
         with the CLI's defaults (`infer_defaults()`); an unknown keyword is a ConfigError
         listing them.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
@@ -195,6 +206,12 @@ class Engine:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
         the same masks (one instance-id PNG or several binary masks), the same output folder
@@ -317,6 +334,12 @@ def eval(
     smooth: int = 0,
     parallel_objects: int = 1,
     max_objects: int = 256,
+    quantile_drop_threshold: float = 0.05,
+    clamp_range: Tuple[float, float] = (-2.0, 3.0),
+    mask_erosion_enabled: bool = True,
+    mask_erosion_kernel_size: int = 5,
+    mask_erosion_iterations: int = 1,
+    use_pointmap: bool = True,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -328,7 +351,9 @@ def eval(
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
     per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
     select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
-    parallel_objects, max_objects. Returns report.json's dict."""
+    parallel_objects, max_objects, and RecGen's preprocessing (quantile_drop_threshold,
+    clamp_range, mask_erosion_enabled, mask_erosion_kernel_size, mask_erosion_iterations,
+    use_pointmap). Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,
@@ -414,6 +439,12 @@ class Client:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
         given take the server's defaults (its flags), which are the library's unless it was

@@ -167,6 +167,12 @@ impl InferOptions {
             ..Default::default()
         };
         s.run.seed = self.seed;
+        s.run.use_pointmap = self.use_pointmap;
+        s.prepare.quantile_drop = self.quantile_drop_threshold;
+        s.prepare.clamp = Some((self.clamp_range.low as f32, self.clamp_range.high as f32));
+        s.prepare.erosion = self
+            .mask_erosion_enabled
+            .then_some(crate::dataset::masks::Erosion { kernel: self.mask_erosion_kernel_size, iterations: self.mask_erosion_iterations });
         // One `--steps` / `--cfg` sets both stages' samplers.
         (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
         (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
