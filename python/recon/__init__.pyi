@@ -93,12 +93,40 @@ class Object:
     gaussians: Optional[Gaussians]
     details: Dict[str, Any]
     """What pose.json holds besides the pose: selection, views, candidates, run, notes."""
+    raw_mesh: Optional[Mesh]
+    """The mesh in the object frame (RecGen's `raw_mesh`): the decoder's canonical
+    [-0.5, 0.5]³, z up (stretched per axis with pose_fit="depth-stretch"); `mesh` is this
+    mesh placed by the pose."""
+    raw_gaussians: Optional[Gaussians]
+    """The Gaussians in the object frame; `gaussians` are these placed by the pose."""
+    pose_matrix: Optional[npt.NDArray[np.float64]]
+    """RecGen's `pose_matrix`: 4×4 [s·R | t], object frame → the anchor view's normalised
+    point-map frame (not metres: `inv(cam2ncam) @ pose_matrix` is the camera-frame map)."""
+    pose_quat: Optional[npt.NDArray[np.float64]]
+    """RecGen's `pose_quat`: [tx, ty, tz, qx, qy, qz, qw] of `pose_matrix` (scipy order, w last)."""
+    parsed_pose: Optional[Dict[str, Any]]
+    """RecGen's `pose` dict: quaternion [x, y, z, w], translation, scale, rotation_matrix
+    (normalised frame)."""
+    cam2ncam: Optional[npt.NDArray[np.float64]]
+    """RecGen's `cam2ncam`: 4×4 anchor camera (metres) → normalised frame."""
+    pose_representation: Optional[str]
+    """RecGen's `pose_representation`: the stage-1 pose layout ("6d_translation_scale")."""
+    rgb: Optional[npt.NDArray[np.uint8]]
+    """The anchor view's H×W×3 image (shared by the frame's objects)."""
+    intrinsics: Optional[npt.NDArray[np.float64]]
+    """The anchor view's 3×3 K.
+    The RecGen fields above are None for objects of a `recon.Client` answer."""
     def to_glb(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.glb`."""
     def to_ply(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.ply`."""
     def gaussians_to_ply(self, path: _Path) -> None:
         """Write the Gaussians as `recon infer` writes `<object>/gaussians.ply`."""
+    def save(self, output_dir: _Path, *, save_splat: bool = True) -> None:
+        """RecGen's `RecGenResult.save`: mesh.obj (object frame), posed_mesh.obj (camera
+        frame), gaussian.ply and posed_gaussian.ply (with save_splat), overlay.png and
+        metadata.json into `output_dir` (created if needed): the files `recon infer` writes
+        beside pose.json."""
     def to_trimesh(self) -> Any:
         """The mesh as a `trimesh.Trimesh` with RGBA vertex colours (needs trimesh)."""
 
