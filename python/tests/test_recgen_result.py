@@ -75,7 +75,7 @@ def test_objects_carry_recgens_fields_and_save_its_files(synth_ds, engine, recon
 
 def test_preprocessing_keywords_are_checked_and_used(synth_ds, engine):
     _, fr, masks = frame_and_masks(synth_ds)
-    run = lambda **kw: engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks[:1], **INFER, **kw)[0]  # noqa: E731
+    run = lambda **kw: {o.label: o for o in engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER, **kw)}  # noqa: E731
     for kw, name in [
         ({"quantile_drop_threshold": 0.5}, "quantile_drop_threshold: must be in"),
         ({"clamp_range": (3.0, -2.0)}, "clamp_range: must be two finite numbers"),
@@ -87,8 +87,10 @@ def test_preprocessing_keywords_are_checked_and_used(synth_ds, engine):
         with pytest.raises(recon.ConfigError, match=name):
             run(**kw)
     base = run()
-    assert "use_pointmap" not in base.details["run"]
-    assert run(use_pointmap=False).details["run"]["use_pointmap"] is False
-    # Without erosion more of the mask's pixels enter the point statistics.
+    assert base and all("use_pointmap" not in o.details["run"] for o in base.values())
+    off = run(use_pointmap=False)
+    assert off and all(o.details["run"]["use_pointmap"] is False for o in off.values())
+    # Without erosion more of each mask's pixels enter the point statistics.
     wide = run(mask_erosion_enabled=False)
-    assert wide.details["views"][0]["observed_points"] > base.details["views"][0]["observed_points"]
+    points = lambda o: o.details["views"][0]["observed_points"]  # noqa: E731
+    assert set(base) <= set(wide) and all(points(wide[k]) > points(o) for k, o in base.items())
