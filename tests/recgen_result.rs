@@ -232,3 +232,32 @@ fn without_the_pointmap_the_run_ignores_it() {
     assert!(with.get("use_pointmap").is_none());
     assert_eq!(serde_json::to_value(&a.metadata).unwrap()["use_pointmap"], false);
 }
+
+/// Without refinement or shape fit, one view, recon's `pose_matrix` is the model's own pose
+/// token in the normalised frame, as upstream's `parse_pose` gives it (to f32 rounding).
+#[test]
+fn unrefined_pose_matrix_is_the_models_token() {
+    use recon::engine::{PoseFit, ShapeFit};
+    let frame = RgbdFrame::open(&repo().join("data/sample/000001-color.png"), &FrameOptions::default()).unwrap();
+    let (objects, _) = InstanceMap::open(&repo().join("data/sample/000001-label.png")).unwrap().objects(Some(&[8]));
+    let engine = Engine::load(&ModelSource::Random { config: Some(tiny_config()), seed: 7 }, &LoadOptions::default()).unwrap();
+    let o = InferOptions { steps: Some(1), pose_fit: PoseFit::Recgen, shape_fit: ShapeFit::None, ..Default::default() };
+    let mut settings = o.settings().unwrap();
+    settings.run.decode_mesh = false; // the random decoder's mesh is large; the Gaussians score
+    let r = engine.reconstruct(&frame, objects, &settings).unwrap();
+    let o = &r.objects[0];
+    assert_eq!(o.selection.view, 1);
+    let (token, rp) = (&o.pose_normalised, o.recgen_pose());
+    for i in 0..3 {
+        for j in 0..3 {
+            assert_eq!(rp.pose.rotation_matrix[i][j], token.rotation[i][j] as f64);
+        }
+        assert!(
+            (rp.pose.translation[i] - token.translation[i] as f64).abs() < 1e-5,
+            "{:?} vs {:?}",
+            rp.pose.translation,
+            token.translation
+        );
+    }
+    assert!((rp.pose.scale / token.scale as f64 - 1.0).abs() < 1e-5);
+}

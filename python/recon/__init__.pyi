@@ -95,8 +95,8 @@ class Object:
     """What pose.json holds besides the pose: selection, views, candidates, run, notes."""
     raw_mesh: Optional[Mesh]
     """The mesh in the object frame (RecGen's `raw_mesh`): the decoder's canonical
-    [-0.5, 0.5]³, z up (stretched per axis with pose_fit="depth-stretch"); `mesh` is this
-    mesh placed by the pose."""
+    [-0.5, 0.5]³, z up (with the shape fit, that cube re-fitted around the fitted solid; with
+    pose_fit="depth-stretch", stretched per axis); `mesh` is this mesh placed by the pose."""
     raw_gaussians: Optional[Gaussians]
     """The Gaussians in the object frame; `gaussians` are these placed by the pose."""
     pose_matrix: Optional[npt.NDArray[np.float64]]

@@ -319,8 +319,9 @@ pub struct ObjectResult {
     /// Gaussians placed in the anchor camera frame (metres); `None` when not decoded.
     pub gaussians_camera: Option<Gaussians>,
     /// The mesh in the object frame, before the pose (RecGen's `raw_mesh`): the decoder's
-    /// canonical `[-0.5, 0.5]³`, z up, stretched per axis with `--pose-fit depth-stretch`;
-    /// `mesh_camera` is this mesh placed by `pose_camera`.
+    /// canonical `[-0.5, 0.5]³`, z up; with the shape fit that cube re-fitted around the
+    /// fitted solid (same axes, the pose absorbing shift and scale), and stretched per axis
+    /// with `--pose-fit depth-stretch`. `mesh_camera` is this mesh placed by `pose_camera`.
     pub mesh_object: Option<Mesh>,
     /// The Gaussians in the object frame (as `mesh_object`); `gaussians_camera` is these
     /// placed by `pose_camera`.

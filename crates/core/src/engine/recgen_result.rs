@@ -8,8 +8,10 @@
 //! mesh is `inv(cam2ncam) · pose_matrix · raw_mesh` (`_build_result_from_outputs`). recon
 //! refines and selects its pose in the camera frame ([`ObjectResult::pose_camera`], metres),
 //! so its RecGen form is `pose_matrix = cam2ncam · pose_camera`: upstream's identity holds,
-//! and without refinement (`--pose-fit recgen`, one view) `pose_matrix` is the model's own
-//! pose token as upstream reports it.
+//! and without refinement or shape fit (`--pose-fit recgen --shape-fit none`, one view)
+//! `pose_matrix` is the model's own pose token as upstream reports it. With the shape fit the
+//! object frame is the canonical cube re-fitted around the fitted solid (same axes; the pose
+//! absorbs the shift and scale), as [`ObjectResult::mesh_object`] says.
 //!
 //! **Quaternions.** `pose_quat` is `[tx, ty, tz, qx, qy, qz, qw]` and `pose.quaternion`
 //! `[qx, qy, qz, qw]`, scipy's order as upstream's (here with `qw ≥ 0`); recon's own files
