@@ -1,10 +1,12 @@
 //! The output folder of `recon infer`: per object `pose.json`, meshes and
-//! Gaussians, the placed scene, and the index file written last, through a
-//! staging folder so that an interrupted run never looks complete.
+//! Gaussians, RecGen's result files ([`RecgenFiles`]), the placed scene, and the
+//! index file written last, through a staging folder so that an interrupted run
+//! never looks complete.
 
 use crate::engine::infer::*;
 use crate::engine::pipeline::{RunMetadata, StageTimings};
 use crate::engine::pose_fit::PoseSpread;
+use crate::engine::recgen_result::RecgenFiles;
 use crate::engine::shape_fit::ShapeFitReport;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
 use crate::export::ply::{save_mesh_ply, PlyOptions};
@@ -111,9 +113,9 @@ fn safe_name(label: &str) -> String {
     label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
-/// Write per-object files, the scene GLB (all meshes and the observed
-/// points, coloured, in the anchor camera frame) and the observed points
-/// (PLY) into `out`. Files are written to a staging
+/// Write per-object files (recon's and RecGen's, [`RecgenFiles`]), the scene GLB
+/// (all meshes and the observed points, coloured, in the anchor camera frame) and the
+/// observed points (PLY) into `out`. Files are written to a staging
 /// folder first and moved into place at the end, so an interrupted run never
 /// leaves a complete-looking output.
 ///
@@ -183,6 +185,8 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
             save_splat_ply(g, &dir.join("gaussians.ply"), Axes::ZUp)?;
             w.gaussians_ply = Some(out.join(&name).join("gaussians.ply"));
         }
+        // RecGen's `save` beside recon's own files (the index keeps its earlier form).
+        RecgenFiles::of(o, result).write(&dir, true)?;
         observed.vertices.extend_from_slice(&o.observed_points);
         clouds.push((format!("observed {name}"), o.observed_points.clone(), o.observed_colors.clone()));
         written.push(w);

@@ -148,6 +148,9 @@ pub struct RunOptions {
     /// mark (Linux `clear_refs`) before every stage, so leave it off when
     /// something else in the process reads VmHWM.
     pub measure_memory: bool,
+    /// Condition both stages on each view's point map (RecGen's `use_pointmap`); off, the
+    /// point-map embedding is left out of the condition, as upstream passes `pointmap=None`.
+    pub use_pointmap: bool,
 }
 
 impl Default for RunOptions {
@@ -162,6 +165,7 @@ impl Default for RunOptions {
             decode_mesh: true,
             decode_gaussians: true,
             measure_memory: false,
+            use_pointmap: true,
         }
     }
 }
@@ -312,6 +316,14 @@ pub struct RunMetadata {
     pub slat_sampler: Option<SamplerSettings>,
     /// The order the seeded noise is drawn in (module docs, **Noise order**).
     pub noise_order: &'static str,
+    /// Whether the point maps conditioned the run ([`RunOptions::use_pointmap`]); written
+    /// only when they did not (earlier outputs: they did).
+    #[serde(skip_serializing_if = "is_true")]
+    pub use_pointmap: bool,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 /// The occupancy hook of [`Pipeline::run_guided`]: `(pose, voxels, resolution) → voxels`.
@@ -783,7 +795,7 @@ impl Pipeline {
         let mut meter = Meter { measure_memory: opts.measure_memory, tm: StageTimings::default(), mem: StageMemory::default() };
 
         // 1. Image encoder.
-        let views = self.encode_images(inputs, on_stage, &mut meter)?;
+        let views = self.encode_images(inputs, opts.use_pointmap, on_stage, &mut meter)?;
         // 2–3. Stage 1: condition, then latent + pose sampling. The same
         // generator then draws the stage-2 noise.
         let mut rng = SeededRng::new(opts.seed);
@@ -802,6 +814,7 @@ impl Pipeline {
             ss_sampler: ss_settings,
             slat_sampler: None,
             noise_order: NOISE_ORDER,
+            use_pointmap: opts.use_pointmap,
         };
         let (mut mesh, mut gaussians) = (None, None);
 
@@ -818,8 +831,15 @@ impl Pipeline {
         Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, memory, metadata })
     }
 
-    /// Step 1: DINOv2 tokens of every view, with the view's point map and mask.
-    fn encode_images(&self, inputs: &ObjectInputs, on_stage: &dyn Fn(Stage), meter: &mut Meter) -> Result<Vec<ViewInputs>> {
+    /// Step 1: DINOv2 tokens of every view, with the view's point map (unless
+    /// `use_pointmap` is off) and mask.
+    fn encode_images(
+        &self,
+        inputs: &ObjectInputs,
+        use_pointmap: bool,
+        on_stage: &dyn Fn(Stage),
+        meter: &mut Meter,
+    ) -> Result<Vec<ViewInputs>> {
         on_stage(Stage::ImageEncoder);
         meter.mark();
         let t = Instant::now();
@@ -832,7 +852,11 @@ impl Pipeline {
             .views
             .iter()
             .zip(&tokens)
-            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
+            .map(|(v, tok)| ViewInputs {
+                patch_tokens: tok.clone(),
+                pointmap: use_pointmap.then(|| v.pointmap.clone()),
+                mask: Some(v.mask.clone()),
+            })
             .collect())
     }
 
