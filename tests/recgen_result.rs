@@ -8,8 +8,8 @@ use candle_core::{Device, Tensor};
 use common::{repo, tiny_config, tmp};
 use recon::dataset::{FrameOptions, InstanceMap, Intrinsics, ObjectMask, RgbdFrame};
 use recon::engine::{
-    write_outputs, ClampRange, Engine, InferOptions, LoadOptions, ModelSource, ObjectInputs, Pipeline, RunOptions, Stages, ViewInput,
-    Weights, RECGEN_FILES,
+    write_outputs, write_outputs_with, ClampRange, Engine, InferOptions, LoadOptions, ModelSource, ObjectInputs, OutputOptions, Pipeline,
+    RunOptions, Stages, ViewInput, Weights, RECGEN_FILES,
 };
 use recon::geometry::prepare_frame_objects;
 use recon::math::Similarity32;
@@ -94,7 +94,14 @@ fn result_fields_and_files_agree_through_the_pose() {
     // The files: recon's, and RecGen's beside them.
     let dir = tmp("recgen-files");
     let out = dir.join("out");
-    let written = write_outputs(&r, &out).unwrap();
+    // By default only recon's own files.
+    let plain = dir.join("plain");
+    let written = write_outputs(&r, &plain).unwrap();
+    let obj = written[0].pose.parent().unwrap().to_path_buf();
+    for f in RECGEN_FILES {
+        assert!(!obj.join(f).exists(), "{f} written without recgen_files");
+    }
+    let written = write_outputs_with(&r, &out, &OutputOptions { recgen_files: true }).unwrap();
     let obj = written[0].pose.parent().unwrap().to_path_buf();
     for f in RECGEN_FILES.iter().chain(&["pose.json", "mesh.glb", "mesh.ply", "gaussians.ply"]) {
         assert!(obj.join(f).is_file(), "{f} missing");

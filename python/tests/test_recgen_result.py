@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import recon
-from conftest import INFER, cli_infer
+from conftest import INFER, cli_flags, run_cli
 
 RECGEN_FILES = ["mesh.obj", "posed_mesh.obj", "gaussian.ply", "posed_gaussian.ply", "overlay.png", "metadata.json"]
 
@@ -36,7 +36,7 @@ def scipy_matrix(q):
 def test_objects_carry_recgens_fields_and_save_its_files(synth_ds, engine, recon_cli, tmp_path):
     f, fr, masks = frame_and_masks(synth_ds)
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
-    cli_infer(recon_cli, f, tmp_path / "cli")
+    run_cli(recon_cli, "infer", "--rgbd", f["rgb"], "--masks", *f["masks"], "--out", tmp_path / "cli", "--recgen-files", *cli_flags(), ok=(0, 3))
     index = json.loads((tmp_path / "cli" / recon.OUTPUT_MARKER).read_text())
     assert len(objs) == len(index["objects"]) > 0
     for o, w in zip(objs, index["objects"]):

@@ -59,6 +59,10 @@ pub struct InferArgs {
     /// Also write `preview.png`: the input beside the posed meshes ray-cast from its camera.
     #[arg(long)]
     preview: bool,
+    /// Also write RecGen's `save` files per object (`mesh.obj`, `posed_mesh.obj`, `gaussian.ply`,
+    /// `posed_gaussian.ply`, `overlay.png`, `metadata.json`), as `recgen_inference` lays them out.
+    #[arg(long)]
+    recgen_files: bool,
 }
 
 fn frame_options(
@@ -184,7 +188,7 @@ pub fn exit_code(done: usize, failed: usize) -> i32 {
 pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     use anyhow::Context;
     use recon::dataset::RgbdFrame;
-    use recon::engine::write_outputs;
+    use recon::engine::{write_outputs_with, OutputOptions};
     use recon::engine::{Engine, SecondView};
     use recon::geometry::parse_rel_pose;
     if let Some(n) = a.threads {
@@ -241,7 +245,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             a.rgbd.with_file_name(format!("{stem}_recon"))
         }
     };
-    let written = write_outputs(&result, &out)?;
+    let written = write_outputs_with(&result, &out, &OutputOptions { recgen_files: a.recgen_files })?;
     if a.preview {
         let meshes: Vec<&recon::mesh::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
         recon::render::save_preview(&frame, &meshes, &out.join("preview.png"))?;

@@ -113,7 +113,7 @@ fn safe_name(label: &str) -> String {
     label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
-/// Write per-object files (recon's and RecGen's, [`RecgenFiles`]), the scene GLB
+/// Write per-object files (recon's; RecGen's too with [`write_outputs_with`]), the scene GLB
 /// (all meshes and the observed points, coloured, in the anchor camera frame) and the
 /// observed points (PLY) into `out`. Files are written to a staging
 /// folder first and moved into place at the end, so an interrupted run never
@@ -122,6 +122,20 @@ fn safe_name(label: &str) -> String {
 /// An existing `out` is replaced only when it is an earlier recon output
 /// (it holds [`MARKER`]); any other existing non-empty folder is an error.
 pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObject>> {
+    write_outputs_with(result, out, &OutputOptions::default())
+}
+
+/// What [`write_outputs_with`] writes beyond recon's own files.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct OutputOptions {
+    /// Also RecGen's `save` files per object ([`RecgenFiles`]: object- and
+    /// camera-frame OBJ meshes, both splat PLYs, the overlay, `metadata.json`).
+    /// Off by default: the two text meshes triple the sample's output (47 → 143 MB).
+    pub recgen_files: bool,
+}
+
+/// [`write_outputs`] with [`OutputOptions`].
+pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions) -> Result<Vec<WrittenObject>> {
     let staging = begin_output(out)?;
     // Camera frame stays as is (OpenCV: x right, y down, z forward) in every file.
     let glb = GlbOptions { axes: Axes::ZUp, vertex_colors: true };
@@ -186,7 +200,9 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
             w.gaussians_ply = Some(out.join(&name).join("gaussians.ply"));
         }
         // RecGen's `save` beside recon's own files (the index keeps its earlier form).
-        RecgenFiles::of(o, result).write(&dir, true)?;
+        if opts.recgen_files {
+            RecgenFiles::of(o, result).write(&dir, true)?;
+        }
         observed.vertices.extend_from_slice(&o.observed_points);
         clouds.push((format!("observed {name}"), o.observed_points.clone(), o.observed_colors.clone()));
         written.push(w);
