@@ -381,13 +381,33 @@ pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, c
     for f in primary.files.iter().filter(|f| !f.optional && !is_weights_file(f)) {
         need.push((primary, f, f.role.clone().unwrap_or_else(|| "config".into()), None));
     }
+    // Missing files, by manifest, with where they were looked for said once.
     let mut fetch = vec![primary.name.clone()];
-    for (m, f, what, _) in &need {
-        if !m.expected_path(cache, f).is_file() {
-            missing.push(format!("{what}: `{}` of {} (looked for {})", f.path, m.origin(), m.expected_path(cache, f).display()));
-            if !fetch.contains(&m.name) {
-                fetch.push(m.name.clone());
-            }
+    for m in &search {
+        let mine: Vec<_> = need.iter().filter(|(n, ..)| std::ptr::eq(*n, m)).collect();
+        let absent: Vec<String> = mine
+            .iter()
+            .filter(|(_, f, ..)| !m.expected_path(cache, f).is_file())
+            .map(|(_, f, what, key)| match key {
+                Some(_) => format!("{what} (`{}`)", f.path),
+                None => format!("`{}`", f.path),
+            })
+            .collect();
+        if absent.is_empty() {
+            continue;
+        }
+        let place = match (&m.repo, m.source.as_str()) {
+            (_, "url") => format!("{} (or torch.hub's checkpoints folder)", cache.join("recon-url").join(&m.name).display()),
+            (Some(repo), _) => match hf_cache::snapshot(cache, repo, m.revision()) {
+                Some(s) => s.dir.display().to_string(),
+                None => format!("{} (no snapshot of it there)", hf_cache::repo_folder(cache, repo).display()),
+            },
+            (None, _) => cache.display().to_string(),
+        };
+        let all = if absent.len() == mine.len() && absent.len() > 1 { "all " } else { "" };
+        missing.push(format!("{all}{} of {} in {place}: {}", absent.len(), m.origin(), absent.join(", ")));
+        if !fetch.contains(&m.name) {
+            fetch.push(m.name.clone());
         }
     }
     if !missing.is_empty() {
