@@ -228,6 +228,23 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         );
     }
 
+    if let recon::engine::WeightsSource::Files { manifest_files, notes, .. } = engine.pipeline.weights() {
+        if !manifest_files.is_empty() {
+            let mut names: Vec<&str> = manifest_files.iter().map(|f| f.manifest.as_str()).collect();
+            names.sort_unstable();
+            names.dedup();
+            let pins = manifest_files.iter().filter(|f| f.sha256.is_some()).count();
+            let lists = manifest_files.iter().filter(|f| f.tensors.is_some()).count();
+            eprintln!(
+                "weights: {} files of {} from the Hugging Face cache; {pins} SHA-256 pins and {lists} tensor lists matched (--json lists them)",
+                manifest_files.len(),
+                names.join(" + ")
+            );
+        }
+        for n in notes {
+            eprintln!("weights: {n}");
+        }
+    }
     let bar = Bar::new((objects.len() * opts.samples) as u64);
     let progress = |e: recon::engine::Progress<'_>| bar.event(e);
     let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
@@ -279,7 +296,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.infer.pose_fit, "seed": a.model.infer.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
-            "objects": objs, "skipped": skips, "notes": result.notes,
+            "objects": objs, "skipped": skips, "notes": result.notes, "weights": engine.pipeline.weights(),
         });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {

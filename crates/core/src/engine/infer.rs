@@ -684,7 +684,8 @@ impl Engine {
             ModelSource::Manifest { name, cache, .. } => {
                 let config = source.architecture()?;
                 let cfg = crate::model::config::RecGenConfig::load(&config)?;
-                let files: WeightFiles = crate::weights::manifest::resolve_module_files(name, &cfg, cache)?;
+                let manifest = crate::engine::source::manifest_of(name)?;
+                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache)?;
                 Pipeline::load(&config, Weights::Files(&files), all, options)?
             }
             ModelSource::Random { seed, .. } => Pipeline::load(&source.architecture()?, Weights::Random(*seed), all, options)?,

@@ -284,6 +284,14 @@ pub enum WeightsSource {
         files: Vec<PathBuf>,
         /// Whether any safetensors file carries the random-init label.
         random_init: bool,
+        /// Every file taken from a weights manifest (checkpoints, configs,
+        /// pose statistics), with its checked SHA-256 pin and tensor count.
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        manifest_files: Vec<crate::weights::ReadFile>,
+        /// What the release's own files set (module args, normalisation,
+        /// samplers) and other remarks of the manifest load.
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        notes: Vec<String>,
     },
 }
 
@@ -560,7 +568,11 @@ impl Pipeline {
     }
 
     fn from_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
-        let config = RecGenConfig::load(config_path)?;
+        // A manifest load brings the architecture its release's configs describe.
+        let config = match &weight_files.architecture {
+            Some(a) => a.clone(),
+            None => RecGenConfig::load(config_path)?,
+        };
         let mut sources = HashMap::new();
         let mut files = Vec::new();
         let mut random_init = false;
@@ -581,7 +593,13 @@ impl Pipeline {
             sources.insert(key, Source::File(path.clone()));
             files.push(path);
         }
-        let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
+        let weights = WeightsSource::Files {
+            dir: weight_files.dir.clone(),
+            files,
+            random_init,
+            manifest_files: weight_files.read.clone(),
+            notes: weight_files.notes.clone(),
+        };
         let mut p = Self::build(config, sources, weights, stages, *options)?;
         if let Some(f) = &weight_files.ss_stats {
             p.ss_stats = PoseStats::from_json_file(f)?;
