@@ -9,6 +9,7 @@
 
 use crate::engine::pose_fit::{PoseFit, SelectMethod};
 use crate::engine::shape_fit::{MeshFrom, ShapeFit};
+use crate::model::sampler::{Fusion, SlatFusion};
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
 
@@ -84,6 +85,17 @@ pub struct InferOptions {
     /// pixels). A frame with more is refused, naming the count, before any is reconstructed.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.max_objects))]
     pub max_objects: NonZeroUsize,
+    /// With more views than the model takes at once (a two-view model and several
+    /// --view): how stage 1 fuses the (anchor, view i) pairs at every step: the mean of
+    /// their guided velocities (multidiffusion, one model pass per pair and step) or one
+    /// pair per step in turn (stochastic, no extra cost).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.fusion))]
+    pub fusion: Fusion,
+    /// With more views than the model takes at once: stage 2 on the anchor and the first
+    /// other view (none), or on every pair fused as --fusion does (each pair past the first
+    /// then costs a stage-1 run for its pose).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.slat_fusion))]
+    pub slat_fusion: SlatFusion,
 }
 
 impl InferOptions {
@@ -102,10 +114,12 @@ impl InferOptions {
         smooth: DEFAULT_SMOOTH_ITERATIONS,
         parallel_objects: DEFAULT_PARALLEL_OBJECTS,
         max_objects: DEFAULT_MAX_OBJECTS,
+        fusion: Fusion::Multidiffusion,
+        slat_fusion: SlatFusion::None,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 13] = [
+    pub const NAMES: [&'static str; 15] = [
         "seed",
         "samples",
         "select",
@@ -119,6 +133,8 @@ impl InferOptions {
         "smooth",
         "parallel_objects",
         "max_objects",
+        "fusion",
+        "slat_fusion",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -253,6 +269,10 @@ mod tests {
     fn json_takes_the_same_names_and_defaults() {
         let o = InferOptions::from_json(serde_json::json!({"cfg": 3, "pose_fit": "depth-stretch", "steps": null})).unwrap();
         assert_eq!(o, InferOptions { cfg: Some(3.0), pose_fit: PoseFit::DepthStretch, ..Default::default() });
+        let o = InferOptions::from_json(serde_json::json!({"fusion": "stochastic", "slat_fusion": "multidiffusion"})).unwrap();
+        assert_eq!((o.fusion, o.slat_fusion), (Fusion::Stochastic, SlatFusion::Multidiffusion));
+        let e = InferOptions::from_json(serde_json::json!({"fusion": "average"})).unwrap_err();
+        assert_eq!(e.option(), "fusion");
         assert_eq!(InferOptions::from_json(serde_json::json!({})).unwrap(), InferOptions::default());
         let e = InferOptions::from_json(serde_json::json!({"sample": 2})).unwrap_err();
         assert!(e.to_string().starts_with("unknown option `sample`; the options are seed, samples,"), "{e}");
@@ -280,8 +300,11 @@ mod tests {
             smooth: 5,
             parallel_objects: NonZeroUsize::new(2).unwrap(),
             max_objects: NonZeroUsize::new(7).unwrap(),
+            fusion: Fusion::Stochastic,
+            slat_fusion: SlatFusion::Multidiffusion,
         };
         let s = o.settings().unwrap();
+        assert_eq!((s.run.fusion, s.run.slat_fusion), (Fusion::Stochastic, SlatFusion::Multidiffusion));
         assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
         assert_eq!(
             (s.run.ss_steps, s.run.slat_steps, s.run.ss_cfg_strength, s.run.slat_cfg_strength),
