@@ -11,6 +11,11 @@
 //! both is reconstructed from both (RecGen two-view conditioning, the
 //! relative camera pose from the frames' world poses, pose selection across
 //! views); results stay in the first frame's camera, scored against its GT.
+//!
+//! **N views** ([`recgen_dataset_views`]): each frame with the next N − 1
+//! frames of its scene (cyclically; fewer when the scene has fewer), every
+//! object seen in another frame reconstructed from all the frames it is seen
+//! in (pair fusion beyond two views, as `recon infer --view`).
 
 use std::path::{Path, PathBuf};
 
@@ -82,6 +87,19 @@ fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
     RgbdFrame::open(&ds.rgb_path(f), &fo)
 }
 
+/// The frames paired with frame `i` for `others + 1`-view evaluation: the next
+/// `others` frames of its scene (cyclically, at most the scene's other frames),
+/// those with world poses; none when frame `i` has no world pose.
+pub fn partners(ds: &Dataset, i: usize, others: usize) -> Vec<usize> {
+    let f = &ds.frames[i];
+    if f.cam_w2c.is_none() {
+        return Vec::new();
+    }
+    let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
+    let Some(pos) = same.iter().position(|&j| j == i) else { return Vec::new() };
+    (1..same.len().min(others + 1)).map(|k| same[(pos + k) % same.len()]).filter(|&j| ds.frames[j].cam_w2c.is_some()).collect()
+}
+
 /// Reconstructs every GT instance of one frame; with `second`, objects also
 /// visible there (matched by `obj_id`) are reconstructed from both frames.
 /// With `occlusion`, only GT instances in that occlusion range (percent,
@@ -90,6 +108,18 @@ pub fn recgen_frame(
     ds: &Dataset,
     f: &Frame,
     second: Option<&Frame>,
+    engine: &Engine,
+    opts: &InferSettings,
+    occlusion: Option<[f64; 2]>,
+) -> Result<RecgenRun> {
+    recgen_frame_views(ds, f, second.as_slice(), engine, opts, occlusion)
+}
+
+/// [`recgen_frame`] with any number of other frames (view 2, 3, … in order).
+pub fn recgen_frame_views(
+    ds: &Dataset,
+    f: &Frame,
+    others: &[&Frame],
     engine: &Engine,
     opts: &InferSettings,
     occlusion: Option<[f64; 2]>,
@@ -106,35 +136,33 @@ pub fn recgen_frame(
         let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
         masks.push(ObjectMask::from_bools(Some(gi as u32), format!("gt {gi}"), w, h, &mask));
     }
-    let second = match second {
-        Some(f2) => {
-            let rel = relative_pose(f, f2).ok_or_else(|| {
-                Error::input(
-                    ds.root.display().to_string(),
-                    format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for two views", f.scene, f.frame, f2.frame),
-                )
-            })?;
-            let frame2 = open_frame(ds, f2)?;
-            let mut label2: Option<InstanceMap> = None;
-            let mut masks2 = Vec::new();
-            for (gj, g2) in f2.gt.iter().enumerate() {
-                // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
-                let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
-                let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
-                if mask.iter().any(|&b| b) {
-                    masks2.push(ObjectMask::from_bools(Some(gi as u32), format!("view 2 gt {gj}"), w, h, &mask));
-                }
+    let mut opened = Vec::with_capacity(others.len());
+    for (i, f2) in others.iter().enumerate() {
+        let rel = relative_pose(f, f2).ok_or_else(|| {
+            Error::input(
+                ds.root.display().to_string(),
+                format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for several views", f.scene, f.frame, f2.frame),
+            )
+        })?;
+        let frame2 = open_frame(ds, f2)?;
+        let mut label2: Option<InstanceMap> = None;
+        let mut masks2 = Vec::new();
+        for (gj, g2) in f2.gt.iter().enumerate() {
+            // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
+            let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
+            let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
+            if mask.iter().any(|&b| b) {
+                masks2.push(ObjectMask::from_bools(Some(gi as u32), format!("view {} gt {gj}", i + 2), w, h, &mask));
             }
-            Some((frame2, masks2, rel))
         }
-        None => None,
-    };
+        opened.push((frame2, masks2, rel));
+    }
     let t0 = std::time::Instant::now();
-    let r = match second {
-        Some((frame2, masks2, rel)) => {
-            engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?
-        }
-        None => engine.reconstruct(&frame, masks, opts)?,
+    let r = if opened.is_empty() {
+        engine.reconstruct(&frame, masks, opts)?
+    } else {
+        let views = opened.iter().map(|(frame2, masks2, rel)| SecondView { frame: frame2, objects: masks2.clone(), t_c1_c2: *rel }).collect();
+        engine.reconstruct_views(&frame, masks, views, opts, &|_| {})?
     };
     run.seconds_model = t0.elapsed().as_secs_f64();
     for s in r.skipped {
@@ -185,10 +213,24 @@ pub fn recgen_dataset(
     occlusion: Option<[f64; 2]>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<RecgenRun> {
+    recgen_dataset_views(ds, engine, opts, if two_view { 2 } else { 1 }, occlusion, progress)
+}
+
+/// Every frame of `ds`, in order, each with its next `views − 1` frames
+/// ([`partners`]; `views` 2 is [`recgen_dataset`]'s `two_view`); frames
+/// without partners are reconstructed from one view.
+pub fn recgen_dataset_views(
+    ds: &Dataset,
+    engine: &Engine,
+    opts: &InferSettings,
+    views: usize,
+    occlusion: Option<[f64; 2]>,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RecgenRun> {
     let mut all = RecgenRun::default();
     for (i, f) in ds.frames.iter().enumerate() {
-        let second = if two_view { partner(ds, i).map(|j| &ds.frames[j]) } else { None };
-        let r = recgen_frame(ds, f, second, engine, opts, occlusion)?;
+        let others: Vec<&Frame> = partners(ds, i, views.saturating_sub(1)).into_iter().map(|j| &ds.frames[j]).collect();
+        let r = recgen_frame_views(ds, f, &others, engine, opts, occlusion)?;
         all.predictions.extend(r.predictions);
         all.skipped.extend(r.skipped);
         all.seconds_model += r.seconds_model;
@@ -259,5 +301,11 @@ mod tests {
             ..Default::default()
         };
         assert_eq!((0..6).map(|i| partner(&ds, i)).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
+        // N views: the next frames in turn, at most the scene's others; the first is `partner`'s.
+        assert_eq!(partners(&ds, 1, 3), vec![2, 0]);
+        assert_eq!(partners(&ds, 2, 1), vec![0]);
+        assert_eq!(partners(&ds, 0, 0), Vec::<usize>::new());
+        assert_eq!(partners(&ds, 3, 3), Vec::<usize>::new());
+        assert_eq!((partners(&ds, 4, 3), partners(&ds, 5, 3)), (vec![], vec![]));
     }
 }
