@@ -15,7 +15,10 @@
 //! **N views** ([`recgen_dataset_views`]): each frame with the next N − 1
 //! frames of its scene (cyclically; fewer when the scene has fewer), every
 //! object seen in another frame reconstructed from all the frames it is seen
-//! in (pair fusion beyond two views, as `recon infer --view`).
+//! in (pair fusion beyond two views, as `recon infer --view`). Without camera
+//! poses (YCB-Video) the relative pose comes from the GT pose of an object
+//! both frames annotate ([`relative_pose_from_objects`]: the scene's objects
+//! stay put).
 
 use std::path::{Path, PathBuf};
 
@@ -59,17 +62,24 @@ pub fn relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     Some(Similarity::rigid(r1, t1).compose(&(Similarity::rigid(r2, t2)).inverse()))
 }
 
-/// The frame paired with frame `i` for two-view evaluation: the next frame of
-/// its scene (cyclically), when the scene has another frame and both have world poses.
+/// Camera 2 → camera 1 from an object both frames annotate (frame 1's first
+/// such, in annotation order): `T_c1_obj · T_c2_obj⁻¹`. For datasets without
+/// camera poses whose objects stay put between frames (YCB-Video).
+pub fn relative_pose_from_objects(f1: &Frame, f2: &Frame) -> Option<Similarity> {
+    f1.gt.iter().find_map(|g1| {
+        let g2 = f2.gt.iter().find(|g| g.obj_id == g1.obj_id)?;
+        Some(Similarity::rigid(g1.r, g1.t).compose(&Similarity::rigid(g2.r, g2.t).inverse()))
+    })
+}
+
+/// Camera 2 → camera 1: from the frames' world poses, else from an object both annotate.
+pub fn frame_relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
+    relative_pose(f1, f2).or_else(|| relative_pose_from_objects(f1, f2))
+}
+
+/// The frame paired with frame `i` for two-view evaluation: the first of its [`partners`].
 pub fn partner(ds: &Dataset, i: usize) -> Option<usize> {
-    let f = &ds.frames[i];
-    let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
-    if same.len() < 2 || f.cam_w2c.is_none() {
-        return None;
-    }
-    let pos = same.iter().position(|&j| j == i)?;
-    let j = same[(pos + 1) % same.len()];
-    ds.frames[j].cam_w2c.is_some().then_some(j)
+    partners(ds, i, 1).first().copied()
 }
 
 #[derive(Default)]
@@ -87,17 +97,17 @@ fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
     RgbdFrame::open(&ds.rgb_path(f), &fo)
 }
 
-/// The frames paired with frame `i` for `others + 1`-view evaluation: the next
-/// `others` frames of its scene (cyclically, at most the scene's other frames),
-/// those with world poses; none when frame `i` has no world pose.
+/// The frames paired with frame `i` for `others + 1`-view evaluation: of the
+/// next `others` frames of its scene (cyclically, at most the scene's other
+/// frames), those related to it by a relative pose ([`frame_relative_pose`]).
 pub fn partners(ds: &Dataset, i: usize, others: usize) -> Vec<usize> {
     let f = &ds.frames[i];
-    if f.cam_w2c.is_none() {
-        return Vec::new();
-    }
     let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
     let Some(pos) = same.iter().position(|&j| j == i) else { return Vec::new() };
-    (1..same.len().min(others + 1)).map(|k| same[(pos + k) % same.len()]).filter(|&j| ds.frames[j].cam_w2c.is_some()).collect()
+    (1..same.len().min(others + 1))
+        .map(|k| same[(pos + k) % same.len()])
+        .filter(|&j| frame_relative_pose(f, &ds.frames[j]).is_some())
+        .collect()
 }
 
 /// Reconstructs every GT instance of one frame; with `second`, objects also
@@ -138,10 +148,13 @@ pub fn recgen_frame_views(
     }
     let mut opened = Vec::with_capacity(others.len());
     for (i, f2) in others.iter().enumerate() {
-        let rel = relative_pose(f, f2).ok_or_else(|| {
+        let rel = frame_relative_pose(f, f2).ok_or_else(|| {
             Error::input(
                 ds.root.display().to_string(),
-                format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for several views", f.scene, f.frame, f2.frame),
+                format!(
+                    "scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c, or an object both annotate, for several views",
+                    f.scene, f.frame, f2.frame
+                ),
             )
         })?;
         let frame2 = open_frame(ds, f2)?;
@@ -249,6 +262,7 @@ impl RecgenRun {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use recon_core::dataset::bop::GtInstance;
 
     fn rot(axis: usize, a: f64) -> [[f64; 3]; 3] {
         let (c, s) = (a.cos(), a.sin());
@@ -291,6 +305,23 @@ mod tests {
             assert!((got[k] - x1[k]).abs() < 1e-12, "{got:?} vs {x1:?}");
         }
         assert!(relative_pose(&f1, &frame("a", 2, None)).is_none());
+        // The same from an object both frames see (no camera poses): T_ci_obj = T_ci_w · T_w_obj.
+        let (ro, to) = (rot(2, 0.4), [0.05, 0.1, -0.2]);
+        let obj = |r: &[[f64; 3]; 3], t: &[f64; 3]| {
+            let s = Similarity::rigid(*r, *t).compose(&Similarity::rigid(ro, to));
+            GtInstance { obj_id: 7, r: s.rotation, t: s.translation, visib_fract: None, visib_estimated: false, bbox_visib: None }
+        };
+        let (mut g1, mut g2) = (frame("y", 1, None), frame("y", 2, None));
+        g1.gt.push(obj(&r1, &t1));
+        g2.gt.push(obj(&r2, &t2));
+        let rel = relative_pose_from_objects(&g1, &g2).unwrap();
+        let got = apply(&rel.rotation, &rel.translation, &x2);
+        for k in 0..3 {
+            assert!((got[k] - x1[k]).abs() < 1e-9, "{got:?} vs {x1:?}");
+        }
+        assert!(frame_relative_pose(&g1, &g2).is_some() && relative_pose(&g1, &g2).is_none());
+        g2.gt[0].obj_id = 8;
+        assert!(frame_relative_pose(&g1, &g2).is_none());
     }
 
     #[test]
