@@ -399,7 +399,10 @@ pub fn check_view_count(others: usize) -> Result<()> {
 /// without a partner are reported in the returned notes.
 #[allow(clippy::type_complexity)]
 pub fn match_views(v1: Vec<ObjectMask>, v2: Vec<ObjectMask>) -> Result<(Vec<(ObjectMask, Option<ObjectMask>)>, Vec<String>)> {
-    let (partners, notes) = match_view(&v1, v2, 2)?;
+    let (partners, notes) = match_view(&v1, v2, 2).map_err(|e| match e {
+        Error::Input { msg, .. } => Error::input("--masks2", msg),
+        e => e,
+    })?;
     Ok((v1.into_iter().zip(partners).collect(), notes))
 }
 
@@ -410,9 +413,8 @@ pub fn match_view(v1: &[ObjectMask], vk: Vec<ObjectMask>, view: usize) -> Result
     let by_id = v1.iter().chain(&vk).all(|o| o.id.is_some());
     if !by_id {
         if v1.len() != vk.len() {
-            let field = if view == 2 { "--masks2".to_string() } else { format!("view {view} masks") };
             return Err(Error::input(
-                field,
+                format!("view {view} masks"),
                 format!(
                     "{} mask(s) for view {view} but {} for view 1: masks without instance ids are matched by order",
                     vk.len(),
