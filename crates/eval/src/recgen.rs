@@ -7,7 +7,7 @@
 //! frame and are not defined).
 //!
 //! **Two views** ([`recgen_dataset`] with `two_view`): each frame is paired
-//! with the next frame of its scene (cyclically) and every object seen in
+//! with the next frame of its scene (cyclically, [`partners`]) and every object seen in
 //! both is reconstructed from both (RecGen two-view conditioning, the
 //! relative camera pose from the frames' world poses, pose selection across
 //! views); results stay in the first frame's camera, scored against its GT.
@@ -77,10 +77,6 @@ pub fn frame_relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     relative_pose(f1, f2).or_else(|| relative_pose_from_objects(f1, f2))
 }
 
-/// The frame paired with frame `i` for two-view evaluation: the first of its [`partners`].
-pub fn partner(ds: &Dataset, i: usize) -> Option<usize> {
-    partners(ds, i, 1).first().copied()
-}
 
 #[derive(Default)]
 pub struct RecgenRun {
@@ -110,22 +106,10 @@ pub fn partners(ds: &Dataset, i: usize, others: usize) -> Vec<usize> {
         .collect()
 }
 
-/// Reconstructs every GT instance of one frame; with `second`, objects also
-/// visible there (matched by `obj_id`) are reconstructed from both frames.
-/// With `occlusion`, only GT instances in that occlusion range (percent,
-/// [`in_occlusion`]) are reconstructed.
-pub fn recgen_frame(
-    ds: &Dataset,
-    f: &Frame,
-    second: Option<&Frame>,
-    engine: &Engine,
-    opts: &InferSettings,
-    occlusion: Option<[f64; 2]>,
-) -> Result<RecgenRun> {
-    recgen_frame_views(ds, f, second.as_slice(), engine, opts, occlusion)
-}
-
-/// [`recgen_frame`] with any number of other frames (view 2, 3, … in order).
+/// Reconstructs every GT instance of one frame; with `others` (view 2, 3, …),
+/// objects also visible there (matched by `obj_id`) are reconstructed from
+/// every frame they are seen in. With `occlusion`, only GT instances in that
+/// occlusion range (percent, [`in_occlusion`]) are reconstructed.
 pub fn recgen_frame_views(
     ds: &Dataset,
     f: &Frame,
@@ -331,7 +315,8 @@ mod tests {
             frames: vec![frame("a", 0, p), frame("a", 3, p), frame("a", 5, p), frame("b", 0, p), frame("c", 0, p), frame("c", 1, None)],
             ..Default::default()
         };
-        assert_eq!((0..6).map(|i| partner(&ds, i)).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
+        let partner = |i: usize| partners(&ds, i, 1).first().copied();
+        assert_eq!((0..6).map(partner).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
         // N views: the next frames in turn, at most the scene's others; the first is `partner`'s.
         assert_eq!(partners(&ds, 1, 3), vec![2, 0]);
         assert_eq!(partners(&ds, 2, 1), vec![0]);
