@@ -183,9 +183,8 @@ fn n_views_fuse_pairs_through_the_engine() {
     let others = |n: usize| -> Vec<SecondView> {
         (0..n).map(|i| SecondView { frame: &frame, objects: map.objects(Some(&[8])).0, t_c1_c2: cam(0.2 + 0.1 * i as f64) }).collect()
     };
-    let run = |n: usize, opts: &InferSettings| {
-        engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, others(n), opts, &|_| {}).unwrap()
-    };
+    let run =
+        |n: usize, opts: &InferSettings| engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, others(n), opts, &|_| {}).unwrap();
     // Other content in views 3 and 4: other objects' masks, labelled as object 8.
     let as_8 = |id: u32| {
         let m = map.objects(Some(&[id])).0.remove(0).to_bools();
@@ -198,9 +197,7 @@ fn n_views_fuse_pairs_through_the_engine() {
     };
     // One other view: exactly the two-view entry.
     let one = run(1, &opts);
-    let two_view = engine
-        .reconstruct_two_view(&frame, map.objects(Some(&[8])).0, others(1).pop().unwrap(), &opts)
-        .unwrap();
+    let two_view = engine.reconstruct_two_view(&frame, map.objects(Some(&[8])).0, others(1).pop().unwrap(), &opts).unwrap();
     let (a, b) = (&one.objects[0], &two_view.objects[0]);
     assert_eq!((a.pose_camera, a.candidates.len()), (b.pose_camera, 2));
     assert_eq!(a.gaussians_camera.as_ref().unwrap().positions, b.gaussians_camera.as_ref().unwrap().positions);
@@ -238,10 +235,9 @@ fn n_views_fuse_pairs_through_the_engine() {
         assert_ne!(y.candidates[0].pose_camera, *q, "{fusion:?}: the other views must change the result");
         // Same bytes with one kernel thread (so on a rerun too).
         let single = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| distinct(&o));
-        for z in [&single.objects[0]] {
-            assert_eq!(z.pose_camera, y.pose_camera, "{fusion:?}");
-            assert_eq!(z.gaussians_camera.as_ref().unwrap().positions, y.gaussians_camera.as_ref().unwrap().positions, "{fusion:?}");
-        }
+        let z = &single.objects[0];
+        assert_eq!(z.pose_camera, y.pose_camera, "{fusion:?}");
+        assert_eq!(z.gaussians_camera.as_ref().unwrap().positions, y.gaussians_camera.as_ref().unwrap().positions, "{fusion:?}");
         let json = serde_json::to_value(&x.views).unwrap();
         assert!(json[1].get("pose_own_token").is_none() && json[0].get("pose_own_token").is_some());
     }

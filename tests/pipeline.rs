@@ -278,7 +278,8 @@ fn fused_pairs_match_the_two_view_run() {
     let s1 = RunOptions { stage1_only: true, ..opts.clone() };
     let two1 = p.run(&inputs(&[&a, &b]), &s1).unwrap();
     let mean = p.run(&inputs(&[&a, &b, &b, &b]), &s1).unwrap();
-    let d = mean.pose.tokens_10d.iter().flatten().zip(two1.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    let d =
+        mean.pose.tokens_10d.iter().flatten().zip(two1.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
     assert!(d < 1e-4, "mean over copies: tokens differ by {d}");
     assert_eq!(mean.coords, two1.coords);
 

@@ -77,7 +77,6 @@ pub fn frame_relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     relative_pose(f1, f2).or_else(|| relative_pose_from_objects(f1, f2))
 }
 
-
 #[derive(Default)]
 pub struct RecgenRun {
     pub predictions: Vec<RecgenPrediction>,
@@ -158,7 +157,8 @@ pub fn recgen_frame_views(
     let r = if opened.is_empty() {
         engine.reconstruct(&frame, masks, opts)?
     } else {
-        let views = opened.iter().map(|(frame2, masks2, rel)| SecondView { frame: frame2, objects: masks2.clone(), t_c1_c2: *rel }).collect();
+        let views =
+            opened.iter().map(|(frame2, masks2, rel)| SecondView { frame: frame2, objects: masks2.clone(), t_c1_c2: *rel }).collect();
         engine.reconstruct_views(&frame, masks, views, opts, &|_| {})?
     };
     run.seconds_model = t0.elapsed().as_secs_f64();

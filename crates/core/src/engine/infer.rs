@@ -68,10 +68,10 @@ use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser
 use crate::geometry::pose::Pose;
 use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
 use crate::math::Similarity;
-use crate::model::sampler::Fusion;
 use crate::mesh::post::{decimate, drop_floaters, taubin_smooth};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
+use crate::model::sampler::Fusion;
 use crate::spatial::KdTree;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};

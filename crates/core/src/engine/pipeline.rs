@@ -904,8 +904,7 @@ impl Pipeline {
                 None => groups.into_iter().take(1).map(|g| (g, slat_pose.clone())).collect(),
             };
             let fusion = slat_fusion.unwrap_or_default();
-            let slat =
-                self.sample_slat(&conditions, fusion, &coords4, ss_resolution, &slat_settings, &mut rng, on_stage, &mut meter)?;
+            let slat = self.sample_slat(&conditions, fusion, &coords4, ss_resolution, &slat_settings, &mut rng, on_stage, &mut meter)?;
             metadata.slat_sampler = Some(slat_settings);
             // 8. Decoders.
             (mesh, gaussians) = self.decode_slat(&slat, opts, on_stage, &mut meter)?;

@@ -72,7 +72,14 @@ impl ViewSpec {
         let label = format!("{label} ({})", path.display());
         let len = std::fs::metadata(path).map_err(|e| Error::input(&label, format!("cannot read the view file: {e}")))?.len();
         if len > MAX_VIEW_FILE_BYTES {
-            return Err(Error::too_large(&label, "view file", len as u128, MAX_VIEW_FILE_BYTES as u128, "bytes", "a view file holds a few paths and numbers"));
+            return Err(Error::too_large(
+                &label,
+                "view file",
+                len as u128,
+                MAX_VIEW_FILE_BYTES as u128,
+                "bytes",
+                "a view file holds a few paths and numbers",
+            ));
         }
         let text = std::fs::read_to_string(path).map_err(|e| Error::input(&label, format!("cannot read the view file: {e}")))?;
         let v: Value = serde_json::from_str(&text).map_err(|e| Error::input(&label, format!("not valid JSON: {e}")))?;
@@ -83,7 +90,8 @@ impl ViewSpec {
     /// A view from its JSON object; relative paths are joined to `base`.
     pub fn from_json(v: &Value, base: &Path, label: &str) -> Result<Self> {
         let bad = |field: &str, msg: String| Error::input(label, format!("`{field}`: {msg}"));
-        let m = v.as_object().ok_or_else(|| Error::input(label, format!("a view must be a JSON object with keys {}", VIEW_KEYS.join(", "))))?;
+        let m =
+            v.as_object().ok_or_else(|| Error::input(label, format!("a view must be a JSON object with keys {}", VIEW_KEYS.join(", "))))?;
         if let Some(k) = m.keys().find(|k| !VIEW_KEYS.contains(&k.as_str())) {
             return Err(bad(k, format!("unknown key; a view has {}", VIEW_KEYS.join(", "))));
         }
@@ -102,7 +110,10 @@ impl ViewSpec {
             frame.depth = Some(path("depth", d)?);
         }
         if let Some(s) = m.get("depth_scale").filter(|d| !d.is_null()) {
-            let s = s.as_f64().filter(|s| s.is_finite() && *s > 0.0).ok_or_else(|| bad("depth_scale", format!("expected positive metres per depth unit, got {s}")))?;
+            let s = s
+                .as_f64()
+                .filter(|s| s.is_finite() && *s > 0.0)
+                .ok_or_else(|| bad("depth_scale", format!("expected positive metres per depth unit, got {s}")))?;
             frame.depth_scale_m = Some(s);
         }
         match m.get("intrinsics") {
@@ -110,19 +121,22 @@ impl ViewSpec {
             Some(Value::String(s)) => {
                 let nums: Vec<f64> = s.split(',').filter_map(|x| x.trim().parse().ok()).collect();
                 if nums.len() == 4 && s.split(',').count() == 4 {
-                    frame.intrinsics = Some(Intrinsics::new(nums[0], nums[1], nums[2], nums[3]).map_err(|e| bad("intrinsics", e.to_string()))?);
+                    frame.intrinsics =
+                        Some(Intrinsics::new(nums[0], nums[1], nums[2], nums[3]).map_err(|e| bad("intrinsics", e.to_string()))?);
                 } else {
                     frame.intrinsics_file = Some(base.join(s));
                 }
             }
             Some(k) => {
                 let nums = numbers(k).ok_or_else(|| bad("intrinsics", "expected [fx, fy, cx, cy], a 3×3 K or a file".to_string()))?;
-                frame.intrinsics = Some(match nums.len() {
-                    4 => Intrinsics::new(nums[0], nums[1], nums[2], nums[3]),
-                    9 => Intrinsics::from_k_row_major(&nums, label),
-                    n => return Err(bad("intrinsics", format!("expected [fx, fy, cx, cy] or a 3×3 K, got {n} numbers"))),
-                }
-                .map_err(|e| bad("intrinsics", e.to_string()))?);
+                frame.intrinsics = Some(
+                    match nums.len() {
+                        4 => Intrinsics::new(nums[0], nums[1], nums[2], nums[3]),
+                        9 => Intrinsics::from_k_row_major(&nums, label),
+                        n => return Err(bad("intrinsics", format!("expected [fx, fy, cx, cy] or a 3×3 K, got {n} numbers"))),
+                    }
+                    .map_err(|e| bad("intrinsics", e.to_string()))?,
+                );
             }
         }
         let t = m.get("T_c1_ci").ok_or_else(|| bad("T_c1_ci", "missing: this camera → the anchor camera, 4×4".to_string()))?;
@@ -181,7 +195,8 @@ mod tests {
         let k = [[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]];
         let v = ViewSpec::from_json(&json!({"rgb": "a.png", "masks": "l.png", "intrinsics": k, "T_c1_ci": flat}), base, "v").unwrap();
         assert_eq!(v.frame.intrinsics.unwrap().fy, 610.0);
-        let v = ViewSpec::from_json(&json!({"rgb": "a.png", "masks": "l.png", "intrinsics": "cam.json", "T_c1_ci": ID}), base, "v").unwrap();
+        let v =
+            ViewSpec::from_json(&json!({"rgb": "a.png", "masks": "l.png", "intrinsics": "cam.json", "T_c1_ci": ID}), base, "v").unwrap();
         assert_eq!(v.frame.intrinsics_file, Some(base.join("cam.json")));
 
         // Every error names the view and the field.

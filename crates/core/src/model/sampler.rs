@@ -430,7 +430,14 @@ impl FlowEulerGuidanceIntervalSampler {
     /// One step's velocity of `model` under `cond`: with `neg` the guided mix
     /// `(1+s)·v(cond) − s·v(neg)`, else `v(cond)`. Returns the conditional,
     /// the unconditional and the guided velocities.
-    fn step_velocity(&self, model: &dyn VelocityModel, x: &[Tensor], model_t: f32, cond: &Tensor, neg: Option<&Tensor>) -> Result<StepVelocities> {
+    fn step_velocity(
+        &self,
+        model: &dyn VelocityModel,
+        x: &[Tensor],
+        model_t: f32,
+        cond: &Tensor,
+        neg: Option<&Tensor>,
+    ) -> Result<StepVelocities> {
         let s = &self.settings;
         let (v_cond, v_uncond) = match neg {
             Some(neg) => {
