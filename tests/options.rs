@@ -37,11 +37,15 @@ fn flag(name: &str) -> String {
     format!("--{}", name.replace('_', "-"))
 }
 
-/// The default as clap prints it (`[default: …]`), `None` without one.
+/// The default as clap prints it (`[default: …]`), `None` without one; a pair of numbers
+/// (`clamp_range`) as `LOW,HIGH`.
 fn cli_default(v: &Value) -> Option<String> {
     match v {
         Value::Null => None,
         Value::String(s) => Some(s.clone()),
+        Value::Array(a) => {
+            Some(a.iter().map(|x| x.as_f64().map_or_else(|| x.to_string(), |f| f.to_string())).collect::<Vec<_>>().join(","))
+        }
         v => Some(v.to_string()),
     }
 }
@@ -109,9 +113,12 @@ fn cli_flags_have_the_library_names_and_defaults() {
     check_cli(&["scene"], &scene_defaults());
 }
 
-/// A Python literal of the stub as JSON (`None`, `"x"`, `200_000`, `0.02`, `True`).
+/// A Python literal of the stub as JSON (`None`, `"x"`, `200_000`, `0.02`, `True`, `(-2.0, 3.0)`).
 fn py_literal(s: &str) -> Value {
     match s {
+        s if s.len() >= 2 && (s.starts_with('(') || s.starts_with('[')) => {
+            Value::Array(s[1..s.len() - 1].split(',').map(str::trim).filter(|x| !x.is_empty()).map(py_literal).collect())
+        }
         "None" => Value::Null,
         "True" => Value::Bool(true),
         "False" => Value::Bool(false),

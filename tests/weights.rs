@@ -188,6 +188,7 @@ fn verify_table_on_a_directory() {
         revision: Some("main".into()),
         licence: None,
         notes: vec![],
+        requires: vec![],
         files: vec![
             serde_json::from_value(
                 serde_json::json!({"path": p.file_name().unwrap().to_str().unwrap(), "kind": "safetensors", "tensors": specs}),
@@ -209,8 +210,12 @@ fn verify_table_on_a_directory() {
 
 #[test]
 fn fetch_without_network_names_repo_and_file() {
-    // Point hf-hub at a closed local port so the test never touches the network.
-    std::env::set_var("HF_ENDPOINT", "http://127.0.0.1:9");
+    // Point the client at a closed local port so the test never touches the network
+    // (HF_ENDPOINT, through the settings as the CLI applies it).
+    let mut s = recon::settings::current();
+    s.hf_endpoint = Some("http://127.0.0.1:9".into());
+    s.hf_offline = false;
+    s.apply();
     let m = Manifest::load("recgen").unwrap();
     let cache = tmp("fetch");
     let err = recon::weights::fetch(&m, Some(&cache), false).unwrap_err().to_string();

@@ -1,7 +1,7 @@
 """recon: RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
 
 from os import PathLike
-from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -93,12 +93,40 @@ class Object:
     gaussians: Optional[Gaussians]
     details: Dict[str, Any]
     """What pose.json holds besides the pose: selection, views, candidates, run, notes."""
+    raw_mesh: Optional[Mesh]
+    """The mesh in the object frame (RecGen's `raw_mesh`): the decoder's canonical
+    [-0.5, 0.5]³, z up (with the shape fit, that cube re-fitted around the fitted solid; with
+    pose_fit="depth-stretch", stretched per axis); `mesh` is this mesh placed by the pose."""
+    raw_gaussians: Optional[Gaussians]
+    """The Gaussians in the object frame; `gaussians` are these placed by the pose."""
+    pose_matrix: Optional[npt.NDArray[np.float64]]
+    """RecGen's `pose_matrix`: 4×4 [s·R | t], object frame → the anchor view's normalised
+    point-map frame (not metres: `inv(cam2ncam) @ pose_matrix` is the camera-frame map)."""
+    pose_quat: Optional[npt.NDArray[np.float64]]
+    """RecGen's `pose_quat`: [tx, ty, tz, qx, qy, qz, qw] of `pose_matrix` (scipy order, w last)."""
+    parsed_pose: Optional[Dict[str, Any]]
+    """RecGen's `pose` dict: quaternion [x, y, z, w], translation, scale, rotation_matrix
+    (normalised frame)."""
+    cam2ncam: Optional[npt.NDArray[np.float64]]
+    """RecGen's `cam2ncam`: 4×4 anchor camera (metres) → normalised frame."""
+    pose_representation: Optional[str]
+    """RecGen's `pose_representation`: the stage-1 pose layout ("6d_translation_scale")."""
+    rgb: Optional[npt.NDArray[np.uint8]]
+    """The anchor view's H×W×3 image (shared by the frame's objects)."""
+    intrinsics: Optional[npt.NDArray[np.float64]]
+    """The anchor view's 3×3 K.
+    The RecGen fields above are None for objects of a `recon.Client` answer."""
     def to_glb(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.glb`."""
     def to_ply(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.ply`."""
     def gaussians_to_ply(self, path: _Path) -> None:
         """Write the Gaussians as `recon infer` writes `<object>/gaussians.ply`."""
+    def save(self, output_dir: _Path, *, save_splat: bool = True) -> None:
+        """RecGen's `RecGenResult.save`: mesh.obj (object frame), posed_mesh.obj (camera
+        frame), gaussian.ply and posed_gaussian.ply (with save_splat), overlay.png and
+        metadata.json into `output_dir` (created if needed): the files `recon infer` writes
+        beside pose.json."""
     def to_trimesh(self) -> Any:
         """The mesh as a `trimesh.Trimesh` with RGBA vertex colours (needs trimesh)."""
 
@@ -147,6 +175,12 @@ class Engine:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         views: Optional[Sequence[Dict[str, Any]]] = None,
@@ -174,8 +208,13 @@ class Engine:
         parallel_objects: objects reconstructed at once (results do not depend on it).
         max_objects: most objects whose masks pass the checks (the ones the model runs on);
             a frame with more is an InputError naming the count and the limit.
+        RecGen's preprocessing, with `recgen_inference.generate`'s names and defaults:
+            quantile_drop_threshold (fraction of points dropped at each end when sizing the
+            unit cube), clamp_range (of the normalised point map), mask_erosion_enabled /
+            mask_erosion_kernel_size / mask_erosion_iterations (its `mask_erosion_params`),
+            use_pointmap (False: the model is conditioned on the image and mask only).
         progress: called with event dicts (object, sample, stage, …) from worker threads.
-        The per-frame keywords (seed … max_objects) are `recon infer`'s flags with `_`,
+        The per-frame keywords (seed … use_pointmap) are `recon infer`'s flags with `_`,
         with the CLI's defaults (`infer_defaults()`); an unknown keyword is a ConfigError
         listing them.
         Objects that fail validation are left out (see `reconstruct_files` for the reasons).
@@ -204,6 +243,12 @@ class Engine:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         views: Optional[Sequence[Union[_Path, Dict[str, Any]]]] = None,
@@ -333,6 +378,12 @@ def eval(
     smooth: int = 0,
     parallel_objects: int = 1,
     max_objects: int = 256,
+    quantile_drop_threshold: float = 0.05,
+    clamp_range: Tuple[float, float] = (-2.0, 3.0),
+    mask_erosion_enabled: bool = True,
+    mask_erosion_kernel_size: int = 5,
+    mask_erosion_iterations: int = 1,
+    use_pointmap: bool = True,
     fusion: str = "multidiffusion",
     slat_fusion: str = "none",
 ) -> Dict[str, Any]:
@@ -347,7 +398,9 @@ def eval(
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
     per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
     select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
-    parallel_objects, max_objects, fusion, slat_fusion. Returns report.json's dict."""
+    parallel_objects, max_objects, and RecGen's preprocessing (quantile_drop_threshold,
+    clamp_range, mask_erosion_enabled, mask_erosion_kernel_size, mask_erosion_iterations,
+    use_pointmap), fusion, slat_fusion. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,
@@ -433,6 +486,12 @@ class Client:
         smooth: int = 0,
         parallel_objects: int = 1,
         max_objects: int = 256,
+        quantile_drop_threshold: float = 0.05,
+        clamp_range: Tuple[float, float] = (-2.0, 3.0),
+        mask_erosion_enabled: bool = True,
+        mask_erosion_kernel_size: int = 5,
+        mask_erosion_iterations: int = 1,
+        use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
     ) -> List[Object]:

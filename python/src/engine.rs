@@ -7,11 +7,14 @@
 use crate::convert::{from_python, rows, to_python};
 use crate::errors::{config, input, weights_to_py, ConfigError, IntoPy};
 use clap::ValueEnum;
-use numpy::{PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
-use recon::engine::{Dtype, InferOptions, InferSettings, ModelSource, ObjectResult, SecondView, ViewSpec};
+use recon::engine::{
+    Dtype, FrameImage, FrameResult, InferOptions, InferSettings, ModelSource, ObjectResult, RecgenFiles, RecgenPose, SecondView, ViewSpec,
+};
+use recon::geometry::pose::PoseRepresentation;
 use recon::math::Similarity;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -356,7 +359,8 @@ impl Engine {
             e.reconstruct_views(&frame, objects, sv, &opts, &report)
         });
         let result = result.py()?;
-        result.objects.into_iter().map(|o| Object::new(py, o)).collect()
+        let shared = FrameShared::new(py, &result)?;
+        result.objects.into_iter().map(|o| Object::new(py, o, &shared)).collect()
     }
 
     /// `recon infer` on files: the same discovery, the same calls, the same output folder.
@@ -655,10 +659,67 @@ pub struct Object {
     /// Everything pose.json holds except the files (selection, views, candidates, run, notes).
     #[pyo3(get)]
     details: Py<PyAny>,
+    /// The mesh in the object frame (RecGen's `raw_mesh`): `mesh` is this mesh placed by the pose.
+    #[pyo3(get)]
+    raw_mesh: Option<Py<Mesh>>,
+    /// The Gaussians in the object frame: `gaussians` are these placed by the pose.
+    #[pyo3(get)]
+    raw_gaussians: Option<Py<Gaussians>>,
+    /// RecGen's `pose_matrix`: float64 4×4, object frame → the anchor view's normalised frame.
+    #[pyo3(get)]
+    pose_matrix: Py<PyAny>,
+    /// RecGen's `pose_quat`: float64 `[tx, ty, tz, qx, qy, qz, qw]` (scipy order) of `pose_matrix`.
+    #[pyo3(get)]
+    pose_quat: Py<PyAny>,
+    /// RecGen's `pose` dict: quaternion (x, y, z, w), translation, scale, rotation_matrix.
+    #[pyo3(get)]
+    parsed_pose: Py<PyAny>,
+    /// RecGen's `cam2ncam`: float64 4×4, anchor camera (metres) → normalised frame.
+    #[pyo3(get)]
+    cam2ncam: Py<PyAny>,
+    /// RecGen's `pose_representation` (the stage-1 pose layout, e.g. `6d_translation_scale`).
+    #[pyo3(get)]
+    pose_representation: Option<String>,
+    /// The anchor view's H×W×3 uint8 image (one array shared by the frame's objects).
+    #[pyo3(get)]
+    rgb: Py<PyAny>,
+    /// The anchor view's float64 3×3 K.
+    #[pyo3(get)]
+    intrinsics: Py<PyAny>,
+    /// What `save` writes into metadata.json (None for objects built from parts).
+    recgen: Option<(RecgenPose, PoseRepresentation)>,
+}
+
+/// What every object of a frame shares: the anchor image (one numpy array), its K, the
+/// model's pose representation.
+struct FrameShared {
+    rgb: Py<PyAny>,
+    intrinsics: Py<PyAny>,
+    pose_representation: PoseRepresentation,
+}
+
+impl FrameShared {
+    fn new(py: Python<'_>, r: &FrameResult) -> PyResult<Self> {
+        let im = &r.image;
+        let rgb = numpy::PyArray1::from_vec(py, im.rgb.clone()).reshape([im.height, im.width, 3])?.into_any().unbind();
+        let k = im.intrinsics;
+        let intrinsics = rows(py, vec![[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])?.unbind();
+        Ok(FrameShared { rgb, intrinsics, pose_representation: r.pose_representation })
+    }
+}
+
+/// RecGen's `pose` dict with numpy values.
+fn parsed_pose_dict<'py>(py: Python<'py>, p: &recon::engine::ParsedPose) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("quaternion", numpy::PyArray1::from_vec(py, p.quaternion.to_vec()))?;
+    d.set_item("translation", numpy::PyArray1::from_vec(py, p.translation.to_vec()))?;
+    d.set_item("scale", p.scale)?;
+    d.set_item("rotation_matrix", rows(py, p.rotation_matrix.to_vec())?)?;
+    Ok(d)
 }
 
 impl Object {
-    fn new(py: Python<'_>, o: ObjectResult) -> PyResult<Self> {
+    fn new(py: Python<'_>, o: ObjectResult, frame: &FrameShared) -> PyResult<Self> {
         let p = &o.pose_camera;
         let row = |i: usize| -> [f64; 4] {
             let r = p.rotation[i];
@@ -675,7 +736,19 @@ impl Object {
             "occupied_voxels": o.occupied_voxels, "faces_decoded": o.faces_decoded,
             "samples": o.samples, "run": o.metadata, "notes": o.notes,
         });
+        let rp = o.recgen_pose();
+        let representation = serde_json::to_value(frame.pose_representation).ok().and_then(|v| v.as_str().map(str::to_string));
         Ok(Object {
+            raw_mesh: o.mesh_object.map(|m| Mesh::new(py, m).and_then(|m| Py::new(py, m))).transpose()?,
+            raw_gaussians: o.gaussians_object.map(|g| Gaussians::new(py, g).and_then(|g| Py::new(py, g))).transpose()?,
+            pose_matrix: rows(py, rp.pose_matrix.to_vec())?.unbind(),
+            pose_quat: numpy::PyArray1::from_vec(py, rp.pose_quat.to_vec()).into_any().unbind(),
+            parsed_pose: parsed_pose_dict(py, &rp.pose)?.into_any().unbind(),
+            cam2ncam: rows(py, rp.cam2ncam.to_vec())?.unbind(),
+            pose_representation: representation,
+            rgb: frame.rgb.clone_ref(py),
+            intrinsics: frame.intrinsics.clone_ref(py),
+            recgen: Some((rp, frame.pose_representation)),
             id: o.id,
             label: o.label.clone(),
             pose: pose.unbind(),
@@ -730,7 +803,29 @@ impl Object {
         if p.len() != 4 {
             return Err(input("pose", "expected a 4×4 array"));
         }
-        Ok(Object { id, label, pose: rows(py, p)?.unbind(), scale, score, spread, stage_seconds, mesh, gaussians, details })
+        Ok(Object {
+            id,
+            label,
+            pose: rows(py, p)?.unbind(),
+            scale,
+            score,
+            spread,
+            stage_seconds,
+            mesh,
+            gaussians,
+            details,
+            // A remote job's answer carries recon's files, not RecGen's fields.
+            raw_mesh: None,
+            raw_gaussians: None,
+            pose_matrix: py.None(),
+            pose_quat: py.None(),
+            parsed_pose: py.None(),
+            cam2ncam: py.None(),
+            pose_representation: None,
+            rgb: py.None(),
+            intrinsics: py.None(),
+            recgen: None,
+        })
     }
 
     /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb`.
@@ -754,6 +849,44 @@ impl Object {
             None => return Err(input(&self.label, "no Gaussians were decoded for this object")),
         };
         py.detach(|| recon::export::save_splat_ply(&g, &path, recon::export::Axes::ZUp)).py()
+    }
+
+    /// RecGen's `RecGenResult.save(output_dir, save_splat=...)`: into `output_dir` (created
+    /// if needed) mesh.obj (object frame) and posed_mesh.obj (camera frame) when there is a
+    /// mesh, gaussian.ply and posed_gaussian.ply when there are Gaussians and `save_splat`,
+    /// overlay.png and metadata.json; the files `recon infer` writes beside pose.json.
+    #[pyo3(signature = (output_dir, *, save_splat=true))]
+    fn save(&self, py: Python<'_>, output_dir: PathBuf, save_splat: bool) -> PyResult<()> {
+        let Some((pose, pose_representation)) = self.recgen else {
+            return Err(input(&self.label, "save needs RecGen's pose fields, which objects of a recon.Client answer do not carry"));
+        };
+        let rgb: PyReadonlyArray3<u8> =
+            self.rgb.bind(py).extract().map_err(|_| input(&self.label, "rgb: expected an H×W×3 uint8 array"))?;
+        let [height, width, _] = <[usize; 3]>::try_from(rgb.shape()).map_err(|_| input(&self.label, "rgb must be H×W×3"))?;
+        let image = FrameImage {
+            width,
+            height,
+            rgb: rgb.as_array().iter().copied().collect(),
+            intrinsics: intrinsics(self.intrinsics.bind(py), "intrinsics")?,
+        };
+        let mesh_object = self.raw_mesh.as_ref().map(|m| m.get().to_recon(py)).transpose()?;
+        let mesh_camera = self.mesh.as_ref().map(|m| m.get().to_recon(py)).transpose()?;
+        let gaussians_object = self.raw_gaussians.as_ref().map(|g| g.get().to_recon(py)).transpose()?;
+        let gaussians_camera = self.gaussians.as_ref().map(|g| g.get().to_recon(py)).transpose()?;
+        let files = RecgenFiles {
+            mesh_object: mesh_object.as_ref(),
+            mesh_camera: mesh_camera.as_ref(),
+            gaussians_object: gaussians_object.as_ref(),
+            gaussians_camera: gaussians_camera.as_ref(),
+            pose,
+            pose_representation,
+            image: &image,
+        };
+        py.detach(|| {
+            std::fs::create_dir_all(&output_dir).map_err(|e| recon::Error::io(&output_dir, e))?;
+            files.write(&output_dir, save_splat).map(|_| ())
+        })
+        .py()
     }
 
     /// The mesh as a `trimesh.Trimesh` (vertex colours as RGBA uint8); needs trimesh.

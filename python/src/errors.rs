@@ -19,7 +19,9 @@ pub fn to_py(e: recon::Error) -> PyErr {
     match e {
         E::Io { .. } | E::Json { .. } | E::Input { .. } | E::TooLarge(_) => InputError::new_err(msg),
         E::Config { .. } => ConfigError::new_err(msg),
-        E::MissingTensor { .. } | E::ShapeMismatch { .. } | E::UnexpectedTensors { .. } => WeightsError::new_err(msg),
+        E::MissingTensor { .. } | E::ShapeMismatch { .. } | E::UnexpectedTensors { .. } | E::ChecksumMismatch { .. } => {
+            WeightsError::new_err(msg)
+        }
         _ => ReconError::new_err(msg),
     }
 }

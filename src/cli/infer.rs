@@ -66,6 +66,10 @@ pub struct InferArgs {
     /// Also write `preview.png`: the input beside the posed meshes ray-cast from its camera.
     #[arg(long)]
     preview: bool,
+    /// Also write RecGen's `save` files per object (`mesh.obj`, `posed_mesh.obj`, `gaussian.ply`,
+    /// `posed_gaussian.ply`, `overlay.png`, `metadata.json`), as `recgen_inference` lays them out.
+    #[arg(long)]
+    recgen_files: bool,
 }
 
 fn frame_options(
@@ -191,7 +195,7 @@ pub fn exit_code(done: usize, failed: usize) -> i32 {
 pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     use anyhow::Context;
     use recon::dataset::RgbdFrame;
-    use recon::engine::write_outputs;
+    use recon::engine::{write_outputs_with, OutputOptions};
     use recon::engine::{Engine, SecondView};
     use recon::geometry::parse_rel_pose;
     if let Some(n) = a.threads {
@@ -240,6 +244,23 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         );
     }
 
+    if let recon::engine::WeightsSource::Files { manifest_files, notes, .. } = engine.pipeline.weights() {
+        if !manifest_files.is_empty() {
+            let mut names: Vec<&str> = manifest_files.iter().map(|f| f.manifest.as_str()).collect();
+            names.sort_unstable();
+            names.dedup();
+            let pins = manifest_files.iter().filter(|f| f.sha256.is_some()).count();
+            let lists = manifest_files.iter().filter(|f| f.tensors.is_some()).count();
+            eprintln!(
+                "weights: {} files of {} from the Hugging Face cache; {pins} SHA-256 pins and {lists} tensor lists matched (--json lists them)",
+                manifest_files.len(),
+                names.join(" + ")
+            );
+        }
+        for n in notes {
+            eprintln!("weights: {n}");
+        }
+    }
     let bar = Bar::new((objects.len() * opts.samples) as u64);
     let progress = |e: recon::engine::Progress<'_>| bar.event(e);
     let other_views = others.iter().map(|(f, o, rel)| SecondView { frame: f, objects: o.clone(), t_c1_c2: *rel }).collect();
@@ -257,7 +278,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             a.rgbd.with_file_name(format!("{stem}_recon"))
         }
     };
-    let written = write_outputs(&result, &out)?;
+    let written = write_outputs_with(&result, &out, &OutputOptions { recgen_files: a.recgen_files })?;
     if a.preview {
         let meshes: Vec<&recon::mesh::Mesh> = result.objects.iter().filter_map(|o| o.mesh_camera.as_ref()).collect();
         recon::render::save_preview(&frame, &meshes, &out.join("preview.png"))?;
@@ -291,7 +312,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             "views": 1 + others.len(), "samples": opts.samples, "select": opts.select, "pose_fit": a.model.infer.pose_fit, "seed": a.model.infer.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
-            "objects": objs, "skipped": skips, "notes": result.notes,
+            "objects": objs, "skipped": skips, "notes": result.notes, "weights": engine.pipeline.weights(),
         });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {

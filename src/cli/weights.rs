@@ -1,27 +1,52 @@
 //! `recon weights`: fetch, verify, random-initialise checkpoints.
+use anyhow::Context;
 use clap::Subcommand;
 use std::path::PathBuf;
 
 #[derive(Subcommand)]
 pub enum WeightsCmd {
-    /// Download a manifest's files (Hugging Face files into the standard HF cache).
+    /// Download a manifest's files, and those of the manifests it requires (`recon weights
+    /// fetch recgen`: the RecGen release and the DINOv2 encoder), into the Hugging Face cache;
+    /// files already there are kept, pinned SHA-256 checked. HF_TOKEN, HF_ENDPOINT and
+    /// HF_HUB_OFFLINE apply.
     Fetch {
         /// Manifest name (recgen, trellis-image-large, dinov2-vitl14-reg) or path; default: all.
+        #[arg(value_name = "MANIFEST", conflicts_with = "manifest")]
+        name: Option<String>,
+        /// The same as the positional MANIFEST.
         #[arg(long)]
         manifest: Option<String>,
-        /// Cache directory (default: $HF_HOME/hub or ~/.cache/huggingface/hub).
+        /// Cache directory (default: $HF_HUB_CACHE, else $HF_HOME/hub, else ~/.cache/huggingface/hub).
         #[arg(long)]
         cache: Option<PathBuf>,
         /// Also download files marked optional.
         #[arg(long)]
         with_optional: bool,
     },
-    /// Check a directory (or HF cache) against a manifest: files present, tensor names and shapes.
+    /// Check a directory (or HF cache) against a manifest: files present, SHA-256 pins, tensor
+    /// names and shapes.
     Verify {
-        dir: PathBuf,
-        /// Manifest name or path; default: all.
+        /// Folder or Hugging Face cache (default: the cache, as for fetch).
+        dir: Option<PathBuf>,
+        /// Manifest name or path, with the manifests it requires; default: all.
         #[arg(long)]
         manifest: Option<String>,
+    },
+    /// Print a manifest with its checkpoints' tensor lists regenerated from recon's modules at
+    /// an architecture's sizes (and, with --pin, the SHA-256 of the files in a folder or cache):
+    /// how weights-manifest/*.json are made.
+    Manifest {
+        /// Manifest name or path.
+        name: String,
+        /// Architecture file giving the module sizes.
+        #[arg(long, default_value = "models/recgen-large.json")]
+        config: PathBuf,
+        /// Folder or Hugging Face cache holding the files: record their SHA-256 (and the snapshot's commit).
+        #[arg(long)]
+        pin: Option<PathBuf>,
+        /// Write here instead of stdout.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Write random-initialised weights (labelled recon.random_init=true) for a module config.
     Init {
@@ -40,18 +65,24 @@ pub enum WeightsCmd {
     },
 }
 
+/// The named manifest and those it requires, or every embedded one.
 fn manifests(name: &Option<String>) -> anyhow::Result<Vec<recon::weights::Manifest>> {
     use recon::weights::Manifest;
     Ok(match name {
-        Some(n) => vec![Manifest::load(n)?],
+        Some(n) => {
+            let m = Manifest::load(n)?;
+            let mut all = vec![m.clone()];
+            all.extend(m.required(n)?);
+            all
+        }
         None => Manifest::all()?,
     })
 }
 
 pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
     match cmd {
-        WeightsCmd::Fetch { manifest, cache, with_optional } => {
-            for m in manifests(&manifest)? {
+        WeightsCmd::Fetch { name, manifest, cache, with_optional } => {
+            for m in manifests(&name.or(manifest))? {
                 let paths = recon::weights::fetch(&m, cache.as_deref(), with_optional)?;
                 for p in paths {
                     println!("{}", p.display());
@@ -60,6 +91,7 @@ pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
             Ok(true)
         }
         WeightsCmd::Verify { dir, manifest } => {
+            let dir = dir.unwrap_or_else(recon::weights::hf_cache::default_cache);
             if !dir.is_dir() {
                 anyhow::bail!("{}: not a directory", dir.display());
             }
@@ -70,6 +102,23 @@ pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
                 ok &= rows.iter().all(|r| r.ok);
             }
             Ok(ok)
+        }
+        WeightsCmd::Manifest { name, config, pin, out } => {
+            let arch = recon::model::RecGenConfig::load(&config)?;
+            let mut m = recon::weights::Manifest::load(&name)?.with_tensors_from(&arch, &config.display().to_string())?;
+            if let Some(dir) = pin {
+                let (pinned, absent) = m.with_pins_from(&dir)?;
+                for a in absent {
+                    eprintln!("not pinned (absent from {}): {a}", dir.display());
+                }
+                m = pinned;
+            }
+            let text = m.to_pretty_json()?;
+            match out {
+                Some(p) => std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))?,
+                None => print!("{text}"),
+            }
+            Ok(true)
         }
         WeightsCmd::Init { config, out, seed } => {
             let p = recon::weights::write_random_init(&config, &out, seed)?;

@@ -67,6 +67,20 @@ pub enum Error {
         names: Vec<String>,
     },
 
+    /// A file's SHA-256 differs from the one its weights manifest pins.
+    #[error(
+        "weights {file}: SHA-256 is {actual}, but the manifest pins {expected} (a damaged, partial or different file: \
+         fetch it again; for another revision, `recon weights manifest NAME --pin CACHE --out FILE` writes a manifest of what is there)"
+    )]
+    ChecksumMismatch {
+        /// The file.
+        file: String,
+        /// The pinned SHA-256 (hex).
+        expected: String,
+        /// The file's SHA-256 (hex).
+        actual: String,
+    },
+
     /// User input (images, masks, depth, JSON) is not what was expected.
     #[error("{file}: {msg}")]
     Input {

@@ -16,10 +16,14 @@
 //! | `RECON_CACHE` | Folder the embedded recgen-nano is unpacked to | `$XDG_CACHE_HOME/recon` | `Settings::from_env` → `engine::source` |
 //! | `XDG_CACHE_HOME` | Cache base when `RECON_CACHE` is unset (`<it>/recon`) | `$HOME/.cache` | `Settings::from_env` |
 //! | `HOME` | Home folder: `~/.cache/recon`, `~/.cache/huggingface/hub` | none (then: the temporary folder for recon's cache, `./.cache/huggingface/hub`) | `Settings::from_env` |
-//! | `HF_HOME` | Hugging Face cache root; checkpoints go to `$HF_HOME/hub` | `$HOME/.cache/huggingface` | `Settings::from_env` → `weights::fetch::default_hf_cache` |
+//! | `HF_HOME` | Hugging Face root: the hub cache is `$HF_HOME/hub`, the login token `$HF_HOME/token` | `$HOME/.cache/huggingface` | `Settings::from_env` → `weights::hf_cache` |
+//! | `HF_HUB_CACHE` | The Hugging Face hub cache itself (`models--ORG--NAME/…`); wins over `HF_HOME` | `$HF_HOME/hub` | `Settings::from_env` → `weights::hf_cache` |
+//! | `HF_HUB_OFFLINE` | `1`/`true`/`yes`/`on`: never use the network; checkpoints come from the cache only | off | `Settings::from_env` → `weights::fetch` |
+//! | `HF_TOKEN` | Hugging Face access token for downloads (gated or private repos) | the login token file `$HF_HOME/token` | `Settings::from_env` → `weights::fetch` |
+//! | `HF_ENDPOINT` | Hugging Face hub address for downloads | `https://huggingface.co` | `Settings::from_env` → `weights::fetch` |
+//! | `TORCH_HOME` | PyTorch's cache: a torch.hub checkpoint (DINOv2) already under `$TORCH_HOME/hub/checkpoints` is used instead of downloading it | `$XDG_CACHE_HOME/torch`, else `$HOME/.cache/torch` | `Settings::from_env` → `weights::manifest`, `weights::fetch` |
 //! | `RECON_API_TOKEN` | Bearer token `recon serve` requires on every route but `/health` (`--token-file` wins) | none: no token (then `recon serve` binds to loopback only) | `Settings::from_env` → `recon-serve`'s configuration |
 //! | `RECON_MALLOC` | `system` turns off the large-buffer cache of the global allocator | cache on | the allocator itself (`util::buffer_cache`), at its first large allocation: it can run before `main` |
-//! | `HF_ENDPOINT`, `HF_TOKEN` | Hugging Face endpoint and token for downloads | hf-hub's defaults | the `hf-hub` client (third-party), when a download starts |
 //!
 //! An empty value counts as unset. A value that does not parse is an error
 //! naming the variable ([`SettingsError`]), not silently ignored.
@@ -39,7 +43,12 @@ pub const VARIABLES: &[(&str, &str)] = &[
     ("RECON_CACHE", "folder the embedded model is unpacked to (default: $XDG_CACHE_HOME/recon)"),
     ("XDG_CACHE_HOME", "cache base when RECON_CACHE is unset (default: $HOME/.cache)"),
     ("HOME", "home folder, for ~/.cache/recon and ~/.cache/huggingface/hub"),
-    ("HF_HOME", "Hugging Face cache root, checkpoints under $HF_HOME/hub (default: $HOME/.cache/huggingface)"),
+    ("HF_HOME", "Hugging Face root: hub cache $HF_HOME/hub, login token $HF_HOME/token (default: $HOME/.cache/huggingface)"),
+    ("HF_HUB_CACHE", "the Hugging Face hub cache itself (default: $HF_HOME/hub)"),
+    ("HF_HUB_OFFLINE", "1/true/yes/on: no network; checkpoints from the Hugging Face cache only (default: off)"),
+    ("HF_TOKEN", "Hugging Face access token for downloads (default: the token file $HF_HOME/token)"),
+    ("HF_ENDPOINT", "Hugging Face hub address for downloads (default: https://huggingface.co)"),
+    ("TORCH_HOME", "PyTorch cache: torch.hub checkpoints under $TORCH_HOME/hub/checkpoints are used (default: $XDG_CACHE_HOME/torch)"),
     ("RECON_API_TOKEN", "bearer token recon serve requires on every route but /health (--token-file wins)"),
 ];
 
@@ -67,8 +76,19 @@ pub struct Settings {
     /// Where the embedded model is unpacked: `RECON_CACHE`, else
     /// `XDG_CACHE_HOME/recon`, else `HOME/.cache/recon`.
     pub cache_dir: Option<PathBuf>,
-    /// The Hugging Face hub cache: `HF_HOME/hub`, else `HOME/.cache/huggingface/hub`.
+    /// The Hugging Face hub cache: `HF_HUB_CACHE`, else `HF_HOME/hub`, else `HOME/.cache/huggingface/hub`.
     pub hf_cache: Option<PathBuf>,
+    /// The Hugging Face root (`HF_HOME`, else `HOME/.cache/huggingface`): where the login token file is.
+    pub hf_home: Option<PathBuf>,
+    /// `HF_HUB_OFFLINE`: checkpoints come from the cache only, nothing is downloaded.
+    pub hf_offline: bool,
+    /// `HF_TOKEN`: the Hugging Face access token (else the login token file under `hf_home`).
+    pub hf_token: Option<Secret>,
+    /// `HF_ENDPOINT`: the hub's address for downloads (else `https://huggingface.co`).
+    pub hf_endpoint: Option<String>,
+    /// torch.hub's checkpoint folder: `TORCH_HOME/hub/checkpoints`, else
+    /// `XDG_CACHE_HOME/torch/hub/checkpoints`, else `HOME/.cache/torch/hub/checkpoints`.
+    pub torch_checkpoints: Option<PathBuf>,
     /// `RECON_API_TOKEN`: the bearer token `recon serve` requires (`--token-file` wins).
     pub api_token: Option<Secret>,
 }
@@ -105,8 +125,19 @@ pub fn current() -> Settings {
 
 impl Settings {
     /// No overrides.
-    pub const NONE: Settings =
-        Settings { isa_cap: None, bf16_dot: None, memory_limit: None, cache_dir: None, hf_cache: None, api_token: None };
+    pub const NONE: Settings = Settings {
+        isa_cap: None,
+        bf16_dot: None,
+        memory_limit: None,
+        cache_dir: None,
+        hf_cache: None,
+        hf_home: None,
+        hf_offline: false,
+        hf_token: None,
+        hf_endpoint: None,
+        torch_checkpoints: None,
+        api_token: None,
+    };
 
     /// Read the process environment: the one place recon does.
     pub fn from_env() -> Result<Self, SettingsError> {
@@ -150,17 +181,42 @@ impl Settings {
             }
         };
         let home = path("HOME");
+        // torch.hub's rule: TORCH_HOME, else XDG_CACHE_HOME/torch, else ~/.cache/torch.
+        let torch_checkpoints = path("TORCH_HOME")
+            .or_else(|| path("XDG_CACHE_HOME").map(|p| p.join("torch")))
+            .or_else(|| home.as_ref().map(|p| p.join(".cache/torch")))
+            .map(|t| t.join("hub").join("checkpoints"));
         let cache_dir = path("RECON_CACHE")
             .or_else(|| path("XDG_CACHE_HOME").map(|p| p.join("recon")))
             .or_else(|| home.as_ref().map(|p| p.join(".cache/recon")));
-        // hf-hub's own rule: HF_HOME when set (even empty), else the home folder.
-        let hf_cache = match lookup("HF_HOME").and_then(|v| v.into_string().ok()) {
-            Some(h) => Some(PathBuf::from(h).join("hub")),
-            None => home.map(|h| h.join(".cache").join("huggingface").join("hub")),
+        // huggingface_hub's rules: HF_HUB_CACHE, else HF_HOME/hub, else the home folder's.
+        let hf_home = path("HF_HOME").or_else(|| home.map(|h| h.join(".cache").join("huggingface")));
+        let hf_cache = path("HF_HUB_CACHE").or_else(|| hf_home.as_ref().map(|h| h.join("hub")));
+        let hf_offline = match text("HF_HUB_OFFLINE")? {
+            None => false,
+            Some(v) => match v.trim().to_ascii_lowercase().as_str() {
+                "1" | "true" | "yes" | "on" => true,
+                "0" | "false" | "no" | "off" => false,
+                _ => return Err(bad("HF_HUB_OFFLINE", &v, "expected 1, true, yes, on or 0, false, no, off")),
+            },
         };
+        let hf_token = text("HF_TOKEN")?.map(|t| Secret::new(t.trim()));
+        let hf_endpoint = text("HF_ENDPOINT")?.map(|e| e.trim().trim_end_matches('/').to_string());
         // Surrounding whitespace (a trailing newline from `$(cat file)`) is not part of a token.
         let api_token = text("RECON_API_TOKEN")?.map(|t| Secret::new(t.trim()));
-        Ok(Settings { isa_cap, bf16_dot, memory_limit, cache_dir, hf_cache, api_token })
+        Ok(Settings {
+            isa_cap,
+            bf16_dot,
+            memory_limit,
+            cache_dir,
+            hf_cache,
+            hf_home,
+            hf_offline,
+            hf_token,
+            hf_endpoint,
+            torch_checkpoints,
+            api_token,
+        })
     }
 
     /// Make these the process's settings: the kernels' instruction-set cap
@@ -200,9 +256,20 @@ mod tests {
         assert_eq!(s.memory_limit, Some(100 << 20));
         assert_eq!(s.cache_dir, Some(PathBuf::from("/x/recon")));
         assert_eq!(s.hf_cache, Some(PathBuf::from("/h/.cache/huggingface/hub")));
+        assert_eq!(s.torch_checkpoints, Some(PathBuf::from("/x/torch/hub/checkpoints")));
+        assert_eq!(parse(&[("TORCH_HOME", "/t"), ("HOME", "/h")]).unwrap().torch_checkpoints, Some(PathBuf::from("/t/hub/checkpoints")));
         let s = parse(&[("RECON_CACHE", "/c"), ("XDG_CACHE_HOME", "/x"), ("HF_HOME", "/hf"), ("HOME", "/h")]).unwrap();
         assert_eq!(s.cache_dir, Some(PathBuf::from("/c")));
         assert_eq!(s.hf_cache, Some(PathBuf::from("/hf/hub")));
+        assert_eq!(s.hf_home, Some(PathBuf::from("/hf")));
+        assert!(!s.hf_offline);
+        // HF_HUB_CACHE wins over HF_HOME for the cache; the token file stays under HF_HOME.
+        let s = parse(&[("HF_HUB_CACHE", "/hc"), ("HF_HOME", "/hf"), ("HF_HUB_OFFLINE", "1"), ("HF_TOKEN", "hf_x\n")]).unwrap();
+        assert_eq!((s.hf_cache, s.hf_home), (Some(PathBuf::from("/hc")), Some(PathBuf::from("/hf"))));
+        assert!(s.hf_offline);
+        assert_eq!(s.hf_token.as_ref().map(Secret::expose), Some("hf_x"));
+        assert!(!parse(&[("HF_HUB_OFFLINE", "False")]).unwrap().hf_offline);
+        assert_eq!(parse(&[("HF_ENDPOINT", "http://h:1/")]).unwrap().hf_endpoint.as_deref(), Some("http://h:1"));
         let s = parse(&[("RECON_API_TOKEN", " tok3n\n")]).unwrap();
         assert_eq!(s.api_token.as_ref().map(Secret::expose), Some("tok3n"));
         assert_eq!(format!("{:?}", s.api_token), "Some(Secret(***))");
@@ -220,6 +287,8 @@ mod tests {
         assert!(msg.contains("RECON_MEMORY_LIMIT_MB") && msg.contains("lots") && msg.contains("whole number"), "{msg}");
         let e = parse(&[("RECON_ISA", "sse2")]).unwrap_err();
         assert!(e.to_string().contains("RECON_ISA") && e.to_string().contains("avx512bf16"), "{e}");
+        let e = parse(&[("HF_HUB_OFFLINE", "maybe")]).unwrap_err();
+        assert!(e.to_string().contains("HF_HUB_OFFLINE") && e.to_string().contains("maybe"), "{e}");
         let e = parse(&[("RECON_BF16_DOT", "yes")]).unwrap_err();
         assert!(e.to_string().contains("RECON_BF16_DOT") && e.to_string().contains("on or off"), "{e}");
     }

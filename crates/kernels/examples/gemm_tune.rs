@@ -1,5 +1,6 @@
 //! Sweep the GEMM cache blocking on one model shape.
 //! `cargo run --release -p recon-kernels --example gemm_tune -- K N [f32|bf16|f16]`
+//! (`GEMM_TUNE_MC=168,336 GEMM_TUNE_KC=256,512` replace the swept values; `GEMM_TUNE_M` the rows.)
 use recon_kernels::gemm::{gemm_blocked, Blocking, PackedMatrix, WeightFormat};
 use recon_kernels::isa::Isa;
 use recon_kernels::vecmath::Activation;
@@ -14,14 +15,17 @@ fn main() {
         Some("f16") => WeightFormat::F16,
         _ => WeightFormat::F32,
     };
-    let m = 2 * 4098;
+    let list = |var: &str, default: &[usize]| -> Vec<usize> {
+        std::env::var(var).ok().map(|v| v.split(',').filter_map(|x| x.trim().parse().ok()).collect()).unwrap_or_else(|| default.to_vec())
+    };
+    let m = list("GEMM_TUNE_M", &[2 * 4098])[0];
     let a: Vec<f32> = (0..m * k).map(|i| ((i * 7919) % 1000) as f32 * 1e-3 - 0.5).collect();
     let w: Vec<f32> = (0..n * k).map(|i| ((i * 104729) % 1000) as f32 * 1e-3 - 0.5).collect();
     let b = PackedMatrix::from_linear_weight(&w, n, k, fmt).unwrap();
     let mut c = vec![0f32; m * n];
     let isa = Isa::best();
-    for &mc in &[14 * 12, 14 * 24, 14 * 48] {
-        for &kc in &[128, 256, 384, 512, 1024] {
+    for &mc in &list("GEMM_TUNE_MC", &[14 * 12, 14 * 24, 14 * 48]) {
+        for &kc in &list("GEMM_TUNE_KC", &[128, 256, 384, 512, 1024]) {
             let blk = Blocking { mc, kc };
             let mut dt = f64::INFINITY;
             for _ in 0..3 {

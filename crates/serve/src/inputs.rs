@@ -457,6 +457,14 @@ mod tests {
         assert_eq!(e.field.as_deref(), Some("min_component_area"));
         assert!(merge_options(&d, Some(b"[1]")).is_err());
         assert!(merge_options(&d, Some(b"{")).is_err());
+        // RecGen's preprocessing knobs are options like the others.
+        let v = merge_options(&d, Some(br#"{"clamp_range": [-1, 2], "use_pointmap": false, "mask_erosion_iterations": 0}"#)).unwrap();
+        let o = InferOptions::from_json(v).unwrap();
+        assert_eq!((o.clamp_range.low, o.clamp_range.high, o.use_pointmap, o.mask_erosion_iterations), (-1.0, 2.0, false, 0));
+        let e = merge_options(&d, Some(br#"{"mask_erosion_kernel_size": 0}"#)).unwrap_err();
+        assert_eq!(e.field.as_deref(), Some("mask_erosion_kernel_size"));
+        let e = merge_options(&d, Some(br#"{"clamp_range": [3, -2]}"#)).unwrap_err();
+        assert_eq!(e.field.as_deref(), Some("clamp_range"));
     }
 
     #[test]

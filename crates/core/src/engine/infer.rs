@@ -41,7 +41,7 @@
 //! pose, mesh and Gaussians, and the spread of the per-sample winners is the
 //! uncertainty figure. Everything is reported in the anchor camera frame.
 
-use crate::dataset::frame::{depth_valid, RgbdFrame};
+use crate::dataset::frame::{depth_valid, Intrinsics, RgbdFrame};
 use crate::dataset::masks::{check_object, MaskOptions, MaskSkip, ObjectMask, SkipReason};
 use crate::engine::options::{
     InferOptions, OptionError, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS,
@@ -65,8 +65,8 @@ use crate::geometry::camera_pose::pose_to_camera;
 use crate::geometry::plane::{fit_plane, Plane, PlaneFitOptions};
 use crate::geometry::pointmap::backproject;
 use crate::geometry::pointmap::{object_points, prepare_frame_objects, Normaliser, PrepareOptions, PreparedView};
-use crate::geometry::pose::Pose;
 use crate::geometry::pose::{pose_to_similarity, similarity_to_pose};
+use crate::geometry::pose::{Pose, PoseRepresentation};
 use crate::math::Similarity;
 use crate::mesh::post::{decimate, drop_floaters, taubin_smooth};
 use crate::mesh::stretch_mesh;
@@ -176,6 +176,12 @@ impl InferOptions {
             ..Default::default()
         };
         s.run.seed = self.seed;
+        s.run.use_pointmap = self.use_pointmap;
+        s.prepare.quantile_drop = self.quantile_drop_threshold;
+        s.prepare.clamp = Some((self.clamp_range.low as f32, self.clamp_range.high as f32));
+        s.prepare.erosion = self
+            .mask_erosion_enabled
+            .then_some(crate::dataset::masks::Erosion { kernel: self.mask_erosion_kernel_size, iterations: self.mask_erosion_iterations });
         // One `--steps` / `--cfg` sets both stages' samplers.
         (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
         (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
@@ -325,6 +331,14 @@ pub struct ObjectResult {
     pub mesh_camera: Option<Mesh>,
     /// Gaussians placed in the anchor camera frame (metres); `None` when not decoded.
     pub gaussians_camera: Option<Gaussians>,
+    /// The mesh in the object frame, before the pose (RecGen's `raw_mesh`): the decoder's
+    /// canonical `[-0.5, 0.5]³`, z up; with the shape fit that cube re-fitted around the
+    /// fitted solid (same axes, the pose absorbing shift and scale), and stretched per axis
+    /// with `--pose-fit depth-stretch`. `mesh_camera` is this mesh placed by `pose_camera`.
+    pub mesh_object: Option<Mesh>,
+    /// The Gaussians in the object frame (as `mesh_object`); `gaussians_camera` is these
+    /// placed by `pose_camera`.
+    pub gaussians_object: Option<Gaussians>,
     /// Observed object points (anchor camera frame, metres) of every view, view 1 first.
     pub observed_points: Vec<[f32; 3]>,
     /// RGB colour of each of `observed_points`, in the same order.
@@ -354,6 +368,41 @@ pub struct FrameResult {
     pub preprocess_seconds: f64,
     /// Frame-level remarks (e.g. masks of view 2 without a partner in view 1).
     pub notes: Vec<String>,
+    /// The anchor view's colour image and camera (RecGen's result keeps them for its overlay).
+    pub image: FrameImage,
+    /// Layout of the model's stage-1 pose tokens (RecGen's `pose_representation`).
+    pub pose_representation: PoseRepresentation,
+}
+
+/// A frame's colour image and intrinsics.
+#[derive(Clone, PartialEq)]
+pub struct FrameImage {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Interleaved RGB, row-major, `width · height · 3` bytes.
+    pub rgb: Vec<u8>,
+    /// The camera's pinhole intrinsics.
+    pub intrinsics: Intrinsics,
+}
+
+impl FrameImage {
+    /// The colour image and intrinsics of `frame` (a copy).
+    pub fn of(frame: &RgbdFrame) -> Self {
+        FrameImage { width: frame.width, height: frame.height, rgb: frame.rgb.clone(), intrinsics: frame.intrinsics }
+    }
+}
+
+// Not the pixels: a result printed with {:?} stays readable.
+impl std::fmt::Debug for FrameImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameImage")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("intrinsics", &self.intrinsics)
+            .finish()
+    }
 }
 
 /// Refuses a frame with more objects than `opts.max_objects` that pass the mask checks
@@ -690,7 +739,8 @@ impl Engine {
             ModelSource::Manifest { name, cache, .. } => {
                 let config = source.architecture()?;
                 let cfg = crate::model::config::RecGenConfig::load(&config)?;
-                let files: WeightFiles = crate::weights::manifest::resolve_module_files(name, &cfg, cache)?;
+                let manifest = crate::engine::source::manifest_of(name)?;
+                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache)?;
                 Pipeline::load(&config, Weights::Files(&files), all, options)?
             }
             ModelSource::Random { seed, .. } => Pipeline::load(&source.architecture()?, Weights::Random(*seed), all, options)?,
@@ -855,7 +905,8 @@ impl Engine {
                 ObjectOutcome::Skipped(s) => skipped.extend(s),
             }
         }
-        Ok(FrameResult { objects: results, skipped, preprocess_seconds, notes })
+        let (image, pose_representation) = (FrameImage::of(frame), self.pipeline.config.pose.ss_representation);
+        Ok(FrameResult { objects: results, skipped, preprocess_seconds, notes, image, pose_representation })
     }
 
     /// All samples of one object. The outer error is fatal, the inner a skip.
@@ -1126,6 +1177,8 @@ fn object_result(
             }
         })
         .collect();
+    let mesh_object = kept.mesh.as_ref().map(|m| stretch_mesh(m, stretch));
+    let gaussians_object = kept.gaussians.as_ref().map(|g| stretch_gaussians(g, stretch));
     Ok(ObjectResult {
         label: label.to_string(),
         id,
@@ -1138,8 +1191,10 @@ fn object_result(
         occupied_voxels: kept.coords,
         shape_fit: kept.shape_fit,
         faces_decoded: kept.faces_decoded,
-        mesh_camera: kept.mesh.as_ref().map(|m| place.apply_mesh(&stretch_mesh(m, stretch))),
-        gaussians_camera: kept.gaussians.as_ref().map(|g| place.apply_gaussians(&stretch_gaussians(g, stretch))),
+        mesh_camera: mesh_object.as_ref().map(|m| place.apply_mesh(m)),
+        gaussians_camera: gaussians_object.as_ref().map(|g| place.apply_gaussians(g)),
+        mesh_object,
+        gaussians_object,
         observed_points: ctx.observed_points,
         observed_colors: ctx.observed_colors,
         timings,

@@ -85,6 +85,30 @@ pub struct InferOptions {
     /// pixels). A frame with more is refused, naming the count, before any is reconstructed.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.max_objects))]
     pub max_objects: NonZeroUsize,
+    /// Point-map normalisation (RecGen's `quantile_drop_threshold`): the fraction of the
+    /// object's points dropped at each end of their distances from the median when sizing
+    /// the unit cube; in [0, 0.5).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.quantile_drop_threshold))]
+    pub quantile_drop_threshold: f64,
+    /// The normalised point map is clamped to `LOW,HIGH` (RecGen's `clamp_range`; the
+    /// object's median sits at 0.5).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.clamp_range, allow_hyphen_values = true))]
+    pub clamp_range: ClampRange,
+    /// Erode each object mask before everything else, trimming the mixed object/background
+    /// depth at its silhouette (RecGen's `mask_erosion_enabled`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.mask_erosion_enabled, action = clap::ArgAction::Set))]
+    pub mask_erosion_enabled: bool,
+    /// Side of the square erosion kernel, pixels, 1 to 255 (RecGen's
+    /// `mask_erosion_params["kernel_size"]`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.mask_erosion_kernel_size))]
+    pub mask_erosion_kernel_size: usize,
+    /// Erosion passes, 0 (none) to 100 (RecGen's `mask_erosion_params["iterations"]`).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.mask_erosion_iterations))]
+    pub mask_erosion_iterations: usize,
+    /// Condition both stages on the normalised point map (RecGen's `use_pointmap`); off,
+    /// the model sees only the image and the mask (the depth still places the object).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.use_pointmap, action = clap::ArgAction::Set))]
+    pub use_pointmap: bool,
     /// With more views than the model takes at once (a two-view model and several
     /// --view): how stage 1 fuses the (anchor, view i) pairs at every step: the mean of
     /// their guided velocities (multidiffusion, one model pass per pair and step) or one
@@ -97,6 +121,57 @@ pub struct InferOptions {
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.slat_fusion))]
     pub slat_fusion: SlatFusion,
 }
+
+/// The range the normalised point map is clamped to (`low ≤ x ≤ high` per coordinate):
+/// `[low, high]` in JSON and Python, `LOW,HIGH` on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(from = "[f64; 2]", into = "[f64; 2]")]
+pub struct ClampRange {
+    /// Lower bound.
+    pub low: f64,
+    /// Upper bound.
+    pub high: f64,
+}
+
+impl From<[f64; 2]> for ClampRange {
+    fn from([low, high]: [f64; 2]) -> Self {
+        ClampRange { low, high }
+    }
+}
+
+impl From<ClampRange> for [f64; 2] {
+    fn from(c: ClampRange) -> Self {
+        [c.low, c.high]
+    }
+}
+
+impl std::fmt::Display for ClampRange {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{},{}", self.low, self.high)
+    }
+}
+
+impl std::str::FromStr for ClampRange {
+    type Err = String;
+
+    /// `LOW,HIGH` (brackets or parentheses around it, spaces, are accepted).
+    fn from_str(s: &str) -> Result<Self, String> {
+        let inner = s.trim().trim_start_matches(['[', '(']).trim_end_matches([']', ')']);
+        let parts: Vec<&str> = inner.split(',').map(str::trim).collect();
+        let bad = || format!("`{s}`: expected two numbers LOW,HIGH (e.g. -2,3)");
+        match parts.as_slice() {
+            [lo, hi] => Ok(ClampRange { low: lo.parse().map_err(|_| bad())?, high: hi.parse().map_err(|_| bad())? }),
+            _ => Err(bad()),
+        }
+    }
+}
+
+/// Largest accepted `mask_erosion_kernel_size`: beyond it every object of a VGA frame
+/// erodes away anyway.
+pub const MAX_EROSION_KERNEL: usize = 255;
+
+/// Largest accepted `mask_erosion_iterations` (each pass costs a pass over the frame).
+pub const MAX_EROSION_ITERATIONS: usize = 100;
 
 impl InferOptions {
     /// The defaults, as a constant so the CLI's `[default: …]` is read from here.
@@ -114,12 +189,19 @@ impl InferOptions {
         smooth: DEFAULT_SMOOTH_ITERATIONS,
         parallel_objects: DEFAULT_PARALLEL_OBJECTS,
         max_objects: DEFAULT_MAX_OBJECTS,
+        // RecGen `inference.generate`'s defaults (also `PrepareOptions::default()`).
+        quantile_drop_threshold: 0.05,
+        clamp_range: ClampRange { low: -2.0, high: 3.0 },
+        mask_erosion_enabled: true,
+        mask_erosion_kernel_size: 5,
+        mask_erosion_iterations: 1,
+        use_pointmap: true,
         fusion: Fusion::Multidiffusion,
         slat_fusion: SlatFusion::None,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 15] = [
+    pub const NAMES: [&'static str; 21] = [
         "seed",
         "samples",
         "select",
@@ -133,6 +215,12 @@ impl InferOptions {
         "smooth",
         "parallel_objects",
         "max_objects",
+        "quantile_drop_threshold",
+        "clamp_range",
+        "mask_erosion_enabled",
+        "mask_erosion_kernel_size",
+        "mask_erosion_iterations",
+        "use_pointmap",
         "fusion",
         "slat_fusion",
     ];
@@ -144,6 +232,29 @@ impl InferOptions {
         }
         if !(0.0..1.0).contains(&self.min_component_area) {
             return Err(OptionError::new("min_component_area", "in [0, 1)", self.min_component_area));
+        }
+        if !(0.0..0.5).contains(&self.quantile_drop_threshold) {
+            return Err(OptionError::new("quantile_drop_threshold", "in [0, 0.5)", self.quantile_drop_threshold));
+        }
+        let ClampRange { low, high } = self.clamp_range;
+        // f32 is what the point map holds.
+        let finite = [low, high].iter().all(|x| x.is_finite() && x.abs() <= f32::MAX as f64);
+        if !(finite && low < high) {
+            return Err(OptionError::new("clamp_range", "two finite numbers LOW < HIGH", format!("[{low}, {high}]")));
+        }
+        if !(1..=MAX_EROSION_KERNEL).contains(&self.mask_erosion_kernel_size) {
+            return Err(OptionError::new(
+                "mask_erosion_kernel_size",
+                &format!("in 1..={MAX_EROSION_KERNEL}"),
+                self.mask_erosion_kernel_size,
+            ));
+        }
+        if self.mask_erosion_iterations > MAX_EROSION_ITERATIONS {
+            return Err(OptionError::new(
+                "mask_erosion_iterations",
+                &format!("in 0..={MAX_EROSION_ITERATIONS}"),
+                self.mask_erosion_iterations,
+            ));
         }
         Ok(())
     }
@@ -302,8 +413,19 @@ mod tests {
             max_objects: NonZeroUsize::new(7).unwrap(),
             fusion: Fusion::Stochastic,
             slat_fusion: SlatFusion::Multidiffusion,
+            quantile_drop_threshold: 0.1,
+            clamp_range: ClampRange { low: -1.0, high: 1.5 },
+            mask_erosion_enabled: true,
+            mask_erosion_kernel_size: 3,
+            mask_erosion_iterations: 2,
+            use_pointmap: false,
         };
         let s = o.settings().unwrap();
+        assert_eq!((s.prepare.quantile_drop, s.prepare.clamp), (0.1, Some((-1.0, 1.5))));
+        assert_eq!(s.prepare.erosion, Some(crate::dataset::masks::Erosion { kernel: 3, iterations: 2 }));
+        assert!(!s.run.use_pointmap);
+        let off = InferOptions { mask_erosion_enabled: false, ..o.clone() }.settings().unwrap();
+        assert_eq!(off.prepare.erosion, None);
         assert_eq!((s.run.fusion, s.run.slat_fusion), (Fusion::Stochastic, SlatFusion::Multidiffusion));
         assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
         assert_eq!(
@@ -315,5 +437,58 @@ mod tests {
         assert!(!s.align.refine);
         let d = InferOptions::default().settings().unwrap();
         assert_eq!((d.max_faces, d.run.seed, d.align.refine), (Some(DEFAULT_MAX_FACES), 42, true));
+    }
+
+    /// The preprocessing defaults are RecGen `generate`'s, which were recon's before they
+    /// became options: the default settings prepare views exactly as before.
+    #[test]
+    fn preprocessing_defaults_are_recgens_and_unchanged() {
+        let d = InferOptions::default().settings().unwrap();
+        let before = crate::geometry::pointmap::PrepareOptions::default();
+        assert_eq!((d.prepare.erosion, d.prepare.quantile_drop, d.prepare.clamp), (before.erosion, before.quantile_drop, before.clamp));
+        assert_eq!(before.erosion, Some(crate::dataset::masks::Erosion { kernel: 5, iterations: 1 }));
+        assert_eq!((before.quantile_drop, before.clamp), (0.05, Some((-2.0, 3.0))));
+        assert!(d.run.use_pointmap && crate::engine::RunOptions::default().use_pointmap);
+    }
+
+    #[test]
+    fn bad_preprocessing_values_name_their_option() {
+        let bad = |v: serde_json::Value| InferOptions::from_json(v).unwrap_err();
+        let e = bad(serde_json::json!({"quantile_drop_threshold": 0.5}));
+        assert_eq!(e.to_string(), "--quantile-drop-threshold must be in [0, 0.5), got 0.5");
+        assert_eq!(bad(serde_json::json!({"quantile_drop_threshold": -0.1})).option(), "quantile_drop_threshold");
+        let e = bad(serde_json::json!({"clamp_range": [3, -2]}));
+        assert_eq!(e.keyword_message(), "clamp_range: must be two finite numbers LOW < HIGH, got [3, -2]");
+        assert_eq!(bad(serde_json::json!({"clamp_range": [1, 1]})).option(), "clamp_range");
+        assert_eq!(bad(serde_json::json!({"clamp_range": [1e300, 2e300]})).option(), "clamp_range");
+        let e = bad(serde_json::json!({"clamp_range": [1, 2, 3]}));
+        assert_eq!(e.option(), "clamp_range", "{e}");
+        assert_eq!(bad(serde_json::json!({"clamp_range": "-2,3"})).option(), "clamp_range");
+        let e = bad(serde_json::json!({"mask_erosion_kernel_size": 0}));
+        assert_eq!(e.to_string(), "--mask-erosion-kernel-size must be in 1..=255, got 0");
+        assert_eq!(bad(serde_json::json!({"mask_erosion_kernel_size": 256})).option(), "mask_erosion_kernel_size");
+        assert_eq!(bad(serde_json::json!({"mask_erosion_iterations": 101})).option(), "mask_erosion_iterations");
+        assert_eq!(bad(serde_json::json!({"mask_erosion_enabled": "yes"})).option(), "mask_erosion_enabled");
+        assert_eq!(bad(serde_json::json!({"use_pointmap": 1})).option(), "use_pointmap");
+        // The good ones: JSON arrays of numbers, iterations 0 (no erosion), kernel 1.
+        let o = InferOptions::from_json(
+            serde_json::json!({"clamp_range": [-1, 2.5], "mask_erosion_iterations": 0, "mask_erosion_kernel_size": 1}),
+        )
+        .unwrap();
+        assert_eq!(o.clamp_range, ClampRange { low: -1.0, high: 2.5 });
+        assert_eq!(serde_json::to_value(o.clamp_range).unwrap(), serde_json::json!([-1.0, 2.5]));
+    }
+
+    #[test]
+    fn clamp_range_reads_the_command_line_form() {
+        let c: ClampRange = "-2,3".parse().unwrap();
+        assert_eq!(c, InferOptions::DEFAULT.clamp_range);
+        assert_eq!(c.to_string(), "-2,3");
+        assert_eq!("[-0.5, 1.5]".parse::<ClampRange>().unwrap(), ClampRange { low: -0.5, high: 1.5 });
+        assert_eq!("(0,1)".parse::<ClampRange>().unwrap(), ClampRange { low: 0.0, high: 1.0 });
+        for bad in ["", "1", "1,2,3", "a,b", "1;2"] {
+            let e = bad.parse::<ClampRange>().unwrap_err();
+            assert!(e.contains("LOW,HIGH"), "{bad}: {e}");
+        }
     }
 }

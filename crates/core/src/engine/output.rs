@@ -1,10 +1,12 @@
 //! The output folder of `recon infer`: per object `pose.json`, meshes and
-//! Gaussians, the placed scene, and the index file written last, through a
-//! staging folder so that an interrupted run never looks complete.
+//! Gaussians, RecGen's result files ([`RecgenFiles`]), the placed scene, and the
+//! index file written last, through a staging folder so that an interrupted run
+//! never looks complete.
 
 use crate::engine::infer::*;
 use crate::engine::pipeline::{RunMetadata, StageTimings};
 use crate::engine::pose_fit::PoseSpread;
+use crate::engine::recgen_result::RecgenFiles;
 use crate::engine::shape_fit::ShapeFitReport;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
 use crate::export::ply::{save_mesh_ply, PlyOptions};
@@ -111,15 +113,29 @@ fn safe_name(label: &str) -> String {
     label.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
-/// Write per-object files, the scene GLB (all meshes and the observed
-/// points, coloured, in the anchor camera frame) and the observed points
-/// (PLY) into `out`. Files are written to a staging
+/// Write per-object files (recon's; RecGen's too with [`write_outputs_with`]), the scene GLB
+/// (all meshes and the observed points, coloured, in the anchor camera frame) and the
+/// observed points (PLY) into `out`. Files are written to a staging
 /// folder first and moved into place at the end, so an interrupted run never
 /// leaves a complete-looking output.
 ///
 /// An existing `out` is replaced only when it is an earlier recon output
 /// (it holds [`MARKER`]); any other existing non-empty folder is an error.
 pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObject>> {
+    write_outputs_with(result, out, &OutputOptions::default())
+}
+
+/// What [`write_outputs_with`] writes beyond recon's own files.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct OutputOptions {
+    /// Also RecGen's `save` files per object ([`RecgenFiles`]: object- and
+    /// camera-frame OBJ meshes, both splat PLYs, the overlay, `metadata.json`).
+    /// Off by default: the two text meshes triple the sample's output (47 → 143 MB).
+    pub recgen_files: bool,
+}
+
+/// [`write_outputs`] with [`OutputOptions`].
+pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions) -> Result<Vec<WrittenObject>> {
     let staging = begin_output(out)?;
     // Camera frame stays as is (OpenCV: x right, y down, z forward) in every file.
     let glb = GlbOptions { axes: Axes::ZUp, vertex_colors: true };
@@ -182,6 +198,10 @@ pub fn write_outputs(result: &FrameResult, out: &Path) -> Result<Vec<WrittenObje
         if let Some(g) = o.gaussians_camera.as_ref().filter(|g| !g.is_empty()) {
             save_splat_ply(g, &dir.join("gaussians.ply"), Axes::ZUp)?;
             w.gaussians_ply = Some(out.join(&name).join("gaussians.ply"));
+        }
+        // RecGen's `save` beside recon's own files (the index keeps its earlier form).
+        if opts.recgen_files {
+            RecgenFiles::of(o, result).write(&dir, true)?;
         }
         observed.vertices.extend_from_slice(&o.observed_points);
         clouds.push((format!("observed {name}"), o.observed_points.clone(), o.observed_colors.clone()));

@@ -176,6 +176,9 @@ pub struct RunOptions {
     /// mark (Linux `clear_refs`) before every stage, so leave it off when
     /// something else in the process reads VmHWM.
     pub measure_memory: bool,
+    /// Condition both stages on each view's point map (RecGen's `use_pointmap`); off, the
+    /// point-map embedding is left out of the condition, as upstream passes `pointmap=None`.
+    pub use_pointmap: bool,
     /// With pair fusion (more views than pose tokens), how stage 1 fuses the
     /// (anchor, view i) pairs at every step; unused otherwise.
     pub fusion: Fusion,
@@ -196,6 +199,7 @@ impl Default for RunOptions {
             decode_mesh: true,
             decode_gaussians: true,
             measure_memory: false,
+            use_pointmap: true,
             fusion: Fusion::default(),
             slat_fusion: SlatFusion::default(),
         }
@@ -321,6 +325,14 @@ pub enum WeightsSource {
         files: Vec<PathBuf>,
         /// Whether any safetensors file carries the random-init label.
         random_init: bool,
+        /// Every file taken from a weights manifest (checkpoints, configs,
+        /// pose statistics), with its checked SHA-256 pin and tensor count.
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        manifest_files: Vec<crate::weights::ReadFile>,
+        /// What the release's own files set (module args, normalisation,
+        /// samplers) and other remarks of the manifest load.
+        #[serde(skip_serializing_if = "Vec::is_empty")]
+        notes: Vec<String>,
     },
 }
 
@@ -353,6 +365,10 @@ pub struct RunMetadata {
     pub slat_sampler: Option<SamplerSettings>,
     /// The order the seeded noise is drawn in (module docs, **Noise order**).
     pub noise_order: &'static str,
+    /// Whether the point maps conditioned the run ([`RunOptions::use_pointmap`]); written
+    /// only when they did not (earlier outputs: they did).
+    #[serde(skip_serializing_if = "is_true")]
+    pub use_pointmap: bool,
     /// How the views were fused, when the run had more views than pose
     /// tokens (module docs, **Pair fusion**); absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -368,6 +384,10 @@ pub struct FusionMetadata {
     pub ss: Fusion,
     /// Stage 2's (`none`: the anchor and the first second view).
     pub slat: SlatFusion,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 /// The occupancy hook of [`Pipeline::run_guided`]: `(pose, voxels, resolution) → voxels`.
@@ -604,7 +624,11 @@ impl Pipeline {
     }
 
     fn from_files(config_path: &Path, weight_files: &WeightFiles, stages: Stages, options: &LoadOptions) -> Result<Self> {
-        let config = RecGenConfig::load(config_path)?;
+        // A manifest load brings the architecture its release's configs describe.
+        let config = match &weight_files.architecture {
+            Some(a) => a.clone(),
+            None => RecGenConfig::load(config_path)?,
+        };
         let mut sources = HashMap::new();
         let mut files = Vec::new();
         let mut random_init = false;
@@ -625,7 +649,13 @@ impl Pipeline {
             sources.insert(key, Source::File(path.clone()));
             files.push(path);
         }
-        let weights = WeightsSource::Files { dir: weight_files.dir.clone(), files, random_init };
+        let weights = WeightsSource::Files {
+            dir: weight_files.dir.clone(),
+            files,
+            random_init,
+            manifest_files: weight_files.read.clone(),
+            notes: weight_files.notes.clone(),
+        };
         let mut p = Self::build(config, sources, weights, stages, *options)?;
         if let Some(f) = &weight_files.ss_stats {
             p.ss_stats = PoseStats::from_json_file(f)?;
@@ -866,7 +896,7 @@ impl Pipeline {
         let mut meter = Meter { measure_memory: opts.measure_memory, tm: StageTimings::default(), mem: StageMemory::default() };
 
         // 1. Image encoder.
-        let views = self.encode_images(inputs, on_stage, &mut meter)?;
+        let views = self.encode_images(inputs, opts.use_pointmap, on_stage, &mut meter)?;
         // 2–3. Stage 1: condition, then latent + pose sampling. The same
         // generator then draws the stage-2 noise.
         let mut rng = SeededRng::new(opts.seed);
@@ -888,6 +918,7 @@ impl Pipeline {
             ss_sampler: ss_settings.clone(),
             slat_sampler: None,
             noise_order: NOISE_ORDER,
+            use_pointmap: opts.use_pointmap,
             fusion: fused.then_some(FusionMetadata { pairs: groups.len(), ss: opts.fusion, slat: opts.slat_fusion }),
         };
         let (mut mesh, mut gaussians) = (None, None);
@@ -915,8 +946,15 @@ impl Pipeline {
         Ok(ObjectReconstruction { pose, coords, ss_resolution, mesh, gaussians, timings: tm, memory, metadata })
     }
 
-    /// Step 1: DINOv2 tokens of every view, with the view's point map and mask.
-    fn encode_images(&self, inputs: &ObjectInputs, on_stage: &dyn Fn(Stage), meter: &mut Meter) -> Result<Vec<ViewInputs>> {
+    /// Step 1: DINOv2 tokens of every view, with the view's point map (unless
+    /// `use_pointmap` is off) and mask.
+    fn encode_images(
+        &self,
+        inputs: &ObjectInputs,
+        use_pointmap: bool,
+        on_stage: &dyn Fn(Stage),
+        meter: &mut Meter,
+    ) -> Result<Vec<ViewInputs>> {
         on_stage(Stage::ImageEncoder);
         meter.mark();
         let t = Instant::now();
@@ -929,7 +967,11 @@ impl Pipeline {
             .views
             .iter()
             .zip(&tokens)
-            .map(|(v, tok)| ViewInputs { patch_tokens: tok.clone(), pointmap: Some(v.pointmap.clone()), mask: Some(v.mask.clone()) })
+            .map(|(v, tok)| ViewInputs {
+                patch_tokens: tok.clone(),
+                pointmap: use_pointmap.then(|| v.pointmap.clone()),
+                mask: Some(v.mask.clone()),
+            })
             .collect())
     }
 

@@ -25,10 +25,13 @@ pub enum ModelSource {
         config: Option<PathBuf>,
     },
     /// A weights manifest (`recgen`, or a manifest file) resolved in the
-    /// Hugging Face cache after `recon weights fetch`; architecture
-    /// `models/recgen-large.json` unless `config` names one.
+    /// Hugging Face cache after `recon weights fetch`. The release's own
+    /// configs give the module args, latent normalisation, samplers and pose
+    /// statistics; the base architecture (`models/recgen-large.json` unless
+    /// `config` names one) gives the rest (the image encoder, the pose layout).
     Manifest {
-        /// An embedded manifest's name or a manifest file's path.
+        /// An embedded manifest's name or a manifest file's path, or
+        /// `hf:ORG/NAME[@REV]` (see [`ModelSource::parse`]).
         name: String,
         /// The architecture file, when given.
         config: Option<PathBuf>,
@@ -47,8 +50,10 @@ pub enum ModelSource {
 
 impl ModelSource {
     /// From the `--weights` / `weights=` convention: none → the default,
-    /// `random`, a folder, or a manifest name or file. `config` overrides the
-    /// architecture file; `seed` seeds random weights.
+    /// `random`, a folder, a manifest name or file, or `hf:ORG/NAME[@REV]` (a
+    /// Hugging Face repo with the RecGen layout, through the same cache: the
+    /// embedded manifest of that repo, pins kept at its own revision).
+    /// `config` overrides the architecture file; `seed` seeds random weights.
     pub fn parse(weights: Option<&str>, config: Option<&Path>, seed: u64) -> Result<Self> {
         let config = config.map(Path::to_path_buf);
         let Some(w) = weights else {
@@ -60,6 +65,10 @@ impl ModelSource {
         if w == "random" {
             return Ok(ModelSource::Random { config, seed });
         }
+        if let Some(spec) = w.strip_prefix("hf:") {
+            parse_hf(spec)?;
+            return Ok(ModelSource::Manifest { name: w.to_string(), config, cache: crate::weights::fetch::default_hf_cache() });
+        }
         let p = Path::new(w);
         if p.is_dir() {
             return Ok(ModelSource::Dir { dir: p.to_path_buf(), config });
@@ -70,7 +79,10 @@ impl ModelSource {
         let known: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
         Err(Error::input(
             "--weights",
-            format!("`{w}`: not a directory, and not `random`, a manifest name ({}) or a manifest file", known.join(", ")),
+            format!(
+                "`{w}`: not a directory, and not `random`, a manifest name ({}), a manifest file or hf:ORG/NAME[@REV]",
+                known.join(", ")
+            ),
         ))
     }
 
@@ -92,6 +104,32 @@ impl ModelSource {
             ModelSource::Manifest { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-large.json")),
             ModelSource::Random { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-tiny.json")),
         })
+    }
+}
+
+/// `ORG/NAME[@REV]` of an `hf:` weights argument, checked.
+pub fn parse_hf(spec: &str) -> Result<(String, Option<String>)> {
+    let (repo, rev) = match spec.split_once('@') {
+        Some((r, v)) => (r, Some(v)),
+        None => (spec, None),
+    };
+    let ok = |s: &str| !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+    match repo.split_once('/') {
+        Some((org, name)) if ok(org) && ok(name) && rev.is_none_or(|r| !r.is_empty() && !r.contains(char::is_whitespace)) => {
+            Ok((repo.to_string(), rev.map(str::to_string)))
+        }
+        _ => Err(Error::input("--weights", format!("`hf:{spec}`: expected hf:ORG/NAME or hf:ORG/NAME@REVISION"))),
+    }
+}
+
+/// The manifest a [`ModelSource::Manifest`] name stands for.
+pub fn manifest_of(name: &str) -> Result<Manifest> {
+    match name.strip_prefix("hf:") {
+        Some(spec) => {
+            let (repo, rev) = parse_hf(spec)?;
+            Manifest::for_hf_repo(&repo, rev.as_deref())
+        }
+        None => Manifest::load(name),
     }
 }
 
@@ -211,6 +249,19 @@ mod tests {
         let d = ModelSource::parse(dir.to_str(), None, 0).unwrap();
         assert_eq!(d, ModelSource::Dir { dir: dir.clone(), config: None });
         assert_eq!(d.architecture().unwrap(), dir.join("recgen-nano.json"));
+        let hf = ModelSource::parse(Some("hf:TRI-ML/RecGen@abc123"), None, 0).unwrap();
+        assert!(matches!(&hf, ModelSource::Manifest { name, .. } if name == "hf:TRI-ML/RecGen@abc123"));
+        let m = manifest_of("hf:tri-ml/recgen@abc123").unwrap();
+        assert_eq!((m.name.as_str(), m.revision()), ("recgen", "abc123"));
+        assert!(m.files.iter().all(|f| f.sha256.is_none()), "pins hold at the manifest's own revision only");
+        let pinned = manifest_of("hf:TRI-ML/RecGen").unwrap();
+        assert!(pinned.files.iter().any(|f| f.sha256.is_some()));
+        let mirror = manifest_of("hf:someone/recgen-mirror").unwrap();
+        assert_eq!(mirror.repo.as_deref(), Some("someone/recgen-mirror"));
+        assert!(mirror.files.iter().any(|f| f.path == "pipeline.json") && mirror.files.iter().all(|f| f.sha256.is_none()));
+        for bad in ["hf:", "hf:noslash", "hf:a/b@", "hf:a b/c"] {
+            assert!(ModelSource::parse(Some(bad), None, 0).unwrap_err().to_string().contains("hf:ORG/NAME"), "{bad}");
+        }
         let e = ModelSource::parse(Some("/no/such/weights"), None, 0).unwrap_err().to_string();
         assert!(e.contains("--weights") && e.contains("/no/such/weights") && e.contains("recgen"), "{e}");
     }

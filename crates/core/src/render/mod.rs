@@ -3,5 +3,5 @@
 
 pub(crate) mod preview;
 pub(crate) mod raycast;
-pub use self::preview::save_preview;
+pub use self::preview::{overlay_rgb, save_overlay, save_preview};
 pub use self::raycast::*;

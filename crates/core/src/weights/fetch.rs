@@ -1,27 +1,45 @@
 //! `recon weights fetch`: download a manifest's files. Hugging Face files go
-//! through `hf-hub` into the standard HF cache (`$HF_HOME/hub`, or `--cache`);
-//! URL-sourced files (the torch.hub DINOv2 checkpoint) are downloaded with
-//! `ureq` into `<cache>/recon-url/<manifest>/`.
+//! into the standard hub cache ([`crate::weights::hf_cache`]: `$HF_HUB_CACHE`,
+//! else `$HF_HOME/hub`, or `--cache`) through `hf-hub`'s client, configured
+//! from the applied [settings](crate::settings) (`HF_TOKEN` or the login token
+//! file, `HF_ENDPOINT`) rather than its own environment reading; files already
+//! in the cache are not downloaded again, and under `HF_HUB_OFFLINE` nothing
+//! is. URL-sourced files (the torch.hub DINOv2 checkpoint) are downloaded with
+//! `ureq` into `<cache>/recon-url/<manifest>/`. Every file with a pinned
+//! SHA-256 is checked once it is in place.
 
-use crate::weights::manifest::Manifest;
+use crate::weights::hf_cache;
+use crate::weights::manifest::{Manifest, ManifestFile};
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
-/// Download every non-optional file (and optional ones when `with_optional`).
+/// Download every non-optional file (and optional ones when `with_optional`)
+/// that the cache does not hold yet, and check the pinned SHA-256 of each.
 /// Returns the local paths. The first failure aborts with a message naming
 /// the repo, revision and file.
 pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<Vec<PathBuf>> {
-    let files: Vec<_> = m.files.iter().filter(|f| with_optional || !f.optional).collect();
-    let mut out = Vec::new();
-    match m.source.as_str() {
-        "huggingface" => out.extend(fetch_hf(m, &files, cache)?),
+    let files: Vec<&ManifestFile> = m.files.iter().filter(|f| with_optional || !f.optional).collect();
+    let cache = cache.map(Path::to_path_buf).unwrap_or_else(default_hf_cache);
+    let offline = crate::settings::current().hf_offline;
+    let out = match m.source.as_str() {
+        "huggingface" => fetch_hf(m, &files, &cache, offline)?,
         "url" => {
-            let base = cache.map(Path::to_path_buf).unwrap_or_else(default_hf_cache).join("recon-url").join(&m.name);
+            let base = cache.join("recon-url").join(&m.name);
             std::fs::create_dir_all(&base).map_err(|e| Error::io(&base, e))?;
+            let mut out = Vec::new();
             for f in files {
                 let url = f.url.as_ref().ok_or_else(|| Error::config(&m.name, "url", format!("file `{}` has no url", f.path)))?;
-                let dest = base.join(&f.path);
+                let dest = m.expected_path(&cache, f);
                 if !dest.exists() {
+                    if offline {
+                        return Err(Error::input(
+                            dest.display().to_string(),
+                            format!(
+                                "manifest `{}`: `{}` is not there and HF_HUB_OFFLINE is set, so it is not downloaded from {url}",
+                                m.name, f.path
+                            ),
+                        ));
+                    }
                     download_url(url, &dest).map_err(|e| {
                         Error::msg(format!(
                             "manifest `{}`: cannot download `{}`: {e}. Check network access, or place the file at {}",
@@ -33,55 +51,95 @@ pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<
                 }
                 out.push(dest);
             }
+            out
         }
         other => return Err(Error::config(&m.name, "source", format!("unknown source `{other}`"))),
+    };
+    for (f, p) in m.files.iter().filter(|f| with_optional || !f.optional).zip(&out) {
+        if let Some(pin) = &f.sha256 {
+            hf_cache::check_sha256(p, pin)?;
+        }
     }
     Ok(out)
 }
 
-/// The Hugging Face files of `m` through hf-hub's client and cache.
-#[cfg(feature = "hub")]
-fn fetch_hf(m: &Manifest, files: &[&crate::weights::manifest::ManifestFile], cache: Option<&Path>) -> Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-
-    use hf_hub::api::sync::ApiBuilder;
-    use hf_hub::{Repo, RepoType};
+/// The Hugging Face files of `m`: those in the cache as they are, the others
+/// through hf-hub's client (never under `offline`).
+fn fetch_hf(m: &Manifest, files: &[&ManifestFile], cache: &Path, offline: bool) -> Result<Vec<PathBuf>> {
     let repo = m.repo.clone().ok_or_else(|| Error::config(&m.name, "repo", "missing for a huggingface manifest"))?;
-    let rev = m.revision.clone().unwrap_or_else(|| "main".into());
-    let mut b = ApiBuilder::from_env().with_progress(true);
-    if let Some(c) = cache {
-        b = b.with_cache_dir(c.to_path_buf());
-    }
-    let api = b.build().map_err(|e| Error::msg(format!("hf-hub: cannot set up the client: {e}")))?;
-    let r = api.repo(Repo::with_revision(repo.clone(), RepoType::Model, rev.clone()));
+    let rev = m.revision().to_string();
+    let mut out = Vec::new();
+    let mut client = None;
     for f in files {
-        let p = r.get(&f.path).map_err(|e| {
-            Error::msg(format!(
-                "cannot download `{}` from Hugging Face repo `{repo}` (revision {rev}): {e}. \
-                         Check network access (HF_ENDPOINT, proxy) and that the file exists; \
-                         gated repos need HF_TOKEN",
-                f.path
-            ))
-        })?;
-        out.push(p);
+        // The pinned snapshot, a ref, or refs/main: hf-hub itself only looks through refs/<revision>.
+        if let Ok(p) = hf_cache::cached_file(cache, &repo, &rev, &f.path, offline) {
+            out.push(p);
+            continue;
+        }
+        if offline {
+            return Err(hf_cache::cache_miss(cache, &repo, &rev, &f.path, true));
+        }
+        if client.is_none() {
+            client = Some(hf_client(cache)?);
+        }
+        let api = client.as_ref().ok_or_else(|| Error::msg("hf-hub client"))?;
+        out.push(download_hf(api, &repo, &rev, &f.path)?);
     }
     Ok(out)
+}
+
+#[cfg(feature = "hub")]
+type Client = hf_hub::api::sync::Api;
+#[cfg(not(feature = "hub"))]
+type Client = ();
+
+/// hf-hub's client on `cache`, with the settings' token and endpoint (hf-hub's
+/// `from_env` would read `HF_HOME`/`HF_ENDPOINT` itself, and knows neither
+/// `HF_HUB_CACHE` nor `HF_TOKEN`).
+#[cfg(feature = "hub")]
+fn hf_client(cache: &Path) -> Result<Client> {
+    use hf_hub::api::sync::ApiBuilder;
+    let s = crate::settings::current();
+    let token = s.hf_token.map(|t| t.expose().to_string()).or_else(|| {
+        // The login token file (`huggingface-cli login`), as hf-hub and huggingface_hub read it.
+        let f = s.hf_home.as_ref()?.join("token");
+        std::fs::read_to_string(f).ok().map(|t| t.trim().to_string()).filter(|t| !t.is_empty())
+    });
+    let mut b = ApiBuilder::from_cache(hf_hub::Cache::new(cache.to_path_buf())).with_progress(true).with_token(token);
+    if let Some(e) = s.hf_endpoint {
+        b = b.with_endpoint(e);
+    }
+    b.build().map_err(|e| Error::msg(format!("hf-hub: cannot set up the client: {e}")))
+}
+
+#[cfg(feature = "hub")]
+fn download_hf(api: &Client, repo: &str, rev: &str, path: &str) -> Result<PathBuf> {
+    use hf_hub::{Repo, RepoType};
+    let r = api.repo(Repo::with_revision(repo.to_string(), RepoType::Model, rev.to_string()));
+    r.download(path).map_err(|e| {
+        Error::msg(format!(
+            "cannot download `{path}` from Hugging Face repo `{repo}` (revision {rev}): {e}. \
+             Check network access (HF_ENDPOINT, proxy) and that the file exists; gated repos need HF_TOKEN"
+        ))
+    })
 }
 
 #[cfg(not(feature = "hub"))]
-fn fetch_hf(m: &Manifest, _: &[&crate::weights::manifest::ManifestFile], _: Option<&Path>) -> Result<Vec<PathBuf>> {
+fn hf_client(_: &Path) -> Result<Client> {
+    Ok(())
+}
+
+#[cfg(not(feature = "hub"))]
+fn download_hf(_: &Client, repo: &str, _: &str, path: &str) -> Result<PathBuf> {
     Err(Error::msg(format!(
-        "manifest `{}`: this build of recon-core has no `hub` feature, so it cannot download from Hugging Face; \
-         place the files in a folder and load it, or build with `--features hub`",
-        m.name
+        "`{path}` of `{repo}` is not in the Hugging Face cache, and this build of recon-core has no `hub` feature, \
+         so it cannot download it; place the files in a folder and load it, or build with `--features hub`"
     )))
 }
 
-/// The applied settings' Hugging Face cache: `$HF_HOME/hub`, else
-/// `~/.cache/huggingface/hub` (hf-hub's own default); `./.cache/huggingface/hub`
-/// without a home folder.
+/// The applied settings' Hugging Face hub cache ([`hf_cache::default_cache`]).
 pub fn default_hf_cache() -> PathBuf {
-    crate::settings::current().hf_cache.unwrap_or_else(|| PathBuf::from(".").join(".cache").join("huggingface").join("hub"))
+    hf_cache::default_cache()
 }
 
 #[cfg(feature = "hub")]

@@ -560,6 +560,83 @@ impl PtFile {
     }
 }
 
+/// Write `tensors` as a torch state dict (`{name: tensor}`) in the zip
+/// archive `torch.save` writes: pickle protocol 2 in `archive/data.pkl`, one
+/// uncompressed storage per tensor under `archive/data/`. `torch.load` and
+/// [`PtFile`] read it. f32, f16 and bf16 tensors.
+pub fn write_pt(tensors: &BTreeMap<String, Tensor>, path: &Path) -> Result<()> {
+    use std::io::Write;
+    fn unicode(out: &mut Vec<u8>, s: &str) {
+        out.push(b'X');
+        out.extend_from_slice(&(s.len() as u32).to_le_bytes());
+        out.extend_from_slice(s.as_bytes());
+    }
+    fn int(out: &mut Vec<u8>, v: usize) -> Result<()> {
+        let v = i32::try_from(v).map_err(|_| Error::msg(format!("write_pt: {v} does not fit a pickle int")))?;
+        out.push(b'J');
+        out.extend_from_slice(&v.to_le_bytes());
+        Ok(())
+    }
+    // PROTO 2, EMPTY_DICT, MARK … SETITEMS, STOP.
+    let mut pkl = vec![0x80, 2, b'}', b'('];
+    let mut storages = Vec::new();
+    for (i, (name, t)) in tensors.iter().enumerate() {
+        let t = t.contiguous()?;
+        let flat = t.flatten_all()?;
+        let (class, bytes): (&str, Vec<u8>) = match t.dtype() {
+            DType::F32 => ("FloatStorage", flat.to_vec1::<f32>()?.iter().flat_map(|v| v.to_le_bytes()).collect()),
+            DType::F16 => ("HalfStorage", flat.to_vec1::<half::f16>()?.iter().flat_map(|v| v.to_le_bytes()).collect()),
+            DType::BF16 => ("BFloat16Storage", flat.to_vec1::<half::bf16>()?.iter().flat_map(|v| v.to_le_bytes()).collect()),
+            other => return Err(Error::msg(format!("write_pt: tensor `{name}` is {other:?}; f32, f16 or bf16 only"))),
+        };
+        let key = i.to_string();
+        unicode(&mut pkl, name);
+        // _rebuild_tensor_v2(storage, offset, size, stride, requires_grad, OrderedDict())
+        pkl.extend_from_slice(b"ctorch._utils\n_rebuild_tensor_v2\n(");
+        // The storage's persistent id: ('storage', torch.<T>Storage, key, 'cpu', numel).
+        pkl.push(b'(');
+        unicode(&mut pkl, "storage");
+        pkl.extend_from_slice(format!("ctorch\n{class}\n").as_bytes());
+        unicode(&mut pkl, &key);
+        unicode(&mut pkl, "cpu");
+        int(&mut pkl, t.elem_count())?;
+        pkl.extend_from_slice(b"tQ");
+        int(&mut pkl, 0)?;
+        let dims = t.dims().to_vec();
+        let mut strides = vec![1usize; dims.len()];
+        for d in (0..dims.len().saturating_sub(1)).rev() {
+            strides[d] = strides[d + 1] * dims[d + 1];
+        }
+        for list in [&dims, &strides] {
+            pkl.push(b'(');
+            for &v in list.iter() {
+                int(&mut pkl, v)?;
+            }
+            pkl.push(b't');
+        }
+        pkl.extend_from_slice(b"\x89ccollections\nOrderedDict\n)RtR");
+        storages.push((key, bytes));
+    }
+    pkl.extend_from_slice(b"u.");
+    let file = path.display().to_string();
+    let zerr = |e: &dyn std::fmt::Display| Error::msg(format!("{file}: writing the torch archive: {e}"));
+    let f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    let mut z = zip::ZipWriter::new(f);
+    let o = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+    let mut entry = |name: &str, bytes: &[u8]| -> Result<()> {
+        z.start_file(name, o).map_err(|e| zerr(&e))?;
+        z.write_all(bytes).map_err(|e| zerr(&e))
+    };
+    entry("archive/data.pkl", &pkl)?;
+    entry("archive/byteorder", b"little")?;
+    for (key, bytes) in &storages {
+        entry(&format!("archive/data/{key}"), bytes)?;
+    }
+    entry("archive/version", b"3\n")?;
+    z.finish().map_err(|e| zerr(&e))?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -598,6 +675,27 @@ mod tests {
         for bad in [&b"a."[..], b"(0.", b"\xff", b""] {
             assert!(unpickle(bad).is_err(), "{bad:?}");
         }
+    }
+
+    /// What write_pt writes, PtFile reads back: names, dtypes, shapes, values.
+    #[test]
+    fn write_pt_round_trips() -> Result<()> {
+        let dir = crate::util::testing::tmp("write-pt");
+        let p = dir.join("w.pt");
+        let a = Tensor::arange(0f32, 6.0, &Device::Cpu)?.reshape((2, 3))?;
+        let b = Tensor::new(&[0.5f32, -1.5], &Device::Cpu)?.to_dtype(DType::F16)?;
+        let c = Tensor::new(2.0f32, &Device::Cpu)?.to_dtype(DType::BF16)?;
+        let t: BTreeMap<String, Tensor> = [("blocks.0.w".to_string(), a.clone()), ("b".into(), b), ("c".into(), c)].into_iter().collect();
+        write_pt(&t, &p)?;
+        let f = PtFile::open(&p, None)?;
+        assert_eq!(f.tensors.keys().cloned().collect::<Vec<_>>(), vec!["b", "blocks.0.w", "c"]);
+        assert_eq!((f.tensors["b"].dtype, f.tensors["c"].dtype), (DType::F16, DType::BF16));
+        let got = f.load("blocks.0.w")?.expect("tensor");
+        assert_eq!(got.to_vec2::<f32>()?, a.to_vec2::<f32>()?);
+        assert_eq!(f.load("b")?.expect("b").to_dtype(DType::F32)?.to_vec1::<f32>()?, vec![0.5, -1.5]);
+        assert_eq!(f.load("c")?.expect("c").dims(), &[] as &[usize]);
+        let _ = std::fs::remove_dir_all(&dir);
+        Ok(())
     }
 
     #[test]

@@ -33,7 +33,10 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
     let root = m.resolve_dir(dir);
     let mut rows = Vec::new();
     for f in &m.files {
-        let p = root.join(&f.path);
+        let mut p = root.join(&f.path);
+        if !p.exists() && m.source == "url" {
+            p = m.expected_path(dir, f); // e.g. torch.hub's own copy
+        }
         let meta = std::fs::metadata(&p).ok();
         let mut row = VerifyRow {
             file: f.path.clone(),
@@ -49,6 +52,12 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
             rows.push(row);
             continue;
         }
+        // A pinned SHA-256 is checked whatever the kind.
+        let sha = f.sha256.as_ref().map(|pin| match crate::weights::hf_cache::sha256_file(&p) {
+            Ok(h) if h.eq_ignore_ascii_case(pin.trim()) => Ok(()),
+            Ok(h) => Err(format!("SHA-256 MISMATCH: {h}, the manifest pins {pin}")),
+            Err(e) => Err(format!("cannot hash: {e}")),
+        });
         // Without a stored list, derive one from the module's config file
         // when the registry knows the module.
         let derived = match (&f.tensors, &f.module, &f.config) {
@@ -98,6 +107,14 @@ pub fn verify_dir(m: &Manifest, dir: &Path) -> Result<Vec<VerifyRow>> {
                     };
                 }
             },
+        }
+        match sha {
+            Some(Err(msg)) => {
+                row.ok = false;
+                row.detail = format!("{msg}; {}", row.detail);
+            }
+            Some(Ok(())) => row.detail.push_str(", sha256 ok"),
+            None => {}
         }
         rows.push(row);
     }

@@ -719,6 +719,27 @@ pub struct PreparedCondition {
 }
 
 impl PreparedCondition {
+    /// [`Self::new`] for a flow model named `model` (in the errors) after the
+    /// checks both flows make: `cond` is `[B, L, cond_channels]` and the model
+    /// runs the fast path (`fast`).
+    pub fn for_model(
+        model: &str,
+        blocks: &[ModulatedTransformerCrossBlock],
+        cond: &Tensor,
+        cond_channels: usize,
+        fast: bool,
+        shortcut: bool,
+    ) -> Result<Self> {
+        let (_, _, cc) = cond.dims3()?;
+        if cc != cond_channels {
+            return Err(candle_core::Error::Msg(format!("{model}: cond shape {:?}, expected [B, L, {cond_channels}]", cond.dims())));
+        }
+        if !fast {
+            return Err(candle_core::Error::Msg(format!("{model}: prepared conditions are for the fast path")));
+        }
+        Self::new(blocks, cond, shortcut)
+    }
+
     /// Prepare `cond` `[B, Lc, Cc]` for `blocks` (fast path). With
     /// `shortcut`, items whose rows are all equal ([`constant_rows`]) keep
     /// only each block's output row; without it every item keeps its keys and

@@ -280,14 +280,8 @@ impl SparseStructureFlowModel {
     /// computed once for many [`Self::forward_prepared`] calls (a sampler's
     /// condition is the same at every step); fast path only.
     pub fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
-        let (_, _, cc) = cond.dims3()?;
-        if cc != self.cfg.cond_channels {
-            return Err(Error::msg(format!("ss_flow: cond shape {:?}, expected [B, L, {}]", cond.dims(), self.cfg.cond_channels)));
-        }
-        if self.input_layer.fast().is_none() {
-            return Err(Error::msg("ss_flow: prepared conditions are for the fast path"));
-        }
-        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
+        let fast = self.input_layer.fast().is_some();
+        Ok(PreparedCondition::for_model("ss_flow", &self.blocks, cond, self.cfg.cond_channels, fast, self.shortcuts)?)
     }
 
     /// APE of the `g³` token grid, coordinates in meshgrid-`ij` order (z fastest),

@@ -364,14 +364,8 @@ impl SLatFlowModel {
     /// computed once for many [`Self::forward_prepared`] calls (a sampler's
     /// condition is the same at every step); fast path only.
     pub fn prepare_condition(&self, cond: &Tensor) -> Result<PreparedCondition> {
-        let (_, _, cc) = cond.dims3()?;
-        if cc != self.cfg.cond_channels {
-            return Err(Error::msg(format!("SLat flow: cond has shape {:?}, expected [B, L, {}]", cond.dims(), self.cfg.cond_channels)));
-        }
-        if self.input_layer.fast().is_none() {
-            return Err(Error::msg("SLat flow: prepared conditions are for the fast path"));
-        }
-        Ok(PreparedCondition::new(&self.blocks, cond, self.shortcuts)?)
+        let fast = self.input_layer.fast().is_some();
+        Ok(PreparedCondition::for_model("SLat flow", &self.blocks, cond, self.cfg.cond_channels, fast, self.shortcuts)?)
     }
 
     /// [`Self::forward`] with a condition prepared by [`Self::prepare_condition`]
