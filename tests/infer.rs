@@ -138,7 +138,7 @@ fn two_views_and_samples_select_consistently() {
     close(&o.views[1].pose_selected, &in2);
     // The selected sample's view-2 token, mapped with T, is its view-2 candidate.
     let c2 = o.candidates.iter().find(|c| c.seed == o.selection.seed && c.view == 2).unwrap();
-    close(&recon::geometry::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token))), &c2.pose_camera);
+    close(&recon::geometry::similarity_to_pose(&t.compose(&pose_to_similarity(&o.views[1].pose_own_token.unwrap()))), &c2.pose_camera);
     // Both views' observed points are in the anchor frame.
     assert_eq!(o.observed_points.len(), o.views[0].observed_points + o.views[1].observed_points);
     assert_eq!(o.observed_colors.len(), o.observed_points.len());
@@ -163,7 +163,107 @@ fn two_views_and_samples_select_consistently() {
     let f = &first.objects[0];
     assert_eq!((f.selection.view, f.candidates.len()), (1, 2));
     assert!(f.uncertainty.is_none());
-    close(&f.pose_camera, &f.views[0].pose_own_token);
+    close(&f.pose_camera, &f.views[0].pose_own_token.unwrap());
+}
+
+/// N views through the engine (the sample frame again and again, declared
+/// as seen from other cameras): one other view is the two-view run; several
+/// run as fused pairs, with the anchor's token as the one candidate and every
+/// view's points in the score. Copies of the second view give the two-view
+/// run's anchor pose (exactly with round robin); other content changes it; a
+/// rerun and another thread count give the same bytes; an unusable view costs
+/// that view only; too many views are refused before any work.
+#[test]
+fn n_views_fuse_pairs_through_the_engine() {
+    use recon::engine::{Fusion, RigidTransform, SecondView, SlatFusion, MAX_SECOND_VIEWS};
+    use recon::math::axis_angle;
+    let (frame, map, engine, opts) = one_step_sample_setup(1);
+    let opts = InferSettings { samples: 1, ..opts };
+    let cam = |a: f64| RigidTransform { rotation: axis_angle([0.0, 1.0, 0.0], a), translation: [0.1 * a, 0.0, 0.02], scale: 1.0 };
+    let others = |n: usize| -> Vec<SecondView> {
+        (0..n).map(|i| SecondView { frame: &frame, objects: map.objects(Some(&[8])).0, t_c1_c2: cam(0.2 + 0.1 * i as f64) }).collect()
+    };
+    let run =
+        |n: usize, opts: &InferSettings| engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, others(n), opts, &|_| {}).unwrap();
+    // Other content in views 3 and 4: other objects' masks, labelled as object 8.
+    let as_8 = |id: u32| {
+        let m = map.objects(Some(&[id])).0.remove(0).to_bools();
+        vec![recon::dataset::ObjectMask::from_bools(Some(8), format!("{id} as 8"), frame.width, frame.height, &m)]
+    };
+    let distinct = |opts: &InferSettings| {
+        let mut v = others(3);
+        (v[1].objects, v[2].objects) = (as_8(14), as_8(21));
+        engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, v, opts, &|_| {}).unwrap()
+    };
+    // One other view: exactly the two-view entry.
+    let one = run(1, &opts);
+    let two_view = engine.reconstruct_two_view(&frame, map.objects(Some(&[8])).0, others(1).pop().unwrap(), &opts).unwrap();
+    let (a, b) = (&one.objects[0], &two_view.objects[0]);
+    assert_eq!((a.pose_camera, a.candidates.len()), (b.pose_camera, 2));
+    assert_eq!(a.gaussians_camera.as_ref().unwrap().positions, b.gaussians_camera.as_ref().unwrap().positions);
+    assert!(a.metadata.fusion.is_none());
+
+    // Three other views, both fusions, stage 2 fused too.
+    for (fusion, slat) in [(Fusion::Multidiffusion, SlatFusion::None), (Fusion::Stochastic, SlatFusion::Multidiffusion)] {
+        let mut o = opts.clone();
+        (o.run.fusion, o.run.slat_fusion) = (fusion, slat);
+        // Three steps: round robin gives every pair one.
+        o.run.ss_steps = Some(3);
+        let r = run(3, &o);
+        assert_eq!(r.objects.len(), 1, "{:?}", r.skipped);
+        let x = &r.objects[0];
+        assert_eq!(x.views.iter().map(|v| v.view).collect::<Vec<_>>(), vec![1, 2, 3, 4]);
+        assert_eq!(x.candidates.len(), 1, "the anchor's token is the one candidate");
+        assert_eq!((x.selection.view, x.candidates[0].score.per_view_m.len()), (1, 4));
+        assert!(x.views[0].pose_own_token.is_some() && x.views[1..].iter().all(|v| v.pose_own_token.is_none()));
+        let f = x.metadata.fusion.as_ref().expect("fusion metadata");
+        assert_eq!((f.pairs, f.ss, f.slat), (3, fusion, slat));
+        assert_eq!(x.metadata.num_views, 4);
+        // Copies of view 2: the two-view run's view-1 candidate (round robin: bit for bit).
+        let two = run(1, &o);
+        let (p, q) = (&x.candidates[0].pose_camera, &two.objects[0].candidates[0].pose_camera);
+        match fusion {
+            Fusion::Stochastic => assert_eq!(p, q),
+            Fusion::Multidiffusion => {
+                let d = (0..3).map(|i| (p.translation[i] - q.translation[i]).abs()).fold((p.scale - q.scale).abs(), f32::max);
+                assert!(d < 1e-4, "{p:?} vs {q:?}");
+            }
+        }
+        // Other content in the other views changes the result.
+        let d = distinct(&o);
+        let y = &d.objects[0];
+        assert_ne!(y.candidates[0].pose_camera, *q, "{fusion:?}: the other views must change the result");
+        // Same bytes with one kernel thread (so on a rerun too).
+        let single = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| distinct(&o));
+        let z = &single.objects[0];
+        assert_eq!(z.pose_camera, y.pose_camera, "{fusion:?}");
+        assert_eq!(z.gaussians_camera.as_ref().unwrap().positions, y.gaussians_camera.as_ref().unwrap().positions, "{fusion:?}");
+        let json = serde_json::to_value(&x.views).unwrap();
+        assert!(json[1].get("pose_own_token").is_none() && json[0].get("pose_own_token").is_some());
+    }
+
+    // An unusable view (a mask of two pixels) costs that view only.
+    let mut bad = others(3);
+    let mut mask = bad[1].objects[0].to_bools();
+    let keep = mask.iter().position(|&m| m).unwrap();
+    for (i, m) in mask.iter_mut().enumerate() {
+        *m &= i < keep + 2;
+    }
+    bad[1].objects = vec![recon::dataset::ObjectMask::from_bools(Some(8), "tiny", frame.width, frame.height, &mask)];
+    let r = engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, bad, &opts, &|_| {}).unwrap();
+    let x = &r.objects[0];
+    assert_eq!(x.views.iter().map(|v| v.view).collect::<Vec<_>>(), vec![1, 2, 4]);
+    assert!(x.notes.iter().any(|n| n.contains("view 3") && n.contains("left out")), "{:?}", x.notes);
+
+    // Too many views: refused before any object runs.
+    let e = engine.reconstruct_views(&frame, map.objects(Some(&[8])).0, others(MAX_SECOND_VIEWS + 1), &opts, &|_| {}).unwrap_err();
+    assert!(e.to_string().contains("views") && e.to_string().contains(&MAX_SECOND_VIEWS.to_string()), "{e}");
+    // Masks without ids matched by order: a count mismatch names the view.
+    let anon = |n: usize| (0..n).map(|i| recon::dataset::ObjectMask::from_bools(None, format!("m{i}"), 1, 1, &[true])).collect::<Vec<_>>();
+    let mut two = others(2);
+    two[1].objects = anon(2);
+    let e = engine.reconstruct_views(&frame, anon(1), two, &opts, &|_| {}).unwrap_err().to_string();
+    assert!(e.contains("view 3"), "{e}");
 }
 
 /// The shape fit end to end (random tiny model, sample frame): stage 2 runs on
@@ -299,6 +399,43 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--dtype"), "{}", String::from_utf8_lossy(&o.stderr));
     let o = with(&["--weights", "no-such-thing"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a directory"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+/// `--view` files are read and checked before the model loads: a bad field is named with
+/// its view number (after --view2's 2), too many views are refused before any file is
+/// read, and no output is left behind.
+#[test]
+fn cli_view_files_are_checked_before_the_model() {
+    let tmp = common::tmp("infer-cli-views");
+    std::fs::create_dir_all(&tmp).unwrap();
+    let out = tmp.join("out");
+    let out_s = out.to_str().unwrap();
+    let base = ["infer", "--rgbd", "data/sample/000001-color.png", "--masks", "data/sample/000001-label.png", "--out", out_s];
+    let with = |extra: &[&str]| {
+        let mut a: Vec<&str> = base.to_vec();
+        a.extend_from_slice(extra);
+        recon_with_env(&a, &[])
+    };
+    let rgb = repo().join("data/sample/000001-color.png");
+    let label = repo().join("data/sample/000001-label.png");
+    let v = tmp.join("v.json");
+    std::fs::write(&v, serde_json::json!({"rgb": rgb, "masks": label}).to_string()).unwrap();
+    let v_s = v.to_str().unwrap();
+    let o = with(&["--view", v_s]);
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success() && err.contains("view 2") && err.contains("v.json") && err.contains("`T_c1_ci`"), "{err}");
+    let id = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1";
+    let o = with(&["--view2", "data/sample/000001-color.png", "--masks2", "data/sample/000001-label.png", "--rel-pose", id, "--view", v_s]);
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success() && err.contains("view 3"), "{err}");
+    let many: Vec<&str> = (0..17).flat_map(|_| ["--view", "no/such/view.json"]).collect();
+    let o = with(&many);
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success() && err.contains("17") && err.contains("16") && !err.contains("no/such"), "{err}");
+    let o = with(&["--fusion", "average"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--fusion"));
     assert!(!out.exists());
     let _ = std::fs::remove_dir_all(&tmp);
 }

@@ -7,6 +7,7 @@ mod common;
 
 use candle_core::{Device, Tensor};
 use common::{tiny_config, tmp};
+use recon::engine::{Fusion, SlatFusion, MAX_SECOND_VIEWS};
 use recon::engine::{LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, RunOptions, Stages, ViewInput, Weights, WeightsSource};
 use recon::export::{save_glb, Axes, GlbOptions};
 use recon::rng::SeededRng;
@@ -148,9 +149,8 @@ fn tiny_pipeline_end_to_end() {
     assert_eq!(out2.metadata.num_views, 2);
     assert_ne!(out2.pose.tokens_10d, out.pose.tokens_10d, "the second view must change the result");
 
-    // Bad inputs are errors, not panics.
-    let three = ObjectInputs { views: vec![view(s, 1, 0.0), view(s, 2, 0.0), view(s, 3, 0.0)] };
-    assert!(p.run(&three, &opts).is_err());
+    // Bad inputs are errors, not panics (more views than pose tokens run as
+    // fused pairs: tests below).
     let mut bad = view(s, 1, 0.0);
     bad.mask = Tensor::zeros((1, 1, s + 14, s + 14), candle_core::DType::F32, &Device::Cpu).unwrap();
     assert!(p.run(&ObjectInputs { views: vec![bad] }, &opts).is_err());
@@ -247,4 +247,69 @@ fn load_options_precision_and_per_stage() {
         let r = q.run(&one, &s1).unwrap();
         assert!(r.pose.tokens_10d.iter().flatten().all(|v| v.is_finite()) && !r.coords.is_empty());
     }
+}
+
+/// Pair fusion (RecGen `run_pointmap_many_views`) on the tiny model: N
+/// copies of the second view fused by the mean are the two-view run up to
+/// float rounding, and round robin is it exactly; round robin's step 0 takes
+/// pair 1 (so with one step the fused run is the (anchor, view 2) run, bit
+/// for bit); stage-2 fusion runs its own pose passes and changes the result;
+/// the same seed gives the same bytes; too many views are refused.
+#[test]
+fn fused_pairs_match_the_two_view_run() {
+    let p = Pipeline::load(&tiny_config(), Weights::Random(0), Stages::All, &LoadOptions::default()).unwrap();
+    let s = p.image_size();
+    let (a, b, c) = (view(s, 1, 0.0), view(s, 2, 0.08), view(s, 3, -0.05));
+    let inputs = |vs: &[&ViewInput]| ObjectInputs { views: vs.iter().map(|v| (*v).clone()).collect() };
+    let opts = RunOptions { seed: 5, ss_steps: Some(3), slat_steps: Some(2), decode_mesh: false, ..Default::default() };
+    let two = p.run(&inputs(&[&a, &b]), &opts).unwrap();
+    assert!(two.metadata.fusion.is_none() && two.pose.view_tokens == 2);
+
+    // Round robin over copies: bit-identical, stage 2 included.
+    let rr = RunOptions { fusion: Fusion::Stochastic, ..opts.clone() };
+    let copies = p.run(&inputs(&[&a, &b, &b, &b]), &rr).unwrap();
+    // (Everything but `view_tokens`: the fused run's other tokens are not views' own.)
+    assert!(copies.coords == two.coords && copies.pose.per_token == two.pose.per_token && copies.pose.tokens_10d == two.pose.tokens_10d);
+    assert!(copies.pose.slat_tokens_13d == two.pose.slat_tokens_13d && copies.gaussians == two.gaussians, "round robin over copies");
+    assert_eq!(copies.pose.view_tokens, 1);
+    let f = copies.metadata.fusion.as_ref().unwrap();
+    assert_eq!((f.pairs, f.ss, f.slat), (3, Fusion::Stochastic, SlatFusion::None));
+    // The mean over copies: the same up to float rounding (stage 1 only, where it acts).
+    let s1 = RunOptions { stage1_only: true, ..opts.clone() };
+    let two1 = p.run(&inputs(&[&a, &b]), &s1).unwrap();
+    let mean = p.run(&inputs(&[&a, &b, &b, &b]), &s1).unwrap();
+    let d =
+        mean.pose.tokens_10d.iter().flatten().zip(two1.pose.tokens_10d.iter().flatten()).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    assert!(d < 1e-4, "mean over copies: tokens differ by {d}");
+    assert_eq!(mean.coords, two1.coords);
+
+    // Round robin takes pair (step mod N): one step uses pair 1 alone.
+    let one_step = RunOptions { ss_steps: Some(1), stage1_only: true, fusion: Fusion::Stochastic, ..opts.clone() };
+    let abc = p.run(&inputs(&[&a, &b, &c]), &one_step).unwrap();
+    let acb = p.run(&inputs(&[&a, &c, &b]), &one_step).unwrap();
+    assert_eq!(abc.pose.tokens_10d, p.run(&inputs(&[&a, &b]), &one_step).unwrap().pose.tokens_10d);
+    assert_eq!(acb.pose.tokens_10d, p.run(&inputs(&[&a, &c]), &one_step).unwrap().pose.tokens_10d);
+    assert_ne!(abc.pose.tokens_10d, acb.pose.tokens_10d);
+    // Two steps: pair 1 then pair 2, which is neither pair alone.
+    let two_steps = RunOptions { ss_steps: Some(2), ..one_step.clone() };
+    let abc2 = p.run(&inputs(&[&a, &b, &c]), &two_steps).unwrap();
+    assert_ne!(abc2.pose.tokens_10d, p.run(&inputs(&[&a, &b]), &two_steps).unwrap().pose.tokens_10d);
+    assert_ne!(abc2.pose.tokens_10d, p.run(&inputs(&[&a, &c]), &two_steps).unwrap().pose.tokens_10d);
+
+    // Three distinct views, both stage-2 fusions: deterministic, and stage-2
+    // fusion (with its own pose passes) changes stage 2 only.
+    let three = inputs(&[&a, &b, &c]);
+    let md = p.run(&three, &opts).unwrap();
+    assert!(same(&md, &p.run(&three, &opts).unwrap()), "same seed, same bytes");
+    for slat in [SlatFusion::Multidiffusion, SlatFusion::Stochastic] {
+        let fused2 = p.run(&three, &RunOptions { slat_fusion: slat, ..opts.clone() }).unwrap();
+        assert_eq!((&fused2.pose, &fused2.coords), (&md.pose, &md.coords), "{slat:?}: stage 1 is the same");
+        assert_ne!(fused2.gaussians, md.gaussians, "{slat:?}");
+        assert_eq!(fused2.metadata.fusion.as_ref().unwrap().slat, slat);
+    }
+
+    // Too many views are refused, naming the limit.
+    let many: Vec<&ViewInput> = std::iter::once(&a).chain(std::iter::repeat_n(&b, MAX_SECOND_VIEWS + 1)).collect();
+    let e = p.run(&inputs(&many), &s1).unwrap_err().to_string();
+    assert!(e.contains(&MAX_SECOND_VIEWS.to_string()) && e.contains("views"), "{e}");
 }

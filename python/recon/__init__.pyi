@@ -181,6 +181,9 @@ class Engine:
         mask_erosion_kernel_size: int = 5,
         mask_erosion_iterations: int = 1,
         use_pointmap: bool = True,
+        fusion: str = "multidiffusion",
+        slat_fusion: str = "none",
+        views: Optional[Sequence[Dict[str, Any]]] = None,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
 
@@ -189,6 +192,12 @@ class Engine:
         instance-id image (0 = background) or a list of H×W boolean masks.
         view2: {"rgb", "depth", "K", "masks", "T_c1_c2"[, "depth_scale"]} for two-view
         conditioning; T_c1_c2 maps camera 2 to camera 1 (x1 = R·x2 + t, metres).
+        views: more views besides the anchor, each such a dict with "T_c1_ci" (camera i to
+            camera 1); they follow view2 (view 2, 3, …; at most 16 in all). More views than
+            the model takes at once run as fused (anchor, view i) pairs: fusion
+            "multidiffusion" (mean of the pairs' velocities at every step) or "stochastic"
+            (one pair per step in turn); slat_fusion "none" (stage 2 on the anchor and the
+            first other view), "multidiffusion" or "stochastic" (stage 2 fused as well).
         samples: seeds seed … seed+samples−1, best pose kept, spread reported.
         select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
@@ -240,10 +249,16 @@ class Engine:
         mask_erosion_kernel_size: int = 5,
         mask_erosion_iterations: int = 1,
         use_pointmap: bool = True,
+        fusion: str = "multidiffusion",
+        slat_fusion: str = "none",
+        views: Optional[Sequence[Union[_Path, Dict[str, Any]]]] = None,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
         the same masks (one instance-id PNG or several binary masks), the same output folder
         (default `<stem>_recon` beside the image). The defaults are the CLI's (seed 42).
+        views: the views besides `rgbd` as `recon infer --view` takes them: view files (JSON
+        {"rgb", "masks", "T_c1_ci"[, "depth", "intrinsics", "depth_scale"]}, relative paths
+        from the file's folder) or such dicts (relative paths from the working folder).
         Returns the summary: objects (pose, score, stage seconds, files), skipped, notes."""
 
 def infer_defaults() -> Dict[str, Any]:
@@ -345,6 +360,7 @@ def eval(
     surface_seed: int = 0,
     all_frames: bool = False,
     two_view: bool = False,
+    views: Optional[int] = None,
     weights: Optional[_Path] = None,
     config: Optional[_Path] = None,
     dtype: Optional[str] = None,
@@ -368,20 +384,23 @@ def eval(
     mask_erosion_kernel_size: int = 5,
     mask_erosion_iterations: int = 1,
     use_pointmap: bool = True,
+    fusion: str = "multidiffusion",
+    slat_fusion: str = "none",
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
 
     Every flag of `recon eval` is a keyword here with the CLI's default: shape, f1_tau,
     scenes (`["48"]` matches 000048), occlusion ((LO, HI) percent), surface_samples,
-    surface_seed, all_frames, two_view; and for method="recgen" the model flags: either
+    surface_seed, all_frames, two_view, views (N views: each frame with the next N−1 of
+    its scene); and for method="recgen" the model flags: either
     `engine` (a loaded Engine), or weights / config / dtype / threads, loaded as
     `recon eval --method recgen` loads them (seed also seeds weights="random"); then the
     per-frame flags of `recon infer` with their defaults (`infer_defaults()`): seed, samples,
     select, pose_fit, shape_fit, mesh_from, steps, cfg, max_faces, min_component_area, smooth,
     parallel_objects, max_objects, and RecGen's preprocessing (quantile_drop_threshold,
     clamp_range, mask_erosion_enabled, mask_erosion_kernel_size, mask_erosion_iterations,
-    use_pointmap). Returns report.json's dict."""
+    use_pointmap), fusion, slat_fusion. Returns report.json's dict."""
 
 def audit_depth(
     dataset: _Path,
@@ -473,6 +492,8 @@ class Client:
         mask_erosion_kernel_size: int = 5,
         mask_erosion_iterations: int = 1,
         use_pointmap: bool = True,
+        fusion: str = "multidiffusion",
+        slat_fusion: str = "none",
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
         given take the server's defaults (its flags), which are the library's unless it was

@@ -64,9 +64,46 @@ def _row(frame: str, out: str, **kw: Any) -> Dict[str, Any]:
     return r
 
 
+def _plain(x: Any) -> Any:
+    """A JSON-ready value: paths as text, arrays as lists."""
+    if isinstance(x, os.PathLike):
+        return str(x)
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    if isinstance(x, (list, tuple)):
+        return [_plain(y) for y in x]
+    return x
+
+
+def _views(v: Any, i: int) -> List[Any]:
+    """A row's views besides the anchor, as `recon infer --view` takes them: view files
+    (JSON; in a CSV cell `;`-separated, or a JSON list) or dicts of the same keys (rgb,
+    masks, T_c1_ci, depth, intrinsics, depth_scale), at most `MAX_SECOND_VIEWS`."""
+    if isinstance(v, str):
+        v = json.loads(v) if v.lstrip().startswith("[") else [p for p in v.split(";") if p.strip()]
+    elif isinstance(v, (os.PathLike, Mapping)):
+        v = [v]
+    elif hasattr(v, "tolist"):
+        v = v.tolist()
+    views: List[Any] = []
+    for k, x in enumerate(v):
+        if isinstance(x, (str, os.PathLike)):
+            views.append(str(x))
+        elif isinstance(x, Mapping):
+            views.append({key: _plain(y) for key, y in x.items()})
+        else:
+            raise _recon.InputError(f"frame table row {i}: views[{k}]: expected a view file or a dict, got {type(x).__name__}")
+    if len(views) > _recon.MAX_SECOND_VIEWS:
+        raise _recon.InputError(
+            f"frame table row {i}: views: {len(views)} views besides the anchor, more than the limit of {_recon.MAX_SECOND_VIEWS}"
+        )
+    return views
+
+
 def _normalise(item: Mapping[str, Any], i: int) -> Dict[str, Any]:
     """A frame of a table: `rgb` and `masks` required; `frame`, `depth`, `intrinsics`
-    (a 3×3 K, [fx, fy, cx, cy] or a file) and `depth_scale` optional."""
+    (a 3×3 K, [fx, fy, cx, cy] or a file), `depth_scale` and `views` (views besides the
+    anchor: view files or dicts, as `Engine.reconstruct_files(views=)`) optional."""
     if "rgb" not in item or "masks" not in item:
         raise _recon.InputError(f"frame table row {i}: needs `rgb` and `masks` (got {sorted(item)})")
     masks = item["masks"]
@@ -83,6 +120,9 @@ def _normalise(item: Mapping[str, Any], i: int) -> Dict[str, Any]:
             out[key] = str(v) if isinstance(v, os.PathLike) else v
     if isinstance(out.get("intrinsics"), Sequence) and not isinstance(out["intrinsics"], str):
         out["intrinsics"] = [float(x) for x in _flatten(out["intrinsics"])]
+    views = item.get("views")
+    if views is not None and not (isinstance(views, float) and views != views):
+        out["views"] = _views(views, i)
     return out
 
 
@@ -98,7 +138,8 @@ def frames_of(source: Any) -> List[Dict[str, Any]]:
     folder (masks as `recon infer` takes them: BOP `mask_visib` files, YCB-Video label
     maps), or a table of frames (a list of dicts, a pandas DataFrame, or a .parquet /
     .csv / .json(l) file) with columns `rgb`, `masks` and optionally `frame`, `depth`,
-    `intrinsics`, `depth_scale`."""
+    `intrinsics`, `depth_scale`, `views` (the views besides the anchor: a list of view files
+    or view dicts, `recon infer --view`'s format; in CSV, `;`-separated view files)."""
     if isinstance(source, (str, os.PathLike)):
         p = Path(source)
         if p.is_file():
@@ -233,6 +274,7 @@ def reconstruct_frame(engine: "_recon.Engine", f: Mapping[str, Any], out: Path, 
             depth=f.get("depth"),
             intrinsics=f.get("intrinsics"),
             depth_scale=f.get("depth_scale"),
+            views=f.get("views"),
             **options,
         )
     except Exception as e:  # the job goes on; the row carries the message

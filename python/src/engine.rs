@@ -12,9 +12,10 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use recon::dataset::{Intrinsics, MaskSkip, ObjectMask, RgbdFrame};
 use recon::engine::{
-    Dtype, FrameImage, FrameResult, InferOptions, InferSettings, ModelSource, ObjectResult, RecgenFiles, RecgenPose, SecondView,
+    Dtype, FrameImage, FrameResult, InferOptions, InferSettings, ModelSource, ObjectResult, RecgenFiles, RecgenPose, SecondView, ViewSpec,
 };
 use recon::geometry::pose::PoseRepresentation;
+use recon::math::Similarity;
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -146,6 +147,69 @@ fn masks_from(m: &Bound<'_, PyAny>, what: &str) -> PyResult<(Vec<ObjectMask>, Ve
     Ok(map.objects(None))
 }
 
+/// A view besides the anchor from a dict of arrays (`view2=` or an item of `views=`):
+/// "rgb", "depth", "K", "masks", the pose `pose_key` (this camera → camera 1, 4×4) and
+/// optionally "depth_scale". `name` labels errors (`view2`, `views[1]`).
+fn array_view(py: Python<'_>, v: &Bound<'_, PyAny>, name: &str, pose_key: &str) -> PyResult<(RgbdFrame, Vec<ObjectMask>, Similarity)> {
+    let keys = format!("rgb, depth, K, masks, {pose_key}[, depth_scale]");
+    let v = v.cast::<PyDict>().map_err(|_| input(name, format!("expected a dict with {keys}")))?;
+    let get = |k: &str| -> PyResult<Bound<'_, PyAny>> { v.get_item(k)?.ok_or_else(|| input(name, format!("missing key `{k}` ({keys})"))) };
+    let ds: Option<f64> = v.get_item("depth_scale")?.map(|x| x.extract()).transpose()?;
+    let frame = frame_from_arrays(&get("rgb")?, &get("depth")?, &get("K")?, ds, &format!("<{name} array>"))?;
+    let (objects, _) = masks_from(&get("masks")?, &format!("{name} masks"))?;
+    let np = py.import("numpy")?;
+    let what = format!("{name} {pose_key}");
+    let t: PyReadonlyArray2<f64> =
+        np.call_method1("asarray", (get(pose_key)?, "float64"))?.extract().map_err(|_| input(&what, "expected a 4×4 matrix"))?;
+    if t.shape() != [4, 4] {
+        return Err(input(&what, format!("expected a 4×4 matrix, got {:?}", t.shape())));
+    }
+    let flat: Vec<f64> = t.as_array().iter().copied().collect();
+    let rel = recon::geometry::rel_pose_from_numbers(&flat, name, pose_key).py()?;
+    Ok((frame, objects, rel))
+}
+
+/// JSON-ready view dict values: paths as text (`os.fspath`), arrays as lists.
+fn plain<'py>(x: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
+    let py = x.py();
+    if x.hasattr("__fspath__")? {
+        return py.import("os")?.call_method1("fspath", (x,));
+    }
+    if x.hasattr("tolist")? {
+        return x.call_method0("tolist");
+    }
+    if x.is_instance_of::<PyList>() || x.is_instance_of::<pyo3::types::PyTuple>() {
+        let items = x.try_iter()?.map(|i| plain(&i?)).collect::<PyResult<Vec<_>>>()?;
+        return Ok(PyList::new(py, items)?.into_any());
+    }
+    Ok(x.clone())
+}
+
+/// The `views=` of `reconstruct_files`: view files (`recon infer --view`) or dicts of
+/// the same keys (relative paths from the working folder), checked before any is read.
+fn view_specs(views: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<ViewSpec>> {
+    let Some(views) = views.filter(|v| !v.is_none()) else { return Ok(Vec::new()) };
+    let items: Vec<Bound<'_, PyAny>> = views.try_iter()?.collect::<PyResult<_>>()?;
+    recon::engine::check_view_count(items.len()).py()?;
+    items
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let label = format!("views[{i}]");
+            if let Ok(d) = v.cast::<PyDict>() {
+                let clean = PyDict::new(v.py());
+                for (k, x) in d.iter() {
+                    clean.set_item(k, plain(&x)?)?;
+                }
+                ViewSpec::from_json(&from_python(clean.as_any())?, std::path::Path::new(""), &label).py()
+            } else {
+                let p: PathBuf = v.extract().map_err(|_| input(&label, "expected a view file path or a dict (rgb, masks, T_c1_ci, …)"))?;
+                ViewSpec::from_file(&p, &label).py()
+            }
+        })
+        .collect()
+}
+
 /// A loaded model, reused across objects, frames and threads.
 #[pyclass(frozen, module = "recon")]
 pub struct Engine {
@@ -258,7 +322,7 @@ impl Engine {
         format!("recon.Engine({})", self.source)
     }
 
-    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, progress=None, **options))]
+    #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, views=None, progress=None, **options))]
     #[allow(non_snake_case, clippy::too_many_arguments)]
     fn reconstruct(
         &self,
@@ -269,39 +333,30 @@ impl Engine {
         masks: &Bound<'_, PyAny>,
         depth_scale: Option<f64>,
         view2: Option<&Bound<'_, PyDict>>,
+        views: Option<&Bound<'_, PyAny>>,
         progress: Option<Py<PyAny>>,
         options: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Vec<Object>> {
         let (_, opts) = infer_options(options)?;
+        // The views besides the anchor, counted before any is converted: view2, then views.
+        let more: Vec<Bound<'_, PyAny>> = match views.filter(|v| !v.is_none()) {
+            Some(v) => v.try_iter()?.collect::<PyResult<_>>()?,
+            None => Vec::new(),
+        };
+        recon::engine::check_view_count(view2.iter().count() + more.len()).py()?;
         let frame = frame_from_arrays(rgb, depth, K, depth_scale, "<array>")?;
         let (objects, _) = masks_from(masks, "masks")?;
-        let second = match view2 {
-            None => None,
-            Some(v) => {
-                let get = |k: &str| -> PyResult<Bound<'_, PyAny>> {
-                    v.get_item(k)?
-                        .ok_or_else(|| input("view2", format!("missing key `{k}` (rgb, depth, K, masks, T_c1_c2[, depth_scale])")))
-                };
-                let ds: Option<f64> = v.get_item("depth_scale")?.map(|x| x.extract()).transpose()?;
-                let f2 = frame_from_arrays(&get("rgb")?, &get("depth")?, &get("K")?, ds, "<view2 array>")?;
-                let (o2, _) = masks_from(&get("masks")?, "view2 masks")?;
-                let np = py.import("numpy")?;
-                let t: PyReadonlyArray2<f64> = np
-                    .call_method1("asarray", (get("T_c1_c2")?, "float64"))?
-                    .extract()
-                    .map_err(|_| input("view2 T_c1_c2", "expected a 4×4 matrix"))?;
-                if t.shape() != [4, 4] {
-                    return Err(input("view2 T_c1_c2", format!("expected a 4×4 matrix, got {:?}", t.shape())));
-                }
-                let flat: Vec<String> = t.as_array().iter().map(|x| format!("{x:?}")).collect();
-                let rel = recon::geometry::parse_rel_pose(&flat.join(",")).map_err(|e| input("view2 T_c1_c2", e))?;
-                Some((f2, o2, rel))
-            }
-        };
+        let mut others = Vec::new();
+        if let Some(v) = view2 {
+            others.push(array_view(py, v.as_any(), "view2", "T_c1_c2")?);
+        }
+        for (i, v) in more.iter().enumerate() {
+            others.push(array_view(py, v, &format!("views[{i}]"), "T_c1_ci")?);
+        }
         let report = progress_fn(progress);
         let result = self.compute(py, |e| {
-            let sv = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
-            e.reconstruct_with(&frame, objects, sv, &opts, &report)
+            let sv = others.iter().map(|(f, o, rel)| SecondView { frame: f, objects: o.clone(), t_c1_c2: *rel }).collect();
+            e.reconstruct_views(&frame, objects, sv, &opts, &report)
         });
         let result = result.py()?;
         let shared = FrameShared::new(py, &result)?;
@@ -309,7 +364,7 @@ impl Engine {
     }
 
     /// `recon infer` on files: the same discovery, the same calls, the same output folder.
-    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, progress=None, **options))]
+    #[pyo3(signature = (rgbd, masks, out=None, *, depth=None, intrinsics=None, depth_scale=None, objects=None, views=None, progress=None, **options))]
     #[allow(clippy::too_many_arguments)]
     fn reconstruct_files<'py>(
         &self,
@@ -321,10 +376,12 @@ impl Engine {
         intrinsics: Option<&Bound<'py, PyAny>>,
         depth_scale: Option<f64>,
         objects: Option<Vec<u32>>,
+        views: Option<&Bound<'py, PyAny>>,
         progress: Option<Py<PyAny>>,
         options: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyAny>> {
         let (options, opts) = infer_options(options)?;
+        let specs = view_specs(views)?;
         let masks: Vec<PathBuf> = match masks.extract::<PathBuf>() {
             Ok(p) => vec![p],
             Err(_) => masks.extract()?,
@@ -338,7 +395,18 @@ impl Engine {
         let summary = self.compute(py, |e| -> recon::Result<serde_json::Value> {
             let frame = RgbdFrame::open(&rgbd, &fo)?;
             let (objs, mut skipped) = recon::dataset::load_masks(&masks, objects.as_deref())?;
-            let result = e.reconstruct_with(&frame, objs, None, &opts, &report)?;
+            // As `recon infer --view`: a view's unreadable masks are listed, and cost that view only.
+            let mut opened = Vec::with_capacity(specs.len());
+            for (i, spec) in specs.iter().enumerate() {
+                let v = spec.open(objects.as_deref())?;
+                skipped.extend(v.skipped.iter().cloned().map(|mut s| {
+                    s.label = format!("view {} {}", i + 2, s.label);
+                    s
+                }));
+                opened.push(v);
+            }
+            let others = opened.iter().map(|v| SecondView { frame: &v.frame, objects: v.objects.clone(), t_c1_c2: v.t_c1_ci }).collect();
+            let result = e.reconstruct_views(&frame, objs, others, &opts, &report)?;
             skipped.extend(result.skipped.iter().cloned());
             let written = recon::engine::write_outputs(&result, &out)?;
             let objs: Vec<serde_json::Value> = result

@@ -45,6 +45,7 @@ fn _recon(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(tools::keep_freed_memory, m)?)?;
     m.add("OUTPUT_MARKER", recon::engine::MARKER)?;
     m.add("STAGE_COLUMNS", recon::engine::STAGE_COLUMNS.to_vec())?;
+    m.add("MAX_SECOND_VIEWS", recon::engine::MAX_SECOND_VIEWS)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

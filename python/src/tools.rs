@@ -374,7 +374,7 @@ impl Drop for Staging {
 #[pyfunction]
 #[pyo3(signature = (dataset, *, predictions=None, method=None, engine=None, out=None, shape="hull",
     f1_tau=recon::eval::EvalOptions::default().f1_tau_rel, scenes=None, occlusion=None,
-    surface_samples=recon::eval::EvalOptions::default().n_samples, surface_seed=recon::eval::EvalOptions::default().seed, all_frames=false, two_view=false, weights=None, config=None,
+    surface_samples=recon::eval::EvalOptions::default().n_samples, surface_seed=recon::eval::EvalOptions::default().seed, all_frames=false, two_view=false, views=None, weights=None, config=None,
     dtype=None, threads=None, **options))]
 #[allow(clippy::too_many_arguments)]
 pub fn eval<'py>(
@@ -392,6 +392,7 @@ pub fn eval<'py>(
     surface_seed: u64,
     all_frames: bool,
     two_view: bool,
+    views: Option<usize>,
     weights: Option<PathBuf>,
     config: Option<PathBuf>,
     dtype: Option<&str>,
@@ -430,6 +431,16 @@ pub fn eval<'py>(
     if two_view && method != Some("recgen") {
         return Err(config_err("two_view", "applies to method=\"recgen\" only"));
     }
+    if views.is_some() && method != Some("recgen") {
+        return Err(config_err("views", "applies to method=\"recgen\" only"));
+    }
+    if views.is_some() && two_view {
+        return Err(config_err("views", "give views= or two_view=, not both"));
+    }
+    if let Some(n) = views.filter(|&n| n == 0 || n > recon::engine::MAX_SECOND_VIEWS + 1) {
+        return Err(config_err("views", format!("{n}: expected 1 to {}", recon::engine::MAX_SECOND_VIEWS + 1)));
+    }
+    let views = views.unwrap_or(if two_view { 2 } else { 1 });
     let model_given = weights.is_some() || config.is_some() || dtype.is_some() || threads.is_some();
     let (o, io) = crate::engine::infer_options(options)?;
     let engine = match (method, engine) {
@@ -476,12 +487,12 @@ pub fn eval<'py>(
                     (run.write(&dir)?, serde_json::json!({"kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped}))
                 } else {
                     let (engine, pool) = engine.clone().ok_or_else(|| recon::Error::msg("no engine"))?;
-                    let go = || recon::eval::recgen_dataset(&ds, &engine, &io, two_view, occlusion, &|_, _| {});
+                    let go = || recon::eval::recgen_dataset_views(&ds, &engine, &io, views, occlusion, &|_, _| {});
                     let run = match pool {
                         Some(p) => p.install(go)?,
                         None => go()?,
                     };
-                    let idx = serde_json::json!({"kind": "recon eval --method recgen", "model": model, "two_view": two_view,
+                    let idx = serde_json::json!({"kind": "recon eval --method recgen", "model": model, "two_view": two_view, "views": views,
                         "skipped": run.skipped, "seconds_model": run.seconds_model,
                         "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>()});
                     (run.write(&dir)?, idx)

@@ -142,6 +142,58 @@ def test_reconstruct_files_writes_the_cli_folder(synth_ds, engine, recon_cli, tm
     assert_same_output(tmp_path / "py", tmp_path / "cli")
 
 
+def test_views_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
+    """Views besides the anchor: arrays (`views=`), view files (`reconstruct_files(views=)`)
+    and `recon infer --view` give the same result; with three views the two-view model
+    fuses pairs. Bad views are errors naming the view and the field."""
+    f = frame0(synth_ds)
+    fr = recon.load_frame(f["rgb"])
+    masks = frame_masks(f)
+    Ts = []
+    for i, dx in enumerate([0.03, -0.04]):
+        T = np.eye(4)
+        T[0, 3], T[2, 3] = dx, 0.01 * i
+        Ts.append(T)
+    files = []
+    for i, T in enumerate(Ts):
+        p = tmp_path / f"view{i + 2}.json"
+        p.write_text(json.dumps({"rgb": f["rgb"], "masks": f["masks"], "T_c1_ci": T.tolist()}))
+        files.append(p)
+    opts = dict(INFER, fusion="stochastic")
+    cli_out = tmp_path / "cli"
+    flags = ["--seed", str(opts["seed"]), "--max-faces", str(opts["max_faces"]), "--steps", str(opts["steps"]), "--fusion", "stochastic"]
+    views = [a for p in files for a in ("--view", p)]
+    run_cli(recon_cli, "infer", "--rgbd", f["rgb"], "--masks", *f["masks"], "--out", cli_out, *views, *flags, ok=(0, 3))
+    s = engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "py", views=files, **opts)
+    assert len(s["objects"]) > 0
+    assert_same_output(tmp_path / "py", cli_out)
+    arrays = [{"rgb": fr["rgb"], "depth": fr["depth"], "K": fr["K"], "masks": masks, "T_c1_ci": T} for T in Ts]
+    objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=arrays, **opts)
+    index = json.loads((cli_out / recon.OUTPUT_MARKER).read_text())
+    assert len(objs) == len(index["objects"])
+    for o, w in zip(objs, index["objects"]):
+        pose = json.loads((cli_out / Path(w["pose"]).parent.name / "pose.json").read_text())
+        assert np.array_equal(o.pose[:3, 3], np.array(pose["translation_m"], np.float32).astype(np.float64))
+        assert [v["view"] for v in pose["views"]] == [1, 2, 3]
+        assert pose["run"]["fusion"] == {"pairs": 2, "ss": "stochastic", "slat": "none"}
+    # A view dict of paths is a view file's content.
+    d = engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "dict", views=[files[0], json.loads(files[1].read_text())], **opts)
+    assert_same_output(tmp_path / "dict", cli_out)
+    assert d["objects"]
+
+    bad = dict(arrays[1], T_c1_ci=np.zeros((4, 4)))
+    with pytest.raises(recon.InputError, match=r"views\[1\].*T_c1_ci"):
+        engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[arrays[0], bad], **opts)
+    with pytest.raises(recon.InputError, match=r"views\[0\].*missing key `depth`"):
+        engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[{"rgb": fr["rgb"]}], **opts)
+    with pytest.raises(recon.InputError, match="16"):
+        engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[arrays[0]] * 17, **opts)
+    with pytest.raises(recon.InputError, match=r"views\[0\].*`T_c1_ci`"):
+        engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "x", views=[{"rgb": f["rgb"], "masks": f["masks"]}], **opts)
+    with pytest.raises(recon.ConfigError, match="fusion"):
+        engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=arrays, fusion="mean")
+
+
 def test_one_engine_serves_several_threads(synth_ds, engine):
     f = frame0(synth_ds)
     fr = recon.load_frame(f["rgb"])

@@ -2,6 +2,7 @@
 
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -89,6 +90,32 @@ def test_frame_table_source(cluster, synth_ds, tmp_path):
     assert (tmp_path / "o" / "only" / recon.OUTPUT_MARKER).is_file()
     with pytest.raises(recon.InputError, match="masks"):
         rr.frames_of([{"rgb": "x.png"}])
+
+
+def test_multi_view_rows(cluster, synth_ds, recon_cli, tmp_path):
+    """A row with `views` (view files or dicts) is `recon infer --view …` on that frame;
+    too many views are refused when the table is read."""
+    import json
+
+    f = recon.dataset_frames(synth_ds)[0]
+    T = [[1, 0, 0, 0.03], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    spec = {"rgb": f["rgb"], "masks": f["masks"], "T_c1_ci": T}
+    vf = tmp_path / "v2.json"
+    vf.write_text(json.dumps(spec))
+    opts = dict(INFER, fusion="stochastic")
+    table = [{"frame": "multi", "rgb": f["rgb"], "masks": f["masks"], "views": [vf, dict(spec, T_c1_ci=T[:3] + [[0, 0, 0, 1]])]}]
+    s = rr.reconstruct_dataset(table, tmp_path / "o", num_workers=1, **opts)
+    assert (s["frames"], s["failed"]) == (1, 0), pq.read_table(tmp_path / "o" / rr.RESULTS).to_pylist()
+    cli = tmp_path / "cli"
+    r = subprocess.run(
+        [str(recon_cli), "infer", "--rgbd", f["rgb"], "--masks", *f["masks"], "--out", str(cli), "--view", str(vf), "--view", str(vf),
+         "--seed", "7", "--max-faces", "2000", "--steps", "2", "--fusion", "stochastic"],
+        capture_output=True, text=True,
+    )
+    assert r.returncode in (0, 3), r.stderr
+    assert_same_output(tmp_path / "o" / "multi", cli)
+    with pytest.raises(recon.InputError, match="views.*limit of 16"):
+        rr.frames_of([{"rgb": "x.png", "masks": "m.png", "views": [str(vf)] * 17}])
 
 
 def test_ray_synth_is_identical_to_one_process(cluster, synth_ds, tmp_path):

@@ -71,6 +71,11 @@ pub struct EvalArgs {
     /// (needs cam_R_w2c/cam_t_w2c), the pose chosen across both views.
     #[arg(long)]
     two_view: bool,
+    /// --method recgen: N views: each frame with the next N−1 frames of its scene (fewer
+    /// when the scene has fewer; relative poses from cam_R_w2c/cam_t_w2c); 2 is --two-view.
+    /// More views than the model takes at once run as fused pairs (--fusion, --slat-fusion).
+    #[arg(long, conflicts_with = "two_view", value_parser = clap::value_parser!(u64).range(1..=(recon::engine::MAX_SECOND_VIEWS as u64 + 1)))]
+    views: Option<u64>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -138,6 +143,10 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     if a.two_view && !matches!(a.method, Some(Method::Recgen)) {
         bail!("--two-view applies to --method recgen only");
     }
+    if a.views.is_some() && !matches!(a.method, Some(Method::Recgen)) {
+        bail!("--views applies to --method recgen only");
+    }
+    let views = a.views.map_or(if a.two_view { 2 } else { 1 }, |n| n as usize);
     let (report, out, staging, index) = match (a.method, &a.predictions) {
         (Some(Method::Observed), _) => {
             let shape = match a.shape {
@@ -183,7 +192,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = recon::eval::recgen_dataset(&ds, &engine, &io, a.two_view, a.occlusion, &|done, total| {
+            let run = recon::eval::recgen_dataset_views(&ds, &engine, &io, views, a.occlusion, &|done, total| {
                 if done % 10 == 0 || done == total {
                     eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
                 }
@@ -203,7 +212,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({
-                "kind": "recon eval --method recgen", "model": a.model, "config": source.architecture()?, "two_view": a.two_view, "skipped": run.skipped,
+                "kind": "recon eval --method recgen", "model": a.model, "config": source.architecture()?, "two_view": a.two_view, "views": views, "skipped": run.skipped,
                 "seconds_model": run.seconds_model,
                 "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
             });

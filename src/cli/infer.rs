@@ -45,6 +45,13 @@ pub struct InferArgs {
     /// 16 numbers of the 4×4 matrix, row-major, or a JSON file with "T_c1_c2" (4×4 rows).
     #[arg(long, requires = "view2", allow_hyphen_values = true)]
     rel_pose: Option<String>,
+    /// A view besides --rgbd's, repeatable: a JSON file {"rgb", "masks", "T_c1_ci" (this
+    /// camera → the --rgbd camera, 4×4), optional "depth", "intrinsics", "depth_scale"};
+    /// relative paths are taken from the file's folder (docs/infer.md). Views count from 2
+    /// (after --view2). More views than the model takes at once run as fused (anchor,
+    /// view) pairs: --fusion, --slat-fusion.
+    #[arg(long = "view", value_name = "JSON")]
+    views: Vec<PathBuf>,
     #[command(flatten)]
     model: ModelArgs,
     /// Worker threads (default: all cores).
@@ -197,21 +204,30 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     let opts = a.model.infer_settings()?;
     let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
     let (objects, mut skipped) = recon::dataset::load_masks(&a.masks, a.objects.as_deref())?;
-    // View 1's unreadable or unusable masks are objects that failed; view 2's only cost that view.
+    // View 1's unreadable or unusable masks are objects that failed; another view's only cost that view.
     let failed_masks = skipped.len();
-    let second = match &a.view2 {
-        Some(v2) => {
-            let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
-            let (o2, s2) = recon::dataset::load_masks(&a.masks2, a.objects.as_deref())?;
-            skipped.extend(s2.into_iter().map(|mut s| {
-                s.label = format!("view 2 {}", s.label);
-                s
-            }));
-            let rel = a.rel_pose.as_deref().context("--view2 needs --rel-pose")?;
-            Some((f2, o2, parse_rel_pose(rel)?))
-        }
-        None => None,
-    };
+    // The other views: --view2, then every --view, counted before any is read.
+    recon::engine::check_view_count(a.view2.iter().count() + a.views.len())?;
+    let mut others = Vec::new();
+    if let Some(v2) = &a.view2 {
+        let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
+        let (o2, s2) = recon::dataset::load_masks(&a.masks2, a.objects.as_deref())?;
+        skipped.extend(s2.into_iter().map(|mut s| {
+            s.label = format!("view 2 {}", s.label);
+            s
+        }));
+        let rel = a.rel_pose.as_deref().context("--view2 needs --rel-pose")?;
+        others.push((f2, o2, parse_rel_pose(rel)?));
+    }
+    for path in &a.views {
+        let k = others.len() + 2;
+        let v = recon::engine::ViewSpec::from_file(path, &format!("view {k}"))?.open(a.objects.as_deref())?;
+        skipped.extend(v.skipped.into_iter().map(|mut s| {
+            s.label = format!("view {k} {}", s.label);
+            s
+        }));
+        others.push((v.frame, v.objects, v.t_c1_ci));
+    }
 
     // Too many objects is refused before the model is loaded (the engine checks again).
     recon::engine::check_object_count(&frame, &objects, &opts, "--masks")?;
@@ -247,8 +263,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     }
     let bar = Bar::new((objects.len() * opts.samples) as u64);
     let progress = |e: recon::engine::Progress<'_>| bar.event(e);
-    let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
-    let result = engine.reconstruct_with(&frame, objects, second_view, &opts, &progress);
+    let other_views = others.iter().map(|(f, o, rel)| SecondView { frame: f, objects: o.clone(), t_c1_c2: *rel }).collect();
+    let result = engine.reconstruct_views(&frame, objects, other_views, &opts, &progress);
     bar.pb.finish_and_clear();
     let mut result = result?;
     let failed = failed_masks + result.skipped.len();
@@ -293,7 +309,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             skipped.iter().map(|s| serde_json::json!({"object": s.label, "reason": s.reason.to_string()})).collect();
         let summary = serde_json::json!({
             "out": out, "random_weights": random, "config": config, "dtype": load.compute.fast_parts().map_or("f32", |(p, _)| p.name()),
-            "views": if second.is_some() { 2 } else { 1 }, "samples": opts.samples, "select": opts.select, "pose_fit": a.model.infer.pose_fit, "seed": a.model.infer.seed,
+            "views": 1 + others.len(), "samples": opts.samples, "select": opts.select, "pose_fit": a.model.infer.pose_fit, "seed": a.model.infer.seed,
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
             "objects": objs, "skipped": skips, "notes": result.notes, "weights": engine.pipeline.weights(),

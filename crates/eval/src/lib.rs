@@ -25,5 +25,5 @@ pub use self::baseline::{observe_dataset, ObservedOptions, Shape};
 pub use self::icp::IcpResult;
 pub use self::metrics::{add, add_s};
 pub use self::metrics::{add_sb, f1_score};
-pub use self::recgen::recgen_dataset;
+pub use self::recgen::{recgen_dataset, recgen_dataset_views};
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

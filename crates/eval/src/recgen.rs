@@ -7,10 +7,18 @@
 //! frame and are not defined).
 //!
 //! **Two views** ([`recgen_dataset`] with `two_view`): each frame is paired
-//! with the next frame of its scene (cyclically) and every object seen in
+//! with the next frame of its scene (cyclically, [`partners`]) and every object seen in
 //! both is reconstructed from both (RecGen two-view conditioning, the
 //! relative camera pose from the frames' world poses, pose selection across
 //! views); results stay in the first frame's camera, scored against its GT.
+//!
+//! **N views** ([`recgen_dataset_views`]): each frame with the next N − 1
+//! frames of its scene (cyclically; fewer when the scene has fewer), every
+//! object seen in another frame reconstructed from all the frames it is seen
+//! in (pair fusion beyond two views, as `recon infer --view`). Without camera
+//! poses (YCB-Video) the relative pose comes from the GT pose of an object
+//! both frames annotate ([`relative_pose_from_objects`]: the scene's objects
+//! stay put).
 
 use std::path::{Path, PathBuf};
 
@@ -54,17 +62,19 @@ pub fn relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
     Some(Similarity::rigid(r1, t1).compose(&(Similarity::rigid(r2, t2)).inverse()))
 }
 
-/// The frame paired with frame `i` for two-view evaluation: the next frame of
-/// its scene (cyclically), when the scene has another frame and both have world poses.
-pub fn partner(ds: &Dataset, i: usize) -> Option<usize> {
-    let f = &ds.frames[i];
-    let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
-    if same.len() < 2 || f.cam_w2c.is_none() {
-        return None;
-    }
-    let pos = same.iter().position(|&j| j == i)?;
-    let j = same[(pos + 1) % same.len()];
-    ds.frames[j].cam_w2c.is_some().then_some(j)
+/// Camera 2 → camera 1 from an object both frames annotate (frame 1's first
+/// such, in annotation order): `T_c1_obj · T_c2_obj⁻¹`. For datasets without
+/// camera poses whose objects stay put between frames (YCB-Video).
+pub fn relative_pose_from_objects(f1: &Frame, f2: &Frame) -> Option<Similarity> {
+    f1.gt.iter().find_map(|g1| {
+        let g2 = f2.gt.iter().find(|g| g.obj_id == g1.obj_id)?;
+        Some(Similarity::rigid(g1.r, g1.t).compose(&Similarity::rigid(g2.r, g2.t).inverse()))
+    })
+}
+
+/// Camera 2 → camera 1: from the frames' world poses, else from an object both annotate.
+pub fn frame_relative_pose(f1: &Frame, f2: &Frame) -> Option<Similarity> {
+    relative_pose(f1, f2).or_else(|| relative_pose_from_objects(f1, f2))
 }
 
 #[derive(Default)]
@@ -82,14 +92,27 @@ fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
     RgbdFrame::open(&ds.rgb_path(f), &fo)
 }
 
-/// Reconstructs every GT instance of one frame; with `second`, objects also
-/// visible there (matched by `obj_id`) are reconstructed from both frames.
-/// With `occlusion`, only GT instances in that occlusion range (percent,
-/// [`in_occlusion`]) are reconstructed.
-pub fn recgen_frame(
+/// The frames paired with frame `i` for `others + 1`-view evaluation: of the
+/// next `others` frames of its scene (cyclically, at most the scene's other
+/// frames), those related to it by a relative pose ([`frame_relative_pose`]).
+pub fn partners(ds: &Dataset, i: usize, others: usize) -> Vec<usize> {
+    let f = &ds.frames[i];
+    let same: Vec<usize> = (0..ds.frames.len()).filter(|&j| ds.frames[j].scene == f.scene).collect();
+    let Some(pos) = same.iter().position(|&j| j == i) else { return Vec::new() };
+    (1..same.len().min(others + 1))
+        .map(|k| same[(pos + k) % same.len()])
+        .filter(|&j| frame_relative_pose(f, &ds.frames[j]).is_some())
+        .collect()
+}
+
+/// Reconstructs every GT instance of one frame; with `others` (view 2, 3, …),
+/// objects also visible there (matched by `obj_id`) are reconstructed from
+/// every frame they are seen in. With `occlusion`, only GT instances in that
+/// occlusion range (percent, [`in_occlusion`]) are reconstructed.
+pub fn recgen_frame_views(
     ds: &Dataset,
     f: &Frame,
-    second: Option<&Frame>,
+    others: &[&Frame],
     engine: &Engine,
     opts: &InferSettings,
     occlusion: Option<[f64; 2]>,
@@ -106,35 +129,37 @@ pub fn recgen_frame(
         let (w, h, mask, _) = visible_mask(ds, f, gi, &mut label)?;
         masks.push(ObjectMask::from_bools(Some(gi as u32), format!("gt {gi}"), w, h, &mask));
     }
-    let second = match second {
-        Some(f2) => {
-            let rel = relative_pose(f, f2).ok_or_else(|| {
-                Error::input(
-                    ds.root.display().to_string(),
-                    format!("scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c for two views", f.scene, f.frame, f2.frame),
-                )
-            })?;
-            let frame2 = open_frame(ds, f2)?;
-            let mut label2: Option<InstanceMap> = None;
-            let mut masks2 = Vec::new();
-            for (gj, g2) in f2.gt.iter().enumerate() {
-                // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
-                let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
-                let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
-                if mask.iter().any(|&b| b) {
-                    masks2.push(ObjectMask::from_bools(Some(gi as u32), format!("view 2 gt {gj}"), w, h, &mask));
-                }
+    let mut opened = Vec::with_capacity(others.len());
+    for (i, f2) in others.iter().enumerate() {
+        let rel = frame_relative_pose(f, f2).ok_or_else(|| {
+            Error::input(
+                ds.root.display().to_string(),
+                format!(
+                    "scene {}: frames {} and {} need cam_R_w2c/cam_t_w2c, or an object both annotate, for several views",
+                    f.scene, f.frame, f2.frame
+                ),
+            )
+        })?;
+        let frame2 = open_frame(ds, f2)?;
+        let mut label2: Option<InstanceMap> = None;
+        let mut masks2 = Vec::new();
+        for (gj, g2) in f2.gt.iter().enumerate() {
+            // The same instance in frame 1 (ids of frame 1's masks are its GT indices).
+            let Some(gi) = f.gt.iter().position(|g| g.obj_id == g2.obj_id).filter(|&gi| keep(gi)) else { continue };
+            let (w, h, mask, _) = visible_mask(ds, f2, gj, &mut label2)?;
+            if mask.iter().any(|&b| b) {
+                masks2.push(ObjectMask::from_bools(Some(gi as u32), format!("view {} gt {gj}", i + 2), w, h, &mask));
             }
-            Some((frame2, masks2, rel))
         }
-        None => None,
-    };
+        opened.push((frame2, masks2, rel));
+    }
     let t0 = std::time::Instant::now();
-    let r = match second {
-        Some((frame2, masks2, rel)) => {
-            engine.reconstruct_two_view(&frame, masks, SecondView { frame: &frame2, objects: masks2, t_c1_c2: rel }, opts)?
-        }
-        None => engine.reconstruct(&frame, masks, opts)?,
+    let r = if opened.is_empty() {
+        engine.reconstruct(&frame, masks, opts)?
+    } else {
+        let views =
+            opened.iter().map(|(frame2, masks2, rel)| SecondView { frame: frame2, objects: masks2.clone(), t_c1_c2: *rel }).collect();
+        engine.reconstruct_views(&frame, masks, views, opts, &|_| {})?
     };
     run.seconds_model = t0.elapsed().as_secs_f64();
     for s in r.skipped {
@@ -185,10 +210,24 @@ pub fn recgen_dataset(
     occlusion: Option<[f64; 2]>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<RecgenRun> {
+    recgen_dataset_views(ds, engine, opts, if two_view { 2 } else { 1 }, occlusion, progress)
+}
+
+/// Every frame of `ds`, in order, each with its next `views − 1` frames
+/// ([`partners`]; `views` 2 is [`recgen_dataset`]'s `two_view`); frames
+/// without partners are reconstructed from one view.
+pub fn recgen_dataset_views(
+    ds: &Dataset,
+    engine: &Engine,
+    opts: &InferSettings,
+    views: usize,
+    occlusion: Option<[f64; 2]>,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RecgenRun> {
     let mut all = RecgenRun::default();
     for (i, f) in ds.frames.iter().enumerate() {
-        let second = if two_view { partner(ds, i).map(|j| &ds.frames[j]) } else { None };
-        let r = recgen_frame(ds, f, second, engine, opts, occlusion)?;
+        let others: Vec<&Frame> = partners(ds, i, views.saturating_sub(1)).into_iter().map(|j| &ds.frames[j]).collect();
+        let r = recgen_frame_views(ds, f, &others, engine, opts, occlusion)?;
         all.predictions.extend(r.predictions);
         all.skipped.extend(r.skipped);
         all.seconds_model += r.seconds_model;
@@ -207,6 +246,7 @@ impl RecgenRun {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use recon_core::dataset::bop::GtInstance;
 
     fn rot(axis: usize, a: f64) -> [[f64; 3]; 3] {
         let (c, s) = (a.cos(), a.sin());
@@ -249,6 +289,23 @@ mod tests {
             assert!((got[k] - x1[k]).abs() < 1e-12, "{got:?} vs {x1:?}");
         }
         assert!(relative_pose(&f1, &frame("a", 2, None)).is_none());
+        // The same from an object both frames see (no camera poses): T_ci_obj = T_ci_w · T_w_obj.
+        let (ro, to) = (rot(2, 0.4), [0.05, 0.1, -0.2]);
+        let obj = |r: &[[f64; 3]; 3], t: &[f64; 3]| {
+            let s = Similarity::rigid(*r, *t).compose(&Similarity::rigid(ro, to));
+            GtInstance { obj_id: 7, r: s.rotation, t: s.translation, visib_fract: None, visib_estimated: false, bbox_visib: None }
+        };
+        let (mut g1, mut g2) = (frame("y", 1, None), frame("y", 2, None));
+        g1.gt.push(obj(&r1, &t1));
+        g2.gt.push(obj(&r2, &t2));
+        let rel = relative_pose_from_objects(&g1, &g2).unwrap();
+        let got = apply(&rel.rotation, &rel.translation, &x2);
+        for k in 0..3 {
+            assert!((got[k] - x1[k]).abs() < 1e-9, "{got:?} vs {x1:?}");
+        }
+        assert!(frame_relative_pose(&g1, &g2).is_some() && relative_pose(&g1, &g2).is_none());
+        g2.gt[0].obj_id = 8;
+        assert!(frame_relative_pose(&g1, &g2).is_none());
     }
 
     #[test]
@@ -258,6 +315,13 @@ mod tests {
             frames: vec![frame("a", 0, p), frame("a", 3, p), frame("a", 5, p), frame("b", 0, p), frame("c", 0, p), frame("c", 1, None)],
             ..Default::default()
         };
-        assert_eq!((0..6).map(|i| partner(&ds, i)).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
+        let partner = |i: usize| partners(&ds, i, 1).first().copied();
+        assert_eq!((0..6).map(partner).collect::<Vec<_>>(), vec![Some(1), Some(2), Some(0), None, None, None]);
+        // N views: the next frames in turn, at most the scene's others; the first is `partner`'s.
+        assert_eq!(partners(&ds, 1, 3), vec![2, 0]);
+        assert_eq!(partners(&ds, 2, 1), vec![0]);
+        assert_eq!(partners(&ds, 0, 0), Vec::<usize>::new());
+        assert_eq!(partners(&ds, 3, 3), Vec::<usize>::new());
+        assert_eq!((partners(&ds, 4, 3), partners(&ds, 5, 3)), (vec![], vec![]));
     }
 }

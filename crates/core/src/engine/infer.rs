@@ -26,6 +26,14 @@
 //! mapped to view `k`'s camera through view `k`'s normaliser, then to the
 //! anchor (view 1) camera with the relative pose `T_c1_c2`.
 //!
+//! **N views** ([`Engine::reconstruct_views`]): with more views than the
+//! model's pose tokens, the anchor is paired with every other view and the
+//! pairs are fused at every sampling step (RecGen `generate_multiview` with
+//! several second views; [`crate::engine::pipeline`], **Pair fusion**). Only
+//! the anchor's token is a pose of its own, so it is the one candidate of a
+//! sample; every view's observed points still score it, and every view's
+//! depth carves and fills the shape fit.
+//!
 //! **Samples and selection**: with `samples > 1` the object is run with
 //! seeds `seed, seed + 1, …`. Every (sample, view) pose is a candidate,
 //! scored by the trimmed-mean distance of the observed points to its posed
@@ -41,7 +49,7 @@ use crate::engine::options::{
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
     LoadOptions, ObjectInputs, ObjectReconstruction, Pipeline, PredictedPose, RunMetadata, RunOptions, Stage, StageTimings, Stages,
-    ViewInput,
+    ViewInput, MAX_SECOND_VIEWS,
 };
 use crate::engine::pose_fit::refine_pose;
 use crate::engine::pose_fit::AlignOptions;
@@ -63,6 +71,7 @@ use crate::math::Similarity;
 use crate::mesh::post::{decimate, drop_floaters, taubin_smooth};
 use crate::mesh::stretch_mesh;
 use crate::mesh::Mesh;
+use crate::model::sampler::Fusion;
 use crate::spatial::KdTree;
 use crate::weights::WeightFiles;
 use crate::{Error, Result};
@@ -176,18 +185,20 @@ impl InferOptions {
         // One `--steps` / `--cfg` sets both stages' samplers.
         (s.run.ss_steps, s.run.slat_steps) = (self.steps, self.steps);
         (s.run.ss_cfg_strength, s.run.slat_cfg_strength) = (self.cfg, self.cfg);
+        (s.run.fusion, s.run.slat_fusion) = (self.fusion, self.slat_fusion);
         Ok(s)
     }
 }
 
-/// The second view of a two-view reconstruction.
+/// A view besides the anchor: the second view of a two-view
+/// reconstruction, or one of several ([`Engine::reconstruct_views`]).
 pub struct SecondView<'a> {
-    /// The second view's RGB-D frame.
+    /// This view's RGB-D frame.
     pub frame: &'a RgbdFrame,
-    /// The second frame's masks, matched to the first frame's by instance
-    /// id, or by order when masks carry no id ([`match_views`]).
+    /// This frame's masks, matched to the anchor frame's by instance id, or
+    /// by order when masks carry no id ([`match_views`]).
     pub objects: Vec<ObjectMask>,
-    /// Camera 2 → camera 1, rigid: `x₁ = R·x₂ + t` (metres).
+    /// This view's camera → the anchor camera, rigid: `x₁ = R·xᵢ + t` (metres).
     pub t_c1_c2: RigidTransform,
 }
 
@@ -236,7 +247,7 @@ pub struct Engine {
 /// One view of a reconstructed object.
 #[derive(Debug, Clone, Serialize)]
 pub struct ViewPose {
-    /// 1 = the anchor (`--rgbd`), 2 = `--view2`.
+    /// 1 = the anchor (`--rgbd`), 2 = `--view2` or the first `--view`, 3 = the next, …
     pub view: usize,
     /// This view's colour image file.
     pub frame: PathBuf,
@@ -248,9 +259,11 @@ pub struct ViewPose {
     pub normaliser_diameter_m: f64,
     /// Observed object points (eroded mask, valid depth).
     pub observed_points: usize,
-    /// This view's own pose token of the selected sample, in this view's camera frame.
-    #[serde(serialize_with = "ser_pose")]
-    pub pose_own_token: Pose,
+    /// This view's own pose token of the selected sample, in this view's
+    /// camera frame; `None` (left out of the JSON) for the views besides the
+    /// anchor of a run with pair fusion, which have no token of their own.
+    #[serde(serialize_with = "ser_opt_pose", skip_serializing_if = "Option::is_none")]
+    pub pose_own_token: Option<Pose>,
     /// The selected pose in this view's camera frame.
     #[serde(serialize_with = "ser_pose")]
     pub pose_selected: Pose,
@@ -261,7 +274,7 @@ pub struct ViewPose {
 pub struct Candidate {
     /// Seed of the sample the candidate comes from.
     pub seed: u64,
-    /// 1 or 2 (the view whose token it is).
+    /// The view whose token it is: its position in [`ObjectResult::views`], from 1.
     pub view: usize,
     /// In the anchor camera frame (after refinement with `--pose-fit depth`).
     #[serde(serialize_with = "ser_pose")]
@@ -283,7 +296,7 @@ pub struct Selection {
     pub candidate: usize,
     /// Seed of the winning candidate's sample.
     pub seed: u64,
-    /// View (1 or 2) whose token won.
+    /// The view whose token won: its position in [`ObjectResult::views`], from 1.
     pub view: usize,
     /// The selection key (metres): own-view score (`single`, `first`) or the mean over views (`cross`).
     pub score_m: f64,
@@ -413,30 +426,57 @@ pub fn check_object_count(frame: &RgbdFrame, objects: &[ObjectMask], opts: &Infe
     Ok(count)
 }
 
+/// Refuses more than [`MAX_SECOND_VIEWS`] views besides the anchor, before any
+/// work (each is a fused condition of every object's run).
+pub fn check_view_count(others: usize) -> Result<()> {
+    if others > MAX_SECOND_VIEWS {
+        return Err(Error::too_large(
+            "views",
+            "count",
+            others as u128,
+            MAX_SECOND_VIEWS as u128,
+            "views besides the anchor",
+            "each is a fused condition of every object's run (memory, and with multidiffusion a model pass per step)",
+        ));
+    }
+    Ok(())
+}
+
 /// Pair the objects of two views: by instance id when every mask has one,
 /// else by order (then both views must list the same number of masks).
 /// Objects of view 1 without a partner run on view 1 alone; view-2 masks
 /// without a partner are reported in the returned notes.
 #[allow(clippy::type_complexity)]
 pub fn match_views(v1: Vec<ObjectMask>, v2: Vec<ObjectMask>) -> Result<(Vec<(ObjectMask, Option<ObjectMask>)>, Vec<String>)> {
-    let by_id = v1.iter().chain(&v2).all(|o| o.id.is_some());
+    let (partners, notes) = match_view(&v1, v2, 2).map_err(|e| match e {
+        Error::Input { msg, .. } => Error::input("--masks2", msg),
+        e => e,
+    })?;
+    Ok((v1.into_iter().zip(partners).collect(), notes))
+}
+
+/// The partner in view `view` (2, 3, …) of each anchor object of `v1`, as
+/// [`match_views`] pairs them, and notes on `view`'s masks without a partner.
+/// A count mismatch without ids is an error naming the view.
+pub fn match_view(v1: &[ObjectMask], vk: Vec<ObjectMask>, view: usize) -> Result<(Vec<Option<ObjectMask>>, Vec<String>)> {
+    let by_id = v1.iter().chain(&vk).all(|o| o.id.is_some());
     if !by_id {
-        if v1.len() != v2.len() {
+        if v1.len() != vk.len() {
             return Err(Error::input(
-                "--masks2",
-                format!("{} mask(s) for view 2 but {} for view 1: masks without instance ids are matched by order", v2.len(), v1.len()),
+                format!("view {view} masks"),
+                format!(
+                    "{} mask(s) for view {view} but {} for view 1: masks without instance ids are matched by order",
+                    vk.len(),
+                    v1.len()
+                ),
             ));
         }
-        return Ok((v1.into_iter().zip(v2).map(|(a, b)| (a, Some(b))).collect(), Vec::new()));
+        return Ok((vk.into_iter().map(Some).collect(), Vec::new()));
     }
-    let mut v2: Vec<Option<ObjectMask>> = v2.into_iter().map(Some).collect();
-    let mut pairs = Vec::new();
-    for a in v1 {
-        let b = v2.iter_mut().find(|b| b.as_ref().is_some_and(|b| b.id == a.id)).and_then(Option::take);
-        pairs.push((a, b));
-    }
-    let notes = v2.into_iter().flatten().map(|b| format!("view 2: {} has no partner in view 1; ignored", b.label)).collect();
-    Ok((pairs, notes))
+    let mut vk: Vec<Option<ObjectMask>> = vk.into_iter().map(Some).collect();
+    let partners = v1.iter().map(|a| vk.iter_mut().find(|b| b.as_ref().is_some_and(|b| b.id == a.id)).and_then(Option::take)).collect();
+    let notes = vk.into_iter().flatten().map(|b| format!("view {view}: {} has no partner in view 1; ignored", b.label)).collect();
+    Ok((partners, notes))
 }
 
 fn add_timings(a: &mut StageTimings, b: &StageTimings) {
@@ -457,6 +497,8 @@ fn add_timings(a: &mut StageTimings, b: &StageTimings) {
 
 /// A prepared view of one object with what scoring needs.
 struct ObjView<'a> {
+    /// The input view it comes from: 1 = the anchor, 2 = the first view besides it, …
+    number: usize,
     frame: &'a RgbdFrame,
     /// The frame's support plane (camera frame, facing the camera), for the shape fit.
     support: Option<Plane>,
@@ -465,8 +507,9 @@ struct ObjView<'a> {
     points: ViewPoints,
 }
 
-/// `depth`: the frame's free-space depth view, shared by all its objects.
+/// `number`: the input view (1 = the anchor); `depth`: the frame's free-space depth view, shared by all its objects.
 fn object_view<'a>(
+    number: usize,
     frame: &'a RgbdFrame,
     label: String,
     prepared: PreparedView,
@@ -475,7 +518,16 @@ fn object_view<'a>(
     support: Option<Plane>,
 ) -> Result<ObjView<'a>> {
     let (points, _) = object_points(frame, &prepared.mask_full, None)?;
-    Ok(ObjView { frame, support, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+    Ok(ObjView { number, frame, support, label, prepared, points: ViewPoints { points, to_anchor, depth } })
+}
+
+/// A frame besides the anchor's, with what all its objects share.
+struct ExtraFrame<'a> {
+    frame: &'a RgbdFrame,
+    /// This camera → the anchor camera.
+    to_anchor: RigidTransform,
+    depth: Option<Arc<DepthView>>,
+    plane: Option<Plane>,
 }
 
 /// The dominant plane of a frame's depth, facing the camera (`None` when the
@@ -522,7 +574,8 @@ fn fit_shape(
     let model = Grid::from_coords(coords, r);
     let surface = Surface::from_points(&model.outer_surface_points())?;
     let mut cands = Vec::new();
-    for (k, v) in views.iter().enumerate() {
+    // The views with a pose token of their own (with pair fusion the anchor alone).
+    for (k, v) in views.iter().enumerate().take(pose.view_tokens) {
         let own = pose_to_similarity(&pose_to_camera(&pose.per_token[k], &v.prepared.normaliser));
         let mut anchor = v.points.to_anchor.compose(&own);
         let mut stretch = [1.0; 3];
@@ -602,6 +655,8 @@ fn observed_in_anchor(v: &ObjView) -> (Vec<[f32; 3]>, Vec<[u8; 3]>) {
 /// The outputs kept of the best sample so far.
 struct Kept {
     per_token: Vec<Pose>,
+    /// Views `0..view_tokens` have their own token ([`PredictedPose::view_tokens`]).
+    view_tokens: usize,
     coords: usize,
     faces_decoded: usize,
     mesh: Option<Mesh>,
@@ -709,11 +764,7 @@ impl Engine {
         self.reconstruct_with(frame, objects, Some(second), opts, &|_| {})
     }
 
-    /// The general entry: one or two views, `opts.samples` seeds per object,
-    /// pose selection, face budget; `progress` hears what is running.
-    ///
-    /// Per-object problems (masks, depth, an empty occupancy for every seed)
-    /// become [`FrameResult::skipped`].
+    /// One or two views: [`Self::reconstruct_views`] with `second` as the one view besides the anchor.
     pub fn reconstruct_with(
         &self,
         frame: &RgbdFrame,
@@ -722,33 +773,78 @@ impl Engine {
         opts: &InferSettings,
         progress: &(dyn Fn(Progress) + Sync),
     ) -> Result<FrameResult> {
+        self.reconstruct_views(frame, objects, second.into_iter().collect(), opts, progress)
+    }
+
+    /// The general entry: the anchor frame and any number of other views (at
+    /// most [`MAX_SECOND_VIEWS`]; more than the model's pose tokens run as
+    /// fused pairs, module docs), `opts.samples` seeds per object, pose
+    /// selection, face budget; `progress` hears what is running.
+    ///
+    /// Per-object problems (masks, depth, an empty occupancy for every seed)
+    /// become [`FrameResult::skipped`]; an object's view besides the anchor
+    /// that fails preprocessing is left out of that object, with a note.
+    pub fn reconstruct_views(
+        &self,
+        frame: &RgbdFrame,
+        objects: Vec<ObjectMask>,
+        others: Vec<SecondView>,
+        opts: &InferSettings,
+        progress: &(dyn Fn(Progress) + Sync),
+    ) -> Result<FrameResult> {
         if opts.samples == 0 {
             return Err(OptionError::new("samples", "at least 1", opts.samples).into());
         }
-        if second.is_some() && self.pipeline.max_views() < 2 {
+        if !others.is_empty() && self.pipeline.max_views() < 2 {
             return Err(Error::config(
                 &self.pipeline.config.name,
                 "ss_flow.args.num_pose_tokens",
                 format!("this model takes {} view(s); a second view needs a two-view (num_pose_tokens 2) model", self.pipeline.max_views()),
             ));
         }
+        check_view_count(others.len())?;
         check_object_count(frame, &objects, opts, "masks")?;
         let size = self.pipeline.image_size();
         let dev = Device::Cpu;
         let mut preprocess_seconds = 0.0;
-        let (pairs, notes, frame2, t_c1_c2) = match second {
-            Some(sv) => {
-                let (p, n) = match_views(objects, sv.objects)?;
-                (p, n, Some(sv.frame), sv.t_c1_c2)
+        let n_other = others.len();
+        let mut notes = Vec::new();
+        if self.pipeline.fuses_pairs(1 + n_other) && opts.run.fusion == Fusion::Stochastic {
+            let steps = opts.run.ss_steps.unwrap_or(self.pipeline.config.samplers.sparse_structure.steps);
+            if n_other > steps {
+                notes.push(format!(
+                    "stochastic fusion of {n_other} views in {steps} stage-1 steps: views {} to {} take no step",
+                    steps + 2,
+                    n_other + 1
+                ));
             }
-            None => (objects.into_iter().map(|o| (o, None)).collect(), Vec::new(), None, RigidTransform::identity()),
+        }
+        // Each object's partner in every other view (view 2 first).
+        let mut partners: Vec<Vec<Option<ObjectMask>>> = vec![Vec::with_capacity(n_other); objects.len()];
+        let mut extra = Vec::with_capacity(n_other);
+        for (i, sv) in others.into_iter().enumerate() {
+            let (p, n) = match_view(&objects, sv.objects, i + 2)?;
+            notes.extend(n);
+            for (slot, m) in partners.iter_mut().zip(p) {
+                slot.push(m);
+            }
+            let f = sv.frame;
+            extra.push(ExtraFrame { frame: f, to_anchor: sv.t_c1_c2, depth: depth_view(f, opts), plane: support_plane(f, opts) });
+        }
+        let items: Vec<(ObjectMask, Vec<Option<ObjectMask>>)> = objects.into_iter().zip(partners).collect();
+        let (depth1, plane1) = (depth_view(frame, opts), support_plane(frame, opts));
+        let total = items.len();
+        // What an object's note says of a view left out (one other view: the two-view wording).
+        let left_out = |k: usize, what: String| {
+            if n_other == 1 {
+                format!("{what}; reconstructed from view 1 alone")
+            } else {
+                format!("{what}; view {k} left out")
+            }
         };
-        let (depth1, depth2) = (depth_view(frame, opts), frame2.and_then(|f| depth_view(f, opts)));
-        let (plane1, plane2) = (support_plane(frame, opts), frame2.and_then(|f| support_plane(f, opts)));
-        let total = pairs.len();
         // One object from its masks to its result: independent of the others
         // (its seeds are `run.seed + sample`), so objects may run at once.
-        let run_one = |index: usize, (o1, o2): (ObjectMask, Option<ObjectMask>)| -> Result<(f64, ObjectOutcome)> {
+        let run_one = |index: usize, (o1, mine): (ObjectMask, Vec<Option<ObjectMask>>)| -> Result<(f64, ObjectOutcome)> {
             let t_obj = Instant::now();
             progress(Progress::Object { index, total, label: &o1.label });
             let (label, id) = (o1.label.clone(), o1.id);
@@ -758,15 +854,19 @@ impl Engine {
             let Some(p1) = p1.pop() else {
                 return Ok((t.elapsed().as_secs_f64(), ObjectOutcome::Skipped(s1)));
             };
-            let mut views = vec![object_view(frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone(), plane1)?];
-            if let (Some(f2), Some(o2)) = (frame2, o2) {
-                let (mut p2, s2) = prepare_frame_objects(f2, vec![o2], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
-                match p2.pop() {
-                    Some(p2) => views.push(object_view(f2, p2.object.label.clone(), p2.view, t_c1_c2, depth2.clone(), plane2)?),
-                    None => obj_notes.extend(s2.iter().map(|s| format!("view 2 {s}; reconstructed from view 1 alone"))),
+            let anchor = object_view(1, frame, p1.object.label.clone(), p1.view, RigidTransform::identity(), depth1.clone(), plane1)?;
+            let mut views = vec![anchor];
+            for (i, (x, o)) in extra.iter().zip(mine).enumerate() {
+                let k = i + 2;
+                let Some(o) = o else {
+                    obj_notes.push(left_out(k, format!("no mask in view {k}")));
+                    continue;
+                };
+                let (mut p, s) = prepare_frame_objects(x.frame, vec![o], size, opts.min_valid_depth_pixels, &opts.prepare, &dev);
+                match p.pop() {
+                    Some(p) => views.push(object_view(k, x.frame, p.object.label.clone(), p.view, x.to_anchor, x.depth.clone(), x.plane)?),
+                    None => obj_notes.extend(s.iter().map(|s| left_out(k, format!("view {k} {s}")))),
                 }
-            } else if frame2.is_some() {
-                obj_notes.push("no mask in view 2; reconstructed from view 1 alone".to_string());
             }
             let prepare_s = t.elapsed().as_secs_f64();
             // One object's failure (an error in its decoding, meshing or pose
@@ -793,7 +893,7 @@ impl Engine {
                 },
             ))
         };
-        let outcomes = map_in_flight(pairs, opts.parallel_objects.get(), run_one, |r| r.is_err())?;
+        let outcomes = map_in_flight(items, opts.parallel_objects.get(), run_one, |r| r.is_err())?;
         let (mut skipped, mut results) = (Vec::new(), Vec::new());
         // In object order, whatever order they finished in; an object left
         // unrun follows a fatal error, which is returned first.
@@ -855,6 +955,7 @@ impl Engine {
             if best >= first || tally.kept.is_none() {
                 tally.kept = Some(Kept {
                     per_token: rec.pose.per_token.clone(),
+                    view_tokens: rec.pose.view_tokens,
                     coords: rec.coords.len(),
                     faces_decoded,
                     mesh,
@@ -1011,7 +1112,8 @@ fn sample_candidates(
         };
         candidates.push(Candidate { seed, view: f.view + 1, pose_camera: similarity_to_pose(&f.anchor), stretch: f.stretch, score });
     }
-    for (k, v) in views.iter().enumerate().filter(|_| fitted.is_none()) {
+    // The views with a pose token of their own (with pair fusion the anchor alone).
+    for (k, v) in views.iter().enumerate().take(pose.view_tokens).filter(|_| fitted.is_none()) {
         let pose_n = pose.per_token[k];
         let own = pose_to_similarity(&pose_to_camera(&pose_n, &v.prepared.normaliser));
         let mut anchor = v.points.to_anchor.compose(&own);
@@ -1064,13 +1166,13 @@ fn object_result(
         .map(|(k, v)| {
             let n: &Normaliser = &v.prepared.normaliser;
             ViewPose {
-                view: k + 1,
+                view: v.number,
                 frame: v.frame.rgb_path.clone(),
                 mask: v.label.clone(),
                 normaliser_centre_m: n.centre,
                 normaliser_diameter_m: n.diameter,
                 observed_points: v.points.points.len(),
-                pose_own_token: pose_to_camera(&kept.per_token[k], n),
+                pose_own_token: (k < kept.view_tokens).then(|| pose_to_camera(&kept.per_token[k], n)),
                 pose_selected: similarity_to_pose(&v.points.to_anchor.inverse().compose(&anchor)),
             }
         })
@@ -1106,6 +1208,10 @@ fn object_result(
 
 fn ser_pose<S: serde::Serializer>(p: &Pose, s: S) -> std::result::Result<S::Ok, S::Error> {
     PoseJson::from(p).serialize(s)
+}
+
+fn ser_opt_pose<S: serde::Serializer>(p: &Option<Pose>, s: S) -> std::result::Result<S::Ok, S::Error> {
+    p.as_ref().map(PoseJson::from).serialize(s)
 }
 
 /// A [`Pose`] as written to JSON: `x' = scale · rotation · x + translation`.

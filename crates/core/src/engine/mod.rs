@@ -1,7 +1,8 @@
 //! The engine: both model stages on a frame's objects (`pipeline`), pose
 //! fitting and selection against the measured depth (`pose_fit`), the
 //! user-facing [`infer::Engine`] with its [`source::ModelSource`], RecGen's result
-//! fields of an object (`recgen_result`), and its output folder (`output`).
+//! fields of an object (`recgen_result`), its output folder (`output`), and the JSON
+//! description of a view besides the anchor (`views`).
 
 pub mod infer;
 pub mod options;
@@ -11,6 +12,7 @@ pub(crate) mod pose_fit;
 pub mod recgen_result;
 pub(crate) mod shape_fit;
 pub(crate) mod source;
+pub mod views;
 pub use self::infer::*;
 pub use self::options::*;
 pub use self::output::*;
@@ -23,3 +25,5 @@ pub use self::shape_fit::{
     ShapeFitReport,
 };
 pub use self::source::*;
+pub use self::views::{OpenedView, ViewSpec, VIEW_KEYS};
+pub use crate::model::sampler::{Fusion, SlatFusion};

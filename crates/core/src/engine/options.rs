@@ -9,6 +9,7 @@
 
 use crate::engine::pose_fit::{PoseFit, SelectMethod};
 use crate::engine::shape_fit::{MeshFrom, ShapeFit};
+use crate::model::sampler::{Fusion, SlatFusion};
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
 
@@ -108,6 +109,17 @@ pub struct InferOptions {
     /// the model sees only the image and the mask (the depth still places the object).
     #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.use_pointmap, action = clap::ArgAction::Set))]
     pub use_pointmap: bool,
+    /// With more views than the model takes at once (a two-view model and several
+    /// --view): how stage 1 fuses the (anchor, view i) pairs at every step: the mean of
+    /// their guided velocities (multidiffusion, one model pass per pair and step) or one
+    /// pair per step in turn (stochastic, no extra cost).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.fusion))]
+    pub fusion: Fusion,
+    /// With more views than the model takes at once: stage 2 on the anchor and the first
+    /// other view (none), or on every pair fused as --fusion does (each pair past the first
+    /// then costs a stage-1 run for its pose).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.slat_fusion))]
+    pub slat_fusion: SlatFusion,
 }
 
 /// The range the normalised point map is clamped to (`low ≤ x ≤ high` per coordinate):
@@ -184,10 +196,12 @@ impl InferOptions {
         mask_erosion_kernel_size: 5,
         mask_erosion_iterations: 1,
         use_pointmap: true,
+        fusion: Fusion::Multidiffusion,
+        slat_fusion: SlatFusion::None,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 19] = [
+    pub const NAMES: [&'static str; 21] = [
         "seed",
         "samples",
         "select",
@@ -207,6 +221,8 @@ impl InferOptions {
         "mask_erosion_kernel_size",
         "mask_erosion_iterations",
         "use_pointmap",
+        "fusion",
+        "slat_fusion",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -364,6 +380,10 @@ mod tests {
     fn json_takes_the_same_names_and_defaults() {
         let o = InferOptions::from_json(serde_json::json!({"cfg": 3, "pose_fit": "depth-stretch", "steps": null})).unwrap();
         assert_eq!(o, InferOptions { cfg: Some(3.0), pose_fit: PoseFit::DepthStretch, ..Default::default() });
+        let o = InferOptions::from_json(serde_json::json!({"fusion": "stochastic", "slat_fusion": "multidiffusion"})).unwrap();
+        assert_eq!((o.fusion, o.slat_fusion), (Fusion::Stochastic, SlatFusion::Multidiffusion));
+        let e = InferOptions::from_json(serde_json::json!({"fusion": "average"})).unwrap_err();
+        assert_eq!(e.option(), "fusion");
         assert_eq!(InferOptions::from_json(serde_json::json!({})).unwrap(), InferOptions::default());
         let e = InferOptions::from_json(serde_json::json!({"sample": 2})).unwrap_err();
         assert!(e.to_string().starts_with("unknown option `sample`; the options are seed, samples,"), "{e}");
@@ -391,6 +411,8 @@ mod tests {
             smooth: 5,
             parallel_objects: NonZeroUsize::new(2).unwrap(),
             max_objects: NonZeroUsize::new(7).unwrap(),
+            fusion: Fusion::Stochastic,
+            slat_fusion: SlatFusion::Multidiffusion,
             quantile_drop_threshold: 0.1,
             clamp_range: ClampRange { low: -1.0, high: 1.5 },
             mask_erosion_enabled: true,
@@ -404,6 +426,7 @@ mod tests {
         assert!(!s.run.use_pointmap);
         let off = InferOptions { mask_erosion_enabled: false, ..o.clone() }.settings().unwrap();
         assert_eq!(off.prepare.erosion, None);
+        assert_eq!((s.run.fusion, s.run.slat_fusion), (Fusion::Stochastic, SlatFusion::Multidiffusion));
         assert_eq!((s.run.seed, s.samples, s.select), (9, 3, SelectMethod::First));
         assert_eq!(
             (s.run.ss_steps, s.run.slat_steps, s.run.ss_cfg_strength, s.run.slat_cfg_strength),

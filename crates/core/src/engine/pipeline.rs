@@ -18,8 +18,10 @@
 //! # Ok(()) }
 //! ```
 //!
-//! **Inputs** ([`ObjectInputs`]): one or two views (at most the stage-1
-//! model's `num_pose_tokens`), view 0 being the anchor. Each view holds, at
+//! **Inputs** ([`ObjectInputs`]): one or more views, view 0 being the
+//! anchor. Up to the stage-1 model's `num_pose_tokens` views condition one
+//! run together; more (at most [`MAX_SECOND_VIEWS`] besides the anchor) run
+//! as fused pairs (**Pair fusion** below). Each view holds, at
 //! the DINO input size `S` (`image_cond_model.args.image_size`: 518 for
 //! recgen-large, 56 for recgen-tiny), f32 tensors
 //! - `pixels` `[1, 3, S, S]`: RGB in [0, 1] already normalised with the
@@ -66,12 +68,30 @@
 //! 8. Mesh decoder (FlexiCubes; vertex colours in `Mesh::vertex_attrs`) and
 //!    Gaussian decoder (activated [`Gaussians`]).
 //!
+//! **Pair fusion** (RecGen `generate_multiview` with N > 1 second views,
+//! `run_pointmap_many_views`): with more views than pose tokens the model
+//! stays in its two-view regime. Every (anchor, view i) pair is a condition
+//! of its own, and stage 1 samples one latent and one set of pose tokens
+//! from the one noise with the pairs fused at every step
+//! ([`RunOptions::fusion`]: the mean of the pairs' guided velocities, or one
+//! pair per step in turn; [`FlowEulerGuidanceIntervalSampler::sample_fused`]).
+//! The anchor's pose token (token 0) is the result; the other tokens blend
+//! the second views of every pair, so no view but the anchor has a token of
+//! its own ([`PredictedPose::view_tokens`] = 1). Stage 2 then runs on the
+//! anchor and the first second view with the fused pose, or, with
+//! [`RunOptions::slat_fusion`], on every pair fused the same way: each pair
+//! past the first first gets its own plain stage-1 run for its pose tokens,
+//! its anchor token replaced by the fused run's (every pair must agree where
+//! the anchor camera is), and pair 1 takes the fused run's tokens.
+//!
 //! **Noise order** (determinism): one [`SeededRng`] seeded with
 //! `RunOptions::seed` draws, in order, the stage-1 latent `[1, Cin, R, R, R]`,
 //! the stage-1 pose tokens `[1, K, P]` (`[1, P]` when K = 1), then the
-//! stage-2 features `[N, Cin]` (rows in occupied-voxel order). The same seed
-//! and inputs give bit-identical outputs. (torch's RNG is not reproduced, so
-//! results match upstream in distribution, not sample by sample.)
+//! stage-2 features `[N, Cin]` (rows in occupied-voxel order). With stage-2
+//! pair fusion, each later pair's own stage-1 latent and pose tokens come
+//! between (pair 2 first), as upstream draws them. The same seed and inputs
+//! give bit-identical outputs. (torch's RNG is not reproduced, so results
+//! match upstream in distribution, not sample by sample.)
 //!
 //! **Frames**: the mesh and Gaussians are in the decoders' object frame
 //! ([-0.5, 0.5]³, z up); [`PredictedPose::pose`] maps that frame into the
@@ -90,7 +110,7 @@ use crate::geometry::pose::{ss_pose_to_slat_pose, NineDLayout, Pose, PoseStats};
 use crate::mesh::Mesh;
 use crate::model::config::{ModuleArgs, ModuleKey, RecGenConfig};
 use crate::model::nn::fast::{Compute, Precision};
-use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, SamplerSettings};
+use crate::model::sampler::{FlowEulerGuidanceIntervalSampler, Fusion, SamplerSettings, SlatFusion};
 use crate::model::sparse::SparseTensor;
 use crate::model::stage1::dinov2::{Dinov2, Dinov2Config};
 use crate::model::stage1::embedders::ViewInputs;
@@ -119,9 +139,17 @@ pub struct ViewInput {
 /// All views of one object; view 0 is the anchor whose pose is reported.
 #[derive(Debug, Clone)]
 pub struct ObjectInputs {
-    /// The views, anchor first: 1 to [`Pipeline::max_views`].
+    /// The views, anchor first: 1 to [`Pipeline::max_views`] condition one
+    /// run together; more (with a two-view model, at most
+    /// [`MAX_SECOND_VIEWS`] besides the anchor) run as fused (anchor, view i)
+    /// pairs (module docs, **Pair fusion**).
     pub views: Vec<ViewInput>,
 }
+
+/// Most views besides the anchor one run takes with pair fusion: each is a
+/// condition prepared in every fused stage (memory) and, with
+/// [`Fusion::Multidiffusion`], a model pass per step (time).
+pub const MAX_SECOND_VIEWS: usize = 16;
 
 /// Per-run settings. Sampler values not overridden come from the
 /// architecture file's `samplers` section.
@@ -151,6 +179,12 @@ pub struct RunOptions {
     /// Condition both stages on each view's point map (RecGen's `use_pointmap`); off, the
     /// point-map embedding is left out of the condition, as upstream passes `pointmap=None`.
     pub use_pointmap: bool,
+    /// With pair fusion (more views than pose tokens), how stage 1 fuses the
+    /// (anchor, view i) pairs at every step; unused otherwise.
+    pub fusion: Fusion,
+    /// With pair fusion, whether and how stage 2 fuses the pairs too (each
+    /// pair past the first then costs a stage-1 run for its pose tokens).
+    pub slat_fusion: SlatFusion,
 }
 
 impl Default for RunOptions {
@@ -166,6 +200,8 @@ impl Default for RunOptions {
             decode_gaussians: true,
             measure_memory: false,
             use_pointmap: true,
+            fusion: Fusion::default(),
+            slat_fusion: SlatFusion::default(),
         }
     }
 }
@@ -265,6 +301,11 @@ pub struct PredictedPose {
     pub tokens_10d: Vec<[f32; 10]>,
     /// The stage-2 pose tokens (13-D, normalised with the stage-2 stats).
     pub slat_tokens_13d: Vec<[f32; 13]>,
+    /// Views `0..view_tokens` have their own token (`per_token[k]` is view
+    /// k's): every view of a run with up to `num_pose_tokens` views; the
+    /// anchor alone with pair fusion, whose other tokens blend the pairs'
+    /// second views.
+    pub view_tokens: usize,
 }
 
 /// Where the weights came from.
@@ -328,6 +369,21 @@ pub struct RunMetadata {
     /// only when they did not (earlier outputs: they did).
     #[serde(skip_serializing_if = "is_true")]
     pub use_pointmap: bool,
+    /// How the views were fused, when the run had more views than pose
+    /// tokens (module docs, **Pair fusion**); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fusion: Option<FusionMetadata>,
+}
+
+/// How a run with pair fusion fused its views ([`RunMetadata::fusion`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FusionMetadata {
+    /// The (anchor, view i) pairs.
+    pub pairs: usize,
+    /// Stage 1's fusion of the pairs.
+    pub ss: Fusion,
+    /// Stage 2's (`none`: the anchor and the first second view).
+    pub slat: SlatFusion,
 }
 
 fn is_true(b: &bool) -> bool {
@@ -735,9 +791,26 @@ impl Pipeline {
         self.dino_cfg.img_size
     }
 
-    /// Most views a run accepts (the stage-1 model's pose-token count).
+    /// Most views that condition one run together (the stage-1 model's
+    /// pose-token count); a two-view model takes more as fused pairs
+    /// ([`Self::fuses_pairs`]).
     pub fn max_views(&self) -> usize {
         self.ss_cfg.num_pose_tokens.max(1)
+    }
+
+    /// Whether `views` views run as fused (anchor, view i) pairs (module
+    /// docs, **Pair fusion**): more views than pose tokens.
+    pub fn fuses_pairs(&self, views: usize) -> bool {
+        views > self.max_views()
+    }
+
+    /// The groups of views that condition a run: all views together, or
+    /// with pair fusion each (anchor, view i) pair, in view order.
+    fn condition_groups(&self, views: &[ViewInputs]) -> Vec<Vec<ViewInputs>> {
+        if !self.fuses_pairs(views.len()) {
+            return vec![views.to_vec()];
+        }
+        views[1..].iter().map(|v| vec![views[0].clone(), v.clone()]).collect()
     }
 
     fn sampler_settings(base: &SamplerSettings, steps: Option<usize>, cfg: Option<f64>) -> Result<SamplerSettings> {
@@ -754,8 +827,18 @@ impl Pipeline {
 
     fn check_inputs(&self, inputs: &ObjectInputs) -> Result<()> {
         let n = inputs.views.len();
-        if n == 0 || n > self.max_views() {
+        if n == 0 || (n > self.max_views() && self.max_views() < 2) {
             return Err(Error::input("pipeline inputs", format!("{n} views given; this model takes 1 to {}", self.max_views())));
+        }
+        if self.fuses_pairs(n) && n - 1 > MAX_SECOND_VIEWS {
+            return Err(Error::too_large(
+                "pipeline inputs",
+                "views",
+                (n - 1) as u128,
+                MAX_SECOND_VIEWS as u128,
+                "views besides the anchor",
+                "each is a fused condition: memory in every fused stage and, with multidiffusion, a model pass per step",
+            ));
         }
         let s = self.image_size();
         for (i, v) in inputs.views.iter().enumerate() {
@@ -817,11 +900,14 @@ impl Pipeline {
         // 2–3. Stage 1: condition, then latent + pose sampling. The same
         // generator then draws the stage-2 noise.
         let mut rng = SeededRng::new(opts.seed);
-        let (z, pose_tok) = self.sample_structure(&views, &ss_settings, &mut rng, on_stage, &mut meter)?;
+        let groups = self.condition_groups(&views);
+        let (z, pose_tok) = self.sample_structure(&groups, &ss_settings, opts.fusion, &mut rng, on_stage, &mut meter)?;
         // 4. Occupancy.
         let (ss_resolution, coords4) = self.decode_occupancy(&z, opts.seed, on_stage, &mut meter)?;
         // 5. Pose, then the optional shape fit.
-        let (pose, slat_pose) = self.decode_pose(&pose_tok, &mut meter)?;
+        let fused = groups.len() > 1;
+        let (mut pose, slat_pose) = self.decode_pose(&pose_tok, &mut meter)?;
+        pose.view_tokens = if fused { 1 } else { inputs.views.len() };
         let (coords, coords4) = Self::fit_occupancy(fit, &pose, coords4, ss_resolution, &mut meter)?;
         let mut metadata = RunMetadata {
             architecture: self.config.name.clone(),
@@ -829,16 +915,27 @@ impl Pipeline {
             random_weights: self.weights.is_random(),
             seed: opts.seed,
             num_views: inputs.views.len(),
-            ss_sampler: ss_settings,
+            ss_sampler: ss_settings.clone(),
             slat_sampler: None,
             noise_order: NOISE_ORDER,
             use_pointmap: opts.use_pointmap,
+            fusion: fused.then_some(FusionMetadata { pairs: groups.len(), ss: opts.fusion, slat: opts.slat_fusion }),
         };
         let (mut mesh, mut gaussians) = (None, None);
 
         if !stage1_only {
-            // 6–7. Stage 2 on the occupied voxels.
-            let slat = self.sample_slat(&views, &slat_pose, &coords4, ss_resolution, &slat_settings, &mut rng, on_stage, &mut meter)?;
+            // 6–7. Stage 2 on the occupied voxels: conditioned on every view
+            // together, or with pair fusion on the first pair or on every pair fused.
+            let slat_fusion = opts.slat_fusion.fusion().filter(|_| fused);
+            let conditions: Vec<(Vec<ViewInputs>, Tensor)> = match slat_fusion {
+                Some(_) => {
+                    let poses = self.pair_poses(&groups, &pose_tok, slat_pose, &ss_settings, &mut rng, &mut meter)?;
+                    groups.into_iter().zip(poses).collect()
+                }
+                None => groups.into_iter().take(1).map(|g| (g, slat_pose.clone())).collect(),
+            };
+            let fusion = slat_fusion.unwrap_or_default();
+            let slat = self.sample_slat(&conditions, fusion, &coords4, ss_resolution, &slat_settings, &mut rng, on_stage, &mut meter)?;
             metadata.slat_sampler = Some(slat_settings);
             // 8. Decoders.
             (mesh, gaussians) = self.decode_slat(&slat, opts, on_stage, &mut meter)?;
@@ -878,12 +975,14 @@ impl Pipeline {
             .collect())
     }
 
-    /// Steps 2–3: the stage-1 condition, then the sparse-structure latent and
-    /// the pose tokens sampled from `rng`.
+    /// Steps 2–3: the stage-1 condition of each group of views (one group, or
+    /// with pair fusion one per pair), then the sparse-structure latent and
+    /// the pose tokens sampled from `rng`, the groups fused as `fusion` says.
     fn sample_structure(
         &self,
-        views: &[ViewInputs],
+        groups: &[Vec<ViewInputs>],
         settings: &SamplerSettings,
+        fusion: Fusion,
         rng: &mut SeededRng,
         on_stage: &dyn Fn(Stage),
         meter: &mut Meter,
@@ -892,11 +991,22 @@ impl Pipeline {
         meter.mark();
         let t = Instant::now();
         let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
-        let (cond, neg) = ss_flow.condition(views)?;
+        let (mut conds, mut neg) = (Vec::with_capacity(groups.len()), None);
+        for g in groups {
+            let (c, n) = ss_flow.condition(g)?;
+            conds.push(c);
+            // Every group's negative condition is zeros of one shape: upstream passes the first pair's to all.
+            neg.get_or_insert(n);
+        }
+        let neg = neg.ok_or_else(|| Error::msg("pipeline: no views to condition stage 1 on"))?;
         meter.tm.ss_condition = secs(t);
         let t = Instant::now();
         let noise = ss_flow.initial_state(rng, 1, &Device::Cpu)?;
-        let out = FlowEulerGuidanceIntervalSampler::new(settings.clone()).sample(&*ss_flow, noise, &cond, Some(&neg))?;
+        let sampler = FlowEulerGuidanceIntervalSampler::new(settings.clone());
+        let out = match conds.as_slice() {
+            [cond] => sampler.sample(&*ss_flow, noise, cond, Some(&neg))?,
+            _ => sampler.sample_fused(&*ss_flow, noise, &conds, Some(&neg), fusion)?,
+        };
         drop(ss_flow);
         let (z, pose_tok) = match out.as_slice() {
             [z, p] => (z.clone(), p.clone()),
@@ -940,7 +1050,7 @@ impl Pipeline {
         let slat_pose = ss_pose_to_slat_pose(pose_tok, &self.ss_stats, &self.slat_stats, self.layout)?;
         let slat_tokens_13d: Vec<[f32; 13]> =
             slat_pose.reshape((k, 13))?.to_vec2::<f32>()?.iter().map(|r| std::array::from_fn(|i| r[i])).collect();
-        let pose = PredictedPose { pose: per_token[0], per_token, tokens_10d, slat_tokens_13d };
+        let pose = PredictedPose { pose: per_token[0], view_tokens: per_token.len(), per_token, tokens_10d, slat_tokens_13d };
         meter.tm.pose = secs(t);
         Ok((pose, slat_pose))
     }
@@ -965,12 +1075,47 @@ impl Pipeline {
         Ok((coords, coords4))
     }
 
-    /// Steps 6–7: the stage-2 condition, then the structured latent sampled on
-    /// the occupied voxels (noise from `rng`), denormalised.
+    /// Stage-2 pair fusion: every pair's stage-2 pose tokens. Pair 1 takes
+    /// the fused run's (`slat_pose`); each later pair gets a plain stage-1
+    /// run of its own (noise from `rng`, after the fused run's and before the
+    /// stage-2 noise), its anchor token replaced by the fused run's
+    /// (`pose_tok`, normalised 10-D `[1, K, 10]`).
+    fn pair_poses(
+        &self,
+        groups: &[Vec<ViewInputs>],
+        pose_tok: &Tensor,
+        slat_pose: Tensor,
+        settings: &SamplerSettings,
+        rng: &mut SeededRng,
+        meter: &mut Meter,
+    ) -> Result<Vec<Tensor>> {
+        let t = Instant::now();
+        let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
+        let sampler = FlowEulerGuidanceIntervalSampler::new(settings.clone());
+        let k = pose_tok.dim(1)?;
+        let anchor = pose_tok.narrow(1, 0, 1)?;
+        let mut poses = vec![slat_pose];
+        for g in groups.iter().skip(1) {
+            let (cond, neg) = ss_flow.condition(g)?;
+            let noise = ss_flow.initial_state(rng, 1, &Device::Cpu)?;
+            let out = sampler.sample(&*ss_flow, noise, &cond, Some(&neg))?;
+            let own = out.get(1).ok_or_else(|| Error::msg("pipeline: stage-1 sampler returned no pose tokens"))?;
+            let pinned = Tensor::cat(&[&anchor, &own.narrow(1, 1, k - 1)?], 1)?;
+            poses.push(ss_pose_to_slat_pose(&pinned, &self.ss_stats, &self.slat_stats, self.layout)?);
+        }
+        drop(ss_flow);
+        meter.tm.ss_sampling += secs(t);
+        Ok(poses)
+    }
+
+    /// Steps 6–7: the stage-2 condition of each group of views with its pose
+    /// tokens (one, or with stage-2 pair fusion one per pair, fused as
+    /// `fusion` says), then the structured latent sampled on the occupied
+    /// voxels (noise from `rng`), denormalised.
     fn sample_slat(
         &self,
-        views: &[ViewInputs],
-        slat_pose: &Tensor,
+        conditions: &[(Vec<ViewInputs>, Tensor)],
+        fusion: Fusion,
         coords4: &[[i32; 4]],
         ss_resolution: usize,
         settings: &SamplerSettings,
@@ -991,13 +1136,23 @@ impl Pipeline {
         meter.mark();
         let t = Instant::now();
         let slat_flow = self.hold(&self.resident.slat_flow, ModuleKey::SlatFlow, registry::build_slat_flow, &mut meter.tm.loading)?;
-        let (cond, neg) = slat_flow.condition(views, Some(slat_pose))?;
+        let (mut conds, mut neg) = (Vec::with_capacity(conditions.len()), None);
+        for (views, pose) in conditions {
+            let (c, n) = slat_flow.condition(views, Some(pose))?;
+            conds.push(c);
+            neg.get_or_insert(n);
+        }
+        let neg = neg.ok_or_else(|| Error::msg("pipeline: no views to condition stage 2 on"))?;
         meter.tm.slat_condition = secs(t);
 
         let t = Instant::now();
         let noise = rng.randn(&[coords4.len(), slat_cfg.in_channels], &Device::Cpu)?;
         let model = SlatVelocity { model: &slat_flow, coords: coords4 };
-        let out = FlowEulerGuidanceIntervalSampler::new(settings.clone()).sample(&model, vec![noise], &cond, Some(&neg))?;
+        let sampler = FlowEulerGuidanceIntervalSampler::new(settings.clone());
+        let out = match conds.as_slice() {
+            [cond] => sampler.sample(&model, vec![noise], cond, Some(&neg))?,
+            _ => sampler.sample_fused(&model, vec![noise], &conds, Some(&neg), fusion)?,
+        };
         drop(slat_flow);
         let feats = self.slat_norm.denormalize(&out[0])?;
         let slat = SparseTensor::new(coords4.to_vec(), feats, 1)?;

@@ -82,12 +82,19 @@ pub fn parse_rel_pose(arg: &str) -> Result<Similarity> {
         })?;
         (nums, "--rel-pose".to_string())
     };
+    rel_pose_from_numbers(&nums, &file, "T_c1_c2")
+}
+
+/// A relative camera pose from the 16 numbers of its 4×4 matrix, row-major,
+/// checked as [`parse_rel_pose`] checks it; errors name `file` and the
+/// matrix's `name` (`T_c1_c2`).
+pub fn rel_pose_from_numbers(nums: &[f64], file: &str, name: &str) -> Result<Similarity> {
     if nums.len() != 16 || nums.iter().any(|x| !x.is_finite()) {
-        return Err(Error::input(&file, format!("T_c1_c2 needs 16 finite numbers (4×4, row-major), got {}", nums.len())));
+        return Err(Error::input(file, format!("{name} needs 16 finite numbers (4×4, row-major), got {}", nums.len())));
     }
     let m = |i: usize, j: usize| nums[4 * i + j];
     if (m(3, 0).abs() + m(3, 1).abs() + m(3, 2).abs() + (m(3, 3) - 1.0).abs()) > 1e-6 {
-        return Err(Error::input(&file, "T_c1_c2: the last row must be 0 0 0 1 (a rigid transform)"));
+        return Err(Error::input(file, format!("{name}: the last row must be 0 0 0 1 (a rigid transform)")));
     }
     let r: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| m(i, j)));
     let mut err: f64 = 0.0;
@@ -99,7 +106,7 @@ pub fn parse_rel_pose(arg: &str) -> Result<Similarity> {
     }
     let det = nalgebra::Matrix3::from_fn(|i, j| r[i][j]).determinant();
     if err > 1e-3 || det <= 0.0 {
-        return Err(Error::input(&file, format!("T_c1_c2: the 3×3 block is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.4})")));
+        return Err(Error::input(file, format!("{name}: the 3×3 block is not a rotation (|RᵀR − I| = {err:.2e}, det = {det:.4})")));
     }
     Ok(Similarity::rigid(r, [m(0, 3), m(1, 3), m(2, 3)]))
 }
