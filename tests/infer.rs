@@ -359,6 +359,11 @@ fn objects_of_two_views_pair_by_id_or_order() {
     assert!(e.contains("--masks2") && e.contains("order"), "{e}");
 }
 
+/// `recon infer` on the README sample into `out`: the start of the CLI tests' argument lists.
+fn sample_infer_args(out: &str) -> [&str; 7] {
+    ["infer", "--rgbd", "data/sample/000001-color.png", "--masks", "data/sample/000001-label.png", "--out", out]
+}
+
 /// Input errors of the two-view and weights flags stop before any model
 /// work, name the flag and leave no output behind.
 #[test]
@@ -366,12 +371,8 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     let tmp = common::tmp("infer-cli");
     let out = tmp.join("out");
     let out_s = out.to_str().unwrap();
-    let base = ["infer", "--rgbd", "data/sample/000001-color.png", "--masks", "data/sample/000001-label.png", "--out", out_s];
-    let with = |extra: &[&str]| {
-        let mut a: Vec<&str> = base.to_vec();
-        a.extend_from_slice(extra);
-        recon_with_env(&a, &[])
-    };
+    let base = sample_infer_args(out_s);
+    let with = |extra: &[&str]| recon_with_env(&[&base[..], extra].concat(), &[]);
     // --view2 needs --masks2 and --rel-pose.
     let o = with(&["--view2", "data/sample/000001-color.png"]);
     assert!(!o.status.success());
@@ -412,12 +413,8 @@ fn cli_view_files_are_checked_before_the_model() {
     std::fs::create_dir_all(&tmp).unwrap();
     let out = tmp.join("out");
     let out_s = out.to_str().unwrap();
-    let base = ["infer", "--rgbd", "data/sample/000001-color.png", "--masks", "data/sample/000001-label.png", "--out", out_s];
-    let with = |extra: &[&str]| {
-        let mut a: Vec<&str> = base.to_vec();
-        a.extend_from_slice(extra);
-        recon_with_env(&a, &[])
-    };
+    let base = sample_infer_args(out_s);
+    let with = |extra: &[&str]| recon_with_env(&[&base[..], extra].concat(), &[]);
     let rgb = repo().join("data/sample/000001-color.png");
     let label = repo().join("data/sample/000001-label.png");
     let v = tmp.join("v.json");
