@@ -167,6 +167,10 @@ fn calibration_gates_fall_back_to_identity() {
     // No Gaussians.
     let (_, stats) = calibrate(None, &pose, &photo, PosthocColor::Gamma).unwrap();
     assert_eq!(stats.reason.as_deref(), Some("no gaussian output"));
+    // A mask of the wrong size is an error, not a panic.
+    let short = vec![true; 100];
+    let e = calibrate(Some(&g), &pose, &PhotoView { mask: &short, ..photo }, PosthocColor::Gamma).unwrap_err();
+    assert!(e.to_string().contains("mask pixels"), "{e}");
 }
 
 #[test]

@@ -401,6 +401,16 @@ pub struct PhotoView<'a> {
 /// the virtual view that frames the object placed by `object_to_camera` (its canonical
 /// cube → camera). `None` when the object's centre is not in front of the camera.
 pub fn calibration_view(gaussians_camera: &Gaussians, object_to_camera: &Similarity, photo: &PhotoView) -> Result<Option<CalibrationView>> {
+    let (pw, ph) = (photo.width, photo.height);
+    if photo.rgb.len() != 3 * pw * ph || photo.mask.len() != pw * ph {
+        return Err(crate::Error::msg(format!(
+            "colour calibration: a {pw}×{ph} photo needs {} RGB bytes and {} mask pixels, got {} and {}",
+            3 * pw * ph,
+            pw * ph,
+            photo.rgb.len(),
+            photo.mask.len()
+        )));
+    }
     let t = object_to_camera.translation;
     let dist = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
     if !(dist > 0.0 && t[2] > 0.0) {
@@ -424,7 +434,6 @@ pub fn calibration_view(gaussians_camera: &Gaussians, object_to_camera: &Similar
     let img = render_gaussians(gaussians_camera, &cam, &SplatOptions::default())?;
     // Virtual pixel → photo pixel: K·Rlᵀ·Kv⁻¹.
     let k = photo.intrinsics;
-    let (pw, ph) = (photo.width, photo.height);
     let mut photo_v = vec![[0.0; 3]; VIEW_SIDE * VIEW_SIDE];
     let mut mask_v = vec![false; VIEW_SIDE * VIEW_SIDE];
     for y in 0..VIEW_SIDE {

@@ -26,6 +26,9 @@ use rayon::prelude::*;
 const TILE: usize = 16;
 /// Largest image side accepted (pixels): bounds the buffers before any work.
 pub const MAX_SPLAT_SIDE: usize = 8192;
+/// Most (splat, tile) pairs a render lists (1 GiB of indices): huge splats over many tiles
+/// are refused before the lists are built.
+pub const MAX_SPLAT_TILE_PAIRS: usize = 1 << 28;
 
 /// What a splat render produces; images are row-major `width × height`.
 #[derive(Debug, Clone, PartialEq)]
@@ -142,6 +145,19 @@ pub fn render_gaussians(g: &Gaussians, cam: &Camera, opts: &SplatOptions) -> Res
         (0..g.len()).into_par_iter().filter_map(|i| project(g, i, cam, opts.near).map(|s| (i, s))).collect();
     splats.sort_by(|(i, a), (j, b)| a.depth.total_cmp(&b.depth).then(i.cmp(j)));
     let (tx, ty) = (w.div_ceil(TILE), h.div_ceil(TILE));
+    let pairs: usize = splats
+        .iter()
+        .map(|(_, s)| {
+            let (x0, y0, x1, y1) = s.rect;
+            (x1 / TILE - x0 / TILE + 1) * (y1 / TILE - y0 / TILE + 1)
+        })
+        .sum();
+    if pairs > MAX_SPLAT_TILE_PAIRS {
+        return Err(Error::msg(format!(
+            "splat render: {} Gaussians cover {pairs} tiles in all, more than {MAX_SPLAT_TILE_PAIRS} (scales far larger than the view?)",
+            splats.len()
+        )));
+    }
     let mut lists: Vec<Vec<u32>> = vec![Vec::new(); tx * ty];
     for (k, (_, s)) in splats.iter().enumerate() {
         let (x0, y0, x1, y1) = s.rect;
@@ -274,6 +290,16 @@ mod tests {
         let (a, b) = (run(1), run(3));
         assert!(a.alpha.iter().filter(|&&x| x > 0.5).count() > 500);
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn huge_splats_over_a_huge_image_are_refused_before_listing() {
+        let mut g = Gaussians::default();
+        for _ in 0..1100 {
+            g.extend(&one([0.0, 0.0, 1.0], 100.0, 0.5, [0.5; 3]));
+        }
+        let e = render_gaussians(&g, &cam(8192, 8192), &SplatOptions::default()).unwrap_err();
+        assert!(e.to_string().contains("tiles in all"), "{e}");
     }
 
     #[test]
