@@ -186,3 +186,31 @@ fn infer_says_once_when_the_default_model_answers() {
     assert_eq!(pose["model_identity"], identity);
     let _ = std::fs::remove_dir_all(&t);
 }
+
+/// Outside a checkout (no models/ in the working folder) a source that names no architecture
+/// file takes recon's compiled-in copy: `--weights random` runs recgen-tiny from the cache.
+#[test]
+fn infer_runs_outside_a_checkout() {
+    let t = tmp("cli-outside");
+    let sample = repo().join("data/sample");
+    let out = t.join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_recon"))
+        .args(["infer", "--rgbd"])
+        .arg(sample.join("000001-color.png"))
+        .arg("--masks")
+        .arg(sample.join("000001-label.png"))
+        .args(["--objects", "21", "--weights", "random", "--steps", "1", "--max-faces", "0", "--json", "--out"])
+        .arg(&out)
+        .current_dir(&t)
+        .env("RECON_CACHE", t.join("cache"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let config = Path::new(summary["config"].as_str().unwrap());
+    assert!(config.starts_with(t.join("cache")) && config.ends_with("recgen-tiny.json"), "{config:?}");
+    assert_eq!(std::fs::read(config).unwrap(), std::fs::read(repo().join("models/recgen-tiny.json")).unwrap());
+    assert_eq!(summary["model_identity"], serde_json::json!({"name": "recgen-tiny", "sha256": null}));
+    assert!(out.join("id_21/pose.json").is_file());
+    let _ = std::fs::remove_dir_all(&t);
+}

@@ -99,12 +99,43 @@ impl ModelSource {
             // A trained folder carries its architecture file (`recon train slat-flow`).
             ModelSource::Dir { dir, config } => match config {
                 Some(c) => c.clone(),
-                None => find_architecture(dir).unwrap_or_else(|_| PathBuf::from("models/recgen-tiny.json")),
+                None => match find_architecture(dir) {
+                    Ok(a) => a,
+                    Err(_) => shipped_architecture("recgen-tiny.json")?,
+                },
             },
-            ModelSource::Manifest { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-large.json")),
-            ModelSource::Random { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-tiny.json")),
+            ModelSource::Manifest { config, .. } => match config {
+                Some(c) => c.clone(),
+                None => shipped_architecture("recgen-large.json")?,
+            },
+            ModelSource::Random { config, .. } => match config {
+                Some(c) => c.clone(),
+                None => shipped_architecture("recgen-tiny.json")?,
+            },
         })
     }
+}
+
+/// The architecture files a source falls back to, with the pose statistics they name,
+/// compiled in (crates/core/shipped/ links to models/) so that `--weights recgen` or
+/// `random` works outside a checkout too.
+const SHIPPED_ARCHITECTURES: [(&str, &str); 4] = [
+    ("recgen-large.json", include_str!("../../shipped/recgen-large.json")),
+    ("recgen-tiny.json", include_str!("../../shipped/recgen-tiny.json")),
+    ("stereo_pose_stats.example.json", include_str!("../../shipped/stereo_pose_stats.example.json")),
+    ("slat_pose_stats.example.json", include_str!("../../shipped/slat_pose_stats.example.json")),
+];
+
+/// `models/<name>` (one of [`SHIPPED_ARCHITECTURES`]) when the working folder has it (a
+/// checkout: the path outputs have always recorded), else the compiled-in copy unpacked under
+/// the cache folder (once per content, as the embedded model).
+pub fn shipped_architecture(name: &str) -> Result<PathBuf> {
+    let local = Path::new("models").join(name);
+    if local.is_file() {
+        return Ok(local);
+    }
+    let files: Vec<(&str, &[u8])> = SHIPPED_ARCHITECTURES.iter().map(|(n, text)| (*n, text.as_bytes())).collect();
+    Ok(unpack_once(&cache_root(), "models", &files, "recgen-large.json")?.join(name))
 }
 
 /// `ORG/NAME[@REV]` of an `hf:` weights argument, checked.
@@ -175,17 +206,7 @@ const EMBEDDED_NANO: &[(&str, &[u8])] = &[];
 pub fn embedded_model_hash() -> Option<u64> {
     // 27 MB byte by byte: once per process.
     static HASH: std::sync::OnceLock<Option<u64>> = std::sync::OnceLock::new();
-    *HASH.get_or_init(|| {
-        (!EMBEDDED_NANO.is_empty()).then(|| {
-            let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-            for (name, bytes) in EMBEDDED_NANO {
-                for &b in name.as_bytes().iter().chain(bytes.iter()) {
-                    h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
-                }
-            }
-            h
-        })
-    })
+    *HASH.get_or_init(|| (!EMBEDDED_NANO.is_empty()).then(|| fnv(EMBEDDED_NANO)))
 }
 
 /// The default model's folder: models/recgen-nano/ in the working folder when
@@ -209,33 +230,51 @@ fn cache_root() -> PathBuf {
 /// (the folder name carries a hash of every file), written beside and renamed
 /// into place so a half-written copy is never used.
 pub fn embedded_model_in(root: &Path) -> Result<PathBuf> {
-    // A changed model gets a new folder.
-    let Some(h) = embedded_model_hash() else {
+    if EMBEDDED_NANO.is_empty() {
         return Err(Error::input(
             "--weights",
             "none given, and this recon carries no recgen-nano (a build from the published crate: its 27 MB do not fit \
              a crates.io package); run `recon weights fetch recgen` and pass --weights recgen (or hf:TRI-ML/RecGen), \
              or rebuild from a checkout or with RECON_NANO_DIR set to a recgen-nano folder",
         ));
-    };
-    let dir = root.join(format!("recgen-nano-{h:016x}"));
-    if dir.join("recgen-nano.json").is_file() {
+    }
+    unpack_once(root, "recgen-nano", EMBEDDED_NANO, "recgen-nano.json")
+}
+
+/// FNV-1a 64 over the files' names and contents, in order.
+fn fnv(files: &[(&str, &[u8])]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for (name, bytes) in files {
+        for &b in name.as_bytes().iter().chain(bytes.iter()) {
+            h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
+        }
+    }
+    h
+}
+
+/// `files` as the folder `<root>/<stem>-<hash>` (FNV-1a over names and contents: changed
+/// files get a new folder), written beside and renamed into place so that a half-written
+/// copy is never used; `marker` is the file whose presence means the folder is complete.
+fn unpack_once(root: &Path, stem: &str, files: &[(&str, &[u8])], marker: &str) -> Result<PathBuf> {
+    let h = fnv(files);
+    let dir = root.join(format!("{stem}-{h:016x}"));
+    if dir.join(marker).is_file() {
         return Ok(dir);
     }
-    let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
+    let tmp = root.join(format!("{stem}-{h:016x}.partial-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| {
         Error::input(
             tmp.display().to_string(),
-            format!("cannot unpack the embedded recgen-nano here ({e}); set RECON_CACHE to a writable folder"),
+            format!("cannot unpack recon's shipped {stem} files here ({e}); set RECON_CACHE to a writable folder"),
         )
     })?;
-    for &(name, bytes) in EMBEDDED_NANO {
+    for &(name, bytes) in files {
         std::fs::write(tmp.join(name), bytes).map_err(|e| Error::io(tmp.join(name), e))?;
     }
     match std::fs::rename(&tmp, &dir) {
         Ok(()) => Ok(dir),
         // Another process unpacked it first.
-        Err(_) if dir.join("recgen-nano.json").is_file() => {
+        Err(_) if dir.join(marker).is_file() => {
             let _ = std::fs::remove_dir_all(&tmp);
             Ok(dir)
         }
