@@ -23,7 +23,7 @@ pub use recon_core::prelude;
 pub use recon_core::{
     dataset, engine, error, export, gaussians, geometry, math, mesh, model, render, rng, sensor, settings, spatial, util, weights,
 };
-pub use recon_core::{Error, Result, SizeBound};
+pub use recon_core::{Error, Result, SizeBound, FEATURES, VERSION};
 pub use recon_eval as eval;
 pub use recon_sim as sim;
 pub use recon_synth as synth;

@@ -1,5 +1,5 @@
 //! The `recon` binary: one file per subcommand under src/cli/.
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 mod cli;
 
@@ -47,13 +47,30 @@ enum Cmd {
         #[command(subcommand)]
         cmd: cli::weights::WeightsCmd,
     },
+    /// Shell completion script for bash, zsh, fish, elvish or powershell, on stdout.
+    Completions(cli::meta::CompletionsArgs),
+    /// Manual page (roff) of recon on stdout, or every command's into a folder.
+    Man(cli::meta::ManArgs),
 }
 
 fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    // The environment is read here, once (see `recon::settings` for the list).
-    recon::settings::Settings::from_env()?.apply();
+    // The environment is read here, once (see `recon::settings` for the list); applied
+    // before parsing so that `--version` reports the kernels RECON_ISA leaves, its error
+    // reported after so that `--help` works whatever the environment holds.
+    let settings = recon::settings::Settings::from_env();
+    if let Ok(s) = &settings {
+        s.apply();
+    }
+    let mut command = Cli::command();
+    // `-V` stays one line; `--version` adds the build and CPU facts (measured, so only then).
+    if std::env::args_os().skip(1).take_while(|a| a != "--").any(|a| a == "--version") {
+        command = command.long_version(Box::leak(cli::meta::long_version().into_boxed_str()) as &str);
+    }
+    let cli = Cli::from_arg_matches_mut(&mut command.get_matches()).unwrap_or_else(|e| e.exit());
+    settings?;
     let ok = match cli.cmd {
+        Cmd::Completions(a) => cli::meta::completions(a, Cli::command())?,
+        Cmd::Man(a) => cli::meta::man(a, Cli::command())?,
         Cmd::Conformance { dirs } => recon::tools::run_dirs(&dirs, &mut std::io::stdout())?,
         Cmd::Weights { cmd } => cli::weights::run(cmd)?,
         Cmd::Eval(a) => cli::eval::run(a)?,

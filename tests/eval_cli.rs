@@ -23,6 +23,8 @@ fn observed_baseline_on_ycbv_frames_and_rescoring() {
     for f in ["report.json", "report.txt", "plot.svg", "predictions.json", "recon-output.json"] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
+    // The index names the recon that wrote it.
+    assert_eq!(read_json(&out.join("recon-output.json"))["recon_version"], env!("CARGO_PKG_VERSION"));
     let rep = read_json(&out.join("report.json"));
     let objs = rep["objects"].as_array().unwrap();
     // Sequence 0001: 5 frames × 4 objects, all visible, all scored.

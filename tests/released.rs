@@ -216,6 +216,22 @@ fn released_layout_runs_offline_from_the_hf_cache() {
         assert!(Path::new(f["local"].as_str().unwrap()).starts_with(&hub), "{f}");
     }
     assert_eq!(read.iter().filter(|f| f["tensors"].is_u64()).count(), 6, "one tensor list per module");
+    // The model's identity: SHA-256 over `<module> <pin>` per loaded checkpoint, in load order
+    // (the checked pins stand for the files' hashes).
+    let lines: String = summary["weights"]["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            let f = read.iter().find(|f| f["local"] == *p).unwrap_or_else(|| panic!("{p} not read through the manifest"));
+            format!("{} {}\n", f["used_for"].as_str().unwrap(), f["sha256"].as_str().unwrap())
+        })
+        .collect();
+    std::fs::write(root.join("identity-lines"), &lines).unwrap();
+    let identity = &summary["model_identity"];
+    assert_eq!(identity["sha256"], sha256_file(&root.join("identity-lines")).unwrap(), "{lines}");
+    assert_eq!(summary["weights"]["sha256"], identity["sha256"]);
+    assert_eq!(summary["recon_version"], env!("CARGO_PKG_VERSION"));
     let notes = summary["weights"]["notes"].to_string();
     for part in ["ss_flow: args from", "slat_flow: args from", "slat_dec_gs: args from", "slat_normalization", "samplers.slat"] {
         assert!(notes.contains(part), "{part}: {notes}");

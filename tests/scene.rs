@@ -94,6 +94,7 @@ fn check_urdf(out: &Path, n: usize) {
     assert_eq!(robot.joints.len(), n);
     assert!(robot.joints.iter().all(|j| matches!(j.joint_type, urdf_rs::JointType::Floating)));
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join(MARKER)).unwrap()).unwrap();
+    assert_eq!(report["recon_version"], env!("CARGO_PKG_VERSION"), "the report names the recon that wrote it");
     for (o, l) in report["objects"].as_array().unwrap().iter().zip(&robot.links[1..]) {
         let mass = o["physics"]["mass_kg"].as_f64().unwrap();
         assert!((l.inertial.mass.value - mass).abs() < 1e-9 * mass.max(1.0), "{}", l.name);

@@ -310,6 +310,11 @@ fn readme_sample_over_http_matches_recon_infer() {
     assert_eq!(a.status, 200, "{}\n{}", a.text(), server.logs());
     let job = a.json();
     let id = job["id"].as_str().unwrap().to_string();
+    // The answer names the recon and the model (the pose files' identity, compared below).
+    assert_eq!(job["result"]["recon_version"], env!("CARGO_PKG_VERSION"));
+    let identity = &job["result"]["model_identity"];
+    assert_eq!(identity["name"], "recgen-nano");
+    assert_eq!(identity["sha256"].as_str().map(str::len), Some(64), "{identity}");
     let objects = job["result"]["objects"].as_array().unwrap();
     assert_eq!(objects.iter().filter(|o| o["status"] == "ok").count(), 1, "{job:#}");
     for o in objects.iter().filter(|o| o["status"] == "ok") {
@@ -359,6 +364,8 @@ fn readme_sample_over_http_matches_recon_infer() {
     let cli: std::collections::BTreeMap<String, Vec<u8>> =
         recon_testkit_files(&out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
     assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
+    let pose: serde_json::Value = serde_json::from_slice(&cli["id_21/pose.json"]).unwrap();
+    assert_eq!((&pose["model_identity"], &pose["recon_version"]), (identity, &job["result"]["recon_version"]));
     for (name, bytes) in &cli {
         if name.ends_with(".json") {
             assert_eq!(without_timings(bytes), without_timings(&served[name]), "{name}");

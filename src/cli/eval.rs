@@ -180,11 +180,13 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let mut report = evaluate(&ds, &read_predictions(&pf)?, &pf, &opts)?;
             eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
             report.predictions = out.join("predictions.json").display().to_string();
-            let index = serde_json::json!({ "kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped });
+            let index = serde_json::json!({ "kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped,
+                "recon_version": recon::VERSION });
             (report, Some(out), staging, index)
         }
         (Some(Method::Recgen), _) => {
             let source = a.model.source()?;
+            a.model.note_default_model();
             let engine = recon::engine::Engine::load(&source, &a.model.load_options(&source)?)
                 .with_context(|| format!("loading the model ({source:?})"))?;
             let io = a.model.infer_settings()?;
@@ -215,6 +217,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
                 "kind": "recon eval --method recgen", "model": a.model, "config": source.architecture()?, "two_view": a.two_view, "views": views, "skipped": run.skipped,
                 "seconds_model": run.seconds_model,
                 "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
+                "recon_version": recon::VERSION, "model_identity": engine.pipeline.identity(),
             });
             (report, Some(out), staging, index)
         }
@@ -231,7 +234,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let t1 = std::time::Instant::now();
             let report = evaluate(&ds, &preds, p, &opts)?;
             eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
-            (report, a.out.clone(), staging, serde_json::json!({ "kind": "recon eval --predictions" }))
+            (report, a.out.clone(), staging, serde_json::json!({ "kind": "recon eval --predictions", "recon_version": recon::VERSION }))
         }
         (None, None) => bail!("give --predictions FILE or --method observed|recgen"),
     };

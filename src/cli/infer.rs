@@ -232,6 +232,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     // Too many objects is refused before the model is loaded (the engine checks again).
     recon::engine::check_object_count(&frame, &objects, &opts, "--masks")?;
     let source = a.model.source()?;
+    a.model.note_default_model();
     let load = a.model.load_options(&source)?;
     let engine = Engine::load(&source, &load)?;
     let config = source.architecture()?;
@@ -313,6 +314,7 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
             "preprocess_s": result.preprocess_seconds,
             "stage_totals_s": STAGES.iter().zip(&totals).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
             "objects": objs, "skipped": skips, "notes": result.notes, "weights": engine.pipeline.weights(),
+            "recon_version": recon::VERSION, "model_identity": engine.pipeline.identity(),
         });
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {

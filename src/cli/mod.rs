@@ -3,6 +3,7 @@ pub mod audit;
 pub mod bench;
 pub mod eval;
 pub mod infer;
+pub mod meta;
 pub mod model_args;
 pub mod scene;
 pub mod serve;

@@ -33,7 +33,22 @@ pub struct ModelArgs {
     pub infer: InferOptions,
 }
 
+/// The one line `recon infer`, `eval --method recgen` and `serve` print on stderr when no `--weights`
+/// were given: the small
+/// default answers, and how to load the released model instead.
+pub const DEFAULT_MODEL_NOTE: &str = "recon: no --weights given, so recgen-nano answers: the small default model, trained only on \
+     recon's synthetic scenes (not the released RecGen). Real weights: `recon weights fetch recgen`, then --weights recgen \
+     (or --weights hf:TRI-ML/RecGen).";
+
 impl ModelArgs {
+    /// Says on stderr, once, that the default model answers ([`DEFAULT_MODEL_NOTE`]) when no
+    /// `--weights` were given.
+    pub fn note_default_model(&self) {
+        if self.weights.is_none() {
+            eprintln!("{DEFAULT_MODEL_NOTE}");
+        }
+    }
+
     pub fn source(&self) -> anyhow::Result<ModelSource> {
         Ok(ModelSource::parse(self.weights.as_deref(), self.config.as_deref(), self.infer.seed)?)
     }

@@ -69,6 +69,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<bool> {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
     let source = a.model.source()?;
+    a.model.note_default_model();
     let load = a.model.load_options(&source)?;
     let engine = Engine::load(&source, &load)?;
     if engine.pipeline.weights().is_random() {

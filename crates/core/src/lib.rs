@@ -82,6 +82,20 @@ pub mod weights;
 pub use engine::Engine;
 pub use error::{Error, Result, SizeBound};
 
+/// recon's version (every crate of the workspace shares it): what outputs record as
+/// `recon_version`.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// The cargo features this build of recon-core has (`recon --version` lists them).
+pub const FEATURES: &[&str] = &[
+    #[cfg(feature = "hub")]
+    "hub",
+    #[cfg(feature = "clap")]
+    "clap",
+    #[cfg(feature = "testkit")]
+    "testkit",
+];
+
 /// What a program needs to reconstruct objects from a frame: `use recon_core::prelude::*;`.
 pub mod prelude {
     pub use crate::dataset::{FrameOptions, InstanceMap, Intrinsics, MaskSkip, ObjectMask, RgbdFrame, SkipReason};

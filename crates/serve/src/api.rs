@@ -131,7 +131,7 @@ async fn log_requests(State(app): State<App>, req: Request, next: Next) -> Respo
 }
 
 async fn health() -> Json<serde_json::Value> {
-    Json(serde_json::json!({"status": "ok"}))
+    Json(serde_json::json!({"status": "ok", "recon_version": recon_core::VERSION}))
 }
 
 fn is_ready(app: &App) -> (bool, &'static str) {
@@ -147,7 +147,8 @@ fn is_ready(app: &App) -> (bool, &'static str) {
 async fn ready(State(app): State<App>) -> Response {
     let (ok, why) = is_ready(&app);
     let body = serde_json::json!({"ready": ok, "reason": why, "queued": app.jobs.waiting(), "running": app.jobs.running(),
-        "queue": app.jobs.cfg.queue, "workers": app.jobs.cfg.workers.get()});
+        "queue": app.jobs.cfg.queue, "workers": app.jobs.cfg.workers.get(),
+        "recon_version": recon_core::VERSION, "model_identity": app.jobs.engine.pipeline.identity()});
     (if ok { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE }, Json(body)).into_response()
 }
 

@@ -27,7 +27,9 @@ use crate::error::{ApiError, ServeError};
 use crate::inputs::{self, Manifest};
 use crate::log::{log, now_unix, peak_mib};
 use crate::metrics::Metrics;
-use recon_core::engine::{stage_seconds, write_outputs, Engine, FrameResult, Progress, SecondView, WrittenObject, STAGE_COLUMNS};
+use recon_core::engine::{
+    stage_seconds, write_outputs, Engine, FrameResult, ModelIdentity, Progress, SecondView, WrittenObject, STAGE_COLUMNS,
+};
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -628,7 +630,8 @@ impl Jobs {
         }
         match outcome {
             Ok((result, written)) => {
-                let answer = answer(&job.id, &result, &written, &job.dir.join("out"), seconds);
+                let model = self.engine.pipeline.identity();
+                let answer = answer(&job.id, &result, &written, &job.dir.join("out"), seconds, &model);
                 for o in &result.objects {
                     for (name, v) in STAGE_COLUMNS.iter().zip(stage_seconds(o)) {
                         self.metrics.stage(name, v);
@@ -742,8 +745,16 @@ pub fn file_url(id: &str, out: &Path, path: &Path) -> Option<String> {
 }
 
 /// `recon infer`'s outputs as the API answers them: one entry per object, reconstructed
-/// (`ok`) or not (`skipped`: the mask or its depth; `failed`: the model or post-processing).
-pub fn answer(id: &str, result: &FrameResult, written: &[WrittenObject], out: &Path, seconds: f64) -> serde_json::Value {
+/// (`ok`) or not (`skipped`: the mask or its depth; `failed`: the model or post-processing),
+/// with the recon and the `model` that answered.
+pub fn answer(
+    id: &str,
+    result: &FrameResult,
+    written: &[WrittenObject],
+    out: &Path,
+    seconds: f64,
+    model: &ModelIdentity,
+) -> serde_json::Value {
     use recon_core::dataset::SkipReason;
     let url = |p: &Option<PathBuf>| p.as_ref().and_then(|p| file_url(id, out, p));
     let mut objects: Vec<serde_json::Value> = result
@@ -797,5 +808,7 @@ pub fn answer(id: &str, result: &FrameResult, written: &[WrittenObject], out: &P
         "archive": format!("/v1/jobs/{id}/archive"),
         "notes": result.notes,
         "seconds": seconds,
+        "recon_version": recon_core::VERSION,
+        "model_identity": model,
     })
 }

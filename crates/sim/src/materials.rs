@@ -92,10 +92,10 @@ impl MaterialTable {
         Ok(t)
     }
 
-    /// The table shipped in `models/` (compiled in, so the library works from any directory).
+    /// The table shipped in `models/` (compiled in, so the library works from any directory;
+    /// crates/sim/materials.json links to it, so the packaged crate carries it).
     pub fn builtin() -> Self {
-        Self::from_json_str(include_str!("../../../models/materials.json"), DEFAULT_TABLE)
-            .expect("the shipped material table is valid (tested)")
+        Self::from_json_str(include_str!("../materials.json"), DEFAULT_TABLE).expect("the shipped material table is valid (tested)")
     }
 
     /// Checks the version, the values' ranges and that every named material exists.
@@ -179,7 +179,7 @@ mod tests {
 
     #[test]
     fn bad_tables_name_the_field() {
-        let base = include_str!("../../../models/materials.json");
+        let base = include_str!("../materials.json");
         let e = MaterialTable::from_json_str(&base.replace("\"density_kg_m3\": 650.0", "\"density_kg_m3\": -1"), "t.json")
             .unwrap_err()
             .to_string();

@@ -108,6 +108,7 @@ pub fn write_outputs_with(scene: &mut SimScene, out: &Path, timings: bool) -> Re
         "collision_method": scene.options.collision,
         "objects": scene.summaries(),
         "files": written,
+        "recon_version": recon_core::VERSION,
     });
     recon_core::engine::output::finish_output_marked(&staging, out, MARKER, &report)?;
     Ok(written)

@@ -5,7 +5,7 @@
 //! never looks complete.
 
 use crate::engine::infer::*;
-use crate::engine::pipeline::{RunMetadata, StageTimings};
+use crate::engine::pipeline::{ModelIdentity, RunMetadata, StageTimings};
 use crate::engine::pose_fit::PoseSpread;
 use crate::engine::posthoc_color::write_posthoc_color;
 use crate::engine::recgen_result::RecgenFiles;
@@ -68,6 +68,10 @@ pub struct PoseRecord<'a> {
     pub run: &'a RunMetadata,
     /// Remarks on the object ([`ObjectResult::notes`]).
     pub notes: &'a [String],
+    /// The recon that wrote the file ([`crate::VERSION`]).
+    pub recon_version: &'static str,
+    /// The model that answered: name and weights' hash (the run's, as [`ModelIdentity::of`]).
+    pub model_identity: ModelIdentity,
 }
 
 /// The per-stage seconds `recon infer` reports for every object, in its table's column
@@ -180,6 +184,8 @@ pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions
             select_s: o.select_seconds,
             run: &o.metadata,
             notes: &o.notes,
+            recon_version: crate::VERSION,
+            model_identity: ModelIdentity::of(&o.metadata),
         };
         let pose_path = dir.join("pose.json");
         let text = serde_json::to_string_pretty(&rec).map_err(|e| Error::msg(e.to_string()))?;

@@ -333,10 +333,39 @@ pub enum WeightsSource {
         /// samplers) and other remarks of the manifest load.
         #[serde(skip_serializing_if = "Vec::is_empty")]
         notes: Vec<String>,
+        /// The weights' identity: SHA-256 over one line `<module> <SHA-256 of its file>` per
+        /// loaded module, in the architecture's module order (a manifest's checked pin stands
+        /// for its file's hash). The same checkpoints give the same value from any folder.
+        sha256: String,
     },
 }
 
+/// Which model answered, as outputs record it beside `recon_version` (`pose.json`, the
+/// server's answers, `recon eval`'s index): the architecture's name and the weights' hash.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct ModelIdentity {
+    /// The architecture's name (the config's `name`: `recgen-nano`, `recgen-large`, …).
+    pub name: String,
+    /// [`WeightsSource::sha256`]; `None` for in-memory random weights.
+    pub sha256: Option<String>,
+}
+
+impl ModelIdentity {
+    /// The model a run's [`RunMetadata`] names.
+    pub fn of(run: &RunMetadata) -> Self {
+        ModelIdentity { name: run.architecture.clone(), sha256: run.weights.sha256().map(str::to_string) }
+    }
+}
+
 impl WeightsSource {
+    /// The weights' hash ([`WeightsSource::Files`]'s `sha256`); `None` for in-memory random weights.
+    pub fn sha256(&self) -> Option<&str> {
+        match self {
+            WeightsSource::Random { .. } => None,
+            WeightsSource::Files { sha256, .. } => Some(sha256),
+        }
+    }
+
     /// True for random weights, in memory or from labelled files.
     pub fn is_random(&self) -> bool {
         match self {
@@ -632,6 +661,7 @@ impl Pipeline {
         let mut sources = HashMap::new();
         let mut files = Vec::new();
         let mut random_init = false;
+        let mut identity = ring::digest::Context::new(&ring::digest::SHA256);
         for (key, spec) in config.modules() {
             if stages == Stages::SparseStructure && !key.is_stage1() {
                 continue;
@@ -646,6 +676,13 @@ impl Pipeline {
             if path.extension().is_some_and(|e| e == "safetensors") {
                 random_init |= crate::weights::init::is_random_init(&path)?;
             }
+            // A manifest load has checked the file against its pin already: no second read.
+            let pinned = weight_files.read.iter().find(|r| r.local == path).and_then(|r| r.sha256.clone());
+            let file_sha = match pinned {
+                Some(s) => s.to_ascii_lowercase(),
+                None => crate::weights::hf_cache::sha256_file(&path)?,
+            };
+            identity.update(format!("{key} {file_sha}\n").as_bytes());
             sources.insert(key, Source::File(path.clone()));
             files.push(path);
         }
@@ -655,6 +692,7 @@ impl Pipeline {
             random_init,
             manifest_files: weight_files.read.clone(),
             notes: weight_files.notes.clone(),
+            sha256: identity.finish().as_ref().iter().map(|b| format!("{b:02x}")).collect(),
         };
         let mut p = Self::build(config, sources, weights, stages, *options)?;
         if let Some(f) = &weight_files.ss_stats {
@@ -784,6 +822,11 @@ impl Pipeline {
     /// Where the weights came from (random weights are labelled).
     pub fn weights(&self) -> &WeightsSource {
         &self.weights
+    }
+
+    /// The model's name and weights' hash, as outputs record it.
+    pub fn identity(&self) -> ModelIdentity {
+        ModelIdentity { name: self.config.name.clone(), sha256: self.weights.sha256().map(str::to_string) }
     }
 
     /// DINO input side `S`.

@@ -99,12 +99,43 @@ impl ModelSource {
             // A trained folder carries its architecture file (`recon train slat-flow`).
             ModelSource::Dir { dir, config } => match config {
                 Some(c) => c.clone(),
-                None => find_architecture(dir).unwrap_or_else(|_| PathBuf::from("models/recgen-tiny.json")),
+                None => match find_architecture(dir) {
+                    Ok(a) => a,
+                    Err(_) => shipped_architecture("recgen-tiny.json")?,
+                },
             },
-            ModelSource::Manifest { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-large.json")),
-            ModelSource::Random { config, .. } => config.clone().unwrap_or_else(|| PathBuf::from("models/recgen-tiny.json")),
+            ModelSource::Manifest { config, .. } => match config {
+                Some(c) => c.clone(),
+                None => shipped_architecture("recgen-large.json")?,
+            },
+            ModelSource::Random { config, .. } => match config {
+                Some(c) => c.clone(),
+                None => shipped_architecture("recgen-tiny.json")?,
+            },
         })
     }
+}
+
+/// The architecture files a source falls back to, with the pose statistics they name,
+/// compiled in (crates/core/shipped/ links to models/) so that `--weights recgen` or
+/// `random` works outside a checkout too.
+const SHIPPED_ARCHITECTURES: [(&str, &str); 4] = [
+    ("recgen-large.json", include_str!("../../shipped/recgen-large.json")),
+    ("recgen-tiny.json", include_str!("../../shipped/recgen-tiny.json")),
+    ("stereo_pose_stats.example.json", include_str!("../../shipped/stereo_pose_stats.example.json")),
+    ("slat_pose_stats.example.json", include_str!("../../shipped/slat_pose_stats.example.json")),
+];
+
+/// `models/<name>` (one of [`SHIPPED_ARCHITECTURES`]) when the working folder has it (a
+/// checkout: the path outputs have always recorded), else the compiled-in copy unpacked under
+/// the cache folder (once per content, as the embedded model).
+pub fn shipped_architecture(name: &str) -> Result<PathBuf> {
+    let local = Path::new("models").join(name);
+    if local.is_file() {
+        return Ok(local);
+    }
+    let files: Vec<(&str, &[u8])> = SHIPPED_ARCHITECTURES.iter().map(|(n, text)| (*n, text.as_bytes())).collect();
+    Ok(unpack_once(&cache_root(), "models", &files, "recgen-large.json")?.join(name))
 }
 
 /// `ORG/NAME[@REV]` of an `hf:` weights argument, checked.
@@ -154,17 +185,29 @@ pub fn find_architecture(dir: &Path) -> Result<PathBuf> {
 }
 
 /// The trained recgen-nano, compiled in so that recon has its trained default
-/// wherever it runs (the files of models/recgen-nano/ at build time).
-const EMBEDDED_NANO: [(&str, &[u8]); 8] = [
-    ("recgen-nano.json", include_bytes!("../../../../models/recgen-nano/recgen-nano.json")),
-    ("pose_stats.json", include_bytes!("../../../../models/recgen-nano/pose_stats.json")),
-    ("image_cond_model.safetensors", include_bytes!("../../../../models/recgen-nano/image_cond_model.safetensors")),
-    ("ss_flow.safetensors", include_bytes!("../../../../models/recgen-nano/ss_flow.safetensors")),
-    ("ss_decoder.safetensors", include_bytes!("../../../../models/recgen-nano/ss_decoder.safetensors")),
-    ("slat_flow.safetensors", include_bytes!("../../../../models/recgen-nano/slat_flow.safetensors")),
-    ("slat_dec_mesh.safetensors", include_bytes!("../../../../models/recgen-nano/slat_dec_mesh.safetensors")),
-    ("slat_dec_gs.safetensors", include_bytes!("../../../../models/recgen-nano/slat_dec_gs.safetensors")),
+/// wherever it runs (the files of models/recgen-nano/ at build time; crates/core/build.rs
+/// finds them). Empty in a build from the published package, which cannot carry them.
+#[cfg(recon_embedded_nano)]
+const EMBEDDED_NANO: &[(&str, &[u8])] = &[
+    ("recgen-nano.json", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/recgen-nano.json"))),
+    ("pose_stats.json", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/pose_stats.json"))),
+    ("image_cond_model.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/image_cond_model.safetensors"))),
+    ("ss_flow.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/ss_flow.safetensors"))),
+    ("ss_decoder.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/ss_decoder.safetensors"))),
+    ("slat_flow.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/slat_flow.safetensors"))),
+    ("slat_dec_mesh.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/slat_dec_mesh.safetensors"))),
+    ("slat_dec_gs.safetensors", include_bytes!(concat!(env!("RECON_EMBEDDED_NANO_DIR"), "/slat_dec_gs.safetensors"))),
 ];
+#[cfg(not(recon_embedded_nano))]
+const EMBEDDED_NANO: &[(&str, &[u8])] = &[];
+
+/// The embedded recgen-nano's content hash (FNV-1a over its file names and bytes, the
+/// name of the folder it unpacks to), or `None` when this build carries no model.
+pub fn embedded_model_hash() -> Option<u64> {
+    // 27 MB byte by byte: once per process.
+    static HASH: std::sync::OnceLock<Option<u64>> = std::sync::OnceLock::new();
+    *HASH.get_or_init(|| (!EMBEDDED_NANO.is_empty()).then(|| fnv(EMBEDDED_NANO)))
+}
 
 /// The default model's folder: models/recgen-nano/ in the working folder when
 /// it holds a complete model, else the embedded copy unpacked.
@@ -187,31 +230,51 @@ fn cache_root() -> PathBuf {
 /// (the folder name carries a hash of every file), written beside and renamed
 /// into place so a half-written copy is never used.
 pub fn embedded_model_in(root: &Path) -> Result<PathBuf> {
-    // FNV-1a over names and contents: a changed model gets a new folder.
+    if EMBEDDED_NANO.is_empty() {
+        return Err(Error::input(
+            "--weights",
+            "none given, and this recon carries no recgen-nano (a build from the published crate: its 27 MB do not fit \
+             a crates.io package); run `recon weights fetch recgen` and pass --weights recgen (or hf:TRI-ML/RecGen), \
+             or rebuild from a checkout or with RECON_NANO_DIR set to a recgen-nano folder",
+        ));
+    }
+    unpack_once(root, "recgen-nano", EMBEDDED_NANO, "recgen-nano.json")
+}
+
+/// FNV-1a 64 over the files' names and contents, in order.
+fn fnv(files: &[(&str, &[u8])]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for (name, bytes) in EMBEDDED_NANO {
+    for (name, bytes) in files {
         for &b in name.as_bytes().iter().chain(bytes.iter()) {
             h = (h ^ b as u64).wrapping_mul(0x100_0000_01b3);
         }
     }
-    let dir = root.join(format!("recgen-nano-{h:016x}"));
-    if dir.join("recgen-nano.json").is_file() {
+    h
+}
+
+/// `files` as the folder `<root>/<stem>-<hash>` (FNV-1a over names and contents: changed
+/// files get a new folder), written beside and renamed into place so that a half-written
+/// copy is never used; `marker` is the file whose presence means the folder is complete.
+fn unpack_once(root: &Path, stem: &str, files: &[(&str, &[u8])], marker: &str) -> Result<PathBuf> {
+    let h = fnv(files);
+    let dir = root.join(format!("{stem}-{h:016x}"));
+    if dir.join(marker).is_file() {
         return Ok(dir);
     }
-    let tmp = root.join(format!("recgen-nano-{h:016x}.partial-{}", std::process::id()));
+    let tmp = root.join(format!("{stem}-{h:016x}.partial-{}", std::process::id()));
     std::fs::create_dir_all(&tmp).map_err(|e| {
         Error::input(
             tmp.display().to_string(),
-            format!("cannot unpack the embedded recgen-nano here ({e}); set RECON_CACHE to a writable folder"),
+            format!("cannot unpack recon's shipped {stem} files here ({e}); set RECON_CACHE to a writable folder"),
         )
     })?;
-    for (name, bytes) in EMBEDDED_NANO {
+    for &(name, bytes) in files {
         std::fs::write(tmp.join(name), bytes).map_err(|e| Error::io(tmp.join(name), e))?;
     }
     match std::fs::rename(&tmp, &dir) {
         Ok(()) => Ok(dir),
         // Another process unpacked it first.
-        Err(_) if dir.join("recgen-nano.json").is_file() => {
+        Err(_) if dir.join(marker).is_file() => {
             let _ = std::fs::remove_dir_all(&tmp);
             Ok(dir)
         }
@@ -225,8 +288,11 @@ mod tests {
 
     #[test]
     fn embedded_model_unpacks_the_shipped_files_once() {
+        // A checkout's build carries the model (crates/core/build.rs).
+        assert_eq!(EMBEDDED_NANO.len(), 8, "the build embedded no recgen-nano");
         let root = crate::util::testing::tmp("embedded");
         let dir = embedded_model_in(&root).unwrap();
+        assert_eq!(dir.file_name().unwrap().to_str().unwrap(), format!("recgen-nano-{:016x}", embedded_model_hash().unwrap()));
         let shipped = crate::util::testing::repo().join("models/recgen-nano");
         for (name, _) in EMBEDDED_NANO {
             assert_eq!(std::fs::read(dir.join(name)).unwrap(), std::fs::read(shipped.join(name)).unwrap(), "{name}");

@@ -18,11 +18,12 @@ use crate::{Error, Result};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-/// Manifests shipped with the crate: (name, JSON text).
+/// Manifests shipped with the crate: (name, JSON text). crates/core/weights-manifest links to the
+/// repository's weights-manifest/, so the packaged crate carries the files.
 pub const EMBEDDED: &[(&str, &str)] = &[
-    ("recgen", include_str!("../../../../weights-manifest/recgen.json")),
-    ("trellis-image-large", include_str!("../../../../weights-manifest/trellis-image-large.json")),
-    ("dinov2-vitl14-reg", include_str!("../../../../weights-manifest/dinov2-vitl14-reg.json")),
+    ("recgen", include_str!("../../weights-manifest/recgen.json")),
+    ("trellis-image-large", include_str!("../../weights-manifest/trellis-image-large.json")),
+    ("dinov2-vitl14-reg", include_str!("../../weights-manifest/dinov2-vitl14-reg.json")),
 ];
 
 /// A weights manifest: the upstream files of one model release, where they come from and what they hold.
