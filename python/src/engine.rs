@@ -1,4 +1,4 @@
-//! `recon.Engine` (a loaded model, [`recon::engine::Engine`]) and the objects it returns.
+//! `recon_rgbd.Engine` (a loaded model, [`recon::engine::Engine`]) and the objects it returns.
 //!
 //! The engine is immutable once loaded, so one Python object serves several threads:
 //! every call releases the GIL for its whole computation, and with `threads=N` runs in
@@ -211,7 +211,7 @@ fn view_specs(views: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<ViewSpec>> {
 }
 
 /// A loaded model, reused across objects, frames and threads.
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Engine {
     engine: Arc<recon::engine::Engine>,
     pool: Option<Arc<rayon::ThreadPool>>,
@@ -319,7 +319,7 @@ impl Engine {
     }
 
     fn __repr__(&self) -> String {
-        format!("recon.Engine({})", self.source)
+        format!("recon_rgbd.Engine({})", self.source)
     }
 
     #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, views=None, progress=None, **options))]
@@ -436,7 +436,7 @@ impl Engine {
 }
 
 /// Vertices, faces and per-vertex colours of a mesh in the camera frame (metres).
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Mesh {
     /// float32 N×3, camera frame of view 1 (OpenCV: x right, y down, z forward), metres.
     #[pyo3(get)]
@@ -463,7 +463,7 @@ fn array_rows<T: numpy::Element + Copy, const K: usize>(a: &Bound<'_, PyAny>, dt
 #[pymethods]
 impl Mesh {
     /// A mesh from arrays (checked: faces index the vertices): float32 N×3 vertices, int
-    /// M×3 faces, optional float32 N×6 attributes. `recon.Client` builds its objects' meshes so.
+    /// M×3 faces, optional float32 N×6 attributes. `recon_rgbd.Client` builds its objects' meshes so.
     #[new]
     #[pyo3(signature = (vertices, faces, attributes=None))]
     fn py_new(
@@ -503,7 +503,7 @@ impl Mesh {
     fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
         let n: usize = self.vertices.bind(py).len()?;
         let m: usize = self.faces.bind(py).len()?;
-        Ok(format!("recon.Mesh({n} vertices, {m} faces)"))
+        Ok(format!("recon_rgbd.Mesh({n} vertices, {m} faces)"))
     }
 }
 
@@ -538,7 +538,7 @@ impl Mesh {
 }
 
 /// 3D Gaussians in the camera frame (metres).
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Gaussians {
     /// float32 N×3 centres.
     #[pyo3(get)]
@@ -563,7 +563,7 @@ pub struct Gaussians {
 #[pymethods]
 impl Gaussians {
     /// Gaussians from arrays (float32; rows per Gaussian): N×3 means, N×3 scales, N×4
-    /// rotations (w, x, y, z), N opacities, N×3 SH degree-0 `dc`. `recon.Client` builds its
+    /// rotations (w, x, y, z), N opacities, N×3 SH degree-0 `dc`. `recon_rgbd.Client` builds its
     /// objects' Gaussians so.
     #[new]
     fn py_new(
@@ -625,7 +625,7 @@ impl Gaussians {
 }
 
 /// One reconstructed object.
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Object {
     /// Instance id in the mask image, or None for a boolean mask.
     #[pyo3(get)]
@@ -766,7 +766,7 @@ impl Object {
         &self.label
     }
 
-    /// `(label, mesh)` for `recon.scene`, or None when no mesh was decoded.
+    /// `(label, mesh)` for `recon_rgbd.scene`, or None when no mesh was decoded.
     pub(crate) fn mesh_for_scene(&self, py: Python<'_>) -> PyResult<Option<(String, recon::mesh::Mesh)>> {
         self.mesh.as_ref().map(|m| Ok((self.label.clone(), m.get().to_recon(py)?))).transpose()
     }
@@ -781,7 +781,7 @@ impl Object {
 
 #[pymethods]
 impl Object {
-    /// An object from its parts, as `recon.Client` builds the objects of a remote job (the
+    /// An object from its parts, as `recon_rgbd.Client` builds the objects of a remote job (the
     /// fields of the same names; `pose` a 4×4 array).
     #[staticmethod]
     #[pyo3(signature = (*, id, label, pose, scale, score, spread, stage_seconds, details, mesh=None, gaussians=None))]
@@ -858,7 +858,7 @@ impl Object {
     #[pyo3(signature = (output_dir, *, save_splat=true))]
     fn save(&self, py: Python<'_>, output_dir: PathBuf, save_splat: bool) -> PyResult<()> {
         let Some((pose, pose_representation)) = self.recgen else {
-            return Err(input(&self.label, "save needs RecGen's pose fields, which objects of a recon.Client answer do not carry"));
+            return Err(input(&self.label, "save needs RecGen's pose fields, which objects of a recon_rgbd.Client answer do not carry"));
         };
         let rgb: PyReadonlyArray3<u8> =
             self.rgb.bind(py).extract().map_err(|_| input(&self.label, "rgb: expected an H×W×3 uint8 array"))?;
@@ -914,6 +914,6 @@ impl Object {
     }
 
     fn __repr__(&self) -> String {
-        format!("recon.Object({}, scale={:.4} m, score={:.4} m)", self.label, self.scale, self.score)
+        format!("recon_rgbd.Object({}, scale={:.4} m, score={:.4} m)", self.label, self.scale, self.score)
     }
 }

@@ -1,8 +1,8 @@
-//! `recon._recon`: the Python extension module of recon. Every function here calls the
+//! `recon_rgbd._recon`: the Python extension module of recon. Every function here calls the
 //! library function its CLI command calls (`recon infer` → [`recon::engine::Engine`] and
 //! [`recon::engine::write_outputs`], `recon synth` → [`recon::synth::generate`], …), with
 //! numpy arrays in and out and the GIL released while recon computes. The pure-Python
-//! package around it (`python/recon/`) adds `recon.ray` and the type stubs.
+//! package around it (`python/recon_rgbd/`) adds `recon_rgbd.ray` and the type stubs.
 
 use pyo3::prelude::*;
 

@@ -1,15 +1,15 @@
 """recon: RGB-D frames + object masks -> per-object textured meshes, 3D Gaussians and
 metric 6-DoF poses (RecGen re-implemented in Rust), from Python.
 
-    import recon
-    engine = recon.Engine()                      # the embedded recgen-nano, loaded once
-    f = recon.load_frame("data/sample/000001-color.png")
+    import recon_rgbd
+    engine = recon_rgbd.Engine()                      # the embedded recgen-nano, loaded once
+    f = recon_rgbd.load_frame("data/sample/000001-color.png")
     masks = ...                                  # H×W instance ids, or a list of boolean masks
     for o in engine.reconstruct(f["rgb"], f["depth"], f["K"], masks, seed=42):
         print(o.label, o.pose, o.scale, o.mesh.vertices.shape)
 
-`recon.Client(url)` is an `Engine` on a `recon serve` over HTTP: the same `reconstruct`
-call, the same objects. `recon.ray` runs whole datasets on Ray. Errors are `recon.ReconError` (subclasses
+`recon_rgbd.Client(url)` is an `Engine` on a `recon serve` over HTTP: the same `reconstruct`
+call, the same objects. `recon_rgbd.ray` runs whole datasets on Ray. Errors are `recon_rgbd.ReconError` (subclasses
 `InputError`, `WeightsError`, `ConfigError`) carrying the CLI's messages.
 """
 

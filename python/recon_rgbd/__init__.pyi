@@ -115,7 +115,7 @@ class Object:
     """The anchor view's H×W×3 image (shared by the frame's objects)."""
     intrinsics: Optional[npt.NDArray[np.float64]]
     """The anchor view's 3×3 K.
-    The RecGen fields above are None for objects of a `recon.Client` answer."""
+    The RecGen fields above are None for objects of a `recon_rgbd.Client` answer."""
     def to_glb(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.glb`."""
     def to_ply(self, path: _Path) -> None:
@@ -450,7 +450,7 @@ class Job:
 class Client:
     """`Engine.reconstruct` on a `recon serve` at `url` over HTTP (docs/serve.md): the same
     arguments, the same objects, so a pipeline switches by one line
-    (`engine = recon.Client(url)` instead of `recon.Engine()`). Pure Python (urllib).
+    (`engine = recon_rgbd.Client(url)` instead of `recon_rgbd.Engine()`). Pure Python (urllib).
 
     The objects are built from the job's files: poses, scale, score, spread and meshes
     (vertices, faces, colours) exactly as the engine's; `Mesh.attributes[:, 3:]` (the
