@@ -1,4 +1,4 @@
-"""recon: RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
+"""recon_rgbd (distribution `recon-rgbd`): RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
 
 from os import PathLike
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
@@ -25,6 +25,12 @@ class WeightsError(ReconError):
 
 class ConfigError(ReconError):
     """An option or a configuration field is missing or out of range."""
+
+class DefaultModelWarning(UserWarning):
+    """Given once per process by the first `Engine()` without `weights`: the embedded
+    recgen-nano (trained on recon's synthetic scenes only) answers, not RecGen's released
+    weights (`Engine.from_pretrained("TRI-ML/RecGen")` after `python -m recon_rgbd weights
+    fetch recgen`)."""
 
 class Mesh:
     """A mesh in the camera frame of view 1 (OpenCV: x right, y down, z forward), metres."""
@@ -144,6 +150,10 @@ class Engine:
     """
 
     random_weights: bool
+    model: str
+    """Where the model comes from (`Default` = the embedded recgen-nano, `Dir`, `Manifest`
+    with the `hf:` or manifest name, `Random`); each object's `details["run"]` names the
+    architecture (e.g. `recgen-nano`) and the weights files."""
     def __init__(
         self,
         weights: Optional[_Path] = None,
@@ -152,6 +162,21 @@ class Engine:
         threads: Optional[int] = None,
         seed: int = 42,
     ) -> None: ...
+    @classmethod
+    def from_pretrained(
+        cls,
+        repo: str,
+        revision: Optional[str] = None,
+        *,
+        config: Optional[_Path] = None,
+        dtype: str = "auto",
+        threads: Optional[int] = None,
+    ) -> "Engine":
+        """RecGen's released weights from a Hugging Face repository (e.g. "TRI-ML/RecGen"):
+        `Engine(weights="hf:REPO[@REVISION]")`, read from the Hugging Face cache that
+        `python -m recon_rgbd weights fetch recgen` fills (HF_HOME / HF_HUB_CACHE;
+        HF_HUB_OFFLINE honoured). `revision`: a commit, branch or tag (default: the
+        manifest's pinned commit for TRI-ML/RecGen, else `main`)."""
     def reconstruct(
         self,
         rgb: npt.NDArray[np.uint8],
@@ -418,6 +443,12 @@ def audit_depth(
 ) -> Dict[str, Any]:
     """`recon audit depth`: measured vs simulated depth; returns the report (and writes the
     CLI's files when `out` is given)."""
+
+def info() -> Dict[str, Any]:
+    """This build and the machine it runs on: `version`, `commit` (git commit the extension
+    was built from, or None), `features`, `profile` ("release" or "dev"), `target`, `cpu`,
+    `isa` (the instruction set recon's kernels use, as `recon bench`'s machine line says),
+    `bf16_isa`, `supported_isas`, `threads`, `allocator`, `default_model`."""
 
 def keep_freed_memory() -> bool:
     """Keep large freed buffers in the process heap for reuse (glibc's thresholds), for

@@ -210,6 +210,25 @@ fn view_specs(views: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<ViewSpec>> {
         .collect()
 }
 
+/// Says once per process that the default model answers: a toy next to RecGen's released
+/// weights, which a user who passed no `weights=` may not know.
+fn warn_default_model(py: Python<'_>) -> PyResult<()> {
+    static WARNED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        return Ok(());
+    }
+    let category = py.get_type::<crate::errors::DefaultModelWarning>();
+    // stacklevel 1: the warning points at the Python line that built the engine.
+    PyErr::warn(py, &category, DEFAULT_MODEL_WARNING, 1)
+}
+
+/// The text of [`warn_default_model`].
+pub(crate) const DEFAULT_MODEL_WARNING: &std::ffi::CStr = c"recon_rgbd: no weights given, so the embedded recgen-nano answers: \
+a 27 MB model trained on recon's synthetic scenes that has never seen a real object. For RecGen's released \
+weights run `python -m recon_rgbd weights fetch recgen` once, then use Engine(weights=\"recgen\") \
+(or Engine.from_pretrained(\"TRI-ML/RecGen\")); Engine(weights=\"random\") is plumbing only. \
+This warning is a recon_rgbd.DefaultModelWarning (a UserWarning), given once per process.";
+
 /// A loaded model, reused across objects, frames and threads.
 #[pyclass(frozen, module = "recon_rgbd")]
 pub struct Engine {
@@ -294,6 +313,8 @@ impl Engine {
         let dtype = parse_enum::<Dtype>("dtype", dtype)?;
         let w = weights.as_ref().map(|p| p.to_string_lossy().into_owned());
         let source = ModelSource::parse(w.as_deref(), config.as_deref(), seed).map_err(weights_to_py)?;
+        // Outside a checkout (an installed wheel), the architecture files the wheel carries.
+        let source = crate::models::with_embedded_architecture(source).map_err(weights_to_py)?;
         let pool = match threads {
             Some(0) => return Err(crate::errors::config("threads", "must be at least 1")),
             Some(n) => Some(Arc::new(
@@ -309,7 +330,41 @@ impl Engine {
                 None => recon::engine::Engine::load(&src, &load),
             })
             .map_err(weights_to_py)?;
+        if source == ModelSource::Default {
+            warn_default_model(py)?;
+        }
         Ok(Engine { engine: Arc::new(engine), pool, source: format!("{source:?}") })
+    }
+
+    /// RecGen's released weights from a Hugging Face repository: `weights="hf:REPO[@REVISION]"`
+    /// (`recon infer --weights hf:REPO[@REV]`), read from the Hugging Face cache that
+    /// `python -m recon_rgbd weights fetch` fills (HF_HOME / HF_HUB_CACHE; HF_HUB_OFFLINE
+    /// honoured). `revision`: a commit, branch or tag (default: the manifest's pinned commit
+    /// for TRI-ML/RecGen, else `main`).
+    #[classmethod]
+    #[pyo3(signature = (repo, revision=None, *, config=None, dtype="auto", threads=None))]
+    fn from_pretrained(
+        _cls: &Bound<'_, pyo3::types::PyType>,
+        py: Python<'_>,
+        repo: &str,
+        revision: Option<&str>,
+        config: Option<PathBuf>,
+        dtype: &str,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        let repo = repo.strip_prefix("hf:").unwrap_or(repo);
+        let spec = match revision {
+            Some(r) => format!("hf:{repo}@{r}"),
+            None => format!("hf:{repo}"),
+        };
+        Engine::new(py, Some(PathBuf::from(spec)), config, dtype, threads, 42)
+    }
+
+    /// Where this engine's model comes from (`ModelSource`, as `repr` shows it): `Default` is
+    /// the embedded recgen-nano.
+    #[getter]
+    fn model(&self) -> String {
+        self.source.clone()
     }
 
     /// Whether the weights are random (`weights="random"`: plumbing only).
