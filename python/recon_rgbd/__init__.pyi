@@ -179,8 +179,8 @@ class Engine:
         manifest's pinned commit for TRI-ML/RecGen, else `main`)."""
     def reconstruct(
         self,
-        rgb: npt.NDArray[np.uint8],
-        depth: npt.NDArray[Any],
+        rgb: Any,
+        depth: Any,
         K: npt.ArrayLike,
         masks: Union[npt.NDArray[np.integer], Sequence[npt.NDArray[np.bool_]]],
         *,
@@ -215,6 +215,9 @@ class Engine:
         rgb: H×W×3 uint8. depth: H×W uint16 (× depth_scale metres, default 0.001) or
         float32/float64 metres (0 or NaN = no reading). K: 3×3 intrinsics. masks: an H×W
         instance-id image (0 = background) or a list of H×W boolean masks.
+        Arrays of any layout, PIL images, torch CPU tensors and DLPack producers are read, in
+        dtypes that convert without loss (integer colour in 0..255, float colour in [0, 1],
+        float16 depth, other integer depth with depth_scale); others raise InputError.
         view2: {"rgb", "depth", "K", "masks", "T_c1_c2"[, "depth_scale"]} for two-view
         conditioning; T_c1_c2 maps camera 2 to camera 1 (x1 = R·x2 + t, metres).
         views: more views besides the anchor, each such a dict with "T_c1_ci" (camera i to

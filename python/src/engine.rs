@@ -59,8 +59,97 @@ fn intrinsics(k: &Bound<'_, PyAny>, what: &str) -> PyResult<Intrinsics> {
     Intrinsics::new(a[[0, 0]], a[[1, 1]], a[[0, 2]], a[[1, 2]]).map_err(|e| input(what, e))
 }
 
-/// An RGB-D frame from numpy arrays: `rgb` H×W×3 uint8; `depth` H×W uint16 (× `depth_scale`
-/// metres, default 0.001) or float32/float64 metres.
+/// An array from what people hold images in: numpy arrays (any layout), PIL images and torch
+/// CPU tensors (`__array__`), other DLPack producers (`__dlpack__`).
+fn as_ndarray<'py>(x: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyAny>> {
+    let np = x.py().import("numpy")?;
+    let arr = if !x.hasattr("__array__")? && !x.hasattr("__array_interface__")? && x.hasattr("__dlpack__")? {
+        np.call_method1("from_dlpack", (x,))
+    } else {
+        np.call_method1("asarray", (x,))
+    };
+    arr.map_err(|e| input(what, format!("cannot be read as an array ({e})")))
+}
+
+/// `rgb` as H×W×3 uint8 without loss: uint8 as it is, other integers when every value is in
+/// 0..=255, floats when every value is in [0, 1] (× 255, rounded: the usual float-image
+/// convention). Anything else is refused, naming the argument.
+fn rgb_u8<'py>(rgb: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyAny>> {
+    let np = rgb.py().import("numpy")?;
+    let a = as_ndarray(rgb, what)?;
+    let dtype = a.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    let size: usize = a.getattr("size")?.extract()?;
+    let range = || -> PyResult<(f64, f64)> {
+        if size == 0 {
+            return Ok((0.0, 0.0));
+        }
+        Ok((np.call_method1("min", (&a,))?.extract()?, np.call_method1("max", (&a,))?.extract()?))
+    };
+    match kind.as_str() {
+        "u" if dtype.getattr("itemsize")?.extract::<usize>()? == 1 => Ok(a),
+        "u" | "i" => {
+            let (lo, hi) = range()?;
+            if lo < 0.0 || hi > 255.0 {
+                return Err(input(what, format!("{dtype} values {lo}..{hi} do not fit 8-bit colour without loss: expected 0..255")));
+            }
+            a.call_method1("astype", ("uint8",))
+        }
+        "f" => {
+            let finite: bool = np.call_method1("isfinite", (&a,))?.call_method0("all")?.extract()?;
+            if !finite {
+                return Err(input(what, format!("{dtype} colour must be finite and in [0, 1] (it holds NaN or infinity)")));
+            }
+            let (lo, hi) = range()?;
+            if lo < 0.0 || hi > 1.0 {
+                return Err(input(
+                    what,
+                    format!("{dtype} colour must be finite and in [0, 1] (got {lo}..{hi}); pass uint8 0..255 for other ranges"),
+                ));
+            }
+            np.call_method1("rint", (a.call_method1("__mul__", (255.0,))?,))?.call_method1("astype", ("uint8",))
+        }
+        _ => Err(input(what, format!("expected an H×W×3 uint8 array (or float in [0, 1]), got dtype {dtype}"))),
+    }
+}
+
+/// `depth` as uint16 units or float metres, without loss, with the `depth_scale` still to
+/// apply: uint16 (× `depth_scale`, default 0.001) and float16/32/64 metres as they are; other
+/// integers only with `depth_scale` (their unit is not known otherwise), scaled here.
+fn depth_array<'py>(depth: &Bound<'py, PyAny>, depth_scale: Option<f64>, what: &str) -> PyResult<(Bound<'py, PyAny>, Option<f64>)> {
+    let a = as_ndarray(depth, what)?;
+    let dtype = a.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    let item: usize = dtype.getattr("itemsize")?.extract()?;
+    match (kind.as_str(), item) {
+        ("u", 2) | ("f", 4) | ("f", 8) => Ok((a, depth_scale)),
+        ("f", 2) => Ok((a.call_method1("astype", ("float32",))?, depth_scale)),
+        ("u" | "i", _) => {
+            let Some(s) = depth_scale else {
+                return Err(input(
+                    what,
+                    format!("{dtype} depth has no known unit: pass depth_scale (metres per unit), or give uint16 (millimetres by default) or float metres"),
+                ));
+            };
+            if !(s.is_finite() && s > 0.0) {
+                return Err(config("depth_scale", format!("must be positive metres per unit, got {s}")));
+            }
+            let np = depth.py().import("numpy")?;
+            let size: usize = a.getattr("size")?.extract()?;
+            if size > 0 && np.call_method1("min", (&a,))?.extract::<f64>()? < 0.0 {
+                return Err(input(what, "negative depth values"));
+            }
+            // float64 holds every integer below 2^53 exactly; the scale is applied as for uint16.
+            Ok((a.call_method1("astype", ("float64",))?.call_method1("__mul__", (s,))?, None))
+        }
+        _ => Err(input(what, format!("expected an H×W uint16 (with depth_scale) or float metres array, got dtype {dtype}"))),
+    }
+}
+
+/// An RGB-D frame from arrays: `rgb` H×W×3 uint8 (or what converts to it without loss,
+/// [`rgb_u8`]); `depth` H×W uint16 (× `depth_scale` metres, default 0.001) or float metres
+/// ([`depth_array`]). numpy arrays of any layout, PIL images, torch tensors (`__array__`) and
+/// DLPack producers are read.
 pub(crate) fn frame_from_arrays(
     rgb: &Bound<'_, PyAny>,
     depth: &Bound<'_, PyAny>,
@@ -68,18 +157,22 @@ pub(crate) fn frame_from_arrays(
     depth_scale: Option<f64>,
     name: &str,
 ) -> PyResult<RgbdFrame> {
+    let rgb = rgb_u8(rgb, &format!("{name} rgb"))?;
     let rgb: PyReadonlyArray3<u8> = rgb.extract().map_err(|_| input(&format!("{name} rgb"), "expected an H×W×3 uint8 array"))?;
     let [h, w, c] = <[usize; 3]>::try_from(rgb.shape()).map_err(|_| input(name, "rgb must be H×W×3"))?;
     if c != 3 {
         return Err(input(&format!("{name} rgb"), format!("expected H×W×3 uint8, got {h}×{w}×{c}")));
     }
     // One copy into the frame's own buffer (a no-op reinterpretation is not possible: the
-    // frame owns its pixels); C-contiguous input is copied as one block.
-    let rgb_v: Vec<u8> = match rgb.as_slice() {
-        Ok(s) => s.to_vec(),
-        Err(_) => rgb.as_array().iter().copied().collect(),
+    // frame owns its pixels); C-contiguous input is copied as one block. (numpy's `as_slice`
+    // also accepts Fortran order, in memory order: ndarray's standard-layout slice does not.)
+    let rgb_v: Vec<u8> = match rgb.as_array().as_slice() {
+        Some(s) => s.to_vec(),
+        None => rgb.as_array().iter().copied().collect(),
     };
     let dname = format!("{name} depth");
+    let (depth, depth_scale) = depth_array(depth, depth_scale, &dname)?;
+    let depth = &depth;
     let depth_v: Vec<f32> = if let Ok(d) = depth.extract::<PyReadonlyArray2<u16>>() {
         if d.shape() != [h, w] {
             return Err(input(&dname, format!("shape {:?} but rgb is {h}×{w}; depth must be registered to colour", d.shape())));
@@ -96,9 +189,9 @@ pub(crate) fn frame_from_arrays(
         if depth_scale.is_some() {
             return Err(config("depth_scale", "applies to uint16 depth; float depth is already in metres"));
         }
-        match d.as_slice() {
-            Ok(s) => s.to_vec(),
-            Err(_) => d.as_array().iter().copied().collect(),
+        match d.as_array().as_slice() {
+            Some(s) => s.to_vec(),
+            None => d.as_array().iter().copied().collect(),
         }
     } else if let Ok(d) = depth.extract::<PyReadonlyArray2<f64>>() {
         if d.shape() != [h, w] {

@@ -32,8 +32,9 @@ def test_bad_arrays_are_input_and_config_errors(engine):
     depth = np.ones((12, 16), np.float32)
     K = np.array([[100.0, 0, 8], [0, 100, 6], [0, 0, 1]])
     ids = np.zeros((12, 16), np.uint16)
-    with pytest.raises(recon_rgbd.InputError, match="uint8"):
-        engine.reconstruct(rgb.astype(np.float32), depth, K, ids)
+    # Float colour converts only from [0, 1] (test_inputs.py has the conversions).
+    with pytest.raises(recon_rgbd.InputError, match=r"rgb: float32 colour must be finite and in \[0, 1\]"):
+        engine.reconstruct(rgb.astype(np.float32) + 2, depth, K, ids)
     with pytest.raises(recon_rgbd.InputError, match="registered"):
         engine.reconstruct(rgb, depth[:5], K, ids)
     with pytest.raises(recon_rgbd.InputError, match="3×3"):
