@@ -11,9 +11,12 @@ fn main() {
     if let Some(commit) = git(&["rev-parse", "HEAD"]) {
         println!("cargo:rustc-env=RECON_GIT_COMMIT={commit}");
         // Rebuilt when HEAD moves: HEAD itself (a branch switch) and the branch it points to (a commit).
-        for p in [git(&["rev-parse", "--git-path", "HEAD"]), git(&["symbolic-ref", "-q", "HEAD"]).and_then(|r| git(&["rev-parse", "--git-path", &r]))]
-            .into_iter()
-            .flatten()
+        for p in [
+            git(&["rev-parse", "--git-path", "HEAD"]),
+            git(&["symbolic-ref", "-q", "HEAD"]).and_then(|r| git(&["rev-parse", "--git-path", &r])),
+        ]
+        .into_iter()
+        .flatten()
         {
             println!("cargo:rerun-if-changed={p}");
         }

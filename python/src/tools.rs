@@ -276,7 +276,8 @@ pub fn scene<'py>(
             let mut notes = Vec::new();
             for (i, o) in objects.try_iter().map_err(|_| input("objects", "expected a list of recon_rgbd.Object or a path"))?.enumerate() {
                 let o = o?;
-                let o = o.cast::<crate::engine::Object>().map_err(|_| input("objects", format!("item {i}: expected a recon_rgbd.Object")))?;
+                let o =
+                    o.cast::<crate::engine::Object>().map_err(|_| input("objects", format!("item {i}: expected a recon_rgbd.Object")))?;
                 match o.get().mesh_for_scene(py)? {
                     Some(m) => meshes.push(m),
                     None => notes.push(format!("{}: no mesh was decoded; left out", o.get().label())),
