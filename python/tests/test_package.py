@@ -211,6 +211,16 @@ def test_module_infer_and_scene_write_the_cli_folders(synth_ds, recon_cli, tmp_p
     assert (tmp_path / "sim/scene.json").is_file() and json.loads(r.stdout)
 
 
+def test_module_infer_random_weights_outside_a_checkout(synth_ds, tmp_path):
+    """`--weights random` without `--config`, from a folder without models/: the architecture
+    file the extension carries, as for `Engine(weights="random")`."""
+    f = recon_rgbd.dataset_frames(synth_ds)[0]
+    r = run_module("infer", "--rgbd", f["rgb"], "--masks", *f["masks"], "--out", tmp_path / "out", "--weights", "random", *cli_flags(), cwd=tmp_path)
+    assert r.returncode in (0, 3), r.stderr
+    index = json.loads((tmp_path / "out" / recon_rgbd.OUTPUT_MARKER).read_text())
+    assert index["objects"] and "RANDOM" in r.stderr, r.stderr
+
+
 def test_module_serve_answers_and_stops_on_ctrl_c(tmp_path):
     log = open(tmp_path / "serve.log", "wb")
     p = subprocess.Popen(
