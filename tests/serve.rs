@@ -938,6 +938,13 @@ fn binary_masks_npy_depth_k_and_a_second_view() {
     let pose = get(&server.url(o["files"]["pose"].as_str().unwrap())).json();
     assert_eq!(pose["views"].as_array().unwrap().len(), 2, "{pose}");
     assert_eq!(pose["views"][1]["frame"], "b.png");
+    // The colour calibration: its record in the answer and its file.
+    let a = post_parts(&server, "", &tiny_parts(&s, br#"{"max_faces": 20000, "posthoc_color": "gamma_affine"}"#));
+    assert_eq!(a.status, 200, "{}", a.text());
+    let o = &a.json()["result"]["objects"][0];
+    assert_eq!(o["posthoc_color"]["variant"], "gamma_affine", "{o}");
+    let file = get(&server.url(o["files"]["posthoc_color"].as_str().unwrap())).json();
+    assert_eq!(file, o["posthoc_color"]);
     let _ = std::fs::remove_dir_all(&t);
 }
 

@@ -6,6 +6,7 @@
 //! The tiny fixture runs in CI. The full-size check needs the harness's
 //! output (a TRELLIS checkout and torch), so it is ignored:
 //! `python3 benches/upstream/harness.py --trellis /path/to/TRELLIS --save /tmp/fullsize`
+//! (`--dinov2 /path/to/dinov2 --modules ss_flow,ss_decoder,dinov2` adds DINOv2 ViT-L/14-reg)
 //! `RECON_UPSTREAM_DIR=/tmp/fullsize cargo test --release --test upstream_fullsize -- --ignored`
 mod common;
 
@@ -23,12 +24,37 @@ const F32_MAX_REL: f64 = 1.0 / 2048.0;
 const BF16_MEAN_REL: f64 = 0.01;
 const BF16_VS_UPSTREAM_BF16: f64 = 1.5;
 
+/// DINOv2 (fp32 weights) in f32 against upstream's float64 run: no farther than this
+/// multiple of upstream f32's own distance from float64 (issue 36: full-size activations
+/// make a fixed absolute tolerance meaningless), with a floor for tiny models where
+/// upstream's own distance is at rounding level.
+const F32_VS_F64_MULTIPLE: f64 = 4.0;
+const F32_VS_F64_FLOOR: f64 = 1e-5;
+
 fn check(dir: &Path) -> Vec<ReleasedRow> {
     let rows = check_released(dir, &[Compute::fast(Precision::F32), Compute::fast(Precision::Bf16)]).unwrap();
     for r in &rows {
         eprintln!("{:<11} {:<28} vs {:<24} max rel {:.2e} mean rel {:.2e}", r.module, r.compute, r.reference, r.max_rel, r.mean_rel);
     }
-    for module in ["ss_flow", "ss_decoder"] {
+    if rows.iter().any(|r| r.module == "dinov2") {
+        let get = |compute: &str, reference: &str| {
+            rows.iter()
+                .find(|r| r.module == "dinov2" && r.compute.starts_with(compute) && r.reference == reference)
+                .unwrap_or_else(|| panic!("dinov2: no row {compute} vs {reference}"))
+        };
+        let ours = get("fast f32", "upstream f64");
+        let theirs = get("upstream f32", "upstream f64");
+        for (what, a, b) in [("max", ours.max_rel, theirs.max_rel), ("mean", ours.mean_rel, theirs.mean_rel)] {
+            let budget = (F32_VS_F64_MULTIPLE * b).max(F32_VS_F64_FLOOR);
+            assert!(a <= budget, "dinov2 f32 vs float64: {what} rel {a:.2e} > {budget:.2e} (upstream f32's own: {b:.2e})");
+        }
+        let bf16 = get("fast bf16", "upstream f32");
+        let theirs = get("upstream bf16 autocast", "upstream f32");
+        let budget = BF16_MEAN_REL.max(BF16_VS_UPSTREAM_BF16 * theirs.mean_rel);
+        assert!(bf16.mean_rel <= budget, "dinov2 bf16: mean rel {:.2e} > {budget:.2e}", bf16.mean_rel);
+    }
+    let released: Vec<&str> = ["ss_flow", "ss_decoder"].into_iter().filter(|m| rows.iter().any(|r| r.module == *m)).collect();
+    for module in released {
         let get = |compute: &str, reference: &str| {
             rows.iter()
                 .find(|r| r.module == module && r.compute.starts_with(compute) && r.reference == reference)
@@ -52,7 +78,16 @@ fn check(dir: &Path) -> Vec<ReleasedRow> {
 
 #[test]
 fn tiny_released_layout_loads_unchanged_and_matches_upstream() {
-    check(&common::repo().join("tests/fixtures/upstream_tiny"));
+    let rows = check(&common::repo().join("tests/fixtures/upstream_tiny"));
+    assert!(rows.iter().any(|r| r.module == "ss_flow") && rows.iter().any(|r| r.module == "ss_decoder"));
+}
+
+/// DINOv2 stored as torch.hub stores it (a `torch.save` state dict under the hub's file
+/// name), read by recon's own `.pth` reader, against upstream's f32 and float64 runs.
+#[test]
+fn tiny_dinov2_hub_checkpoint_matches_upstream() {
+    let rows = check(&common::repo().join("tests/fixtures/upstream_tiny_dinov2"));
+    assert!(rows.iter().any(|r| r.module == "dinov2" && r.reference == "upstream f64"), "{rows:?}");
 }
 
 /// A config that does not describe the stored tensors is refused by the
@@ -79,5 +114,5 @@ fn full_size_released_layout_matches_upstream() {
     let dir =
         std::env::var("RECON_UPSTREAM_DIR").expect("set RECON_UPSTREAM_DIR to a folder written by benches/upstream/harness.py --save");
     let rows = check(Path::new(&dir));
-    assert!(rows.iter().any(|r| r.module == "ss_flow"), "no full-size ss_flow in {dir}");
+    assert!(rows.iter().any(|r| r.module == "ss_flow" || r.module == "dinov2"), "no full-size module in {dir}");
 }

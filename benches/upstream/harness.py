@@ -20,6 +20,11 @@ Two jobs:
 
     python3 benches/upstream/harness.py --trellis /path/to/TRELLIS --threads 2 --json upstream.json
     python3 benches/upstream/harness.py --trellis /path/to/TRELLIS --save /tmp/fullsize
+
+With --dinov2 /path/to/facebookresearch/dinov2 (a checkout), --save also writes DINOv2
+ViT-L/14-reg as torch.hub stores it (hub/checkpoints/dinov2_vitl14_reg4_pretrain.pth,
+random weights) and TRELLIS's conditioning on it (layer norm of `x_prenorm`, 1374 tokens
+at 518²) in f32, float64 and bf16 autocast: `--modules dinov2` alone, or with the others.
 """
 import argparse
 import json
@@ -126,6 +131,87 @@ def build_ss_decoder(trellis, config_path):
     args["latent_resolution"] = module_args(config_path, "ss_flow")[1]["resolution"]
     kw = {a: args[a] for a in ["out_channels", "latent_channels", "num_res_blocks", "channels", "num_res_blocks_middle", "norm_type"] if a in args}
     return Dec(**kw), args
+
+
+# torch.hub's file name for dinov2_vitl14_reg (weights-manifest/dinov2-vitl14-reg.json).
+DINOV2_FILE = "dinov2_vitl14_reg4_pretrain.pth"
+
+
+def build_dinov2(dinov2, tiny=False):
+    """DINOv2 ViT-L/14 with 4 registers as torch.hub's `dinov2_vitl14_reg` builds it
+    (img 518, layer scale, interpolate_antialias, offset 0), from the checkout by path;
+    `tiny`: the same code at D 64, 2 blocks, 4 heads, img 56 (the CI fixture's size)."""
+    sys.path.insert(0, os.path.abspath(dinov2))
+    os.environ.setdefault("XFORMERS_DISABLED", "1")
+    from dinov2.models import vision_transformer as vits
+
+    kw = dict(patch_size=14, init_values=1.0, ffn_layer="mlp", block_chunks=0, num_register_tokens=4,
+              interpolate_antialias=True, interpolate_offset=0.0)
+    if tiny:
+        return vits.DinoVisionTransformer(img_size=56, embed_dim=64, depth=2, num_heads=4, mlp_ratio=4, **kw), 56
+    return vits.vit_large(img_size=518, **kw), 518
+
+
+def randomize_dinov2(model, seed):
+    """Every parameter redrawn: norm scales 1 + N(0, 0.1²), layer scales 0.1 + N(0, 0.02²),
+    cls / register tokens and position embeddings N(0, 0.5²), biases N(0, 0.02²), other
+    weights N(0, 0.02²)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            noise = torch.randn(p.shape, generator=g, dtype=torch.float32)
+            if name.endswith("ls1.gamma") or name.endswith("ls2.gamma"):
+                p.copy_(0.1 + 0.02 * noise)
+            elif "norm" in name and name.endswith("weight"):
+                p.copy_(1.0 + 0.1 * noise)
+            elif name in ("cls_token", "register_tokens", "pos_embed", "mask_token"):
+                p.copy_(0.5 * noise)
+            else:
+                p.copy_(0.02 * noise)
+
+
+def save_dinov2(a, out, ref):
+    """DINOv2 in torch.hub's layout and TRELLIS's condition on it: f32, float64, bf16 autocast."""
+    import torch
+    import torch.nn.functional as F
+
+    model, size = build_dinov2(a.dinov2, tiny=a.tiny_dinov2)
+    randomize_dinov2(model, 3)
+    model.eval()
+    hub = os.path.join(out, "hub", "checkpoints")
+    os.makedirs(hub, exist_ok=True)
+    torch.save(model.state_dict(), os.path.join(hub, DINOV2_FILE))
+    if a.tiny_dinov2:
+        # Not part of the hub layout: recon reads the tiny model's size from it (the real one is vitl14_reg).
+        with open(os.path.join(hub, "dinov2_args.json"), "w") as f:
+            json.dump({"embed_dim": 64, "depth": 2, "num_heads": 4, "mlp_ratio": 4.0, "patch_size": 14, "img_size": size,
+                       "num_register_tokens": 4}, f, indent=2)
+    g = torch.Generator().manual_seed(5)
+    image01 = torch.rand(1, 3, size, size, generator=g)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    pixels = (image01 - mean) / std
+    ref["input.dinov2.pixel_values"] = pixels.contiguous()
+
+    def cond(m, x, dtype):
+        # TRELLIS encode_image: layer norm (no affine) of the last block's output, all tokens.
+        with torch.inference_mode():
+            ctx = torch.autocast("cpu", dtype=torch.bfloat16) if dtype == "bf16" else torch.autocast("cpu", enabled=False)
+            with ctx:
+                f = m(x, is_training=True)["x_prenorm"]
+                return F.layer_norm(f.float() if dtype == "bf16" else f, f.shape[-1:])
+
+    for dtype in ["f32", "bf16", "f64"]:
+        t = time.perf_counter()
+        if dtype == "f64":
+            o = cond(model.double(), pixels.double(), dtype)
+        else:
+            o = cond(model, pixels, dtype)
+        print(f"dinov2 {dtype}: upstream forward {time.perf_counter() - t:.1f} s", flush=True)
+        ref[f"output.dinov2.{dtype}"] = o.contiguous() if dtype == "f64" else o.float().contiguous()
+    print(f"saved {hub}/{DINOV2_FILE}", flush=True)
 
 
 def randomize(model, seed):
@@ -295,7 +381,11 @@ def save(a):
     out = os.path.abspath(a.save)
     os.makedirs(os.path.join(out, "ckpts"), exist_ok=True)
     ref = {}
-    for key in a.modules:
+    if "dinov2" in a.modules:
+        if not a.dinov2:
+            sys.exit("--modules dinov2 needs --dinov2 /path/to/facebookresearch/dinov2")
+        save_dinov2(a, out, ref)
+    for key in [m for m in a.modules if m != "dinov2"]:
         if key == "ss_flow":
             model, args, _, _ = build_ss_flow(a.trellis, a.config, with_pose=False)
             name = "SparseStructureFlowModel"
@@ -326,14 +416,18 @@ def save(a):
     save_file(ref, os.path.join(out, "reference.safetensors"))
     with open(os.path.join(out, "reference.json"), "w") as f:
         json.dump({"trellis": os.path.abspath(a.trellis), "torch": torch.__version__, "threads": a.threads,
-                   "modules": {k: RELEASED[k] for k in a.modules},
-                   "about": "output.<module>.f32: upstream f32 on the stored fp16 weights; .bf16: upstream bf16 autocast"}, f, indent=2)
+                   "modules": {k: RELEASED.get(k, f"hub/checkpoints/{DINOV2_FILE}") for k in a.modules},
+                   "dinov2": os.path.abspath(a.dinov2) if a.dinov2 else None,
+                   "about": "output.<module>.f32: upstream f32 on the stored fp16 weights (DINOv2: its fp32 .pth); "
+                            ".bf16: upstream bf16 autocast; .f64 (DINOv2): upstream in float64"}, f, indent=2)
     print(f"wrote {out}/reference.safetensors")
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--trellis", required=True, help="path to a microsoft/TRELLIS checkout")
+    p.add_argument("--dinov2", help="path to a facebookresearch/dinov2 checkout (--save --modules dinov2)")
+    p.add_argument("--tiny-dinov2", action="store_true", help="with --save: DINOv2 at the CI fixture's tiny size")
     p.add_argument("--config", default=os.path.join(REPO, "models", "recgen-large.json"))
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--modules", type=lambda s: s.split(","), default=MODULES)
@@ -346,6 +440,8 @@ def main():
     p.add_argument("--row", help=argparse.SUPPRESS)
     a = p.parse_args()
     for m in a.modules:
+        if m == "dinov2" and a.save:
+            continue
         if m not in MODULES:
             sys.exit(f"--modules: unknown module `{m}` (known: {', '.join(MODULES)}; the sparse modules need spconv/flash-attn, CUDA only)")
     for d in a.dtype:

@@ -122,6 +122,10 @@ class Object:
     intrinsics: Optional[npt.NDArray[np.float64]]
     """The anchor view's 3×3 K.
     The RecGen fields above are None for objects of a `recon_rgbd.Client` answer."""
+    posthoc_color: Optional[Dict[str, Any]]
+    """The colour calibration (`posthoc_color=`): "variant", "transform" (None when gated
+    out), "stats" (overlap_px, iou, reason or l1_before/l1_after), "applied_to"; as
+    posthoc_color.json. None when not asked for."""
     def to_glb(self, path: _Path) -> None:
         """Write the mesh as `recon infer` writes `<object>/mesh.glb`."""
     def to_ply(self, path: _Path) -> None:
@@ -131,8 +135,8 @@ class Object:
     def save(self, output_dir: _Path, *, save_splat: bool = True) -> None:
         """RecGen's `RecGenResult.save`: mesh.obj (object frame), posed_mesh.obj (camera
         frame), gaussian.ply and posed_gaussian.ply (with save_splat), overlay.png and
-        metadata.json into `output_dir` (created if needed): the files `recon infer` writes
-        beside pose.json."""
+        metadata.json (and posthoc_color.json after a calibration) into `output_dir`
+        (created if needed): the files `recon infer --recgen-files` writes beside pose.json."""
     def to_trimesh(self) -> Any:
         """The mesh as a `trimesh.Trimesh` with RGBA vertex colours (needs trimesh)."""
 
@@ -208,6 +212,7 @@ class Engine:
         use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
+        posthoc_color: str = "none",
         views: Optional[Sequence[Dict[str, Any]]] = None,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
@@ -226,6 +231,8 @@ class Engine:
             "multidiffusion" (mean of the pairs' velocities at every step) or "stochastic"
             (one pair per step in turn); slat_fusion "none" (stage 2 on the anchor and the
             first other view), "multidiffusion" or "stochastic" (stage 2 fused as well).
+        posthoc_color: "none" | "gamma" | "affine" | "gamma_affine": fit a colour transform
+            from the rendered Gaussians to the photo and apply it (Object.posthoc_color).
         samples: seeds seed … seed+samples−1, best pose kept, spread reported.
         select: "cross" | "single" | "first". pose_fit: "depth" | "depth-stretch" | "recgen".
         shape_fit: "depth" | "depth-hull" | "none" (the stage-1 occupancy fitted to the depth; see the README).
@@ -279,6 +286,7 @@ class Engine:
         use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
+        posthoc_color: str = "none",
         views: Optional[Sequence[Union[_Path, Dict[str, Any]]]] = None,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
@@ -414,6 +422,7 @@ def eval(
     use_pointmap: bool = True,
     fusion: str = "multidiffusion",
     slat_fusion: str = "none",
+    posthoc_color: str = "none",
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -528,6 +537,7 @@ class Client:
         use_pointmap: bool = True,
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
+        posthoc_color: str = "none",
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
         given take the server's defaults (its flags), which are the library's unless it was

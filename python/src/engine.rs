@@ -834,8 +834,15 @@ pub struct Object {
     /// The anchor view's float64 3×3 K.
     #[pyo3(get)]
     intrinsics: Py<PyAny>,
+    /// The post-hoc colour calibration (`posthoc_color=`): a dict with `variant`,
+    /// `transform` (None when gated out), `stats` and `applied_to`, as posthoc_color.json;
+    /// None when it was not asked for.
+    #[pyo3(get)]
+    posthoc_color: Py<PyAny>,
     /// What `save` writes into metadata.json (None for objects built from parts).
     recgen: Option<(RecgenPose, PoseRepresentation)>,
+    /// What `save` writes into posthoc_color.json.
+    posthoc_record: Option<recon::engine::posthoc_color::PosthocColorRecord>,
 }
 
 /// What every object of a frame shares: the anchor image (one numpy array), its K, the
@@ -897,6 +904,8 @@ impl Object {
             rgb: frame.rgb.clone_ref(py),
             intrinsics: frame.intrinsics.clone_ref(py),
             recgen: Some((rp, frame.pose_representation)),
+            posthoc_color: to_python(py, &o.posthoc_color)?.unbind(),
+            posthoc_record: o.posthoc_color.clone(),
             id: o.id,
             label: o.label.clone(),
             pose: pose.unbind(),
@@ -973,6 +982,8 @@ impl Object {
             rgb: py.None(),
             intrinsics: py.None(),
             recgen: None,
+            posthoc_color: py.None(),
+            posthoc_record: None,
         })
     }
 
@@ -1002,7 +1013,8 @@ impl Object {
     /// RecGen's `RecGenResult.save(output_dir, save_splat=...)`: into `output_dir` (created
     /// if needed) mesh.obj (object frame) and posed_mesh.obj (camera frame) when there is a
     /// mesh, gaussian.ply and posed_gaussian.ply when there are Gaussians and `save_splat`,
-    /// overlay.png and metadata.json; the files `recon infer` writes beside pose.json.
+    /// overlay.png and metadata.json (and posthoc_color.json after a colour calibration);
+    /// the files `recon infer --recgen-files` writes beside pose.json.
     #[pyo3(signature = (output_dir, *, save_splat=true))]
     fn save(&self, py: Python<'_>, output_dir: PathBuf, save_splat: bool) -> PyResult<()> {
         let Some((pose, pose_representation)) = self.recgen else {
@@ -1029,6 +1041,7 @@ impl Object {
             pose,
             pose_representation,
             image: &image,
+            posthoc_color: self.posthoc_record.as_ref(),
         };
         py.detach(|| {
             std::fs::create_dir_all(&output_dir).map_err(|e| recon::Error::io(&output_dir, e))?;

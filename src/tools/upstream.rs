@@ -259,6 +259,7 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
             mean_rel,
         });
     }
+    rows.extend(check_dinov2(dir, &t, &ref_path, computes)?);
     if rows.is_empty() {
         return Err(Error::input(
             dir.join("ckpts").display().to_string(),
@@ -268,6 +269,71 @@ pub fn check_released(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRo
             ),
         ));
     }
+    Ok(rows)
+}
+
+/// torch.hub's file of `dinov2_vitl14_reg`, under `hub/checkpoints/` as `TORCH_HOME` lays it out.
+pub const DINOV2_HUB_FILE: &str = "dinov2_vitl14_reg4_pretrain.pth";
+
+/// DINOv2 as torch.hub stores it (`hub/checkpoints/`), when the harness wrote it: TRELLIS's
+/// condition (layer norm of `x_prenorm`) against upstream's in f32 and float64 (and bf16
+/// autocast), plus upstream f32's own distance from float64, by which full-size f32
+/// agreement is judged. The model is ViT-L/14-reg unless `dinov2_args.json` beside the
+/// checkpoint gives another size (the tiny CI fixture).
+fn check_dinov2(dir: &Path, t: &HashMap<String, Tensor>, ref_path: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRow>> {
+    use crate::model::stage1::dinov2::{trellis_cond, Dinov2, Dinov2Config};
+    let hub = dir.join("hub").join("checkpoints");
+    let pth = hub.join(DINOV2_HUB_FILE);
+    if !pth.is_file() {
+        return Ok(Vec::new());
+    }
+    let args = hub.join("dinov2_args.json");
+    let cfg = if args.is_file() {
+        let text = std::fs::read_to_string(&args).map_err(|e| Error::io(&args, e))?;
+        let v: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| Error::input(args.display().to_string(), format!("not JSON: {e}")))?;
+        Dinov2Config::from_json(&v, &args.display().to_string())?
+    } else {
+        Dinov2Config::vitl14_reg()
+    };
+    let label = pth.display().to_string();
+    let expected = registry::expected_tensors(&ModuleArgs::Dinov2(cfg.clone()), &label)?;
+    let pixels = tensor(t, ref_path, "input.dinov2.pixel_values")?;
+    let mut rows = Vec::new();
+    let row = |compute: String, reference: &str, seconds: f64, (max_rel, mean_rel): (f64, f64)| ReleasedRow {
+        module: "dinov2".into(),
+        file: label.clone(),
+        compute,
+        reference: reference.into(),
+        forward_seconds: seconds,
+        max_rel,
+        mean_rel,
+    };
+    for &compute in computes {
+        let vb = crate::weights::load_validated(&pth, &expected, false, DType::F32, &Device::Cpu)?;
+        let m = Dinov2::new(&cfg, vb, compute)?;
+        crate::util::release_cached_buffers();
+        let s = Instant::now();
+        let cond = trellis_cond(&m.forward(pixels)?.x_prenorm)?;
+        let seconds = s.elapsed().as_secs_f64();
+        for (dtype, reference) in [("f32", "upstream f32"), ("f64", "upstream f64"), ("bf16", "upstream bf16 autocast")] {
+            let want = tensor(t, ref_path, &format!("output.dinov2.{dtype}"))?;
+            if want.dims() != cond.dims() {
+                return Err(Error::input(
+                    ref_path.display().to_string(),
+                    format!("output.dinov2.{dtype}: shape {:?}, recon's condition is {:?}", want.dims(), cond.dims()),
+                ));
+            }
+            rows.push(row(compute.describe(), reference, seconds, rel_errors(&cond, want)?));
+        }
+    }
+    let f64_ref = tensor(t, ref_path, "output.dinov2.f64")?;
+    for (dtype, name) in [("f32", "upstream f32"), ("bf16", "upstream bf16 autocast")] {
+        let theirs = tensor(t, ref_path, &format!("output.dinov2.{dtype}"))?;
+        rows.push(row(name.into(), "upstream f64", 0.0, rel_errors(theirs, f64_ref)?));
+    }
+    let (a, b) = (tensor(t, ref_path, "output.dinov2.bf16")?, tensor(t, ref_path, "output.dinov2.f32")?);
+    rows.push(row("upstream bf16 autocast".into(), "upstream f32", 0.0, rel_errors(a, b)?));
     Ok(rows)
 }
 

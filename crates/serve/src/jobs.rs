@@ -760,7 +760,7 @@ pub fn answer(id: &str, result: &FrameResult, written: &[WrittenObject], out: &P
             let q = recon_core::math::matrix_to_quat(&r);
             let stages: serde_json::Map<String, serde_json::Value> =
                 STAGE_COLUMNS.iter().zip(stage_seconds(o)).map(|(k, v)| (k.to_string(), serde_json::json!(v))).collect();
-            serde_json::json!({
+            let mut v = serde_json::json!({
                 "id": o.id, "label": o.label, "status": "ok",
                 "pose": pose, "translation": t, "quaternion_xyzw": [q[1], q[2], q[3], q[0]], "scale": s,
                 "score": o.selection.score_m, "stage_seconds": stages, "notes": o.notes,
@@ -768,7 +768,13 @@ pub fn answer(id: &str, result: &FrameResult, written: &[WrittenObject], out: &P
                     "pose": file_url(id, out, &w.pose), "mesh_glb": url(&w.mesh_glb), "mesh_ply": url(&w.mesh_ply),
                     "gaussians_ply": url(&w.gaussians_ply),
                 },
-            })
+            });
+            // Only when the options asked for it: the answer is otherwise unchanged.
+            if let Some(r) = &o.posthoc_color {
+                v["posthoc_color"] = serde_json::json!(r);
+                v["files"]["posthoc_color"] = serde_json::json!(file_url(id, out, &w.pose.with_file_name("posthoc_color.json")));
+            }
+            v
         })
         .collect();
     for s in &result.skipped {

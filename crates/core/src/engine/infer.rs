@@ -44,7 +44,7 @@
 use crate::dataset::frame::{depth_valid, Intrinsics, RgbdFrame};
 use crate::dataset::masks::{check_object, MaskOptions, MaskSkip, ObjectMask, SkipReason};
 use crate::engine::options::{
-    InferOptions, OptionError, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS,
+    InferOptions, OptionError, PosthocColor, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS,
 };
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
@@ -57,6 +57,7 @@ use crate::engine::pose_fit::DepthView;
 use crate::engine::pose_fit::ViewPoints;
 use crate::engine::pose_fit::{pose_spread, select_best, PoseSpread, SelectMethod};
 use crate::engine::pose_fit::{score_candidate, CandidateScore, Surface};
+use crate::engine::posthoc_color::{self, PhotoView, PosthocColorRecord};
 use crate::engine::shape_fit::{fit_in_pose, rest_on_supports, Grid, MeshFrom, ShapeFit, ShapeFitOptions, ShapeFitReport};
 use crate::engine::source::{default_model_dir, find_architecture, ModelSource};
 use crate::gaussians::Gaussians;
@@ -133,6 +134,9 @@ pub struct InferSettings {
     /// Most objects of a frame that pass the mask checks; a frame with more is
     /// refused before any object runs ([`check_object_count`]).
     pub max_objects: NonZeroUsize,
+    /// Post-hoc colour calibration of each object against the anchor photo
+    /// ([`crate::engine::posthoc_color`]).
+    pub posthoc_color: PosthocColor,
 }
 
 impl Default for InferSettings {
@@ -152,6 +156,7 @@ impl Default for InferSettings {
             mesh_from: MeshFrom::default(),
             parallel_objects: DEFAULT_PARALLEL_OBJECTS,
             max_objects: DEFAULT_MAX_OBJECTS,
+            posthoc_color: PosthocColor::None,
         }
     }
 }
@@ -173,6 +178,7 @@ impl InferOptions {
             mesh_from: self.mesh_from,
             parallel_objects: self.parallel_objects,
             max_objects: self.max_objects,
+            posthoc_color: self.posthoc_color,
             ..Default::default()
         };
         s.run.seed = self.seed;
@@ -355,6 +361,9 @@ pub struct ObjectResult {
     pub samples: usize,
     /// Remarks on the object (failed samples, a view 2 without a usable mask, …).
     pub notes: Vec<String>,
+    /// The post-hoc colour calibration (`None` when not asked for): the transform applied
+    /// to the Gaussians (and the model-coloured mesh) above, or why none was.
+    pub posthoc_color: Option<PosthocColorRecord>,
 }
 
 /// Everything one frame produces.
@@ -1177,8 +1186,37 @@ fn object_result(
             }
         })
         .collect();
-    let mesh_object = kept.mesh.as_ref().map(|m| stretch_mesh(m, stretch));
-    let gaussians_object = kept.gaussians.as_ref().map(|g| stretch_gaussians(g, stretch));
+    let mut mesh_object = kept.mesh.as_ref().map(|m| stretch_mesh(m, stretch));
+    let mut gaussians_object = kept.gaussians.as_ref().map(|g| stretch_gaussians(g, stretch));
+    let posthoc_color = match opts.posthoc_color {
+        PosthocColor::None => None,
+        variant => {
+            // A mesh coloured from the measured points already has the photo's colours.
+            let measured_colors = opts.mesh_from == MeshFrom::Fitted && kept.shape_fit.is_some();
+            let v = &views[0];
+            let photo = PhotoView {
+                width: v.frame.width,
+                height: v.frame.height,
+                rgb: &v.frame.rgb,
+                mask: &v.prepared.mask_full,
+                intrinsics: v.frame.intrinsics,
+            };
+            let placed = gaussians_object.as_ref().map(|g| place.apply_gaussians(g));
+            let (transform, stats) = posthoc_color::calibrate(placed.as_ref(), &anchor, &photo, variant)?;
+            let mut applied_to = Vec::new();
+            if let Some(tr) = &transform {
+                if let Some(g) = gaussians_object.as_mut() {
+                    posthoc_color::apply_to_gaussians(g, tr);
+                    applied_to.push("gaussians".to_string());
+                }
+                if let (Some(m), false) = (mesh_object.as_mut(), measured_colors) {
+                    posthoc_color::apply_to_mesh(m, tr);
+                    applied_to.push("mesh".to_string());
+                }
+            }
+            Some(PosthocColorRecord { variant, transform, stats, applied_to })
+        }
+    };
     Ok(ObjectResult {
         label: label.to_string(),
         id,
@@ -1203,6 +1241,7 @@ fn object_result(
         metadata: kept.metadata,
         samples: opts.samples,
         notes,
+        posthoc_color,
     })
 }
 

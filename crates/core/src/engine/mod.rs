@@ -1,14 +1,16 @@
 //! The engine: both model stages on a frame's objects (`pipeline`), pose
 //! fitting and selection against the measured depth (`pose_fit`), the
 //! user-facing [`infer::Engine`] with its [`source::ModelSource`], RecGen's result
-//! fields of an object (`recgen_result`), its output folder (`output`), and the JSON
-//! description of a view besides the anchor (`views`).
+//! fields of an object (`recgen_result`), its output folder (`output`), the JSON
+//! description of a view besides the anchor (`views`), and the post-hoc colour
+//! calibration of its Gaussians against the photo (`posthoc_color`).
 
 pub mod infer;
 pub mod options;
 pub mod output;
 pub mod pipeline;
 pub(crate) mod pose_fit;
+pub mod posthoc_color;
 pub mod recgen_result;
 pub(crate) mod shape_fit;
 pub(crate) mod source;

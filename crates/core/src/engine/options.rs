@@ -120,6 +120,41 @@ pub struct InferOptions {
     /// then costs a stage-1 run for its pose).
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.slat_fusion))]
     pub slat_fusion: SlatFusion,
+    /// Post-hoc colour calibration (RecGen's `posthoc_color`): render the predicted
+    /// Gaussians into the input view, fit a colour transform to the photo on the overlap
+    /// of mask and render, and apply it to the Gaussians (and to the mesh when its colours
+    /// come from the model) when the fit passes the quality gates; the transform and its
+    /// statistics go to posthoc_color.json.
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.posthoc_color))]
+    pub posthoc_color: PosthocColor,
+}
+
+/// Which colour transform the post-hoc calibration fits (`engine::posthoc_color`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "snake_case")]
+pub enum PosthocColor {
+    /// No calibration.
+    #[default]
+    None,
+    /// One luminance gamma for all channels (hue preserving).
+    Gamma,
+    /// A gain and an offset per channel.
+    Affine,
+    /// The gamma, then a per-channel affine map.
+    #[cfg_attr(feature = "clap", value(name = "gamma_affine", alias = "gamma-affine"))]
+    GammaAffine,
+}
+
+impl std::fmt::Display for PosthocColor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            PosthocColor::None => "none",
+            PosthocColor::Gamma => "gamma",
+            PosthocColor::Affine => "affine",
+            PosthocColor::GammaAffine => "gamma_affine",
+        })
+    }
 }
 
 /// The range the normalised point map is clamped to (`low ≤ x ≤ high` per coordinate):
@@ -198,10 +233,11 @@ impl InferOptions {
         use_pointmap: true,
         fusion: Fusion::Multidiffusion,
         slat_fusion: SlatFusion::None,
+        posthoc_color: PosthocColor::None,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 21] = [
+    pub const NAMES: [&'static str; 22] = [
         "seed",
         "samples",
         "select",
@@ -223,6 +259,7 @@ impl InferOptions {
         "use_pointmap",
         "fusion",
         "slat_fusion",
+        "posthoc_color",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -419,8 +456,10 @@ mod tests {
             mask_erosion_kernel_size: 3,
             mask_erosion_iterations: 2,
             use_pointmap: false,
+            posthoc_color: PosthocColor::GammaAffine,
         };
         let s = o.settings().unwrap();
+        assert_eq!(s.posthoc_color, PosthocColor::GammaAffine);
         assert_eq!((s.prepare.quantile_drop, s.prepare.clamp), (0.1, Some((-1.0, 1.5))));
         assert_eq!(s.prepare.erosion, Some(crate::dataset::masks::Erosion { kernel: 3, iterations: 2 }));
         assert!(!s.run.use_pointmap);

@@ -1,11 +1,13 @@
 //! The output folder of `recon infer`: per object `pose.json`, meshes and
-//! Gaussians, RecGen's result files ([`RecgenFiles`]), the placed scene, and the
+//! Gaussians, `posthoc_color.json` when the colour calibration ran, RecGen's result
+//! files ([`RecgenFiles`]), the placed scene, and the
 //! index file written last, through a staging folder so that an interrupted run
 //! never looks complete.
 
 use crate::engine::infer::*;
 use crate::engine::pipeline::{RunMetadata, StageTimings};
 use crate::engine::pose_fit::PoseSpread;
+use crate::engine::posthoc_color::write_posthoc_color;
 use crate::engine::recgen_result::RecgenFiles;
 use crate::engine::shape_fit::ShapeFitReport;
 use crate::export::glb::{save_glb, scene_glb_bytes, GlbOptions, PointCloud};
@@ -202,6 +204,8 @@ pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions
         // RecGen's `save` beside recon's own files (the index keeps its earlier form).
         if opts.recgen_files {
             RecgenFiles::of(o, result).write(&dir, true)?;
+        } else if let Some(r) = &o.posthoc_color {
+            write_posthoc_color(r, &dir)?;
         }
         observed.vertices.extend_from_slice(&o.observed_points);
         clouds.push((format!("observed {name}"), o.observed_points.clone(), o.observed_colors.clone()));

@@ -18,6 +18,7 @@
 //! and the Gaussians use `(w, x, y, z)`. docs/infer.md tabulates every output.
 
 use crate::engine::infer::{FrameImage, FrameResult, ObjectResult};
+use crate::engine::posthoc_color::{write_posthoc_color, PosthocColorRecord};
 use crate::export::obj::save_obj;
 use crate::export::splat::save_splat_ply;
 use crate::export::Axes;
@@ -154,6 +155,8 @@ pub struct RecgenFiles<'a> {
     pub pose_representation: PoseRepresentation,
     /// The anchor view's image and camera (overlay, `intrinsics`).
     pub image: &'a FrameImage,
+    /// `posthoc_color.json`, when the calibration was asked for.
+    pub posthoc_color: Option<&'a PosthocColorRecord>,
 }
 
 impl<'a> RecgenFiles<'a> {
@@ -167,6 +170,7 @@ impl<'a> RecgenFiles<'a> {
             pose: o.recgen_pose(),
             pose_representation: frame.pose_representation,
             image: &frame.image,
+            posthoc_color: o.posthoc_color.as_ref(),
         }
     }
 
@@ -209,6 +213,9 @@ impl<'a> RecgenFiles<'a> {
         let text = serde_json::to_string_pretty(&self.metadata()).map_err(|e| Error::msg(e.to_string()))?;
         std::fs::write(&path, text).map_err(|e| Error::io(&path, e))?;
         written.push(path);
+        if let Some(r) = self.posthoc_color {
+            written.push(write_posthoc_color(r, dir)?);
+        }
         Ok(written)
     }
 }

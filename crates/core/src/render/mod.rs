@@ -1,7 +1,10 @@
 //! The CPU ray caster that `recon synth`, the `recon infer` preview and the
-//! audit share (`raycast`), and the preview picture (`preview`).
+//! audit share (`raycast`), the preview picture (`preview`), and the Gaussian
+//! splatting rasteriser (`splat`).
 
 pub(crate) mod preview;
 pub(crate) mod raycast;
+pub(crate) mod splat;
 pub use self::preview::{overlay_rgb, save_overlay, save_preview};
 pub use self::raycast::*;
+pub use self::splat::{render_gaussians, SplatImage, SplatOptions, MAX_SPLAT_SIDE};
