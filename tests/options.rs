@@ -1,7 +1,7 @@
 //! The per-frame options are defined once (`recon::engine::InferOptions`), and so are
 //! `recon scene`'s (`recon::sim::SceneOptions`): the CLI's flags (`recon infer --help`,
 //! `recon eval --help`, `recon scene --help`), Python's keywords (the type stub
-//! python/recon/__init__.pyi) and the docs' table (docs/options.md) must agree with them on
+//! python/recon_rgbd/__init__.pyi) and the docs' table (docs/options.md) must agree with them on
 //! every name and default. `RECON_BLESS=1 cargo test --test options` rewrites the table.
 mod common;
 
@@ -132,7 +132,7 @@ fn py_literal(s: &str) -> Value {
 
 /// The stub's `func` signature has every option of `defaults` as a keyword with its default.
 fn check_stub(func: &str, defaults: &[(&'static str, Value)]) {
-    let stub = std::fs::read_to_string(repo().join("python/recon/__init__.pyi")).unwrap();
+    let stub = std::fs::read_to_string(repo().join("python/recon_rgbd/__init__.pyi")).unwrap();
     let start = stub.find(func).unwrap_or_else(|| panic!("stub: no {func}"));
     let sig = &stub[start..start + stub[start..].find(") ->").unwrap()];
     for (name, v) in defaults {
@@ -188,12 +188,12 @@ fn options_table() -> String {
          `RECON_BLESS=1 cargo test --test options` rewrites it. -->\n\n\
          ## Per-frame options\n\n\
          The options of `recon infer` and `recon eval --method recgen` (flags), of\n\
-         `Engine.reconstruct`, `Engine.reconstruct_files` and `recon.eval` (keywords; defaults:\n\
-         `recon.infer_defaults()`) and of JSON (keys): one name per setting, the flag's with `_`.\n\n",
+         `Engine.reconstruct`, `Engine.reconstruct_files` and `recon_rgbd.eval` (keywords; defaults:\n\
+         `recon_rgbd.infer_defaults()`) and of JSON (keys): one name per setting, the flag's with `_`.\n\n",
     );
     s += &table_rows(clap_args(), defaults(), "(the model config's)");
     s += "\n## Scene options\n\n\
-          The options of `recon scene` (flags) and `recon.scene` (keywords): one name per setting,\n\
+          The options of `recon scene` (flags) and `recon_rgbd.scene` (keywords): one name per setting,\n\
           the flag's with `_`. The inputs (`--input`, `--frame`, `--out`, `--variations`, …) are\n\
           listed by `recon scene --help`.\n\n";
     s += &table_rows(<SceneOptions as clap::Args>::augment_args(clap::Command::new("scene")), scene_defaults(), "none");

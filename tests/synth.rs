@@ -42,7 +42,7 @@ fn json(p: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
 }
 
-/// The split run (what `recon.ray.synth` does over workers): shards written in any
+/// The split run (what `recon_rgbd.ray.synth` does over workers): shards written in any
 /// order, merged, give the bytes of one `generate`; bad shard sets are refused.
 #[test]
 fn shards_in_any_order_give_the_bytes_of_one_run() {

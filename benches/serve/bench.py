@@ -6,7 +6,7 @@ Needs the Python package (`pip install ./python`) built from the same tree as th
 
 1. **Overhead.** The README sample (`data/sample/000001-color.png`, its depth, intrinsics
    and instance-id label) with the default model and default options: in-process
-   `Engine.reconstruct` against the same arrays through `recon.Client.reconstruct` to a
+   `Engine.reconstruct` against the same arrays through `recon_rgbd.Client.reconstruct` to a
    `recon serve` on 127.0.0.1 (upload, queue, compute, answer, and the objects' files
    fetched and parsed). The server and the engine never compute at once. Overhead = (HTTP
    median − in-process median) / in-process median; `--reps` runs each.
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-import recon
+import recon_rgbd
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE_RGB = REPO / "data/sample/000001-color.png"
@@ -89,14 +89,14 @@ def percentile(v, p):
 
 
 def overhead(cli, reps, tmp):
-    fr = recon.load_frame(SAMPLE_RGB)
-    ids = recon.load_masks(SAMPLE_LABEL)
+    fr = recon_rgbd.load_frame(SAMPLE_RGB)
+    ids = recon_rgbd.load_masks(SAMPLE_LABEL)
     label = np.zeros(fr["rgb"].shape[:2], np.uint16)
     for o in ids["objects"]:
         label[o["mask"]] = o["id"]
-    engine = recon.Engine()
+    engine = recon_rgbd.Engine()
     server = Server(cli, tmp / "overhead", [])
-    client = recon.Client(server.url)
+    client = recon_rgbd.Client(server.url)
     local, remote = [], []
     try:
         for _ in range(reps):
@@ -127,7 +127,7 @@ def stream(cli, workers, frames, clients, model, tmp):
     if model == "tiny":
         args += ["--weights", "random", "--config", str(REPO / "models/recgen-tiny.json"), "--steps", "2"]
     server = Server(cli, tmp / f"stream-w{workers}", args)
-    client = recon.Client(server.url)
+    client = recon_rgbd.Client(server.url)
     rest = server.metric("recon_peak_resident_memory_bytes")
     lat, errors = [], []
     lock = threading.Lock()
@@ -137,7 +137,7 @@ def stream(cli, workers, frames, clients, model, tmp):
             t0 = time.perf_counter()
             try:
                 client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids)
-            except recon.ReconError as e:
+            except recon_rgbd.ReconError as e:
                 with lock:
                     errors.append(str(e))
                 continue
@@ -170,12 +170,12 @@ def stream(cli, workers, frames, clients, model, tmp):
 
 def synth_frames(n, width, height, tmp):
     root = tmp / "synth"
-    recon.synth(root, scenes=n, views=1, seed=11, width=width, height=height)
+    recon_rgbd.synth(root, scenes=n, views=1, seed=11, width=width, height=height)
     out = []
-    for f in recon.dataset_frames(root)[:n]:
-        fr = recon.load_frame(f["rgb"])
+    for f in recon_rgbd.dataset_frames(root)[:n]:
+        fr = recon_rgbd.load_frame(f["rgb"])
         ids = np.zeros(fr["rgb"].shape[:2], np.uint16)
-        for i, m in enumerate(recon.load_masks(f["masks"])["objects"]):
+        for i, m in enumerate(recon_rgbd.load_masks(f["masks"])["objects"]):
             ids[m["mask"]] = i + 1
         out.append((fr, ids))
     return out

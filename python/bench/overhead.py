@@ -4,11 +4,11 @@
 
 1. The README sample (`data/sample/000001-color.png` + `-label.png`): wall time of
    `recon infer` (a process: start, model load, reconstruction, files) against the same
-   work from Python in a fresh interpreter (`import recon`, `Engine()`,
+   work from Python in a fresh interpreter (`import recon_rgbd`, `Engine()`,
    `reconstruct_files`), both with the CLI's defaults. The overhead is the difference of
    the medians over the CLI's median.
 2. A `recon synth` dataset of `--frames` frames: one process (one Engine, all cores, the
-   frames in turn) against `recon.ray.reconstruct_dataset` with 2 local workers of one
+   frames in turn) against `recon_rgbd.ray.reconstruct_dataset` with 2 local workers of one
    thread each: frames per second, peak memory per worker (ru_maxrss of the actor), and
    the fixed start-up cost (ray.init plus a one-frame run minus that frame's own time).
 
@@ -40,7 +40,7 @@ def timed(cmd, **kw):
 
 PY_ONE = """
 import sys, recon
-e = recon.Engine()
+e = recon_rgbd.Engine()
 e.reconstruct_files(sys.argv[1], sys.argv[2], sys.argv[3])
 """
 
@@ -55,9 +55,9 @@ def overhead(cli, runs, tmp):
     print(f"  median CLI {mc:.2f} s, Python {mp:.2f} s: overhead {mp - mc:+.2f} s = {100 * (mp - mc) / mc:+.1f} % of the CLI's wall time")
     # In one interpreter, the binding's own cost per call: reconstruct_files wall time minus
     # the engine's reported seconds (preprocessing + every object's stage total).
-    import recon
+    import recon_rgbd
 
-    e = recon.Engine()
+    e = recon_rgbd.Engine()
     extra = []
     for i in range(runs):
         t0 = time.perf_counter()
@@ -70,14 +70,14 @@ def overhead(cli, runs, tmp):
 
 
 def ray_vs_one(frames, tmp):
-    import recon
-    import recon.ray as rr
+    import recon_rgbd
+    import recon_rgbd.ray as rr
 
     ds = tmp / "ds"
-    recon.synth(ds, scenes=frames, views=1, seed=11, width=320, height=240)
-    fl = recon.dataset_frames(ds)
+    recon_rgbd.synth(ds, scenes=frames, views=1, seed=11, width=320, height=240)
+    fl = recon_rgbd.dataset_frames(ds)
     t0 = time.perf_counter()
-    e = recon.Engine()
+    e = recon_rgbd.Engine()
     for f in fl:
         e.reconstruct_files(f["rgb"], f["masks"], tmp / "one" / f["frame"])
     one = time.perf_counter() - t0
@@ -115,9 +115,9 @@ def main():
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--skip-ray", action="store_true")
     a = ap.parse_args()
-    import recon
+    import recon_rgbd
 
-    print(f"recon {recon.__version__} from {Path(recon.__file__).parent}; CLI {a.cli}")
+    print(f"recon {recon_rgbd.__version__} from {Path(recon_rgbd.__file__).parent}; CLI {a.cli}")
     with tempfile.TemporaryDirectory() as d:
         overhead(Path(a.cli), a.runs, Path(d))
         if not a.skip_ray:

@@ -1,4 +1,4 @@
-//! `recon.Engine` (a loaded model, [`recon::engine::Engine`]) and the objects it returns.
+//! `recon_rgbd.Engine` (a loaded model, [`recon::engine::Engine`]) and the objects it returns.
 //!
 //! The engine is immutable once loaded, so one Python object serves several threads:
 //! every call releases the GIL for its whole computation, and with `threads=N` runs in
@@ -59,8 +59,97 @@ fn intrinsics(k: &Bound<'_, PyAny>, what: &str) -> PyResult<Intrinsics> {
     Intrinsics::new(a[[0, 0]], a[[1, 1]], a[[0, 2]], a[[1, 2]]).map_err(|e| input(what, e))
 }
 
-/// An RGB-D frame from numpy arrays: `rgb` H×W×3 uint8; `depth` H×W uint16 (× `depth_scale`
-/// metres, default 0.001) or float32/float64 metres.
+/// An array from what people hold images in: numpy arrays (any layout), PIL images and torch
+/// CPU tensors (`__array__`), other DLPack producers (`__dlpack__`).
+fn as_ndarray<'py>(x: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyAny>> {
+    let np = x.py().import("numpy")?;
+    let arr = if !x.hasattr("__array__")? && !x.hasattr("__array_interface__")? && x.hasattr("__dlpack__")? {
+        np.call_method1("from_dlpack", (x,))
+    } else {
+        np.call_method1("asarray", (x,))
+    };
+    arr.map_err(|e| input(what, format!("cannot be read as an array ({e})")))
+}
+
+/// `rgb` as H×W×3 uint8 without loss: uint8 as it is, other integers when every value is in
+/// 0..=255, floats when every value is in [0, 1] (× 255, rounded: the usual float-image
+/// convention). Anything else is refused, naming the argument.
+fn rgb_u8<'py>(rgb: &Bound<'py, PyAny>, what: &str) -> PyResult<Bound<'py, PyAny>> {
+    let np = rgb.py().import("numpy")?;
+    let a = as_ndarray(rgb, what)?;
+    let dtype = a.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    let size: usize = a.getattr("size")?.extract()?;
+    let range = || -> PyResult<(f64, f64)> {
+        if size == 0 {
+            return Ok((0.0, 0.0));
+        }
+        Ok((np.call_method1("min", (&a,))?.extract()?, np.call_method1("max", (&a,))?.extract()?))
+    };
+    match kind.as_str() {
+        "u" if dtype.getattr("itemsize")?.extract::<usize>()? == 1 => Ok(a),
+        "u" | "i" => {
+            let (lo, hi) = range()?;
+            if lo < 0.0 || hi > 255.0 {
+                return Err(input(what, format!("{dtype} values {lo}..{hi} do not fit 8-bit colour without loss: expected 0..255")));
+            }
+            a.call_method1("astype", ("uint8",))
+        }
+        "f" => {
+            let finite: bool = np.call_method1("isfinite", (&a,))?.call_method0("all")?.extract()?;
+            if !finite {
+                return Err(input(what, format!("{dtype} colour must be finite and in [0, 1] (it holds NaN or infinity)")));
+            }
+            let (lo, hi) = range()?;
+            if lo < 0.0 || hi > 1.0 {
+                return Err(input(
+                    what,
+                    format!("{dtype} colour must be finite and in [0, 1] (got {lo}..{hi}); pass uint8 0..255 for other ranges"),
+                ));
+            }
+            np.call_method1("rint", (a.call_method1("__mul__", (255.0,))?,))?.call_method1("astype", ("uint8",))
+        }
+        _ => Err(input(what, format!("expected an H×W×3 uint8 array (or float in [0, 1]), got dtype {dtype}"))),
+    }
+}
+
+/// `depth` as uint16 units or float metres, without loss, with the `depth_scale` still to
+/// apply: uint16 (× `depth_scale`, default 0.001) and float16/32/64 metres as they are; other
+/// integers only with `depth_scale` (their unit is not known otherwise), scaled here.
+fn depth_array<'py>(depth: &Bound<'py, PyAny>, depth_scale: Option<f64>, what: &str) -> PyResult<(Bound<'py, PyAny>, Option<f64>)> {
+    let a = as_ndarray(depth, what)?;
+    let dtype = a.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    let item: usize = dtype.getattr("itemsize")?.extract()?;
+    match (kind.as_str(), item) {
+        ("u", 2) | ("f", 4) | ("f", 8) => Ok((a, depth_scale)),
+        ("f", 2) => Ok((a.call_method1("astype", ("float32",))?, depth_scale)),
+        ("u" | "i", _) => {
+            let Some(s) = depth_scale else {
+                return Err(input(
+                    what,
+                    format!("{dtype} depth has no known unit: pass depth_scale (metres per unit), or give uint16 (millimetres by default) or float metres"),
+                ));
+            };
+            if !(s.is_finite() && s > 0.0) {
+                return Err(config("depth_scale", format!("must be positive metres per unit, got {s}")));
+            }
+            let np = depth.py().import("numpy")?;
+            let size: usize = a.getattr("size")?.extract()?;
+            if size > 0 && np.call_method1("min", (&a,))?.extract::<f64>()? < 0.0 {
+                return Err(input(what, "negative depth values"));
+            }
+            // float64 holds every integer below 2^53 exactly; the scale is applied as for uint16.
+            Ok((a.call_method1("astype", ("float64",))?.call_method1("__mul__", (s,))?, None))
+        }
+        _ => Err(input(what, format!("expected an H×W uint16 (with depth_scale) or float metres array, got dtype {dtype}"))),
+    }
+}
+
+/// An RGB-D frame from arrays: `rgb` H×W×3 uint8 (or what converts to it without loss,
+/// [`rgb_u8`]); `depth` H×W uint16 (× `depth_scale` metres, default 0.001) or float metres
+/// ([`depth_array`]). numpy arrays of any layout, PIL images, torch tensors (`__array__`) and
+/// DLPack producers are read.
 pub(crate) fn frame_from_arrays(
     rgb: &Bound<'_, PyAny>,
     depth: &Bound<'_, PyAny>,
@@ -68,18 +157,22 @@ pub(crate) fn frame_from_arrays(
     depth_scale: Option<f64>,
     name: &str,
 ) -> PyResult<RgbdFrame> {
+    let rgb = rgb_u8(rgb, &format!("{name} rgb"))?;
     let rgb: PyReadonlyArray3<u8> = rgb.extract().map_err(|_| input(&format!("{name} rgb"), "expected an H×W×3 uint8 array"))?;
     let [h, w, c] = <[usize; 3]>::try_from(rgb.shape()).map_err(|_| input(name, "rgb must be H×W×3"))?;
     if c != 3 {
         return Err(input(&format!("{name} rgb"), format!("expected H×W×3 uint8, got {h}×{w}×{c}")));
     }
     // One copy into the frame's own buffer (a no-op reinterpretation is not possible: the
-    // frame owns its pixels); C-contiguous input is copied as one block.
-    let rgb_v: Vec<u8> = match rgb.as_slice() {
-        Ok(s) => s.to_vec(),
-        Err(_) => rgb.as_array().iter().copied().collect(),
+    // frame owns its pixels); C-contiguous input is copied as one block. (numpy's `as_slice`
+    // also accepts Fortran order, in memory order: ndarray's standard-layout slice does not.)
+    let rgb_v: Vec<u8> = match rgb.as_array().as_slice() {
+        Some(s) => s.to_vec(),
+        None => rgb.as_array().iter().copied().collect(),
     };
     let dname = format!("{name} depth");
+    let (depth, depth_scale) = depth_array(depth, depth_scale, &dname)?;
+    let depth = &depth;
     let depth_v: Vec<f32> = if let Ok(d) = depth.extract::<PyReadonlyArray2<u16>>() {
         if d.shape() != [h, w] {
             return Err(input(&dname, format!("shape {:?} but rgb is {h}×{w}; depth must be registered to colour", d.shape())));
@@ -96,9 +189,9 @@ pub(crate) fn frame_from_arrays(
         if depth_scale.is_some() {
             return Err(config("depth_scale", "applies to uint16 depth; float depth is already in metres"));
         }
-        match d.as_slice() {
-            Ok(s) => s.to_vec(),
-            Err(_) => d.as_array().iter().copied().collect(),
+        match d.as_array().as_slice() {
+            Some(s) => s.to_vec(),
+            None => d.as_array().iter().copied().collect(),
         }
     } else if let Ok(d) = depth.extract::<PyReadonlyArray2<f64>>() {
         if d.shape() != [h, w] {
@@ -210,8 +303,27 @@ fn view_specs(views: Option<&Bound<'_, PyAny>>) -> PyResult<Vec<ViewSpec>> {
         .collect()
 }
 
+/// Says once per process that the default model answers: a toy next to RecGen's released
+/// weights, which a user who passed no `weights=` may not know.
+fn warn_default_model(py: Python<'_>) -> PyResult<()> {
+    static WARNED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if WARNED.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        return Ok(());
+    }
+    let category = py.get_type::<crate::errors::DefaultModelWarning>();
+    // stacklevel 1: the warning points at the Python line that built the engine.
+    PyErr::warn(py, &category, DEFAULT_MODEL_WARNING, 1)
+}
+
+/// The text of [`warn_default_model`].
+pub(crate) const DEFAULT_MODEL_WARNING: &std::ffi::CStr = c"recon_rgbd: no weights given, so the embedded recgen-nano answers: \
+a 27 MB model trained on recon's synthetic scenes that has never seen a real object. For RecGen's released \
+weights run `python -m recon_rgbd weights fetch recgen` once, then use Engine(weights=\"recgen\") \
+(or Engine.from_pretrained(\"TRI-ML/RecGen\")); Engine(weights=\"random\") is plumbing only. \
+This warning is a recon_rgbd.DefaultModelWarning (a UserWarning), given once per process.";
+
 /// A loaded model, reused across objects, frames and threads.
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Engine {
     engine: Arc<recon::engine::Engine>,
     pool: Option<Arc<rayon::ThreadPool>>,
@@ -294,6 +406,8 @@ impl Engine {
         let dtype = parse_enum::<Dtype>("dtype", dtype)?;
         let w = weights.as_ref().map(|p| p.to_string_lossy().into_owned());
         let source = ModelSource::parse(w.as_deref(), config.as_deref(), seed).map_err(weights_to_py)?;
+        // Outside a checkout (an installed wheel), the architecture files the wheel carries.
+        let source = crate::models::with_embedded_architecture(source).map_err(weights_to_py)?;
         let pool = match threads {
             Some(0) => return Err(crate::errors::config("threads", "must be at least 1")),
             Some(n) => Some(Arc::new(
@@ -309,7 +423,41 @@ impl Engine {
                 None => recon::engine::Engine::load(&src, &load),
             })
             .map_err(weights_to_py)?;
+        if source == ModelSource::Default {
+            warn_default_model(py)?;
+        }
         Ok(Engine { engine: Arc::new(engine), pool, source: format!("{source:?}") })
+    }
+
+    /// RecGen's released weights from a Hugging Face repository: `weights="hf:REPO[@REVISION]"`
+    /// (`recon infer --weights hf:REPO[@REV]`), read from the Hugging Face cache that
+    /// `python -m recon_rgbd weights fetch` fills (HF_HOME / HF_HUB_CACHE; HF_HUB_OFFLINE
+    /// honoured). `revision`: a commit, branch or tag (default: the manifest's pinned commit
+    /// for TRI-ML/RecGen, else `main`).
+    #[classmethod]
+    #[pyo3(signature = (repo, revision=None, *, config=None, dtype="auto", threads=None))]
+    fn from_pretrained(
+        _cls: &Bound<'_, pyo3::types::PyType>,
+        py: Python<'_>,
+        repo: &str,
+        revision: Option<&str>,
+        config: Option<PathBuf>,
+        dtype: &str,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        let repo = repo.strip_prefix("hf:").unwrap_or(repo);
+        let spec = match revision {
+            Some(r) => format!("hf:{repo}@{r}"),
+            None => format!("hf:{repo}"),
+        };
+        Engine::new(py, Some(PathBuf::from(spec)), config, dtype, threads, 42)
+    }
+
+    /// Where this engine's model comes from (`ModelSource`, as `repr` shows it): `Default` is
+    /// the embedded recgen-nano.
+    #[getter]
+    fn model(&self) -> String {
+        self.source.clone()
     }
 
     /// Whether the weights are random (`weights="random"`: plumbing only).
@@ -319,7 +467,7 @@ impl Engine {
     }
 
     fn __repr__(&self) -> String {
-        format!("recon.Engine({})", self.source)
+        format!("recon_rgbd.Engine({})", self.source)
     }
 
     #[pyo3(signature = (rgb, depth, K, masks, *, depth_scale=None, view2=None, views=None, progress=None, **options))]
@@ -436,7 +584,7 @@ impl Engine {
 }
 
 /// Vertices, faces and per-vertex colours of a mesh in the camera frame (metres).
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Mesh {
     /// float32 N×3, camera frame of view 1 (OpenCV: x right, y down, z forward), metres.
     #[pyo3(get)]
@@ -463,7 +611,7 @@ fn array_rows<T: numpy::Element + Copy, const K: usize>(a: &Bound<'_, PyAny>, dt
 #[pymethods]
 impl Mesh {
     /// A mesh from arrays (checked: faces index the vertices): float32 N×3 vertices, int
-    /// M×3 faces, optional float32 N×6 attributes. `recon.Client` builds its objects' meshes so.
+    /// M×3 faces, optional float32 N×6 attributes. `recon_rgbd.Client` builds its objects' meshes so.
     #[new]
     #[pyo3(signature = (vertices, faces, attributes=None))]
     fn py_new(
@@ -503,7 +651,7 @@ impl Mesh {
     fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
         let n: usize = self.vertices.bind(py).len()?;
         let m: usize = self.faces.bind(py).len()?;
-        Ok(format!("recon.Mesh({n} vertices, {m} faces)"))
+        Ok(format!("recon_rgbd.Mesh({n} vertices, {m} faces)"))
     }
 }
 
@@ -538,7 +686,7 @@ impl Mesh {
 }
 
 /// 3D Gaussians in the camera frame (metres).
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Gaussians {
     /// float32 N×3 centres.
     #[pyo3(get)]
@@ -563,7 +711,7 @@ pub struct Gaussians {
 #[pymethods]
 impl Gaussians {
     /// Gaussians from arrays (float32; rows per Gaussian): N×3 means, N×3 scales, N×4
-    /// rotations (w, x, y, z), N opacities, N×3 SH degree-0 `dc`. `recon.Client` builds its
+    /// rotations (w, x, y, z), N opacities, N×3 SH degree-0 `dc`. `recon_rgbd.Client` builds its
     /// objects' Gaussians so.
     #[new]
     fn py_new(
@@ -625,7 +773,7 @@ impl Gaussians {
 }
 
 /// One reconstructed object.
-#[pyclass(frozen, module = "recon")]
+#[pyclass(frozen, module = "recon_rgbd")]
 pub struct Object {
     /// Instance id in the mask image, or None for a boolean mask.
     #[pyo3(get)]
@@ -775,7 +923,7 @@ impl Object {
         &self.label
     }
 
-    /// `(label, mesh)` for `recon.scene`, or None when no mesh was decoded.
+    /// `(label, mesh)` for `recon_rgbd.scene`, or None when no mesh was decoded.
     pub(crate) fn mesh_for_scene(&self, py: Python<'_>) -> PyResult<Option<(String, recon::mesh::Mesh)>> {
         self.mesh.as_ref().map(|m| Ok((self.label.clone(), m.get().to_recon(py)?))).transpose()
     }
@@ -790,7 +938,7 @@ impl Object {
 
 #[pymethods]
 impl Object {
-    /// An object from its parts, as `recon.Client` builds the objects of a remote job (the
+    /// An object from its parts, as `recon_rgbd.Client` builds the objects of a remote job (the
     /// fields of the same names; `pose` a 4×4 array).
     #[staticmethod]
     #[pyo3(signature = (*, id, label, pose, scale, score, spread, stage_seconds, details, mesh=None, gaussians=None))]
@@ -870,7 +1018,7 @@ impl Object {
     #[pyo3(signature = (output_dir, *, save_splat=true))]
     fn save(&self, py: Python<'_>, output_dir: PathBuf, save_splat: bool) -> PyResult<()> {
         let Some((pose, pose_representation)) = self.recgen else {
-            return Err(input(&self.label, "save needs RecGen's pose fields, which objects of a recon.Client answer do not carry"));
+            return Err(input(&self.label, "save needs RecGen's pose fields, which objects of a recon_rgbd.Client answer do not carry"));
         };
         let rgb: PyReadonlyArray3<u8> =
             self.rgb.bind(py).extract().map_err(|_| input(&self.label, "rgb: expected an H×W×3 uint8 array"))?;
@@ -927,6 +1075,6 @@ impl Object {
     }
 
     fn __repr__(&self) -> String {
-        format!("recon.Object({}, scale={:.4} m, score={:.4} m)", self.label, self.scale, self.score)
+        format!("recon_rgbd.Object({}, scale={:.4} m, score={:.4} m)", self.label, self.scale, self.score)
     }
 }

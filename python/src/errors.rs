@@ -7,10 +7,16 @@ use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::PyErr;
 
-create_exception!(recon, ReconError, PyException, "Base class of every error recon raises.");
-create_exception!(recon, InputError, ReconError, "Bad input: a file, an array, a mask or a dataset is not what recon expects.");
-create_exception!(recon, WeightsError, ReconError, "The model's weights could not be found, read or matched to the architecture.");
-create_exception!(recon, ConfigError, ReconError, "An option or a configuration field is missing or out of range.");
+create_exception!(recon_rgbd, ReconError, PyException, "Base class of every error recon raises.");
+create_exception!(recon_rgbd, InputError, ReconError, "Bad input: a file, an array, a mask or a dataset is not what recon expects.");
+create_exception!(recon_rgbd, WeightsError, ReconError, "The model's weights could not be found, read or matched to the architecture.");
+create_exception!(recon_rgbd, ConfigError, ReconError, "An option or a configuration field is missing or out of range.");
+create_exception!(
+    recon_rgbd,
+    DefaultModelWarning,
+    pyo3::exceptions::PyUserWarning,
+    "The embedded recgen-nano answers because no weights were given (warned once per process)."
+);
 
 /// A library error, classified by its kind.
 pub fn to_py(e: recon::Error) -> PyErr {

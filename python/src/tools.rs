@@ -1,7 +1,7 @@
 //! The other commands as functions: `load_frame` (the frame discovery of `recon infer`),
 //! `scene` (`recon scene`), `synth` (`recon synth`, also split into shards for
-//! `recon.ray.synth`), `eval` (`recon eval`), `audit_depth` (`recon audit depth`) and
-//! `dataset_frames` (the frames of a BOP or YCB-Video dataset, for `recon.ray`). Each calls
+//! `recon_rgbd.ray.synth`), `eval` (`recon eval`), `audit_depth` (`recon audit depth`) and
+//! `dataset_frames` (the frames of a BOP or YCB-Video dataset, for `recon_rgbd.ray`). Each calls
 //! the library functions its command calls and returns the report as a dict.
 
 use crate::convert::{frame_options, from_python, rows, to_python};
@@ -274,9 +274,10 @@ pub fn scene<'py>(
         Err(_) => {
             let mut meshes = Vec::new();
             let mut notes = Vec::new();
-            for (i, o) in objects.try_iter().map_err(|_| input("objects", "expected a list of recon.Object or a path"))?.enumerate() {
+            for (i, o) in objects.try_iter().map_err(|_| input("objects", "expected a list of recon_rgbd.Object or a path"))?.enumerate() {
                 let o = o?;
-                let o = o.cast::<crate::engine::Object>().map_err(|_| input("objects", format!("item {i}: expected a recon.Object")))?;
+                let o =
+                    o.cast::<crate::engine::Object>().map_err(|_| input("objects", format!("item {i}: expected a recon_rgbd.Object")))?;
                 match o.get().mesh_for_scene(py)? {
                     Some(m) => meshes.push(m),
                     None => notes.push(format!("{}: no mesh was decoded; left out", o.get().label())),

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-import recon
+import recon_rgbd
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -40,13 +40,13 @@ def recon_cli():
 def synth_ds(tmp_path_factory):
     """3 scenes, one view each, 160×120: frames `test/00000N/000000`."""
     root = tmp_path_factory.mktemp("synth") / "ds"
-    recon.synth(root, scenes=3, views=1, seed=3, width=160, height=120)
+    recon_rgbd.synth(root, scenes=3, views=1, seed=3, width=160, height=120)
     return root
 
 
 @pytest.fixture(scope="session")
 def engine():
-    return recon.Engine()
+    return recon_rgbd.Engine()
 
 
 def run_cli(cli, *args, ok=(0,)):
@@ -56,7 +56,7 @@ def run_cli(cli, *args, ok=(0,)):
 
 
 def cli_infer(cli, frame, out):
-    """`recon infer` on a frame of `recon.dataset_frames` into `out`."""
+    """`recon infer` on a frame of `recon_rgbd.dataset_frames` into `out`."""
     # Exit 3: some objects written, others skipped (README: exit codes); the skipped ones are
     # in the index and the comparisons look at what was written.
     run_cli(cli, "infer", "--rgbd", frame["rgb"], "--masks", *frame["masks"], "--out", out, *cli_flags(), ok=(0, 3))
@@ -91,7 +91,7 @@ def assert_same_output(a, b):
     for f in fa:
         if f.name == "pose.json":
             assert comparable_pose(a / f) == comparable_pose(b / f), f
-        elif f.name == recon.OUTPUT_MARKER:
+        elif f.name == recon_rgbd.OUTPUT_MARKER:
             ja, jb = json.loads((a / f).read_text()), json.loads((b / f).read_text())
             strip = lambda j: [{k: Path(v).name if isinstance(v, str) else v for k, v in o.items()} for o in j["objects"]]
             assert strip(ja) == strip(jb) and ja["skipped"] == jb["skipped"]

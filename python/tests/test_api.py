@@ -7,24 +7,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import recon
+import recon_rgbd
 from conftest import INFER, REPO, assert_same_output, cli_infer, run_cli
 
 
 def frame0(ds):
-    return recon.dataset_frames(ds)[0]
+    return recon_rgbd.dataset_frames(ds)[0]
 
 
 def test_error_hierarchy_and_messages(tmp_path):
-    for cls in (recon.InputError, recon.WeightsError, recon.ConfigError):
-        assert issubclass(cls, recon.ReconError) and issubclass(cls, Exception)
-    with pytest.raises(recon.WeightsError, match="/no/such/weights"):
-        recon.Engine(weights="/no/such/weights")
-    with pytest.raises(recon.ConfigError, match="dtype"):
-        recon.Engine(dtype="f8")
+    for cls in (recon_rgbd.InputError, recon_rgbd.WeightsError, recon_rgbd.ConfigError):
+        assert issubclass(cls, recon_rgbd.ReconError) and issubclass(cls, Exception)
+    with pytest.raises(recon_rgbd.WeightsError, match="/no/such/weights"):
+        recon_rgbd.Engine(weights="/no/such/weights")
+    with pytest.raises(recon_rgbd.ConfigError, match="dtype"):
+        recon_rgbd.Engine(dtype="f8")
     (tmp_path / "a-color.png").write_bytes(b"not a png")
-    with pytest.raises(recon.InputError, match="a-color.png"):
-        recon.load_frame(tmp_path / "a-color.png")
+    with pytest.raises(recon_rgbd.InputError, match="a-color.png"):
+        recon_rgbd.load_frame(tmp_path / "a-color.png")
 
 
 def test_bad_arrays_are_input_and_config_errors(engine):
@@ -32,31 +32,32 @@ def test_bad_arrays_are_input_and_config_errors(engine):
     depth = np.ones((12, 16), np.float32)
     K = np.array([[100.0, 0, 8], [0, 100, 6], [0, 0, 1]])
     ids = np.zeros((12, 16), np.uint16)
-    with pytest.raises(recon.InputError, match="uint8"):
-        engine.reconstruct(rgb.astype(np.float32), depth, K, ids)
-    with pytest.raises(recon.InputError, match="registered"):
+    # Float colour converts only from [0, 1] (test_inputs.py has the conversions).
+    with pytest.raises(recon_rgbd.InputError, match=r"rgb: float32 colour must be finite and in \[0, 1\]"):
+        engine.reconstruct(rgb.astype(np.float32) + 2, depth, K, ids)
+    with pytest.raises(recon_rgbd.InputError, match="registered"):
         engine.reconstruct(rgb, depth[:5], K, ids)
-    with pytest.raises(recon.InputError, match="3×3"):
+    with pytest.raises(recon_rgbd.InputError, match="3×3"):
         engine.reconstruct(rgb, depth, K[:2], ids)
-    with pytest.raises(recon.ConfigError, match="cross"):
+    with pytest.raises(recon_rgbd.ConfigError, match="cross"):
         engine.reconstruct(rgb, depth, K, ids, select="best")
-    with pytest.raises(recon.ConfigError, match="samples"):
+    with pytest.raises(recon_rgbd.ConfigError, match="samples"):
         engine.reconstruct(rgb, depth, K, ids, samples=0)
-    with pytest.raises(recon.ConfigError, match="depth_scale"):
+    with pytest.raises(recon_rgbd.ConfigError, match="depth_scale"):
         engine.reconstruct(rgb, depth, K, ids, depth_scale=0.001)
     # No object in the mask: nothing to reconstruct, not an error.
     assert engine.reconstruct(rgb, depth, K, ids) == []
 
 
 def test_options_have_one_name_and_default_everywhere(engine, recon_cli):
-    """The per-frame options are the library's (`recon.infer_defaults()`): the stub's
+    """The per-frame options are the library's (`recon_rgbd.infer_defaults()`): the stub's
     keywords and `recon infer --help`'s flags have the same names and defaults, and an
     unknown keyword is an error naming the valid ones."""
     import ast
 
-    defaults = recon.infer_defaults()
+    defaults = recon_rgbd.infer_defaults()
     assert defaults["seed"] == 42 and defaults["samples"] == 1 and defaults["steps"] is None
-    stub = ast.parse((REPO / "python/recon/__init__.pyi").read_text())
+    stub = ast.parse((REPO / "python/recon_rgbd/__init__.pyi").read_text())
     funcs = {
         n.name: {a.arg: ast.literal_eval(d) for a, d in zip(n.args.kwonlyargs, n.args.kw_defaults) if d is not None}
         for n in ast.walk(stub)
@@ -77,15 +78,15 @@ def test_options_have_one_name_and_default_everywhere(engine, recon_cli):
         assert (f"[default: {shown(v)}]" in block) if v is not None else ("[default:" not in block), (k, block)
     rgb, depth = np.zeros((12, 16, 3), np.uint8), np.ones((12, 16), np.float32)
     K, ids = np.array([[100.0, 0, 8], [0, 100, 6], [0, 0, 1]]), np.zeros((12, 16), np.uint16)
-    with pytest.raises(recon.ConfigError, match="unknown option `sample`.*samples"):
+    with pytest.raises(recon_rgbd.ConfigError, match="unknown option `sample`.*samples"):
         engine.reconstruct(rgb, depth, K, ids, sample=2)
-    with pytest.raises(recon.ConfigError, match="min_component_area: must be in"):
+    with pytest.raises(recon_rgbd.ConfigError, match="min_component_area: must be in"):
         engine.reconstruct(rgb, depth, K, ids, min_component_area=1.0)
 
 
 def test_load_frame_follows_the_bop_layout(synth_ds):
     f = frame0(synth_ds)
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     assert fr["rgb"].shape == (120, 160, 3) and fr["rgb"].dtype == np.uint8
     assert fr["depth"].shape == (120, 160) and fr["depth"].dtype == np.float32
     cam = json.loads((Path(f["rgb"]).parents[1] / "scene_camera.json").read_text())["0"]
@@ -99,10 +100,10 @@ def test_arrays_give_the_cli_meshes_and_poses(synth_ds, engine, recon_cli, tmp_p
     """reconstruct() on load_frame's arrays = `recon infer` on the files, bit for bit."""
     f = frame0(synth_ds)
     cli_infer(recon_cli, f, tmp_path / "cli")
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     masks = frame_masks(f)
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
-    index = json.loads((tmp_path / "cli" / recon.OUTPUT_MARKER).read_text())
+    index = json.loads((tmp_path / "cli" / recon_rgbd.OUTPUT_MARKER).read_text())
     assert len(objs) == len(index["objects"]) > 0
     for o, w in zip(objs, index["objects"]):
         pose = json.loads((tmp_path / "cli" / Path(w["pose"]).parent.name / "pose.json").read_text())
@@ -111,7 +112,7 @@ def test_arrays_give_the_cli_meshes_and_poses(synth_ds, engine, recon_cli, tmp_p
         assert o.scale == np.float32(pose["scale_m"])
         assert o.pose[3].tolist() == [0, 0, 0, 1]
         assert o.score == pose["selection"]["score_m"]
-        assert set(o.stage_seconds) == set(recon.STAGE_COLUMNS) and o.stage_seconds["total"] > 0
+        assert set(o.stage_seconds) == set(recon_rgbd.STAGE_COLUMNS) and o.stage_seconds["total"] > 0
         assert o.mesh.vertices.dtype == np.float32 and o.mesh.vertices.shape[1] == 3
         assert o.mesh.faces.dtype == np.int32 and o.mesh.faces.shape == (pose["faces"], 3)
         assert o.mesh.colors.shape == o.mesh.vertices.shape and 0 <= o.mesh.colors.min() <= o.mesh.colors.max() <= 1
@@ -129,7 +130,7 @@ def test_arrays_give_the_cli_meshes_and_poses(synth_ds, engine, recon_cli, tmp_p
 
 def frame_masks(f):
     """The frame's binary mask files as H×W booleans, read as `recon infer --masks` reads them."""
-    got = recon.load_masks(f["masks"])
+    got = recon_rgbd.load_masks(f["masks"])
     assert len(f["masks"]) > 1 and not got["skipped"]
     return [m["mask"] for m in got["objects"]]
 
@@ -147,7 +148,7 @@ def test_views_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
     and `recon infer --view` give the same result; with three views the two-view model
     fuses pairs. Bad views are errors naming the view and the field."""
     f = frame0(synth_ds)
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     masks = frame_masks(f)
     Ts = []
     for i, dx in enumerate([0.03, -0.04]):
@@ -169,7 +170,7 @@ def test_views_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
     assert_same_output(tmp_path / "py", cli_out)
     arrays = [{"rgb": fr["rgb"], "depth": fr["depth"], "K": fr["K"], "masks": masks, "T_c1_ci": T} for T in Ts]
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=arrays, **opts)
-    index = json.loads((cli_out / recon.OUTPUT_MARKER).read_text())
+    index = json.loads((cli_out / recon_rgbd.OUTPUT_MARKER).read_text())
     assert len(objs) == len(index["objects"])
     for o, w in zip(objs, index["objects"]):
         pose = json.loads((cli_out / Path(w["pose"]).parent.name / "pose.json").read_text())
@@ -182,21 +183,21 @@ def test_views_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
     assert d["objects"]
 
     bad = dict(arrays[1], T_c1_ci=np.zeros((4, 4)))
-    with pytest.raises(recon.InputError, match=r"views\[1\].*T_c1_ci"):
+    with pytest.raises(recon_rgbd.InputError, match=r"views\[1\].*T_c1_ci"):
         engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[arrays[0], bad], **opts)
-    with pytest.raises(recon.InputError, match=r"views\[0\].*missing key `depth`"):
+    with pytest.raises(recon_rgbd.InputError, match=r"views\[0\].*missing key `depth`"):
         engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[{"rgb": fr["rgb"]}], **opts)
-    with pytest.raises(recon.InputError, match="16"):
+    with pytest.raises(recon_rgbd.InputError, match="16"):
         engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=[arrays[0]] * 17, **opts)
-    with pytest.raises(recon.InputError, match=r"views\[0\].*`T_c1_ci`"):
+    with pytest.raises(recon_rgbd.InputError, match=r"views\[0\].*`T_c1_ci`"):
         engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "x", views=[{"rgb": f["rgb"], "masks": f["masks"]}], **opts)
-    with pytest.raises(recon.ConfigError, match="fusion"):
+    with pytest.raises(recon_rgbd.ConfigError, match="fusion"):
         engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, views=arrays, fusion="mean")
 
 
 def test_one_engine_serves_several_threads(synth_ds, engine):
     f = frame0(synth_ds)
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     masks = frame_masks(f)
     ref = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
     got = [None] * 3
@@ -219,10 +220,10 @@ def test_keep_freed_memory_applies_and_changes_no_result(synth_ds, engine):
     import sys
 
     f = frame0(synth_ds)
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     masks = frame_masks(f)
     ref = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
-    kept = recon.keep_freed_memory()
+    kept = recon_rgbd.keep_freed_memory()
     if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":
         assert kept is True
     got = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
@@ -232,7 +233,7 @@ def test_keep_freed_memory_applies_and_changes_no_result(synth_ds, engine):
 
 def test_progress_events_and_trimesh(synth_ds, engine):
     f = frame0(synth_ds)
-    fr = recon.load_frame(f["rgb"])
+    fr = recon_rgbd.load_frame(f["rgb"])
     events = []
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], frame_masks(f), progress=events.append, **INFER)
     assert objs
@@ -254,17 +255,17 @@ def test_synth_eval_and_audit_match_the_cli(synth_ds, recon_cli, tmp_path):
     for p in a:
         assert (synth_ds / p).read_bytes() == (tmp_path / "cli" / p).read_bytes(), p
 
-    rep = recon.eval(synth_ds, method="observed", out=tmp_path / "ev")
+    rep = recon_rgbd.eval(synth_ds, method="observed", out=tmp_path / "ev")
     run_cli(recon_cli, "eval", "--dataset", synth_ds, "--method", "observed", "--out", tmp_path / "ev_cli")
     cli_rep = json.loads((tmp_path / "ev_cli" / "report.json").read_text())
     assert rep["objects"] and [o for o in rep["objects"]] == cli_rep["objects"]
-    with pytest.raises(recon.ConfigError, match="method"):
-        recon.eval(synth_ds, method="oracle", out=tmp_path / "ev2")
+    with pytest.raises(recon_rgbd.ConfigError, match="method"):
+        recon_rgbd.eval(synth_ds, method="oracle", out=tmp_path / "ev2")
 
-    aud = recon.audit_depth(synth_ds, max_pixels=200, out=tmp_path / "au")
+    aud = recon_rgbd.audit_depth(synth_ds, max_pixels=200, out=tmp_path / "au")
     assert isinstance(aud, dict) and (tmp_path / "au" / "report.json").is_file()
-    with pytest.raises(recon.ConfigError, match="alpha"):
-        recon.audit_depth(synth_ds, alpha=2.0)
+    with pytest.raises(recon_rgbd.ConfigError, match="alpha"):
+        recon_rgbd.audit_depth(synth_ds, alpha=2.0)
 
 
 def strip_names(objects):
@@ -293,15 +294,15 @@ def glb_without_names(path):
 
 
 def test_scene_from_objects_equals_scene_from_their_folder(synth_ds, engine, recon_cli, tmp_path):
-    """recon.scene on Engine.reconstruct's objects + the frame settles and exports exactly
+    """recon_rgbd.scene on Engine.reconstruct's objects + the frame settles and exports exactly
     what `recon scene` makes of the same objects' `recon infer` folder."""
     f = frame0(synth_ds)
     engine.reconstruct_files(f["rgb"], f["masks"], tmp_path / "inf", **INFER)
     run_cli(recon_cli, "scene", "--input", tmp_path / "inf", "--frame", f["rgb"], "--out", tmp_path / "cli", "--collision", "hull")
-    folder = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim", collision="hull")
-    fr = recon.load_frame(f["rgb"])
+    folder = recon_rgbd.scene(tmp_path / "inf", f["rgb"], tmp_path / "sim", collision="hull")
+    fr = recon_rgbd.load_frame(f["rgb"])
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], frame_masks(f), **INFER)
-    mem = recon.scene(objs, fr, tmp_path / "mem", collision="hull")
+    mem = recon_rgbd.scene(objs, fr, tmp_path / "mem", collision="hull")
     assert Path(mem["out"]) == tmp_path / "mem" and len(mem["objects"]) == len(folder["objects"]) > 0
     assert all(o["physics"]["mass_kg"] > 0 for o in mem["objects"])
     assert strip_names(mem["objects"]) == strip_names(folder["objects"])
@@ -317,14 +318,14 @@ def test_scene_from_objects_equals_scene_from_their_folder(synth_ds, engine, rec
 
     # The CLI's scene options pass through: a settle time below the 0.1 s minimum
     # cannot come to rest and stops after fewer steps.
-    short = recon.scene(objs, f["rgb"], tmp_path / "short", collision="hull", settle_time=0.05)
+    short = recon_rgbd.scene(objs, f["rgb"], tmp_path / "short", collision="hull", settle_time=0.05)
     assert not short["settle"]["at_rest"] and short["settle"]["steps"] < mem["settle"]["steps"]
-    with pytest.raises(recon.ConfigError, match="collision"):
-        recon.scene(objs, fr, tmp_path / "x", collision="spheres")
-    with pytest.raises(recon.InputError, match="frame"):
-        recon.scene(objs, None, tmp_path / "x")
-    with pytest.raises(recon.ConfigError, match="variations"):
-        recon.scene(objs, fr, tmp_path / "x", spec={"version": 1})
+    with pytest.raises(recon_rgbd.ConfigError, match="collision"):
+        recon_rgbd.scene(objs, fr, tmp_path / "x", collision="spheres")
+    with pytest.raises(recon_rgbd.InputError, match="frame"):
+        recon_rgbd.scene(objs, None, tmp_path / "x")
+    with pytest.raises(recon_rgbd.ConfigError, match="variations"):
+        recon_rgbd.scene(objs, fr, tmp_path / "x", spec={"version": 1})
 
 
 def test_scene_variations_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
@@ -338,32 +339,32 @@ def test_scene_variations_match_the_cli(synth_ds, engine, recon_cli, tmp_path):
     common = ["--collision", "convex", "--variations", 2, "--seed", 5]
     run_cli(recon_cli, "scene", "--input", tmp_path / "inf", "--frame", f["rgb"], "--out", tmp_path / "cli", *common,
             "--spec", tmp_path / "spec.json", ok=(0, 1))
-    r = recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "py", collision="convex", variations=2, seed=5, spec=spec)
+    r = recon_rgbd.scene(tmp_path / "inf", f["rgb"], tmp_path / "py", collision="convex", variations=2, seed=5, spec=spec)
     assert r["manifest"]["requested"] == 2 and r["manifest"]["seed"] == 5
     a = sorted(p.relative_to(tmp_path / "py") for p in (tmp_path / "py").rglob("*") if p.is_file())
     b = sorted(p.relative_to(tmp_path / "cli") for p in (tmp_path / "cli").rglob("*") if p.is_file())
     assert a == b and any(p.name == "scene.urdf" for p in a)
     for p in a:
         assert (tmp_path / "py" / p).read_bytes() == (tmp_path / "cli" / p).read_bytes(), p
-    with pytest.raises(recon.ConfigError, match="version"):
-        recon.scene(tmp_path / "inf", f["rgb"], tmp_path / "bad", variations=1, spec={"predicates": []})
+    with pytest.raises(recon_rgbd.ConfigError, match="version"):
+        recon_rgbd.scene(tmp_path / "inf", f["rgb"], tmp_path / "bad", variations=1, spec={"predicates": []})
 
 
 def test_eval_recgen_takes_the_cli_model_flags(synth_ds, engine, recon_cli, tmp_path):
-    """recon.eval(method="recgen", steps=…) = `recon eval --method recgen --steps …`, and
+    """recon_rgbd.eval(method="recgen", steps=…) = `recon eval --method recgen --steps …`, and
     the flag changes the result as it does in the CLI."""
     flags = {"scenes": ["1"], "max_faces": 2000, "seed": 7}
     run_cli(recon_cli, "eval", "--dataset", synth_ds, "--method", "recgen", "--scenes", "1", "--max-faces", 2000,
             "--seed", 7, "--steps", 3, "--out", tmp_path / "cli3")
     cli3 = json.loads((tmp_path / "cli3" / "report.json").read_text())
-    py3 = recon.eval(synth_ds, method="recgen", out=tmp_path / "py3", steps=3, **flags)
-    py2 = recon.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "py2", steps=2, **flags)
+    py3 = recon_rgbd.eval(synth_ds, method="recgen", out=tmp_path / "py3", steps=3, **flags)
+    py2 = recon_rgbd.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "py2", steps=2, **flags)
     assert py3["objects"] and py3["objects"] == cli3["objects"]
     assert (tmp_path / "py3" / "predictions.json").read_bytes() == (tmp_path / "cli3" / "predictions.json").read_bytes()
     assert [o for o in py2["objects"]] != py3["objects"]
-    with pytest.raises(recon.ConfigError, match="min_component_area"):
-        recon.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "x", min_component_area=1.5)
-    with pytest.raises(recon.ConfigError, match="not both"):
-        recon.eval(synth_ds, method="recgen", engine=engine, weights="random", out=tmp_path / "x")
-    with pytest.raises(recon.ConfigError, match="two_view"):
-        recon.eval(synth_ds, method="observed", two_view=True, out=tmp_path / "x")
+    with pytest.raises(recon_rgbd.ConfigError, match="min_component_area"):
+        recon_rgbd.eval(synth_ds, method="recgen", engine=engine, out=tmp_path / "x", min_component_area=1.5)
+    with pytest.raises(recon_rgbd.ConfigError, match="not both"):
+        recon_rgbd.eval(synth_ds, method="recgen", engine=engine, weights="random", out=tmp_path / "x")
+    with pytest.raises(recon_rgbd.ConfigError, match="two_view"):
+        recon_rgbd.eval(synth_ds, method="observed", two_view=True, out=tmp_path / "x")

@@ -1,4 +1,4 @@
-"""recon.Client against a `recon serve` (random tiny model, 127.0.0.1, port 0): the same
+"""recon_rgbd.Client against a `recon serve` (random tiny model, 127.0.0.1, port 0): the same
 objects as Engine.reconstruct on the same arrays, jobs, cancellation, scenes, errors."""
 
 import subprocess
@@ -6,7 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
-import recon
+import recon_rgbd
 from conftest import INFER, REPO
 
 TINY = REPO / "models/recgen-tiny.json"
@@ -32,19 +32,19 @@ def server(recon_cli, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def client(server):
-    return recon.Client(f"http://{server}")
+    return recon_rgbd.Client(f"http://{server}")
 
 
 @pytest.fixture(scope="module")
 def tiny_engine():
-    return recon.Engine(weights="random", config=TINY)
+    return recon_rgbd.Engine(weights="random", config=TINY)
 
 
 @pytest.fixture(scope="module")
 def frame(synth_ds):
-    f = recon.dataset_frames(synth_ds)[0]
-    fr = recon.load_frame(f["rgb"])
-    masks = [m["mask"] for m in recon.load_masks(f["masks"])["objects"]]
+    f = recon_rgbd.dataset_frames(synth_ds)[0]
+    fr = recon_rgbd.load_frame(f["rgb"])
+    masks = [m["mask"] for m in recon_rgbd.load_masks(f["masks"])["objects"]]
     ids = np.zeros(masks[0].shape, np.uint16)
     for i, m in enumerate(masks):
         ids[m] = 3 * i + 2
@@ -54,7 +54,7 @@ def frame(synth_ds):
 def assert_same_objects(remote, local, tmp_path):
     assert [o.label for o in remote] == [o.label for o in local] and len(local) > 0
     for r, o in zip(remote, local):
-        assert isinstance(r, recon.Object)
+        assert isinstance(r, recon_rgbd.Object)
         assert r.id == o.id
         assert np.array_equal(r.pose, o.pose) and r.pose.dtype == np.float64
         assert (r.scale, r.score) == (o.scale, o.score)
@@ -90,7 +90,7 @@ def test_client_reconstruct_gives_the_engine_objects(client, tiny_engine, frame,
 def test_client_jobs_cancel_and_scene(client, tiny_engine, frame, tmp_path):
     fr, _, ids = frame
     job = client.submit(fr["rgb"], fr["depth"], fr["K"], ids, **INFER)
-    assert isinstance(job, recon.Job) and len(job.id) == 32
+    assert isinstance(job, recon_rgbd.Job) and len(job.id) == 32
     events = []
     objs = job.result(progress=events.append)
     assert job.status()["status"] == "done" and events[-1]["status"] == "done"
@@ -100,17 +100,17 @@ def test_client_jobs_cancel_and_scene(client, tiny_engine, frame, tmp_path):
     # Cancelled at once (queued or at its first stage boundary): result() says so.
     slow = client.submit(fr["rgb"], fr["depth"], fr["K"], ids, samples=4, **INFER)
     slow.cancel()
-    with pytest.raises(recon.ReconError, match="cancelled"):
+    with pytest.raises(recon_rgbd.ReconError, match="cancelled"):
         slow.result(timeout=300)
 
 
 def test_client_errors_are_the_engine_classes(client, frame):
     fr, _, ids = frame
-    with pytest.raises(recon.ConfigError, match="unknown option `sample`") as e:
+    with pytest.raises(recon_rgbd.ConfigError, match="unknown option `sample`") as e:
         client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, sample=2)
     assert (e.value.status, e.value.part) == (400, "options")
-    with pytest.raises(recon.InputError, match="max_objects") as e:
+    with pytest.raises(recon_rgbd.InputError, match="max_objects") as e:
         client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, max_objects=1, **INFER)
     assert e.value.status == 413
-    with pytest.raises(recon.InputError, match="uint8"):
+    with pytest.raises(recon_rgbd.InputError, match="uint8"):
         client.reconstruct(fr["rgb"].astype(np.float32), fr["depth"], fr["K"], ids)

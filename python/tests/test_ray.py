@@ -1,4 +1,4 @@
-"""recon.ray on a local Ray cluster the test starts itself (2 CPUs)."""
+"""recon_rgbd.ray on a local Ray cluster the test starts itself (2 CPUs)."""
 
 import os
 import shutil
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-import recon
+import recon_rgbd
 from conftest import INFER, assert_same_output, cli_infer
 
 if os.environ.get("RECON_REQUIRE_PYTHON_TESTS") == "1":  # CI: a missing Ray fails
@@ -16,7 +16,7 @@ if os.environ.get("RECON_REQUIRE_PYTHON_TESTS") == "1":  # CI: a missing Ray fai
 else:
     ray = pytest.importorskip("ray")
     pq = pytest.importorskip("pyarrow.parquet")
-import recon.ray as rr  # noqa: E402
+import recon_rgbd.ray as rr  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -31,13 +31,13 @@ def broken_ds(synth_ds, tmp_path_factory):
     """The synth dataset with frame 1's colour image made unreadable."""
     ds = tmp_path_factory.mktemp("broken") / "ds"
     shutil.copytree(synth_ds, ds)
-    frames = recon.dataset_frames(ds)
+    frames = recon_rgbd.dataset_frames(ds)
     Path(frames[1]["rgb"]).write_bytes(b"this is not a PNG")
     return ds
 
 
 def test_dataset_run_matches_cli_records_failure_and_resumes(cluster, broken_ds, recon_cli, tmp_path):
-    frames = recon.dataset_frames(broken_ds)
+    frames = recon_rgbd.dataset_frames(broken_ds)
     bad = frames[1]["frame"]
     out = tmp_path / "out"
     s = rr.reconstruct_dataset(broken_ds, out, num_workers=2, **INFER)
@@ -57,7 +57,7 @@ def test_dataset_run_matches_cli_records_failure_and_resumes(cluster, broken_ds,
     # Outputs identical to `recon infer` with the same seed on the same frames.
     for f in frames:
         if f["frame"] == bad:
-            assert not (out / bad / recon.OUTPUT_MARKER).exists()
+            assert not (out / bad / recon_rgbd.OUTPUT_MARKER).exists()
             continue
         cli_infer(recon_cli, f, tmp_path / "cli" / f["frame"])
         assert_same_output(out / f["frame"], tmp_path / "cli" / f["frame"])
@@ -83,12 +83,12 @@ def test_dataset_run_matches_cli_records_failure_and_resumes(cluster, broken_ds,
 
 
 def test_frame_table_source(cluster, synth_ds, tmp_path):
-    frames = recon.dataset_frames(synth_ds)[:1]
+    frames = recon_rgbd.dataset_frames(synth_ds)[:1]
     table = [{"frame": "only", "rgb": f["rgb"], "masks": f["masks"]} for f in frames]
     s = rr.reconstruct_dataset(table, tmp_path / "o", num_workers=1, **INFER)
     assert (s["frames"], s["failed"]) == (1, 0)
-    assert (tmp_path / "o" / "only" / recon.OUTPUT_MARKER).is_file()
-    with pytest.raises(recon.InputError, match="masks"):
+    assert (tmp_path / "o" / "only" / recon_rgbd.OUTPUT_MARKER).is_file()
+    with pytest.raises(recon_rgbd.InputError, match="masks"):
         rr.frames_of([{"rgb": "x.png"}])
 
 
@@ -97,7 +97,7 @@ def test_multi_view_rows(cluster, synth_ds, recon_cli, tmp_path):
     too many views are refused when the table is read."""
     import json
 
-    f = recon.dataset_frames(synth_ds)[0]
+    f = recon_rgbd.dataset_frames(synth_ds)[0]
     T = [[1, 0, 0, 0.03], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     spec = {"rgb": f["rgb"], "masks": f["masks"], "T_c1_ci": T}
     vf = tmp_path / "v2.json"
@@ -114,7 +114,7 @@ def test_multi_view_rows(cluster, synth_ds, recon_cli, tmp_path):
     )
     assert r.returncode in (0, 3), r.stderr
     assert_same_output(tmp_path / "o" / "multi", cli)
-    with pytest.raises(recon.InputError, match="views.*limit of 16"):
+    with pytest.raises(recon_rgbd.InputError, match="views.*limit of 16"):
         rr.frames_of([{"rgb": "x.png", "masks": "m.png", "views": [str(vf)] * 17}])
 
 

@@ -1,4 +1,4 @@
-"""RecGen's result on `recon.Object` (issue 36 §4): the fields `recgen_inference.generate`
+"""RecGen's result on `recon_rgbd.Object` (issue 36 §4): the fields `recgen_inference.generate`
 returns, consistent with each other and with recon's own pose and assets, and `save(dir)`
 writing exactly the files `recon infer` writes beside pose.json; and RecGen's
 preprocessing keywords (§6)."""
@@ -9,16 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import recon
+import recon_rgbd
 from conftest import INFER, cli_flags, run_cli
 
 RECGEN_FILES = ["mesh.obj", "posed_mesh.obj", "gaussian.ply", "posed_gaussian.ply", "overlay.png", "metadata.json"]
 
 
 def frame_and_masks(ds):
-    f = recon.dataset_frames(ds)[0]
-    masks = [m["mask"] for m in recon.load_masks(f["masks"])["objects"]]
-    return f, recon.load_frame(f["rgb"]), masks
+    f = recon_rgbd.dataset_frames(ds)[0]
+    masks = [m["mask"] for m in recon_rgbd.load_masks(f["masks"])["objects"]]
+    return f, recon_rgbd.load_frame(f["rgb"]), masks
 
 
 def scipy_matrix(q):
@@ -37,7 +37,7 @@ def test_objects_carry_recgens_fields_and_save_its_files(synth_ds, engine, recon
     f, fr, masks = frame_and_masks(synth_ds)
     objs = engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER)
     run_cli(recon_cli, "infer", "--rgbd", f["rgb"], "--masks", *f["masks"], "--out", tmp_path / "cli", "--recgen-files", *cli_flags(), ok=(0, 3))
-    index = json.loads((tmp_path / "cli" / recon.OUTPUT_MARKER).read_text())
+    index = json.loads((tmp_path / "cli" / recon_rgbd.OUTPUT_MARKER).read_text())
     assert len(objs) == len(index["objects"]) > 0
     for o, w in zip(objs, index["objects"]):
         # The camera-frame map: recon's pose with its scale, and RecGen's inv(cam2ncam) @ pose_matrix.
@@ -85,7 +85,7 @@ def test_preprocessing_keywords_are_checked_and_used(synth_ds, engine):
         ({"mask_erosion_iterations": 1000}, "mask_erosion_iterations: must be in"),
         ({"use_pointmap": "no"}, "use_pointmap"),
     ]:
-        with pytest.raises(recon.ConfigError, match=name):
+        with pytest.raises(recon_rgbd.ConfigError, match=name):
             run(**kw)
     base = run()
     assert base and all("use_pointmap" not in o.details["run"] for o in base.values())

@@ -121,7 +121,7 @@ impl Default for SearchOptions {
 }
 
 impl SearchOptions {
-    /// Checks the options a user sets (`recon audit`'s flags, `recon.audit_depth`'s
+    /// Checks the options a user sets (`recon audit`'s flags, `recon_rgbd.audit_depth`'s
     /// keywords); the error names the option.
     pub fn validate(&self) -> std::result::Result<(), recon_core::engine::OptionError> {
         use recon_core::engine::OptionError;

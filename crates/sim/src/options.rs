@@ -12,7 +12,7 @@ use recon_core::engine::{options_from_json, OptionError};
 use recon_core::geometry::PlaneFitOptions;
 use serde::{Deserialize, Serialize};
 
-/// The options of `recon scene` and Python's `recon.scene`. The field docs are the CLI's
+/// The options of `recon scene` and Python's `recon_rgbd.scene`. The field docs are the CLI's
 /// `--help` text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]

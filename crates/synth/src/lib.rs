@@ -56,7 +56,7 @@ pub struct SynthOptions {
     pub sensor: SensorModel,
 }
 
-/// The defaults of `recon synth`'s flags and `recon.synth`'s keywords.
+/// The defaults of `recon synth`'s flags and `recon_rgbd.synth`'s keywords.
 impl Default for SynthOptions {
     fn default() -> Self {
         SynthOptions { scenes: 10, views: 1, seed: 0, width: 640, height: 480, parts: false, sensor: SensorModel::ideal() }

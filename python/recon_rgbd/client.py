@@ -1,9 +1,9 @@
-"""`recon.Client`: `Engine.reconstruct` against a `recon serve` over HTTP (docs/serve.md).
+"""`recon_rgbd.Client`: `Engine.reconstruct` against a `recon serve` over HTTP (docs/serve.md).
 
 A pipeline switches between in-process and remote by one line:
 
-    engine = recon.Engine()                              # in-process
-    engine = recon.Client("http://127.0.0.1:8080")       # remote, same calls
+    engine = recon_rgbd.Engine()                              # in-process
+    engine = recon_rgbd.Client("http://127.0.0.1:8080")       # remote, same calls
     for o in engine.reconstruct(rgb, depth, K, masks, seed=42):
         print(o.label, o.pose, o.scale)
 
@@ -129,7 +129,7 @@ def _multipart(parts):
 
 
 def _glb_mesh(data: bytes):
-    """`recon.Mesh` of the first primitive of a GLB recon wrote (positions, indices, COLOR_0)."""
+    """`recon_rgbd.Mesh` of the first primitive of a GLB recon wrote (positions, indices, COLOR_0)."""
     magic, _, _ = struct.unpack_from("<4sII", data, 0)
     if magic != b"glTF":
         raise ReconError("mesh.glb: not a GLB file")
@@ -156,7 +156,7 @@ def _glb_mesh(data: bytes):
 
 
 def _splat_gaussians(data: bytes):
-    """`recon.Gaussians` of a splat PLY recon wrote (17 float properties per Gaussian)."""
+    """`recon_rgbd.Gaussians` of a splat PLY recon wrote (17 float properties per Gaussian)."""
     end = data.index(b"end_header\n") + len(b"end_header\n")
     head = data[:end].decode().splitlines()
     n = int(next(l for l in head if l.startswith("element vertex")).split()[-1])
@@ -181,7 +181,7 @@ class Job:
         self._labels = labels or {}
 
     def __repr__(self):
-        return f"recon.Job({self.id})"
+        return f"recon_rgbd.Job({self.id})"
 
     def status(self) -> dict:
         """The job document: `status` (queued, running, done, failed, cancelled), `stage`,
@@ -195,7 +195,7 @@ class Job:
 
     def result(self, timeout: float | None = None, poll: float = 0.1, progress=None):
         """Waits for the job and returns its objects as `Engine.reconstruct` does; a failed
-        or cancelled job raises `recon.ReconError` with the server's message."""
+        or cancelled job raises `recon_rgbd.ReconError` with the server's message."""
         t0 = time.monotonic()
         while True:
             doc = self.status()
@@ -211,7 +211,7 @@ class Job:
 class Client:
     """A `recon serve` at `url` (`http://host:port`), with `token` for its bearer
     authentication. `reconstruct` takes `Engine.reconstruct`'s arguments and returns the
-    same `recon.Object`s; `timeout` bounds each HTTP exchange (seconds)."""
+    same `recon_rgbd.Object`s; `timeout` bounds each HTTP exchange (seconds)."""
 
     def __init__(self, url: str, token: str | None = None, timeout: float = 3600.0):
         self.url = url.rstrip("/")
@@ -219,7 +219,7 @@ class Client:
         self.timeout = timeout
 
     def __repr__(self):
-        return f"recon.Client({self.url})"
+        return f"recon_rgbd.Client({self.url})"
 
     # --- HTTP -------------------------------------------------------------------------
 

@@ -2,7 +2,7 @@
 
 `reconstruct_dataset` runs `recon infer` on every frame of a dataset with Ray Data: the
 frame list becomes a dataset, and `map_batches` hands frames to a pool of actors, each
-holding one loaded `recon.Engine`. Every frame gets its own output folder below `out`,
+holding one loaded `recon_rgbd.Engine`. Every frame gets its own output folder below `out`,
 written exactly as `recon infer --out <out>/<frame>` writes it, and a Parquet results
 table (`<out>/results.parquet`) holds one row per object (or per failed frame). Finished
 frames' rows are also kept per frame (`<out>/results.parts/`), so a job that dies before
@@ -328,7 +328,7 @@ def reconstruct_dataset(
 ) -> Dict[str, Any]:
     """Reconstruct every frame of `source` on the connected Ray cluster (`ray.init()` is
     called with defaults when none is). See the module docs; `infer_options` are those of
-    `Engine.reconstruct_files`: `objects` and the per-frame options (`recon.infer_defaults()`:
+    `Engine.reconstruct_files`: `objects` and the per-frame options (`recon_rgbd.infer_defaults()`:
     names and defaults, the CLI's). Returns counts, the results table path and seconds."""
     import ray
 
@@ -395,10 +395,10 @@ def synth(
     scenes_per_task: Optional[int] = None,
     **options: Any,
 ) -> Dict[str, Any]:
-    """`recon synth` split over Ray tasks by scene (`options`: `recon.synth`'s keywords,
+    """`recon synth` split over Ray tasks by scene (`options`: `recon_rgbd.synth`'s keywords,
     scenes, views, seed, sensor, width, height, parts, with the library's defaults). Scene i
     is generated from (seed, i) alone and object ids come from the whole dataset's plan, so
-    the result is byte-identical to `recon.synth(out, **options)`. Returns the summary."""
+    the result is byte-identical to `recon_rgbd.synth(out, **options)`. Returns the summary."""
     import ray
 
     if num_workers < 1:
@@ -417,7 +417,7 @@ def synth(
 
     @ray.remote(num_cpus=1)
     def shard(start: int, end: int) -> Dict[str, Any]:
-        from recon import _recon as r
+        from recon_rgbd import _recon as r
 
         return r.synth_shard(str(staging), start, end, first_ids, **opts)
 

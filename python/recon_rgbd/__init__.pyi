@@ -1,4 +1,4 @@
-"""recon: RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
+"""recon_rgbd (distribution `recon-rgbd`): RGB-D frames + object masks -> posed meshes, 3D Gaussians and metric poses."""
 
 from os import PathLike
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
@@ -25,6 +25,12 @@ class WeightsError(ReconError):
 
 class ConfigError(ReconError):
     """An option or a configuration field is missing or out of range."""
+
+class DefaultModelWarning(UserWarning):
+    """Given once per process by the first `Engine()` without `weights`: the embedded
+    recgen-nano (trained on recon's synthetic scenes only) answers, not RecGen's released
+    weights (`Engine.from_pretrained("TRI-ML/RecGen")` after `python -m recon_rgbd weights
+    fetch recgen`)."""
 
 class Mesh:
     """A mesh in the camera frame of view 1 (OpenCV: x right, y down, z forward), metres."""
@@ -115,7 +121,7 @@ class Object:
     """The anchor view's H×W×3 image (shared by the frame's objects)."""
     intrinsics: Optional[npt.NDArray[np.float64]]
     """The anchor view's 3×3 K.
-    The RecGen fields above are None for objects of a `recon.Client` answer."""
+    The RecGen fields above are None for objects of a `recon_rgbd.Client` answer."""
     posthoc_color: Optional[Dict[str, Any]]
     """The colour calibration (`posthoc_color=`): "variant", "transform" (None when gated
     out), "stats" (overlap_px, iou, reason or l1_before/l1_after), "applied_to"; as
@@ -148,6 +154,10 @@ class Engine:
     """
 
     random_weights: bool
+    model: str
+    """Where the model comes from (`Default` = the embedded recgen-nano, `Dir`, `Manifest`
+    with the `hf:` or manifest name, `Random`); each object's `details["run"]` names the
+    architecture (e.g. `recgen-nano`) and the weights files."""
     def __init__(
         self,
         weights: Optional[_Path] = None,
@@ -156,10 +166,25 @@ class Engine:
         threads: Optional[int] = None,
         seed: int = 42,
     ) -> None: ...
+    @classmethod
+    def from_pretrained(
+        cls,
+        repo: str,
+        revision: Optional[str] = None,
+        *,
+        config: Optional[_Path] = None,
+        dtype: str = "auto",
+        threads: Optional[int] = None,
+    ) -> "Engine":
+        """RecGen's released weights from a Hugging Face repository (e.g. "TRI-ML/RecGen"):
+        `Engine(weights="hf:REPO[@REVISION]")`, read from the Hugging Face cache that
+        `python -m recon_rgbd weights fetch recgen` fills (HF_HOME / HF_HUB_CACHE;
+        HF_HUB_OFFLINE honoured). `revision`: a commit, branch or tag (default: the
+        manifest's pinned commit for TRI-ML/RecGen, else `main`)."""
     def reconstruct(
         self,
-        rgb: npt.NDArray[np.uint8],
-        depth: npt.NDArray[Any],
+        rgb: Any,
+        depth: Any,
         K: npt.ArrayLike,
         masks: Union[npt.NDArray[np.integer], Sequence[npt.NDArray[np.bool_]]],
         *,
@@ -195,6 +220,9 @@ class Engine:
         rgb: H×W×3 uint8. depth: H×W uint16 (× depth_scale metres, default 0.001) or
         float32/float64 metres (0 or NaN = no reading). K: 3×3 intrinsics. masks: an H×W
         instance-id image (0 = background) or a list of H×W boolean masks.
+        Arrays of any layout, PIL images, torch CPU tensors and DLPack producers are read, in
+        dtypes that convert without loss (integer colour in 0..255, float colour in [0, 1],
+        float16 depth, other integer depth with depth_scale); others raise InputError.
         view2: {"rgb", "depth", "K", "masks", "T_c1_c2"[, "depth_scale"]} for two-view
         conditioning; T_c1_c2 maps camera 2 to camera 1 (x1 = R·x2 + t, metres).
         views: more views besides the anchor, each such a dict with "T_c1_ci" (camera i to
@@ -428,6 +456,12 @@ def audit_depth(
     """`recon audit depth`: measured vs simulated depth; returns the report (and writes the
     CLI's files when `out` is given)."""
 
+def info() -> Dict[str, Any]:
+    """This build and the machine it runs on: `version`, `commit` (git commit the extension
+    was built from, or None), `features`, `profile` ("release" or "dev"), `target`, `cpu`,
+    `isa` (the instruction set recon's kernels use, as `recon bench`'s machine line says),
+    `bf16_isa`, `supported_isas`, `threads`, `allocator`, `default_model`."""
+
 def keep_freed_memory() -> bool:
     """Keep large freed buffers in the process heap for reuse (glibc's thresholds), for
     every library in the process. recon's own large buffers are already reused by size
@@ -459,7 +493,7 @@ class Job:
 class Client:
     """`Engine.reconstruct` on a `recon serve` at `url` over HTTP (docs/serve.md): the same
     arguments, the same objects, so a pipeline switches by one line
-    (`engine = recon.Client(url)` instead of `recon.Engine()`). Pure Python (urllib).
+    (`engine = recon_rgbd.Client(url)` instead of `recon_rgbd.Engine()`). Pure Python (urllib).
 
     The objects are built from the job's files: poses, scale, score, spread and meshes
     (vertices, faces, colours) exactly as the engine's; `Mesh.attributes[:, 3:]` (the
