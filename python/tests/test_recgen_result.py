@@ -95,3 +95,31 @@ def test_preprocessing_keywords_are_checked_and_used(synth_ds, engine):
     wide = run(mask_erosion_enabled=False)
     points = lambda o: o.details["views"][0]["observed_points"]  # noqa: E731
     assert set(base) <= set(wide) and all(points(wide[k]) > points(o) for k, o in base.items())
+
+
+def test_posthoc_color_is_recorded_applied_and_saved(synth_ds, engine, tmp_path):
+    """§5: `posthoc_color=` calibrates the Gaussians' colours against the photo, records
+    upstream's fields on the object, and `save` writes them as posthoc_color.json."""
+    _, fr, masks = frame_and_masks(synth_ds)
+    run = lambda **kw: {o.label: o for o in engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], masks, **INFER, **kw)}  # noqa: E731
+    with pytest.raises(recon_rgbd.ConfigError, match="posthoc_color"):
+        run(posthoc_color="gama")
+    plain, cal = run(), run(posthoc_color="gamma_affine")
+    assert set(cal) == set(plain) and plain and all(o.posthoc_color is None for o in plain.values())
+    for k, o in cal.items():
+        r = o.posthoc_color
+        assert r["variant"] == "gamma_affine" and set(r) == {"variant", "transform", "stats", "applied_to"}, r
+        # Geometry is untouched; colours change only when a transform passed the gates.
+        assert np.array_equal(o.gaussians.means, plain[k].gaussians.means)
+        if r["transform"] is None:
+            assert r["stats"]["reason"] and r["applied_to"] == []
+            assert np.array_equal(o.gaussians.dc, plain[k].gaussians.dc)
+        else:
+            assert r["transform"]["type"] == "gamma_affine" and "gaussians" in r["applied_to"]
+            assert r["stats"]["l1_after"] < r["stats"]["l1_before"]
+            assert not np.array_equal(o.gaussians.dc, plain[k].gaussians.dc)
+        o.save(tmp_path / k)
+        assert json.loads((tmp_path / k / "posthoc_color.json").read_text()) == r
+        # Without the calibration, save writes no such file.
+        plain[k].save(tmp_path / f"{k}-plain")
+        assert not (tmp_path / f"{k}-plain" / "posthoc_color.json").exists()
