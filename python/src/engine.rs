@@ -406,8 +406,6 @@ impl Engine {
         let dtype = parse_enum::<Dtype>("dtype", dtype)?;
         let w = weights.as_ref().map(|p| p.to_string_lossy().into_owned());
         let source = ModelSource::parse(w.as_deref(), config.as_deref(), seed).map_err(weights_to_py)?;
-        // Outside a checkout (an installed wheel), the architecture files the wheel carries.
-        let source = crate::models::with_embedded_architecture(source).map_err(weights_to_py)?;
         let pool = match threads {
             Some(0) => return Err(crate::errors::config("threads", "must be at least 1")),
             Some(n) => Some(Arc::new(

@@ -44,7 +44,6 @@ enum Cmd {
 /// 2 for a usage error. The GIL is released while the command runs.
 #[pyfunction]
 pub fn cli_main(py: Python<'_>, argv: Vec<String>) -> i32 {
-    let argv = with_embedded_config(argv);
     let cli = match Cli::try_parse_from(&argv) {
         Ok(c) => c,
         Err(e) => {
@@ -72,31 +71,6 @@ pub fn cli_main(py: Python<'_>, argv: Vec<String>) -> i32 {
             1
         }
     }
-}
-
-/// `--weights random`, a manifest name or `hf:…` without `--config` read their architecture
-/// from `models/` in the working folder, which a wheel's user does not have: there `--config`
-/// names the copy the extension carries (as `Engine(weights=…)` does, `crate::models`).
-/// Anything the CLI would refuse is left for clap to report.
-fn with_embedded_config(mut argv: Vec<String>) -> Vec<String> {
-    if !matches!(argv.get(1).map(String::as_str), Some("infer" | "serve" | "eval"))
-        || argv.iter().any(|a| a == "--config" || a.starts_with("--config="))
-    {
-        return argv;
-    }
-    let weights = argv.iter().enumerate().find_map(|(i, a)| match a.strip_prefix("--weights=") {
-        Some(w) => Some(w.to_string()),
-        None => (a == "--weights").then(|| argv.get(i + 1).cloned()).flatten(),
-    });
-    let Some(w) = weights else { return argv };
-    let Ok(source) = recon::engine::ModelSource::parse(Some(&w), None, 0) else { return argv };
-    if let Ok(recon::engine::ModelSource::Random { config: Some(c), .. } | recon::engine::ModelSource::Manifest { config: Some(c), .. }) =
-        crate::models::with_embedded_architecture(source)
-    {
-        argv.push("--config".into());
-        argv.push(c.to_string_lossy().into_owned());
-    }
-    argv
 }
 
 /// This build and the machine it runs on: version, git commit (when built from a git

@@ -16,7 +16,6 @@ mod convert;
 mod engine;
 mod entry;
 mod errors;
-mod models;
 mod tools;
 
 /// The `recon` binary's own subcommand files, compiled in for `python -m recon_rgbd`
