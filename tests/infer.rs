@@ -389,8 +389,11 @@ fn cli_rejects_bad_two_view_and_weights_arguments() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--rel-pose") && err.contains("16"), "{err}");
-    // A manifest name with an empty Hugging Face cache.
-    let o = recon_with_env(&[&base[..], &["--weights", "recgen"]].concat(), &[("HF_HOME", &tmp)]);
+    // A manifest name with an empty Hugging Face cache, offline (online it would download).
+    let o = recon_with_env(
+        &[&base[..], &["--weights", "recgen"]].concat(),
+        &[("HF_HOME", tmp.as_path()), ("HF_HUB_OFFLINE", std::path::Path::new("1"))],
+    );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("recon weights fetch --manifest recgen") && err.contains("ss_flow"), "{err}");

@@ -71,6 +71,27 @@ fn random_init_is_labelled_deterministic_and_valid() {
     assert_eq!(recon::util::max_abs_diff(&a, &b).unwrap(), 0.0);
 }
 
+/// `recon weights init --format pt`: the same tensors as a torch archive (the released
+/// denoisers' format), labelled by an extra record; the plain `write_pt` is not labelled.
+#[test]
+fn random_init_as_torch_archive() {
+    let d = tmp("init-pt");
+    let cfg = root().join("models/dinov2_tiny.json");
+    let p = recon::weights::write_random_init_as(&cfg, &d, 3, recon::weights::InitFormat::Pt).unwrap();
+    assert_eq!(p, d.join("dinov2_tiny.pt"));
+    assert!(is_random_init(&p).unwrap());
+    let (sp, st) = make_init(&tmp("init-pt-st"), 3);
+    let (_, specs) = tiny_cfg();
+    let ck = Checkpoint::open(&p, None).unwrap();
+    assert_eq!(validate_checkpoint(&ck, &specs, false).unwrap().matched, specs.len());
+    let a = forward(ck.into_var_builder(DType::F32, &Device::Cpu));
+    let b = forward(Checkpoint::open(&sp, None).unwrap().into_var_builder(DType::F32, &Device::Cpu));
+    assert_eq!(recon::util::max_abs_diff(&a, &b).unwrap(), 0.0, "same seed, same weights in either format");
+    let plain = d.join("plain.pt");
+    recon::weights::write_pt(&st.into_iter().collect(), &plain).unwrap();
+    assert!(!is_random_init(&plain).unwrap());
+}
+
 #[test]
 fn missing_extra_and_wrong_shape_are_named() {
     let d = tmp("damage");

@@ -172,15 +172,20 @@ class Engine:
         repo: str,
         revision: Optional[str] = None,
         *,
+        manifest: Optional[_Path] = None,
         config: Optional[_Path] = None,
         dtype: str = "auto",
         threads: Optional[int] = None,
     ) -> "Engine":
         """RecGen's released weights from a Hugging Face repository (e.g. "TRI-ML/RecGen"):
-        `Engine(weights="hf:REPO[@REVISION]")`, read from the Hugging Face cache that
-        `python -m recon_rgbd weights fetch recgen` fills (HF_HOME / HF_HUB_CACHE;
-        HF_HUB_OFFLINE honoured). `revision`: a commit, branch or tag (default: the
-        manifest's pinned commit for TRI-ML/RecGen, else `main`)."""
+        `Engine(weights="hf:REPO[@REVISION]")`. Files the Hugging Face cache (HF_HUB_CACHE,
+        else HF_HOME/hub) lacks are downloaded into it through hf-hub with a progress bar,
+        unless HF_HUB_OFFLINE is set; HF_TOKEN for gated repos. Every file's SHA-256 is
+        checked against the manifest's pins. `revision`: a commit, branch or tag (default:
+        the manifest's pinned commit for TRI-ML/RecGen, else `main`). `manifest`: a manifest
+        file for this repo (`python -m recon_rgbd weights manifest recgen --pin DIR` writes
+        one for a fine-tune or a mirror) whose pins and tensor lists are used instead of
+        recon's own."""
     def reconstruct(
         self,
         rgb: Any,

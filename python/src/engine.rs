@@ -5,7 +5,7 @@
 //! the engine's own rayon pool.
 
 use crate::convert::{from_python, rows, to_python};
-use crate::errors::{config, input, weights_to_py, ConfigError, IntoPy};
+use crate::errors::{config, input, weights_to_py, ConfigError, IntoPy, WeightsError};
 use clap::ValueEnum;
 use numpy::{PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -428,17 +428,22 @@ impl Engine {
     }
 
     /// RecGen's released weights from a Hugging Face repository: `weights="hf:REPO[@REVISION]"`
-    /// (`recon infer --weights hf:REPO[@REV]`), read from the Hugging Face cache that
-    /// `python -m recon_rgbd weights fetch` fills (HF_HOME / HF_HUB_CACHE; HF_HUB_OFFLINE
-    /// honoured). `revision`: a commit, branch or tag (default: the manifest's pinned commit
-    /// for TRI-ML/RecGen, else `main`).
+    /// (`recon infer --weights hf:REPO[@REV]`). Files the Hugging Face cache (HF_HUB_CACHE, else
+    /// HF_HOME/hub) lacks are downloaded into it through hf-hub, with a progress bar, unless
+    /// HF_HUB_OFFLINE is set; HF_TOKEN for gated repos. `revision`: a commit, branch or tag
+    /// (default: the manifest's pinned commit for TRI-ML/RecGen, else `main`). `manifest`: a
+    /// manifest file for this repo (what `python -m recon_rgbd weights manifest recgen --pin`
+    /// writes for a fine-tune or a mirror) whose SHA-256 pins and tensor lists are checked
+    /// instead of the ones recon carries.
     #[classmethod]
-    #[pyo3(signature = (repo, revision=None, *, config=None, dtype="auto", threads=None))]
+    #[pyo3(signature = (repo, revision=None, *, manifest=None, config=None, dtype="auto", threads=None))]
+    #[allow(clippy::too_many_arguments)]
     fn from_pretrained(
         _cls: &Bound<'_, pyo3::types::PyType>,
         py: Python<'_>,
         repo: &str,
         revision: Option<&str>,
+        manifest: Option<PathBuf>,
         config: Option<PathBuf>,
         dtype: &str,
         threads: Option<usize>,
@@ -448,7 +453,27 @@ impl Engine {
             Some(r) => format!("hf:{repo}@{r}"),
             None => format!("hf:{repo}"),
         };
-        Engine::new(py, Some(PathBuf::from(spec)), config, dtype, threads, 42)
+        // The repo and revision are checked even when a manifest file names the files.
+        recon::engine::parse_hf(&spec["hf:".len()..]).map_err(weights_to_py)?;
+        let weights = match manifest {
+            None => spec,
+            Some(path) => {
+                let file = path.display().to_string();
+                let m = recon::weights::Manifest::load(&file).map_err(weights_to_py)?;
+                let bad = |what: String| WeightsError::new_err(format!("from_pretrained: manifest {file}: {what}"));
+                if !m.repo.as_deref().is_some_and(|r| r.eq_ignore_ascii_case(repo)) {
+                    return Err(bad(format!("is for repo `{}`, not `{repo}`", m.repo.as_deref().unwrap_or("(none)"))));
+                }
+                if let Some(r) = revision.filter(|r| Some(*r) != m.revision.as_deref()) {
+                    return Err(bad(format!(
+                        "pins revision `{}`, not `{r}`; pass revision=None, or a manifest pinned at `{r}`",
+                        m.revision()
+                    )));
+                }
+                file
+            }
+        };
+        Engine::new(py, Some(PathBuf::from(weights)), config, dtype, threads, 42)
     }
 
     /// Where this engine's model comes from (`ModelSource`, as `repr` shows it): `Default` is

@@ -36,7 +36,8 @@ pub fn to_py(e: recon::Error) -> PyErr {
 pub fn weights_to_py(e: recon::Error) -> PyErr {
     use recon::Error as E;
     match e {
-        E::Io { .. } | E::Json { .. } | E::Input { .. } => WeightsError::new_err(e.to_string()),
+        // (Msg: a failed download, or a release file that does not parse.)
+        E::Io { .. } | E::Json { .. } | E::Input { .. } | E::Msg(_) => WeightsError::new_err(e.to_string()),
         other => to_py(other),
     }
 }

@@ -18,6 +18,7 @@ from conftest import REPO, assert_same_output, cli_flags, cli_infer
 
 DOC = REPO / "docs/python.md"
 QUICKSTART = REPO / "python/examples/quickstart.py"
+README_EXAMPLE = REPO / "python/examples/readme.py"
 TINY = REPO / "models/recgen-tiny.json"
 
 
@@ -110,6 +111,27 @@ def test_docs_example_prints_what_the_docs_say(tmp_path):
     assert got_scene == doc_scene and got_last == doc_last == "urdf/scene.urdf at rest: True", r.stdout
     assert "DefaultModelWarning" in r.stderr and r.stderr.count("no weights given") == 1, r.stderr
     assert (tmp_path / "object0.glb").stat().st_size > 0 and (tmp_path / "sample_sim/urdf/scene.urdf").is_file()
+
+
+def test_readme_example_runs_as_printed(tmp_path):
+    """README.md's Python example (python/examples/readme.py, verbatim), run as a user runs it
+    from a folder holding the sample: one line per masked object, at the place and size the
+    docs' example prints for the same seed, and one GLB each."""
+    code = indented_blocks((REPO / "README.md").read_text(), "## From Python")[0]
+    assert README_EXAMPLE.read_text().endswith("\n\n" + code + "\n")
+    (tmp_path / "data").symlink_to(REPO / "data")
+    r = subprocess.run([sys.executable, str(README_EXAMPLE)], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    line = re.compile(r"^(mask \d+) at \[\s*(\S+)\s+(\S+)\s+(\S+)\s*\] m; size (\S+) m; (\d+) faces$")
+    got = [line.match(l) for l in r.stdout.strip().split("\n")]
+    assert len(got) == 3 and all(got), r.stdout
+    doc, _, _ = example_summary(indented_blocks(DOC.read_text(), "## Example")[1])
+    for g, d in zip(got, doc):
+        assert g[1] == d[0], (g[0], d)
+        assert [float(x) for x in g.groups()[1:5]] == pytest.approx([round(float(x), 3) for x in d[1:5]], abs=1.5e-3), (g[0], d)
+        assert int(g[6]) > 1000, g[0]
+    assert sorted(p.name for p in tmp_path.glob("*.glb")) == ["object0.glb", "object1.glb", "object2.glb"]
+    assert all(p.stat().st_size > 10_000 for p in tmp_path.glob("*.glb"))
 
 
 def test_default_model_warns_once_per_process(tmp_path):

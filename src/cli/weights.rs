@@ -57,6 +57,10 @@ pub enum WeightsCmd {
         out: PathBuf,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// `pt`: a torch zip archive of the state dict, as `torch.save` writes it (the format of
+        /// RecGen's released denoisers), labelled by an extra archive record torch does not read
+        #[arg(long, value_enum, default_value = "safetensors")]
+        format: recon::weights::InitFormat,
     },
     /// Print the tensor names and shapes a module config expects (JSON).
     Expected {
@@ -120,8 +124,8 @@ pub fn run(cmd: WeightsCmd) -> anyhow::Result<bool> {
             }
             Ok(true)
         }
-        WeightsCmd::Init { config, out, seed } => {
-            let p = recon::weights::write_random_init(&config, &out, seed)?;
+        WeightsCmd::Init { config, out, seed, format } => {
+            let p = recon::weights::write_random_init_as(&config, &out, seed, format)?;
             println!("wrote {} (RANDOM weights, recon.random_init=true, seed {seed})", p.display());
             Ok(true)
         }

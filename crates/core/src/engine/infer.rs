@@ -749,7 +749,7 @@ impl Engine {
                 let config = source.architecture()?;
                 let cfg = crate::model::config::RecGenConfig::load(&config)?;
                 let manifest = crate::engine::source::manifest_of(name)?;
-                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache)?;
+                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache, true)?;
                 Pipeline::load(&config, Weights::Files(&files), all, options)?
             }
             ModelSource::Random { seed, .. } => Pipeline::load(&source.architecture()?, Weights::Random(*seed), all, options)?,

@@ -20,16 +20,28 @@ use std::path::{Path, PathBuf};
 pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<Vec<PathBuf>> {
     let files: Vec<&ManifestFile> = m.files.iter().filter(|f| with_optional || !f.optional).collect();
     let cache = cache.map(Path::to_path_buf).unwrap_or_else(default_hf_cache);
-    let offline = crate::settings::current().hf_offline;
-    let out = match m.source.as_str() {
-        "huggingface" => fetch_hf(m, &files, &cache, offline)?,
+    let out = get_files(m, &files, &cache, crate::settings::current().hf_offline)?;
+    for (f, p) in files.iter().zip(&out) {
+        if let Some(pin) = &f.sha256 {
+            hf_cache::check_sha256(p, pin)?;
+        }
+    }
+    Ok(out)
+}
+
+/// `files` of `m` in `cache`: those there as they are, the others downloaded
+/// (never under `offline`: then the first one missing is the error). Pins are
+/// the caller's to check.
+pub(crate) fn get_files(m: &Manifest, files: &[&ManifestFile], cache: &Path, offline: bool) -> Result<Vec<PathBuf>> {
+    match m.source.as_str() {
+        "huggingface" => fetch_hf(m, files, cache, offline),
         "url" => {
             let base = cache.join("recon-url").join(&m.name);
             std::fs::create_dir_all(&base).map_err(|e| Error::io(&base, e))?;
             let mut out = Vec::new();
             for f in files {
                 let url = f.url.as_ref().ok_or_else(|| Error::config(&m.name, "url", format!("file `{}` has no url", f.path)))?;
-                let dest = m.expected_path(&cache, f);
+                let dest = m.expected_path(cache, f);
                 if !dest.exists() {
                     if offline {
                         return Err(Error::input(
@@ -51,16 +63,10 @@ pub fn fetch(m: &Manifest, cache: Option<&Path>, with_optional: bool) -> Result<
                 }
                 out.push(dest);
             }
-            out
+            Ok(out)
         }
-        other => return Err(Error::config(&m.name, "source", format!("unknown source `{other}`"))),
-    };
-    for (f, p) in m.files.iter().filter(|f| with_optional || !f.optional).zip(&out) {
-        if let Some(pin) = &f.sha256 {
-            hf_cache::check_sha256(p, pin)?;
-        }
+        other => Err(Error::config(&m.name, "source", format!("unknown source `{other}`"))),
     }
-    Ok(out)
 }
 
 /// The Hugging Face files of `m`: those in the cache as they are, the others
@@ -117,11 +123,35 @@ fn download_hf(api: &Client, repo: &str, rev: &str, path: &str) -> Result<PathBu
     use hf_hub::{Repo, RepoType};
     let r = api.repo(Repo::with_revision(repo.to_string(), RepoType::Model, rev.to_string()));
     r.download(path).map_err(|e| {
+        let status = match &e {
+            hf_hub::api::sync::ApiError::RequestError(r) => match r.as_ref() {
+                ureq::Error::Status(code, _) => Some(*code),
+                _ => None,
+            },
+            _ => None,
+        };
         Error::msg(format!(
-            "cannot download `{path}` from Hugging Face repo `{repo}` (revision {rev}): {e}. \
-             Check network access (HF_ENDPOINT, proxy) and that the file exists; gated repos need HF_TOKEN"
+            "cannot download `{path}` from Hugging Face repo `{repo}` (revision {rev}): {e}. {}",
+            download_advice(repo, status)
         ))
     })
+}
+
+/// What to do about a failed download, by the HTTP status the hub answered.
+#[cfg_attr(not(feature = "hub"), allow(dead_code))]
+fn download_advice(repo: &str, status: Option<u16>) -> String {
+    let token = crate::settings::current().hf_token.is_some();
+    match status {
+        Some(401) if !token => format!(
+            "The hub wants a token: `{repo}` is gated or private. Set HF_TOKEN (or run `huggingface-cli login`) with an account that was granted access"
+        ),
+        Some(401 | 403) => format!(
+            "The hub refused the token: `{repo}` is gated or private and this account has no access yet. Request access on the repo's page, then retry"
+        ),
+        Some(404) => format!("The hub has no such file: check the repo name `{repo}`, the revision and the path (a manifest of another release?)"),
+        Some(code) => format!("The hub answered HTTP {code}; retry later, or check HF_ENDPOINT and the proxy"),
+        None => "Check network access (HF_ENDPOINT, proxy) and that the file exists; gated repos need HF_TOKEN".to_string(),
+    }
 }
 
 #[cfg(not(feature = "hub"))]
@@ -146,9 +176,22 @@ pub fn default_hf_cache() -> PathBuf {
 fn download_url(url: &str, dest: &Path) -> Result<()> {
     let tmp = dest.with_extension("part");
     let resp = ureq::get(url).call().map_err(|e| Error::msg(format!("request to {url} failed: {e}")))?;
-    let mut reader = resp.into_reader();
+    let len = resp.header("content-length").and_then(|l| l.parse::<u64>().ok());
+    // The same bar hf-hub draws for hub files (hidden when stderr is not a terminal).
+    let bar = indicatif::ProgressBar::new(len.unwrap_or(0));
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("{msg} [{elapsed_precise}] [{wide_bar}] {bytes}/{total_bytes} {bytes_per_sec} ({eta})")
+    {
+        bar.set_style(style);
+    }
+    bar.set_message(dest.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default());
+    let mut reader = bar.wrap_read(resp.into_reader());
     let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    std::io::copy(&mut reader, &mut f).map_err(|e| Error::msg(format!("download of {url} interrupted: {e}")))?;
+    let n = std::io::copy(&mut reader, &mut f).map_err(|e| Error::msg(format!("download of {url} interrupted: {e}")))?;
+    bar.finish_and_clear();
+    if len.is_some_and(|l| l != n) {
+        return Err(Error::msg(format!("download of {url} ended after {n} of {} bytes", len.unwrap_or(0))));
+    }
     std::fs::rename(&tmp, dest).map_err(|e| Error::io(dest, e))?;
     Ok(())
 }
@@ -156,4 +199,17 @@ fn download_url(url: &str, dest: &Path) -> Result<()> {
 #[cfg(not(feature = "hub"))]
 fn download_url(url: &str, _: &Path) -> Result<()> {
     Err(Error::msg(format!("this build of recon-core has no `hub` feature, so it cannot download {url}")))
+}
+
+#[cfg(test)]
+mod tests {
+    /// The hub's answer decides the advice: a token for 401, access for 403, the name for 404.
+    #[test]
+    fn download_advice_by_status() {
+        let a = |s| super::download_advice("TRI-ML/RecGen", s);
+        assert!(a(Some(401)).contains("Set HF_TOKEN") && a(Some(401)).contains("gated or private"), "{}", a(Some(401)));
+        assert!(a(Some(403)).contains("Request access"), "{}", a(Some(403)));
+        assert!(a(Some(404)).contains("check the repo name `TRI-ML/RecGen`"), "{}", a(Some(404)));
+        assert!(a(Some(503)).contains("HTTP 503") && a(None).contains("network"));
+    }
 }

@@ -1,6 +1,9 @@
 //! `recon weights init`: random-initialised weights for a module config,
 //! written as safetensors with metadata `recon.random_init = "true"` so they
-//! can never be mistaken for trained weights.
+//! can never be mistaken for trained weights. With [`InitFormat::Pt`] they are
+//! written as `torch.save` writes a state dict (the format of RecGen's released
+//! denoisers and torch.hub's DINOv2), for building a fake release; the label is
+//! then an extra archive record, [`PT_RANDOM_INIT_RECORD`], that torch ignores.
 //!
 //! Given an architecture file (`models/recgen-*.json`, recognised by its
 //! `ss_flow` section) instead of a module config, every module is written as
@@ -18,13 +21,52 @@ use std::path::{Path, PathBuf};
 /// Safetensors metadata key whose value `"true"` labels random-initialised weights.
 pub const RANDOM_INIT_KEY: &str = "recon.random_init";
 
+/// The record a random-initialised torch archive carries beside `archive/data.pkl`
+/// (its content is the safetensors metadata as JSON).
+pub const PT_RANDOM_INIT_RECORD: &str = "archive/recon_random_init.json";
+
+/// The file format of random-initialised weights.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum InitFormat {
+    /// `.safetensors` with the label in its metadata.
+    #[default]
+    Safetensors,
+    /// `.pt`, a torch zip archive of the state dict, as `torch.save` writes it.
+    Pt,
+}
+
+impl InitFormat {
+    fn extension(self) -> &'static str {
+        match self {
+            Self::Safetensors => "safetensors",
+            Self::Pt => "pt",
+        }
+    }
+
+    fn write(self, tensors: &BTreeMap<String, Tensor>, meta: &BTreeMap<String, String>, path: &Path) -> Result<()> {
+        match self {
+            Self::Safetensors => write_safetensors(tensors, meta, path),
+            Self::Pt => {
+                let label = serde_json::to_vec_pretty(meta).map_err(|e| Error::msg(e.to_string()))?;
+                crate::weights::pt::write_pt_with_records(tensors, &[(PT_RANDOM_INIT_RECORD, &label)], path)
+            }
+        }
+    }
+}
+
 /// Write `<out>/<config stem>.safetensors` and a copy of the config as
 /// `<out>/<config stem>.json`. Returns the weights path. For an architecture
 /// file see `write_random_architecture` (returns `out`).
 pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf> {
+    write_random_init_as(config, out, seed, InitFormat::Safetensors)
+}
+
+/// [`write_random_init`] in `format` (`<stem>.pt` for [`InitFormat::Pt`]).
+pub fn write_random_init_as(config: &Path, out: &Path, seed: u64, format: InitFormat) -> Result<PathBuf> {
     let v: serde_json::Value = crate::util::json::read_json(config)?;
     if v.get(ModuleKey::SsFlow.name()).is_some() && v.get("args").is_none() {
-        write_random_architecture(config, out, seed)?;
+        write_random_architecture_as(config, out, seed, format)?;
         return Ok(out.to_path_buf());
     }
     let cfg = ModuleConfig::read(config)?;
@@ -32,7 +74,7 @@ pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf
     let tensors = random_weights(&ModuleArgs::from_spec(&cfg, &file)?, seed, &file)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let stem = config.file_stem().and_then(|s| s.to_str()).unwrap_or("model");
-    let path = out.join(format!("{stem}.safetensors"));
+    let path = out.join(format!("{stem}.{}", format.extension()));
     let meta: BTreeMap<String, String> = [
         (RANDOM_INIT_KEY.to_string(), "true".to_string()),
         ("recon.seed".to_string(), seed.to_string()),
@@ -41,7 +83,7 @@ pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf
     ]
     .into_iter()
     .collect();
-    write_safetensors(&tensors, &meta, &path)?;
+    format.write(&tensors, &meta, &path)?;
     let cfg_out = out.join(format!("{stem}.json"));
     let text = serde_json::to_string_pretty(&cfg).map_err(|e| Error::msg(e.to_string()))?;
     std::fs::write(&cfg_out, text).map_err(|e| Error::io(&cfg_out, e))?;
@@ -54,6 +96,11 @@ pub fn write_random_init(config: &Path, out: &Path, seed: u64) -> Result<PathBuf
 /// architecture file copied under its own name, and its pose-stat files at
 /// the same relative paths. Returns the written weight files.
 pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result<Vec<PathBuf>> {
+    write_random_architecture_as(config, out, seed, InitFormat::Safetensors)
+}
+
+/// [`write_random_architecture`] in `format` (`<key>.pt` for [`InitFormat::Pt`]).
+pub fn write_random_architecture_as(config: &Path, out: &Path, seed: u64, format: InitFormat) -> Result<Vec<PathBuf>> {
     use crate::model::config::RecGenConfig;
     let arch = RecGenConfig::load(config)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
@@ -73,8 +120,8 @@ pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result
         .into_iter()
         .map(|(k, v)| (k.to_string(), v))
         .collect();
-        let path = out.join(format!("{key}.safetensors"));
-        write_safetensors(&tensors, &meta, &path)?;
+        let path = out.join(format!("{key}.{}", format.extension()));
+        format.write(&tensors, &meta, &path)?;
         written.push(path);
     }
     let name = config.file_name().ok_or_else(|| Error::input(config.display().to_string(), "not a file"))?;
@@ -94,8 +141,12 @@ pub fn write_random_architecture(config: &Path, out: &Path, seed: u64) -> Result
     Ok(written)
 }
 
-/// True when a safetensors file carries the random-init label (reads the header only).
+/// True when a safetensors file carries the random-init label (reads the header only),
+/// or a torch archive the [`PT_RANDOM_INIT_RECORD`] record.
 pub fn is_random_init(path: &Path) -> Result<bool> {
+    if path.extension().is_some_and(|e| e == "pt" || e == "pth") {
+        return crate::weights::pt::has_record(path, PT_RANDOM_INIT_RECORD);
+    }
     let h = super::load::read_safetensors_header(path)?;
     Ok(h.get("__metadata__").and_then(|m| m.get(RANDOM_INIT_KEY)).and_then(|x| x.as_str()) == Some("true"))
 }

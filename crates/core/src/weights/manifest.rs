@@ -330,8 +330,8 @@ pub struct ReadFile {
 }
 
 /// [`resolve_manifest`] for an embedded manifest's name or a manifest file.
-pub fn resolve_module_files(name_or_path: &str, config: &RecGenConfig, cache: &Path) -> Result<WeightFiles> {
-    resolve_manifest(&Manifest::load(name_or_path)?, name_or_path, config, cache)
+pub fn resolve_module_files(name_or_path: &str, config: &RecGenConfig, cache: &Path, download: bool) -> Result<WeightFiles> {
+    resolve_manifest(&Manifest::load(name_or_path)?, name_or_path, config, cache, download)
 }
 
 /// Everything a model needs from the files a manifest lists, as they lie in
@@ -343,12 +343,14 @@ pub fn resolve_module_files(name_or_path: &str, config: &RecGenConfig, cache: &P
 /// family ([`ModuleKind`]) to a weights file of the manifest, else of the
 /// manifests it `requires`, else of the other embedded ones. Every needed
 /// file (those checkpoints and the manifest's non-optional config files) must
-/// be in the cache (one error lists every missing file, with the fetch
+/// be in the cache, or, with `download` (what a load does unless
+/// `HF_HUB_OFFLINE` is set), be downloaded into it first as `recon weights
+/// fetch` would (else one error lists every missing file, with the fetch
 /// command; under `HF_HUB_OFFLINE` it says nothing is downloaded), match its
 /// SHA-256 pin ([`Error::ChecksumMismatch`]) and, for a checkpoint, its tensor
 /// list (names and shapes). The architecture is `config` with what the
 /// release's own files say put in (see [`release_architecture`]).
-pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, cache: &Path) -> Result<WeightFiles> {
+pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, cache: &Path, download: bool) -> Result<WeightFiles> {
     use rayon::prelude::*;
     let settings = crate::settings::current();
     let mut search = vec![primary.clone()];
@@ -381,6 +383,18 @@ pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, c
     let primary = &search[0];
     for f in primary.files.iter().filter(|f| !f.optional && !is_weights_file(f)) {
         need.push((primary, f, f.role.clone().unwrap_or_else(|| "config".into()), None));
+    }
+    // Online, what the cache lacks is downloaded first (hf-hub into the same cache, as
+    // `recon weights fetch` does; pins are checked below with the rest). A failed download
+    // is the error: it names the repo, the file and what to do.
+    if download && !settings.hf_offline && missing.is_empty() {
+        for m in &search {
+            let absent: Vec<&ManifestFile> =
+                need.iter().filter(|(n, f, ..)| std::ptr::eq(*n, m) && !m.expected_path(cache, f).is_file()).map(|(_, f, ..)| *f).collect();
+            if !absent.is_empty() {
+                crate::weights::fetch::get_files(m, &absent, cache, false)?;
+            }
+        }
     }
     // Missing files, by manifest, with where they were looked for said once.
     let mut fetch = vec![primary.name.clone()];

@@ -560,11 +560,24 @@ impl PtFile {
     }
 }
 
+/// True when the torch archive at `path` holds a record named `name`.
+pub fn has_record(path: &Path, name: &str) -> Result<bool> {
+    let z = open_archive(path)?;
+    let found = z.file_names().any(|n| n.is_ok_and(|n| n == name));
+    Ok(found)
+}
+
 /// Write `tensors` as a torch state dict (`{name: tensor}`) in the zip
 /// archive `torch.save` writes: pickle protocol 2 in `archive/data.pkl`, one
 /// uncompressed storage per tensor under `archive/data/`. `torch.load` and
 /// [`PtFile`] read it. f32, f16 and bf16 tensors.
 pub fn write_pt(tensors: &BTreeMap<String, Tensor>, path: &Path) -> Result<()> {
+    write_pt_with_records(tensors, &[], path)
+}
+
+/// [`write_pt`] with extra archive records (`name`, bytes), which `torch.load`
+/// does not read.
+pub fn write_pt_with_records(tensors: &BTreeMap<String, Tensor>, extra: &[(&str, &[u8])], path: &Path) -> Result<()> {
     use std::io::Write;
     fn unicode(out: &mut Vec<u8>, s: &str) {
         out.push(b'X');
@@ -633,6 +646,9 @@ pub fn write_pt(tensors: &BTreeMap<String, Tensor>, path: &Path) -> Result<()> {
         entry(&format!("archive/data/{key}"), bytes)?;
     }
     entry("archive/version", b"3\n")?;
+    for (name, bytes) in extra {
+        entry(name, bytes)?;
+    }
     z.finish().map_err(|e| zerr(&e))?;
     Ok(())
 }
