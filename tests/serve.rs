@@ -1055,7 +1055,8 @@ fn bad_views_are_400s_naming_part_and_field() {
     let leak = |b: &[u8]| -> &'static [u8] { Box::leak(b.to_vec().into_boxed_slice()) };
     let (rgb, depth, label, intr) = (leak(&s.rgb), leak(&s.depth), leak(&s.label), leak(&s.intrinsics));
     let identity: &'static [u8] = b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]";
-    let view = |k: usize, pose: &'static [u8]| -> Vec<(&'static str, Option<&'static str>, &'static [u8])> {
+    type Parts = Vec<(&'static str, Option<&'static str>, &'static [u8])>;
+    let view = |k: usize, pose: &'static [u8]| -> Parts {
         let n = |p: &str| -> &'static str { Box::leak(format!("{p}{k}").into_boxed_str()) };
         vec![
             (n("rgb"), Some("b.png"), rgb),
@@ -1065,7 +1066,7 @@ fn bad_views_are_400s_naming_part_and_field() {
             (n("T_c1_c"), None, pose),
         ]
     };
-    let request = |views: Vec<Vec<(&'static str, Option<&'static str>, &'static [u8])>>, drop: &[&str]| {
+    let request = |views: Vec<Parts>, drop: &[&str]| {
         let mut parts = tiny_parts(&s, FAST);
         parts.extend(views.into_iter().flatten().filter(|p| !drop.contains(&p.0)));
         parts
