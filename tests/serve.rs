@@ -958,8 +958,8 @@ fn binary_masks_npy_depth_k_and_a_second_view() {
 /// Three views over HTTP (the anchor and views 2 and 3: the sample frame again, moved by
 /// small rigid shifts) give the files `recon infer --view v2.json --view v3.json` writes
 /// with the same model and options, byte for byte (JSON: but for the timing fields); the
-/// two-view tiny model fuses (anchor, view i) pairs, and the answer lists each object's
-/// views as `recon infer --json` does.
+/// two-view tiny model fuses (anchor, view i) pairs, the answer lists each object's views
+/// as `recon infer --json` does, and an id in no view is skipped in each, as the CLI lists it.
 #[test]
 fn three_views_over_http_match_recon_infer() {
     let t = tmp("serve-views");
@@ -979,7 +979,7 @@ fn three_views_over_http_match_recon_infer() {
         ("depth", Some("000001-depth.png"), &s.depth),
         ("masks", Some("000001-label.png"), &s.label),
         ("intrinsics", Some("K.json"), &s.intrinsics),
-        ("objects", None, b"8"),
+        ("objects", None, b"8,99"),
         ("options", None, options),
     ];
     for (names, pose) in
@@ -998,7 +998,13 @@ fn three_views_over_http_match_recon_infer() {
     let job = a.json();
     let id = job["id"].as_str().unwrap().to_string();
     let o = &job["result"]["objects"][0];
-    assert_eq!((job["result"]["objects"].as_array().unwrap().len(), &o["status"]), (1, &serde_json::json!("ok")), "{job:#}");
+    assert_eq!(o["status"], "ok", "{job:#}");
+    // Id 99 is in no view: each view's mask skip is listed, as recon infer lists them.
+    let rest: Vec<(&str, &str, u64)> = job["result"]["objects"].as_array().unwrap()[1..]
+        .iter()
+        .map(|x| (x["status"].as_str().unwrap(), x["label"].as_str().unwrap(), x["id"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(rest, [("skipped", "id 99", 99), ("skipped", "view 2 id 99", 99), ("skipped", "view 3 id 99", 99)], "{job:#}");
     let views: Vec<u64> = o["views"].as_array().unwrap().iter().map(|v| v["view"].as_u64().unwrap()).collect();
     assert_eq!(views, [1, 2, 3], "{o:#}");
     assert!((1..=3).contains(&o["selection"]["view"].as_u64().unwrap()), "{o:#}");
@@ -1023,7 +1029,7 @@ fn three_views_over_http_match_recon_infer() {
     let out = t.join("data/jobs").join(&id).join("out");
     let o = Command::new(env!("CARGO_BIN_EXE_recon"))
         .args(["infer", "--rgbd", "000001-color.png", "--masks", "000001-label.png", "--depth", "000001-depth.png"])
-        .args(["--intrinsics", "K.json", "--objects", "8", "--view", "v2.json", "--view", "v3.json"])
+        .args(["--intrinsics", "K.json", "--objects", "8,99", "--view", "v2.json", "--view", "v3.json"])
         .args(model)
         .args(["--max-faces", "20000", "--slat-fusion", "multidiffusion"])
         .arg("--out")
@@ -1031,7 +1037,8 @@ fn three_views_over_http_match_recon_infer() {
         .current_dir(&t)
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Exit 3: some objects written, others not (id 99).
+    assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
     let cli: std::collections::BTreeMap<String, Vec<u8>> =
         recon_testkit_files(&out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
     assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
