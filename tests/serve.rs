@@ -955,6 +955,198 @@ fn binary_masks_npy_depth_k_and_a_second_view() {
     let _ = std::fs::remove_dir_all(&t);
 }
 
+/// Three views over HTTP (the anchor and views 2 and 3: the sample frame again, moved by
+/// small rigid shifts) give the files `recon infer --view v2.json --view v3.json` writes
+/// with the same model and options, byte for byte (JSON: but for the timing fields); the
+/// two-view tiny model fuses (anchor, view i) pairs, the answer lists each object's views
+/// as `recon infer --json` does, and an id in no view is skipped in each, as the CLI lists it.
+#[test]
+fn three_views_over_http_match_recon_infer() {
+    let t = tmp("serve-views");
+    let s = sample();
+    for (name, bytes) in
+        [("000001-color.png", &s.rgb), ("000001-depth.png", &s.depth), ("000001-label.png", &s.label), ("K.json", &s.intrinsics)]
+    {
+        std::fs::write(t.join(name), bytes).unwrap();
+    }
+    let config = repo().join("models/recgen-tiny.json");
+    let model = ["--weights", "random", "--config", config.to_str().unwrap(), "--steps", "1"];
+    let server = Server::start(&t.join("data"), &t, &model, &[]);
+    let (t2, t3) = ("[[1,0,0,0.03],[0,1,0,0],[0,0,1,0],[0,0,0,1]]", "0 1 0 0  -1 0 0 -0.04  0 0 1 0.01  0 0 0 1");
+    let options = br#"{"max_faces": 20000, "slat_fusion": "multidiffusion"}"#;
+    let mut parts: Vec<(&str, Option<&str>, &[u8])> = vec![
+        ("rgb", Some("000001-color.png"), &s.rgb),
+        ("depth", Some("000001-depth.png"), &s.depth),
+        ("masks", Some("000001-label.png"), &s.label),
+        ("intrinsics", Some("K.json"), &s.intrinsics),
+        ("objects", None, b"8,99"),
+        ("options", None, options),
+    ];
+    for (names, pose) in
+        [(["rgb2", "depth2", "masks2", "intrinsics2", "T_c1_c2"], t2), (["rgb3", "depth3", "masks3", "intrinsics3", "T_c1_c3"], t3)]
+    {
+        parts.extend([
+            (names[0], Some("000001-color.png"), &s.rgb[..]),
+            (names[1], Some("000001-depth.png"), &s.depth[..]),
+            (names[2], Some("000001-label.png"), &s.label[..]),
+            (names[3], Some("K.json"), &s.intrinsics[..]),
+            (names[4], None, pose.as_bytes()),
+        ]);
+    }
+    let a = post_parts(&server, "", &parts);
+    assert_eq!(a.status, 200, "{}\n{}", a.text(), server.logs());
+    let job = a.json();
+    let id = job["id"].as_str().unwrap().to_string();
+    let o = &job["result"]["objects"][0];
+    assert_eq!(o["status"], "ok", "{job:#}");
+    // Id 99 is in no view: each view's mask skip is listed, as recon infer lists them.
+    let rest: Vec<(&str, &str, u64)> = job["result"]["objects"].as_array().unwrap()[1..]
+        .iter()
+        .map(|x| (x["status"].as_str().unwrap(), x["label"].as_str().unwrap(), x["id"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(rest, [("skipped", "id 99", 99), ("skipped", "view 2 id 99", 99), ("skipped", "view 3 id 99", 99)], "{job:#}");
+    let views: Vec<u64> = o["views"].as_array().unwrap().iter().map(|v| v["view"].as_u64().unwrap()).collect();
+    assert_eq!(views, [1, 2, 3], "{o:#}");
+    assert!((1..=3).contains(&o["selection"]["view"].as_u64().unwrap()), "{o:#}");
+    let pose = get(&server.url(o["files"]["pose"].as_str().unwrap())).json();
+    // The answer's views are pose.json's (there f32 numbers are written widened to f64).
+    let views_of = |v: &serde_json::Value| -> Vec<(u64, String, String)> {
+        v.as_array().unwrap().iter().map(|x| (x["view"].as_u64().unwrap(), x["mask"].to_string(), x["frame"].to_string())).collect()
+    };
+    assert_eq!(views_of(&pose["views"]), views_of(&o["views"]));
+    assert_eq!(pose["run"]["fusion"], serde_json::json!({"pairs": 2, "ss": "multidiffusion", "slat": "multidiffusion"}), "{pose:#}");
+    let served = unzip(&get(&server.url(&format!("/v1/jobs/{id}/archive"))).body);
+    drop(server);
+
+    // recon infer with the same views as --view files, written where the server wrote.
+    for (name, pose) in [("v2.json", t2), ("v3.json", t3)] {
+        let nums: Vec<f64> =
+            pose.replace(['[', ']'], " ").split([',', ' ']).filter(|x| !x.is_empty()).map(|x| x.parse().unwrap()).collect();
+        let v = serde_json::json!({"rgb": "000001-color.png", "depth": "000001-depth.png", "masks": "000001-label.png",
+            "intrinsics": "K.json", "T_c1_ci": nums});
+        std::fs::write(t.join(name), v.to_string()).unwrap();
+    }
+    let out = t.join("data/jobs").join(&id).join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_recon"))
+        .args(["infer", "--rgbd", "000001-color.png", "--masks", "000001-label.png", "--depth", "000001-depth.png"])
+        .args(["--intrinsics", "K.json", "--objects", "8,99", "--view", "v2.json", "--view", "v3.json"])
+        .args(model)
+        .args(["--max-faces", "20000", "--slat-fusion", "multidiffusion"])
+        .arg("--out")
+        .arg(&out)
+        .current_dir(&t)
+        .output()
+        .unwrap();
+    // Exit 3: some objects written, others not (id 99).
+    assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
+    let cli: std::collections::BTreeMap<String, Vec<u8>> =
+        recon_testkit_files(&out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
+    assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
+    for (name, bytes) in &cli {
+        if name.ends_with(".json") {
+            assert_eq!(without_timings(bytes), without_timings(&served[name]), "{name}");
+        } else {
+            assert!(bytes == &served[name], "{name} differs from recon infer's");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&t);
+}
+
+/// Bad views besides the anchor: each a 400 naming the part and the field, refused
+/// before a job is queued.
+#[test]
+fn bad_views_are_400s_naming_part_and_field() {
+    let t = tmp("serve-bad-views");
+    let server = Server::tiny(&t.join("data"), &[]);
+    let s = sample();
+    let leak = |b: &[u8]| -> &'static [u8] { Box::leak(b.to_vec().into_boxed_slice()) };
+    let (rgb, depth, label, intr) = (leak(&s.rgb), leak(&s.depth), leak(&s.label), leak(&s.intrinsics));
+    let identity: &'static [u8] = b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]";
+    type Parts = Vec<(&'static str, Option<&'static str>, &'static [u8])>;
+    let view = |k: usize, pose: &'static [u8]| -> Parts {
+        let n = |p: &str| -> &'static str { Box::leak(format!("{p}{k}").into_boxed_str()) };
+        vec![
+            (n("rgb"), Some("b.png"), rgb),
+            (n("depth"), Some("b-depth.png"), depth),
+            (n("masks"), Some("b-label.png"), label),
+            (n("intrinsics"), None, intr),
+            (n("T_c1_c"), None, pose),
+        ]
+    };
+    let request = |views: Vec<Parts>, drop: &[&str]| {
+        let mut parts = tiny_parts(&s, FAST);
+        parts.extend(views.into_iter().flatten().filter(|p| !drop.contains(&p.0)));
+        parts
+    };
+    let check = |what: &str, parts: Vec<(&str, Option<&str>, &[u8])>, status: u16, part: &str, field: &str, msg: &str| {
+        let a = post_parts(&server, "", &parts);
+        let (st, p, f, m) = error_of(&a);
+        assert_eq!((st, p.as_str(), f.as_str()), (status, part, field), "{what}: {m}");
+        assert!(m.contains(msg), "{what}: `{m}` lacks `{msg}`");
+        eprintln!("{what}: {st} part={p} field={f}: {m}");
+    };
+    check("view 4 without view 3", request(vec![view(2, identity), view(4, identity)], &[]), 400, "rgb3", "rgb3", "view 4 is given");
+    check(
+        "view 3 without masks3",
+        request(vec![view(2, identity), view(3, identity)], &["masks3"]),
+        400,
+        "masks3",
+        "masks3",
+        "view 3 needs rgb3, depth3, masks3, intrinsics3 and T_c1_c3 (given: rgb3, depth3, intrinsics3, T_c1_c3)",
+    );
+    check(
+        "view 18",
+        request(vec![view(2, identity), view(18, identity)], &[]),
+        400,
+        "rgb18",
+        "name",
+        "at most 16 views besides the anchor",
+    );
+    let scaled: &'static [u8] = b"2,0,0,0, 0,2,0,0, 0,0,2,0, 0,0,0,1";
+    check(
+        "non-rigid T_c1_c3",
+        request(vec![view(2, identity), view(3, scaled)], &[]),
+        400,
+        "T_c1_c3",
+        "T_c1_c3",
+        "T_c1_c3: T_c1_c3: the 3×3 block is not a rotation",
+    );
+    check(
+        "T_c1_c3 of 3 numbers",
+        request(vec![view(2, identity), view(3, br#"{"T_c1_c3": [1, 2, 3]}"#)], &[]),
+        400,
+        "T_c1_c3",
+        "T_c1_c3",
+        "T_c1_c3 needs 16 finite numbers (4×4, row-major), got 3",
+    );
+    check("T_c1_c3 as words", request(vec![view(2, identity), view(3, b"one two")], &[]), 400, "T_c1_c3", "T_c1_c3", "is not 16 numbers");
+    let big: &'static [u8] = leak(&vec![b' '; (1 << 20) + 1]);
+    check(
+        "huge intrinsics3",
+        request(vec![view(2, identity), view(3, identity)], &[])
+            .into_iter()
+            .map(|p| if p.0 == "intrinsics3" { (p.0, p.1, big) } else { p })
+            .collect(),
+        413,
+        "intrinsics3",
+        "bytes",
+        "intrinsics3: more than 1048576 bytes",
+    );
+    check(
+        "unknown part",
+        request(vec![view(2, identity)], &[]).into_iter().chain([("rgb03", None, rgb)]).collect(),
+        400,
+        "rgb03",
+        "name",
+        "rgbN, depthN, masksN, intrinsicsN, T_c1_cN",
+    );
+    // Nothing was queued; the server still serves.
+    assert_eq!(std::fs::read_dir(t.join("data/jobs")).map_or(0, |d| d.count()), 0);
+    assert_eq!(get(&server.url("/health")).status, 200);
+    assert!(!server.logs().contains("panicked"), "{}", server.logs());
+    let _ = std::fs::remove_dir_all(&t);
+}
+
 /// Runs `recon args…` from the repository and waits for it with `wait4`: its exit status,
 /// its stdout and stderr, its seconds and its peak resident memory (MiB, the kernel's
 /// `ru_maxrss` of that process).

@@ -520,6 +520,7 @@ class Client:
         *,
         depth_scale: Optional[float] = None,
         view2: Optional[Dict[str, Any]] = None,
+        views: Optional[Sequence[Dict[str, Any]]] = None,
         progress: Optional[Callable[[Dict[str, Any]], None]] = None,
         seed: int = 42,
         samples: int = 1,
@@ -546,7 +547,9 @@ class Client:
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
         given take the server's defaults (its flags), which are the library's unless it was
-        started with others. With `progress`, the job is queued and polled instead."""
+        started with others. With `progress`, the job is queued and polled instead.
+        view2 and views are Engine.reconstruct's (views: dicts with "T_c1_ci", after view2;
+        at most 16 views besides the anchor), sent as the parts rgb2 … T_c1_c2, rgb3 … T_c1_c3, …"""
     def submit(
         self,
         rgb: npt.NDArray[np.uint8],
@@ -556,6 +559,7 @@ class Client:
         *,
         depth_scale: Optional[float] = None,
         view2: Optional[Dict[str, Any]] = None,
+        views: Optional[Sequence[Dict[str, Any]]] = None,
         **options: Any,
     ) -> Job:
         """Queues the reconstruction (`?wait=false`) and returns its Job at once."""

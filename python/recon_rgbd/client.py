@@ -84,26 +84,28 @@ def _depth_metres(depth, depth_scale, name: str) -> np.ndarray:
     raise InputError(f"{name} depth: expected an H×W uint16 (with depth_scale) or float32 metres array")
 
 
-def _mask_parts(masks, name: str):
-    """`(parts, labels)`: an instance-id image as one 16-bit PNG part, or a list of boolean
-    masks as binary PNG parts named `mask-<i>.png` (labels map them back to `mask <i>`)."""
+def _mask_parts(masks, name: str, what: str | None = None):
+    """`(parts, labels)`: an instance-id image as one 16-bit PNG part `name`, or a list of
+    boolean masks as binary PNG parts named `mask-<i>.png` (labels map them back to
+    `mask <i>`). `what` labels errors as the engine does (default: `name`)."""
+    what = what or name
     if isinstance(masks, (list, tuple)):
         parts, labels = [], {}
         for i, m in enumerate(masks):
             m = np.asarray(m, dtype=bool)
             if m.ndim != 2:
-                raise InputError(f"{name}: mask {i}: expected an H×W boolean array")
+                raise InputError(f"{what}: mask {i}: expected an H×W boolean array")
             fname = f"mask-{i}.png"
             parts.append((name, fname, _png(m.astype(np.uint8) * 255)))
             labels[fname] = f"mask {i}"
         return parts, labels
     ids = np.asarray(masks)
     if ids.dtype.kind not in "ui":
-        raise InputError(f"{name}: expected an H×W integer instance-id image or a list of boolean masks, got dtype kind `{ids.dtype.kind}`")
+        raise InputError(f"{what}: expected an H×W integer instance-id image or a list of boolean masks, got dtype kind `{ids.dtype.kind}`")
     if ids.ndim != 2:
-        raise InputError(f"{name}: an instance-id image must be H×W")
+        raise InputError(f"{what}: an instance-id image must be H×W")
     if ids.size and (ids.min() < 0 or ids.max() > 65535):
-        raise InputError(f"{name}: instance ids must be in 0..=65535 to be sent as a 16-bit PNG")
+        raise InputError(f"{what}: instance ids must be in 0..=65535 to be sent as a 16-bit PNG")
     return [(name, f"{name}.png", _png(ids.astype(np.uint16)))], {}
 
 
@@ -270,7 +272,38 @@ class Client:
 
     # --- requests ---------------------------------------------------------------------
 
-    def _parts(self, rgb, depth, K, masks, depth_scale, view2, options):
+    @staticmethod
+    def _view_parts(view, k: int, name: str, pose_key: str):
+        """The parts of view `k` (`rgb<k>` … `T_c1_c<k>`) from a dict as `Engine.reconstruct`
+        takes `view2` and the items of `views`; `name` labels errors as the engine does."""
+        keys = f"rgb, depth, K, masks, {pose_key}[, depth_scale]"
+        if not isinstance(view, dict):
+            raise InputError(f"{name}: expected a dict with {keys}")
+        missing = [k for k in ("rgb", "depth", "K", "masks", pose_key) if k not in view]
+        if missing:
+            raise InputError(f"{name}: missing key `{missing[0]}` ({keys})")
+        mk, _ = _mask_parts(view["masks"], f"masks{k}", f"{name} masks")
+        t = np.asarray(view[pose_key], dtype=np.float64)
+        if t.shape != (4, 4):
+            raise InputError(f"{name} {pose_key}: expected a 4×4 matrix, got {t.shape}")
+        return [
+            (f"rgb{k}", f"rgb{k}.png", _png(np.asarray(view["rgb"]))),
+            (f"depth{k}", f"depth{k}.npy", _npy(_depth_metres(view["depth"], view.get("depth_scale"), f"<{name} array>"))),
+            (f"intrinsics{k}", None, _k_json(view["K"], f"<{name} array>")),
+            *mk,
+            (f"T_c1_c{k}", None, json.dumps(t.ravel().tolist()).encode()),
+        ]
+
+    def _parts(self, rgb, depth, K, masks, depth_scale, view2, views, options):
+        # The views besides the anchor, counted before any is converted: view2, then views
+        # (view 2, 3, …), as `Engine.reconstruct` numbers them.
+        views = [] if views is None else list(views)
+        others = (view2 is not None) + len(views)
+        if others > 16:
+            raise InputError(
+                f"views: count claims {others} views besides the anchor, more than the limit of 16 (each is a fused "
+                "condition of every object's run (memory, and with multidiffusion a model pass per step))"
+            )
         rgb = np.asarray(rgb)
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise InputError("<array> rgb: expected an H×W×3 uint8 array")
@@ -281,39 +314,33 @@ class Client:
             ("intrinsics", None, _k_json(K, "<array>")),
             *mparts,
         ]
+        k = 2
         if view2 is not None:
-            missing = [k for k in ("rgb", "depth", "K", "masks", "T_c1_c2") if k not in view2]
-            if missing:
-                raise InputError(f"view2: missing key `{missing[0]}` (rgb, depth, K, masks, T_c1_c2[, depth_scale])")
-            m2, _ = _mask_parts(view2["masks"], "masks2")
-            t = np.asarray(view2["T_c1_c2"], dtype=np.float64)
-            if t.shape != (4, 4):
-                raise InputError(f"view2 T_c1_c2: expected a 4×4 matrix, got {t.shape}")
-            parts += [
-                ("rgb2", "rgb2.png", _png(np.asarray(view2["rgb"]))),
-                ("depth2", "depth2.npy", _npy(_depth_metres(view2["depth"], view2.get("depth_scale"), "<view2 array>"))),
-                ("intrinsics2", None, _k_json(view2["K"], "<view2 array>")),
-                *m2,
-                ("T_c1_c2", None, json.dumps(t.ravel().tolist()).encode()),
-            ]
+            parts += self._view_parts(view2, k, "view2", "T_c1_c2")
+            k += 1
+        for i, v in enumerate(views):
+            parts += self._view_parts(v, k + i, f"views[{i}]", "T_c1_ci")
         if options:
             parts.append(("options", None, json.dumps(options).encode()))
         return parts, labels
 
-    def submit(self, rgb, depth, K, masks, *, depth_scale=None, view2=None, **options) -> Job:
+    def submit(self, rgb, depth, K, masks, *, depth_scale=None, view2=None, views=None, **options) -> Job:
         """Queues a reconstruction (`?wait=false`) and returns its `Job` at once; the
         arguments are `reconstruct`'s."""
-        parts, labels = self._parts(rgb, depth, K, masks, depth_scale, view2, options)
+        parts, labels = self._parts(rgb, depth, K, masks, depth_scale, view2, views, options)
         ct, body = _multipart(parts)
         doc = self._json("POST", "/v1/reconstruct?wait=false", body, ct)
         return Job(self, doc["id"], labels)
 
-    def reconstruct(self, rgb, depth, K, masks, *, depth_scale=None, view2=None, progress=None, **options):
+    def reconstruct(self, rgb, depth, K, masks, *, depth_scale=None, view2=None, views=None, progress=None, **options):
         """`Engine.reconstruct` on the server: the same arguments, the same objects. With
-        `progress`, the job is queued and polled, and `progress` hears its status."""
+        `progress`, the job is queued and polled, and `progress` hears its status. `views`:
+        more views besides the anchor, each a dict {"rgb", "depth", "K", "masks", "T_c1_ci"
+        (camera i → camera 1, 4×4)[, "depth_scale"]}, after `view2` (view 2, 3, …; at most 16
+        in all), sent as the parts `rgb<N>` … `T_c1_c<N>`."""
         if progress is not None:
-            return self.submit(rgb, depth, K, masks, depth_scale=depth_scale, view2=view2, **options).result(progress=progress)
-        parts, labels = self._parts(rgb, depth, K, masks, depth_scale, view2, options)
+            return self.submit(rgb, depth, K, masks, depth_scale=depth_scale, view2=view2, views=views, **options).result(progress=progress)
+        parts, labels = self._parts(rgb, depth, K, masks, depth_scale, view2, views, options)
         ct, body = _multipart(parts)
         doc = self._json("POST", "/v1/reconstruct?wait=true", body, ct)
         return self._objects(doc, labels)

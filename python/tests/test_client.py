@@ -87,6 +87,46 @@ def test_client_reconstruct_gives_the_engine_objects(client, tiny_engine, frame,
     assert all(o.label.startswith("mask ") and o.id is None for o in remote)
 
 
+def test_client_views_give_the_engine_objects(client, tiny_engine, frame, tmp_path):
+    """`views=[…]` (after `view2`) go as the parts rgb<N> … T_c1_c<N>: the same objects as
+    `Engine.reconstruct(views=…)`, the two-view model fusing (anchor, view i) pairs; the
+    engine's checks on the dicts, the server's on the poses."""
+    fr, masks, ids = frame
+    # The largest object, one sampler step: two reconstructions on each side.
+    big = max(range(len(masks)), key=lambda i: masks[i].sum())
+    ids = np.where(ids == 3 * big + 2, ids, 0).astype(ids.dtype)
+    Ts = []
+    for i, dx in enumerate([0.03, -0.04, 0.02]):
+        T = np.eye(4)
+        T[0, 3], T[2, 3] = dx, 0.01 * i
+        Ts.append(T)
+    views = [{"rgb": fr["rgb"], "depth": fr["depth"], "K": fr["K"], "masks": ids, "T_c1_ci": T} for T in Ts[:2]]
+    opts = dict(INFER, steps=1, fusion="stochastic")
+    local = tiny_engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, views=views, **opts)
+    remote = client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, views=views, **opts)
+    assert_same_objects(remote, local, tmp_path)
+    for r, o in zip(remote, local):
+        assert [v["view"] for v in r.details["views"]] == [v["view"] for v in o.details["views"]] == [1, 2, 3]
+        assert r.details["run"]["fusion"] == {"pairs": 2, "ss": "stochastic", "slat": "none"}
+    # view2, then views (views 2, 3, 4); uint16 depth with a scale.
+    depth16 = np.round(np.nan_to_num(fr["depth"]) / 0.0005).astype(np.uint16)
+    view2 = {"rgb": fr["rgb"], "depth": depth16, "depth_scale": 0.0005, "K": fr["K"], "masks": ids, "T_c1_c2": Ts[2]}
+    local = tiny_engine.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, view2=view2, views=views, **opts)
+    remote = client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, view2=view2, views=views, **opts)
+    assert_same_objects(remote, local, tmp_path)
+    assert all([v["view"] for v in r.details["views"]] == [1, 2, 3, 4] for r in remote)
+
+    with pytest.raises(recon_rgbd.InputError, match=r"views\[0\]: missing key `depth` \(rgb, depth, K, masks, T_c1_ci\[, depth_scale\]\)"):
+        client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, views=[{"rgb": fr["rgb"]}], **opts)
+    with pytest.raises(recon_rgbd.InputError, match="more than the limit of 16"):
+        client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, view2=view2, views=[views[0]] * 16, **opts)
+    with pytest.raises(recon_rgbd.InputError, match=r"views\[1\] T_c1_ci: expected a 4×4 matrix"):
+        client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, views=[views[0], dict(views[1], T_c1_ci=np.eye(3))], **opts)
+    with pytest.raises(recon_rgbd.InputError, match="T_c1_c3: the last row must be 0 0 0 1") as e:
+        client.reconstruct(fr["rgb"], fr["depth"], fr["K"], ids, views=[views[0], dict(views[1], T_c1_ci=2 * np.eye(4))], **opts)
+    assert (e.value.status, e.value.part, e.value.field) == (400, "T_c1_c3", "T_c1_c3")
+
+
 def test_client_jobs_cancel_and_scene(client, tiny_engine, frame, tmp_path):
     fr, _, ids = frame
     job = client.submit(fr["rgb"], fr["depth"], fr["K"], ids, **INFER)

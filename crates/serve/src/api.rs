@@ -3,7 +3,7 @@
 
 use crate::config::ServeConfig;
 use crate::error::{ApiError, ServeError};
-use crate::inputs::{self, is_repeatable, is_small_part, Manifest, StoredPart, MAX_SMALL_PART_BYTES, PARTS};
+use crate::inputs::{self, is_repeatable, is_small_part, Manifest, StoredPart, MAX_SMALL_PART_BYTES};
 use crate::jobs::{valid_id, CancelReason, Job, Jobs, Status};
 use crate::log::{log, peak_mib};
 use crate::openapi::{axum_path, openapi, Route, ROUTES};
@@ -238,10 +238,7 @@ async fn receive(mp: &mut Multipart, dir: &std::path::Path, cfg: &ServeConfig) -
     let mut total = 0u64;
     while let Some(mut field) = mp.next_field().await.map_err(|e| multipart_error(e, None, limit))? {
         let name = field.name().unwrap_or_default().to_string();
-        if !PARTS.iter().any(|p| p.0 == name) {
-            let names: Vec<&str> = PARTS.iter().map(|p| p.0).collect();
-            return Err(ApiError::bad(&name, "name", format!("unknown part `{name}`; the parts are {}", names.join(", "))));
-        }
+        inputs::check_part_name(&name)?;
         let count = m.parts.get(&name).map_or(0, Vec::len);
         if count > 0 && !is_repeatable(&name) {
             return Err(ApiError::bad(&name, "name", format!("part `{name}` given twice")));

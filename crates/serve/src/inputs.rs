@@ -8,7 +8,7 @@ use recon_core::dataset::frame::{intrinsics_from_bytes, load_rgb, CameraFormat};
 use recon_core::dataset::masks::load_binary_mask;
 use recon_core::dataset::{FrameOptions, RgbdFrame};
 use recon_core::dataset::{InstanceMap, MaskSkip, ObjectMask, SkipReason};
-use recon_core::engine::{InferOptions, RigidTransform};
+use recon_core::engine::{InferOptions, RigidTransform, MAX_SECOND_VIEWS};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -28,20 +28,105 @@ pub const PARTS: &[(&str, bool, &str)] = &[
     ("T_c1_c2", false, "second view: camera 2 → camera 1 rigid transform, 4×4 row-major (JSON rows, 16 numbers, or {\"T_c1_c2\": rows})"),
 ];
 
-/// The parts of the second view; any of them given makes all of them required.
-pub const SECOND_VIEW_PARTS: [&str; 5] = ["rgb2", "depth2", "masks2", "intrinsics2", "T_c1_c2"];
+/// The last view number a request takes: the anchor is view 1, and at most
+/// [`MAX_SECOND_VIEWS`] (16) views besides it, as `recon infer --view` takes them.
+pub const MAX_VIEW: usize = 1 + MAX_SECOND_VIEWS;
 
-/// Largest small part (intrinsics, options, objects, T_c1_c2), bytes.
+/// The parts of a view besides the anchor, by kind: view N's are `rgbN`, `depthN`,
+/// `masksN`, `intrinsicsN` and `T_c1_cN` (view 2's are [`PARTS`]' `rgb2` … `T_c1_c2`);
+/// any of them given makes all five required. What each holds (`{N}`: the view's number).
+pub const VIEW_PART_KINDS: [(&str, &str); 5] = [
+    ("rgb", "colour image"),
+    ("depth", "depth"),
+    ("masks", "masks, matched to masks by instance id (or by order for binary masks)"),
+    ("intrinsics", "intrinsics"),
+    ("T_c1_c", "camera {N} → camera 1 rigid transform, 4×4 row-major (JSON rows, 16 numbers, or {\"T_c1_c{N}\": rows})"),
+];
+
+/// The five parts of view `k` (2 …= [`MAX_VIEW`]), in [`VIEW_PART_KINDS`]' order.
+pub fn view_parts(k: usize) -> [String; 5] {
+    VIEW_PART_KINDS.map(|(kind, _)| format!("{kind}{k}"))
+}
+
+/// A part name of a view besides the anchor: its kind (index into [`VIEW_PART_KINDS`])
+/// and its view number, 2 or more (`usize::MAX` when too long to read; beyond
+/// [`MAX_VIEW`] it is refused by [`check_part_name`]). `rgb`, `rgb1`, `rgb02` are not.
+pub fn view_part(name: &str) -> Option<(usize, usize)> {
+    VIEW_PART_KINDS.iter().enumerate().find_map(|(i, (kind, _))| {
+        let digits = name.strip_prefix(kind)?;
+        if digits.is_empty() || digits.starts_with('0') || !digits.bytes().all(|b| b.is_ascii_digit()) {
+            return None;
+        }
+        let k = digits.parse::<usize>().unwrap_or(usize::MAX);
+        (k >= 2).then_some((i, k))
+    })
+}
+
+/// What a part holds, for messages: [`PARTS`]' text, or `view N: …` for views 3 and on.
+pub fn part_description(name: &str) -> Option<String> {
+    if let Some(p) = PARTS.iter().find(|p| p.0 == name) {
+        return Some(p.2.to_string());
+    }
+    let (kind, k) = view_part(name).filter(|(_, k)| *k <= MAX_VIEW)?;
+    Some(format!("view {k}: {}", VIEW_PART_KINDS[kind].1.replace("{N}", &k.to_string())))
+}
+
+/// Every part a request may carry, as [`PARTS`] lists them (name, required, what it
+/// holds), then views 3 to [`MAX_VIEW`]'s: the OpenAPI document's list.
+pub fn all_parts() -> Vec<(String, bool, String)> {
+    let mut v: Vec<(String, bool, String)> = PARTS.iter().map(|(n, r, w)| (n.to_string(), *r, w.to_string())).collect();
+    for k in 3..=MAX_VIEW {
+        v.extend(view_parts(k).into_iter().map(|n| {
+            let what = part_description(&n).unwrap_or_default();
+            (n, false, what)
+        }));
+    }
+    v
+}
+
+/// Refuses a part name the request cannot carry: a `400` naming it, with the names
+/// there are (the `…N` forms, not every view's), or the view limit for `rgb18` and on.
+pub fn check_part_name(name: &str) -> Result<(), ApiError> {
+    if PARTS.iter().any(|p| p.0 == name) {
+        return Ok(());
+    }
+    match view_part(name) {
+        Some((_, k)) if k <= MAX_VIEW => Ok(()),
+        Some(_) => Err(ApiError::bad(
+            name,
+            "name",
+            format!(
+                "part `{name}`: views besides the anchor are numbered 2 to {MAX_VIEW}; a request takes at most \
+                 {MAX_SECOND_VIEWS} views besides the anchor"
+            ),
+        )),
+        None => {
+            let names: Vec<&str> = PARTS.iter().map(|p| p.0).filter(|n| view_part(n).is_none()).collect();
+            let kinds: Vec<String> = VIEW_PART_KINDS.iter().map(|(k, _)| format!("{k}N")).collect();
+            Err(ApiError::bad(
+                name,
+                "name",
+                format!(
+                    "unknown part `{name}`; the parts are {}, and for each view N = 2 to {MAX_VIEW} besides the anchor {}",
+                    names.join(", "),
+                    kinds.join(", ")
+                ),
+            ))
+        }
+    }
+}
+
+/// Largest small part (intrinsics, options, objects, T_c1_c2, and views 3 and on's), bytes.
 pub const MAX_SMALL_PART_BYTES: u64 = 1 << 20;
 
 /// Whether `name` is a small part (held in memory, parsed as text).
 pub fn is_small_part(name: &str) -> bool {
-    matches!(name, "intrinsics" | "intrinsics2" | "options" | "objects" | "T_c1_c2")
+    matches!(name, "intrinsics" | "options" | "objects") || matches!(view_part(name), Some((3 | 4, k)) if k <= MAX_VIEW)
 }
 
 /// Whether `name` may be given more than once (binary masks).
 pub fn is_repeatable(name: &str) -> bool {
-    matches!(name, "masks" | "masks2")
+    name == "masks" || matches!(view_part(name), Some((2, k)) if k <= MAX_VIEW)
 }
 
 /// One stored part.
@@ -125,13 +210,25 @@ pub struct Loaded {
     pub frame: RgbdFrame,
     /// View 1's objects.
     pub objects: Vec<ObjectMask>,
-    /// Objects left out before the engine (ids asked for that are absent, …), view 2's
-    /// relabelled `view 2 …` as the CLI does.
+    /// Objects left out before the engine (ids asked for that are absent, …), the other
+    /// views' relabelled `view N …` as the CLI does.
     pub skipped: Vec<MaskSkip>,
-    /// View 2: frame, masks and `T_c1_c2`.
-    pub second: Option<(RgbdFrame, Vec<ObjectMask>, RigidTransform)>,
+    /// The views besides the anchor, view 2 first.
+    pub views: Vec<OtherView>,
     /// The options, checked.
     pub options: InferOptions,
+}
+
+/// A view besides the anchor, read from its parts (`rgbN`, …, `T_c1_cN`).
+pub struct OtherView {
+    /// Its number N: 2, 3, …
+    pub number: usize,
+    /// Its frame.
+    pub frame: RgbdFrame,
+    /// Its masks (paired with view 1's by the engine).
+    pub objects: Vec<ObjectMask>,
+    /// Camera N → camera 1.
+    pub t_c1_ci: RigidTransform,
 }
 
 /// A stored part's path and the name it is shown by.
@@ -148,7 +245,7 @@ fn one<'a>(dir: &Path, m: &'a Manifest, name: &str) -> Option<(Part, &'a StoredP
 
 fn required(dir: &Path, m: &Manifest, name: &str) -> Result<Part, ApiError> {
     one(dir, m, name).map(|(p, _)| p).ok_or_else(|| {
-        let what = PARTS.iter().find(|p| p.0 == name).map_or("", |p| p.2);
+        let what = part_description(name).unwrap_or_default();
         ApiError::bad(name, name, format!("missing part `{name}` ({what})"))
     })
 }
@@ -208,7 +305,7 @@ fn intrinsics_json(bytes: &[u8], part: &str) -> Result<(Vec<u8>, Option<&'static
     Ok((bytes.to_vec(), field))
 }
 
-/// Reads one view (`suffix` "" or "2") of the stored parts.
+/// Reads one view (`suffix` "" for the anchor, else its number) of the stored parts.
 fn load_frame(dir: &Path, m: &Manifest, suffix: &str) -> Result<RgbdFrame, ApiError> {
     let rgb = required(dir, m, &format!("rgb{suffix}"))?;
     let depth = required(dir, m, &format!("depth{suffix}"))?;
@@ -297,78 +394,124 @@ fn load_view_masks(dir: &Path, m: &Manifest, name: &str, frame: &RgbdFrame) -> R
     }
 }
 
-/// The `T_c1_c2` part, checked as the CLI's `--rel-pose` is (16 finite numbers, last row
-/// 0 0 0 1, an orthonormal rotation with determinant 1).
-fn load_rel_pose(dir: &Path, m: &Manifest) -> Result<RigidTransform, ApiError> {
-    let p = required(dir, m, "T_c1_c2")?;
-    let raw = std::fs::read(&p.path).map_err(|e| ApiError::unavailable(format!("reading the stored T_c1_c2: {e}")))?;
+/// A view's `T_c1_cN` part, checked as the CLI's `--rel-pose` and `--view`'s `T_c1_ci`
+/// are (16 finite numbers, last row 0 0 0 1, an orthonormal rotation with determinant 1):
+/// JSON rows or numbers, `{"T_c1_cN": rows}`, or 16 numbers as text.
+fn load_rel_pose(dir: &Path, m: &Manifest, name: &str) -> Result<RigidTransform, ApiError> {
+    let p = required(dir, m, name)?;
+    let raw = std::fs::read(&p.path).map_err(|e| ApiError::unavailable(format!("reading the stored {name}: {e}")))?;
     let text = String::from_utf8_lossy(&raw);
     let t = text.trim();
-    let value: serde_json::Value = if t.starts_with('{') || t.starts_with('[') {
+    let nums: Vec<f64> = if t.starts_with('{') || t.starts_with('[') {
         let v: serde_json::Value =
-            serde_json::from_str(t).map_err(|e| ApiError::bad("T_c1_c2", "json", format!("T_c1_c2: invalid JSON: {e}")))?;
-        v.get("T_c1_c2").cloned().unwrap_or(v)
-    } else {
-        let nums: Result<Vec<f64>, _> =
-            t.split(|c: char| c == ',' || c.is_whitespace()).filter(|s| !s.is_empty()).map(str::parse).collect();
-        match nums {
-            Ok(n) => serde_json::json!(n),
-            Err(_) => return Err(ApiError::bad("T_c1_c2", "T_c1_c2", format!("T_c1_c2: `{t}` is not 16 numbers (4×4 row-major)"))),
+            serde_json::from_str(t).map_err(|e| ApiError::bad(name, "json", format!("{name}: invalid JSON: {e}")))?;
+        let v = v.get(name).cloned().unwrap_or(v);
+        fn walk(v: &serde_json::Value, out: &mut Vec<f64>) -> bool {
+            match v {
+                serde_json::Value::Array(a) => a.iter().all(|x| walk(x, out)),
+                serde_json::Value::Number(n) => n.as_f64().map(|x| out.push(x)).is_some(),
+                _ => false,
+            }
         }
+        let mut nums = Vec::new();
+        if !walk(&v, &mut nums) {
+            // The message `recon infer --rel-pose FILE` gives.
+            let e = recon_core::Error::config(name, name, "must hold only numbers (4×4 rows or 16 numbers)");
+            return Err(ApiError::new(input_status(&e), e.to_string()).at(name, name));
+        }
+        nums
+    } else {
+        t.split(|c: char| c == ',' || c.is_whitespace())
+            .filter(|s| !s.is_empty())
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .map_err(|_| ApiError::bad(name, name, format!("{name}: `{t}` is not 16 numbers (4×4 row-major)")))?
     };
-    let file = p.path.with_extension("json");
-    std::fs::write(&file, serde_json::json!({ "T_c1_c2": value }).to_string())
-        .map_err(|e| ApiError::unavailable(format!("storing T_c1_c2: {e}")))?;
-    let part = Part { path: file.clone(), ..p };
-    recon_core::geometry::parse_rel_pose(&file.display().to_string()).map_err(|e| from_engine(&e, &[&part], "T_c1_c2"))
+    recon_core::geometry::rel_pose_from_numbers(&nums, name, name)
+        .map_err(|e| ApiError::new(input_status(&e), e.to_string()).at(name, name))
+}
+
+/// The number of views besides the anchor a request gives, checked: numbered 2, 3, …
+/// without a gap, each with all five of its parts.
+fn count_views(m: &Manifest) -> Result<usize, ApiError> {
+    let Some(last) = m.parts.keys().filter_map(|n| view_part(n)).map(|(_, k)| k).max() else { return Ok(0) };
+    for k in 2..=last {
+        let names = view_parts(k);
+        let given: Vec<&str> = names.iter().map(String::as_str).filter(|p| m.parts.contains_key(*p)).collect();
+        let list = format!("{} and {}", names[..4].join(", "), names[4]);
+        if given.is_empty() {
+            let missing = &names[0];
+            return Err(ApiError::bad(
+                missing,
+                missing,
+                format!(
+                    "missing part `{missing}`: view {last} is given, and the views besides the anchor are numbered from 2 \
+                     without a gap; view {k} needs {list}"
+                ),
+            ));
+        }
+        if let Some(missing) = names.iter().find(|p| !given.contains(&p.as_str())) {
+            let what = if k == 2 { "a second view".to_string() } else { format!("view {k}") };
+            return Err(ApiError::bad(
+                missing,
+                missing,
+                format!("missing part `{missing}`: {what} needs {list} (given: {})", given.join(", ")),
+            ));
+        }
+    }
+    Ok(last - 1)
 }
 
 /// Reads and checks everything a job runs on from its folder `dir`. `max_views` is the
-/// loaded model's (a second view needs 2). Called when the request arrives (nothing is
-/// queued that fails here) and again by the worker.
+/// loaded model's (a second view needs 2; more views than it takes run as fused pairs).
+/// Called when the request arrives (nothing is queued that fails here) and again by the
+/// worker.
 pub fn load(dir: &Path, m: &Manifest, max_views: usize) -> Result<Loaded, ApiError> {
     for (name, req, what) in PARTS {
         if *req && !m.parts.contains_key(*name) {
             return Err(ApiError::bad(name, name, format!("missing part `{name}` ({what})")));
         }
     }
+    for name in m.parts.keys() {
+        check_part_name(name)?;
+    }
     let options = InferOptions::from_json(m.options.clone()).map_err(|e| option_error(&e))?;
     let frame = load_frame(dir, m, "")?;
-    let (objects, skipped) = load_view_masks(dir, m, "masks", &frame)?;
+    let (objects, mut skipped) = load_view_masks(dir, m, "masks", &frame)?;
     // `recon infer`'s rule: more objects that pass the mask checks than max_objects is refused.
     let settings = options.settings().map_err(|e| option_error(&e))?;
     recon_core::engine::check_object_count(&frame, &objects, &settings, "masks")
         .map_err(|e| ApiError::new(crate::error::input_status(&e), e.to_string()).at("masks", "max_objects"))?;
-    let given: Vec<&str> = SECOND_VIEW_PARTS.iter().copied().filter(|p| m.parts.contains_key(*p)).collect();
-    let second = if given.is_empty() {
-        None
-    } else {
-        if let Some(missing) = SECOND_VIEW_PARTS.iter().find(|p| !given.contains(p)) {
-            return Err(ApiError::bad(
-                missing,
-                missing,
-                format!(
-                    "missing part `{missing}`: a second view needs rgb2, depth2, masks2, intrinsics2 and T_c1_c2 (given: {})",
-                    given.join(", ")
-                ),
-            ));
-        }
-        if max_views < 2 {
-            return Err(ApiError::bad(
-                "rgb2",
-                "rgb2",
-                format!("this model takes {max_views} view(s); a second view needs a two-view (num_pose_tokens 2) model"),
-            ));
-        }
-        let f2 = load_frame(dir, m, "2")?;
-        let (o2, _) = load_view_masks(dir, m, "masks2", &f2)?;
-        let rel = load_rel_pose(dir, m)?;
+    let others = count_views(m)?;
+    if others > 0 && max_views < 2 {
+        return Err(ApiError::bad(
+            "rgb2",
+            "rgb2",
+            format!("this model takes {max_views} view(s); a second view needs a two-view (num_pose_tokens 2) model"),
+        ));
+    }
+    let mut views = Vec::with_capacity(others);
+    for k in 2..2 + others {
+        let [_, _, masks, _, pose] = view_parts(k);
+        let frame_k = load_frame(dir, m, &k.to_string())?;
+        let (objects_k, skipped_k) = load_view_masks(dir, m, &masks, &frame_k)?;
+        let t_c1_ci = load_rel_pose(dir, m, &pose)?;
         // The engine pairs the views' objects; a count mismatch of binary masks is the request's fault.
-        recon_core::engine::match_views(objects.clone(), o2.clone())
-            .map_err(|e| ApiError::bad("masks2", "masks2", e.to_string().replace("--masks2", "masks2")))?;
-        Some((f2, o2, rel))
-    };
-    Ok(Loaded { frame, objects, skipped, second, options })
+        recon_core::engine::match_view(&objects, objects_k.clone(), k).map_err(|e| {
+            let msg = match e {
+                recon_core::Error::Input { msg, .. } => msg,
+                e => e.to_string(),
+            };
+            ApiError::bad(&masks, &masks, format!("{masks}: {msg}"))
+        })?;
+        // As `recon infer`: another view's masks that are not there are listed, and cost that view only.
+        skipped.extend(skipped_k.into_iter().map(|mut s| {
+            s.label = format!("view {k} {}", s.label);
+            s
+        }));
+        views.push(OtherView { number: k, frame: frame_k, objects: objects_k, t_c1_ci });
+    }
+    Ok(Loaded { frame, objects, skipped, views, options })
 }
 
 /// A `.npy` file of float32 depth in metres, 2-D `(height, width)`, C order; the shape is
@@ -443,6 +586,72 @@ mod tests {
         assert_eq!(safe_filename("C:\\x\\cup mask.png").as_deref(), Some("cupmask.png"));
         assert_eq!(safe_filename("..."), None);
         assert_eq!(safe_filename(".hidden").as_deref(), Some("hidden"));
+    }
+
+    #[test]
+    fn view_parts_are_named_by_number_up_to_the_limit() {
+        assert_eq!(view_part("rgb3"), Some((0, 3)));
+        assert_eq!(view_part("masks2"), Some((2, 2)));
+        assert_eq!(view_part("T_c1_c17"), Some((4, 17)));
+        for n in ["rgb", "rgb1", "rgb0", "rgb03", "rgbx", "rgb3a", "depth_scale2", "T_c1_c", "options2"] {
+            assert_eq!(view_part(n), None, "{n}");
+        }
+        assert!(check_part_name("intrinsics17").is_ok() && check_part_name("T_c1_c2").is_ok() && check_part_name("objects").is_ok());
+        for n in ["depth18", "rgb99999999999999999999999"] {
+            let e = check_part_name(n).unwrap_err();
+            assert_eq!((e.status.as_u16(), e.part.as_deref(), e.field.as_deref()), (400, Some(n), Some("name")));
+            assert!(e.message.contains("numbered 2 to 17") && e.message.contains("at most 16 views besides the anchor"), "{e}");
+        }
+        let e = check_part_name("colour").unwrap_err();
+        assert!(e.message.starts_with("unknown part `colour`; the parts are rgb, depth, masks, intrinsics, options, objects,"), "{e}");
+        assert!(e.message.contains("rgbN, depthN, masksN, intrinsicsN, T_c1_cN") && !e.message.contains("rgb5"), "{e}");
+        assert!(check_part_name("rgb1").is_err());
+        assert!(is_small_part("intrinsics5") && is_small_part("T_c1_c9") && is_small_part("T_c1_c2") && is_small_part("options"));
+        assert!(!is_small_part("rgb5") && !is_small_part("masks3") && !is_small_part("T_c1_c18"));
+        assert!(is_repeatable("masks") && is_repeatable("masks2") && is_repeatable("masks17"));
+        assert!(!is_repeatable("masks18") && !is_repeatable("rgb3"));
+        // The OpenAPI list: the table, then views 3 to 17.
+        let all = all_parts();
+        assert_eq!(all.len(), PARTS.len() + 15 * 5);
+        let t3 = all.iter().find(|p| p.0 == "T_c1_c3").unwrap();
+        assert!(!t3.1 && t3.2.starts_with("view 3: camera 3 → camera 1") && t3.2.contains(r#"{"T_c1_c3": rows}"#), "{t3:?}");
+        assert_eq!(part_description("rgb2").as_deref(), Some("second view: colour image"));
+        assert_eq!(part_description("rgb18"), None);
+    }
+
+    #[test]
+    fn views_are_numbered_without_a_gap_and_given_whole() {
+        let stored = StoredPart { file: "x".into(), filename: None, bytes: 1 };
+        let with = |views: &[usize], without: &[&str]| {
+            let mut m = Manifest::default();
+            for &k in views {
+                for n in view_parts(k) {
+                    if !without.contains(&n.as_str()) {
+                        m.parts.insert(n, vec![stored.clone()]);
+                    }
+                }
+            }
+            count_views(&m)
+        };
+        assert_eq!(with(&[], &[]).unwrap(), 0);
+        assert_eq!(with(&[2, 3, 4], &[]).unwrap(), 3);
+        let e = with(&[2, 4], &[]).unwrap_err();
+        assert_eq!((e.part.as_deref(), e.field.as_deref()), (Some("rgb3"), Some("rgb3")));
+        assert!(
+            e.message.contains("view 4 is given") && e.message.contains("view 3 needs rgb3, depth3, masks3, intrinsics3 and T_c1_c3"),
+            "{e}"
+        );
+        let e = with(&[3], &[]).unwrap_err();
+        assert_eq!(e.part.as_deref(), Some("rgb2"));
+        let e = with(&[2, 3], &["masks3"]).unwrap_err();
+        assert_eq!((e.part.as_deref(), e.field.as_deref()), (Some("masks3"), Some("masks3")));
+        assert!(
+            e.message.contains("view 3 needs rgb3, depth3, masks3, intrinsics3 and T_c1_c3 (given: rgb3, depth3, intrinsics3, T_c1_c3)"),
+            "{e}"
+        );
+        // View 2 keeps its message.
+        let e = with(&[2], &["depth2"]).unwrap_err();
+        assert!(e.message.starts_with("missing part `depth2`: a second view needs rgb2, depth2, masks2, intrinsics2 and T_c1_c2"), "{e}");
     }
 
     #[test]

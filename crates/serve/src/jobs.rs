@@ -704,10 +704,11 @@ impl Jobs {
                 r.progress = r.progress.max(done.min(1.0));
             });
         };
-        let inputs::Loaded { frame, objects, skipped: mask_skips, second, .. } = loaded;
-        let second_view = second.as_ref().map(|(f2, o2, rel)| SecondView { frame: f2, objects: o2.clone(), t_c1_c2: *rel });
+        let inputs::Loaded { frame, objects, skipped: mask_skips, views, .. } = loaded;
+        let others: Vec<SecondView> =
+            views.iter().map(|v| SecondView { frame: &v.frame, objects: v.objects.clone(), t_c1_c2: v.t_c1_ci }).collect();
         let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            self.engine.reconstruct_with(&frame, objects, second_view, &settings, &progress)
+            self.engine.reconstruct_views(&frame, objects, others, &settings, &progress)
         }));
         let mut result = match run {
             Ok(Ok(r)) => r,
@@ -775,6 +776,8 @@ pub fn answer(
                 "id": o.id, "label": o.label, "status": "ok",
                 "pose": pose, "translation": t, "quaternion_xyzw": [q[1], q[2], q[3], q[0]], "scale": s,
                 "score": o.selection.score_m, "stage_seconds": stages, "notes": o.notes,
+                // What `recon infer --json` prints of the views: each view of the object, the winner.
+                "views": o.views, "selection": o.selection,
                 "files": {
                     "pose": file_url(id, out, &w.pose), "mesh_glb": url(&w.mesh_glb), "mesh_ply": url(&w.mesh_ply),
                     "gaussians_ply": url(&w.gaussians_ply),
@@ -790,7 +793,12 @@ pub fn answer(
         .collect();
     for s in &result.skipped {
         let failed = matches!(s.reason, SkipReason::Preprocessing(_) | SkipReason::Unreadable(_));
-        let label = s.label.strip_prefix("view 2 ").unwrap_or(&s.label);
+        // Another view's mask skips are labelled `view N id 8` (as `recon infer` lists them).
+        let label = s
+            .label
+            .strip_prefix("view ")
+            .and_then(|r| r.split_once(' ').filter(|(n, _)| n.parse::<usize>().is_ok()).map(|(_, l)| l))
+            .unwrap_or(&s.label);
         let id = label.strip_prefix("id ").and_then(|n| n.parse::<u32>().ok());
         objects.push(serde_json::json!({
             "id": id, "label": s.label, "status": if failed { "failed" } else { "skipped" }, "reason": s.reason.to_string(),

@@ -2,7 +2,7 @@
 //! ([`openapi`]) generated from the same table, so the two cannot drift apart (a test
 //! also calls every documented route over HTTP).
 
-use crate::inputs::PARTS;
+use crate::inputs::all_parts;
 use serde_json::json;
 
 /// One route of the API.
@@ -77,7 +77,8 @@ pub fn openapi() -> serde_json::Value {
             op["security"] = json!([]);
         }
         if r.path == "/v1/reconstruct" {
-            let props: serde_json::Map<String, serde_json::Value> = PARTS
+            let parts = all_parts();
+            let props: serde_json::Map<String, serde_json::Value> = parts
                 .iter()
                 .map(|(name, _, what)| {
                     let binary = !crate::inputs::is_small_part(name);
@@ -94,7 +95,7 @@ pub fn openapi() -> serde_json::Value {
                     (name.to_string(), schema)
                 })
                 .collect();
-            let required: Vec<&str> = PARTS.iter().filter(|p| p.1).map(|p| p.0).collect();
+            let required: Vec<&str> = parts.iter().filter(|p| p.1).map(|p| p.0.as_str()).collect();
             op["requestBody"] = json!({"required": true, "content": {"multipart/form-data": {"schema": {"type": "object", "properties": props, "required": required}}}});
         }
         if r.path == "/v1/jobs/{id}/scene" {
