@@ -9,9 +9,10 @@
 //! (`--dinov2 /path/to/dinov2 --modules ss_flow,ss_decoder,dinov2` adds DINOv2 ViT-L/14-reg)
 //! `RECON_UPSTREAM_DIR=/tmp/fullsize cargo test --release --test upstream_fullsize -- --ignored`
 //!
-//! The stage-2 sparse modules (RecGen's SLat flow as released: `.pt` + `slat_config.json`)
-//! come from `benches/upstream/sparse_fullsize.py --save DIR --trellis T --recgen R`, which
-//! also runs upstream in float64; `RECON_UPSTREAM_SPARSE_DIR=DIR` runs the ignored
+//! The stage-2 sparse modules (RecGen's SLat flow as released: `.pt` + `slat_config.json`;
+//! TRELLIS's SLat Gaussian decoder: `ckpts/` fp16 safetensors) come from
+//! `benches/upstream/sparse_fullsize.py --save DIR --trellis T --recgen R --modules slat_flow,slat_dec_gs`,
+//! which also runs upstream in float64; `RECON_UPSTREAM_SPARSE_DIR=DIR` runs the ignored
 //! `full_size_sparse_modules_match_upstream_float64`.
 mod common;
 
