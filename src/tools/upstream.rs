@@ -138,20 +138,21 @@ pub fn compare(recon: &[TimingRow], upstream: &UpstreamReport) -> Vec<CompareRow
     rows
 }
 
-/// `max|a−b| / max|b|` and `mean|a−b| / mean|b|` over all elements.
+/// `max|a−b| / max|b|` and `mean|a−b| / mean|b|` over all elements, in f64
+/// (a float64 reference keeps its digits).
 pub(crate) fn rel_errors(a: &Tensor, b: &Tensor) -> Result<(f64, f64)> {
-    let a = a.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-    let b = b.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+    let a = a.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?;
+    let b = b.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?;
     if a.len() != b.len() {
         return Err(crate::Error::msg("bench: outputs of different sizes"));
     }
     let (mut maxd, mut maxb, mut sumd, mut sumb) = (0f64, 0f64, 0f64, 0f64);
     for (&x, &y) in a.iter().zip(&b) {
-        let d = (x as f64 - y as f64).abs();
+        let d = (x - y).abs();
         maxd = maxd.max(d);
-        maxb = maxb.max((y as f64).abs());
+        maxb = maxb.max(y.abs());
         sumd += d;
-        sumb += (y as f64).abs();
+        sumb += y.abs();
     }
     Ok((maxd / maxb.max(1e-30), sumd / sumb.max(1e-30)))
 }
@@ -334,6 +335,187 @@ fn check_dinov2(dir: &Path, t: &HashMap<String, Tensor>, ref_path: &Path, comput
     }
     let (a, b) = (tensor(t, ref_path, "output.dinov2.bf16")?, tensor(t, ref_path, "output.dinov2.f32")?);
     rows.push(row("upstream bf16 autocast".into(), "upstream f32", 0.0, rel_errors(a, b)?));
+    Ok(rows)
+}
+
+/// RecGen's stage-2 denoiser as released: a `torch.save` state dict beside the
+/// training config whose `models.denoiser` is its `{name, args}`.
+pub const SLAT_FLOW_PT: &str = "slat_denoiser_ema0.9999_step0075000.pt";
+pub const SLAT_FLOW_CONFIG: &str = "slat_config.json";
+/// TRELLIS-image-large's SLat Gaussian decoder (`ckpts/<stem>.json` + fp16 `.safetensors`).
+pub const SLAT_DEC_GS: &str = "slat_dec_gs_swin8_B_64l8gs32_fp16";
+/// What `benches/upstream/sparse_fullsize.py --save` writes beside the checkpoints.
+pub const SPARSE_REFERENCE: &str = "sparse_reference.safetensors";
+
+/// The stage-2 sparse modules that `sparse_fullsize.py --save` wrote under `dir`
+/// (`Ok(empty)` when it wrote none), each loaded strictly through recon's
+/// loaders and run with each of `computes` on the stored inputs, against
+/// upstream's float32 and float64 outputs; plus upstream f32's own distance
+/// from float64, by which full-size agreement is judged.
+///
+/// `slat_flow`: RecGen's `SLatCondFlowModel` from the released `.pt` and
+/// `slat_config.json`; the condition is built by recon (`condition`: patch
+/// tokens + point-map and mask embeddings, pose token appended) and compared
+/// (module `slat_flow.cond`), then the velocity on the voxels (`slat_flow`).
+pub fn check_sparse(dir: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRow>> {
+    let ref_path = dir.join(SPARSE_REFERENCE);
+    if !ref_path.is_file() {
+        return Ok(Vec::new());
+    }
+    let t = candle_core::safetensors::load(&ref_path, &Device::Cpu)
+        .map_err(|e| Error::input(ref_path.display().to_string(), format!("not a readable safetensors file: {e}")))?;
+    let mut rows = Vec::new();
+    let pt = dir.join(SLAT_FLOW_PT);
+    if pt.is_file() {
+        rows.extend(check_slat_flow(dir, &pt, &t, &ref_path, computes)?);
+    }
+    let gs = dir.join("ckpts").join(format!("{SLAT_DEC_GS}.safetensors"));
+    if gs.is_file() {
+        rows.extend(check_slat_dec_gs(dir, &gs, &t, &ref_path, computes)?);
+    }
+    if rows.is_empty() {
+        return Err(Error::input(
+            dir.display().to_string(),
+            format!(
+                "{SPARSE_REFERENCE} but no sparse module's checkpoint: expected {SLAT_FLOW_PT} + {SLAT_FLOW_CONFIG} \
+                 or ckpts/{SLAT_DEC_GS}.json + .safetensors"
+            ),
+        ));
+    }
+    Ok(rows)
+}
+
+/// Rows of `module` (recon with `compute` against upstream f32 and f64, then
+/// upstream f32 against f64) for output `name` of the reference file.
+fn f64_rows(
+    module: &str,
+    file: &str,
+    ours: &[(String, f64, Tensor)],
+    t: &HashMap<String, Tensor>,
+    ref_path: &Path,
+    name: &str,
+) -> Result<Vec<ReleasedRow>> {
+    let (f32_ref, f64_ref) = (tensor(t, ref_path, &format!("{name}.f32"))?, tensor(t, ref_path, &format!("{name}.f64"))?);
+    let mut rows = Vec::new();
+    let row = |compute: String, reference: &str, seconds: f64, (max_rel, mean_rel): (f64, f64)| ReleasedRow {
+        module: module.into(),
+        file: file.into(),
+        compute,
+        reference: reference.into(),
+        forward_seconds: seconds,
+        max_rel,
+        mean_rel,
+    };
+    for (compute, seconds, out) in ours {
+        for (want, reference) in [(f32_ref, "upstream f32"), (f64_ref, "upstream f64")] {
+            // Element order is the same; the shapes may group the Gaussians' fields differently.
+            if want.elem_count() != out.elem_count() || want.dim(0)? != out.dim(0)? {
+                return Err(Error::input(
+                    ref_path.display().to_string(),
+                    format!("{name}: shape {:?}, recon's is {:?}", want.dims(), out.dims()),
+                ));
+            }
+            rows.push(row(compute.clone(), reference, *seconds, rel_errors(out, want)?));
+        }
+    }
+    rows.push(row("upstream f32".into(), "upstream f64", 0.0, rel_errors(f32_ref, f64_ref)?));
+    Ok(rows)
+}
+
+fn check_slat_flow(dir: &Path, pt: &Path, t: &HashMap<String, Tensor>, ref_path: &Path, computes: &[Compute]) -> Result<Vec<ReleasedRow>> {
+    use crate::model::stage1::embedders::ViewInputs;
+    use crate::model::{ModuleSpec, SparseTensor};
+    let cfg_path = dir.join(SLAT_FLOW_CONFIG);
+    let label = cfg_path.display().to_string();
+    let v: serde_json::Value = crate::util::json::read_json(&cfg_path)?;
+    let spec = v
+        .pointer("/models/denoiser")
+        .ok_or_else(|| Error::config(&label, "models.denoiser", "missing: expected the denoiser's {name, args}"))?;
+    let spec: ModuleSpec = serde_json::from_value(spec.clone())
+        .map_err(|e| Error::config(&label, "models.denoiser", format!("expected {{name, args}}: {e}")))?;
+    let cfg = ModuleArgs::from_spec(&spec, &label)?;
+    let expected = registry::expected_tensors(&cfg, &label)?;
+    let input = |name: &str| tensor(t, ref_path, &format!("input.slat_flow.{name}"));
+    let x = SparseTensor::from_tensors(input("coords")?, input("feats")?.clone())?;
+    let view = ViewInputs {
+        patch_tokens: input("patch_tokens")?.clone(),
+        pointmap: Some(input("pointmap")?.clone()),
+        mask: Some(input("mask")?.clone()),
+    };
+    let (tt, pose) = (input("t")?, input("pose")?);
+    let (mut conds, mut outs) = (Vec::new(), Vec::new());
+    for &compute in computes {
+        let vb = crate::weights::load_validated(pt, &expected, false, DType::F32, &Device::Cpu)?;
+        let m = registry::build_slat_flow(&cfg, vb, &pt.display().to_string(), compute)?;
+        crate::util::release_cached_buffers();
+        let s = Instant::now();
+        let (cond, _) = m.condition(std::slice::from_ref(&view), Some(pose))?;
+        let out = m.forward(&x, tt, &cond)?;
+        let seconds = s.elapsed().as_secs_f64();
+        if out.coords != x.coords {
+            return Err(Error::msg("slat_flow: recon's output rows are not in the input's order"));
+        }
+        conds.push((compute.describe(), seconds, cond));
+        outs.push((compute.describe(), seconds, out.feats));
+    }
+    let file = pt.display().to_string();
+    let mut rows = f64_rows("slat_flow.cond", &file, &conds, t, ref_path, "output.slat_flow.cond")?;
+    rows.extend(f64_rows("slat_flow", &file, &outs, t, ref_path, "output.slat_flow")?);
+    Ok(rows)
+}
+
+/// TRELLIS's SLat Gaussian decoder from `ckpts/`: the out layer's features (module
+/// `slat_dec_gs.feats`) and the Gaussians (`slat_dec_gs.xyz`: positions; `.features_dc`;
+/// the activated `.scaling`, `.rotation`, `.opacity`).
+fn check_slat_dec_gs(
+    dir: &Path,
+    st: &Path,
+    t: &HashMap<String, Tensor>,
+    ref_path: &Path,
+    computes: &[Compute],
+) -> Result<Vec<ReleasedRow>> {
+    use crate::model::{ModuleSpec, SparseTensor};
+    let json = dir.join("ckpts").join(format!("{SLAT_DEC_GS}.json"));
+    let label = json.display().to_string();
+    let cfg = ModuleArgs::from_spec(&ModuleSpec::read(&json)?, &label)?;
+    let expected = registry::expected_tensors(&cfg, &label)?;
+    let x = SparseTensor::from_tensors(
+        tensor(t, ref_path, "input.slat_dec_gs.coords")?,
+        tensor(t, ref_path, "input.slat_dec_gs.feats")?.clone(),
+    )?;
+    let names = ["feats", "xyz", "features_dc", "scaling", "rotation", "opacity"];
+    let mut outs: Vec<Vec<(String, f64, Tensor)>> = vec![Vec::new(); names.len()];
+    for &compute in computes {
+        let vb = crate::weights::load_validated(st, &expected, false, DType::F32, &Device::Cpu)?;
+        let m = registry::build_gaussian_decoder(&cfg, vb, &st.display().to_string(), compute)?;
+        crate::util::release_cached_buffers();
+        let s = Instant::now();
+        let feats = m.forward_feats(&x, &mut |_, _| {})?;
+        let reps = m.to_representation(&x, &feats)?;
+        let seconds = s.elapsed().as_secs_f64();
+        let g = reps.first().ok_or_else(|| Error::msg("slat_dec_gs: no Gaussians"))?;
+        let n = g.xyz.elem_count() / 3;
+        let flat = |t: Tensor| -> Result<Tensor> {
+            let w = t.elem_count() / n;
+            Ok(t.reshape((n, w))?)
+        };
+        let ours = [
+            feats,
+            flat(g.xyz.clone())?,
+            flat(g.features_dc.clone())?,
+            flat(g.get_scaling()?)?,
+            flat(g.get_rotation()?)?,
+            flat(g.get_opacity()?)?,
+        ];
+        for (o, v) in outs.iter_mut().zip(ours) {
+            o.push((compute.describe(), seconds, v));
+        }
+    }
+    let file = st.display().to_string();
+    let mut rows = Vec::new();
+    for (name, ours) in names.iter().zip(&outs) {
+        rows.extend(f64_rows(&format!("slat_dec_gs.{name}"), &file, ours, t, ref_path, &format!("output.slat_dec_gs.{name}"))?);
+    }
     Ok(rows)
 }
 
