@@ -447,10 +447,11 @@ fn the_engine_crate_keeps_optional_weight_optional() {
         .filter(|l| !l.is_empty() && !l.starts_with('#'))
         .collect();
     let dep = |name: &str| deps.iter().find(|l| l.split(['=', '.', ' ']).next() == Some(name)).copied();
-    for heavy in ["rapier3d", "indicatif", "anyhow"] {
+    for heavy in ["rapier3d", "anyhow"] {
         assert!(dep(heavy).is_none(), "recon-core must not depend on {heavy}");
     }
-    for optional in ["hf-hub", "ureq", "clap"] {
+    // indicatif: the download's progress bar, part of the `hub` feature.
+    for optional in ["hf-hub", "ureq", "clap", "indicatif"] {
         let line = dep(optional).unwrap_or_else(|| panic!("recon-core lists {optional}"));
         assert!(line.contains("optional = true"), "{optional} must be optional in recon-core: {line}");
     }

@@ -749,7 +749,11 @@ impl Engine {
                 let config = source.architecture()?;
                 let cfg = crate::model::config::RecGenConfig::load(&config)?;
                 let manifest = crate::engine::source::manifest_of(name)?;
-                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache, true)?;
+                // What the cache lacks is downloaded as `recon weights fetch` downloads it.
+                let download = |m: &crate::weights::Manifest, files: &[&crate::weights::ManifestFile], cache: &std::path::Path| {
+                    crate::weights::fetch::get_files(m, files, cache, false).map(|_| ())
+                };
+                let files: WeightFiles = crate::weights::manifest::resolve_manifest(&manifest, name, &cfg, cache, Some(&download))?;
                 Pipeline::load(&config, Weights::Files(&files), all, options)?
             }
             ModelSource::Random { seed, .. } => Pipeline::load(&source.architecture()?, Weights::Random(*seed), all, options)?,

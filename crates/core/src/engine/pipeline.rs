@@ -1268,11 +1268,11 @@ mod tests {
         std::fs::write(&mpath, manifest.to_string()).unwrap();
         let cache = root.join("hub");
         std::fs::create_dir_all(&cache).unwrap();
-        let e = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache, false).unwrap_err().to_string();
+        let e = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache, None).unwrap_err().to_string();
         assert!(e.contains("recon weights fetch --manifest tiny-test") && e.contains("ss_flow.safetensors"), "{e}");
         let snap = cache.join("models--recon-test--tiny/snapshots/abc/sub");
         crate::weights::init::write_random_architecture(&cfg_path, &snap, 3).unwrap();
-        let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache, false).unwrap();
+        let wf = crate::weights::manifest::resolve_module_files(mpath.to_str().unwrap(), &cfg, &cache, None).unwrap();
         assert_eq!(wf.modules.len(), 6);
         assert!(wf.modules[&ModuleKey::SlatDecGs].ends_with("sub/slat_dec_gs.safetensors"));
         let p = Pipeline::load(&cfg_path, Weights::Files(&wf), Stages::All, &LoadOptions::default()).unwrap();

@@ -329,8 +329,17 @@ pub struct ReadFile {
     pub used_for: String,
 }
 
+/// Downloads files of a manifest into a cache ([`resolve_manifest`]'s `download`; the
+/// engine passes the one `recon weights fetch` uses; this module does not import it).
+pub type Download<'a> = &'a (dyn Fn(&Manifest, &[&ManifestFile], &Path) -> Result<()> + Sync);
+
 /// [`resolve_manifest`] for an embedded manifest's name or a manifest file.
-pub fn resolve_module_files(name_or_path: &str, config: &RecGenConfig, cache: &Path, download: bool) -> Result<WeightFiles> {
+pub fn resolve_module_files(
+    name_or_path: &str,
+    config: &RecGenConfig,
+    cache: &Path,
+    download: Option<Download<'_>>,
+) -> Result<WeightFiles> {
     resolve_manifest(&Manifest::load(name_or_path)?, name_or_path, config, cache, download)
 }
 
@@ -343,14 +352,20 @@ pub fn resolve_module_files(name_or_path: &str, config: &RecGenConfig, cache: &P
 /// family ([`ModuleKind`]) to a weights file of the manifest, else of the
 /// manifests it `requires`, else of the other embedded ones. Every needed
 /// file (those checkpoints and the manifest's non-optional config files) must
-/// be in the cache, or, with `download` (what a load does unless
-/// `HF_HUB_OFFLINE` is set), be downloaded into it first as `recon weights
-/// fetch` would (else one error lists every missing file, with the fetch
+/// be in the cache, or, given `download` (the engine passes `recon weights
+/// fetch`'s) and unless `HF_HUB_OFFLINE` is set, be downloaded into it first
+/// (else one error lists every missing file, with the fetch
 /// command; under `HF_HUB_OFFLINE` it says nothing is downloaded), match its
 /// SHA-256 pin ([`Error::ChecksumMismatch`]) and, for a checkpoint, its tensor
 /// list (names and shapes). The architecture is `config` with what the
 /// release's own files say put in (see [`release_architecture`]).
-pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, cache: &Path, download: bool) -> Result<WeightFiles> {
+pub fn resolve_manifest(
+    primary: &Manifest,
+    from: &str,
+    config: &RecGenConfig,
+    cache: &Path,
+    download: Option<Download<'_>>,
+) -> Result<WeightFiles> {
     use rayon::prelude::*;
     let settings = crate::settings::current();
     let mut search = vec![primary.clone()];
@@ -387,12 +402,12 @@ pub fn resolve_manifest(primary: &Manifest, from: &str, config: &RecGenConfig, c
     // Online, what the cache lacks is downloaded first (hf-hub into the same cache, as
     // `recon weights fetch` does; pins are checked below with the rest). A failed download
     // is the error: it names the repo, the file and what to do.
-    if download && !settings.hf_offline && missing.is_empty() {
+    if let Some(download) = download.filter(|_| !settings.hf_offline && missing.is_empty()) {
         for m in &search {
             let absent: Vec<&ManifestFile> =
                 need.iter().filter(|(n, f, ..)| std::ptr::eq(*n, m) && !m.expected_path(cache, f).is_file()).map(|(_, f, ..)| *f).collect();
             if !absent.is_empty() {
-                crate::weights::fetch::get_files(m, &absent, cache, false)?;
+                download(m, &absent, cache)?;
             }
         }
     }

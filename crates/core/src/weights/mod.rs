@@ -17,7 +17,9 @@ pub(crate) mod verify;
 pub use self::fetch::fetch;
 pub use self::init::{is_random_init, write_random_init, write_random_init_as, InitFormat};
 pub use self::load::{mmaped_safetensors_vb, read_safetensors_header};
-pub use self::manifest::{release_architecture, resolve_manifest, resolve_module_files, Manifest, ManifestFile, ReadFile, WeightFiles};
+pub use self::manifest::{
+    release_architecture, resolve_manifest, resolve_module_files, Download, Manifest, ManifestFile, ReadFile, WeightFiles,
+};
 pub use self::record::RandomInit;
 pub use self::registry::{build_ss_encoder, expected_tensors, ModuleConfig};
 pub use self::verify::{print_table, verify_dir};
