@@ -899,19 +899,25 @@ mod tests {
         for qk_cross in [false, true] {
             let mut cfg = tiny_cfg();
             cfg.qk_rms_norm_cross = qk_cross;
+            // Seeded draws: the rounding differences below depend on the weights (over 30
+            // random draws: 2e-7 to 2.3e-6 relative), so the test must not draw anew each run.
+            let mut rng = crate::rng::SeededRng::new(31 + qk_cross as u64);
             let vm = VarMap::new();
             let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
             SLatFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
-            for v in vm.all_vars() {
-                v.set(&Tensor::randn(0f32, 0.2, v.shape(), &dev)?)?;
+            // (By name: the VarMap's own order changes from run to run.)
+            let mut vars: Vec<(String, candle_core::Var)> = vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+            vars.sort_by(|a, b| a.0.cmp(&b.0));
+            for (_, v) in vars {
+                v.set(&(rng.randn(v.shape().dims(), &dev)? * 0.2)?)?;
             }
             let plain = SLatFlowModel::new(&cfg, vb.clone(), Compute::Plain)?;
             let fast = SLatFlowModel::new(&cfg, vb.clone(), Compute::fast(Precision::F32))?;
             let mut full = SLatFlowModel::new(&cfg, vb, Compute::fast(Precision::F32))?;
             full.set_shortcuts(false);
             let coords: Vec<[i32; 4]> = blob().coords.into_iter().filter(|c| c[0] == 0).collect();
-            let x = Tensor::randn(0f32, 1.0, (coords.len(), 4), &dev)?;
-            let cond = Tensor::randn(0f32, 1.0, (1, 6, 16), &dev)?;
+            let x = rng.randn(&[coords.len(), 4], &dev)?;
+            let cond = rng.randn(&[1, 6, 16], &dev)?;
             let neg = cond.zeros_like()?;
             let state = [x];
             // The blocks of a batch of two equal items against the item-by-item loop
@@ -919,7 +925,7 @@ mod tests {
             let two: Vec<[i32; 4]> = coords.iter().copied().chain(coords.iter().map(|c| [1, c[1], c[2], c[3]])).collect();
             let xs = SparseTensor::new(two, Tensor::cat(&[&state[0], &state[0]], 0)?, 2)?;
             let t = Tensor::new(&[700f32, 700.], &dev)?;
-            let conds = Tensor::cat(&[&cond, &Tensor::randn(0f32, 1.0, (1, 6, 16), &dev)?], 0)?;
+            let conds = Tensor::cat(&[&cond, &rng.randn(&[1, 6, 16], &dev)?], 0)?;
             for (name, m) in [("plain", &plain), ("fast", &full), ("fast + shortcut", &fast)] {
                 let (_, taps) = m.forward_with_taps(&xs, &t, &conds)?;
                 let h = taps.input_blocks.last().unwrap();
@@ -948,7 +954,7 @@ mod tests {
             assert_eq!(once.coords, twice.coords);
             let d = max_rel_diff(&once.feats, &twice.feats)?;
             eprintln!("slat_flow qk_cross {qk_cross}: input stage once {d:.2e} from twice");
-            assert!(d <= 1e-6, "qk_cross {qk_cross}: input stage once {d:e} from twice");
+            assert!(d <= 5e-6, "qk_cross {qk_cross}: input stage once {d:e} from twice");
 
             let vf = SlatVelocity { model: &full, coords: &coords };
             let (c0, u0) = vf.velocity_cfg(&state, 700.0, &cond, &neg)?;
@@ -958,7 +964,7 @@ mod tests {
             for (half, a, b) in [("conditional", &c1[0], &c0[0]), ("unconditional", &u1[0], &u0[0])] {
                 let d = max_rel_diff(a, b)?;
                 eprintln!("slat_flow qk_cross {qk_cross}: {half} velocity {d:.2e} from the full computation");
-                assert!(d <= 1e-6, "qk_cross {qk_cross}: {half} velocity {d:e} from the full computation");
+                assert!(d <= 5e-6, "qk_cross {qk_cross}: {half} velocity {d:e} from the full computation");
             }
             let (_, up) = SlatVelocity { model: &plain, coords: &coords }.velocity_cfg(&state, 700.0, &cond, &neg)?;
             assert!(max_rel_diff(&u1[0], &up[0])? <= 1e-5, "qk_cross {qk_cross}: fast vs plain");
