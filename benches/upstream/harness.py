@@ -214,10 +214,11 @@ def save_dinov2(a, out, ref):
     print(f"saved {hub}/{DINOV2_FILE}", flush=True)
 
 
-def randomize(model, seed):
+def randomize(model, seed, std_by_prefix=()):
     """Upstream zero-initialises adaLN and output layers, which would make the
     outputs trivial: every parameter is redrawn (norm scales 1 + N(0, 0.05²),
-    biases N(0, 0.01²), other weights N(0, 0.02²)); buffers keep their values."""
+    biases N(0, 0.01²), weights under a prefix of `std_by_prefix` ((prefix, std)
+    pairs) N(0, std²), other weights N(0, 0.02²)); buffers keep their values."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
@@ -225,12 +226,13 @@ def randomize(model, seed):
         for name, p in model.named_parameters():
             last = name.rsplit(".", 1)[-1]
             noise = torch.randn(p.shape, generator=g, dtype=torch.float32)
+            std = next((s for prefix, s in std_by_prefix if name.startswith(prefix)), 0.02)
             if last == "gamma" or (p.dim() == 1 and last == "weight"):
                 p.copy_(1.0 + 0.05 * noise)
             elif last == "bias":
                 p.copy_(0.01 * noise)
             else:
-                p.copy_(0.02 * noise)
+                p.copy_(std * noise)
 
 
 def inputs(key, args, pc, k, cond_tokens, seed=11):

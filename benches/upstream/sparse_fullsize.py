@@ -54,6 +54,9 @@ import sys
 import time
 import types
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from harness import module_args, randomize  # noqa: E402  (the same directory)
+
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 MODULES = ["slat_flow", "slat_dec_gs"]
 SLAT_FLOW_PT = "slat_denoiser_ema0.9999_step0075000.pt"
@@ -134,29 +137,22 @@ def import_recgen(recgen, trellis):
     return importlib.import_module("recgen_modules.models.structured_latent_cond_flow")
 
 
-def module_args(config_path, key):
-    with open(config_path) as f:
-        return dict(json.load(f)[key]["args"])
+# Embedder convs N(0, 0.05²) (harness.randomize's default for other weights is N(0, 0.02²)).
+EMBEDDER_STD = (("point_embedder", 0.05), ("mask_embedder", 0.05))
 
 
-def randomize(model, seed):
-    """Every parameter redrawn (upstream zero-initialises adaLN and output layers): norm scales
-    1 + N(0, 0.05²), biases N(0, 0.01²), other weights N(0, 0.02²), embedder convs N(0, 0.05²)."""
+def released_fp16(model, seed):
+    """`model` randomised, in eval with spconv's leaf convs in train (bias after the conv), and
+    rounded to fp16 as released: upstream's reference runs on exactly the stored values.
+    Returns the fp16 state dict to save."""
     import torch
 
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            last = name.rsplit(".", 1)[-1]
-            noise = torch.randn(p.shape, generator=g, dtype=torch.float32)
-            if last == "gamma" or (p.dim() == 1 and last == "weight"):
-                p.copy_(1.0 + 0.05 * noise)
-            elif last == "bias":
-                p.copy_(0.01 * noise)
-            elif name.startswith(("point_embedder", "mask_embedder")):
-                p.copy_(0.05 * noise)
-            else:
-                p.copy_(0.02 * noise)
+    randomize(model, seed, EMBEDDER_STD)
+    model.eval()
+    spconv_leaves_train(model)
+    state = {k: v.detach().to(torch.float16).contiguous() for k, v in model.state_dict().items()}
+    model.load_state_dict({k: v.float() for k, v in state.items()})
+    return state
 
 
 def spconv_leaves_train(model):
@@ -245,7 +241,7 @@ def slat_flow(a, out, ref, meta):
     import torch
 
     mod = import_recgen(a.recgen, a.trellis)
-    args = module_args(a.config, "slat_flow")
+    args = module_args(a.config, "slat_flow")[1]
     if a.tiny:
         args.update(resolution=16, model_channels=32, cond_channels=32, num_blocks=2, num_heads=2,
                     io_block_channels=[16], point_embedder_out_channels=32, mask_embedder_out_channels=32,
@@ -253,12 +249,7 @@ def slat_flow(a, out, ref, meta):
     ctor = {k: v for k, v in args.items() if k in mod.SLatCondFlowModel.__init__.__code__.co_varnames}
     ctor["use_fp16"] = False
     model = mod.SLatCondFlowModel(**ctor)
-    randomize(model, 21)
-    model.eval()
-    spconv_leaves_train(model)
-    # As released: fp16 values; upstream's reference runs on exactly those values.
-    state = {k: v.detach().to(torch.float16).contiguous() for k, v in model.state_dict().items()}
-    model.load_state_dict({k: v.float() for k, v in state.items()})
+    state = released_fp16(model, 21)
     t0 = time.perf_counter()
     torch.save(state, os.path.join(out, SLAT_FLOW_PT))
     saved = dict(args, use_fp16=True)
@@ -384,19 +375,14 @@ def slat_dec_gs(a, out, ref, meta):
 
     gaussian_model.Gaussian.setup_functions = setup
     stem, cls = SLAT_DEC_GS
-    args = module_args(a.config, "slat_dec_gs")
+    args = module_args(a.config, "slat_dec_gs")[1]
     if a.tiny:
         args.update(resolution=16, model_channels=64, num_blocks=2, num_heads=4, window_size=8)
         args["representation_config"] = dict(args["representation_config"], num_gaussians=4)
     ctor = {k: v for k, v in args.items() if k in decoder_gs.SLatGaussianDecoder.__init__.__code__.co_varnames}
     ctor["use_fp16"] = False
     model = decoder_gs.SLatGaussianDecoder(**ctor)
-    randomize(model, 22)
-    model.eval()
-    spconv_leaves_train(model)
-    # As released: fp16, the offset_perturbation buffer included (upstream runs on the stored values).
-    state = {k: v.detach().to(torch.float16).contiguous() for k, v in model.state_dict().items()}
-    model.load_state_dict({k: v.float() for k, v in state.items()})
+    state = released_fp16(model, 22)  # the offset_perturbation buffer included
     from safetensors.torch import save_file
 
     os.makedirs(os.path.join(out, "ckpts"), exist_ok=True)
