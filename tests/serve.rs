@@ -361,11 +361,19 @@ fn readme_sample_over_http_matches_recon_infer() {
     let cli_s = t0.elapsed().as_secs_f64();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     eprintln!("README sample: HTTP round trip {http_s:.2} s, recon infer process {cli_s:.2} s (model load included)");
-    let cli: std::collections::BTreeMap<String, Vec<u8>> =
-        recon_testkit_files(&out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
-    assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
+    let cli = assert_same_files(&out, &served);
     let pose: serde_json::Value = serde_json::from_slice(&cli["id_21/pose.json"]).unwrap();
     assert_eq!((&pose["model_identity"], &pose["recon_version"]), (identity, &job["result"]["recon_version"]));
+    let _ = std::fs::remove_dir_all(&t);
+}
+
+/// The files `recon infer` wrote under `out` against those the server `served` (by
+/// relative path): the same names; JSON equal but for the timing fields, the rest byte
+/// for byte. Returns the CLI's files.
+fn assert_same_files(out: &Path, served: &std::collections::BTreeMap<String, Vec<u8>>) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let cli: std::collections::BTreeMap<String, Vec<u8>> =
+        recon_testkit_files(out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
+    assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
     for (name, bytes) in &cli {
         if name.ends_with(".json") {
             assert_eq!(without_timings(bytes), without_timings(&served[name]), "{name}");
@@ -373,7 +381,7 @@ fn readme_sample_over_http_matches_recon_infer() {
             assert!(bytes == &served[name], "{name} differs from recon infer's");
         }
     }
-    let _ = std::fs::remove_dir_all(&t);
+    cli
 }
 
 /// Every file under `root`, relative, sorted.
@@ -1039,16 +1047,7 @@ fn three_views_over_http_match_recon_infer() {
         .unwrap();
     // Exit 3: some objects written, others not (id 99).
     assert_eq!(o.status.code(), Some(3), "{}", String::from_utf8_lossy(&o.stderr));
-    let cli: std::collections::BTreeMap<String, Vec<u8>> =
-        recon_testkit_files(&out).into_iter().map(|n| (n.clone(), std::fs::read(out.join(&n)).unwrap())).collect();
-    assert_eq!(cli.keys().collect::<Vec<_>>(), served.keys().collect::<Vec<_>>());
-    for (name, bytes) in &cli {
-        if name.ends_with(".json") {
-            assert_eq!(without_timings(bytes), without_timings(&served[name]), "{name}");
-        } else {
-            assert!(bytes == &served[name], "{name} differs from recon infer's");
-        }
-    }
+    assert_same_files(&out, &served);
     let _ = std::fs::remove_dir_all(&t);
 }
 
