@@ -453,11 +453,11 @@ impl Engine {
             Some(r) => format!("hf:{repo}@{r}"),
             None => format!("hf:{repo}"),
         };
-        // The repo and revision are checked even when a manifest file names the files.
-        recon::engine::parse_hf(&spec["hf:".len()..]).map_err(weights_to_py)?;
         let weights = match manifest {
             None => spec,
             Some(path) => {
+                // The spec is not loaded then, but a bad repo or revision is still refused.
+                recon::engine::parse_hf(&spec["hf:".len()..]).map_err(weights_to_py)?;
                 let file = path.display().to_string();
                 let m = recon::weights::Manifest::load(&file).map_err(weights_to_py)?;
                 let bad = |what: String| WeightsError::new_err(format!("from_pretrained: manifest {file}: {what}"));
