@@ -92,8 +92,6 @@ pub const FEATURES: &[&str] = &[
     "hub",
     #[cfg(feature = "clap")]
     "clap",
-    #[cfg(feature = "testkit")]
-    "testkit",
 ];
 
 /// What a program needs to reconstruct objects from a frame: `use recon_core::prelude::*;`.

@@ -1,7 +1,7 @@
 //! What the tests of every crate above recon-core share: fresh temporary
 //! folders, the small BOP fixture, primitive meshes, random weights and
 //! gradient checks. One definition each; recon-core's own unit tests use the
-//! same items inside recon-core (its `testkit` feature exposes them here).
+//! same items inside recon-core (doc-hidden modules re-exported here).
 
 use recon_core::mesh::Mesh;
 

@@ -484,10 +484,10 @@ pub fn load_dataset(path: &Path) -> Result<Dataset> {
     load_bop(&split, models)
 }
 
-/// Tiny BOP datasets written to disk, for tests (other crates' with the `testkit` feature).
-#[cfg(any(test, feature = "testkit"))]
+/// Tiny BOP datasets written to disk, for tests (other crates' through recon-testkit).
+#[doc(hidden)]
 pub mod tests {
-    use super::*;
+    use crate::dataset::bop::*;
 
     /// Real-data discovery, shared with the integration tests (test support:
     /// it reads `RECON_REALDATA` / `RECON_REQUIRE_REALDATA`, so it lives in tests/).

@@ -8,7 +8,9 @@ pub mod json;
 pub mod limits;
 pub mod memory;
 pub mod profile;
-#[cfg(any(test, feature = "testkit"))]
+// Always built (hidden): a cargo feature for it made the test build and the Python wheel
+// compile recon-core, and all that depends on it, twice in CI.
+#[doc(hidden)]
 pub mod testing;
 
 pub use self::buffer_cache::{buffer_cache_active, cached_buffer_bytes, release_cached_buffers, LargeBufferCache};

@@ -6,5 +6,5 @@
 pub mod common;
 pub(crate) mod dense3d;
 pub mod fast;
-#[cfg(any(test, feature = "testkit"))]
+#[doc(hidden)]
 pub mod gradcheck;
