@@ -35,7 +35,7 @@ pub struct SearchArgs {
     /// Seed of the pixel subsample and of the fold assignment.
     #[arg(long, default_value_t = SearchOptions::default().seed)]
     seed: u64,
-    /// Output folder (report.json, summary.txt, plots/, sensor_extended.json for depth).
+    /// Output folder (report.json, summary.txt, report.html, plots/; for depth maps/ and sensor_extended.json).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Also write the report JSON here.

@@ -15,6 +15,7 @@
 pub(crate) mod cause;
 pub(crate) mod depth;
 pub(crate) mod fit;
+pub(crate) mod html;
 pub(crate) mod outliers;
 pub(crate) mod report;
 pub(crate) mod search;
@@ -39,6 +40,8 @@ pub struct Audit {
     pub extended: Option<SensorModel>,
     /// Plots as (file name, SVG text).
     pub plots: Vec<(String, String)>,
+    /// Residual maps per frame for `report.html` (depth audits).
+    pub(crate) maps: Option<html::Maps>,
 }
 
 /// Audits any table of measured vs simulated values (`recon audit table`).
@@ -85,8 +88,21 @@ fn run(table: &ResidualTable, opts: &SearchOptions, kind: &str, model: Option<&S
                 report::finding_svg(&ctx, f, col, &built.before, &built.after, mm),
             )
         })
+        .collect::<Vec<_>>();
+    let partials: Vec<(String, String)> = built
+        .report
+        .findings
+        .iter()
+        .enumerate()
+        .filter_map(|(i, f)| {
+            let col = table.column(&f.covariate)?;
+            let svg = html::partial_residual_svg(&ctx, f, col, &built.after, mm)?;
+            Some((format!("partial{}_{}_{}_{}.svg", i + 1, f.target, f.form, safe(&f.covariate)), svg))
+        })
         .collect();
-    Ok(Audit { report: built.report, extended, plots })
+    let plots = plots.into_iter().chain(partials).collect();
+    let maps = html::residual_maps(&ctx, &built.after);
+    Ok(Audit { report: built.report, extended, plots, maps })
 }
 
 fn safe(s: &str) -> String {
@@ -96,8 +112,8 @@ fn safe(s: &str) -> String {
 /// Marker written last into an audit output folder.
 pub const MARKER: &str = "recon-audit.json";
 
-/// Writes `report.json`, `summary.txt`, `sensor_extended.json` (depth) and the plots
-/// into `out` through a staging folder (an interrupted run leaves no complete-looking
+/// Writes `report.json`, `summary.txt`, `report.html`, `sensor_extended.json` (depth), the
+/// plots and the residual maps (depth) into `out` through a staging folder (an interrupted run leaves no complete-looking
 /// output; an existing folder is replaced only if it is an earlier audit output), and
 /// the report JSON also to `json` when given. Sets the report's `extended_model`.
 pub fn write_outputs(audit: &mut Audit, out: &Path, json: Option<&Path>) -> Result<Vec<PathBuf>> {
@@ -135,6 +151,17 @@ pub fn write_outputs(audit: &mut Audit, out: &Path, json: Option<&Path>) -> Resu
         put(&format!("plots/{name}"), svg)?;
         written.push(out.join("plots").join(name));
     }
+    if let Some(m) = &audit.maps {
+        std::fs::create_dir_all(staging.join("maps")).map_err(|e| Error::io(&staging, e))?;
+        for r in &m.maps {
+            let p = staging.join("maps").join(&r.file);
+            std::fs::write(&p, &r.png).map_err(|e| Error::io(&p, e))?;
+            written.push(out.join("maps").join(&r.file));
+        }
+    }
+    let names: Vec<String> = audit.plots.iter().map(|p| p.0.clone()).collect();
+    put("report.html", &html::page(&audit.report, &names, audit.maps.as_ref()))?;
+    written.push(out.join("report.html"));
     put(MARKER, &serde_json::json!({"report": "report.json", "files": written}).to_string())?;
     if out.exists() {
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
