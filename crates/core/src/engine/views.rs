@@ -1,6 +1,6 @@
 //! A view besides the anchor, described by a small JSON file: `recon infer
 //! --view FILE` (repeatable), Python's `views=[…]` and the `views` column of
-//! `recon.ray`'s frame tables.
+//! `recon_rgbd.ray`'s frame tables.
 //!
 //! ```json
 //! {"rgb": "000005-color.png", "masks": "000005-label.png",
