@@ -223,7 +223,7 @@ impl FastLinear {
     }
 }
 
-/// `fc2(act(fc1(x)))` over the last dim of `x`, `rows` rows at a time, so
+/// `fc2(act(fc1(x)))` over the last dim of `x`, at most `rows` rows at a time (equal chunks), so
 /// the wide hidden activations of only one block of rows are alive (the
 /// 4×-wide hidden of a guided SS-flow step is 134 MB at once). Each GEMM row
 /// is computed independently with a fixed summation order, so the result is
@@ -236,7 +236,9 @@ pub fn mlp_by_rows(fc1: &FastLinear, fc2: &FastLinear, x: &Tensor, act: Activati
     }
     let m = x.elem_count() / k.max(1);
     let n = fc2.out_dim();
-    let rows = rows.max(1);
+    // Equal chunks of at most `rows` (2184 rows at 2048 made a 136-row tail whose GEMMs reuse
+    // the weights poorly); a row's result does not depend on its chunk.
+    let rows = m.div_ceil(m.div_ceil(rows.max(1)).max(1)).max(1);
     let out = with_f32(x, |xs| {
         let mut out = vec![0f32; m * n];
         for (xc, oc) in xs.chunks(rows * k).zip(out.chunks_mut(rows * n)) {
