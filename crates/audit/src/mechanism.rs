@@ -25,13 +25,14 @@
 //! candidate fitted on each fold's training frames and scored on its held-out frames;
 //! gains per fold against the current model; a sign-flip randomisation test with the
 //! max-T / raw-max family-wise correction over the round's fitted candidates. A cheap
-//! full-data likelihood-ratio screen (`screen_alpha`) skips the fold fits of candidates
-//! with no sign of an effect. The winner (largest held-out gain among the significant)
+//! full-data likelihood-ratio screen (`screen_alpha`, then the `max_fitted` largest
+//! full-data gains) skips the fold fits of candidates with no sign of an effect. The winner (largest held-out gain among the significant)
 //! is compared with the runner-up (the next largest gain) by a paired sign-flip test of
 //! their fold gains: above `ambiguity_alpha` the report says "ambiguous between X and
 //! Y". Greedy: the winner joins the model and the remaining kinds are tried on top.
-//! Standard errors: the jackknife over the fold fits (frames left out), which carries
-//! the correlation of pixels within a frame.
+//! After each acceptance the earlier mechanisms are refitted with the others fixed
+//! (backfitting, in every fold). Standard errors: the jackknife over the fold fits
+//! (frames left out), which carries the correlation of pixels within a frame.
 use crate::fit::{Ctx, Term, P_EPS};
 use crate::search::{flipped_t, sign_patterns, Folds, SearchOptions};
 use crate::table::ResidualTable;
@@ -52,6 +53,9 @@ pub struct MechanismOptions {
     pub ambiguity_alpha: f64,
     /// At most this many mechanisms.
     pub max_mechanisms: usize,
+    /// At most this many candidates per round are fold-fitted (those passing the screen
+    /// with the largest full-data gain; a data-dependent screen like the search's).
+    pub max_fitted: usize,
     /// Kinds tried (default: all of [`MECHANISM_NAMES`]).
     pub kinds: Vec<String>,
 }
@@ -63,6 +67,7 @@ impl Default for MechanismOptions {
             screen_alpha: 0.01,
             ambiguity_alpha: 0.05,
             max_mechanisms: 3,
+            max_fitted: 4,
             kinds: MECHANISM_NAMES.iter().map(|s| s.to_string()).collect(),
         }
     }
@@ -239,7 +244,9 @@ impl<'a> MechData<'a> {
     /// frame column's value).
     pub fn new(ctx: &Ctx, frames: &'a [SimFrame]) -> Result<Self> {
         let t = ctx.table;
-        let col = |name: &str| t.column(name).ok_or_else(|| Error::input(t.source.clone(), format!("the mechanism inference needs a `{name}` column")));
+        let col = |name: &str| {
+            t.column(name).ok_or_else(|| Error::input(t.source.clone(), format!("the mechanism inference needs a `{name}` column")))
+        };
         let (cf, cu, cv, cd) = (col("frame")?, col("u")?, col("v")?, col("depth")?);
         let n = t.len();
         let mut px = Vec::with_capacity(n);
@@ -484,7 +491,7 @@ fn fit_candidate(d: &MechData, rows: &[usize], base: &Fit, cand: &Mechanism) -> 
         (1, true) => 31,
         (1, false) => 17,
         (2, _) => 9,
-        _ => 6,
+        _ => 5,
     };
     let mut best: (f64, Vec<f64>) = (f64::NEG_INFINITY, vec![0.5; dim]);
     let total = per.pow(dim as u32);
@@ -502,7 +509,7 @@ fn fit_candidate(d: &MechData, rows: &[usize], base: &Fit, cand: &Mechanism) -> 
     }
     let mut x = best.1;
     if !grid_only(kind) {
-        x = nelder_mead(&|x: &[f64]| -eval(x, 3).0, &x, 0.5 / (per - 1) as f64, 60);
+        x = nelder_mead(&|x: &[f64]| -eval(x, 3).0, &x, 0.5 / (per - 1) as f64, 40);
     }
     let (_, nuis) = eval(&x, 3);
     let mut mechs = base.mechs.clone();
@@ -611,6 +618,41 @@ fn paired_p(a: &[f64], b: &[f64], patterns: &[u64]) -> f64 {
     flip_p(&dlt, obs, patterns)
 }
 
+/// The sentence of an accepted mechanism (`also`: its close runner-up is accepted too).
+fn statement(s: &MechFinding, also: bool) -> String {
+    let what = format!("{} ({})", s.mechanism, fmt_params(&s.parameters, Some(&s.standard_errors)));
+    let r = s.runner_up.as_deref().unwrap_or("?");
+    let (m, mp) = (s.margin_nats.unwrap_or(0.0), s.margin_p.unwrap_or(1.0));
+    if s.ambiguous {
+        format!(
+            "ambiguous between {} and {r}: {} leads by only {m:.1} held-out nats (paired p = {mp:.3}); fitted {what}",
+            s.mechanism, s.mechanism
+        )
+    } else {
+        let vs = match (&s.runner_up, also) {
+            (Some(_), true) => format!("; runner-up {r} ({m:.1} nats behind, paired p = {mp:.3}) is selected too: both present"),
+            (Some(_), false) => format!("; runner-up {r}, {m:.1} nats behind (paired p = {mp:.3})"),
+            (None, _) => String::new(),
+        };
+        format!("{what}: held-out gain {:.1} nats over the model before it (p = {:.3}){vs}", s.heldout_gain_total, s.p_value)
+    }
+}
+
+/// Jackknife standard errors of mechanism `kind`'s free parameters over the fold fits.
+fn jackknife(fold_fits: &[Fit], kind: &str) -> BTreeMap<String, f64> {
+    let k = fold_fits.len() as f64;
+    let per: Vec<BTreeMap<String, f64>> = fold_fits.iter().filter_map(|f| f.mechs.iter().find(|m| m.name() == kind).map(named)).collect();
+    let mut se = BTreeMap::new();
+    if let Some(first) = per.first() {
+        for name in first.keys() {
+            let xs: Vec<f64> = per.iter().map(|p| p[name]).collect();
+            let mean = xs.iter().sum::<f64>() / k;
+            se.insert(name.clone(), ((k - 1.0) / k * xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>()).sqrt());
+        }
+    }
+    se
+}
+
 fn named(m: &Mechanism) -> BTreeMap<String, f64> {
     let free = free_params(m.name());
     let vals = m.values();
@@ -650,7 +692,11 @@ pub fn infer(
     t.validate()?;
     for k in &opts.kinds {
         if Mechanism::neutral(k).is_none() {
-            return Err(Error::config("mechanism options", "kinds", format!("unknown mechanism {k:?}; expected one of {}", MECHANISM_NAMES.join(", "))));
+            return Err(Error::config(
+                "mechanism options",
+                "kinds",
+                format!("unknown mechanism {k:?}; expected one of {}", MECHANISM_NAMES.join(", ")),
+            ));
         }
     }
     let d = MechData::new(ctx, frames)?;
@@ -659,7 +705,8 @@ pub fn infer(
         return Err(Error::input(t.source.clone(), format!("{} split unit(s) (frames); the held-out test needs at least 3", folds.k)));
     }
     let patterns = sign_patterns(folds.k, search.seed);
-    let null_fits: Vec<Fit> = (0..=folds.k).into_par_iter().map(|f| fit_fixed(&d, &folds.train_all[f], &[], start_nuis(&d, &folds.train_all[f]))).collect();
+    let null_fits: Vec<Fit> =
+        (0..=folds.k).into_par_iter().map(|f| fit_fixed(&d, &folds.train_all[f], &[], start_nuis(&d, &folds.train_all[f]))).collect();
     let null = heldout(&d, &folds, null_fits);
     let mut current = null.clone();
     let mut rounds: Vec<MechRound> = vec![];
@@ -667,7 +714,8 @@ pub fn infer(
     let valid_rows = t.len();
     while selected.len() < opts.max_mechanisms {
         let taken: Vec<&str> = current.fits[folds.k].mechs.iter().map(|m| m.name()).collect();
-        let kinds: Vec<Mechanism> = opts.kinds.iter().filter(|k| !taken.contains(&k.as_str())).filter_map(|k| Mechanism::neutral(k)).collect();
+        let kinds: Vec<Mechanism> =
+            opts.kinds.iter().filter(|k| !taken.contains(&k.as_str())).filter_map(|k| Mechanism::neutral(k)).collect();
         if kinds.is_empty() {
             break;
         }
@@ -696,8 +744,15 @@ pub fn infer(
                 (c, None)
             })
             .collect();
-        let jobs: Vec<(usize, usize)> = (0..cands.len()).filter(|&c| cands[c].0.fitted).flat_map(|c| (0..folds.k).map(move |f| (c, f))).collect();
-        let fold_fits: Vec<Fit> = jobs.par_iter().map(|&(c, f)| fit_candidate(&d, &folds.train_all[f], &current.fits[f], &kinds[c])).collect();
+        let mut by_gain: Vec<usize> = (0..cands.len()).filter(|&c| cands[c].0.fitted).collect();
+        by_gain.sort_by(|&a, &b| cands[b].0.fulldata_gain.total_cmp(&cands[a].0.fulldata_gain).then(a.cmp(&b)));
+        for &c in by_gain.iter().skip(opts.max_fitted.max(2)) {
+            cands[c].0.fitted = false;
+        }
+        let jobs: Vec<(usize, usize)> =
+            (0..cands.len()).filter(|&c| cands[c].0.fitted).flat_map(|c| (0..folds.k).map(move |f| (c, f))).collect();
+        let fold_fits: Vec<Fit> =
+            jobs.par_iter().map(|&(c, f)| fit_candidate(&d, &folds.train_all[f], &current.fits[f], &kinds[c])).collect();
         let mut per_cand: BTreeMap<usize, Vec<Fit>> = BTreeMap::new();
         for (&(c, _), fit) in jobs.iter().zip(fold_fits) {
             per_cand.entry(c).or_default().push(fit);
@@ -717,10 +772,15 @@ pub fn infer(
         // Family-wise p: max-T and raw max over the fitted candidates, Bonferroni over the two.
         let fitted: Vec<usize> = (0..cands.len()).filter(|&c| cands[c].1.is_some()).collect();
         if !fitted.is_empty() {
-            let gq: Vec<(Vec<f64>, f64)> = fitted.iter().map(|&c| (cands[c].0.gains.clone(), cands[c].0.gains.iter().map(|x| x * x).sum())).collect();
+            let gq: Vec<(Vec<f64>, f64)> =
+                fitted.iter().map(|&c| (cands[c].0.gains.clone(), cands[c].0.gains.iter().map(|x| x * x).sum())).collect();
             let maxes: Vec<(f64, f64)> = patterns
                 .par_iter()
-                .map(|&m| gq.iter().fold((f64::NEG_INFINITY, f64::NEG_INFINITY), |(mt, ms), (g, q)| (mt.max(flipped_t(g, *q, m)), ms.max(flipped(g, m)))))
+                .map(|&m| {
+                    gq.iter().fold((f64::NEG_INFINITY, f64::NEG_INFINITY), |(mt, ms), (g, q)| {
+                        (mt.max(flipped_t(g, *q, m)), ms.max(flipped(g, m)))
+                    })
+                })
                 .collect();
             for (&c, (g, q)) in fitted.iter().zip(&gq) {
                 let obs = cands[c].0.heldout_gain_total;
@@ -746,15 +806,8 @@ pub fn infer(
         let runner = order.iter().copied().find(|&c| c != w && cands[c].1.is_some());
         let cv_w = cands[w].1.clone().expect("winner is fitted");
         let fits_w = &cv_w.fits;
-        // Jackknife over the fold fits.
-        let k = folds.k as f64;
         let params_full = named(fits_w[folds.k].mechs.last().expect("winner"));
-        let mut se = BTreeMap::new();
-        for name in params_full.keys() {
-            let xs: Vec<f64> = fits_w[..folds.k].iter().map(|f| named(f.mechs.last().expect("winner"))[name]).collect();
-            let mean = xs.iter().sum::<f64>() / k;
-            se.insert(name.clone(), ((k - 1.0) / k * xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>()).sqrt());
-        }
+        let se = jackknife(&fits_w[..folds.k], &cands[w].0.mechanism);
         let (cw, name_w) = (&cands[w].0, cands[w].0.mechanism.clone());
         let (runner_up, rg, margin, margin_p) = match runner {
             Some(r) => {
@@ -765,21 +818,6 @@ pub fn infer(
             None => (None, None, None, None),
         };
         let ambiguous = margin_p.is_some_and(|p| p >= opts.ambiguity_alpha);
-        let what = format!("{name_w} ({})", fmt_params(&params_full, Some(&se)));
-        let statement = if ambiguous {
-            format!(
-                "ambiguous between {name_w} and {}: {name_w} leads by only {:.1} held-out nats (paired p = {:.3}); fitted {what}",
-                runner_up.as_deref().unwrap_or("?"),
-                margin.unwrap_or(0.0),
-                margin_p.unwrap_or(1.0)
-            )
-        } else {
-            let vs = match (&runner_up, margin, margin_p) {
-                (Some(r), Some(m), Some(p)) => format!("; runner-up {r}, {m:.1} nats behind (paired p = {p:.3})"),
-                _ => String::new(),
-            };
-            format!("{what}: held-out gain {:.1} nats over the model before it (p = {:.3}){vs}", cw.heldout_gain_total, cw.p_value)
-        };
         selected.push(MechFinding {
             mechanism: name_w.clone(),
             parameters: params_full,
@@ -792,10 +830,48 @@ pub fn infer(
             margin_nats: margin,
             margin_p,
             ambiguous,
-            statement,
+            statement: String::new(),
         });
         rounds.push(MechRound { candidates: round_cands, selected: Some(name_w) });
         current = cv_w;
+        let n_acc = current.fits[folds.k].mechs.len();
+        if n_acc > 1 {
+            // Backfitting: each earlier mechanism refitted with the others fixed, in every
+            // fold, so a parameter fitted before a later mechanism was known settles.
+            let refit: Vec<Fit> = (0..=folds.k)
+                .into_par_iter()
+                .map(|f| {
+                    let mut fit = current.fits[f].clone();
+                    for j in 0..n_acc - 1 {
+                        let mut others = fit.mechs.clone();
+                        let cand = others.remove(j);
+                        let base = Fit { mechs: others, nuis: fit.nuis, ll: fit.ll };
+                        let mut nf = fit_candidate(&d, &folds.train_all[f], &base, &cand);
+                        let m = nf.mechs.pop().expect("refitted");
+                        nf.mechs.insert(j, m);
+                        if nf.ll >= fit.ll {
+                            fit = nf;
+                        }
+                    }
+                    fit
+                })
+                .collect();
+            current = heldout(&d, &folds, refit);
+        }
+    }
+    // Parameters and standard errors of the final (backfitted) model. A winner whose
+    // close runner-up is selected in a later round is not ambiguous: both are present.
+    let names: Vec<String> = selected.iter().map(|s| s.mechanism.clone()).collect();
+    for s in selected.iter_mut() {
+        if let Some(full) = current.fits[folds.k].mechs.iter().find(|m| m.name() == s.mechanism).map(named) {
+            s.standard_errors = jackknife(&current.fits[..folds.k], &s.mechanism);
+            s.parameters = full;
+        }
+        let also = s.ambiguous && s.runner_up.as_ref().is_some_and(|r| names.contains(r));
+        if also {
+            s.ambiguous = false;
+        }
+        s.statement = statement(s, also);
     }
     let fitted = current.fits[folds.k].mechs.clone();
     let verdict = if selected.is_empty() {

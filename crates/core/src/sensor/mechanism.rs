@@ -300,7 +300,10 @@ impl Mechanism {
     pub fn check(&self) -> Result<(), (String, String)> {
         for (par, v) in self.prior().iter().zip(self.values()) {
             if !(v.is_finite() && v >= par.lo && v <= par.hi) {
-                return Err((par.name.to_string(), format!("expected a number in [{}, {}] (the prior of {}), got {v}", par.lo, par.hi, self.name())));
+                return Err((
+                    par.name.to_string(),
+                    format!("expected a number in [{}, {}] (the prior of {}), got {v}", par.lo, par.hi, self.name()),
+                ));
             }
         }
         Ok(())
@@ -574,7 +577,14 @@ mod tests {
         assert!((e[p].z - 1.03).abs() < 1e-6 && (e[p].gain - 1.01).abs() < 1e-12);
         // Off the image on the left.
         assert_eq!(e[3 * 16].src, None);
-        let d = expect(&[Mechanism::Drift { offset_m_per_frame: 0.001, scale_per_frame: 0.0 }, Mechanism::GrazingDropout { onset_deg: 70.0, rate: 0.6 }], &f, &[p]);
+        let d = expect(
+            &[
+                Mechanism::Drift { offset_m_per_frame: 0.001, scale_per_frame: 0.0 },
+                Mechanism::GrazingDropout { onset_deg: 70.0, rate: 0.6 },
+            ],
+            &f,
+            &[p],
+        );
         assert!((d[0].offset - 0.003).abs() < 1e-12 && (d[0].p - 0.3).abs() < 1e-12);
     }
 

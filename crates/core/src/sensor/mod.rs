@@ -656,6 +656,39 @@ mod tests {
     }
 
     #[test]
+    fn mechanisms_validate_naming_the_field_and_shift_the_frame() {
+        let m = SensorModel::from_json_str(
+            r#"{"version":1,"base":{"kind":"ideal"},"mechanisms":[{"mechanism":"depth_scale","scale":0.3}]}"#,
+            "s.json",
+        );
+        let e = m.unwrap_err().to_string();
+        assert!(e.contains("mechanisms[0].scale") && e.contains("[-0.05, 0.05]") && e.contains("s.json"), "{e}");
+        let e = SensorModel::from_json_str(r#"{"version":1,"base":{"kind":"ideal"},"mechanisms":[{"mechanism":"warp"}]}"#, "s.json")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("warp"), "{e}");
+        // No mechanism: apply_frame is apply; the JSON has no `mechanisms` key.
+        let (w, h) = (12, 6);
+        let covs: Vec<PixelCovariates> = (0..w * h)
+            .map(|i| PixelCovariates { depth: 1.0 + 0.01 * (i % w) as f64, u: (i % w) as f64, v: (i / w) as f64, ..Default::default() })
+            .collect();
+        let k = Pinhole { fx: 20.0, fy: 20.0, cx: 5.5, cy: 2.5 };
+        let mut m = SensorModel::stereo_default();
+        assert_eq!(m.apply_frame(&covs, w, h, k, 9), m.apply(&covs, w, h, 9));
+        assert!(!serde_json::to_string(&m).unwrap().contains("mechanisms"));
+        // A registration shift of 2 px: pixel u sees the surface of u − 2.
+        let mut ideal = SensorModel::ideal();
+        ideal.mechanisms.push(Mechanism::Registration { du_px: 2.0, dv_px: 0.0 });
+        let out = ideal.apply_frame(&covs, w, h, k, 9);
+        assert_eq!(out[3 * w + 1], 0.0);
+        assert!((out[3 * w + 7] as f64 - covs[3 * w + 5].depth).abs() < 1e-6);
+        m.mechanisms = ideal.mechanisms.clone();
+        m.mechanisms.push(Mechanism::Registration { du_px: 1.0, dv_px: 0.0 });
+        let e = m.validate("s.json").unwrap_err().to_string();
+        assert!(e.contains("mechanisms[1]") && e.contains("twice"), "{e}");
+    }
+
+    #[test]
     fn stereo_noise_grows_with_range_squared() {
         let m = SensorModel::stereo_default();
         let r = m.base_sd(2.0) / m.base_sd(1.0);
