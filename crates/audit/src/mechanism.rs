@@ -182,9 +182,10 @@ pub struct Explained {
     pub term: String,
     /// Score-test p of the finding's term at the baseline on the original residuals.
     pub p_before: f64,
-    /// The same after each accepted mechanism (cumulative), in order.
+    /// The same with each accepted mechanism alone fitted, then (two or more) all of them.
     pub p_after: Vec<(String, f64)>,
-    /// The first mechanism after which the term is no longer significant (`screen_alpha`).
+    /// The first mechanism that alone makes the term non-significant (`screen_alpha`),
+    /// else the set ("a + b") if together they do.
     pub explained_by: Option<String>,
 }
 
@@ -904,13 +905,19 @@ pub fn infer(
             });
         }
         let before: Vec<f64> = terms.iter().map(|&term| crate::search::term_score_p(ctx, term)).collect();
+        // Each mechanism alone, then all together: a finding is explained by the first
+        // mechanism that alone makes it vanish, else by the set.
         let mut after: Vec<Vec<(String, f64)>> = vec![vec![]; terms.len()];
         let mechs = &report.fitted;
-        for j in 0..mechs.len() {
-            let tab = d.corrected_table(t, &mechs[..=j]);
+        let mut sets: Vec<(String, Vec<Mechanism>)> = mechs.iter().map(|m| (m.name().to_string(), vec![m.clone()])).collect();
+        if mechs.len() > 1 {
+            sets.push((mechs.iter().map(|m| m.name()).collect::<Vec<_>>().join(" + "), mechs.clone()));
+        }
+        for (name, set) in &sets {
+            let tab = d.corrected_table(t, set);
             let c2 = Ctx::new(&tab, ctx.robust);
             for (a, &term) in after.iter_mut().zip(terms) {
-                a.push((mechs[j].name().to_string(), crate::search::term_score_p(&c2, term)));
+                a.push((name.clone(), crate::search::term_score_p(&c2, term)));
             }
         }
         report.findings_explained = terms

@@ -519,21 +519,15 @@ pub fn expect(mechs: &[Mechanism], f: &SimFrame, pixels: &[usize]) -> Vec<Expect
                         let sd = coefficient * z * z;
                         e.var += sd * sd;
                     }
-                    Mechanism::GrazingDropout { onset_deg, rate } => {
-                        if onset_deg < 90.0 {
-                            e.p += rate * ((inc - onset_deg) / (90.0 - onset_deg)).clamp(0.0, 1.0);
-                        }
+                    Mechanism::GrazingDropout { onset_deg, rate } if onset_deg < 90.0 => {
+                        e.p += rate * ((inc - onset_deg) / (90.0 - onset_deg)).clamp(0.0, 1.0);
                     }
-                    Mechanism::DarkDropout { below, rate } => {
-                        if below > 0.0 {
-                            e.p += rate * ((below - inten) / below).clamp(0.0, 1.0);
-                        }
+                    Mechanism::DarkDropout { below, rate } if below > 0.0 => {
+                        e.p += rate * ((below - inten) / below).clamp(0.0, 1.0);
                     }
-                    Mechanism::MaterialGroup { intensity_below, bias_m, noise_m } => {
-                        if inten < intensity_below {
-                            e.offset += bias_m;
-                            e.var += noise_m * noise_m;
-                        }
+                    Mechanism::MaterialGroup { intensity_below, bias_m, noise_m } if inten < intensity_below => {
+                        e.offset += bias_m;
+                        e.var += noise_m * noise_m;
                     }
                     _ => {}
                 }
