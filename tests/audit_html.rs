@@ -2,14 +2,14 @@
 //!
 //! A small `recon synth` dataset with a bias planted linear in image u is audited and its
 //! outputs written; the page must reference only files that exist, show the findings,
-//! before/after and maps sections, and, loaded in Chromium, raise no error and display every
+//! mechanism, before/after and maps sections, and, loaded in Chromium, raise no error and display every
 //! image. A page with a broken image is checked the same way and must be caught, so the browser
 //! check can fail. Without a browser the browser part is skipped (with a message), unless
 //! `RECON_REQUIRE_BROWSER=1` (CI) makes that a failure. `RECON_CHROMIUM` names the binary.
 mod common;
 
 use common::tmp;
-use recon::audit::{audit_depth, collect, residual_table, write_outputs, DepthOptions, SearchOptions};
+use recon::audit::{audit_depth_frames, collect, residual_table, write_outputs, DepthOptions, MechanismOptions, SearchOptions};
 use recon::sensor::{Covariate, Effect, Form, SensorModel, Target};
 use recon::synth::{generate, SynthOptions};
 use std::path::{Path, PathBuf};
@@ -79,7 +79,8 @@ fn html_report_loads_in_a_browser_with_its_tables_plots_and_maps() {
     generate(&data, &opts, &|| {}).unwrap();
     let col = collect(&data, &audited, &DepthOptions { max_pixels_per_frame: 1200, seed: 0, max_frames: None }).unwrap();
     let table = residual_table(&audited, &col.pixels, "planted u bias");
-    let mut audit = audit_depth(&table, &SearchOptions::default(), &audited).unwrap();
+    let opts = SearchOptions::default();
+    let mut audit = audit_depth_frames(&table, &opts, &audited, &col.sims, &MechanismOptions::from_search(&opts)).unwrap();
     assert!(
         audit.report.findings.iter().any(|f| f.target == "bias" && f.covariate == "u"),
         "the planted bias ~ u is not among the findings:\n{}",
@@ -103,7 +104,7 @@ fn html_report_loads_in_a_browser_with_its_tables_plots_and_maps() {
     for l in &linked {
         assert!(out.join(l).is_file(), "report.html links {l}, which is not in {}", out.display());
     }
-    for id in ["summary", "findings", "before-after", "maps", "plots"] {
+    for id in ["summary", "findings", "mechanism-verdict", "mechanism-comparison", "before-after", "maps", "plots"] {
         assert!(html.contains(&format!("id=\"{id}\"")), "report.html lacks #{id}");
     }
 
@@ -121,7 +122,9 @@ fn html_report_loads_in_a_browser_with_its_tables_plots_and_maps() {
     assert_eq!(seen["images"].as_u64().unwrap() as usize, linked.iter().filter(|l| l.ends_with(".png") || l.ends_with(".svg")).count());
     assert_eq!(seen["findings_rows"].as_u64().unwrap() as usize, audit.report.findings.len(), "{seen}");
     let tables: Vec<&str> = seen["tables"].as_array().unwrap().iter().filter_map(|t| t.as_str()).collect();
-    assert!(tables.contains(&"findings") && tables.contains(&"before-after"), "{seen}");
+    for t in ["findings", "mechanism-comparison", "before-after"] {
+        assert!(tables.contains(&t), "table #{t} not in the loaded page: {seen}");
+    }
 
     // The same check on a page with one missing image must report it.
     let broken = out.join("broken.html");

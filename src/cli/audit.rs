@@ -2,7 +2,7 @@
 use anyhow::Context;
 use recon::audit::ResidualTable;
 use recon::audit::SearchOptions;
-use recon::audit::{audit_depth, audit_table, write_outputs, Audit};
+use recon::audit::{audit_depth, audit_depth_frames, audit_table, write_outputs, Audit, MechanismOptions};
 use recon::audit::{collect, residual_table, DepthOptions};
 use recon::sensor::SensorModel;
 use std::path::{Path, PathBuf};
@@ -73,6 +73,10 @@ pub struct DepthArgs {
     /// Use only the first N frames.
     #[arg(long)]
     frames: Option<usize>,
+    /// Skip the mechanism inference (which fits registration, distortion, drift, edge
+    /// effects, … to the frame images and names the winning physical mechanism).
+    #[arg(long)]
+    no_mechanisms: bool,
     #[command(flatten)]
     search: SearchArgs,
 }
@@ -154,7 +158,11 @@ fn depth(a: DepthArgs) -> anyhow::Result<bool> {
         .map(|s| s.parse::<usize>().ok().and_then(|i| col.frame_names.get(i).cloned()).unwrap_or_else(|| s.clone()))
         .collect();
     let t1 = std::time::Instant::now();
-    let audit = audit_depth(&table, &opts, &model)?;
+    let audit = if a.no_mechanisms {
+        audit_depth(&table, &opts, &model)?
+    } else {
+        audit_depth_frames(&table, &opts, &model, &col.sims, &MechanismOptions::from_search(&opts))?
+    };
     eprintln!("search: {:.1} s", t1.elapsed().as_secs_f64());
     finish(audit, &a.search, &a.dataset)
 }

@@ -85,6 +85,9 @@ pub struct Collected {
     pub simulation: String,
     /// Frame names (`scene/frame`) in covariate `frame` order.
     pub frame_names: Vec<String>,
+    /// Simulated images of each frame (covariate `frame` order), after the model's edge
+    /// fattening: what the mechanism inference warps.
+    pub sims: Vec<recon_core::sensor::SimFrame>,
 }
 
 /// Reads a dataset (BOP, e.g. from `recon synth`, or the YCB-Video layout; see
@@ -115,7 +118,7 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
         }
     }
     let n = opts.max_frames.unwrap_or(usize::MAX).min(ds.frames.len());
-    let mut out = Collected { pixels: vec![], frames: n, object_pixels: 0, simulation: String::new(), frame_names: vec![] };
+    let mut out = Collected { pixels: vec![], frames: n, object_pixels: 0, simulation: String::new(), frame_names: vec![], sims: vec![] };
     out.simulation = if ycbv {
         "YCB-Video GT rendering (vertmap of -meta.mat) posed by the GT; normals from neighbouring pixels".into()
     } else {
@@ -165,6 +168,8 @@ pub fn collect(dir: &std::path::Path, model: &SensorModel, opts: &DepthOptions) 
             out.pixels.push(PixelSample { cov: covs[i], measured: raw[i] as f64 * scale_m });
         }
         out.frame_names.push(format!("{}/{:06}", f.scene, f.frame));
+        let pin = recon_core::sensor::Pinhole { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
+        out.sims.push(recon_core::sensor::sim_frame(&covs, w, h, pin));
     }
     if out.pixels.is_empty() {
         return Err(Error::input(dir.display().to_string(), "no GT object is visible in any frame"));

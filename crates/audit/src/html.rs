@@ -1,7 +1,8 @@
 //! `report.html`: the audit for a person to read, beside `report.json` for machines.
 //!
 //! One self-contained page (no scripts, no network) that links the files of the same output
-//! folder: the summary, the findings table, the before/after metrics, any further report
+//! folder: the summary, the findings table, the physical mechanisms (verdict, accepted
+//! mechanisms with runner-up and margin, every round's candidates), the before/after metrics, any further report
 //! sections that are arrays of records (mechanism comparison, downstream before/after) as
 //! tables, the findings' plots, the partial-residual plots of bias findings, and residual
 //! maps per frame (measured − simulated beside the extended model's predicted residual and
@@ -276,6 +277,50 @@ fn records_table(id: &str, rows: &[Value]) -> String {
     s + "</tbody></table>\n"
 }
 
+/// The mechanism section: the verdict, the accepted mechanisms (winner, runner-up, margin),
+/// the comparison with the covariate findings, and every round's candidates.
+fn mechanisms(m: &Value) -> String {
+    let mut s = String::from("<h2>Physical mechanisms</h2>\n");
+    s += &format!("<p id=\"mechanism-verdict\"><b>{}</b></p>\n", esc(m["verdict"].as_str().unwrap_or("")));
+    if let Some(v) = m.get("versus_findings").filter(|v| v.is_object()) {
+        s += &format!(
+            "<p>Mechanisms against the covariate findings, held out: {} nats (p mechanisms better {}, p findings better {}).</p>\n",
+            cell(&v["mechanisms_minus_findings"]),
+            cell(&v["p_mechanisms_better"]),
+            cell(&v["p_findings_better"])
+        );
+    }
+    if let Some(sel) = m["selected"].as_array().filter(|a| !a.is_empty()) {
+        s += &records_table("mechanisms-selected", sel);
+    }
+    // The comparison: every candidate of every round, one row each.
+    let rows: Vec<Value> = m["rounds"]
+        .as_array()
+        .map(|rounds| {
+            rounds
+                .iter()
+                .enumerate()
+                .flat_map(|(r, round)| {
+                    let chosen = round["selected"].as_str().map(str::to_string);
+                    round["candidates"].as_array().cloned().unwrap_or_default().into_iter().map(move |mut c| {
+                        let accepted = chosen.as_deref() == c["mechanism"].as_str();
+                        if let Value::Object(o) = &mut c {
+                            o.insert("round".into(), Value::from(r + 1));
+                            o.insert("accepted".into(), Value::from(accepted));
+                        }
+                        c
+                    })
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    if !rows.is_empty() {
+        s += "<h3>Mechanism comparison (every round's candidates)</h3>\n";
+        s += &records_table("mechanism-comparison", &rows);
+    }
+    s
+}
+
 /// The page. `plots` are file names under `plots/`; maps under `maps/`.
 pub(crate) fn page(report: &Report, plots: &[String], maps: Option<&Maps>) -> String {
     let json = serde_json::to_value(report).unwrap_or(Value::Null);
@@ -295,14 +340,15 @@ pub(crate) fn page(report: &Report, plots: &[String], maps: Option<&Maps>) -> St
         s += "<p id=\"no-findings\">No effect is significant on held-out units.</p>\n";
     } else {
         s += "<table id=\"findings\"><thead><tr><th>#</th><th>target</th><th>covariate</th><th>form</th><th>parameters</th>\
-              <th>standard errors</th><th>held-out gain (nats/pixel)</th><th>folds better</th><th>p (family-wise)</th><th>cause</th></tr></thead><tbody>\n";
+              <th>standard errors</th><th>held-out gain (nats/pixel)</th><th>folds better</th><th>p (family-wise)</th><th>cause</th>\
+              <th>explained by mechanism</th></tr></thead><tbody>\n";
         for (i, f) in report.findings.iter().enumerate() {
             let cov = match &f.by {
                 Some(b) => format!("{} × {b}", f.covariate),
                 None => f.covariate.clone(),
             };
             s += &format!(
-                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>\n",
                 i + 1,
                 esc(&f.target),
                 esc(&cov),
@@ -312,10 +358,15 @@ pub(crate) fn page(report: &Report, plots: &[String], maps: Option<&Maps>) -> St
                 sig(f.heldout_gain),
                 esc(&f.folds_improved),
                 sig(f.p_value),
-                esc(&f.cause)
+                esc(&f.cause),
+                esc(f.explained_by.as_deref().unwrap_or("–"))
             );
         }
         s += "</tbody></table>\n";
+    }
+
+    if let Some(m) = json.get("mechanisms").filter(|m| m.is_object()) {
+        s += &mechanisms(m);
     }
 
     s += "<h2>Held out, before and after</h2>\n<table id=\"before-after\"><thead><tr><th>metric</th><th>input simulation</th>\
@@ -337,7 +388,7 @@ pub(crate) fn page(report: &Report, plots: &[String], maps: Option<&Maps>) -> St
     // before/after): tables, whatever their fields.
     if let Value::Object(m) = &json {
         for (k, v) in m {
-            if ["findings", "rounds", "data", "method", "baseline", "after", "input", "outliers"].contains(&k.as_str()) {
+            if ["findings", "rounds", "data", "method", "baseline", "after", "input", "outliers", "mechanisms"].contains(&k.as_str()) {
                 continue;
             }
             if let Value::Array(rows) = v {

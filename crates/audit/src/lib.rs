@@ -5,6 +5,7 @@
 //! - `depth`: building it from a BOP / YCB-Video dataset and a sensor model;
 //! - `fit`: the residual model and its maximum-likelihood fit;
 //! - `search`: candidate effects, held-out testing by unit, greedy selection;
+//! - `mechanism`: which physical sensor mechanism explains the frames (fitted on the images);
 //! - `outliers`: is the fit's outlier component structured (rate and sign by covariate)?
 //! - `report`: report JSON (schema in its docs), summary, plots; `cause`: the words;
 //! - `stats`: t / χ² tails, robust statistics, a small SPD solver.
@@ -16,12 +17,14 @@ pub(crate) mod cause;
 pub(crate) mod depth;
 pub(crate) mod fit;
 pub(crate) mod html;
+pub(crate) mod mechanism;
 pub(crate) mod outliers;
 pub(crate) mod report;
 pub(crate) mod search;
 pub(crate) mod stats;
 pub(crate) mod table;
 pub use self::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
+pub use self::mechanism::{free_params, Candidate, Explained, MechFinding, MechRound, MechanismOptions, MechanismReport, Versus};
 pub use self::search::{Round, SearchOptions, SearchResult, Selected, Uncertainty};
 pub use self::table::ResidualTable;
 
@@ -55,11 +58,60 @@ pub fn audit_depth(table: &ResidualTable, opts: &SearchOptions, model: &SensorMo
     run(table, opts, "depth", Some(model))
 }
 
+/// [`audit_depth`] plus the mechanism inference on the frames' simulated images
+/// (`frames[i]` is the frame whose `frame` covariate is i; see [`collect`]): the report's
+/// `mechanisms` section, and each covariate finding says which mechanism explains it.
+pub fn audit_depth_frames(
+    table: &ResidualTable,
+    opts: &SearchOptions,
+    model: &SensorModel,
+    frames: &[recon_core::sensor::SimFrame],
+    mopts: &MechanismOptions,
+) -> Result<Audit> {
+    run_with(table, opts, "depth", Some(model), Some((frames, mopts)))
+}
+
+/// The mechanism inference alone (no covariate search): what `audit_depth_frames`
+/// reports under `mechanisms`, without the comparison with covariate findings.
+pub fn infer_mechanisms(
+    table: &ResidualTable,
+    opts: &SearchOptions,
+    frames: &[recon_core::sensor::SimFrame],
+    mopts: &MechanismOptions,
+) -> Result<MechanismReport> {
+    let ctx = Ctx::new(table, opts.robust);
+    mechanism::infer(&ctx, frames, opts, mopts, None)
+}
+
 fn run(table: &ResidualTable, opts: &SearchOptions, kind: &str, model: Option<&SensorModel>) -> Result<Audit> {
+    run_with(table, opts, kind, model, None)
+}
+
+fn run_with(
+    table: &ResidualTable,
+    opts: &SearchOptions,
+    kind: &str,
+    model: Option<&SensorModel>,
+    frames: Option<(&[recon_core::sensor::SimFrame], &MechanismOptions)>,
+) -> Result<Audit> {
     let ctx = Ctx::new(table, opts.robust);
     let res = search::search(&ctx, opts)?;
     let input = InputPrediction { noise: model.map(|m| m.noise_m), dropout: model.map(|m| m.dropout) };
-    let built = report::build(&ctx, &res, opts, kind, &input, model.is_some());
+    let mut built = report::build(&ctx, &res, opts, kind, &input, model.is_some());
+    if let Some((frames, mopts)) = frames {
+        let terms: Vec<fit::Term> = res.selected.iter().map(|s| s.evidence.term).collect();
+        let unit_ll: Vec<f64> = res.final_cv.unit_ll_gauss.iter().zip(&res.final_cv.unit_ll_bern).map(|(a, b)| a + b).collect();
+        let mut m = mechanism::infer(&ctx, frames, opts, mopts, Some((terms.as_slice(), unit_ll.as_slice())))?;
+        // Point each finding at its mechanism; index the report's (sorted) findings.
+        for e in &mut m.findings_explained {
+            if let Some(pos) = built.report.findings.iter().position(|f| f.term_index == e.finding) {
+                built.report.findings[pos].explained_by =
+                    Some(e.explained_by.clone().unwrap_or_else(|| "none of the fitted mechanisms".into()));
+                e.finding = pos;
+            }
+        }
+        built.report.mechanisms = Some(m);
+    }
     let extended = model.map(|m| {
         let full = res.final_cv.full();
         let mut e = m.clone();

@@ -87,6 +87,10 @@ pub struct Finding {
     pub cause: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub effect: Option<Effect>,
+    /// Depth audits with frames: the mechanism whose fit makes this finding vanish
+    /// (see the report's `mechanisms.findings_explained`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub explained_by: Option<String>,
     /// The fitted form (for plots and the extended model).
     #[serde(skip)]
     pub fitted: Option<Form>,
@@ -109,6 +113,9 @@ pub struct Report {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub outliers: Option<crate::outliers::OutlierAudit>,
     pub rounds: Vec<Value>,
+    /// Mechanism-level inference (depth audits with frames; `audit::mechanism`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mechanisms: Option<crate::mechanism::MechanismReport>,
 }
 
 /// Binned calibration along one column: per bin (rows), x (median), n.
@@ -324,6 +331,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             effect: if depth_sensor { crate::fit::effect(ctx, ft, Some(cause.clone())) } else { None },
             cause,
             fitted: Some(form),
+            explained_by: None,
             term_index: ti,
         });
     }
@@ -399,6 +407,7 @@ pub fn build(ctx: &Ctx, res: &SearchResult, opts: &SearchOptions, kind: &str, in
             after: after_v,
             outliers: opts.robust.then(|| crate::outliers::audit(ctx, res.baseline.full(), full, opts.outlier_flag, opts.seed)),
             rounds,
+            mechanisms: None,
         },
         before,
         after,
@@ -508,6 +517,9 @@ impl Report {
             }
         }
         s += &format!("input simulation as given: rmse {}, robust sd {}\n", v(self.input.rmse), v(self.input.robust_sd));
+        if let Some(m) = &self.mechanisms {
+            s += &m.summary();
+        }
         if let Some(p) = &self.extended_model {
             s += &format!("extended sensor model: {p}\n");
         }

@@ -449,6 +449,17 @@ fn screen(ctx: &Ctx, full: &Model, folds: &Folds, term: Term) -> f64 {
     chi2_upper_tail(score_stat(&wk, &z, k), k as f64)
 }
 
+/// Pixel-level score-test p of adding `term` to the baseline model (no terms) fitted on
+/// every row: how strongly the residuals still show the term (used to tell whether a
+/// finding disappears once a mechanism is fitted).
+pub(crate) fn term_score_p(ctx: &Ctx, term: Term) -> f64 {
+    let folds = Folds::new(ctx, 3, 0);
+    let mut full = Model::initial(ctx, &folds.train_valid[folds.k], &folds.train_all[folds.k]);
+    fit_gauss(ctx, &folds.train_valid[folds.k], &mut full);
+    fit_bern(ctx, &folds.train_all[folds.k], &mut full);
+    screen(ctx, &full, &folds, term)
+}
+
 fn evidence(ctx: &Ctx, folds: &Folds, parent: &Cv, term: Term, p_screen: f64, fit: bool) -> (Evidence, Option<Cv>) {
     let mut ev =
         Evidence { term, p_screen, gains: vec![], t: f64::NAN, p: 1.0, p_adjusted: 1.0, gain_per_row: 0.0, gain_total: 0.0, fine: false };

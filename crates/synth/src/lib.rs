@@ -400,7 +400,8 @@ fn write_scene(root: &Path, index: usize, s: &Scene, first_id: u32, opts: &Synth
         let r = s.render_view(&units, &ids, v)?;
         // Edge distance as the audit defines it: discontinuities of the GT objects' depth.
         let covs = r.covariates_full(frame, None, Some(&is_object));
-        let measured = opts.sensor.apply(&covs, w, h, derived_seed(opts.seed, index as u64, 1 + v as u64));
+        let k = recon_core::sensor::Pinhole { fx: r.k.fx, fy: r.k.fy, cx: r.k.cx, cy: r.k.cy };
+        let measured = opts.sensor.apply_frame(&covs, w, h, k, derived_seed(opts.seed, index as u64, 1 + v as u64));
         write_rgb(&dir.join("rgb").join(format!("{v:06}.png")), &r.rgb, w, h)?;
         clipped += write_depth(&dir.join("depth").join(format!("{v:06}.png")), &measured, w, h)?;
         // Extras beside the BOP folders (ignored by BOP tools): noise-free depth and

@@ -17,6 +17,13 @@
 //! `base_sd` is 0 (ideal), constant (gaussian) or grows with z² (stereo: disparity noise).
 //! The stereo kind also quantises disparity and fattens foreground edges (pixels within
 //! `edge_fattening_px` of a depth discontinuity take the nearer depth).
+//!
+//! Physical mechanisms (registration shift, lens distortion, drift, edge effects, …;
+//! [`Mechanism`]) act on whole frames: [`SensorModel::apply_frame`]. A model without
+//! any behaves exactly as before.
+
+mod mechanism;
+pub use self::mechanism::{expect, Expect, Mechanism, Param, Pinhole, SimFrame, MECHANISM_NAMES};
 
 use crate::rng::SeededRng;
 use crate::{Error, Result};
@@ -295,6 +302,9 @@ pub struct SensorModel {
     #[serde(default)]
     /// Covariate-dependent effects (bias, noise, dropout).
     pub effects: Vec<Effect>,
+    /// Physical mechanisms acting on whole frames ([`Mechanism`]); at most one of each kind.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub mechanisms: Vec<Mechanism>,
 }
 
 impl Default for SensorModel {
@@ -317,6 +327,7 @@ impl SensorModel {
             min_depth_m: 0.0,
             max_depth_m: 0.0,
             effects: vec![],
+            mechanisms: vec![],
         }
     }
 
@@ -412,6 +423,14 @@ impl SensorModel {
                 );
             }
         }
+        for (i, m) in self.mechanisms.iter().enumerate() {
+            if let Err((field, msg)) = m.check() {
+                return bad(&format!("mechanisms[{i}].{field}"), msg);
+            }
+            if self.mechanisms[..i].iter().any(|o| o.name() == m.name()) {
+                return bad(&format!("mechanisms[{i}]"), format!("{} is listed twice; give each mechanism once", m.name()));
+            }
+        }
         Ok(())
     }
 
@@ -497,6 +516,50 @@ impl SensorModel {
         fattened.iter().map(|c| self.sample(c, &mut rng) as f32).collect()
     }
 
+    /// [`Self::apply`] with the model's [`Mechanism`]s, which need the frame's
+    /// intrinsics. Without mechanisms this is `apply`, bit for bit. With them: the
+    /// model's own edge fattening, then the mechanisms' forward model ([`expect`]); each
+    /// pixel draws a uniform (dropout), a normal (noise) and a uniform (mixed-pixel
+    /// weight), and takes its other covariates from the surface point it sees.
+    pub fn apply_frame(&self, covs: &[PixelCovariates], width: usize, height: usize, k: Pinhole, seed: u64) -> Vec<f32> {
+        if self.mechanisms.is_empty() {
+            return self.apply(covs, width, height, seed);
+        }
+        let fattened = self.fattened(covs, width, height);
+        let frame = sim_frame(&fattened, width, height, k);
+        let all: Vec<usize> = (0..width * height).collect();
+        let ex = expect(&self.mechanisms, &frame, &all);
+        let mut rng = SeededRng::new(seed);
+        ex.iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let (u, n, w) = (rng.uniform(), rng.normal(), rng.uniform());
+                let Some(src) = e.src else { return 0.0 };
+                let mut z = e.z;
+                if e.other > 0.0 {
+                    z += w * (e.other - z);
+                }
+                if !(z > 0.0) || e.shadow {
+                    return 0.0;
+                }
+                if (self.min_depth_m > 0.0 && z < self.min_depth_m) || (self.max_depth_m > 0.0 && z > self.max_depth_m) {
+                    return 0.0;
+                }
+                let c = PixelCovariates { depth: z, u: covs[i].u, v: covs[i].v, frame: covs[i].frame, ..fattened[src] };
+                if u < (self.p_missing(&c) + e.p).clamp(0.0, 1.0) {
+                    return 0.0;
+                }
+                let sd = (self.sd(&c).powi(2) + e.var).sqrt();
+                let m = self.quantise(e.gain * (z + self.bias(&c)) + e.offset + sd * n);
+                if m > 0.0 {
+                    m as f32
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
     /// The covariates the per-pixel model sees after edge fattening (what [`Self::apply`]
     /// samples from): the audit evaluates the model's expectation on exactly these.
     pub fn fattened(&self, covs: &[PixelCovariates], width: usize, height: usize) -> Vec<PixelCovariates> {
@@ -506,6 +569,19 @@ impl SensorModel {
         } else {
             covs.to_vec()
         }
+    }
+}
+
+/// The mechanisms' view of a frame from its per-pixel covariates.
+pub fn sim_frame(covs: &[PixelCovariates], width: usize, height: usize, k: Pinhole) -> SimFrame {
+    SimFrame {
+        width,
+        height,
+        k,
+        frame: covs.first().map(|c| c.frame).unwrap_or(0),
+        depth: covs.iter().map(|c| c.depth as f32).collect(),
+        incidence: covs.iter().map(|c| c.incidence as f32).collect(),
+        intensity: covs.iter().map(|c| c.intensity as f32).collect(),
     }
 }
 
@@ -577,6 +653,39 @@ mod tests {
         assert!(e.contains("effects[1]") && e.contains("t.json"), "{e}");
         let e = SensorModel::from_json_str(&s.replace("\"version\":1", "\"version\":7"), "t.json").unwrap_err().to_string();
         assert!(e.contains("version"), "{e}");
+    }
+
+    #[test]
+    fn mechanisms_validate_naming_the_field_and_shift_the_frame() {
+        let m = SensorModel::from_json_str(
+            r#"{"version":1,"base":{"kind":"ideal"},"mechanisms":[{"mechanism":"depth_scale","scale":0.3}]}"#,
+            "s.json",
+        );
+        let e = m.unwrap_err().to_string();
+        assert!(e.contains("mechanisms[0].scale") && e.contains("[-0.05, 0.05]") && e.contains("s.json"), "{e}");
+        let e = SensorModel::from_json_str(r#"{"version":1,"base":{"kind":"ideal"},"mechanisms":[{"mechanism":"warp"}]}"#, "s.json")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("warp"), "{e}");
+        // No mechanism: apply_frame is apply; the JSON has no `mechanisms` key.
+        let (w, h) = (12, 6);
+        let covs: Vec<PixelCovariates> = (0..w * h)
+            .map(|i| PixelCovariates { depth: 1.0 + 0.01 * (i % w) as f64, u: (i % w) as f64, v: (i / w) as f64, ..Default::default() })
+            .collect();
+        let k = Pinhole { fx: 20.0, fy: 20.0, cx: 5.5, cy: 2.5 };
+        let mut m = SensorModel::stereo_default();
+        assert_eq!(m.apply_frame(&covs, w, h, k, 9), m.apply(&covs, w, h, 9));
+        assert!(!serde_json::to_string(&m).unwrap().contains("mechanisms"));
+        // A registration shift of 2 px: pixel u sees the surface of u − 2.
+        let mut ideal = SensorModel::ideal();
+        ideal.mechanisms.push(Mechanism::Registration { du_px: 2.0, dv_px: 0.0 });
+        let out = ideal.apply_frame(&covs, w, h, k, 9);
+        assert_eq!(out[3 * w + 1], 0.0);
+        assert!((out[3 * w + 7] as f64 - covs[3 * w + 5].depth).abs() < 1e-6);
+        m.mechanisms = ideal.mechanisms.clone();
+        m.mechanisms.push(Mechanism::Registration { du_px: 1.0, dv_px: 0.0 });
+        let e = m.validate("s.json").unwrap_err().to_string();
+        assert!(e.contains("mechanisms[1]") && e.contains("twice"), "{e}");
     }
 
     #[test]
