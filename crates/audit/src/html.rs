@@ -8,7 +8,7 @@
 //! maps per frame (measured − simulated beside the extended model's predicted residual and
 //! what remains).
 use crate::fit::{Ctx, Pred};
-use crate::report::{col_range, Finding, Report};
+use crate::report::{col_range, tick, Finding, Report};
 use crate::stats::{median, quantile_sorted, robust_sd};
 use crate::table::ColumnKind;
 use serde_json::Value;
@@ -209,14 +209,6 @@ pub(crate) fn partial_residual_svg(ctx: &Ctx, f: &Finding, col: usize, after: &[
     }
     s += "</svg>\n";
     Some(s)
-}
-
-fn tick(x: f64) -> String {
-    if x != 0.0 && (x.abs() >= 1e4 || x.abs() < 1e-2) {
-        format!("{x:.2e}")
-    } else {
-        format!("{x:.2}")
-    }
 }
 
 pub(crate) fn esc(s: &str) -> String {

@@ -40,6 +40,7 @@
 //! the binned median residual (bias), of observed robust sd − predicted sd (noise), and of
 //! observed − predicted missing rate.
 use crate::fit::{Ctx, Pred};
+use crate::html::esc;
 use crate::search::{bootstrap, globals, Cv, SearchOptions, SearchResult};
 use crate::stats::{median, quantile_sorted, robust_sd};
 use crate::table::ColumnKind;
@@ -527,10 +528,6 @@ impl Report {
     }
 }
 
-fn esc(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
-}
-
 /// SVG plot of one finding: the target's binned statistic along its covariate on
 /// held-out units — observed (dots), baseline prediction (grey, before) and the extended
 /// model's prediction (red, after); for bias/noise a light scatter of residuals behind.
@@ -628,7 +625,7 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
     s
 }
 
-fn tick(x: f64) -> String {
+pub(crate) fn tick(x: f64) -> String {
     if x != 0.0 && (x.abs() >= 1e4 || x.abs() < 1e-2) {
         format!("{x:.2e}")
     } else {
