@@ -50,7 +50,14 @@ window.addEventListener('load', () => {
     std::fs::write(&checked, html.replacen("<head>", &format!("<head>{script}"), 1)).unwrap();
     let profile = page.with_file_name("chromium-profile");
     let out = Command::new(browser)
-        .args(["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--allow-file-access-from-files"])
+        .args([
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--no-first-run",
+            "--allow-file-access-from-files",
+        ])
         .arg(format!("--user-data-dir={}", profile.display()))
         .args(["--virtual-time-budget=10000", "--dump-dom"])
         .arg(format!("file://{}", checked.display()))
