@@ -17,7 +17,7 @@ use recon::audit::{
     SearchOptions,
 };
 use recon::rng::SeededRng;
-use recon::sensor::{Mechanism, SensorModel};
+use recon::sensor::{Mechanism, SensorModel, MECHANISM_NAMES};
 use recon::synth::{generate, SynthOptions};
 use std::collections::BTreeMap;
 
@@ -150,24 +150,8 @@ fn case(kind: &str, seed: u64) -> Result<String, String> {
     }
 }
 
-const KINDS: [&str; 16] = [
-    "registration",
-    "extrinsic_rotation",
-    "depth_scale",
-    "depth_offset",
-    "radial_distortion",
-    "drift",
-    "edge_fattening",
-    "mixed_pixels",
-    "occlusion_shadow",
-    "range_noise",
-    "grazing_dropout",
-    "dark_dropout",
-    "material_group",
-    "registration+depth_scale",
-    "drift+grazing_dropout",
-    "null",
-];
+/// The sweep's cases beyond one per mechanism kind (`MECHANISM_NAMES`): two planted together, and a null.
+const COMBINED: [&str; 3] = ["registration+depth_scale", "drift+grazing_dropout", "null"];
 
 fn sweep(seeds: std::ops::Range<u64>, kinds: &[&str]) -> BTreeMap<String, (usize, usize)> {
     let mut tally: BTreeMap<String, (usize, usize)> = BTreeMap::new();
@@ -214,7 +198,12 @@ fn mechanism_sweep() {
     let (a, b) =
         range.split_once("..").and_then(|(a, b)| Some((a.parse::<u64>().ok()?, b.parse::<u64>().ok()?))).expect("AUDIT_MECH_SEEDS=a..b");
     let only = std::env::var("AUDIT_MECH_KINDS").ok();
-    let kinds: Vec<&str> = KINDS.iter().copied().filter(|k| only.as_ref().is_none_or(|o| o.split(',').any(|x| x.trim() == *k))).collect();
+    let kinds: Vec<&str> = MECHANISM_NAMES
+        .iter()
+        .chain(&COMBINED)
+        .copied()
+        .filter(|k| only.as_ref().is_none_or(|o| o.split(',').any(|x| x.trim() == *k)))
+        .collect();
     let tally = sweep(a..b, &kinds);
     let nulls = tally.get("null").copied().unwrap_or((0, 0));
     assert_eq!(nulls.0, nulls.1, "a null named a mechanism");
