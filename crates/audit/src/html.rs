@@ -8,7 +8,7 @@
 //! maps per frame (measured − simulated beside the extended model's predicted residual and
 //! what remains).
 use crate::fit::{Ctx, Pred};
-use crate::report::{col_range, tick, Finding, Report};
+use crate::report::{col_range, Finding, PlotArea, Report};
 use crate::stats::{median, quantile_sorted, robust_sd};
 use crate::table::ColumnKind;
 use serde_json::Value;
@@ -170,31 +170,13 @@ pub(crate) fn partial_residual_svg(ctx: &Ctx, f: &Finding, col: usize, after: &[
     }
     let pad = 0.08 * (y1 - y0);
     let (y0, y1) = (y0 - pad, y1 + pad);
-    let (w, h, ml, mr, mt, mb) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
-    let (pw, ph) = (w - ml - mr, h - mt - mb);
-    let sx = |x: f64| ml + (x - x0) / (x1 - x0) * pw;
-    let sy = |y: f64| mt + ph - (y.clamp(y0, y1) - y0) / (y1 - y0) * ph;
-    let mut s = format!("<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n");
-    s += &format!(
-        "<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"14\">partial residual of bias ~ {}({}): binned medians (dots), fitted term (red)</text>\n",
-        w / 2.0,
-        f.form,
-        esc(&f.covariate)
-    );
-    s += &format!("<rect x=\"{ml}\" y=\"{mt}\" width=\"{pw}\" height=\"{ph}\" fill=\"none\" stroke=\"black\"/>\n");
-    for i in 0..=4 {
-        let x = x0 + (x1 - x0) * i as f64 / 4.0;
-        let y = y0 + (y1 - y0) * i as f64 / 4.0;
-        s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>\n", sx(x), mt + ph + 16.0, tick(x));
-        s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>\n", ml - 5.0, sy(y) + 4.0, tick(y));
-    }
-    s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{}</text>\n", ml + pw / 2.0, h - 12.0, esc(&f.covariate));
+    let area = PlotArea { x0, x1, y0, y1 };
+    let (sx, sy) = (|x: f64| area.sx(x), |y: f64| area.sy(y));
     let ylab = format!("partial residual ({})", if mm { "mm" } else { "units" });
-    s += &format!(
-        "<text x=\"16\" y=\"{}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {})\">{}</text>\n",
-        mt + ph / 2.0,
-        mt + ph / 2.0,
-        esc(&ylab)
+    let mut s = area.open(
+        &format!("partial residual of bias ~ {}({}): binned medians (dots), fitted term (red)", f.form, esc(&f.covariate)),
+        &esc(&f.covariate),
+        &esc(&ylab),
     );
     let step = (pts.len() / 1500).max(1);
     for (x, y) in pts.iter().step_by(step) {

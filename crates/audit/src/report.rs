@@ -586,26 +586,13 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
         x0 -= 1.0;
         x1 += 1.0;
     }
-    let (w, h, ml, mr, mt, mb) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
-    let (pw, ph) = (w - ml - mr, h - mt - mb);
-    let sx = |x: f64| ml + (x - x0) / (x1 - x0) * pw;
-    let sy = |y: f64| mt + ph - (y.clamp(y0, y1) - y0) / (y1 - y0) * ph;
-    let mut s = format!("<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n");
     let by = f.by.as_ref().map(|b| format!(" × {b}")).unwrap_or_default();
-    s += &format!("<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"14\">{} ~ {}({}){} — held out: observed (dots), before (grey), after (red)</text>\n", w / 2.0, f.target, f.form, esc(&f.covariate), esc(&by));
-    s += &format!("<rect x=\"{ml}\" y=\"{mt}\" width=\"{pw}\" height=\"{ph}\" fill=\"none\" stroke=\"black\"/>\n");
-    for i in 0..=4 {
-        let x = x0 + (x1 - x0) * i as f64 / 4.0;
-        let y = y0 + (y1 - y0) * i as f64 / 4.0;
-        s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>\n", sx(x), mt + ph + 16.0, tick(x));
-        s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>\n", ml - 5.0, sy(y) + 4.0, tick(y));
-    }
-    s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{}</text>\n", ml + pw / 2.0, h - 12.0, esc(&f.covariate));
-    s += &format!(
-        "<text x=\"16\" y=\"{}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {})\">{}</text>\n",
-        mt + ph / 2.0,
-        mt + ph / 2.0,
-        esc(&ylab)
+    let area = PlotArea { x0, x1, y0, y1 };
+    let (sx, sy) = (|x: f64| area.sx(x), |y: f64| area.sy(y));
+    let mut s = area.open(
+        &format!("{} ~ {}({}){} — held out: observed (dots), before (grey), after (red)", f.target, f.form, esc(&f.covariate), esc(&by)),
+        &esc(&f.covariate),
+        &esc(&ylab),
     );
     for (x, y) in &scatter {
         if *x >= x0 && *x <= x1 && *y >= y0 && *y <= y1 {
@@ -623,6 +610,50 @@ pub fn finding_svg(ctx: &Ctx, f: &Finding, col: usize, before: &[Pred], after: &
     }
     s += "</svg>\n";
     s
+}
+
+/// The 640×400 plot area of the audit's SVG plots, mapping data to pixels.
+pub(crate) struct PlotArea {
+    pub x0: f64,
+    pub x1: f64,
+    pub y0: f64,
+    pub y1: f64,
+}
+
+const PLOT: (f64, f64, f64, f64, f64, f64) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
+
+impl PlotArea {
+    pub fn sx(&self, x: f64) -> f64 {
+        let (w, _, ml, mr, _, _) = PLOT;
+        ml + (x - self.x0) / (self.x1 - self.x0) * (w - ml - mr)
+    }
+    pub fn sy(&self, y: f64) -> f64 {
+        let (_, h, _, _, mt, mb) = PLOT;
+        let ph = h - mt - mb;
+        mt + ph - (y.clamp(self.y0, self.y1) - self.y0) / (self.y1 - self.y0) * ph
+    }
+    /// The SVG's opening: background, title, frame, 5 ticks per axis and the axis labels
+    /// (texts already escaped).
+    pub fn open(&self, title: &str, xlabel: &str, ylabel: &str) -> String {
+        let (w, h, ml, mr, mt, mb) = PLOT;
+        let (pw, ph) = (w - ml - mr, h - mt - mb);
+        let mut s = format!("<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n");
+        s += &format!("<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"14\">{title}</text>\n", w / 2.0);
+        s += &format!("<rect x=\"{ml}\" y=\"{mt}\" width=\"{pw}\" height=\"{ph}\" fill=\"none\" stroke=\"black\"/>\n");
+        for i in 0..=4 {
+            let x = self.x0 + (self.x1 - self.x0) * i as f64 / 4.0;
+            let y = self.y0 + (self.y1 - self.y0) * i as f64 / 4.0;
+            s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\">{}</text>\n", self.sx(x), mt + ph + 16.0, tick(x));
+            s += &format!("<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\">{}</text>\n", ml - 5.0, self.sy(y) + 4.0, tick(y));
+        }
+        s += &format!("<text x=\"{}\" y=\"{}\" text-anchor=\"middle\">{xlabel}</text>\n", ml + pw / 2.0, h - 12.0);
+        s += &format!(
+            "<text x=\"16\" y=\"{}\" text-anchor=\"middle\" transform=\"rotate(-90 16 {})\">{ylabel}</text>\n",
+            mt + ph / 2.0,
+            mt + ph / 2.0
+        );
+        s
+    }
 }
 
 pub(crate) fn tick(x: f64) -> String {
