@@ -8,8 +8,9 @@
 //! maps per frame (measured − simulated beside the extended model's predicted residual and
 //! what remains).
 use crate::fit::{Ctx, Pred};
-use crate::report::{col_range, Finding, PlotArea, Report};
+use crate::report::{col_range, Finding, Report};
 use crate::stats::{median, quantile_sorted, robust_sd};
+use crate::svg::{esc, PlotArea};
 use crate::table::ColumnKind;
 use serde_json::Value;
 
@@ -191,10 +192,6 @@ pub(crate) fn partial_residual_svg(ctx: &Ctx, f: &Finding, col: usize, after: &[
     }
     s += "</svg>\n";
     Some(s)
-}
-
-pub(crate) fn esc(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
 /// A JSON value as table-cell text: numbers to 4 significant digits, objects inline.

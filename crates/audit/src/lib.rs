@@ -22,6 +22,7 @@ pub(crate) mod outliers;
 pub(crate) mod report;
 pub(crate) mod search;
 pub(crate) mod stats;
+pub(crate) mod svg;
 pub(crate) mod table;
 pub use self::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
 pub use self::mechanism::{free_params, Candidate, Explained, MechFinding, MechRound, MechanismOptions, MechanismReport, Versus};
