@@ -122,7 +122,12 @@ impl Builder {
     }
 
     /// [`Builder::finish`] with the document's materials (primitives refer to them by index).
-    fn finish_with(self, meshes: Vec<serde_json::Value>, node_names: Vec<Option<String>>, materials: Vec<serde_json::Value>) -> Result<Vec<u8>> {
+    fn finish_with(
+        self,
+        meshes: Vec<serde_json::Value>,
+        node_names: Vec<Option<String>>,
+        materials: Vec<serde_json::Value>,
+    ) -> Result<Vec<u8>> {
         self.finish_doc(meshes, node_names, materials, serde_json::Map::new())
     }
 

@@ -18,7 +18,7 @@
 //! Writers of formats with `v` up (OBJ, USD) write `1 - v`. Deterministic: no
 //! iteration over hashed containers decides anything.
 
-use crate::mesh::Mesh;
+use crate::mesh::indexed::{Mesh, UnionFind};
 use crate::{Error, Result};
 use std::collections::HashMap;
 
@@ -355,7 +355,7 @@ pub fn uv_atlas(mesh: &Mesh, opts: &AtlasOptions) -> Result<UvMesh> {
     }
     edges.sort_unstable();
     let mut adj: Vec<Vec<u32>> = vec![Vec::new(); nf];
-    let mut uf = crate::mesh::UnionFind::new(nf);
+    let mut uf = UnionFind::new(nf);
     let mut s = 0;
     while s < edges.len() {
         let mut e = s + 1;

@@ -263,7 +263,14 @@ mod tests {
         let (mut cube, slabs, cam, r) = cube_scene();
         // Vertex colours (the fallback for hidden faces): mid grey.
         cube.vertex_attrs = Some(vec![[0.5, 0.5, 0.5, 0.5, 0.5, 1.0]; cube.vertices.len()]);
-        let view = BakeView { rgb: &r.rgb, depth_m: &r.depth, width: r.width, height: r.height, intrinsics: cam.k, camera_from_mesh: cam.world_to_cam };
+        let view = BakeView {
+            rgb: &r.rgb,
+            depth_m: &r.depth,
+            width: r.width,
+            height: r.height,
+            intrinsics: cam.k,
+            camera_from_mesh: cam.world_to_cam,
+        };
         let (tm, rep) = texture_mesh(&cube, 128, &[view], &BakeOptions::default()).unwrap();
         assert!(rep.texels_from_views > 0 && rep.texels_from_vertices > 0, "{rep:?}");
         let eye = cam.eye();
@@ -294,7 +301,10 @@ mod tests {
                 // Away from the face's edges (bilinear samples there mix neighbours).
                 if b.iter().all(|&w| w > 0.2) {
                     let got = tm.texture.texel(x, y);
-                    assert!((0..3).all(|k| (got[k] as i32 - want[k] as i32).abs() <= 3), "face {f} texel ({x}, {y}): {got:?}, want {want:?}");
+                    assert!(
+                        (0..3).all(|k| (got[k] as i32 - want[k] as i32).abs() <= 3),
+                        "face {f} texel ({x}, {y}): {got:?}, want {want:?}"
+                    );
                     if facing {
                         checked_seen += 1
                     } else {
