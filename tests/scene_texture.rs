@@ -143,3 +143,47 @@ fn textured_scene_in_every_format() {
         assert!(!t.contains("texture") && !t.contains("vt ") && !t.contains("primvars:st"), "{f} mentions a texture");
     }
 }
+
+/// `recon infer` (random tiny weights, one object of the sample): `mesh.glb` carries
+/// TEXCOORD_0 for every vertex and the texture as an embedded PNG of `--texture-size`,
+/// no COLOR_0; pose.json's `texture` says part of it came from the photo.
+#[test]
+fn infer_writes_a_textured_glb() {
+    let dir = tmp("infer-texture");
+    let sample = common::repo().join("data/sample");
+    let out = dir.join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_recon"))
+        .args(["infer", "--rgbd"])
+        .arg(sample.join("000001-color.png"))
+        .arg("--masks")
+        .arg(sample.join("000001-label.png"))
+        .args(["--objects", "21", "--weights", "random", "--steps", "1", "--max-faces", "3000", "--texture-size", "256", "--out"])
+        .arg(&out)
+        .env("RECON_CACHE", dir.join("cache"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let b = std::fs::read(out.join("id_21/mesh.glb")).unwrap();
+    let u32_at = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+    assert_eq!((&b[0..4], u32_at(8)), (&b"glTF"[..], b.len()));
+    let jlen = u32_at(12);
+    let doc: serde_json::Value = serde_json::from_slice(&b[20..20 + jlen]).unwrap();
+    let bin = &b[20 + jlen + 8..];
+    let prim = &doc["meshes"][0]["primitives"][0];
+    let count = |a: &serde_json::Value| doc["accessors"][a.as_u64().unwrap() as usize]["count"].as_u64().unwrap();
+    assert!(prim["attributes"].get("COLOR_0").is_none());
+    assert_eq!(count(&prim["attributes"]["TEXCOORD_0"]), count(&prim["attributes"]["POSITION"]));
+    let pose: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("id_21/pose.json")).unwrap()).unwrap();
+    assert_eq!(count(&prim["indices"]), 3 * pose["faces"].as_u64().unwrap());
+    let tex = &doc["textures"][doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"].as_u64().unwrap() as usize];
+    let view = &doc["bufferViews"][doc["images"][tex["source"].as_u64().unwrap() as usize]["bufferView"].as_u64().unwrap() as usize];
+    let off = view["byteOffset"].as_u64().unwrap() as usize;
+    let png = image::load_from_memory(&bin[off..off + view["byteLength"].as_u64().unwrap() as usize]).unwrap();
+    assert_eq!((png.width(), png.height()), (256, 256));
+    let t = &pose["texture"];
+    let texels = |k: &str| t[k].as_u64().unwrap();
+    assert_eq!(texels("size"), 256);
+    assert!(texels("texels_from_views") > 0, "no texel from the photo: {t}");
+    assert_eq!(texels("texels_surface"), texels("texels_from_views") + texels("texels_from_vertices"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
