@@ -55,6 +55,7 @@ if kind == "mujoco":
     r.enable_segmentation_rendering()
     r.update_scene(d, camera="recon_top")
     seg = r.render()[:, :, 0]
+    r.close()  # before interpreter shutdown (OSMesa's teardown needs PyOpenGL alive)
     ys, xs = np.nonzero(seg == gid)
     if len(xs) < 200:
         errors.append(f"the object covers {len(xs)} pixels")
