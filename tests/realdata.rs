@@ -461,8 +461,11 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
         }
         assert!(o["stage_seconds"]["total"].as_f64().unwrap() > 0.0);
         let mesh = check_glb(Path::new(files["mesh_glb"].as_str().unwrap()));
+        // `--colour texture` (the default): UVs and an embedded PNG, baked from the photo.
         let attrs = &mesh["meshes"][0]["primitives"][0]["attributes"];
-        assert!(attrs.get("POSITION").is_some() && attrs.get("COLOR_0").is_some());
+        assert!(attrs.get("POSITION").is_some() && attrs.get("TEXCOORD_0").is_some() && attrs.get("COLOR_0").is_none());
+        assert_eq!(mesh["images"][0]["mimeType"], "image/png");
+        assert!(pose["texture"]["texels_from_views"].as_u64().unwrap() > 0, "no texel seen by the photo: {}", pose["texture"]);
         let ply = std::fs::read(files["gaussians_ply"].as_str().unwrap()).unwrap();
         assert!(ply.starts_with(b"ply\n"));
     }

@@ -218,6 +218,8 @@ class Engine:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
+        colour: str = "texture",
+        texture_size: int = 1024,
         views: Optional[Sequence[Dict[str, Any]]] = None,
     ) -> List[Object]:
         """Reconstruct every masked object of one RGB-D frame.
@@ -292,6 +294,8 @@ class Engine:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
+        colour: str = "texture",
+        texture_size: int = 1024,
         views: Optional[Sequence[Union[_Path, Dict[str, Any]]]] = None,
     ) -> Dict[str, Any]:
         """`recon infer` on files: the same discovery of depth and intrinsics beside `rgbd`,
@@ -344,6 +348,8 @@ def scene(
     flag_mm: float = 10.0,
     flag_deg: float = 10.0,
     seed: int = 0,
+    colour: str = "texture",
+    texture_size: int = 1024,
 ) -> Dict[str, Any]:
     """`recon scene`: settle the objects on the support plane seen in the frame's depth and
     export a simulator-ready scene (URDF, MJCF, USD, GLB, scene.json) into `out`.
@@ -428,6 +434,8 @@ def eval(
     fusion: str = "multidiffusion",
     slat_fusion: str = "none",
     posthoc_color: str = "none",
+    colour: str = "texture",
+    texture_size: int = 1024,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the
     dataset first (then `out` is required: predictions.json, meshes, report files).
@@ -544,6 +552,8 @@ class Client:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
+        colour: str = "texture",
+        texture_size: int = 1024,
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
         given take the server's defaults (its flags), which are the library's unless it was

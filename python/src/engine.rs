@@ -866,6 +866,9 @@ pub struct Object {
     recgen: Option<(RecgenPose, PoseRepresentation)>,
     /// What `save` writes into posthoc_color.json.
     posthoc_record: Option<recon::engine::posthoc_color::PosthocColorRecord>,
+    /// The mesh on its UV atlas with the baked texture (`colour="texture"`), what
+    /// `to_glb` writes; None with `colour="vertex"` and for objects built from parts.
+    textured: Option<recon::mesh::TexturedMesh>,
 }
 
 /// What every object of a frame shares: the anchor image (one numpy array), its K, the
@@ -929,6 +932,7 @@ impl Object {
             recgen: Some((rp, frame.pose_representation)),
             posthoc_color: to_python(py, &o.posthoc_color)?.unbind(),
             posthoc_record: o.posthoc_color.clone(),
+            textured: o.textured.clone(),
             id: o.id,
             label: o.label.clone(),
             pose: pose.unbind(),
@@ -1007,11 +1011,16 @@ impl Object {
             recgen: None,
             posthoc_color: py.None(),
             posthoc_record: None,
+            textured: None,
         })
     }
 
-    /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb`.
+    /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb` (textured
+    /// with `colour="texture"`, the default; vertex-coloured with `colour="vertex"`).
     fn to_glb(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        if let Some(tm) = &self.textured {
+            return py.detach(|| recon::export::save_textured_glb(tm, &path, recon::export::Axes::ZUp)).py();
+        }
         let m = self.mesh_or_err(py)?;
         let opts = recon::export::GlbOptions { axes: recon::export::Axes::ZUp, vertex_colors: true };
         py.detach(|| recon::export::save_glb(&m, &path, &opts)).py()

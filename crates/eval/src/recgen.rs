@@ -118,6 +118,9 @@ pub fn recgen_frame_views(
     occlusion: Option<[f64; 2]>,
 ) -> Result<RecgenRun> {
     let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
+    // The metrics read geometry only: no texture is baked.
+    let plain = InferSettings { colour: recon_core::engine::MeshColour::Vertex, ..opts.clone() };
+    let opts = &plain;
     let mut run = RecgenRun::default();
     if !(0..f.gt.len()).any(keep) {
         return Ok(run);

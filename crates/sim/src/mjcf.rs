@@ -5,11 +5,14 @@
 //! convex part (mesh asset; MuJoCo collides with its convex hull, which is
 //! the part itself) or primitive, carrying the object's friction.
 //!
+//! A textured object (`SimObject::textured`) gets a 2D `<texture>` (its PNG) and a
+//! `<material>` on its visual geom; the UVs are the `vt` of its `visual.obj`.
+//!
 //! MuJoCo has no restitution coefficient (bounce comes from the contact
 //! solver's `solref`), so restitution is recorded in a comment only.
 
 use crate::collision::{Part, Primitive};
-use crate::scene::{hull_file, SimScene};
+use crate::scene::{hull_file, SimScene, TEXTURE_FILE};
 use crate::urdf::xml_escape;
 use recon_core::math::matrix_to_quat;
 use std::fmt::Write as _;
@@ -31,13 +34,20 @@ pub fn scene_mjcf(scene: &SimScene, mesh_dir: &str) -> String {
     s += "<!-- recon scene: settled; world frame z up, support plane z = 0; body frames at the centre of mass -->\n";
     s += "<mujoco model=\"recon_scene\">\n";
     // Inertials are explicit: geoms must not add mass (open visual meshes have no volume).
-    let _ = writeln!(s, "  <compiler angle=\"radian\" meshdir=\"{mesh_dir}\" inertiafromgeom=\"false\" autolimits=\"true\"/>");
+    // Textures sit beside their meshes (`texturedir` only when there is one: untextured scenes keep their bytes).
+    let texturedir = if scene.objects.iter().any(|o| o.textured.is_some()) { format!(" texturedir=\"{mesh_dir}\"") } else { String::new() };
+    let _ = writeln!(s, "  <compiler angle=\"radian\" meshdir=\"{mesh_dir}\"{texturedir} inertiafromgeom=\"false\" autolimits=\"true\"/>");
     s += "  <option gravity=\"0 0 -9.81\" timestep=\"0.002\"/>\n";
     s += "  <asset>\n";
     for o in &scene.objects {
         // Open meshes have no volume; "shell" lets MuJoCo process them (mass comes from <inertial>).
         let inertia = if o.mesh_report.closed { "" } else { " inertia=\"shell\"" };
         let _ = writeln!(s, "    <mesh name=\"{}_visual\" file=\"{}/visual.obj\"{inertia}/>", o.id, o.id);
+        if o.textured.is_some() {
+            // The OBJ's `vt` map the texture onto the visual mesh.
+            let _ = writeln!(s, "    <texture name=\"{}_texture\" type=\"2d\" file=\"{}/{TEXTURE_FILE}\"/>", o.id, o.id);
+            let _ = writeln!(s, "    <material name=\"{}_material\" texture=\"{}_texture\" specular=\"0\" shininess=\"0\"/>", o.id, o.id);
+        }
         for (k, p) in o.collision.parts.iter().enumerate() {
             if matches!(p, Part::Hull(_)) {
                 let _ = writeln!(s, "    <mesh name=\"{}_part{k:02}\" file=\"{}/{}\"/>", o.id, o.id, hull_file(k));
@@ -67,7 +77,11 @@ pub fn scene_mjcf(scene: &SimScene, mesh_dir: &str) -> String {
             "      <inertial pos=\"0 0 0\" mass=\"{}\" fullinertia=\"{} {} {} {} {} {}\"/>",
             o.inertial.mass_kg, i[0][0], i[1][1], i[2][2], i[0][1], i[0][2], i[1][2]
         );
-        let rgba = o.color_rgba.map(|c| format!(" rgba=\"{} {} {} {}\"", c[0], c[1], c[2], c[3])).unwrap_or_default();
+        // A textured geom takes its colour from its material (a geom rgba would override it).
+        let rgba = match &o.textured {
+            Some(_) => format!(" material=\"{}_material\"", o.id),
+            None => o.color_rgba.map(|c| format!(" rgba=\"{} {} {} {}\"", c[0], c[1], c[2], c[3])).unwrap_or_default(),
+        };
         let _ = writeln!(
             s,
             "      <geom name=\"{}_visual\" type=\"mesh\" mesh=\"{}_visual\" contype=\"0\" conaffinity=\"0\" group=\"1\"{rgba}/>",

@@ -8,7 +8,7 @@
 
 use crate::collision::{CollisionMethod, VhacdOptions};
 use crate::scene::SceneSettings;
-use recon_core::engine::{options_from_json, OptionError};
+use recon_core::engine::{check_texture_size, options_from_json, MeshColour, OptionError, DEFAULT_TEXTURE_SIZE};
 use recon_core::geometry::PlaneFitOptions;
 use serde::{Deserialize, Serialize};
 
@@ -51,6 +51,15 @@ pub struct SceneOptions {
     /// Seed of the plane fit, the collision builders and the variations.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = SceneOptions::DEFAULT.seed))]
     pub seed: u64,
+    /// How a mesh with vertex colours (a `recon infer` mesh.ply) carries them into the
+    /// simulator files: a UV atlas and a texture baked from the colours (`texture`: OBJ +
+    /// MTL + PNG, MJCF `<texture>`/`<material>`, USD `UsdPreviewSurface`), or not at all
+    /// (`vertex`: the material's flat colour, the files as before textures existed).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = SceneOptions::DEFAULT.colour))]
+    pub colour: MeshColour,
+    /// Side of a baked texture, texels (16 to 8192), with `--colour texture`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = SceneOptions::DEFAULT.texture_size))]
+    pub texture_size: u32,
 }
 
 impl SceneOptions {
@@ -67,10 +76,12 @@ impl SceneOptions {
         flag_mm: 10.0,
         flag_deg: 10.0,
         seed: 0,
+        colour: MeshColour::Texture,
+        texture_size: DEFAULT_TEXTURE_SIZE,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 11] = [
+    pub const NAMES: [&'static str; 13] = [
         "plane_threshold_mm",
         "collision",
         "vhacd_resolution",
@@ -82,6 +93,8 @@ impl SceneOptions {
         "flag_mm",
         "flag_deg",
         "seed",
+        "colour",
+        "texture_size",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -103,7 +116,8 @@ impl SceneOptions {
         positive("settle_time", self.settle_time)?;
         positive("max_corrective_velocity", self.max_corrective_velocity)?;
         positive("flag_mm", self.flag_mm)?;
-        positive("flag_deg", self.flag_deg)
+        positive("flag_deg", self.flag_deg)?;
+        check_texture_size("texture_size", self.texture_size)
     }
 
     /// Options from JSON (an object of option names; absent ones take their defaults),
@@ -117,7 +131,7 @@ impl SceneOptions {
     /// Checked, the settings [`crate::build_scene`] runs with.
     pub fn settings(&self) -> Result<SceneSettings, OptionError> {
         self.validate()?;
-        let mut s = SceneSettings { collision: self.collision, ..Default::default() };
+        let mut s = SceneSettings { collision: self.collision, colour: self.colour, texture_size: self.texture_size, ..Default::default() };
         s.collision_opts.vhacd = VhacdOptions {
             resolution: self.vhacd_resolution,
             concavity: self.vhacd_concavity,
@@ -167,6 +181,7 @@ mod tests {
         let s = SceneOptions::default().settings().unwrap();
         let d = SceneSettings::default();
         assert_eq!(s.collision, d.collision);
+        assert_eq!((s.colour, s.texture_size), (d.colour, d.texture_size));
         assert_eq!(s.collision_opts.vhacd, d.collision_opts.vhacd);
         assert_eq!(s.collision_opts.primitive.volume_tolerance, d.collision_opts.primitive.volume_tolerance);
         assert_eq!(s.collision_opts.seed, d.collision_opts.seed);

@@ -6,9 +6,10 @@ use crate::physics::{annotate, check_mesh, Inertial, MeshReport, TreatmentChoice
 use crate::scene_file::{safe_name, ObjectSpec, PoseSpec, SceneFile};
 use crate::settle::{settle, Body, BodySettle, SettleOptions, SettleResult};
 use rayon::prelude::*;
+use recon_core::engine::MeshColour;
 use recon_core::math::Similarity32;
 use recon_core::mesh::trimesh::TriMesh;
-use recon_core::mesh::Mesh;
+use recon_core::mesh::{Mesh, TexturedMesh};
 use recon_core::{Error, Result};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -22,11 +23,21 @@ pub struct SceneSettings {
     pub collision_opts: CollisionOptions,
     /// Settling parameters.
     pub settle: SettleOptions,
+    /// Whether meshes with vertex colours get a UV atlas and a baked texture.
+    pub colour: MeshColour,
+    /// Side of a baked texture, texels.
+    pub texture_size: u32,
 }
 
 impl Default for SceneSettings {
     fn default() -> Self {
-        Self { collision: CollisionMethod::Convex, collision_opts: CollisionOptions::new(), settle: SettleOptions::default() }
+        Self {
+            collision: CollisionMethod::Convex,
+            collision_opts: CollisionOptions::new(),
+            settle: SettleOptions::default(),
+            colour: MeshColour::Texture,
+            texture_size: recon_core::engine::DEFAULT_TEXTURE_SIZE,
+        }
     }
 }
 
@@ -65,6 +76,10 @@ pub struct SimObject {
     pub mesh_file: PathBuf,
     /// Visual mesh in the body frame (metres).
     pub visual: Mesh,
+    /// The visual mesh on a UV atlas with a texture baked from the mesh file's vertex
+    /// colours (`--colour texture` and a mesh with colours; `None` otherwise): written as
+    /// `visual.obj` + `visual.mtl` + `texture.png` and used by the MJCF, URDF and USD.
+    pub textured: Option<TexturedMesh>,
     /// Mesh checks (closed, oriented, ...) and the treatment chosen.
     pub mesh_report: MeshReport,
     /// `com` is in the scaled mesh file frame; the inertia is about it.
@@ -176,6 +191,7 @@ pub(crate) struct Prepared {
     pub friction: f64,
     pub restitution: f64,
     pub visual: Mesh,
+    pub textured: Option<TexturedMesh>,
     pub mesh_report: MeshReport,
     pub inertial: Inertial,
     pub collision: Collision,
@@ -212,6 +228,7 @@ impl Prepared {
             color_rgba: p.color_rgba,
             mesh_file: p.spec.mesh.clone(),
             visual: p.visual,
+            textured: p.textured,
             mesh_report: p.mesh_report,
             inertial: p.inertial,
             collision: p.collision,
@@ -226,13 +243,23 @@ impl Prepared {
 
 fn prepare_object(i: usize, o: &ObjectSpec, table: &MaterialTable, opts: &SceneSettings, file: &str) -> Result<Prepared> {
     let mesh_file = o.mesh.display().to_string();
-    let tm: TriMesh = recon_core::dataset::ply::read_ply(&o.mesh)?;
+    let (tm, colours): (TriMesh, _) = recon_core::dataset::ply::read_ply_with_colors(&o.mesh)?;
     if tm.faces.is_empty() {
         return Err(Error::input(&mesh_file, "mesh has no faces (a point cloud cannot be simulated)"));
     }
     let s = o.scale;
-    let raw = Mesh { vertices: tm.vertices.iter().map(|v| v.map(|x| (x * s) as f32)).collect(), faces: tm.faces, vertex_attrs: None };
+    // Vertex colours ride along as attributes (RGB, then a neutral normal-map triple) for the texture bake.
+    let vertex_attrs = colours.map(|c| c.into_iter().map(|c| [c[0], c[1], c[2], 0.5, 0.5, 1.0]).collect());
+    let raw = Mesh { vertices: tm.vertices.iter().map(|v| v.map(|x| (x * s) as f32)).collect(), faces: tm.faces, vertex_attrs };
     prepare_mesh(i, o, &raw, &mesh_file, table, opts, file)
+}
+
+/// `raw`'s vertex colours (`attrs`) on the vertices of `checked` (`raw` after
+/// [`check_mesh`]: welded and cleaned, the same positions), found by exact position.
+fn colours_by_position(raw: &Mesh, attrs: &[[f32; 6]], checked: &Mesh) -> Vec<[f32; 6]> {
+    let key = |v: &[f32; 3]| v.map(|x| if x == 0.0 { 0 } else { x.to_bits() });
+    let by_position: std::collections::HashMap<[u32; 3], [f32; 6]> = raw.vertices.iter().map(key).zip(attrs.iter().copied()).collect();
+    checked.vertices.iter().map(|v| by_position.get(&key(v)).copied().unwrap_or([0.5, 0.5, 0.5, 0.5, 0.5, 1.0])).collect()
 }
 
 /// Check, annotate and build collision for `raw` (the object's mesh in
@@ -261,7 +288,17 @@ pub(crate) fn prepare_mesh(
         mesh_file,
     )?;
     let com = inertial.com.map(|x| x as f32);
+    let colours = raw.vertex_attrs.as_ref().filter(|_| opts.colour == MeshColour::Texture).map(|a| colours_by_position(raw, a, &mesh));
     let visual = Mesh { vertices: mesh.vertices.iter().map(|v| [v[0] - com[0], v[1] - com[1], v[2] - com[2]]).collect(), ..mesh };
+    // The texture of a mesh with vertex colours: its atlas baked from those colours.
+    let textured = match colours {
+        Some(c) => {
+            let coloured = Mesh { vertex_attrs: Some(c), ..visual.clone() };
+            let bake = recon_core::render::texture_mesh(&coloured, opts.texture_size, &[], &recon_core::render::BakeOptions::default());
+            Some(bake.map_err(|e| Error::input(mesh_file, format!("texture: {e}")))?.0)
+        }
+        None => None,
+    };
     let mut copts = opts.collision_opts.clone();
     copts.seed = copts.seed.wrapping_add(i as u64);
     let collision = build_collision(&visual, mesh_report.volume_m3, opts.collision, &copts, mesh_file)?;
@@ -274,6 +311,7 @@ pub(crate) fn prepare_mesh(
         friction: o.physics.friction.unwrap_or(mat.friction),
         restitution: o.physics.restitution.unwrap_or(mat.restitution),
         visual,
+        textured,
         mesh_report,
         inertial,
         collision,
@@ -404,6 +442,9 @@ impl SimScene {
         s
     }
 }
+
+/// The texture of a textured object, beside its `visual.obj` (`meshes/<id>/texture.png`).
+pub const TEXTURE_FILE: &str = "texture.png";
 
 /// File name of hull part `k` under `meshes/<id>/`.
 pub fn hull_file(k: usize) -> String {

@@ -42,12 +42,26 @@ fn link(o: &SimObject, mesh_dir: &str) -> String {
     );
     let _ = writeln!(s, "    </inertial>");
     // The material's (or the object's) colour; URDF names materials, so the name is the object's.
-    let color = o
-        .color_rgba
-        .map(|c| {
-            format!("\n      <material name=\"{}_{}\"><color rgba=\"{} {} {} {}\"/></material>", o.id, o.material, c[0], c[1], c[2], c[3])
-        })
-        .unwrap_or_default();
+    // A textured object: white times its texture (the OBJ's MTL names it too, for pybullet).
+    let color = match &o.textured {
+        Some(_) => format!(
+            "\n      <material name=\"{}_{}\"><color rgba=\"1 1 1 {}\"/><texture filename=\"{mesh_dir}/{}/{}\"/></material>",
+            o.id,
+            o.material,
+            o.color_rgba.map_or(1.0, |c| c[3]),
+            o.id,
+            crate::scene::TEXTURE_FILE
+        ),
+        None => o
+            .color_rgba
+            .map(|c| {
+                format!(
+                    "\n      <material name=\"{}_{}\"><color rgba=\"{} {} {} {}\"/></material>",
+                    o.id, o.material, c[0], c[1], c[2], c[3]
+                )
+            })
+            .unwrap_or_default(),
+    };
     let _ = writeln!(
         s,
         "    <visual>\n      {}\n      <geometry><mesh filename=\"{mesh_dir}/{}/visual.obj\"/></geometry>{color}\n    </visual>",

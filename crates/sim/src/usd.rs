@@ -7,6 +7,10 @@
 //! (Cube/Cylinder/Sphere with `PhysicsCollisionAPI`), every collider bound
 //! to a per-object `PhysicsMaterialAPI` material. The support plane is a
 //! static 2 m slab whose top face is z = 0. Stage: z up, metres, kilograms.
+//! A textured object's visual mesh carries its UVs as the `st` primvar and is
+//! bound (`material:binding`) to a `UsdPreviewSurface` material under
+//! `/World/Looks` whose diffuse colour is a `UsdUVTexture` of its PNG, read
+//! through a `UsdPrimvarReader_float2` of `st`.
 
 use crate::collision::{Part, Primitive};
 use crate::scene::SimScene;
@@ -43,6 +47,30 @@ fn xform(s: &mut String, t: [f32; 3], r: &[[f32; 3]; 3], scale: Option<[f32; 3]>
 
 const IDENTITY: [[f32; 3]; 3] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
+/// The `UsdPreviewSurface` material of a textured object, `/World/Looks/<id>`.
+fn texture_material(s: &mut String, id: &str) {
+    let at = format!("/World/Looks/{id}");
+    let _ = writeln!(s, "        def Material \"{id}\"\n        {{");
+    let _ = writeln!(s, "            token outputs:surface.connect = <{at}/PreviewSurface.outputs:surface>\n");
+    let _ = writeln!(
+        s,
+        "            def Shader \"PreviewSurface\"\n            {{\n                uniform token info:id = \"UsdPreviewSurface\""
+    );
+    let _ = writeln!(s, "                color3f inputs:diffuseColor.connect = <{at}/Texture.outputs:rgb>");
+    let _ = writeln!(s, "                float inputs:metallic = 0\n                float inputs:roughness = 1\n                token outputs:surface\n            }}\n");
+    let _ = writeln!(s, "            def Shader \"Texture\"\n            {{\n                uniform token info:id = \"UsdUVTexture\"");
+    let _ = writeln!(s, "                asset inputs:file = @meshes/{id}/{}@", crate::scene::TEXTURE_FILE);
+    let _ = writeln!(s, "                token inputs:sourceColorSpace = \"sRGB\"");
+    let _ = writeln!(s, "                float2 inputs:st.connect = <{at}/StReader.outputs:result>");
+    let _ = writeln!(s, "                token inputs:wrapS = \"clamp\"\n                token inputs:wrapT = \"clamp\"\n                float3 outputs:rgb\n            }}\n");
+    let _ = writeln!(
+        s,
+        "            def Shader \"StReader\"\n            {{\n                uniform token info:id = \"UsdPrimvarReader_float2\""
+    );
+    let _ =
+        writeln!(s, "                string inputs:varname = \"st\"\n                float2 outputs:result\n            }}\n        }}");
+}
+
 /// The scene as a usda document.
 pub fn scene_usda(scene: &SimScene) -> String {
     let mut s = String::from("#usda 1.0\n(\n    defaultPrim = \"World\"\n    doc = \"recon scene: settled, simulation-ready\"\n    kilogramsPerUnit = 1\n    metersPerUnit = 1\n    upAxis = \"Z\"\n)\n\n");
@@ -71,6 +99,13 @@ pub fn scene_usda(scene: &SimScene) -> String {
     s += "        rel material:binding:physics = </World/PhysicsMaterials/support_plane>\n        double size = 1\n";
     xform(&mut s, [0.0, 0.0, -0.01], &IDENTITY, Some([2.0, 2.0, 0.02]), "        ");
     s += "    }\n";
+    if scene.objects.iter().any(|o| o.textured.is_some()) {
+        s += "\n    def Scope \"Looks\"\n    {\n";
+        for o in scene.objects.iter().filter(|o| o.textured.is_some()) {
+            texture_material(&mut s, &o.id);
+        }
+        s += "    }\n";
+    }
     for o in &scene.objects {
         let (moments, axes) = o.principal_inertia();
         let axes32 = axes.map(|r| r.map(|x| x as f32));
@@ -87,8 +122,24 @@ pub fn scene_usda(scene: &SimScene) -> String {
         let _ = writeln!(s, "        float physics:mass = {}", o.inertial.mass_kg);
         let _ = writeln!(s, "        quatf physics:principalAxes = {}", quat_str(matrix_to_quat(&axes32)));
         xform(&mut s, o.end.translation, &o.end.rotation, None, "        ");
-        s += "\n        def Mesh \"visual\"\n        {\n";
-        mesh_body(&mut s, &o.visual, "            ");
+        match &o.textured {
+            Some(tm) => {
+                s += "\n        def Mesh \"visual\" (\n            prepend apiSchemas = [\"MaterialBindingAPI\"]\n        )\n        {\n";
+                let _ = writeln!(s, "            rel material:binding = </World/Looks/{}>", o.id);
+                mesh_body(&mut s, &tm.atlas.mesh, "            ");
+                // USD's st has v up.
+                let st: Vec<String> = tm.atlas.uv.iter().map(|t| format!("({}, {})", t[0], 1.0 - t[1])).collect();
+                let _ = writeln!(
+                    s,
+                    "            texCoord2f[] primvars:st = [{}] (\n                interpolation = \"vertex\"\n            )",
+                    st.join(", ")
+                );
+            }
+            None => {
+                s += "\n        def Mesh \"visual\"\n        {\n";
+                mesh_body(&mut s, &o.visual, "            ");
+            }
+        }
         if let Some(c) = o.color_rgba {
             let _ = writeln!(s, "            color3f[] primvars:displayColor = [({}, {}, {})]", c[0], c[1], c[2]);
             let _ = writeln!(s, "            float[] primvars:displayOpacity = [{}]", c[3]);

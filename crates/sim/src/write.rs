@@ -49,7 +49,11 @@ pub fn write_outputs_with(scene: &mut SimScene, out: &Path, timings: bool) -> Re
     for o in &scene.objects {
         let dir = staging.join("meshes").join(&o.id);
         mkdir(&dir)?;
-        recon_core::export::obj::save_obj(&o.visual, &dir.join("visual.obj"), recon_core::export::Axes::ZUp, false)?;
+        match &o.textured {
+            // visual.obj with `vt`, visual.mtl (`map_Kd texture.png`) and texture.png.
+            Some(tm) => recon_core::export::obj::save_textured_obj(tm, &dir, "visual", TEXTURE_FILE, recon_core::export::Axes::ZUp)?,
+            None => recon_core::export::obj::save_obj(&o.visual, &dir.join("visual.obj"), recon_core::export::Axes::ZUp, false)?,
+        }
         recon_core::export::ply::save_mesh_ply(&o.visual, &dir.join("visual.ply"), &recon_core::export::ply::PlyOptions::default())?;
         for (k, part) in o.collision.parts.iter().enumerate() {
             if let crate::collision::Part::Hull(m) = part {

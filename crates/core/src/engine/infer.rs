@@ -44,7 +44,8 @@
 use crate::dataset::frame::{depth_valid, Intrinsics, RgbdFrame};
 use crate::dataset::masks::{check_object, MaskOptions, MaskSkip, ObjectMask, SkipReason};
 use crate::engine::options::{
-    InferOptions, OptionError, PosthocColor, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS, DEFAULT_SMOOTH_ITERATIONS,
+    InferOptions, MeshColour, OptionError, PosthocColor, DEFAULT_MAX_FACES, DEFAULT_MAX_OBJECTS, DEFAULT_PARALLEL_OBJECTS,
+    DEFAULT_SMOOTH_ITERATIONS, DEFAULT_TEXTURE_SIZE,
 };
 use crate::engine::pipeline::Weights;
 use crate::engine::pipeline::{
@@ -137,6 +138,11 @@ pub struct InferSettings {
     /// Post-hoc colour calibration of each object against the anchor photo
     /// ([`crate::engine::posthoc_color`]).
     pub posthoc_color: PosthocColor,
+    /// Whether each object's mesh gets a UV atlas and a texture baked from the views
+    /// ([`ObjectResult::textured`]), or keeps its vertex colours alone.
+    pub colour: MeshColour,
+    /// Side of the baked texture, texels.
+    pub texture_size: u32,
 }
 
 impl Default for InferSettings {
@@ -157,6 +163,9 @@ impl Default for InferSettings {
             parallel_objects: DEFAULT_PARALLEL_OBJECTS,
             max_objects: DEFAULT_MAX_OBJECTS,
             posthoc_color: PosthocColor::None,
+            // The plain baseline bakes nothing; `InferOptions` (CLI, Python) defaults to textures.
+            colour: MeshColour::Vertex,
+            texture_size: DEFAULT_TEXTURE_SIZE,
         }
     }
 }
@@ -179,6 +188,8 @@ impl InferOptions {
             parallel_objects: self.parallel_objects,
             max_objects: self.max_objects,
             posthoc_color: self.posthoc_color,
+            colour: self.colour,
+            texture_size: self.texture_size,
             ..Default::default()
         };
         s.run.seed = self.seed;
@@ -364,6 +375,46 @@ pub struct ObjectResult {
     /// The post-hoc colour calibration (`None` when not asked for): the transform applied
     /// to the Gaussians (and the model-coloured mesh) above, or why none was.
     pub posthoc_color: Option<PosthocColorRecord>,
+    /// With [`MeshColour::Texture`]: `mesh_camera` laid out on a UV atlas (seam vertices
+    /// duplicated) with its texture, baked from every view's photo where the view's depth
+    /// sees the surface, else from the vertex colours ([`crate::render::bake`]).
+    pub textured: Option<crate::mesh::TexturedMesh>,
+    /// Where the texture's texels came from, and the atlas + bake seconds.
+    pub texture_report: Option<TextureReport>,
+}
+
+/// What the texture bake of an object did.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct TextureReport {
+    /// Side of the texture, texels.
+    pub size: u32,
+    /// Charts of the UV atlas.
+    pub charts: usize,
+    /// Where the texels came from.
+    #[serde(flatten)]
+    pub texels: crate::render::BakeReport,
+    /// Atlas and bake, wall-clock seconds.
+    pub seconds: f64,
+}
+
+/// The textured form of `mesh` (anchor camera frame) baked from `views`: each view's
+/// photo, measured depth and intrinsics, with its camera → anchor transform.
+fn bake_views(mesh: &Mesh, views: &[ObjView], size: u32) -> Result<(crate::mesh::TexturedMesh, TextureReport)> {
+    let t = Instant::now();
+    let bv: Vec<crate::render::BakeView> = views
+        .iter()
+        .map(|v| crate::render::BakeView {
+            rgb: &v.frame.rgb,
+            depth_m: &v.frame.depth_m,
+            width: v.frame.width,
+            height: v.frame.height,
+            intrinsics: v.frame.intrinsics,
+            camera_from_mesh: v.points.to_anchor.inverse(),
+        })
+        .collect();
+    let (tm, texels) = crate::render::texture_mesh(mesh, size, &bv, &crate::render::BakeOptions::default())?;
+    let charts = tm.atlas.charts;
+    Ok((tm, TextureReport { size, charts, texels, seconds: t.elapsed().as_secs_f64() }))
 }
 
 /// Everything one frame produces.
@@ -1221,6 +1272,18 @@ fn object_result(
             Some(PosthocColorRecord { variant, transform, stats, applied_to })
         }
     };
+    let mesh_camera = mesh_object.as_ref().map(|m| place.apply_mesh(m));
+    let (textured, texture_report) = match (&mesh_camera, opts.colour) {
+        // A texture that cannot be made (an atlas that does not fit) leaves the vertex colours.
+        (Some(m), MeshColour::Texture) if !m.faces.is_empty() => match bake_views(m, views, opts.texture_size) {
+            Ok((tm, r)) => (Some(tm), Some(r)),
+            Err(e) => {
+                notes.push(format!("no texture: {e}; mesh.glb keeps the vertex colours"));
+                (None, None)
+            }
+        },
+        _ => (None, None),
+    };
     Ok(ObjectResult {
         label: label.to_string(),
         id,
@@ -1233,7 +1296,7 @@ fn object_result(
         occupied_voxels: kept.coords,
         shape_fit: kept.shape_fit,
         faces_decoded: kept.faces_decoded,
-        mesh_camera: mesh_object.as_ref().map(|m| place.apply_mesh(m)),
+        mesh_camera,
         gaussians_camera: gaussians_object.as_ref().map(|g| place.apply_gaussians(g)),
         mesh_object,
         gaussians_object,
@@ -1246,6 +1309,8 @@ fn object_result(
         samples: opts.samples,
         notes,
         posthoc_color,
+        textured,
+        texture_report,
     })
 }
 

@@ -127,6 +127,51 @@ pub struct InferOptions {
     /// statistics go to posthoc_color.json.
     #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.posthoc_color))]
     pub posthoc_color: PosthocColor,
+    /// How the output mesh carries its colour: a UV atlas and a texture baked from the
+    /// input views' photos where they see the surface, else from the vertex colours
+    /// (`texture`: mesh.glb gets TEXCOORD_0 and an embedded PNG), or vertex colours alone
+    /// (`vertex`: the files as before textures existed).
+    #[cfg_attr(feature = "clap", arg(long, value_enum, default_value_t = InferOptions::DEFAULT.colour))]
+    pub colour: MeshColour,
+    /// Side of the square baked texture, texels (16 to 8192), with `--colour texture`.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = InferOptions::DEFAULT.texture_size))]
+    pub texture_size: u32,
+}
+
+/// Default side of a baked texture, texels.
+pub const DEFAULT_TEXTURE_SIZE: u32 = 1024;
+
+/// Largest accepted texture side, texels.
+pub const MAX_TEXTURE_SIZE: u32 = 8192;
+
+/// How an output mesh carries its colour (`recon infer --colour`, `recon scene --colour`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+#[serde(rename_all = "snake_case")]
+pub enum MeshColour {
+    /// A UV atlas and a baked texture (PNG), vertex colours where no view sees the surface.
+    #[default]
+    Texture,
+    /// Per-vertex colours only.
+    Vertex,
+}
+
+impl std::fmt::Display for MeshColour {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            MeshColour::Texture => "texture",
+            MeshColour::Vertex => "vertex",
+        })
+    }
+}
+
+/// Checks a texture side: `option` names it in the error.
+pub fn check_texture_size(option: &str, size: u32) -> Result<(), OptionError> {
+    if (16..=MAX_TEXTURE_SIZE).contains(&size) {
+        Ok(())
+    } else {
+        Err(OptionError::new(option, &format!("in 16..={MAX_TEXTURE_SIZE}"), size))
+    }
 }
 
 /// Which colour transform the post-hoc calibration fits (`engine::posthoc_color`).
@@ -234,10 +279,12 @@ impl InferOptions {
         fusion: Fusion::Multidiffusion,
         slat_fusion: SlatFusion::None,
         posthoc_color: PosthocColor::None,
+        colour: MeshColour::Texture,
+        texture_size: DEFAULT_TEXTURE_SIZE,
     };
 
     /// The option names, in `--help` order (the JSON and Python keyword names).
-    pub const NAMES: [&'static str; 22] = [
+    pub const NAMES: [&'static str; 24] = [
         "seed",
         "samples",
         "select",
@@ -260,6 +307,8 @@ impl InferOptions {
         "fusion",
         "slat_fusion",
         "posthoc_color",
+        "colour",
+        "texture_size",
     ];
 
     /// Checks every option; the first one out of range is named in the error.
@@ -293,7 +342,7 @@ impl InferOptions {
                 self.mask_erosion_iterations,
             ));
         }
-        Ok(())
+        check_texture_size("texture_size", self.texture_size)
     }
 
     /// Options from JSON (an object of option names; absent ones take their defaults),
@@ -457,9 +506,14 @@ mod tests {
             mask_erosion_iterations: 2,
             use_pointmap: false,
             posthoc_color: PosthocColor::GammaAffine,
+            colour: MeshColour::Vertex,
+            texture_size: 256,
         };
         let s = o.settings().unwrap();
         assert_eq!(s.posthoc_color, PosthocColor::GammaAffine);
+        assert_eq!((s.colour, s.texture_size), (MeshColour::Vertex, 256));
+        let e = InferOptions::from_json(serde_json::json!({"texture_size": 8})).unwrap_err();
+        assert_eq!(e.option(), "texture_size");
         assert_eq!((s.prepare.quantile_drop, s.prepare.clamp), (0.1, Some((-1.0, 1.5))));
         assert_eq!(s.prepare.erosion, Some(crate::dataset::masks::Erosion { kernel: 3, iterations: 2 }));
         assert!(!s.run.use_pointmap);

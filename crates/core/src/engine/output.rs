@@ -72,6 +72,9 @@ pub struct PoseRecord<'a> {
     pub recon_version: &'static str,
     /// The model that answered: name and weights' hash (the run's, as [`ModelIdentity::of`]).
     pub model_identity: ModelIdentity,
+    /// The baked texture of `mesh.glb` (absent with `--colour vertex`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub texture: Option<&'a TextureReport>,
 }
 
 /// The per-stage seconds `recon infer` reports for every object, in its table's column
@@ -186,6 +189,7 @@ pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions
             notes: &o.notes,
             recon_version: crate::VERSION,
             model_identity: ModelIdentity::of(&o.metadata),
+            texture: o.texture_report.as_ref(),
         };
         let pose_path = dir.join("pose.json");
         let text = serde_json::to_string_pretty(&rec).map_err(|e| Error::msg(e.to_string()))?;
@@ -198,7 +202,11 @@ pub fn write_outputs_with(result: &FrameResult, out: &Path, opts: &OutputOptions
             gaussians_ply: None,
         };
         if let Some(m) = o.mesh_camera.as_ref().filter(|m| !m.faces.is_empty()) {
-            save_glb(m, &dir.join("mesh.glb"), &glb)?;
+            // Textured (UVs, embedded PNG) with `--colour texture`, vertex-coloured otherwise.
+            match &o.textured {
+                Some(tm) => crate::export::glb::save_textured_glb(tm, &dir.join("mesh.glb"), glb.axes)?,
+                None => save_glb(m, &dir.join("mesh.glb"), &glb)?,
+            }
             save_mesh_ply(m, &dir.join("mesh.ply"), &ply)?;
             w.mesh_glb = Some(out.join(&name).join("mesh.glb"));
             w.mesh_ply = Some(out.join(&name).join("mesh.ply"));

@@ -1,9 +1,10 @@
 //! Binary glTF 2.0 (GLB) writer: a mesh (POSITION, NORMAL, optional COLOR_0,
-//! u32 indices, one primitive, one node), or a scene of named meshes and
-//! coloured point clouds.
+//! u32 indices, one primitive, one node), a textured mesh (TEXCOORD_0 and an
+//! embedded PNG as the material's `baseColorTexture`), or a scene of named
+//! meshes and coloured point clouds.
 
 use super::axes::{write_file, Axes};
-use crate::mesh::Mesh;
+use crate::mesh::{Mesh, TexturedMesh};
 use crate::{Error, Result};
 use serde_json::json;
 use std::path::Path;
@@ -48,6 +49,23 @@ impl Builder {
         self.views.push(json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len(), "target": target}));
         self.bin.extend_from_slice(bytes);
         self.views.len() - 1
+    }
+
+    /// A buffer view without a target (an image).
+    fn push_raw_view(&mut self, bytes: &[u8]) -> usize {
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        self.views.push(json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len()}));
+        self.bin.extend_from_slice(bytes);
+        self.views.len() - 1
+    }
+
+    /// A float VEC2 accessor.
+    fn vec2(&mut self, rows: &[[f32; 2]]) -> usize {
+        let v = self.push_view(&f32_bytes(rows), ARRAY_BUFFER);
+        self.accessors.push(json!({"bufferView": v, "componentType": FLOAT, "count": rows.len(), "type": "VEC2"}));
+        self.accessors.len() - 1
     }
 
     /// A float VEC3 accessor; `bounds` adds min/max (required for POSITION).
@@ -105,10 +123,21 @@ impl Builder {
 
     /// [`Builder::finish`] with the document's materials (primitives refer to them by index).
     fn finish_with(
+        self,
+        meshes: Vec<serde_json::Value>,
+        node_names: Vec<Option<String>>,
+        materials: Vec<serde_json::Value>,
+    ) -> Result<Vec<u8>> {
+        self.finish_doc(meshes, node_names, materials, serde_json::Map::new())
+    }
+
+    /// [`Builder::finish_with`] plus top-level `extra` entries (images, textures, samplers).
+    fn finish_doc(
         mut self,
         meshes: Vec<serde_json::Value>,
         node_names: Vec<Option<String>>,
         materials: Vec<serde_json::Value>,
+        extra: serde_json::Map<String, serde_json::Value>,
     ) -> Result<Vec<u8>> {
         while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
@@ -121,7 +150,7 @@ impl Builder {
                 None => json!({"mesh": i}),
             })
             .collect();
-        let doc = json!({
+        let mut doc = json!({
             "asset": {"version": "2.0", "generator": "recon"},
             "scene": 0,
             "scenes": [{"nodes": (0..nodes.len()).collect::<Vec<_>>()}],
@@ -132,6 +161,9 @@ impl Builder {
             "bufferViews": self.views,
             "buffers": [{"byteLength": self.bin.len()}],
         });
+        for (k, v) in extra {
+            doc[k] = v;
+        }
         let mut json_bytes = serde_json::to_vec(&doc).map_err(|e| Error::msg(format!("glb: {e}")))?;
         while !json_bytes.len().is_multiple_of(4) {
             json_bytes.push(b' ');
@@ -157,6 +189,52 @@ pub fn glb_bytes(mesh: &Mesh, opts: &GlbOptions) -> Result<Vec<u8>> {
     let mut b = Builder::default();
     let prim = b.mesh_primitive(mesh, opts)?;
     b.finish(vec![json!({"primitives": [prim]})], vec![None])
+}
+
+/// Serialise a textured mesh as a GLB file image: POSITION, NORMAL,
+/// TEXCOORD_0 (glTF's UV convention, v down, as [`crate::mesh::atlas`] lays
+/// it out), u32 indices, and the texture embedded as a PNG, the material's
+/// `baseColorTexture` (no COLOR_0: glTF would multiply the two).
+pub fn textured_glb_bytes(tm: &TexturedMesh, axes: Axes) -> Result<Vec<u8>> {
+    let mesh = &tm.atlas.mesh;
+    mesh.validate()?;
+    if mesh.vertices.is_empty() || mesh.faces.is_empty() {
+        return Err(Error::msg("glb: mesh is empty"));
+    }
+    if tm.atlas.uv.len() != mesh.vertices.len() || tm.atlas.normals.len() != mesh.vertices.len() {
+        return Err(Error::msg(format!(
+            "glb: {} UVs and {} normals for {} vertices",
+            tm.atlas.uv.len(),
+            tm.atlas.normals.len(),
+            mesh.vertices.len()
+        )));
+    }
+    let mut b = Builder::default();
+    let positions: Vec<[f32; 3]> = mesh.vertices.iter().map(|&v| axes.apply(v)).collect();
+    let normals: Vec<[f32; 3]> = tm.atlas.normals.iter().map(|&n| axes.apply(n)).collect();
+    let pos = b.vec3(&positions, true);
+    let nrm = b.vec3(&normals, false);
+    let uv = b.vec2(&tm.atlas.uv);
+    let idx: Vec<u8> = mesh.faces.iter().flatten().flat_map(|i| i.to_le_bytes()).collect();
+    let v = b.push_view(&idx, ELEMENT_ARRAY_BUFFER);
+    b.accessors.push(json!({"bufferView": v, "componentType": UNSIGNED_INT, "count": mesh.faces.len() * 3, "type": "SCALAR"}));
+    let indices = b.accessors.len() - 1;
+    let prim = json!({"attributes": {"POSITION": pos, "NORMAL": nrm, "TEXCOORD_0": uv}, "indices": indices, "mode": 4, "material": 0});
+    let png = super::texture::png_bytes(&tm.texture)?;
+    let image_view = b.push_raw_view(&png);
+    let mut extra = serde_json::Map::new();
+    extra.insert("images".into(), json!([{"bufferView": image_view, "mimeType": "image/png"}]));
+    // Linear filtering, trilinear minification, clamped: the gutter is dilated for mip-mapping.
+    extra.insert("samplers".into(), json!([{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}]));
+    extra.insert("textures".into(), json!([{"sampler": 0, "source": 0}]));
+    let mat = json!({"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, 1.0], "baseColorTexture": {"index": 0, "texCoord": 0},
+                     "metallicFactor": 0.0, "roughnessFactor": 1.0}});
+    b.finish_doc(vec![json!({"primitives": [prim]})], vec![None], vec![mat], extra)
+}
+
+/// Write a textured mesh to a `.glb` file ([`textured_glb_bytes`]).
+pub fn save_textured_glb(tm: &TexturedMesh, path: &Path, axes: Axes) -> Result<()> {
+    write_file(path, &textured_glb_bytes(tm, axes)?)
 }
 
 /// Write `mesh` to a `.glb` file.
@@ -320,6 +398,38 @@ mod tests {
         let io = iv["byteOffset"].as_u64().unwrap() as usize;
         let idx: Vec<u32> = (0..12).map(|k| u32_at(bin, io + 4 * k)).collect();
         assert_eq!(idx, mesh.faces.iter().flatten().copied().collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn textured_glb_has_uvs_and_an_embedded_png() {
+        let mut m = crate::mesh::primitives::box_mesh(0.1, 0.1, 0.1);
+        m.vertex_attrs = Some(vec![[0.2, 0.4, 0.6, 0.5, 0.5, 1.0]; m.vertices.len()]);
+        let atlas = crate::mesh::uv_atlas(&m, &crate::mesh::AtlasOptions::for_size(64)).unwrap();
+        let tex = crate::mesh::Texture { width: 64, height: 64, rgb: vec![200; 64 * 64 * 3] };
+        let tm = TexturedMesh { atlas, texture: tex };
+        let b = textured_glb_bytes(&tm, Axes::YUp).unwrap();
+        assert_eq!(u32_at(&b, 8) as usize, b.len());
+        let jlen = u32_at(&b, 12) as usize;
+        let doc: serde_json::Value = serde_json::from_slice(&b[20..20 + jlen]).unwrap();
+        let bin = &b[20 + jlen + 8..];
+        let prim = &doc["meshes"][0]["primitives"][0];
+        let nv = tm.atlas.mesh.vertices.len();
+        for a in ["POSITION", "NORMAL", "TEXCOORD_0"] {
+            assert_eq!(doc["accessors"][prim["attributes"][a].as_u64().unwrap() as usize]["count"], nv, "{a}");
+        }
+        assert!(prim["attributes"].get("COLOR_0").is_none());
+        assert_eq!(doc["accessors"][prim["attributes"]["TEXCOORD_0"].as_u64().unwrap() as usize]["type"], "VEC2");
+        assert_eq!(doc["accessors"][prim["indices"].as_u64().unwrap() as usize]["count"], 3 * m.faces.len());
+        let mat = &doc["materials"][prim["material"].as_u64().unwrap() as usize];
+        let tex = &doc["textures"][mat["pbrMetallicRoughness"]["baseColorTexture"]["index"].as_u64().unwrap() as usize];
+        let img = &doc["images"][tex["source"].as_u64().unwrap() as usize];
+        assert_eq!(img["mimeType"], "image/png");
+        let view = &doc["bufferViews"][img["bufferView"].as_u64().unwrap() as usize];
+        let (off, len) = (view["byteOffset"].as_u64().unwrap() as usize, view["byteLength"].as_u64().unwrap() as usize);
+        let png = image::load_from_memory(&bin[off..off + len]).unwrap().to_rgb8();
+        assert_eq!(png.into_raw(), tm.texture.rgb);
+        // The asset reader reads its geometry back.
+        assert_eq!(crate::dataset::parse_glb(&b, "t.glb").unwrap().faces.len(), m.faces.len());
     }
 
     #[test]

@@ -1,4 +1,4 @@
-//! export: the asset formats, mesh (GLB, PLY, OBJ) and Gaussian-splat (3DGS
+//! export: the asset formats, mesh (GLB, PLY, OBJ; textured GLB and OBJ + MTL + PNG) and Gaussian-splat (3DGS
 //! PLY) writers. The simulator formats of a settled scene (URDF, MJCF, USD)
 //! live with the scene in `crate::sim`.
 
@@ -7,9 +7,10 @@ pub mod glb;
 pub mod obj;
 pub mod ply;
 pub(crate) mod splat;
+pub mod texture;
 
 pub use self::ply::split_header;
 pub use self::ply::{save_mesh_ply, PlyOptions};
 pub use self::splat::save_splat_ply;
 pub use axes::Axes;
-pub use glb::{colored_meshes_glb_bytes, glb_bytes, save_glb, GlbOptions};
+pub use glb::{colored_meshes_glb_bytes, glb_bytes, save_glb, save_textured_glb, textured_glb_bytes, GlbOptions};

@@ -2,11 +2,13 @@
 //! the exporters write), [`TriMesh`] (f64, for measurement), post-processing,
 //! and the primitive meshes that tests, synthetic scenes and baselines share.
 
+pub mod atlas;
 mod indexed;
 pub(crate) mod isosurface;
 pub mod post;
 pub mod primitives;
 pub mod trimesh;
+pub use self::atlas::{uv_atlas, AtlasOptions, Texture, TexturedMesh, UvMesh};
 pub use self::indexed::*;
 pub use self::isosurface::{marching_tetrahedra, ScalarGrid};
 pub use self::post::{

@@ -415,6 +415,7 @@ pub fn run_variations(
                 friction: o.friction,
                 restitution: o.restitution,
                 visual: o.visual.clone(),
+                textured: o.textured.clone(),
                 mesh_report: o.mesh_report.clone(),
                 inertial: o.inertial.clone(),
                 collision: o.collision.clone(),
@@ -671,7 +672,15 @@ impl Ctx<'_> {
                     .map(|v| std::array::from_fn(|r| (0..3).map(|k| o[r][k] * v[k]).sum::<f32>() * scale[r] as f32))
                     .collect(),
                 faces: b.prepared.visual.faces.clone(),
-                vertex_attrs: None,
+                // The texture's colours ride along, so the varied object is textured again.
+                vertex_attrs: b.prepared.textured.as_ref().and_then(|t| {
+                    let a = t.atlas.mesh.vertex_attrs.as_ref()?;
+                    let mut c = vec![[0.5, 0.5, 0.5, 0.5, 0.5, 1.0]; b.prepared.visual.vertices.len()];
+                    for (&src, attr) in t.atlas.source_vertex.iter().zip(a) {
+                        c[src as usize] = *attr;
+                    }
+                    Some(c)
+                }),
             };
             let mut spec = b.prepared.spec.clone();
             spec.pose = PoseSpec::from_similarity(&Similarity32::identity());
