@@ -401,7 +401,11 @@ fn row_models(d: &MechData, fit: &Fit) -> Vec<RowModel> {
         .map(|(&i, e)| RowModel {
             mean_sd: predict(r, i, e, fit.nuis.v).map(|(mu, s, _)| (mu, s)),
             outlier: if r.robust { fit.nuis.pi } else { 0.0 },
-            p_missing: p_row(r, i, e, fit.nuis.p0),
+            // As the sensor model simulates (`SensorModel::apply_frame`): a pixel that sees
+            // off the image returns nothing. One that sees a surface the simulation lacks
+            // (the audit's frames hold the GT objects only) returns that surface: the
+            // likelihood's uniform.
+            p_missing: if e.src.is_none() { 1.0 } else { p_row(r, i, e, fit.nuis.p0) },
         })
         .collect()
 }
