@@ -260,7 +260,12 @@ fn registration_is_named_and_explains_the_covariate_findings() {
         .rows
         .iter()
         .filter(|r| !r.pass)
-        .map(|r| format!("{} {} {}: measured {:.3}, simulated {:.3} [{:.3}, {:.3}]", r.statistic, r.covariate, r.bin, r.measured, r.simulated, r.lo, r.hi))
+        .map(|r| {
+            format!(
+                "{} {} {}: measured {:.3}, simulated {:.3} [{:.3}, {:.3}]",
+                r.statistic, r.covariate, r.bin, r.measured, r.simulated, r.lo, r.hi
+            )
+        })
         .collect();
     eprintln!("{}: {failing:#?}", pc.verdict);
     assert!(pc.failed.len() < pc.null_failed.len(), "{}", pc.verdict);

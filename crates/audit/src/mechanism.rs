@@ -34,10 +34,10 @@
 //! (backfitting, in every fold). Standard errors: the jackknife over the fold fits
 //! (frames left out), which carries the correlation of pixels within a frame.
 use crate::fit::{Ctx, Term, P_EPS};
+use crate::predictive::{PredictiveCheck, RowModel};
 use crate::search::{flipped_t, sign_patterns, Folds, SearchOptions};
 use crate::table::ResidualTable;
 use rayon::prelude::*;
-use crate::predictive::{PredictiveCheck, RowModel};
 use recon_core::sensor::{expect, DepthCorrection, Expect, Mechanism, SimFrame, MECHANISM_NAMES};
 use recon_core::{Error, Result};
 use serde::Serialize;

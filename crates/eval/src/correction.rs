@@ -1,7 +1,7 @@
 //! A depth correction (`recon audit depth`'s `depth_correction.json`) applied to the frames
 //! of a dataset before they are evaluated (`recon eval --depth-correction`).
-use recon_core::dataset::frame::Intrinsics;
 use recon_core::dataset::bop::{Dataset, Frame};
+use recon_core::dataset::frame::Intrinsics;
 use recon_core::sensor::{DepthCorrection, Pinhole};
 use std::collections::BTreeMap;
 

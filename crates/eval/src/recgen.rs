@@ -22,8 +22,8 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::correction::DatasetCorrection;
 use crate::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use crate::correction::DatasetCorrection;
 use crate::report::in_occlusion;
 use crate::report::Prediction;
 use recon_core::dataset::bop::{Dataset, Frame};

@@ -34,8 +34,12 @@ pub const INVERTIBLE: [&str; 6] = ["registration", "extrinsic_rotation", "depth_
 /// Why a mechanism kind cannot be undone on a depth image (None: it can).
 pub fn not_invertible_reason(kind: &str) -> Option<&'static str> {
     Some(match kind {
-        "edge_fattening" => "edge effect: a fattened edge pixel holds the nearer surface's depth, and the surface behind it is not in the image",
-        "mixed_pixels" => "edge effect: a mixed pixel's weight is random per pixel, so the surface's own depth cannot be recovered from one reading",
+        "edge_fattening" => {
+            "edge effect: a fattened edge pixel holds the nearer surface's depth, and the surface behind it is not in the image"
+        }
+        "mixed_pixels" => {
+            "edge effect: a mixed pixel's weight is random per pixel, so the surface's own depth cannot be recovered from one reading"
+        }
         "occlusion_shadow" => "missing returns in the projector's shadow: a missing reading cannot be restored",
         "range_noise" => "random noise with zero mean: nothing to subtract",
         "grazing_dropout" | "dark_dropout" => "missing returns: a missing reading cannot be restored",
@@ -79,7 +83,13 @@ impl DepthCorrection {
     /// The correction for `fitted` mechanisms (e.g. the audit's `mechanisms.fitted`): the
     /// invertible ones are corrected, the others listed with their reason.
     pub fn from_fitted(fitted: &[Mechanism], source: &str) -> Self {
-        let mut c = DepthCorrection { version: CORRECTION_VERSION, source: source.into(), corrections: vec![], not_corrected: vec![], notes: vec![] };
+        let mut c = DepthCorrection {
+            version: CORRECTION_VERSION,
+            source: source.into(),
+            corrections: vec![],
+            not_corrected: vec![],
+            notes: vec![],
+        };
         for m in fitted {
             match not_invertible_reason(m.name()) {
                 None => c.corrections.push(m.clone()),
@@ -140,7 +150,8 @@ impl DepthCorrection {
             c.corrections.push(m);
         }
         for (i, n) in arr("not_corrected", false)?.into_iter().enumerate() {
-            let n: NotCorrected = serde_json::from_value(n).map_err(|e| Error::config(file, &format!("not_corrected[{i}]"), e.to_string()))?;
+            let n: NotCorrected =
+                serde_json::from_value(n).map_err(|e| Error::config(file, &format!("not_corrected[{i}]"), e.to_string()))?;
             c.not_corrected.push(n);
         }
         for (i, n) in arr("notes", false)?.into_iter().enumerate() {
@@ -251,8 +262,9 @@ impl DepthCorrection {
         if self.is_identity() {
             return depth.to_vec();
         }
-        let geometric =
-            self.corrections.iter().any(|m| matches!(m, Mechanism::Registration { .. } | Mechanism::ExtrinsicRotation { .. } | Mechanism::RadialDistortion { .. }));
+        let geometric = self.corrections.iter().any(|m| {
+            matches!(m, Mechanism::Registration { .. } | Mechanism::ExtrinsicRotation { .. } | Mechanism::RadialDistortion { .. })
+        });
         let (gain, offset) = self.gain_offset(frame);
         let valid = |z: f32| z.is_finite() && z > 0.0;
         let value = |m: f64, zfac: f64| -> f32 {
