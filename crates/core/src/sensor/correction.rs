@@ -137,12 +137,12 @@ impl DepthCorrection {
             if let Some(r) = not_invertible_reason(m.name()) {
                 return Err(Error::config(
                     file,
-                    &format!("{field}.mechanism"),
+                    format!("{field}.mechanism"),
                     format!("{} cannot be corrected ({r}); expected one of {}", m.name(), INVERTIBLE.join(", ")),
                 ));
             }
             if let Err((f, msg)) = m.check() {
-                return Err(Error::config(file, &format!("{field}.{f}"), msg));
+                return Err(Error::config(file, format!("{field}.{f}"), msg));
             }
             if c.corrections.iter().any(|o| o.name() == m.name()) {
                 return Err(Error::config(file, &field, format!("{} is listed twice; give each mechanism once", m.name())));
@@ -151,13 +151,13 @@ impl DepthCorrection {
         }
         for (i, n) in arr("not_corrected", false)?.into_iter().enumerate() {
             let n: NotCorrected =
-                serde_json::from_value(n).map_err(|e| Error::config(file, &format!("not_corrected[{i}]"), e.to_string()))?;
+                serde_json::from_value(n).map_err(|e| Error::config(file, format!("not_corrected[{i}]"), e.to_string()))?;
             c.not_corrected.push(n);
         }
         for (i, n) in arr("notes", false)?.into_iter().enumerate() {
             match n {
                 serde_json::Value::String(s) => c.notes.push(s),
-                _ => return Err(Error::config(file, &format!("notes[{i}]"), "expected a string")),
+                _ => return Err(Error::config(file, format!("notes[{i}]"), "expected a string")),
             }
         }
         Ok(c)
