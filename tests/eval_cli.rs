@@ -124,6 +124,12 @@ fn bad_input_gives_clear_errors() {
     let run = recon(&["eval", "--dataset", d, "--method", "observed", "--scenes", "7"]);
     let e = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success() && e.contains("no scene `7`") && e.contains("000001"), "{e}");
+    // A depth correction outside its prior: the file and the field are named.
+    let corr = dir.join("corr.json");
+    std::fs::write(&corr, r#"{"version": 1, "corrections": [{"mechanism": "depth_scale", "scale": 0.5}]}"#).unwrap();
+    let run = recon(&["eval", "--dataset", d, "--method", "observed", "--depth-correction", corr.to_str().unwrap()]);
+    let e = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && e.contains("corr.json") && e.contains("corrections[0].scale") && e.contains("[-0.05, 0.05]"), "{e}");
     // Missing depth image: named.
     let out = dir.join("o");
     let run = recon(&["eval", "--dataset", d, "--method", "observed", "--out", out.to_str().unwrap()]);

@@ -8,9 +8,9 @@ use common::tmp;
 use recon::dataset::load_dataset;
 use recon::dataset::{surface_patches, visible_fraction};
 use recon::eval::{evaluate, read_predictions, EvalOptions};
-use recon::eval::{observe_dataset, ObservedOptions};
+use recon::eval::{observe_dataset, observe_dataset_corrected, DatasetCorrection, ObservedOptions};
 use recon::math::Similarity;
-use recon::sensor::SensorModel;
+use recon::sensor::{DepthCorrection, Mechanism, SensorModel};
 use recon::synth::{generate, SynthOptions};
 use std::path::Path;
 
@@ -66,6 +66,44 @@ fn observed_baseline_on_two_tiny_synthetic_scenes() {
         assert!(mean < 0.2, "{name}: mean ADD-SB/d of visible objects {mean}");
         let _ = std::fs::remove_dir_all(&dir);
     }
+}
+
+/// Mean ADD-SB/d and CD_norm of the observed baseline on `ds` (with a depth correction).
+fn baseline_scores(ds: &recon::dataset::Dataset, dir: &Path, correction: Option<&DatasetCorrection>) -> (f64, f64) {
+    let run = observe_dataset_corrected(ds, &ObservedOptions::default(), correction).unwrap();
+    let pf = run.write(dir).unwrap();
+    let r = evaluate(ds, &read_predictions(&pf).unwrap(), &pf, &EvalOptions { n_samples: 2000, all_frames: true, ..Default::default() })
+        .unwrap();
+    let m: Vec<(f64, f64)> = r.objects.iter().filter_map(|o| o.metrics.as_ref()).map(|m| (m.add_sb_norm, m.cd_norm)).collect();
+    assert!(m.len() >= 4, "{} scored", m.len());
+    (m.iter().map(|x| x.0).sum::<f64>() / m.len() as f64, m.iter().map(|x| x.1).sum::<f64>() / m.len() as f64)
+}
+
+/// A depth scale error planted in the frames pushes the baseline's objects away from the
+/// camera; the depth correction that undoes it brings the scores back to those of the
+/// clean frames.
+#[test]
+fn depth_correction_undoes_a_planted_scale_before_the_baseline() {
+    let dir = tmp("corr");
+    let scale = Mechanism::DepthScale { scale: 0.04 };
+    let (clean, planted) = (dir.join("clean"), dir.join("planted"));
+    generate(&clean, &tiny(SensorModel::ideal()), &|| {}).unwrap();
+    let mut sensor = SensorModel::ideal();
+    sensor.mechanisms = vec![scale.clone()];
+    generate(&planted, &tiny(sensor), &|| {}).unwrap();
+    let (clean, planted) = (load_dataset(&clean).unwrap(), load_dataset(&planted).unwrap());
+    let c = DatasetCorrection::new(DepthCorrection::from_fitted(&[scale], "test"), &planted);
+    let ideal = baseline_scores(&clean, &dir.join("p0"), None);
+    let before = baseline_scores(&planted, &dir.join("p1"), None);
+    let after = baseline_scores(&planted, &dir.join("p2"), Some(&c));
+    eprintln!("mean ADD-SB/d, CD_norm: clean {ideal:?}, planted {before:?}, corrected {after:?}");
+    // The scale moves every point 4 % farther: ADD-SB/d (no alignment) grows; CD_norm is
+    // scored after ICP and barely moves.
+    let hurt = before.0 - ideal.0;
+    assert!(hurt > 0.005, "the planted scale should hurt ADD-SB/d: {before:?} vs {ideal:?}");
+    assert!((after.0 - ideal.0).abs() < 0.2 * hurt, "corrected ADD-SB/d {after:?} vs clean {ideal:?}, planted {before:?}");
+    assert!((after.1 - ideal.1).abs() < 0.01, "corrected CD_norm {after:?} vs clean {ideal:?}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

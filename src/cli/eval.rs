@@ -76,6 +76,11 @@ pub struct EvalArgs {
     /// More views than the model takes at once run as fused pairs (--fusion, --slat-fusion).
     #[arg(long, conflicts_with = "two_view", value_parser = clap::value_parser!(u64).range(1..=(recon::engine::MAX_SECOND_VIEWS as u64 + 1)))]
     views: Option<u64>,
+    /// Depth correction written by `recon audit depth` (`depth_correction.json`), applied
+    /// to every frame's depth before --method runs on it; a drift correction uses the
+    /// frame's position in the dataset (the audit's frame index).
+    #[arg(long, value_name = "FILE")]
+    depth_correction: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -118,7 +123,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
     use recon::dataset::load_dataset;
     use recon::engine::{begin_output, finish_output};
     use recon::eval::{evaluate, read_predictions};
-    use recon::eval::{observe_dataset, ObservedOptions, Shape};
+    use recon::eval::{observe_dataset_corrected, ObservedOptions, Shape};
     if let Some(n) = a.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
@@ -129,6 +134,19 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
         bail!("--surface-samples must be positive");
     }
     let mut ds = load_dataset(&a.dataset).with_context(|| format!("loading dataset {}", a.dataset.display()))?;
+    if a.depth_correction.is_some() && a.method.is_none() {
+        bail!("--depth-correction applies to --method observed|recgen (predictions are already made)");
+    }
+    // Frame indices from the whole dataset, as the audit numbers them, before --scenes.
+    let correction = match &a.depth_correction {
+        Some(p) => {
+            let c = recon::sensor::DepthCorrection::load(p)?;
+            eprintln!("depth correction {}: {}", p.display(), c.describe());
+            Some(recon::eval::DatasetCorrection::new(c, &ds))
+        }
+        None => None,
+    };
+    let correction_json = correction.as_ref().map(|c| serde_json::json!({"file": a.depth_correction, "correction": c.correction}));
     if let Some(s) = &a.scenes {
         ds.retain_scenes(s)?;
     }
@@ -157,7 +175,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = observe_dataset(&ds, &ObservedOptions { shape, ..Default::default() })?;
+            let run = observe_dataset_corrected(&ds, &ObservedOptions { shape, ..Default::default() }, correction.as_ref())?;
             let n_box = run.predictions.iter().filter(|p| p.observed.shape == Shape::Box).count();
             eprintln!(
                 "observed baseline: {} predictions ({} as box) on {} frames, {} GT instances skipped, {:.1} s",
@@ -181,7 +199,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             eprintln!("scored {} GT instances in {:.1} s", report.objects.len(), t1.elapsed().as_secs_f64());
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({ "kind": "recon eval --method observed", "shape": shape, "skipped": run.skipped,
-                "recon_version": recon::VERSION });
+                "depth_correction": correction_json, "recon_version": recon::VERSION });
             (report, Some(out), staging, index)
         }
         (Some(Method::Recgen), _) => {
@@ -194,7 +212,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             let staging = Staging(Some(begin_output(&out)?));
             let dir = staging.0.clone().unwrap_or_default();
             let t0 = std::time::Instant::now();
-            let run = recon::eval::recgen_dataset_views(&ds, &engine, &io, views, a.occlusion, &|done, total| {
+            let run = recon::eval::recgen_dataset_corrected(&ds, &engine, &io, views, a.occlusion, correction.as_ref(), &|done, total| {
                 if done % 10 == 0 || done == total {
                     eprintln!("  {done}/{total} frames, {:.0} s", t0.elapsed().as_secs_f64());
                 }
@@ -215,7 +233,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<bool> {
             report.predictions = out.join("predictions.json").display().to_string();
             let index = serde_json::json!({
                 "kind": "recon eval --method recgen", "model": a.model, "config": source.architecture()?, "two_view": a.two_view, "views": views, "skipped": run.skipped,
-                "seconds_model": run.seconds_model,
+                "seconds_model": run.seconds_model, "depth_correction": correction_json,
                 "poses": run.predictions.iter().map(|p| p.pose_record()).collect::<Vec<_>>(),
                 "recon_version": recon::VERSION, "model_identity": engine.pipeline.identity(),
             });

@@ -52,6 +52,14 @@ pub struct InferArgs {
     /// view) pairs: --fusion, --slat-fusion.
     #[arg(long = "view", value_name = "JSON")]
     views: Vec<PathBuf>,
+    /// Depth correction written by `recon audit depth` (`depth_correction.json`): the
+    /// fitted registration shift, extrinsic rotation, depth scale/offset, radial
+    /// distortion and drift are undone on every view's depth before anything else.
+    #[arg(long, value_name = "FILE")]
+    depth_correction: Option<PathBuf>,
+    /// The frame's index in the audited dataset, for a drift correction (default 0).
+    #[arg(long, value_name = "N", default_value_t = 0, requires = "depth_correction")]
+    depth_correction_frame: i64,
     #[command(flatten)]
     model: ModelArgs,
     /// Worker threads (default: all cores).
@@ -202,7 +210,17 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("--threads")?;
     }
     let opts = a.model.infer_settings()?;
-    let frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
+    let correction = a.depth_correction.as_deref().map(recon::sensor::DepthCorrection::load).transpose()?;
+    if let Some(c) = &correction {
+        eprintln!("depth correction: {} (frame index {})", c.describe(), a.depth_correction_frame);
+    }
+    let correct = |f: &mut RgbdFrame| {
+        if let Some(c) = &correction {
+            c.apply_to_frame(f, a.depth_correction_frame);
+        }
+    };
+    let mut frame = RgbdFrame::open(&a.rgbd, &frame_options(&a.depth, &a.intrinsics, a.depth_scale, "--intrinsics")?)?;
+    correct(&mut frame);
     let (objects, mut skipped) = recon::dataset::load_masks(&a.masks, a.objects.as_deref())?;
     // View 1's unreadable or unusable masks are objects that failed; another view's only cost that view.
     let failed_masks = skipped.len();
@@ -210,7 +228,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     recon::engine::check_view_count(a.view2.iter().count() + a.views.len())?;
     let mut others = Vec::new();
     if let Some(v2) = &a.view2 {
-        let f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
+        let mut f2 = RgbdFrame::open(v2, &frame_options(&a.depth2, &a.intrinsics2, a.depth_scale2, "--intrinsics2")?)?;
+        correct(&mut f2);
         let (o2, s2) = recon::dataset::load_masks(&a.masks2, a.objects.as_deref())?;
         skipped.extend(s2.into_iter().map(|mut s| {
             s.label = format!("view 2 {}", s.label);
@@ -221,7 +240,8 @@ pub fn run(a: InferArgs) -> anyhow::Result<i32> {
     }
     for path in &a.views {
         let k = others.len() + 2;
-        let v = recon::engine::ViewSpec::from_file(path, &format!("view {k}"))?.open(a.objects.as_deref())?;
+        let mut v = recon::engine::ViewSpec::from_file(path, &format!("view {k}"))?.open(a.objects.as_deref())?;
+        correct(&mut v.frame);
         skipped.extend(v.skipped.into_iter().map(|mut s| {
             s.label = format!("view {k} {}", s.label);
             s

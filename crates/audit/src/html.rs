@@ -289,6 +289,42 @@ fn mechanisms(m: &Value) -> String {
         s += "<h3>Mechanism comparison (every round's candidates)</h3>\n";
         s += &records_table("mechanism-comparison", &rows);
     }
+    if let Some(c) = m.get("depth_correction").filter(|c| c.is_object()) {
+        s += &depth_correction(c);
+    }
+    if let Some(p) = m.get("predictive_check").filter(|p| p.is_object()) {
+        s += "<h3>Posterior predictive check</h3>\n";
+        s += &format!("<p id=\"predictive-verdict\"><b>{}</b></p>\n", esc(p["verdict"].as_str().unwrap_or("")));
+        s += &format!("<p>{}</p>\n", esc(p["method"].as_str().unwrap_or("")));
+        if let Some(rows) = p["rows"].as_array().filter(|a| !a.is_empty()) {
+            s += &records_table("predictive-check", rows);
+        }
+    }
+    s
+}
+
+/// What `depth_correction.json` corrects, and what not (with the reason).
+fn depth_correction(c: &Value) -> String {
+    let mut s = String::from("<h3>Depth correction (<a href=\"depth_correction.json\">depth_correction.json</a>)</h3>\n");
+    let list = |k: &str| c[k].as_array().cloned().unwrap_or_default();
+    let corr = list("corrections");
+    s += &format!(
+        "<p id=\"depth-correction\">{}</p>\n",
+        if corr.is_empty() {
+            "Nothing to correct: no accepted mechanism can be undone on a depth image.".to_string()
+        } else {
+            format!("Corrected: {}.", esc(&corr.iter().map(cell).collect::<Vec<_>>().join("; ")))
+        }
+    );
+    let not = list("not_corrected");
+    if !not.is_empty() {
+        let rows: Vec<Value> =
+            not.iter().map(|n| serde_json::json!({"not corrected": n["fitted"].clone(), "reason": n["reason"].clone()})).collect();
+        s += &records_table("not-corrected", &rows);
+    }
+    for n in list("notes") {
+        s += &format!("<p>{}</p>\n", esc(n.as_str().unwrap_or("")));
+    }
     s
 }
 

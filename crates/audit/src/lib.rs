@@ -7,6 +7,7 @@
 //! - `search`: candidate effects, held-out testing by unit, greedy selection;
 //! - `mechanism`: which physical sensor mechanism explains the frames (fitted on the images);
 //! - `outliers`: is the fit's outlier component structured (rate and sign by covariate)?
+//! - `predictive`: posterior predictive check of the fitted mechanisms (simulated vs measured residual statistics);
 //! - `report`: report JSON (schema in its docs), summary, plots; `cause`: the words;
 //! - `stats`: t / χ² tails, robust statistics, a small SPD solver.
 
@@ -19,6 +20,7 @@ pub(crate) mod fit;
 pub(crate) mod html;
 pub(crate) mod mechanism;
 pub(crate) mod outliers;
+pub(crate) mod predictive;
 pub(crate) mod report;
 pub(crate) mod search;
 pub(crate) mod stats;
@@ -26,6 +28,7 @@ pub(crate) mod svg;
 pub(crate) mod table;
 pub use self::depth::{collect, quantisation_sd, residual_table, DepthOptions, PixelSample};
 pub use self::mechanism::{free_params, Candidate, Explained, MechFinding, MechRound, MechanismOptions, MechanismReport, Versus};
+pub use self::predictive::{CheckRow, PredictiveCheck};
 pub use self::search::{Round, SearchOptions, SearchResult, Selected, Uncertainty};
 pub use self::table::ResidualTable;
 
@@ -162,10 +165,15 @@ fn safe(s: &str) -> String {
     s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
+/// The depth correction a depth audit with mechanisms writes beside `report.json`
+/// (`recon infer --depth-correction`, `recon eval --depth-correction`).
+pub const CORRECTION_FILE: &str = "depth_correction.json";
+
 /// Marker written last into an audit output folder.
 pub const MARKER: &str = "recon-audit.json";
 
-/// Writes `report.json`, `summary.txt`, `report.html`, `sensor_extended.json` (depth), the
+/// Writes `report.json`, `summary.txt`, `report.html`, `sensor_extended.json` (depth),
+/// `depth_correction.json` (depth audits with mechanisms), the
 /// plots and the residual maps (depth) into `out` through a staging folder (an interrupted run leaves no complete-looking
 /// output; an existing folder is replaced only if it is an earlier audit output), and
 /// the report JSON also to `json` when given. Sets the report's `extended_model`.
@@ -190,6 +198,10 @@ pub fn write_outputs(audit: &mut Audit, out: &Path, json: Option<&Path>) -> Resu
         let p = out.join("sensor_extended.json");
         audit.report.extended_model = Some(p.display().to_string());
         written.push(p);
+    }
+    if let Some(m) = &audit.report.mechanisms {
+        m.depth_correction.save(&staging.join(CORRECTION_FILE))?;
+        written.push(out.join(CORRECTION_FILE));
     }
     let text = serde_json::to_string_pretty(&audit.report).map_err(|e| Error::msg(e.to_string()))?;
     let put = |name: &str, body: &str| -> Result<()> {

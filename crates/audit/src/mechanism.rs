@@ -34,10 +34,11 @@
 //! (backfitting, in every fold). Standard errors: the jackknife over the fold fits
 //! (frames left out), which carries the correlation of pixels within a frame.
 use crate::fit::{Ctx, Term, P_EPS};
+use crate::predictive::{PredictiveCheck, RowModel};
 use crate::search::{flipped_t, sign_patterns, Folds, SearchOptions};
 use crate::table::ResidualTable;
 use rayon::prelude::*;
-use recon_core::sensor::{expect, Expect, Mechanism, SimFrame, MECHANISM_NAMES};
+use recon_core::sensor::{expect, DepthCorrection, Expect, Mechanism, SimFrame, MECHANISM_NAMES};
 use recon_core::{Error, Result};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -214,6 +215,12 @@ pub struct MechanismReport {
     pub versus_findings: Option<Versus>,
     /// Which covariate findings each mechanism explains.
     pub findings_explained: Vec<Explained>,
+    /// Posterior predictive check: the residual statistics the fitted mechanisms simulate
+    /// against the measured ones (module `predictive`).
+    pub predictive_check: PredictiveCheck,
+    /// What `depth_correction.json` holds: the accepted invertible mechanisms, and the
+    /// others with the reason they are not corrected.
+    pub depth_correction: DepthCorrection,
     /// Every round.
     pub rounds: Vec<MechRound>,
 }
@@ -380,6 +387,25 @@ fn row_ll(d: &MechData, rows: &[usize], ex: &[Expect], n: Nuis) -> Vec<f64> {
                 None => r.ln_dens,
             };
             g + (1.0 - p).ln()
+        })
+        .collect()
+}
+
+/// The fitted model's prediction of every row (the posterior predictive check's input).
+fn row_models(d: &MechData, fit: &Fit) -> Vec<RowModel> {
+    let all: Vec<usize> = (0..d.n).collect();
+    let ex = d.expect_rows(&fit.mechs, &all);
+    let r = &d.rows;
+    all.iter()
+        .zip(&ex)
+        .map(|(&i, e)| RowModel {
+            mean_sd: predict(r, i, e, fit.nuis.v).map(|(mu, s, _)| (mu, s)),
+            outlier: if r.robust { fit.nuis.pi } else { 0.0 },
+            // As the sensor model simulates (`SensorModel::apply_frame`): a pixel that sees
+            // off the image returns nothing. One that sees a surface the simulation lacks
+            // (the audit's frames hold the GT objects only) returns that surface: the
+            // likelihood's uniform.
+            p_missing: if e.src.is_none() { 1.0 } else { p_row(r, i, e, fit.nuis.p0) },
         })
         .collect()
 }
@@ -880,6 +906,22 @@ pub fn infer(
     } else {
         selected.iter().map(|s| s.statement.clone()).collect::<Vec<_>>().join("; then ")
     };
+    let predictive_check = crate::predictive::check(
+        t,
+        &row_models(&d, &current.fits[folds.k]),
+        &row_models(&d, &null.fits[folds.k]),
+        0.5 / ctx.outlier_density,
+        search.seed ^ 0x00C0_FFEE,
+    );
+    let mut depth_correction = DepthCorrection::from_fitted(&fitted, &t.source);
+    for s in selected.iter().filter(|s| s.ambiguous) {
+        depth_correction.notes.push(format!(
+            "the audit found {} ambiguous with {}: the correction applies {} as fitted",
+            s.mechanism,
+            s.runner_up.as_deref().unwrap_or("?"),
+            s.mechanism
+        ));
+    }
     let mut report = MechanismReport {
         method: "each mechanism fitted by maximum likelihood (outlier component kept) on the frame images of each fold's training frames; held-out log-likelihood gain per fold, sign-flip randomisation with a max-statistic correction per round; winner vs runner-up by a paired sign-flip test; jackknife standard errors over the folds".into(),
         alpha: opts.alpha,
@@ -891,6 +933,8 @@ pub fn infer(
         verdict,
         versus_findings: None,
         findings_explained: vec![],
+        predictive_check,
+        depth_correction,
         rounds,
     };
     if let Some((terms, cov_unit_ll)) = findings {
@@ -954,6 +998,8 @@ impl MechanismReport {
                 v.mechanisms_minus_findings, v.p_mechanisms_better, v.p_findings_better
             );
         }
+        s += &format!("  posterior predictive check {}\n", self.predictive_check.verdict);
+        s += &format!("  depth correction: {}\n", self.depth_correction.describe());
         for e in &self.findings_explained {
             s += &format!(
                 "  finding {} ({}): {}\n",

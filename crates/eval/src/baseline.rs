@@ -33,6 +33,7 @@
 //! visible points' diameter; the box diagonal for [`Shape::Box`]) with the GT diameter:
 //! occlusion shortens it.
 
+use crate::correction::DatasetCorrection;
 use crate::report::{Prediction, PredictionsFile};
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rayon::prelude::*;
@@ -463,11 +464,20 @@ fn frame_depth(ds: &Dataset, f: &Frame) -> Result<(Vec<f32>, usize, usize)> {
     Ok((raw.iter().map(|&v| (v as f64 * m_per_unit) as f32).collect(), w, h))
 }
 
-/// Runs the baseline on every GT instance of one frame.
-pub fn observe_frame(ds: &Dataset, f: &Frame, o: &ObservedOptions) -> Result<(Vec<ObservedPrediction>, Vec<ObservedSkip>)> {
-    let (depth, w, h) = frame_depth(ds, f)?;
+/// Runs the baseline on every GT instance of one frame, its depth corrected by
+/// `correction` first.
+pub fn observe_frame(
+    ds: &Dataset,
+    f: &Frame,
+    o: &ObservedOptions,
+    correction: Option<&DatasetCorrection>,
+) -> Result<(Vec<ObservedPrediction>, Vec<ObservedSkip>)> {
+    let (mut depth, w, h) = frame_depth(ds, f)?;
     let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2])
         .map_err(|e| Error::input(format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame), e.to_string()))?;
+    if let Some(c) = correction {
+        depth = c.apply(f, &depth, w, h, &k);
+    }
     let mut label: Option<InstanceMap> = None;
     let (mut preds, mut skips) = (Vec::new(), Vec::new());
     for (gi, g) in f.gt.iter().enumerate() {
@@ -515,7 +525,13 @@ pub fn observe_frame(ds: &Dataset, f: &Frame, o: &ObservedOptions) -> Result<(Ve
 /// Runs the baseline on every frame of `ds` (in parallel over frames; the result does not
 /// depend on the thread count).
 pub fn observe_dataset(ds: &Dataset, o: &ObservedOptions) -> Result<ObservedRun> {
-    let per: Vec<Result<(Vec<ObservedPrediction>, Vec<ObservedSkip>)>> = ds.frames.par_iter().map(|f| observe_frame(ds, f, o)).collect();
+    observe_dataset_corrected(ds, o, None)
+}
+
+/// [`observe_dataset`] on depth corrected by `correction` first.
+pub fn observe_dataset_corrected(ds: &Dataset, o: &ObservedOptions, correction: Option<&DatasetCorrection>) -> Result<ObservedRun> {
+    let per: Vec<Result<(Vec<ObservedPrediction>, Vec<ObservedSkip>)>> =
+        ds.frames.par_iter().map(|f| observe_frame(ds, f, o, correction)).collect();
     let mut run = ObservedRun::default();
     for r in per {
         let (p, s) = r?;

@@ -6,6 +6,7 @@
 //! - `report`: prediction files, [`evaluate`] and the report (JSON, text, SVG).
 //! - `baseline`: the non-learned `observed` predictor (visible points → box + hull).
 //! - `recgen`: the model as a predictor on every GT instance.
+//! - `correction`: a depth audit's depth correction applied to a dataset's frames first.
 //!
 //! Entry point for the CLI: [`run_eval`].
 
@@ -17,13 +18,15 @@ pub(crate) mod icp;
 pub(crate) mod metrics;
 
 pub(crate) mod baseline;
+pub(crate) mod correction;
 pub(crate) mod recgen;
 pub(crate) mod report;
 
 pub use self::baseline::fit_obb;
-pub use self::baseline::{observe_dataset, ObservedOptions, Shape};
+pub use self::baseline::{observe_dataset, observe_dataset_corrected, ObservedOptions, Shape};
+pub use self::correction::DatasetCorrection;
 pub use self::icp::IcpResult;
 pub use self::metrics::{add, add_s};
 pub use self::metrics::{add_sb, f1_score};
-pub use self::recgen::{recgen_dataset, recgen_dataset_views};
+pub use self::recgen::{recgen_dataset, recgen_dataset_corrected, recgen_dataset_views};
 pub use report::{evaluate, read_predictions, run_eval, EvalOptions, Prediction, PredictionsFile, Report};

@@ -23,6 +23,7 @@
 use std::path::{Path, PathBuf};
 
 use crate::baseline::{mesh_name, visible_mask, write_predictions, ObservedSkip};
+use crate::correction::DatasetCorrection;
 use crate::report::in_occlusion;
 use crate::report::Prediction;
 use recon_core::dataset::bop::{Dataset, Frame};
@@ -84,12 +85,16 @@ pub struct RecgenRun {
     pub seconds_model: f64,
 }
 
-fn open_frame(ds: &Dataset, f: &Frame) -> Result<RgbdFrame> {
+fn open_frame(ds: &Dataset, f: &Frame, correction: Option<&DatasetCorrection>) -> Result<RgbdFrame> {
     let at = || format!("{} scene {} frame {}", ds.root.display(), f.scene, f.frame);
     let k = Intrinsics::new(f.k[0][0], f.k[1][1], f.k[0][2], f.k[1][2]).map_err(|e| Error::input(at(), e.to_string()))?;
     let fo =
         FrameOptions { depth: Some(ds.depth_path(f)), intrinsics: Some(k), intrinsics_file: None, depth_scale_m: Some(f.depth_scale_m) };
-    RgbdFrame::open(&ds.rgb_path(f), &fo)
+    let mut frame = RgbdFrame::open(&ds.rgb_path(f), &fo)?;
+    if let Some(c) = correction {
+        frame.depth_m = c.apply(f, &frame.depth_m, frame.width, frame.height, &frame.intrinsics);
+    }
+    Ok(frame)
 }
 
 /// The frames paired with frame `i` for `others + 1`-view evaluation: of the
@@ -108,7 +113,8 @@ pub fn partners(ds: &Dataset, i: usize, others: usize) -> Vec<usize> {
 /// Reconstructs every GT instance of one frame; with `others` (view 2, 3, …),
 /// objects also visible there (matched by `obj_id`) are reconstructed from
 /// every frame they are seen in. With `occlusion`, only GT instances in that
-/// occlusion range (percent, [`in_occlusion`]) are reconstructed.
+/// occlusion range (percent, [`in_occlusion`]) are reconstructed. With `correction`,
+/// every view's depth is corrected first.
 pub fn recgen_frame_views(
     ds: &Dataset,
     f: &Frame,
@@ -116,6 +122,7 @@ pub fn recgen_frame_views(
     engine: &Engine,
     opts: &InferSettings,
     occlusion: Option<[f64; 2]>,
+    correction: Option<&DatasetCorrection>,
 ) -> Result<RecgenRun> {
     let keep = |gi: usize| in_occlusion(&f.gt[gi], occlusion);
     // The metrics read geometry only: no texture is baked.
@@ -125,7 +132,7 @@ pub fn recgen_frame_views(
     if !(0..f.gt.len()).any(keep) {
         return Ok(run);
     }
-    let frame = open_frame(ds, f)?;
+    let frame = open_frame(ds, f, correction)?;
     let mut label: Option<InstanceMap> = None;
     let mut masks = Vec::with_capacity(f.gt.len());
     for gi in (0..f.gt.len()).filter(|&gi| keep(gi)) {
@@ -143,7 +150,7 @@ pub fn recgen_frame_views(
                 ),
             )
         })?;
-        let frame2 = open_frame(ds, f2)?;
+        let frame2 = open_frame(ds, f2, correction)?;
         let mut label2: Option<InstanceMap> = None;
         let mut masks2 = Vec::new();
         for (gj, g2) in f2.gt.iter().enumerate() {
@@ -227,10 +234,24 @@ pub fn recgen_dataset_views(
     occlusion: Option<[f64; 2]>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<RecgenRun> {
+    recgen_dataset_corrected(ds, engine, opts, views, occlusion, None, progress)
+}
+
+/// [`recgen_dataset_views`] on depth corrected by `correction` first (`recon eval
+/// --depth-correction`).
+pub fn recgen_dataset_corrected(
+    ds: &Dataset,
+    engine: &Engine,
+    opts: &InferSettings,
+    views: usize,
+    occlusion: Option<[f64; 2]>,
+    correction: Option<&DatasetCorrection>,
+    progress: &dyn Fn(usize, usize),
+) -> Result<RecgenRun> {
     let mut all = RecgenRun::default();
     for (i, f) in ds.frames.iter().enumerate() {
         let others: Vec<&Frame> = partners(ds, i, views.saturating_sub(1)).into_iter().map(|j| &ds.frames[j]).collect();
-        let r = recgen_frame_views(ds, f, &others, engine, opts, occlusion)?;
+        let r = recgen_frame_views(ds, f, &others, engine, opts, occlusion, correction)?;
         all.predictions.extend(r.predictions);
         all.skipped.extend(r.skipped);
         all.seconds_model += r.seconds_model;

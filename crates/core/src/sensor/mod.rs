@@ -20,9 +20,12 @@
 //!
 //! Physical mechanisms (registration shift, lens distortion, drift, edge effects, …;
 //! [`Mechanism`]) act on whole frames: [`SensorModel::apply_frame`]. A model without
-//! any behaves exactly as before.
+//! any behaves exactly as before. The invertible ones, fitted by `recon audit`, are
+//! undone on measured depth by a [`DepthCorrection`].
 
+mod correction;
 mod mechanism;
+pub use self::correction::{not_invertible_reason, DepthCorrection, NotCorrected, CORRECTION_VERSION, INVERTIBLE};
 pub use self::mechanism::{expect, Expect, Mechanism, Param, Pinhole, SimFrame, MECHANISM_NAMES};
 
 use crate::rng::SeededRng;
