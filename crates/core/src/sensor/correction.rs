@@ -19,7 +19,7 @@
 //! Noise, dropout and edge effects cannot be undone on one image (a missing or mixed
 //! reading holds no trace of the surface behind it); the file lists them under
 //! `not_corrected` with the reason.
-use super::mechanism::{Mechanism, Pinhole};
+use super::mechanism::{geometric_chain, Mechanism, Pinhole};
 use crate::dataset::frame::RgbdFrame;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -198,43 +198,7 @@ impl DepthCorrection {
     /// Position p(s) that pixel s = (x, y) of the measured depth image sees, and the
     /// rotation's depth factor there (the forward model's geometric chain).
     fn forward(&self, k: Pinhole, x: f64, y: f64) -> Option<(f64, f64, f64)> {
-        let (mut xn, mut yn) = ((x - k.cx) / k.fx, (y - k.cy) / k.fy);
-        let (mut zfac, mut du, mut dv) = (1.0, 0.0, 0.0);
-        for m in &self.corrections {
-            if let Mechanism::RadialDistortion { k1, k2 } = *m {
-                let r2 = xn * xn + yn * yn;
-                let s = 1.0 + k1 * r2 + k2 * r2 * r2;
-                xn *= s;
-                yn *= s;
-            }
-        }
-        for m in &self.corrections {
-            match *m {
-                Mechanism::ExtrinsicRotation { rx_deg, ry_deg, rz_deg } => {
-                    let (a, b, c) = (rx_deg.to_radians(), ry_deg.to_radians(), rz_deg.to_radians());
-                    let (sa, ca, sb, cb, sc, cc) = (a.sin(), a.cos(), b.sin(), b.cos(), c.sin(), c.cos());
-                    let r = [
-                        [cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa],
-                        [sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa],
-                        [-sb, cb * sa, cb * ca],
-                    ];
-                    let dd = [xn, yn, 1.0];
-                    let dc: [f64; 3] = [0, 1, 2].map(|j| (0..3).map(|i| r[i][j] * dd[i]).sum::<f64>());
-                    if !(dc[2] > 1e-6) {
-                        return None;
-                    }
-                    xn = dc[0] / dc[2];
-                    yn = dc[1] / dc[2];
-                    zfac /= dc[2];
-                }
-                Mechanism::Registration { du_px, dv_px } => {
-                    du += du_px;
-                    dv += dv_px;
-                }
-                _ => {}
-            }
-        }
-        Some((k.fx * xn + k.cx - du, k.fy * yn + k.cy - dv, zfac))
+        geometric_chain(&self.corrections, k, x, y)
     }
 
     /// (gain, offset) of the value mechanisms at frame index `frame`.

@@ -369,8 +369,21 @@ fn seen(mechs: &[Mechanism], f: &SimFrame, u: usize, v: usize) -> (f64, Option<u
         let i = v * f.width + u;
         return (f.depth[i] as f64, Some(i));
     }
-    let k = f.k;
-    let (mut xn, mut yn) = ((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy);
+    let Some((x, y, zfac)) = geometric_chain(mechs, f.k, u as f64, v as f64) else {
+        return (0.0, None);
+    };
+    match sample_depth(f, x, y) {
+        Some((z, src)) => (if z > 0.0 { z * zfac } else { 0.0 }, Some(src)),
+        None => (0.0, None),
+    }
+}
+
+/// The geometric mechanisms (radial distortion, extrinsic rotation, registration) for the
+/// depth image's point (x, y): the point of the simulated image it sees and the rotation's
+/// depth factor; None where the rotated ray does not point forward. The forward model and
+/// the depth correction share it, so the correction inverts exactly what is simulated.
+pub(crate) fn geometric_chain(mechs: &[Mechanism], k: Pinhole, x: f64, y: f64) -> Option<(f64, f64, f64)> {
+    let (mut xn, mut yn) = ((x - k.cx) / k.fx, (y - k.cy) / k.fy);
     let mut zfac = 1.0;
     let (mut du, mut dv) = (0.0, 0.0);
     for m in mechs {
@@ -395,7 +408,7 @@ fn seen(mechs: &[Mechanism], f: &SimFrame, u: usize, v: usize) -> (f64, Option<u
             let dd = [xn, yn, 1.0];
             let dc: [f64; 3] = [0, 1, 2].map(|j| (0..3).map(|i| r[i][j] * dd[i]).sum::<f64>());
             if !(dc[2] > 1e-6) {
-                return (0.0, None);
+                return None;
             }
             xn = dc[0] / dc[2];
             yn = dc[1] / dc[2];
@@ -406,10 +419,7 @@ fn seen(mechs: &[Mechanism], f: &SimFrame, u: usize, v: usize) -> (f64, Option<u
             dv += dv_px;
         }
     }
-    match sample_depth(f, k.fx * xn + k.cx - du, k.fy * yn + k.cy - dv) {
-        Some((z, src)) => (if z > 0.0 { z * zfac } else { 0.0 }, Some(src)),
-        None => (0.0, None),
-    }
+    Some((k.fx * xn + k.cx - du, k.fy * yn + k.cy - dv, zfac))
 }
 
 /// Offsets within a disc of radius r (dx² + dy² ≤ r², not the centre), nearest first
