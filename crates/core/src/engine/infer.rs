@@ -379,7 +379,7 @@ pub struct ObjectResult {
     /// duplicated) with its texture, baked from every view's photo where the view's depth
     /// sees the surface, else from the vertex colours ([`crate::render::bake`]).
     pub textured: Option<crate::mesh::TexturedMesh>,
-    /// Where the texture's texels came from, and the atlas + bake seconds.
+    /// Where the texture's texels came from (its seconds are in `postprocess_seconds`).
     pub texture_report: Option<TextureReport>,
 }
 
@@ -393,7 +393,9 @@ pub struct TextureReport {
     /// Where the texels came from.
     #[serde(flatten)]
     pub texels: crate::render::BakeReport,
-    /// Atlas and bake, wall-clock seconds.
+    /// Atlas and bake, wall-clock seconds: counted in the object's post-processing time, and
+    /// kept out of pose.json's texture record, which a seed reproduces byte for byte.
+    #[serde(skip)]
     pub seconds: f64,
 }
 
@@ -1303,7 +1305,7 @@ fn object_result(
         observed_points: ctx.observed_points,
         observed_colors: ctx.observed_colors,
         timings,
-        postprocess_seconds: post_s,
+        postprocess_seconds: post_s + texture_report.map_or(0.0, |r| r.seconds),
         select_seconds: select_s,
         metadata: kept.metadata,
         samples: opts.samples,
