@@ -382,7 +382,7 @@ fn run_infer(args: &[String]) -> serde_json::Value {
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_recon"))
         .arg("infer")
         .args(args)
-        .args(["--steps", "1", "--json", "--weights", "random"])
+        .args(["--steps", "1", "--json", "--weights", "random", "--colour", "texture"])
         .current_dir(repo())
         .output()
         .unwrap();
@@ -461,7 +461,7 @@ fn check_infer_outputs(summary: &serde_json::Value, views: usize) {
         }
         assert!(o["stage_seconds"]["total"].as_f64().unwrap() > 0.0);
         let mesh = check_glb(Path::new(files["mesh_glb"].as_str().unwrap()));
-        // `--colour texture` (the default): UVs and an embedded PNG, baked from the photo.
+        // `--colour texture`: UVs and an embedded PNG, baked from the photo.
         let attrs = &mesh["meshes"][0]["primitives"][0]["attributes"];
         assert!(attrs.get("POSITION").is_some() && attrs.get("TEXCOORD_0").is_some() && attrs.get("COLOR_0").is_none());
         assert_eq!(mesh["images"][0]["mimeType"], "image/png");

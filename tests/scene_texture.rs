@@ -157,7 +157,21 @@ fn infer_writes_a_textured_glb() {
         .arg(sample.join("000001-color.png"))
         .arg("--masks")
         .arg(sample.join("000001-label.png"))
-        .args(["--objects", "21", "--weights", "random", "--steps", "1", "--max-faces", "3000", "--texture-size", "256", "--out"])
+        .args([
+            "--objects",
+            "21",
+            "--weights",
+            "random",
+            "--steps",
+            "1",
+            "--max-faces",
+            "3000",
+            "--colour",
+            "texture",
+            "--texture-size",
+            "256",
+            "--out",
+        ])
         .arg(&out)
         .env("RECON_CACHE", dir.join("cache"))
         .output()

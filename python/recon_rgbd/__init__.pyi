@@ -218,7 +218,7 @@ class Engine:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
-        colour: str = "texture",
+        colour: str = "vertex",
         texture_size: int = 1024,
         views: Optional[Sequence[Dict[str, Any]]] = None,
     ) -> List[Object]:
@@ -294,7 +294,7 @@ class Engine:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
-        colour: str = "texture",
+        colour: str = "vertex",
         texture_size: int = 1024,
         views: Optional[Sequence[Union[_Path, Dict[str, Any]]]] = None,
     ) -> Dict[str, Any]:
@@ -434,7 +434,7 @@ def eval(
     fusion: str = "multidiffusion",
     slat_fusion: str = "none",
     posthoc_color: str = "none",
-    colour: str = "texture",
+    colour: str = "vertex",
     texture_size: int = 1024,
 ) -> Dict[str, Any]:
     """`recon eval`: score a predictions file, or run method "observed" or "recgen" over the

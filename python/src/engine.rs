@@ -1016,7 +1016,7 @@ impl Object {
     }
 
     /// Write the mesh as GLB, exactly as `recon infer` writes `<object>/mesh.glb` (textured
-    /// with `colour="texture"`, the default; vertex-coloured with `colour="vertex"`).
+    /// with `colour="texture"`; vertex-coloured with `colour="vertex"`, the default).
     fn to_glb(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
         if let Some(tm) = &self.textured {
             return py.detach(|| recon::export::save_textured_glb(tm, &path, recon::export::Axes::ZUp)).py();

@@ -279,7 +279,7 @@ impl InferOptions {
         fusion: Fusion::Multidiffusion,
         slat_fusion: SlatFusion::None,
         posthoc_color: PosthocColor::None,
-        colour: MeshColour::Texture,
+        colour: MeshColour::Vertex,
         texture_size: DEFAULT_TEXTURE_SIZE,
     };
 
