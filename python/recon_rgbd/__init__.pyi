@@ -552,7 +552,7 @@ class Client:
         fusion: str = "multidiffusion",
         slat_fusion: str = "none",
         posthoc_color: str = "none",
-        colour: str = "texture",
+        colour: str = "vertex",
         texture_size: int = 1024,
     ) -> List[Object]:
         """`Engine.reconstruct` on the server (POST /v1/reconstruct?wait=true). Options not
