@@ -18,6 +18,9 @@
 //! and each output row is accumulated in a fixed order (offset 0, 1, …, then
 //! bias), so results are bitwise identical whatever the thread count.
 
+use crate::gemm::{self as kgemm, PackedMatrix, WeightFormat, NR};
+use crate::isa::Isa;
+use crate::vecmath::Activation;
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
@@ -230,6 +233,140 @@ pub fn submanifold_conv3d(
     Ok(out)
 }
 
+/// A submanifold conv weight packed once for recon's GEMM kernels: one
+/// `[C_in, C_out]` right operand per kernel offset, in the layer's format
+/// (bf16 runs the dot-product kernels where the CPU has them).
+#[derive(Clone, Debug)]
+pub struct PackedSparseWeight {
+    taps: Vec<PackedMatrix>,
+    c_in: usize,
+    c_out: usize,
+}
+
+impl PackedSparseWeight {
+    /// Pack a weight in spconv's layout `[c_out, kernel_volume, c_in]`.
+    pub fn new(weight: &[f32], c_out: usize, kernel_volume: usize, c_in: usize, format: WeightFormat) -> Result<Self, String> {
+        if weight.len() != c_out * kernel_volume * c_in || c_out == 0 || c_in == 0 || kernel_volume == 0 {
+            return Err(format!("sparse conv: weight has {} values, expected {c_out}×{kernel_volume}×{c_in}", weight.len()));
+        }
+        // Row k of panel p of tap i is W[p·NR + j, i, k] for the panel's columns j.
+        let taps = PackedMatrix::pack_many(kernel_volume, c_in, c_out, format, |k, p, row| {
+            for i in 0..kernel_volume {
+                for j in 0..NR.min(c_out - p * NR) {
+                    row[i * NR + j] = weight[((p * NR + j) * kernel_volume + i) * c_in + k];
+                }
+            }
+        });
+        Ok(Self { taps, c_in, c_out })
+    }
+
+    /// Number of kernel offsets.
+    pub fn kernel_volume(&self) -> usize {
+        self.taps.len()
+    }
+
+    /// Input channels.
+    pub fn c_in(&self) -> usize {
+        self.c_in
+    }
+
+    /// Output channels.
+    pub fn c_out(&self) -> usize {
+        self.c_out
+    }
+
+    /// Storage format of the packed taps.
+    pub fn format(&self) -> WeightFormat {
+        self.taps[0].format()
+    }
+
+    /// Bytes held by the packed taps.
+    pub fn bytes(&self) -> usize {
+        self.taps.iter().map(PackedMatrix::bytes).sum()
+    }
+}
+
+/// Output rows per task of [`submanifold_conv3d_packed`]: enough tasks to
+/// balance the pool, at most [`CHUNK_ROWS`] (each tap's weights are streamed
+/// once per task, so longer tasks reuse them more).
+fn packed_chunk_rows(n: usize) -> usize {
+    let threads = rayon::current_num_threads().max(1);
+    n.div_ceil(4 * threads).clamp(32, CHUNK_ROWS)
+}
+
+/// [`submanifold_conv3d`] on recon's packed GEMM kernels (`isa`, the weight's
+/// format). Output rows are split into tasks; per task and kernel offset, the
+/// offset's input rows are gathered, multiplied by the tap on the task's
+/// thread, and added into their output rows; then the bias. Each output row
+/// sums its offsets in offset order and the GEMM's rows do not depend on how
+/// they are grouped, so the result does not depend on the thread count (which
+/// sets the task size).
+pub fn submanifold_conv3d_packed(
+    isa: Isa,
+    feats: &[f32],
+    map: &NeighbourMap,
+    weight: &PackedSparseWeight,
+    bias: Option<&[f32]>,
+) -> Result<Vec<f32>, String> {
+    let (n, c_in, c_out) = (map.num_rows, weight.c_in, weight.c_out);
+    if feats.len() != n * c_in {
+        return Err(format!("sparse conv: feats has {} values, expected {n}×{c_in}", feats.len()));
+    }
+    if weight.kernel_volume() != map.kernel_volume() {
+        return Err(format!("sparse conv: weight has {} offsets, the neighbour map {}", weight.kernel_volume(), map.kernel_volume()));
+    }
+    if let Some(b) = bias {
+        if b.len() != c_out {
+            return Err(format!("sparse conv: bias has {} values, expected {c_out}", b.len()));
+        }
+    }
+    if !isa.supported() {
+        return Err(format!("sparse conv: instruction set {} is not supported by this CPU", isa.name()));
+    }
+    let mut out = vec![0f32; n * c_out];
+    if n == 0 {
+        return Ok(out);
+    }
+    let chunk = packed_chunk_rows(n);
+    out.par_chunks_mut(chunk * c_out).enumerate().try_for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(gathered, prod): &mut (Vec<f32>, Vec<f32>), (ci, out_chunk)| -> Result<(), String> {
+            let row0 = ci * chunk;
+            let rows = out_chunk.len() / c_out;
+            for (tap, pairs) in weight.taps.iter().zip(&map.pairs) {
+                // Pairs are sorted by output row: this task's slice.
+                let lo = pairs.partition_point(|p| (p.0 as usize) < row0);
+                let hi = pairs.partition_point(|p| (p.0 as usize) < row0 + rows);
+                let sel = &pairs[lo..hi];
+                if sel.is_empty() {
+                    continue;
+                }
+                gathered.clear();
+                for &(_, src) in sel {
+                    gathered.extend_from_slice(&feats[src as usize * c_in..][..c_in]);
+                }
+                prod.resize(sel.len() * c_out, 0.0);
+                kgemm::gemm_on_this_thread(isa, gathered, sel.len(), c_in, tap, None, Activation::None, prod, c_out)?;
+                for (src, &(dst, _)) in prod.chunks_exact(c_out).zip(sel) {
+                    let row = &mut out_chunk[(dst as usize - row0) * c_out..][..c_out];
+                    for (a, &b) in row.iter_mut().zip(src) {
+                        *a += b;
+                    }
+                }
+            }
+            if let Some(b) = bias {
+                for row in out_chunk.chunks_exact_mut(c_out) {
+                    for (a, &bb) in row.iter_mut().zip(b) {
+                        *a += bb;
+                    }
+                }
+            }
+            Ok(())
+        },
+    )?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -326,6 +463,13 @@ mod tests {
             }
         }
         assert!(max < 1e-4, "max abs diff {max}");
+        // The packed kernels, every ISA this CPU runs, f32 weights: the same sums.
+        for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+            let packed = PackedSparseWeight::new(&ws, c_out, kv, c_in, WeightFormat::F32).unwrap();
+            let fast = submanifold_conv3d_packed(isa, &feats, &map, &packed, Some(&b)).unwrap();
+            let d = fast.iter().zip(&got).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+            assert!(d < 1e-4, "{}: packed kernel differs from the reference by {d}", isa.name());
+        }
     }
 
     #[test]
@@ -353,19 +497,24 @@ mod tests {
         check_against_dense(s, 5, 3, 1, &occ, 5);
     }
 
-    #[test]
-    fn many_rows_span_chunks_and_are_thread_count_independent() {
-        // > CHUNK_ROWS rows so several chunks run in parallel.
-        let s = 12;
-        let mut rng = Lcg(7);
+    /// Sites of a side-`s` grid in two batch items, each kept where the next draw exceeds `keep_above`.
+    fn random_sites(s: i32, rng: &mut Lcg, keep_above: f32) -> Vec<[i32; 4]> {
         let mut coords = Vec::new();
         for b in 0..2 {
             for v in 0..s * s * s {
-                if rng.next() > -0.2 {
+                if rng.next() > keep_above {
                     coords.push([b, v / (s * s), (v / s) % s, v % s]);
                 }
             }
         }
+        coords
+    }
+
+    #[test]
+    fn many_rows_span_chunks_and_are_thread_count_independent() {
+        // > CHUNK_ROWS rows so several chunks run in parallel.
+        let mut rng = Lcg(7);
+        let coords = random_sites(12, &mut rng, -0.2);
         let (c_in, c_out) = (9, 11);
         let feats: Vec<f32> = (0..coords.len() * c_in).map(|_| rng.next()).collect();
         let w: Vec<f32> = (0..c_out * 27 * c_in).map(|_| rng.next()).collect();
@@ -391,6 +540,40 @@ mod tests {
             }
             assert!((acc as f32 - a[row * c_out + co]).abs() < 1e-4);
         }
+    }
+
+    #[test]
+    fn packed_kernel_is_thread_count_independent_and_bf16_close() {
+        // Rows enough for several tasks, whose size differs between 1 and 3 threads.
+        let mut rng = Lcg(11);
+        let coords = random_sites(10, &mut rng, -0.6);
+        let (c_in, c_out) = (13, 40);
+        let feats: Vec<f32> = (0..coords.len() * c_in).map(|_| rng.next()).collect();
+        let w: Vec<f32> = (0..c_out * 27 * c_in).map(|_| rng.next()).collect();
+        let bias: Vec<f32> = (0..c_out).map(|_| rng.next()).collect();
+        let map = NeighbourMap::submanifold(&coords, 3).unwrap();
+        let reference = submanifold_conv3d(&feats, c_in, &map, &w, Some(&bias), c_out).unwrap();
+        let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let n = coords.len();
+        assert!(one.install(|| packed_chunk_rows(n)) > three.install(|| packed_chunk_rows(n)), "{n} rows");
+        let scale = reference.iter().fold(0f32, |m, v| m.max(v.abs()));
+        for isa in Isa::ALL.into_iter().filter(|i| i.supported()) {
+            for (format, tol) in [(WeightFormat::F32, 1e-5), (WeightFormat::Bf16, 2e-2), (WeightFormat::F16, 2e-2)] {
+                let packed = PackedSparseWeight::new(&w, c_out, 27, c_in, format).unwrap();
+                assert_eq!(packed.format(), format);
+                let a = one.install(|| submanifold_conv3d_packed(isa, &feats, &map, &packed, Some(&bias)).unwrap());
+                let b = three.install(|| submanifold_conv3d_packed(isa, &feats, &map, &packed, Some(&bias)).unwrap());
+                assert!(a == b, "{} {}: 1 and 3 threads differ", isa.name(), format.name());
+                let d = a.iter().zip(&reference).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+                assert!(d <= tol * scale, "{} {}: max diff {d} against the reference (scale {scale})", isa.name(), format.name());
+            }
+        }
+        // A weight or bias of the wrong size is refused, naming what was expected.
+        assert!(PackedSparseWeight::new(&w[1..], c_out, 27, c_in, WeightFormat::F32).unwrap_err().contains("expected"));
+        let packed = PackedSparseWeight::new(&w, c_out, 27, c_in, WeightFormat::F32).unwrap();
+        assert!(submanifold_conv3d_packed(Isa::Portable, &feats, &map, &packed, Some(&bias[1..])).is_err());
+        assert!(submanifold_conv3d_packed(Isa::Portable, &feats[1..], &map, &packed, None).is_err());
     }
 
     #[test]

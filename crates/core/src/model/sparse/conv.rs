@@ -5,16 +5,20 @@
 //! `recon_kernels::sparse` for the full convention).
 //!
 //! Two paths with identical maths:
-//! - [`SparseConv3d::forward`]: the hand-written multi-threaded kernel (inference only);
+//! - [`SparseConv3d::forward`]: the hand-written multi-threaded kernel (inference only); a
+//!   layer built with fast compute packs its weight once at load time and runs recon's GEMM
+//!   kernels in the layer's precision, a plain one the f32 reference kernel;
 //! - [`SparseConv3d::forward_differentiable`]: candle ops (index_select gather,
 //!   matmul, index_add scatter), so gradients flow to feats and weights.
 
 use super::tensor::SparseTensor;
+use crate::model::nn::fast::Compute;
 use crate::util::profile;
 use crate::{Error, Result};
 use candle_core::{DType, Tensor};
 use candle_nn::VarBuilder;
-use recon_kernels::sparse::NeighbourMap;
+use recon_kernels::isa::Isa;
+use recon_kernels::sparse::{NeighbourMap, PackedSparseWeight};
 
 /// Build the submanifold neighbour map of `x`'s coordinates.
 pub fn neighbour_map(x: &SparseTensor, kernel_size: usize) -> Result<NeighbourMap> {
@@ -34,19 +38,29 @@ pub struct SparseConv3d {
     pub out_channels: usize,
     /// Kernel side k (odd).
     pub kernel_size: usize,
-    // Host copies for the fast kernel, made once at load time.
+    // Host copies for the fast kernel, made once at load time: the packed taps
+    // with their ISA (fast compute), else the f32 weight as stored.
     weight_host: Vec<f32>,
+    packed: Option<(PackedSparseWeight, Isa)>,
     bias_host: Option<Vec<f32>>,
 }
 
 impl SparseConv3d {
-    /// Load `{vb}.conv.weight` `[C_out, k, k, k, C_in]` and `{vb}.conv.bias`.
-    pub fn new(in_channels: usize, out_channels: usize, kernel_size: usize, vb: VarBuilder) -> Result<Self> {
+    /// Load `{vb}.conv.weight` `[C_out, k, k, k, C_in]` and `{vb}.conv.bias`;
+    /// fast `compute` packs the weight for its precision and ISA.
+    pub fn new(in_channels: usize, out_channels: usize, kernel_size: usize, vb: VarBuilder, compute: Compute) -> Result<Self> {
         let vb = vb.pp("conv");
         let k = kernel_size;
         let weight = vb.get((out_channels, k, k, k, in_channels), "weight")?;
         let bias = Some(vb.get(out_channels, "bias")?);
-        Self::from_tensors(weight, bias)
+        let mut conv = Self::from_tensors(weight, bias)?;
+        if let Some((precision, isa)) = compute.fast_parts() {
+            let w = std::mem::take(&mut conv.weight_host);
+            let packed =
+                PackedSparseWeight::new(&w, out_channels, k * k * k, in_channels, precision.weight_format()).map_err(Error::msg)?;
+            conv.packed = Some((packed, isa));
+        }
+        Ok(conv)
     }
 
     /// From a weight `[C_out, k, k, k, C_in]` and optional bias `[C_out]`.
@@ -60,7 +74,7 @@ impl SparseConv3d {
             Some(b) => Some(b.to_dtype(DType::F32)?.to_vec1::<f32>()?),
             None => None,
         };
-        Ok(Self { in_channels: dims[4], out_channels: dims[0], kernel_size: dims[1], weight, bias, weight_host, bias_host })
+        Ok(Self { in_channels: dims[4], out_channels: dims[0], kernel_size: dims[1], weight, bias, weight_host, packed: None, bias_host })
     }
 
     fn check_input(&self, x: &SparseTensor, map: &NeighbourMap) -> Result<()> {
@@ -86,15 +100,16 @@ impl SparseConv3d {
         let dtype = x.feats.dtype();
         let feats = x.feats.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
         let flops = || 2 * (map.pairs.iter().map(Vec::len).sum::<usize>() * self.in_channels * self.out_channels) as u64;
-        let out = profile::timed(profile::Kind::SparseConv, flops, || {
-            recon_kernels::sparse::submanifold_conv3d(
+        let out = profile::timed(profile::Kind::SparseConv, flops, || match &self.packed {
+            Some((w, isa)) => recon_kernels::sparse::submanifold_conv3d_packed(*isa, &feats, map, w, self.bias_host.as_deref()),
+            None => recon_kernels::sparse::submanifold_conv3d(
                 &feats,
                 self.in_channels,
                 map,
                 &self.weight_host,
                 self.bias_host.as_deref(),
                 self.out_channels,
-            )
+            ),
         })
         .map_err(Error::msg)?;
         let out = Tensor::from_vec(out, (x.len(), self.out_channels), x.feats.device())?.to_dtype(dtype)?;
@@ -165,6 +180,28 @@ mod tests {
             assert!(d < 1e-5, "k={k}: fast vs differentiable differ by {d}");
             assert_eq!(fast.coords, x.coords);
         }
+        Ok(())
+    }
+
+    #[test]
+    fn packed_fast_layers_agree_with_the_plain_layer() -> Result<()> {
+        use crate::model::nn::fast::Precision;
+        let x = random_sparse(6, 3);
+        let w = Tensor::randn(0f32, 0.3, (7, 3, 3, 3, 5), &Device::Cpu)?;
+        let b = Tensor::randn(0f32, 0.3, 7, &Device::Cpu)?;
+        let tensors = std::collections::HashMap::from([("conv.weight".to_string(), w.clone()), ("conv.bias".to_string(), b.clone())]);
+        let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
+        let map = neighbour_map(&x, 3)?;
+        let want = SparseConv3d::from_tensors(w, Some(b))?.forward_with_map(&x, &map)?;
+        let scale = want.feats.abs()?.max_all()?.to_scalar::<f32>()?;
+        for (precision, tol) in [(Precision::F32, 1e-5), (Precision::Bf16, 2e-2)] {
+            let conv = SparseConv3d::new(5, 7, 3, vb.clone(), Compute::fast(precision))?;
+            assert!(conv.packed.as_ref().is_some_and(|(p, _)| p.format() == precision.weight_format()));
+            let got = conv.forward_with_map(&x, &map)?;
+            let d = crate::util::max_abs_diff(&got.feats, &want.feats)?;
+            assert!(d <= tol * scale, "{precision}: packed layer differs by {d} (scale {scale})");
+        }
+        assert!(SparseConv3d::new(5, 7, 3, vb, Compute::Plain)?.packed.is_none());
         Ok(())
     }
 

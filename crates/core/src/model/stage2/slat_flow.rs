@@ -189,8 +189,8 @@ impl SparseResBlock3d {
     fn new(channels: usize, emb: usize, out: usize, updown: UpDown, vb: VarBuilder, compute: Compute) -> Result<Self> {
         Ok(Self {
             norm1: LayerNorm::new(channels, 1e-6, vb.pp("norm1"), compute)?,
-            conv1: SparseConv3d::new(channels, out, 3, vb.pp("conv1"))?,
-            conv2: SparseConv3d::new(out, out, 3, vb.pp("conv2"))?,
+            conv1: SparseConv3d::new(channels, out, 3, vb.pp("conv1"), compute)?,
+            conv2: SparseConv3d::new(out, out, 3, vb.pp("conv2"), compute)?,
             emb_layers: linear(emb, 2 * out, vb.pp("emb_layers.1"), compute)?,
             skip: if channels != out { Some(linear(channels, out, vb.pp("skip_connection"), compute)?) } else { None },
             updown,
