@@ -15,7 +15,7 @@ pub struct BenchArgs {
     /// Architecture file (full size: models/recgen-large.json).
     #[arg(long, default_value = "models/recgen-large.json")]
     config: PathBuf,
-    /// Sections to run: kernels, modules, guided, stage2, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
+    /// Sections to run: kernels, modules, guided, stage1, stage2, precision, occupancy, e2e, shape_fit, synth, train (comma separated).
     #[arg(long, value_delimiter = ',', default_value = "kernels,modules")]
     sections: Vec<String>,
     /// Precisions of the fast kernels for modules / e2e / comparisons.
@@ -77,7 +77,8 @@ fn opt(v: Option<f64>, f: impl Fn(f64) -> String) -> String {
 }
 
 /// The sections `--sections` accepts, in the order they run.
-const SECTIONS: [&str; 10] = ["kernels", "modules", "guided", "stage2", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
+const SECTIONS: [&str; 11] =
+    ["kernels", "modules", "guided", "stage1", "stage2", "precision", "occupancy", "e2e", "shape_fit", "synth", "train"];
 
 pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     if let Some(n) = a.threads {
@@ -98,6 +99,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<bool> {
     }
     if has("guided") {
         guided(&a, &modules, &mut report)?;
+    }
+    if has("stage1") {
+        stage1(&a, &mut report)?;
     }
     if has("stage2") {
         stage2(&a, &mut report)?;
@@ -293,10 +297,38 @@ fn guided(a: &BenchArgs, modules: &[ModuleKey], report: &mut BenchReport) -> any
 /// One full-size guided SLat-flow step on the realistic voxel set: FLOPs,
 /// GFLOP/s against the peak, and where the time goes.
 fn stage2(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
+    report.stage2 = flow_step(a, ModuleKey::SlatFlow)?;
+    report.notes.push(
+        "stage2: one guided SLat-flow step (cond + zero neg_cond, conditions prepared once, shortcuts on) on the object voxel set \
+         (a recon synth bottle's surface voxels); GFLOP = GEMM + attention + sparse conv operations counted from each call's shapes; \
+         peak = the GEMM precision's peak measured around the step; blocks = the transformer blocks alone; gemm/attn/conv/idx \
+         (neighbour maps, down/upsampling)/norm = exclusive kernel time, glue = the rest; io = the sparse io blocks, inclusive"
+            .into(),
+    );
+    Ok(())
+}
+
+/// One profiled guided SS-flow step, as `stage2` profiles the SLat flow.
+fn stage1(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
+    report.stage1 = flow_step(a, ModuleKey::SsFlow)?;
+    report.notes.push(
+        "stage1: one guided SS-flow step (batch 2: cond + zero neg_cond, conditions prepared once, shortcuts on) on the module \
+         bench's inputs; voxels = latent cells, tokens = patches + pose tokens; columns as in stage2"
+            .into(),
+    );
+    Ok(())
+}
+
+/// The profiled guided step of one flow per precision of `--dtype`.
+fn flow_step(a: &BenchArgs, key: ModuleKey) -> anyhow::Result<Vec<bench::Stage2Row>> {
     let computes: Vec<Compute> = a.dtype.iter().map(|&p| Compute::fast(p)).collect();
+    let title = match key {
+        ModuleKey::SsFlow => "stage1 (guided SS step)",
+        _ => "stage2 (guided SLat step)",
+    };
     println!(
         "\n{:<28} {:>6} {:>6} {:>7} {:>7} {:>8} {:>7} {:>6} {:>10} {:>6} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>5} {:>6}",
-        "stage2 (guided SLat step)",
+        title,
         "voxels",
         "tokens",
         "step s",
@@ -315,7 +347,7 @@ fn stage2(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
         "io%",
         "load"
     );
-    report.stage2 = bench::bench_stage2(&a.config, &computes, a.reps, |r| {
+    let rows = bench::bench_flow_step(&a.config, key, &computes, a.reps, |r| {
         let pct = |s: f64| format!("{:.1}", 100.0 * s / r.step_seconds);
         let p = &r.profile;
         println!(
@@ -340,14 +372,7 @@ fn stage2(a: &BenchArgs, report: &mut BenchReport) -> anyhow::Result<()> {
             opt(r.load_average, |v| format!("{v:.1}"))
         );
     })?;
-    report.notes.push(
-        "stage2: one guided SLat-flow step (cond + zero neg_cond, conditions prepared once, shortcuts on) on the object voxel set \
-         (a recon synth bottle's surface voxels); GFLOP = GEMM + attention + sparse conv operations counted from each call's shapes; \
-         peak = the GEMM precision's peak measured around the step; blocks = the transformer blocks alone; gemm/attn/conv/idx \
-         (neighbour maps, down/upsampling)/norm = exclusive kernel time, glue = the rest; io = the sparse io blocks, inclusive"
-            .into(),
-    );
-    Ok(())
+    Ok(rows)
 }
 
 /// Each module's output error in bf16 / f16 against fast f32.

@@ -759,8 +759,10 @@ pub fn bench_guided(
 /// ([`crate::util::profile`]).
 #[derive(Debug, Clone, Serialize)]
 pub struct Stage2Row {
+    /// The flow profiled: `slat_flow` (section `stage2`) or `ss_flow` (section `stage1`).
+    pub module: String,
     pub precision: String,
-    /// Occupied voxels at the flow's resolution.
+    /// Occupied voxels at the flow's resolution (the SS flow: its latent grid's cells).
     pub voxels: usize,
     /// Transformer tokens per item.
     pub tokens: usize,
@@ -787,30 +789,61 @@ pub struct Stage2Row {
     pub load_average: Option<f64>,
 }
 
-/// [`Stage2Row`] for each fast compute: `reps` profiled guided steps
-/// (best of) after preparing the conditions once.
-pub fn bench_stage2(arch_path: &Path, computes: &[Compute], reps: usize, mut on_row: impl FnMut(&Stage2Row)) -> Result<Vec<Stage2Row>> {
+/// [`Stage2Row`] of the SLat flow on [`object_slat_state`] for each fast compute.
+pub fn bench_stage2(arch_path: &Path, computes: &[Compute], reps: usize, on_row: impl FnMut(&Stage2Row)) -> Result<Vec<Stage2Row>> {
+    bench_flow_step(arch_path, ModuleKey::SlatFlow, computes, reps, on_row)
+}
+
+/// [`Stage2Row`] of one flow (`ss_flow`: the module bench's first item;
+/// `slat_flow`: [`object_slat_state`]) for each fast compute: `reps`
+/// profiled guided steps (best of) after preparing the conditions once.
+pub fn bench_flow_step(
+    arch_path: &Path,
+    key: ModuleKey,
+    computes: &[Compute],
+    reps: usize,
+    mut on_row: impl FnMut(&Stage2Row),
+) -> Result<Vec<Stage2Row>> {
     use crate::model::sampler::VelocityModel;
     use crate::model::stage2::slat_flow::SlatVelocity;
     use crate::util::profile;
     let arch = RecGenConfig::load(arch_path)?;
-    let key = ModuleKey::SlatFlow;
     let cfg = arch.module_args(key)?;
-    let (coords, feats) = object_slat_state(&arch)?;
-    let voxels: Vec<[i32; 3]> = coords.iter().map(|c| [c[1], c[2], c[3]]).collect();
-    let tokens = coarse_tokens(&voxels, arch.args.slat_flow.patch_size);
-    let cond = (SeededRng::new(13).randn(&[1, 1371, arch.args.slat_flow.cond_channels], &Device::Cpu)? * 0.5)?;
+    let (state, cond, voxels, tokens, coords) = match key {
+        ModuleKey::SlatFlow => {
+            let (coords, feats) = object_slat_state(&arch)?;
+            let voxels: Vec<[i32; 3]> = coords.iter().map(|c| [c[1], c[2], c[3]]).collect();
+            let tokens = coarse_tokens(&voxels, arch.args.slat_flow.patch_size);
+            let cond = (SeededRng::new(13).randn(&[1, 1371, arch.args.slat_flow.cond_channels], &Device::Cpu)? * 0.5)?;
+            (vec![feats], cond, coords.len(), tokens, coords)
+        }
+        ModuleKey::SsFlow => {
+            let inputs = ModuleInputs::new(&arch)?;
+            let state: Vec<Tensor> = inputs.ss_state.iter().map(|s| s.narrow(0, 0, 1)).collect::<candle_core::Result<_>>()?;
+            let cells = state[0].elem_count() / state[0].dims()[1];
+            let pose_tokens = state.get(1).map_or(0, |p| if p.rank() == 3 { p.dims()[1] } else { 1 });
+            (state, inputs.ss_cond.narrow(0, 0, 1)?, cells, arch.args.ss_flow.num_tokens() + pose_tokens, Vec::new())
+        }
+        _ => return Err(crate::Error::msg(format!("bench: {key} is not a flow"))),
+    };
     let neg = cond.zeros_like()?;
-    let state = [feats];
     let mut rows = Vec::new();
     for &compute in computes.iter().filter(|c| c.is_fast()) {
         let Some((precision, isa)) = compute.fast_parts() else { continue };
         let vb = registry::random_var_builder(&cfg, registry::module_seed(0, key.name()))?;
-        let m = registry::build_slat_flow(&cfg, vb, &format!("{}: {key}", arch.name), compute)?;
+        let (ss, slat) = match key {
+            ModuleKey::SsFlow => (Some(registry::build_ss_flow(&cfg, vb, &format!("{}: {key}", arch.name), compute)?), None),
+            _ => (None, Some(registry::build_slat_flow(&cfg, vb, &format!("{}: {key}", arch.name), compute)?)),
+        };
         crate::util::release_cached_buffers();
-        let v = SlatVelocity { model: &m, coords: &coords };
+        let sv = slat.as_ref().map(|m| SlatVelocity { model: m, coords: &coords });
+        let v: &dyn VelocityModel = match (&ss, &sv) {
+            (Some(m), _) => m,
+            (_, Some(v)) => v,
+            _ => unreachable!("one of the two flows was built"),
+        };
         let run = v.prepare(&cond, Some(&neg))?;
-        let model: &dyn VelocityModel = run.as_deref().unwrap_or(&v);
+        let model: &dyn VelocityModel = run.as_deref().unwrap_or(v);
         let (best, peak) = with_adjacent_peak(isa, precision.weight_format(), || -> Result<(f64, profile::Profile)> {
             let mut best = (f64::INFINITY, profile::Profile::default());
             for _ in 0..reps.max(1) {
@@ -833,8 +866,9 @@ pub fn bench_stage2(arch_path: &Path, computes: &[Compute], reps: usize, mut on_
         let gflops = flops / step_seconds / 1e9;
         let transformer_gflops = p.transformer_flops / p.transformer_seconds.max(f64::MIN_POSITIVE) / 1e9;
         let row = Stage2Row {
+            module: key.name().into(),
             precision: compute.describe(),
-            voxels: coords.len(),
+            voxels,
             tokens,
             step_seconds,
             flops,
@@ -1329,6 +1363,9 @@ pub struct BenchReport {
     pub attention: Vec<AttentionRow>,
     pub modules: Vec<ModuleRow>,
     pub guided: Vec<GuidedRow>,
+    /// The SS flow's profiled guided step (section `stage1`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stage1: Vec<Stage2Row>,
     pub stage2: Vec<Stage2Row>,
     pub precision: Vec<PrecisionRow>,
     pub occupancy: Vec<OccupancyRow>,

@@ -22,6 +22,7 @@ use crate::model::stage1::embedders::{
     build_condition, CondEmbedderConfig, CondEmbedders, FrameTokenEmbedder, MaskEmbedder, PointmapEmbedder, ViewInputs,
 };
 use crate::rng::SeededRng;
+use crate::util::profile::{region, Region};
 use crate::{Error, Result};
 
 /// Constructor arguments, named as upstream (`args` of the checkpoint JSON).
@@ -404,20 +405,23 @@ impl SparseStructureFlowModel {
             }
         };
 
-        let mut h = h;
-        match cond {
-            Cond::Tensor(cond) => {
-                for block in &self.blocks {
-                    h = block.forward(&h, &emb, cond)?;
+        let h = region(Region::Transformer, || -> Result<Tensor> {
+            let mut h = h;
+            match cond {
+                Cond::Tensor(cond) => {
+                    for block in &self.blocks {
+                        h = block.forward(&h, &emb, cond)?;
+                    }
+                }
+                Cond::Prepared(cond) => {
+                    let cond = cond.expand(b)?;
+                    for (i, block) in self.blocks.iter().enumerate() {
+                        h = block.forward_prepared(&h, &emb, cond.block(i)?)?;
+                    }
                 }
             }
-            Cond::Prepared(cond) => {
-                let cond = cond.expand(b)?;
-                for (i, block) in self.blocks.iter().enumerate() {
-                    h = block.forward_prepared(&h, &emb, cond.block(i)?)?;
-                }
-            }
-        }
+            Ok(h)
+        })?;
         let h = common::layer_norm_plain(&h, 1e-5)?;
         let n = cfg.num_tokens();
         let v = self.unpatchify(&self.out_layer.forward(&h.narrow(1, 0, n)?)?, cfg.out_channels)?;
