@@ -1000,8 +1000,8 @@ impl Pipeline {
     ) -> Result<Vec<ViewInputs>> {
         on_stage(Stage::ImageEncoder);
         meter.mark();
-        let t = Instant::now();
         let dino = self.hold(&self.resident.dino, ModuleKey::ImageCondModel, registry::build_dinov2, &mut meter.tm.loading)?;
+        let t = Instant::now();
         let tokens: Vec<Tensor> = inputs.views.iter().map(|v| dino.recgen_cond(&v.pixels)).collect::<candle_core::Result<_>>()?;
         drop(dino);
         meter.tm.image_encoder = secs(t);
@@ -1032,8 +1032,9 @@ impl Pipeline {
     ) -> Result<(Tensor, Tensor)> {
         on_stage(Stage::SsSampling);
         meter.mark();
-        let t = Instant::now();
+        // The build counts in `loading`, not in the condition's time.
         let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
+        let t = Instant::now();
         let (mut conds, mut neg) = (Vec::with_capacity(groups.len()), None);
         for g in groups {
             let (c, n) = ss_flow.condition(g)?;
@@ -1065,8 +1066,8 @@ impl Pipeline {
     fn decode_occupancy(&self, z: &Tensor, seed: u64, on_stage: &dyn Fn(Stage), meter: &mut Meter) -> Result<(usize, Vec<[i32; 4]>)> {
         on_stage(Stage::SsDecoder);
         meter.mark();
-        let t = Instant::now();
         let ss_decoder = self.hold(&self.resident.ss_decoder, ModuleKey::SsDecoder, registry::build_ss_decoder, &mut meter.tm.loading)?;
+        let t = Instant::now();
         let logits = ss_decoder.forward(z)?;
         drop(ss_decoder);
         let ss_resolution = logits.dim(2)?;
@@ -1132,8 +1133,8 @@ impl Pipeline {
         rng: &mut SeededRng,
         meter: &mut Meter,
     ) -> Result<Vec<Tensor>> {
-        let t = Instant::now();
         let ss_flow = self.hold(&self.resident.ss_flow, ModuleKey::SsFlow, registry::build_ss_flow, &mut meter.tm.loading)?;
+        let t = Instant::now();
         let sampler = FlowEulerGuidanceIntervalSampler::new(settings.clone());
         let k = pose_tok.dim(1)?;
         let anchor = pose_tok.narrow(1, 0, 1)?;
@@ -1177,8 +1178,8 @@ impl Pipeline {
         }
         on_stage(Stage::SlatSampling);
         meter.mark();
-        let t = Instant::now();
         let slat_flow = self.hold(&self.resident.slat_flow, ModuleKey::SlatFlow, registry::build_slat_flow, &mut meter.tm.loading)?;
+        let t = Instant::now();
         let (mut conds, mut neg) = (Vec::with_capacity(conditions.len()), None);
         for (views, pose) in conditions {
             let (c, n) = slat_flow.condition(views, Some(pose))?;
@@ -1217,8 +1218,8 @@ impl Pipeline {
         if opts.decode_mesh {
             on_stage(Stage::MeshDecoder);
             meter.mark();
-            let t = Instant::now();
             let dec = self.hold(&r.mesh_decoder, ModuleKey::SlatDecMesh, registry::build_mesh_decoder, &mut meter.tm.loading)?;
+            let t = Instant::now();
             let feats = dec.forward_feats_fused(slat)?;
             meter.tm.mesh_decoder = secs(t);
             let t = Instant::now();
@@ -1230,8 +1231,8 @@ impl Pipeline {
         if opts.decode_gaussians {
             on_stage(Stage::GaussianDecoder);
             meter.mark();
-            let t = Instant::now();
             let dec = self.hold(&r.gs_decoder, ModuleKey::SlatDecGs, registry::build_gaussian_decoder, &mut meter.tm.loading)?;
+            let t = Instant::now();
             let g = dec.forward(slat)?;
             drop(dec);
             let g = g.first().ok_or_else(|| Error::msg("pipeline: Gaussian decoder returned no batch item"))?;
