@@ -199,7 +199,7 @@ mod tests {
             assert!(conv.packed.as_ref().is_some_and(|(p, _)| p.format() == precision.weight_format()));
             let got = conv.forward_with_map(&x, &map)?;
             let d = crate::util::max_abs_diff(&got.feats, &want.feats)?;
-            assert!(d <= tol * scale, "{precision}: packed layer differs by {d} (scale {scale})");
+            assert!(d <= (tol * scale) as f64, "{precision}: packed layer differs by {d} (scale {scale})");
         }
         assert!(SparseConv3d::new(5, 7, 3, vb, Compute::Plain)?.packed.is_none());
         Ok(())
