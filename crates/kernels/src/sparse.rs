@@ -154,13 +154,57 @@ pub fn submanifold_conv3d(
     bias: Option<&[f32]>,
     c_out: usize,
 ) -> Result<Vec<f32>, String> {
-    let n = map.num_rows;
     let kv = map.kernel_volume();
-    if feats.len() != n * c_in {
-        return Err(format!("sparse conv: feats has {} values, expected {n}×{c_in}", feats.len()));
-    }
     if weight.len() != c_out * kv * c_in {
         return Err(format!("sparse conv: weight has {} values, expected {c_out}×{kv}×{c_in}", weight.len()));
+    }
+    conv_by_chunks(feats, c_in, c_out, map, bias, CHUNK_ROWS, |o, gathered, m, prod| {
+        // W_o as a [c_in, c_out] matrix read in place from [c_out, kv, c_in]:
+        // element (ci, co) sits at co·kv·c_in + o·c_in + ci.
+        unsafe {
+            gemm::gemm(
+                m,
+                c_out,
+                c_in,
+                prod.as_mut_ptr(),
+                1,
+                c_out as isize,
+                false,
+                gathered.as_ptr(),
+                1,
+                c_in as isize,
+                weight.as_ptr().add(o * c_in),
+                (kv * c_in) as isize,
+                1,
+                0f32,
+                1f32,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+        Ok(())
+    })
+}
+
+/// The chunk driver of both kernels: output rows in tasks of `chunk_rows`;
+/// per task and kernel offset `o`, the offset's `m` input rows are gathered
+/// (`[m, c_in]`), `product(o, gathered, m, prod)` writes their `[m, c_out]`
+/// contributions into the zeroed `prod`, and those are added into their
+/// output rows, offsets in order; then the bias. Checks `feats` and `bias`.
+fn conv_by_chunks(
+    feats: &[f32],
+    c_in: usize,
+    c_out: usize,
+    map: &NeighbourMap,
+    bias: Option<&[f32]>,
+    chunk_rows: usize,
+    product: impl Fn(usize, &[f32], usize, &mut [f32]) -> Result<(), String> + Sync,
+) -> Result<Vec<f32>, String> {
+    let n = map.num_rows;
+    if feats.len() != n * c_in {
+        return Err(format!("sparse conv: feats has {} values, expected {n}×{c_in}", feats.len()));
     }
     if let Some(b) = bias {
         if b.len() != c_out {
@@ -168,68 +212,46 @@ pub fn submanifold_conv3d(
         }
     }
     let mut out = vec![0f32; n * c_out];
-    out.par_chunks_mut(CHUNK_ROWS * c_out).enumerate().for_each(|(ci, out_chunk)| {
-        let row0 = ci * CHUNK_ROWS;
-        let rows = out_chunk.len() / c_out;
-        let mut gathered = Vec::new();
-        let mut prod = Vec::new();
-        for (o, pairs) in map.pairs.iter().enumerate() {
-            // Pairs are sorted by out_row: find this chunk's slice.
-            let lo = pairs.partition_point(|p| (p.0 as usize) < row0);
-            let hi = pairs.partition_point(|p| (p.0 as usize) < row0 + rows);
-            let m = hi - lo;
-            if m == 0 {
-                continue;
-            }
-            let sel = &pairs[lo..hi];
-            gathered.clear();
-            for &(_, src) in sel {
-                let s = src as usize * c_in;
-                gathered.extend_from_slice(&feats[s..s + c_in]);
-            }
-            prod.clear();
-            prod.resize(m * c_out, 0f32);
-            // W_o as a [c_in, c_out] matrix read in place from [c_out, kv, c_in]:
-            // element (ci, co) sits at co·kv·c_in + o·c_in + ci.
-            unsafe {
-                gemm::gemm(
-                    m,
-                    c_out,
-                    c_in,
-                    prod.as_mut_ptr(),
-                    1,
-                    c_out as isize,
-                    false,
-                    gathered.as_ptr(),
-                    1,
-                    c_in as isize,
-                    weight.as_ptr().add(o * c_in),
-                    (kv * c_in) as isize,
-                    1,
-                    0f32,
-                    1f32,
-                    false,
-                    false,
-                    false,
-                    gemm::Parallelism::None,
-                );
-            }
-            for (p, &(dst, _)) in sel.iter().enumerate() {
-                let d = (dst as usize - row0) * c_out;
-                let src = &prod[p * c_out..(p + 1) * c_out];
-                for (a, &b) in out_chunk[d..d + c_out].iter_mut().zip(src) {
-                    *a += b;
+    if n == 0 {
+        return Ok(out);
+    }
+    out.par_chunks_mut(chunk_rows * c_out).enumerate().try_for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(gathered, prod): &mut (Vec<f32>, Vec<f32>), (ci, out_chunk)| -> Result<(), String> {
+            let row0 = ci * chunk_rows;
+            let rows = out_chunk.len() / c_out;
+            for (o, pairs) in map.pairs.iter().enumerate() {
+                // Pairs are sorted by out_row: find this chunk's slice.
+                let lo = pairs.partition_point(|p| (p.0 as usize) < row0);
+                let hi = pairs.partition_point(|p| (p.0 as usize) < row0 + rows);
+                let sel = &pairs[lo..hi];
+                if sel.is_empty() {
+                    continue;
+                }
+                gathered.clear();
+                for &(_, src) in sel {
+                    gathered.extend_from_slice(&feats[src as usize * c_in..][..c_in]);
+                }
+                prod.clear();
+                prod.resize(sel.len() * c_out, 0f32);
+                product(o, gathered, sel.len(), prod)?;
+                for (src, &(dst, _)) in prod.chunks_exact(c_out).zip(sel) {
+                    let row = &mut out_chunk[(dst as usize - row0) * c_out..][..c_out];
+                    for (a, &b) in row.iter_mut().zip(src) {
+                        *a += b;
+                    }
                 }
             }
-        }
-        if let Some(b) = bias {
-            for r in 0..rows {
-                for (a, &bb) in out_chunk[r * c_out..(r + 1) * c_out].iter_mut().zip(b) {
-                    *a += bb;
+            if let Some(b) = bias {
+                for row in out_chunk.chunks_exact_mut(c_out) {
+                    for (a, &bb) in row.iter_mut().zip(b) {
+                        *a += bb;
+                    }
                 }
             }
-        }
-    });
+            Ok(())
+        },
+    )?;
     Ok(out)
 }
 
@@ -308,63 +330,16 @@ pub fn submanifold_conv3d_packed(
     weight: &PackedSparseWeight,
     bias: Option<&[f32]>,
 ) -> Result<Vec<f32>, String> {
-    let (n, c_in, c_out) = (map.num_rows, weight.c_in, weight.c_out);
-    if feats.len() != n * c_in {
-        return Err(format!("sparse conv: feats has {} values, expected {n}×{c_in}", feats.len()));
-    }
+    let (c_in, c_out) = (weight.c_in, weight.c_out);
     if weight.kernel_volume() != map.kernel_volume() {
         return Err(format!("sparse conv: weight has {} offsets, the neighbour map {}", weight.kernel_volume(), map.kernel_volume()));
-    }
-    if let Some(b) = bias {
-        if b.len() != c_out {
-            return Err(format!("sparse conv: bias has {} values, expected {c_out}", b.len()));
-        }
     }
     if !isa.supported() {
         return Err(format!("sparse conv: instruction set {} is not supported by this CPU", isa.name()));
     }
-    let mut out = vec![0f32; n * c_out];
-    if n == 0 {
-        return Ok(out);
-    }
-    let chunk = packed_chunk_rows(n);
-    out.par_chunks_mut(chunk * c_out).enumerate().try_for_each_init(
-        || (Vec::new(), Vec::new()),
-        |(gathered, prod): &mut (Vec<f32>, Vec<f32>), (ci, out_chunk)| -> Result<(), String> {
-            let row0 = ci * chunk;
-            let rows = out_chunk.len() / c_out;
-            for (tap, pairs) in weight.taps.iter().zip(&map.pairs) {
-                // Pairs are sorted by output row: this task's slice.
-                let lo = pairs.partition_point(|p| (p.0 as usize) < row0);
-                let hi = pairs.partition_point(|p| (p.0 as usize) < row0 + rows);
-                let sel = &pairs[lo..hi];
-                if sel.is_empty() {
-                    continue;
-                }
-                gathered.clear();
-                for &(_, src) in sel {
-                    gathered.extend_from_slice(&feats[src as usize * c_in..][..c_in]);
-                }
-                prod.resize(sel.len() * c_out, 0.0);
-                kgemm::gemm_on_this_thread(isa, gathered, sel.len(), c_in, tap, None, Activation::None, prod, c_out)?;
-                for (src, &(dst, _)) in prod.chunks_exact(c_out).zip(sel) {
-                    let row = &mut out_chunk[(dst as usize - row0) * c_out..][..c_out];
-                    for (a, &b) in row.iter_mut().zip(src) {
-                        *a += b;
-                    }
-                }
-            }
-            if let Some(b) = bias {
-                for row in out_chunk.chunks_exact_mut(c_out) {
-                    for (a, &bb) in row.iter_mut().zip(b) {
-                        *a += bb;
-                    }
-                }
-            }
-            Ok(())
-        },
-    )?;
-    Ok(out)
+    conv_by_chunks(feats, c_in, c_out, map, bias, packed_chunk_rows(map.num_rows), |o, gathered, m, prod| {
+        kgemm::gemm_on_this_thread(isa, gathered, m, c_in, &weight.taps[o], None, Activation::None, prod, c_out)
+    })
 }
 
 #[cfg(test)]
